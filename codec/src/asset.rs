@@ -1,0 +1,286 @@
+//! The asset file: a versioned container of metadata and the coded operator(s).
+//!
+//! Layout (all integers little-endian; specified in docs/asset-format.md):
+//!
+//! | offset | size | field |
+//! |---|---|---|
+//! | 0 | 8 | magic `FRACTILE` |
+//! | 8 | 2 | format version (1) |
+//! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
+//! | 11 | 1 | codec (1 quadtree PIFS) |
+//! | 12 | 4 | metadata length M |
+//! | 16 | M | metadata ([`AssetMeta`], proto's binary encoding) |
+//! | 16+M | 4 | payload length P |
+//! | 20+M | P | payload (codec-specific) |
+//! | 20+M+P | 4 | CRC-32 (IEEE) of every byte before it |
+//!
+//! Reading checks all of it before any decoding: a truncated, corrupt or newer file is an
+//! [`Error::Asset`] naming what is wrong, never a panic.
+
+use std::io::Write;
+use std::path::Path;
+
+use fractile_proto::{AssetKind, AssetMeta};
+use serde::{Deserialize, Serialize};
+
+use crate::Error;
+use crate::entropy::{Bit, Decoder, Encoder};
+use crate::operator::QuadtreeOperator;
+use crate::stream::{self, PlaneHeader};
+
+/// File magic.
+pub const MAGIC: &[u8; 8] = b"FRACTILE";
+/// The format version this build writes and reads.
+pub const FORMAT_VERSION: u16 = 1;
+
+/// Codec identifiers of the payload.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[repr(u8)]
+pub enum Codec {
+    /// Quadtree partitioned IFS, 2D (images and height fields).
+    QuadtreePifs = 1,
+}
+
+/// A coded plane: its header, its stream and the operator decoded from them.
+#[derive(Clone, Debug)]
+pub struct Plane {
+    /// Frame, sizes, quantiser.
+    pub header: PlaneHeader,
+    /// The entropy-coded transform stream.
+    pub stream: Vec<u8>,
+    /// The decoding operator.
+    pub operator: QuadtreeOperator,
+}
+
+/// Which source cells held data (height fields with nodata).
+#[derive(Clone, Debug, PartialEq)]
+pub struct Mask {
+    /// Width of the source grid.
+    pub width: usize,
+    /// Height of the source grid.
+    pub height: usize,
+    /// Row-major validity.
+    pub valid: Vec<bool>,
+}
+
+impl Mask {
+    /// Validity of the source cell under unit point (u, v).
+    pub fn at(&self, u: f32, v: f32) -> bool {
+        let x = ((u * self.width as f32) as usize).min(self.width - 1);
+        let y = ((v * self.height as f32) as usize).min(self.height - 1);
+        self.valid[y * self.width + x]
+    }
+
+    fn encode(&self) -> Vec<u8> {
+        // Context: the left and upper neighbours; runs of nodata cost almost nothing.
+        let mut enc = Encoder::new();
+        let mut ctx = [Bit::default(); 4];
+        for y in 0..self.height {
+            for x in 0..self.width {
+                let c = self.context(x, y);
+                enc.bit(&mut ctx[c], self.valid[y * self.width + x]);
+            }
+        }
+        enc.finish()
+    }
+
+    fn decode(width: usize, height: usize, bytes: &[u8]) -> Result<Mask, Error> {
+        let mut m = Mask {
+            width,
+            height,
+            valid: vec![false; width * height],
+        };
+        let mut dec = Decoder::new(bytes);
+        let mut ctx = [Bit::default(); 4];
+        for y in 0..height {
+            for x in 0..width {
+                let c = m.context(x, y);
+                m.valid[y * width + x] = dec.bit(&mut ctx[c]);
+            }
+        }
+        if dec.overrun() {
+            return Err(Error::Asset("the nodata mask is truncated".into()));
+        }
+        Ok(m)
+    }
+
+    fn context(&self, x: usize, y: usize) -> usize {
+        let left = x > 0 && self.valid[y * self.width + x - 1];
+        let up = y > 0 && self.valid[(y - 1) * self.width + x];
+        usize::from(left) | usize::from(up) << 1
+    }
+}
+
+#[derive(Serialize, Deserialize)]
+struct Payload {
+    planes: Vec<(PlaneHeader, Vec<u8>)>,
+    mask: Option<Vec<u8>>,
+}
+
+/// A decoded asset file: metadata, planes with their operators, and the nodata mask.
+#[derive(Clone, Debug)]
+pub struct Asset {
+    /// What the asset is.
+    pub meta: AssetMeta,
+    /// One plane per coded channel (Y, Cb, Cr for colour).
+    pub planes: Vec<Plane>,
+    /// Source validity, for height fields with nodata.
+    pub mask: Option<Mask>,
+}
+
+fn kind_byte(k: AssetKind) -> u8 {
+    match k {
+        AssetKind::Image => 0,
+        AssetKind::HeightField => 1,
+        AssetKind::Volume => 2,
+        AssetKind::Curve => 3,
+    }
+}
+
+impl Asset {
+    /// Builds an asset from coded planes, decoding each stream (so that what is served is exactly
+    /// what a reader of the file gets).
+    pub fn from_parts(meta: AssetMeta, planes: Vec<(PlaneHeader, Vec<u8>)>, mask: Option<Mask>) -> Result<Asset, Error> {
+        let planes = planes
+            .into_iter()
+            .enumerate()
+            .map(|(i, (header, stream))| {
+                let leaves = stream::decode_plane(&header, &stream).map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
+                let operator = stream::operator(&header, &leaves).map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
+                Ok(Plane { header, stream, operator })
+            })
+            .collect::<Result<Vec<_>, Error>>()?;
+        let asset = Asset { meta, planes, mask };
+        asset.check()?;
+        Ok(asset)
+    }
+
+    fn check(&self) -> Result<(), Error> {
+        let m = &self.meta;
+        let expected = match m.colour {
+            fractile_proto::ColourModel::Grey => 1,
+            fractile_proto::ColourModel::YCbCr => 3,
+        };
+        if self.planes.len() != expected || m.channels as usize != expected {
+            return Err(Error::Asset(format!(
+                "{} planes and {} channels for colour model {:?}",
+                self.planes.len(),
+                m.channels,
+                m.colour
+            )));
+        }
+        if m.width == 0 || m.height == 0 || !(m.value_max >= m.value_min) || !m.value_min.is_finite() || !m.value_max.is_finite() {
+            return Err(Error::Asset("bad size or value range in the metadata".into()));
+        }
+        Ok(())
+    }
+
+    /// The file's bytes.
+    pub fn to_bytes(&self) -> Vec<u8> {
+        let payload = Payload {
+            planes: self.planes.iter().map(|p| (p.header.clone(), p.stream.clone())).collect(),
+            mask: self.mask.as_ref().map(Mask::encode),
+        };
+        assemble(&self.meta, &fractile_proto::encode(&payload))
+    }
+
+    /// Size of the file in bytes.
+    pub fn file_size(&self) -> usize {
+        self.to_bytes().len()
+    }
+
+    /// Parses and checks a file's bytes.
+    pub fn from_bytes(bytes: &[u8]) -> Result<Asset, Error> {
+        let bad = |m: String| Error::Asset(m);
+        if bytes.len() < 24 {
+            return Err(bad(format!("{} bytes is too short for an asset", bytes.len())));
+        }
+        if &bytes[..8] != MAGIC {
+            return Err(bad("not a fractile asset (bad magic)".into()));
+        }
+        let version = u16::from_le_bytes([bytes[8], bytes[9]]);
+        if version != FORMAT_VERSION {
+            return Err(bad(format!(
+                "format version {version} is not supported by this build (reads version {FORMAT_VERSION})"
+            )));
+        }
+        let body = bytes.len() - 4;
+        let crc = u32::from_le_bytes(bytes[body..].try_into().expect("4 bytes"));
+        if crc32fast::hash(&bytes[..body]) != crc {
+            return Err(bad("checksum mismatch: the file is corrupt or truncated".into()));
+        }
+        let (kind, codec) = (bytes[10], bytes[11]);
+        if codec != Codec::QuadtreePifs as u8 {
+            return Err(bad(format!("unknown codec {codec}")));
+        }
+        let read_len = |at: usize| -> Result<usize, Error> {
+            let b = bytes.get(at..at + 4).ok_or_else(|| bad("truncated length field".into()))?;
+            Ok(u32::from_le_bytes(b.try_into().expect("4 bytes")) as usize)
+        };
+        let m_len = read_len(12)?;
+        let meta_bytes = bytes.get(16..16 + m_len).ok_or_else(|| bad("truncated metadata".into()))?;
+        let p_len = read_len(16 + m_len)?;
+        let p_start = 20 + m_len;
+        if p_start + p_len != body {
+            return Err(bad("payload length does not match the file size".into()));
+        }
+        let meta: AssetMeta = fractile_proto::decode(meta_bytes).map_err(|e| bad(e.to_string()))?;
+        if kind_byte(meta.kind) != kind {
+            return Err(bad("kind byte and metadata disagree".into()));
+        }
+        let payload: Payload = fractile_proto::decode(&bytes[p_start..body]).map_err(|e| bad(e.to_string()))?;
+        let mask = match payload.mask {
+            Some(m) => Some(Mask::decode(meta.width as usize, meta.height as usize, &m)?),
+            None => None,
+        };
+        Asset::from_parts(meta, payload.planes, mask)
+    }
+
+    /// Reads an asset file.
+    pub fn read(path: &Path) -> Result<Asset, Error> {
+        let bytes = std::fs::read(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+        Asset::from_bytes(&bytes).map_err(|e| match e {
+            Error::Asset(m) => Error::Asset(format!("{}: {m}", path.display())),
+            e => e,
+        })
+    }
+
+    /// Writes the file atomically: a temporary file beside it, synced, then renamed over it.
+    pub fn write(&self, path: &Path) -> Result<(), Error> {
+        write_atomic(path, &self.to_bytes())
+    }
+}
+
+fn assemble(meta: &AssetMeta, payload: &[u8]) -> Vec<u8> {
+    let meta_bytes = fractile_proto::encode(meta);
+    let mut out = Vec::with_capacity(24 + meta_bytes.len() + payload.len());
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
+    out.push(kind_byte(meta.kind));
+    out.push(Codec::QuadtreePifs as u8);
+    out.extend_from_slice(&(meta_bytes.len() as u32).to_le_bytes());
+    out.extend_from_slice(&meta_bytes);
+    out.extend_from_slice(&(payload.len() as u32).to_le_bytes());
+    out.extend_from_slice(payload);
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    out
+}
+
+/// Writes bytes to `path` atomically (temporary file in the same directory, fsync, rename).
+pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    let err = |e: std::io::Error| Error::Output(format!("{}: {e}", path.display()));
+    let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
+    let name = path.file_name().ok_or_else(|| Error::Output(format!("{}: not a file path", path.display())))?;
+    let tmp = dir.join(format!(".{}.tmp-{}", name.to_string_lossy(), std::process::id()));
+    let result = (|| {
+        let mut f = std::fs::File::create(&tmp)?;
+        f.write_all(bytes)?;
+        f.sync_all()?;
+        std::fs::rename(&tmp, path)
+    })();
+    if result.is_err() {
+        let _ = std::fs::remove_file(&tmp);
+    }
+    result.map_err(err)
+}

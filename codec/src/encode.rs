@@ -1,0 +1,526 @@
+//! The encoder: a [`Raster`] becomes an [`Asset`].
+//!
+//! Flow: normalise values to [0, 1] -> colour to YCbCr (chroma at half resolution) -> fill nodata
+//! (push-pull) and pad to the frame (edge replication; padding and nodata weigh 0 in every fit)
+//! -> fit every block of every size ([`Pyramid`]) -> choose the partition (tolerance, N ranges,
+//! const range, or a target rate by bisection) -> entropy code -> decode once to report the real
+//! error.
+
+use std::time::Instant;
+
+use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
+
+use crate::Error;
+use crate::asset::{Asset, Mask};
+use crate::colour::rgb_to_ycbcr;
+use crate::metrics::{Errors, compare};
+use crate::partition::{Limits, Partition, Pyramid, greedy_order, partitions_after};
+use crate::raster::Raster;
+use crate::search::{CodingPlane, SearchMode};
+use crate::stream::{PlaneHeader, encode_plane};
+use crate::transform::Quantiser;
+
+/// What decides how many ranges the encoder spends.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum RateMode {
+    /// Split while a range's RMS collage error exceeds this, in source value units
+    /// (grey levels for 8-bit images, metres for DEMs).
+    Tolerance(f32),
+    /// The seed's "quad N": split until this many ranges (over all channels).
+    Transforms(usize),
+    /// The seed's "const range R": a regular grid of R x R ranges. R = 1 works on the image
+    /// supersampled 2x (ranges of 2 there), the seed's quasi-lossless mode.
+    ConstRange(u32),
+    /// The largest number of ranges whose whole file stays at or under this many bits per pixel.
+    TargetBpp(f64),
+}
+
+/// A region of interest with its own tolerance and smallest range size.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Roi {
+    /// x0, y0, x1, y1 in source pixels.
+    pub rect: [f32; 4],
+    /// Tolerance in source value units.
+    pub tolerance: f32,
+    /// Smallest range side inside the region (a power of two); the global one if `None`.
+    pub min_range: Option<u32>,
+}
+
+/// Encoder settings.
+#[derive(Clone, Debug, PartialEq)]
+pub struct EncodeSettings {
+    /// How many ranges to spend.
+    pub rate: RateMode,
+    /// Smallest range side (power of two).
+    pub min_range: u32,
+    /// Largest range side (power of two).
+    pub max_range: u32,
+    /// Domain lattice step as a fraction of the range side (1.0: a step of n for domains of 2n).
+    pub domain_step: f32,
+    /// Contrast/offset quantisation.
+    pub quantiser: Quantiser,
+    /// Domain search.
+    pub search: SearchMode,
+    /// Regions of interest.
+    pub rois: Vec<Roi>,
+    /// Weight of chroma error against luma error (greedy modes), and the factor on the tolerance
+    /// for chroma (tolerance mode) is its inverse square root: chroma gets a lower rate.
+    pub chroma_weight: f32,
+}
+
+impl Default for EncodeSettings {
+    fn default() -> Self {
+        EncodeSettings {
+            rate: RateMode::Tolerance(f32::NAN),
+            min_range: 4,
+            max_range: 32,
+            domain_step: 1.0,
+            quantiser: Quantiser::default(),
+            search: SearchMode::default(),
+            rois: Vec::new(),
+            chroma_weight: 0.25,
+        }
+    }
+}
+
+impl EncodeSettings {
+    fn validate(&self) -> Result<(), Error> {
+        let pow2 = |v: u32| v >= 1 && v.is_power_of_two();
+        if !pow2(self.min_range) || !pow2(self.max_range) || self.min_range > self.max_range || self.max_range > 256 {
+            return Err(Error::Settings(format!(
+                "range sizes must be powers of two with min <= max <= 256 (min {}, max {})",
+                self.min_range, self.max_range
+            )));
+        }
+        if !(self.domain_step > 0.0 && self.domain_step <= 8.0) {
+            return Err(Error::Settings(format!("domain step {} must be in (0, 8]", self.domain_step)));
+        }
+        self.quantiser.validate().map_err(Error::Settings)?;
+        match self.rate {
+            RateMode::Tolerance(t) if t < 0.0 => return Err(Error::Settings("tolerance must be >= 0".into())),
+            RateMode::Transforms(0) => return Err(Error::Settings("at least one transform".into())),
+            RateMode::ConstRange(r) if r == 0 || r > 256 => {
+                return Err(Error::Settings("const range must be in 1..=256".into()));
+            }
+            RateMode::TargetBpp(b) if !(b > 0.0) => return Err(Error::Settings("target bpp must be > 0".into())),
+            _ => {}
+        }
+        for r in &self.rois {
+            if r.min_range.is_some_and(|m| !pow2(m)) || !(r.tolerance >= 0.0) || r.rect[2] <= r.rect[0] || r.rect[3] <= r.rect[1] {
+                return Err(Error::Settings(format!("bad region of interest {r:?}")));
+            }
+        }
+        if let (RateMode::ConstRange(_), false) = (self.rate, self.rois.is_empty()) {
+            return Err(Error::Settings("regions of interest need a quadtree mode, not const range".into()));
+        }
+        Ok(())
+    }
+
+    /// A one-line description stored in the asset for provenance.
+    pub fn describe(&self) -> String {
+        format!(
+            "{:?} ranges={}..{} domain_step={} contrast_bits={} offset_bits={} max_contrast={} search={:?} rois={}",
+            self.rate,
+            self.min_range,
+            self.max_range,
+            self.domain_step,
+            self.quantiser.contrast_bits,
+            self.quantiser.offset_bits,
+            self.quantiser.max_contrast,
+            self.search,
+            self.rois.len()
+        )
+    }
+}
+
+/// What an encode produced and measured.
+#[derive(Clone, Debug)]
+pub struct Encoded {
+    /// The asset (also holds the stats in its metadata).
+    pub asset: Asset,
+    /// The file's bytes.
+    pub bytes: Vec<u8>,
+    /// Errors of the decoded asset against the source (valid cells, source units).
+    pub errors: Errors,
+    /// Ranges over all planes.
+    pub transforms: usize,
+    /// Wall time in seconds.
+    pub seconds: f64,
+}
+
+impl Encoded {
+    /// Bits per source pixel of the whole file.
+    pub fn bpp(&self) -> f64 {
+        self.bytes.len() as f64 * 8.0 / (self.asset.meta.width as f64 * self.asset.meta.height as f64)
+    }
+
+    /// Source bytes (at the source's sample type) over file bytes.
+    pub fn ratio(&self) -> f64 {
+        self.asset.meta.source_bytes() as f64 / self.bytes.len() as f64
+    }
+}
+
+/// A source channel, normalised, before padding: values, validity, and its extent in source
+/// pixels per plane sample (1 for full resolution, 2 for chroma).
+struct SourcePlane {
+    width: usize,
+    height: usize,
+    values: Vec<f32>,
+    valid: Vec<bool>,
+    /// The source's extent in plane samples (w / 2 for chroma: odd sizes end mid-sample).
+    extent: [f32; 2],
+}
+
+/// Encodes a raster. `progress(done, total)` is called as blocks are fitted.
+pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<Encoded, Error> {
+    let start = Instant::now();
+    settings.validate()?;
+    let (w, h) = (raster.width, raster.height);
+    let (lo, hi) = match (raster.kind, raster.sample) {
+        (AssetKind::Image, SampleFormat::U8) => (0.0, 255.0),
+        (AssetKind::Image, SampleFormat::U16) => (0.0, 65535.0),
+        _ => {
+            let (lo, hi) = raster.value_range();
+            (lo, if hi > lo { hi } else { lo + 1.0 })
+        }
+    };
+    let span = (hi - lo) as f32;
+    let valid = raster.valid.clone().unwrap_or_else(|| vec![true; w * h]);
+    let norm = |v: &[f32]| -> Vec<f32> { v.iter().map(|&x| ((x - lo as f32) / span).clamp(0.0, 1.0)).collect() };
+    let colour = raster.colour();
+    let sources: Vec<SourcePlane> = match colour {
+        ColourModel::Grey => vec![SourcePlane {
+            width: w,
+            height: h,
+            values: norm(&raster.channels[0]),
+            valid: valid.clone(),
+            extent: [w as f32, h as f32],
+        }],
+        ColourModel::YCbCr => {
+            let [y, cb, cr] = rgb_to_ycbcr(&raster.channels, hi as f32);
+            let full = SourcePlane {
+                width: w,
+                height: h,
+                values: norm(&y),
+                valid: valid.clone(),
+                extent: [w as f32, h as f32],
+            };
+            let half = |c: &[f32]| halve(&norm(c), &valid, w, h);
+            vec![full, half(&cb), half(&cr)]
+        }
+    };
+
+    // Frame geometry shared by every plane.
+    let roi_min = settings.rois.iter().filter_map(|r| r.min_range).min().unwrap_or(settings.min_range);
+    let (min_size, levels, supersample) = match settings.rate {
+        RateMode::ConstRange(1) => (2u32, 1u32, true),
+        RateMode::ConstRange(r) => (r, 1, false),
+        _ => {
+            let m = settings.min_range.min(roi_min);
+            (m, settings.max_range.trailing_zeros() - m.trailing_zeros() + 1, false)
+        }
+    };
+    let planes: Vec<CodingPlane> = sources.iter().map(|s| coding_plane(s, min_size as usize, supersample)).collect();
+    let headers: Vec<PlaneHeader> = planes
+        .iter()
+        .map(|p| PlaneHeader {
+            frame: [p.width as u32, p.height as u32],
+            valid: p.valid,
+            min_size,
+            levels,
+            domain_steps: (0..levels)
+                .map(|l| (((min_size << l) as f32 * settings.domain_step).round() as u32).max(1))
+                .collect(),
+            quantiser: settings.quantiser,
+        })
+        .collect();
+
+    let total: u64 = headers.iter().map(|h| Pyramid::work(h, None)).sum();
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let tick = |k: u64| {
+        let d = done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
+        if d % 256 == 0 || d == total {
+            progress(d, total);
+        }
+    };
+    let pyramids: Vec<Pyramid> = planes
+        .iter()
+        .zip(&headers)
+        .map(|(p, h)| Pyramid::build(p, h.clone(), settings.search, None, &tick))
+        .collect();
+    progress(total, total);
+
+    // Limits per plane: tolerance (normalised) and smallest size for a block in frame coordinates.
+    let base_tol = match settings.rate {
+        RateMode::Tolerance(t) if t.is_nan() => 0.02,
+        RateMode::Tolerance(t) => t / span,
+        _ => 1.0,
+    };
+    let chroma_tol = 1.0 / settings.chroma_weight.max(1e-3).sqrt();
+    let limit_fns: Vec<Box<dyn Fn(usize, usize, usize) -> (f32, usize) + Sync>> = sources
+        .iter()
+        .zip(&planes)
+        .enumerate()
+        .map(|(i, (_, p))| {
+            // Frame samples per source pixel.
+            let k = p.valid[0] / w as f32;
+            let plane_tol = base_tol * if i > 0 { chroma_tol } else { 1.0 };
+            let rois: Vec<([f32; 4], f32, usize)> = settings
+                .rois
+                .iter()
+                .map(|r| {
+                    (
+                        r.rect.map(|v| v * k),
+                        (r.tolerance / span).min(plane_tol),
+                        r.min_range.unwrap_or(settings.min_range) as usize,
+                    )
+                })
+                .collect();
+            let global_min = settings.min_range as usize;
+            let f: Box<dyn Fn(usize, usize, usize) -> (f32, usize) + Sync> = Box::new(move |x, y, n| {
+                let (x0, y0, x1, y1) = (x as f32, y as f32, (x + n) as f32, (y + n) as f32);
+                let (mut tol, mut min) = (plane_tol, global_min);
+                for &(r, t, m) in &rois {
+                    if x0 < r[2] && x1 > r[0] && y0 < r[3] && y1 > r[1] {
+                        tol = tol.min(t);
+                        min = min.min(m);
+                    }
+                }
+                (tol, min)
+            });
+            f
+        })
+        .collect();
+    let limits: Vec<Limits> = limit_fns.iter().map(|f| f.as_ref() as Limits).collect();
+    let weights: Vec<f32> = (0..planes.len()).map(|i| if i == 0 { 1.0 } else { 4.0 * settings.chroma_weight }).collect();
+
+    let mask = raster.valid.as_ref().map(|v| Mask {
+        width: w,
+        height: h,
+        valid: v.clone(),
+    });
+    let mut meta = AssetMeta {
+        kind: raster.kind,
+        width: w as u32,
+        height: h as u32,
+        channels: raster.channels.len() as u8,
+        colour,
+        sample: raster.sample,
+        units: raster.units.clone(),
+        value_min: lo,
+        value_max: hi,
+        nodata: raster.nodata,
+        georef: raster.georef.clone(),
+        encoder: settings.describe(),
+        stats: EncodeStats::default(),
+    };
+    let pyr_refs: Vec<&Pyramid> = pyramids.iter().collect();
+    let build = |parts: &[Partition], meta: &AssetMeta| -> Result<Asset, Error> {
+        let coded = pyramids
+            .iter()
+            .zip(parts)
+            .map(|(p, part)| (p.header.clone(), encode_plane(&p.header, &|l, bx, by| part.decide(p, l, bx, by))))
+            .collect();
+        Asset::from_parts(meta.clone(), coded, mask.clone())
+    };
+    let parts: Vec<Partition> = match settings.rate {
+        RateMode::ConstRange(_) => pyramids.iter().map(Partition::whole_level).collect(),
+        RateMode::Tolerance(_) => pyramids.iter().zip(&limits).map(|(p, l)| Partition::by_tolerance(p, *l)).collect(),
+        RateMode::Transforms(n) => {
+            let (initial, order) = greedy_order(&pyr_refs, &weights, &limits);
+            partitions_after(&pyr_refs, &order, n.saturating_sub(initial).div_ceil(3))
+        }
+        RateMode::TargetBpp(bpp) => {
+            let (_, order) = greedy_order(&pyr_refs, &weights, &limits);
+            let max_bytes = (bpp * (w * h) as f64 / 8.0).floor() as usize;
+            let size_at = |k: usize| -> Result<usize, Error> { Ok(build(&partitions_after(&pyr_refs, &order, k), &meta)?.file_size()) };
+            // Largest prefix of the split order whose file fits (bisection; size grows with k).
+            let (mut good, mut bad) = (0usize, order.len() + 1);
+            if size_at(order.len())? <= max_bytes {
+                good = order.len();
+            } else {
+                while bad - good > 1 {
+                    let mid = (good + bad) / 2;
+                    if size_at(mid)? <= max_bytes { good = mid } else { bad = mid }
+                }
+            }
+            partitions_after(&pyr_refs, &order, good)
+        }
+    };
+    let asset = build(&parts, &meta)?;
+    let transforms: usize = asset.planes.iter().map(|p| p.operator.ranges().len()).sum();
+    let (decoded, _) = asset.decode_native();
+    let errors = compare(&raster.channels, &decoded.channels, raster.valid.as_deref(), meta.psnr_peak());
+    let seconds = start.elapsed().as_secs_f64();
+    meta.stats = EncodeStats {
+        transforms: transforms as u64,
+        rmse: errors.rmse,
+        psnr: errors.psnr,
+        max_error: errors.max_error,
+        seconds,
+    };
+    let mut asset = asset;
+    asset.meta = meta;
+    let bytes = asset.to_bytes();
+    Ok(Encoded {
+        asset,
+        bytes,
+        errors,
+        transforms,
+        seconds,
+    })
+}
+
+/// Halves a normalised plane (box average of valid cells) for chroma.
+fn halve(values: &[f32], valid: &[bool], w: usize, h: usize) -> SourcePlane {
+    let (hw, hh) = (w.div_ceil(2), h.div_ceil(2));
+    let mut out = vec![0.0f32; hw * hh];
+    let mut ok = vec![false; hw * hh];
+    for y in 0..hh {
+        for x in 0..hw {
+            let (mut s, mut n) = (0.0, 0.0);
+            for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                let (sx, sy) = (2 * x + dx, 2 * y + dy);
+                if sx < w && sy < h && valid[sy * w + sx] {
+                    s += values[sy * w + sx];
+                    n += 1.0;
+                }
+            }
+            if n > 0.0 {
+                out[y * hw + x] = s / n;
+                ok[y * hw + x] = true;
+            }
+        }
+    }
+    SourcePlane {
+        width: hw,
+        height: hh,
+        values: out,
+        valid: ok,
+        extent: [w as f32 / 2.0, h as f32 / 2.0],
+    }
+}
+
+/// Fills invalid cells (push-pull: averages of valid cells over a pyramid, pulled back down),
+/// optionally supersamples 2x, and pads to a multiple of `align` by edge replication.
+fn coding_plane(s: &SourcePlane, align: usize, supersample: bool) -> CodingPlane {
+    let mut values = s.values.clone();
+    fill_invalid(&mut values, &s.valid, s.width, s.height);
+    let (mut w, mut h, mut weights) = (s.width, s.height, s.valid.iter().map(|&v| f32::from(u8::from(v))).collect::<Vec<_>>());
+    // The source extent in frame units: chroma keeps the exact half of the source (w / 2) so
+    // that unit coordinates line up with luma.
+    let mut valid = s.extent;
+    if supersample {
+        let (w2, h2) = (2 * w, 2 * h);
+        let mut v2 = vec![0.0f32; w2 * h2];
+        let mut wt2 = vec![0.0f32; w2 * h2];
+        for y in 0..h2 {
+            for x in 0..w2 {
+                // Bilinear at the supersampled pixel centre.
+                let fx = ((x as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, (w - 1) as f32);
+                let fy = ((y as f32 + 0.5) / 2.0 - 0.5).clamp(0.0, (h - 1) as f32);
+                let (x0, y0) = (fx as usize, fy as usize);
+                let (x1, y1) = ((x0 + 1).min(w - 1), (y0 + 1).min(h - 1));
+                let (ax, ay) = (fx - x0 as f32, fy - y0 as f32);
+                let top = values[y0 * w + x0] * (1.0 - ax) + values[y0 * w + x1] * ax;
+                let bot = values[y1 * w + x0] * (1.0 - ax) + values[y1 * w + x1] * ax;
+                v2[y * w2 + x] = top * (1.0 - ay) + bot * ay;
+                wt2[y * w2 + x] = weights[(y / 2) * w + x / 2];
+            }
+        }
+        values = v2;
+        weights = wt2;
+        w = w2;
+        h = h2;
+        valid = [valid[0] * 2.0, valid[1] * 2.0];
+    }
+    let (fw, fh) = (w.div_ceil(align) * align, h.div_ceil(align) * align);
+    let mut pv = vec![0.0f32; fw * fh];
+    let mut pw = vec![0.0f32; fw * fh];
+    for y in 0..fh {
+        let sy = y.min(h - 1);
+        for x in 0..fw {
+            let sx = x.min(w - 1);
+            pv[y * fw + x] = values[sy * w + sx];
+            if x < w && y < h {
+                pw[y * fw + x] = weights[y * w + x];
+            }
+        }
+    }
+    CodingPlane {
+        width: fw,
+        height: fh,
+        values: pv,
+        weights: pw,
+        valid,
+    }
+}
+
+/// Push-pull fill of invalid cells from the valid ones.
+fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
+    if valid.iter().all(|&v| v) {
+        return;
+    }
+    // Level 0: (sum, weight) per cell; each coarser level sums 2x2 children.
+    let mut levels: Vec<(usize, usize, Vec<(f32, f32)>)> = vec![(
+        w,
+        h,
+        values.iter().zip(valid).map(|(&v, &ok)| if ok { (v, 1.0) } else { (0.0, 0.0) }).collect(),
+    )];
+    while levels.last().is_some_and(|(lw, lh, _)| *lw > 1 || *lh > 1) {
+        let (lw, lh, cells) = levels.last().expect("non-empty");
+        let (nw, nh) = (lw.div_ceil(2), lh.div_ceil(2));
+        let mut next = vec![(0.0f32, 0.0f32); nw * nh];
+        for y in 0..*lh {
+            for x in 0..*lw {
+                let c = cells[y * lw + x];
+                let n = &mut next[(y / 2) * nw + x / 2];
+                n.0 += c.0;
+                n.1 += c.1;
+            }
+        }
+        levels.push((nw, nh, next));
+    }
+    // Pull: every cell without weight takes its parent's mean.
+    for li in (0..levels.len() - 1).rev() {
+        let (upper, lower) = levels.split_at_mut(li + 1);
+        let (lw, lh, cells) = &mut upper[li];
+        let (pw, _, parents) = &lower[0];
+        for y in 0..*lh {
+            for x in 0..*lw {
+                let c = &mut cells[y * *lw + x];
+                if c.1 == 0.0 {
+                    let p = parents[(y / 2) * pw + x / 2];
+                    *c = (p.0 / p.1.max(1e-20), 1.0);
+                } else {
+                    *c = (c.0 / c.1, 1.0);
+                }
+            }
+        }
+    }
+    for (i, v) in values.iter_mut().enumerate() {
+        if !valid[i] {
+            *v = levels[0].2[i].0;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fill_invalid_interpolates_from_neighbours() {
+        let (w, h) = (8, 8);
+        let mut v: Vec<f32> = (0..64).map(|i| (i % 8) as f32).collect();
+        let mut valid = vec![true; 64];
+        for i in [9, 10, 17, 18, 63] {
+            valid[i] = false;
+            v[i] = 1000.0;
+        }
+        fill_invalid(&mut v, &valid, w, h);
+        for i in [9, 10, 17, 18, 63] {
+            assert!((0.0..=7.0).contains(&v[i]), "cell {i} filled with {}", v[i]);
+        }
+    }
+}

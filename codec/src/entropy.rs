@@ -1,0 +1,254 @@
+//! Adaptive binary range coding of the transform stream.
+//!
+//! Hand-written because no maintained crate offers what this needs in a few lines: adaptive
+//! *binary* contexts (one probability per quadtree level, per bit position of a parameter),
+//! as in LZMA and CABAC. (`constriction` codes with static categorical models; adaptive
+//! contexts would have to be rebuilt per symbol.) The coder is the LZMA range coder: 32-bit
+//! range, 11-bit probabilities, carry propagation through a cache byte.
+//!
+//! Decoding never panics: reading past the end yields zero bytes, and [`Decoder::overrun`]
+//! tells the caller that the stream was too short (a truncated or corrupt asset).
+
+const PROB_BITS: u32 = 11;
+const PROB_ONE: u16 = 1 << PROB_BITS;
+const ADAPT_SHIFT: u32 = 5;
+const TOP: u32 = 1 << 24;
+
+/// The probability that the next bit is 0, adapted after every bit.
+#[derive(Clone, Copy, Debug)]
+pub struct Bit(u16);
+
+impl Default for Bit {
+    fn default() -> Self {
+        Bit(PROB_ONE / 2)
+    }
+}
+
+/// Codes a value of `bits` bits, most significant first, each bit in the context of the bits
+/// above it (a binary tree of [`Bit`]s), so any distribution over `0..2^bits` is learnt.
+#[derive(Clone, Debug)]
+pub struct BitTree {
+    bits: u32,
+    probs: Vec<Bit>,
+}
+
+impl BitTree {
+    /// A tree for values in `0..2^bits`.
+    pub fn new(bits: u32) -> Self {
+        BitTree {
+            bits,
+            probs: vec![Bit::default(); 1 << bits],
+        }
+    }
+
+    /// Number of bits of the values it codes.
+    pub fn bits(&self) -> u32 {
+        self.bits
+    }
+}
+
+/// Writes bits into a byte vector.
+pub struct Encoder {
+    low: u64,
+    range: u32,
+    cache: u8,
+    cache_size: u64,
+    out: Vec<u8>,
+}
+
+impl Default for Encoder {
+    fn default() -> Self {
+        Self::new()
+    }
+}
+
+impl Encoder {
+    /// An empty stream.
+    pub fn new() -> Self {
+        Encoder {
+            low: 0,
+            range: u32::MAX,
+            cache: 0,
+            cache_size: 1,
+            out: Vec::new(),
+        }
+    }
+
+    fn shift_low(&mut self) {
+        if (self.low as u32) < 0xFF00_0000 || (self.low >> 32) != 0 {
+            let carry = (self.low >> 32) as u8;
+            let mut temp = self.cache;
+            loop {
+                self.out.push(temp.wrapping_add(carry));
+                temp = 0xFF;
+                self.cache_size -= 1;
+                if self.cache_size == 0 {
+                    break;
+                }
+            }
+            self.cache = ((self.low >> 24) & 0xFF) as u8;
+        }
+        self.cache_size += 1;
+        self.low = (self.low & 0x00FF_FFFF) << 8;
+    }
+
+    /// Codes one bit with an adaptive probability.
+    pub fn bit(&mut self, p: &mut Bit, bit: bool) {
+        let bound = (self.range >> PROB_BITS) * p.0 as u32;
+        if !bit {
+            self.range = bound;
+            p.0 += (PROB_ONE - p.0) >> ADAPT_SHIFT;
+        } else {
+            self.low += bound as u64;
+            self.range -= bound;
+            p.0 -= p.0 >> ADAPT_SHIFT;
+        }
+        while self.range < TOP {
+            self.range <<= 8;
+            self.shift_low();
+        }
+    }
+
+    /// Codes `value` (< 2^bits) through a bit tree.
+    pub fn tree(&mut self, tree: &mut BitTree, value: u32) {
+        debug_assert!(value < (1 << tree.bits));
+        let mut node = 1usize;
+        for i in (0..tree.bits).rev() {
+            let b = (value >> i) & 1 == 1;
+            self.bit(&mut tree.probs[node], b);
+            node = (node << 1) | b as usize;
+        }
+    }
+
+    /// Bytes written so far (a lower bound of the final size, for rate estimates).
+    pub fn len(&self) -> usize {
+        self.out.len() + self.cache_size as usize + 4
+    }
+
+    /// Whether nothing was coded yet.
+    pub fn is_empty(&self) -> bool {
+        self.out.is_empty()
+    }
+
+    /// Flushes and returns the stream.
+    pub fn finish(mut self) -> Vec<u8> {
+        for _ in 0..5 {
+            self.shift_low();
+        }
+        self.out
+    }
+}
+
+/// Reads bits written by [`Encoder`].
+pub struct Decoder<'a> {
+    data: &'a [u8],
+    pos: usize,
+    range: u32,
+    code: u32,
+    overrun: usize,
+}
+
+impl<'a> Decoder<'a> {
+    /// Starts reading a stream.
+    pub fn new(data: &'a [u8]) -> Self {
+        let mut d = Decoder {
+            data,
+            pos: 0,
+            range: u32::MAX,
+            code: 0,
+            overrun: 0,
+        };
+        for _ in 0..5 {
+            d.code = (d.code << 8) | d.byte() as u32;
+        }
+        d
+    }
+
+    fn byte(&mut self) -> u8 {
+        match self.data.get(self.pos) {
+            Some(&b) => {
+                self.pos += 1;
+                b
+            }
+            None => {
+                self.overrun += 1;
+                0
+            }
+        }
+    }
+
+    /// Decodes one bit.
+    pub fn bit(&mut self, p: &mut Bit) -> bool {
+        let bound = (self.range >> PROB_BITS) * p.0 as u32;
+        let bit = if self.code < bound {
+            self.range = bound;
+            p.0 += (PROB_ONE - p.0) >> ADAPT_SHIFT;
+            false
+        } else {
+            self.code -= bound;
+            self.range -= bound;
+            p.0 -= p.0 >> ADAPT_SHIFT;
+            true
+        };
+        while self.range < TOP {
+            self.range <<= 8;
+            self.code = (self.code << 8) | self.byte() as u32;
+        }
+        bit
+    }
+
+    /// Decodes a value through a bit tree.
+    pub fn tree(&mut self, tree: &mut BitTree) -> u32 {
+        let mut node = 1usize;
+        for _ in 0..tree.bits {
+            let b = self.bit(&mut tree.probs[node]);
+            node = (node << 1) | b as usize;
+        }
+        (node - (1 << tree.bits)) as u32
+    }
+
+    /// Whether the decoder read past the end of the stream (beyond the flush bytes).
+    pub fn overrun(&self) -> bool {
+        self.overrun > 4
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use proptest::prelude::*;
+
+    proptest! {
+        #[test]
+        fn bits_and_trees_round_trip(values in proptest::collection::vec((0u32..1000, any::<bool>()), 0..2000)) {
+            let mut enc = Encoder::new();
+            let (mut t, mut b) = (BitTree::new(10), Bit::default());
+            for &(v, bit) in &values {
+                enc.tree(&mut t, v);
+                enc.bit(&mut b, bit);
+            }
+            let bytes = enc.finish();
+            let mut dec = Decoder::new(&bytes);
+            let (mut t, mut b) = (BitTree::new(10), Bit::default());
+            for &(v, bit) in &values {
+                prop_assert_eq!(dec.tree(&mut t), v);
+                prop_assert_eq!(dec.bit(&mut b), bit);
+            }
+            prop_assert!(!dec.overrun());
+        }
+    }
+
+    #[test]
+    fn skewed_source_codes_below_its_raw_size() {
+        // 10,000 bits with P(1) = 1/20: entropy is 0.286 bit/bit, i.e. about 358 bytes.
+        let mut enc = Encoder::new();
+        let mut p = Bit::default();
+        let mut state = 12345u32;
+        for _ in 0..10_000 {
+            state = state.wrapping_mul(1_103_515_245).wrapping_add(12345);
+            enc.bit(&mut p, (state >> 16) % 20 == 0);
+        }
+        let n = enc.finish().len();
+        assert!(n < 450, "{n} bytes for a 0.286-bit/bit source");
+    }
+}

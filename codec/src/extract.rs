@@ -1,0 +1,168 @@
+//! Asset-level decoding: the operator decoders of [`crate::decode`] applied to every plane, then
+//! brought back to source terms — value units, RGB from YCbCr, nodata where the source had none.
+//! This is what the CLI and the server call.
+
+use fractile_proto::{AssetKind, ColourModel, SampleFormat};
+use rayon::prelude::*;
+
+use crate::asset::Asset;
+use crate::colour::{rgb_bound, ycbcr_to_rgb};
+use crate::decode::{self, DiscreteOptions, DiscreteReport, Grid, Method};
+use crate::operator::Operator;
+
+/// A decoded raster in source units.
+#[derive(Clone, Debug)]
+pub struct Decoded {
+    /// Width in samples.
+    pub width: usize,
+    /// Height in samples.
+    pub height: usize,
+    /// One plane per source channel (RGB for colour), NaN where the source had no data.
+    pub channels: Vec<Vec<f32>>,
+}
+
+/// One point of an asset, in source units.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PointSample {
+    /// One value per source channel (NaN on nodata).
+    pub values: Vec<f32>,
+    /// Bound on the error against the attractor, in source units (largest over channels).
+    pub error_bound: f32,
+    /// Inverse steps taken (largest over channels).
+    pub iterations: u32,
+}
+
+impl Asset {
+    fn span(&self) -> f32 {
+        (self.meta.value_max - self.meta.value_min) as f32
+    }
+
+    fn peak(&self) -> f32 {
+        match self.meta.sample {
+            SampleFormat::U16 => 65535.0,
+            _ => 255.0,
+        }
+    }
+
+    /// Largest |s| over every map, for choosing iteration counts.
+    pub fn max_contrast(&self) -> f32 {
+        self.planes
+            .iter()
+            .flat_map(|p| p.operator.ranges().iter().map(|r| r.contrast.abs()))
+            .fold(0.0, f32::max)
+    }
+
+    /// A-priori bound (source units) after `n` iterations everywhere, from the largest |s|.
+    pub fn bound_after(&self, n: u32) -> f32 {
+        let half = self
+            .planes
+            .iter()
+            .map(|p| {
+                let (lo, hi) = p.operator.invariant_interval();
+                (hi - lo) / 2.0
+            })
+            .fold(0.0, f32::max);
+        let b = self.max_contrast().powi(n as i32) * half * self.span();
+        if self.meta.colour == ColourModel::YCbCr { rgb_bound(b, b, b) } else { b }
+    }
+
+    /// Iterations for the a-priori bound to fall under `tolerance` (source units), capped.
+    pub fn iterations_for(&self, tolerance: f32, cap: u32) -> u32 {
+        let mut n = 1;
+        while n < cap && self.bound_after(n) > tolerance {
+            n += 1;
+        }
+        n
+    }
+
+    /// Brings normalised planes sampled at unit points back to source units.
+    fn to_source(&self, planes: Vec<Vec<f32>>, points: impl Fn(usize) -> (f32, f32) + Sync) -> Vec<Vec<f32>> {
+        let (lo, span) = (self.meta.value_min as f32, self.span());
+        let mut out: Vec<Vec<f32>> = match self.meta.colour {
+            ColourModel::Grey => planes.into_iter().map(|p| p.into_iter().map(|v| lo + v * span).collect()).collect(),
+            ColourModel::YCbCr => {
+                let peak = self.peak();
+                let n = planes[0].len();
+                let mut rgb = vec![Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
+                for i in 0..n {
+                    let c = ycbcr_to_rgb(planes[0][i] * span + lo, planes[1][i] * span + lo, planes[2][i] * span + lo, peak);
+                    for k in 0..3 {
+                        rgb[k].push(c[k]);
+                    }
+                }
+                rgb
+            }
+        };
+        if let Some(mask) = &self.mask {
+            for ch in &mut out {
+                ch.par_iter_mut().enumerate().for_each(|(i, v)| {
+                    let (u, v2) = points(i);
+                    if !mask.at(u, v2) {
+                        *v = f32::NAN;
+                    }
+                });
+            }
+        }
+        out
+    }
+
+    /// Discrete decoding of the whole asset at `width x height`.
+    pub fn decode(&self, width: usize, height: usize, opts: DiscreteOptions) -> (Decoded, DiscreteReport) {
+        let results: Vec<(Grid, DiscreteReport)> =
+            self.planes.iter().map(|p| decode::discrete(&p.operator, width, height, opts)).collect();
+        let report = DiscreteReport {
+            iterations: results.iter().map(|r| r.1.iterations).max().unwrap_or(0),
+            last_change: results.iter().map(|r| r.1.last_change).fold(0.0, f32::max),
+        };
+        let planes = results.into_iter().map(|r| r.0.values).collect();
+        let channels = self.to_source(planes, |i| {
+            (((i % width) as f32 + 0.5) / width as f32, ((i / width) as f32 + 0.5) / height as f32)
+        });
+        (Decoded { width, height, channels }, report)
+    }
+
+    /// Discrete decoding at the source's own size.
+    pub fn decode_native(&self) -> (Decoded, DiscreteReport) {
+        self.decode(self.meta.width as usize, self.meta.height as usize, DiscreteOptions::default())
+    }
+
+    /// Continuous decoding of one unit point (u, v) with `iterations` inverse steps.
+    pub fn point(&self, u: f32, v: f32, iterations: u32) -> PointSample {
+        let pv: Vec<_> = self.planes.iter().map(|p| decode::point(&p.operator, [u, v], iterations)).collect();
+        let span = self.span();
+        let bounds: Vec<f32> = pv.iter().map(|p| p.error_bound * span).collect();
+        let values = self.to_source(pv.iter().map(|p| vec![p.value]).collect(), |_| (u, v));
+        PointSample {
+            values: values.into_iter().map(|c| c[0]).collect(),
+            error_bound: if bounds.len() == 3 { rgb_bound(bounds[0], bounds[1], bounds[2]) } else { bounds[0] },
+            iterations: pv.iter().map(|p| p.iterations).max().unwrap_or(0),
+        }
+    }
+
+    /// A window `[u0, v0, u1, v1]` of the unit square at `width x height`.
+    pub fn window(&self, rect: [f32; 4], width: usize, height: usize, iterations: Option<u32>, method: Method) -> (Decoded, Method) {
+        let mut chosen = method;
+        let planes = self
+            .planes
+            .iter()
+            .map(|p| {
+                let (g, m) = decode::window(&p.operator, rect, width, height, iterations, method);
+                chosen = m;
+                g.values
+            })
+            .collect();
+        let [u0, v0, u1, v1] = rect;
+        let channels = self.to_source(planes, |i| {
+            (
+                u0 + ((i % width) as f32 + 0.5) / width as f32 * (u1 - u0),
+                v0 + ((i / width) as f32 + 0.5) / height as f32 * (v1 - v0),
+            )
+        });
+        (Decoded { width, height, channels }, chosen)
+    }
+
+    /// Whether the asset is a height field.
+    pub fn is_height_field(&self) -> bool {
+        self.meta.kind == AssetKind::HeightField
+    }
+}

@@ -1,0 +1,235 @@
+//! The partitioned affine operator every codec of fractile is written as:
+//! for a point p in cell c, `(W f)(p) = g_c(p) + s_c(p) * f(phi_c(p))`, |s_c| < 1.
+//!
+//! Decoders ([`crate::decode`]) know nothing else. A codec provides [`Operator::step`], which finds
+//! the cell of a point and returns g, s and phi there; the quadtree IFS here has constant g (offset)
+//! and s (contrast) per range and phi mapping the range onto its domain (scale 2, one of 8
+//! isometries). Fractal interpolation surfaces plug in later with bilinear g and s.
+
+use crate::transform::isometry;
+
+/// What the operator does at one point: `(W f)(p) = offset + contrast * f(next)`.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Step<const D: usize> {
+    /// g_c(p).
+    pub offset: f32,
+    /// s_c(p), |s| < 1.
+    pub contrast: f32,
+    /// phi_c(p), a point of the frame.
+    pub next: [f32; D],
+}
+
+/// A partitioned affine operator on functions over a D-dimensional frame `[0, frame)`.
+///
+/// Values are normalised: the source's value range maps to [0, 1].
+pub trait Operator<const D: usize>: Send + Sync {
+    /// Size of the frame in coding-grid units (the padded grid the encoder worked on).
+    fn frame(&self) -> [f32; D];
+    /// The part `[0, valid)` of the frame that holds the source; unit coordinates map onto it.
+    fn valid(&self) -> [f32; D];
+    /// How much phi stretches lengths (domain size / range size). Discrete decoding averages the
+    /// previous iterate over this footprint, as the encoder did when it fitted the maps.
+    fn expansion(&self) -> u32;
+    /// g, s and phi at `p` (clamped into the frame).
+    fn step(&self, p: [f32; D]) -> Step<D>;
+    /// An interval of values that W maps into itself: every iterate from a seed inside it, and the
+    /// attractor, stay inside it. Its half-width bounds `max |seed - f|`.
+    fn invariant_interval(&self) -> (f32, f32);
+}
+
+/// The smallest interval I with `hull(o_c + s_c * I) ⊂ I` over all cells, by iterating that map
+/// from [0, 1] (which every fractile operator keeps invariant, see [`crate::transform`]).
+pub fn invariant_interval(maps: impl Iterator<Item = (f32, f32)> + Clone) -> (f32, f32) {
+    let (mut lo, mut hi) = (0.0f32, 1.0f32);
+    for _ in 0..500 {
+        let (mut nlo, mut nhi) = (f32::INFINITY, f32::NEG_INFINITY);
+        for (s, o) in maps.clone() {
+            let (a, b) = (o + s * lo, o + s * hi);
+            nlo = nlo.min(a.min(b));
+            nhi = nhi.max(a.max(b));
+        }
+        if !nlo.is_finite() {
+            return (0.0, 1.0);
+        }
+        let done = (nlo - lo).abs() < 1e-7 && (nhi - hi).abs() < 1e-7;
+        lo = nlo;
+        hi = nhi;
+        if done {
+            break;
+        }
+    }
+    // The iteration approaches the fixed interval from outside only asymptotically: widen by a
+    // hair so that rounding never puts a value outside it.
+    (lo - 1e-5, hi + 1e-5)
+}
+
+/// One range of a 2D quadtree IFS, in frame coordinates, ready for decoding.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct RangeMap {
+    /// Left edge of the range.
+    pub x: u32,
+    /// Top edge of the range.
+    pub y: u32,
+    /// Side of the (square) range.
+    pub size: u32,
+    /// Left edge of the domain (side 2 * size).
+    pub domain_x: u32,
+    /// Top edge of the domain.
+    pub domain_y: u32,
+    /// Isometry index, 0..8.
+    pub isometry: u8,
+    /// Contrast s.
+    pub contrast: f32,
+    /// Offset o.
+    pub offset: f32,
+}
+
+/// A quadtree partitioned IFS on a 2D frame: ranges that tile the frame, each with its map.
+#[derive(Clone, Debug)]
+pub struct QuadtreeOperator {
+    frame: [u32; 2],
+    valid: [f32; 2],
+    cell: u32,
+    lut_cols: usize,
+    lut: Vec<u32>,
+    ranges: Vec<RangeMap>,
+    interval: (f32, f32),
+}
+
+impl QuadtreeOperator {
+    /// Builds the operator; `cell` is a side that divides every range's position and size
+    /// (the smallest range size) and the frame. Fails if the ranges do not tile the frame.
+    pub fn new(frame: [u32; 2], valid: [f32; 2], cell: u32, ranges: Vec<RangeMap>) -> Result<Self, String> {
+        if cell == 0 || frame[0] % cell != 0 || frame[1] % cell != 0 || frame[0] == 0 || frame[1] == 0 {
+            return Err(format!("frame {frame:?} is not a multiple of the cell size {cell}"));
+        }
+        let cols = (frame[0] / cell) as usize;
+        let rows = (frame[1] / cell) as usize;
+        let mut lut = vec![u32::MAX; cols * rows];
+        for (i, r) in ranges.iter().enumerate() {
+            let fits = r.size > 0
+                && r.size % cell == 0
+                && r.x % cell == 0
+                && r.y % cell == 0
+                && r.x + r.size <= frame[0]
+                && r.y + r.size <= frame[1]
+                && r.contrast.abs() < 1.0
+                && r.contrast.is_finite()
+                && r.offset.is_finite()
+                && (r.contrast == 0.0
+                    || (r.domain_x + 2 * r.size <= frame[0] && r.domain_y + 2 * r.size <= frame[1]));
+            if !fits {
+                return Err(format!("range {i} ({r:?}) does not fit the frame {frame:?}"));
+            }
+            let (c0, r0, n) = ((r.x / cell) as usize, (r.y / cell) as usize, (r.size / cell) as usize);
+            for row in r0..r0 + n {
+                for slot in &mut lut[row * cols + c0..row * cols + c0 + n] {
+                    if *slot != u32::MAX {
+                        return Err(format!("range {i} overlaps another range"));
+                    }
+                    *slot = i as u32;
+                }
+            }
+        }
+        if lut.contains(&u32::MAX) {
+            return Err("the ranges leave part of the frame uncovered".into());
+        }
+        let interval = invariant_interval(ranges.iter().map(|r| (r.contrast, r.offset)));
+        Ok(QuadtreeOperator {
+            frame,
+            valid,
+            cell,
+            lut_cols: cols,
+            lut,
+            ranges,
+            interval,
+        })
+    }
+
+    /// The ranges, in coding order.
+    pub fn ranges(&self) -> &[RangeMap] {
+        &self.ranges
+    }
+
+    /// Index of the range that holds frame point `p` (clamped into the frame).
+    #[inline(always)]
+    pub fn range_at(&self, p: [f32; 2]) -> usize {
+        let x = (p[0].max(0.0) as u32).min(self.frame[0] - 1) / self.cell;
+        let y = (p[1].max(0.0) as u32).min(self.frame[1] - 1) / self.cell;
+        self.lut[y as usize * self.lut_cols + x as usize] as usize
+    }
+
+    /// Frame size in samples (integer form of [`Operator::frame`]).
+    pub fn frame_size(&self) -> [u32; 2] {
+        self.frame
+    }
+}
+
+impl Operator<2> for QuadtreeOperator {
+    fn frame(&self) -> [f32; 2] {
+        [self.frame[0] as f32, self.frame[1] as f32]
+    }
+
+    fn valid(&self) -> [f32; 2] {
+        self.valid
+    }
+
+    fn expansion(&self) -> u32 {
+        2
+    }
+
+    #[inline(always)]
+    fn step(&self, p: [f32; 2]) -> Step<2> {
+        let r = &self.ranges[self.range_at(p)];
+        let n = r.size as f32;
+        // Local coordinates in [0, 1]; clamped so points on the far frame edge stay in their range.
+        let a = ((p[0] - r.x as f32) / n).clamp(0.0, 1.0);
+        let b = ((p[1] - r.y as f32) / n).clamp(0.0, 1.0);
+        let (a, b) = isometry(r.isometry, a, b);
+        Step {
+            offset: r.offset,
+            contrast: r.contrast,
+            next: [r.domain_x as f32 + 2.0 * n * a, r.domain_y as f32 + 2.0 * n * b],
+        }
+    }
+
+    fn invariant_interval(&self) -> (f32, f32) {
+        self.interval
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn invariant_interval_is_the_fixed_interval() {
+        // Maps x -> 0.5 x and x -> 0.5 x + 0.5: the attractor is [0, 1].
+        let (lo, hi) = invariant_interval([(0.5, 0.0), (0.5, 0.5)].into_iter());
+        assert!(lo.abs() < 1e-4 && (hi - 1.0).abs() < 1e-4, "{lo} {hi}");
+        // x -> 0.2 x + 0.3 alone: the fixed point 0.375.
+        let (lo, hi) = invariant_interval([(0.2, 0.3)].into_iter());
+        assert!((lo - 0.375).abs() < 1e-4 && (hi - 0.375).abs() < 1e-4, "{lo} {hi}");
+        // A negative contrast flips the interval: x -> -0.5 x + 0.75 has the fixed point 0.5.
+        let (lo, hi) = invariant_interval([(-0.5, 0.75)].into_iter());
+        assert!((lo - 0.5).abs() < 1e-4 && (hi - 0.5).abs() < 1e-4, "{lo} {hi}");
+    }
+
+    #[test]
+    fn ranges_must_tile_the_frame() {
+        let r = |x, y, size| RangeMap {
+            x,
+            y,
+            size,
+            domain_x: 0,
+            domain_y: 0,
+            isometry: 0,
+            contrast: 0.0,
+            offset: 0.5,
+        };
+        assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(0, 0, 8)]).is_ok());
+        assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(0, 0, 4)]).is_err());
+        assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(0, 0, 8), r(4, 4, 4)]).is_err());
+        assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(4, 4, 8)]).is_err());
+    }
+}

@@ -1,0 +1,242 @@
+//! Quadtree partitions of a plane into ranges.
+//!
+//! The encoder fits every block of every size once ([`Pyramid`]), in parallel; choosing a
+//! partition is then cheap, which is what makes the seed's three modes and rate control fast:
+//! * tolerance: split a range while its RMS collage error exceeds the tolerance;
+//! * "quad N": split until N ranges, always the range whose split removes the most error
+//!   (the seed splits the worst range; splitting where the split *gains* most gives a better
+//!   error for the same N, and needs no extra work since children are fitted anyway);
+//! * "const range R": one level only.
+//!
+//! Rate control replays the greedy split order and bisects on its length.
+
+use std::collections::BinaryHeap;
+
+use rayon::prelude::*;
+
+use crate::search::{CodingPlane, DomainPool, Fit, SearchMode, fit_range};
+use crate::stream::{Coverage, PlaneHeader, coverage};
+
+/// Fits of every block of every level of one plane.
+pub struct Pyramid {
+    /// The plane's header (frame, sizes, steps, quantiser).
+    pub header: PlaneHeader,
+    /// `fits[l][by * cols + bx]`, `None` for blocks not wholly inside the frame.
+    pub fits: Vec<Vec<Option<Fit>>>,
+    /// Blocks per row at each level.
+    pub cols: Vec<usize>,
+}
+
+/// Limits of one block: RMS tolerance (normalised) and smallest range side allowed there.
+pub type Limits<'a> = &'a (dyn Fn(usize, usize, usize) -> (f32, usize) + Sync);
+
+impl Pyramid {
+    /// Fits all blocks. `levels_wanted` restricts work to those levels (const-range mode).
+    pub fn build(
+        plane: &CodingPlane,
+        header: PlaneHeader,
+        mode: SearchMode,
+        only_level: Option<usize>,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Pyramid {
+        let avg2 = plane.average2();
+        let mut fits = Vec::new();
+        let mut cols = Vec::new();
+        for l in 0..header.levels as usize {
+            let n = header.size(l);
+            let (c, r) = ((plane.width).div_ceil(n), (plane.height).div_ceil(n));
+            cols.push(c);
+            if only_level.is_some_and(|o| o != l) {
+                fits.push(vec![None; c * r]);
+                continue;
+            }
+            let pool = DomainPool::new(plane, &avg2, n, header.domain_steps[l] as usize, mode);
+            let level: Vec<Option<Fit>> = (0..c * r)
+                .into_par_iter()
+                .map(|i| {
+                    let (bx, by) = (i % c, i / c);
+                    (coverage(header.frame, n, bx, by) == Coverage::Inside).then(|| {
+                        let f = fit_range(plane, &pool, bx * n, by * n, &header.quantiser, mode);
+                        progress(1);
+                        f
+                    })
+                })
+                .collect();
+            fits.push(level);
+        }
+        Pyramid { header, fits, cols }
+    }
+
+    /// Number of inside blocks over the levels that will be fitted (for progress bars).
+    pub fn work(header: &PlaneHeader, only_level: Option<usize>) -> u64 {
+        (0..header.levels as usize)
+            .filter(|&l| only_level.is_none_or(|o| o == l))
+            .map(|l| {
+                let n = header.size(l);
+                ((header.frame[0] as usize / n) * (header.frame[1] as usize / n)) as u64
+            })
+            .sum()
+    }
+
+    /// The fit of a block.
+    pub fn fit(&self, l: usize, bx: usize, by: usize) -> Option<Fit> {
+        self.fits[l].get(by * self.cols[l] + bx).copied().flatten()
+    }
+
+    fn children_sse(&self, l: usize, bx: usize, by: usize) -> Option<f32> {
+        let mut s = 0.0;
+        for (cx, cy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+            s += self.fit(l - 1, 2 * bx + cx, 2 * by + cy)?.sse;
+        }
+        Some(s)
+    }
+}
+
+/// A choice of ranges: `split[l][block]` for inside blocks above the smallest level.
+#[derive(Clone, Debug)]
+pub struct Partition {
+    split: Vec<Vec<bool>>,
+}
+
+impl Partition {
+    fn empty(p: &Pyramid) -> Partition {
+        Partition {
+            split: p.fits.iter().map(|f| vec![false; f.len()]).collect(),
+        }
+    }
+
+    /// Whether block (l, bx, by) is split.
+    pub fn is_split(&self, p: &Pyramid, l: usize, bx: usize, by: usize) -> bool {
+        self.split[l][by * p.cols[l] + bx]
+    }
+
+    /// What the stream coder asks: `None` to split, the fit for a leaf.
+    pub fn decide(&self, p: &Pyramid, l: usize, bx: usize, by: usize) -> Option<Fit> {
+        if l > 0 && self.is_split(p, l, bx, by) { None } else { p.fit(l, bx, by) }
+    }
+
+    /// Every range of a single level (const-range mode: the pyramid has one level).
+    pub fn whole_level(p: &Pyramid) -> Partition {
+        Partition::empty(p)
+    }
+
+    /// Splits while the RMS collage error exceeds the block's tolerance.
+    pub fn by_tolerance(p: &Pyramid, limits: Limits) -> Partition {
+        let mut part = Partition::empty(p);
+        let top = p.fits.len() - 1;
+        let mut stack: Vec<(usize, usize, usize)> = Vec::new();
+        let n_top = p.header.size(top);
+        for by in 0..(p.header.frame[1] as usize).div_ceil(n_top) {
+            for bx in 0..(p.header.frame[0] as usize).div_ceil(n_top) {
+                stack.push((top, bx, by));
+            }
+        }
+        while let Some((l, bx, by)) = stack.pop() {
+            let n = p.header.size(l);
+            let split = match coverage(p.header.frame, n, bx, by) {
+                Coverage::Outside => continue,
+                Coverage::Partial => true,
+                Coverage::Inside if l == 0 => false,
+                Coverage::Inside => {
+                    let f = p.fit(l, bx, by).expect("inside blocks are fitted");
+                    let (tol, min) = limits(bx * n, by * n, n);
+                    n > min && f.weight > 0.0 && f.sse > tol * tol * f.weight
+                }
+            };
+            if split {
+                part.split[l][by * p.cols[l] + bx] = true;
+                for (cx, cy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    stack.push((l - 1, 2 * bx + cx, 2 * by + cy));
+                }
+            }
+        }
+        part
+    }
+}
+
+/// One split of the greedy order: plane, level, block.
+pub type Split = (usize, usize, usize, usize);
+
+#[derive(PartialEq)]
+struct Candidate {
+    gain: f32,
+    split: Split,
+}
+impl Eq for Candidate {}
+impl PartialOrd for Candidate {
+    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(o))
+    }
+}
+impl Ord for Candidate {
+    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+        self.gain.total_cmp(&o.gain).then_with(|| o.split.cmp(&self.split))
+    }
+}
+
+/// The greedy split order over several planes at once: always split the range (of any plane)
+/// whose split removes the most weighted error. `weight[plane]` scales a plane's error (chroma
+/// counts less); `limits[plane]` scales by the region of interest (gain / tol²) and bounds sizes.
+/// Also returns the number of ranges before the first split (forced splits only).
+pub fn greedy_order(pyramids: &[&Pyramid], weight: &[f32], limits: &[Limits]) -> (usize, Vec<Split>) {
+    let mut heap = BinaryHeap::new();
+    let mut initial = 0usize;
+    let push = |heap: &mut BinaryHeap<Candidate>, pi: usize, l: usize, bx: usize, by: usize| {
+        let p = pyramids[pi];
+        let n = p.header.size(l);
+        let (tol, min) = limits[pi](bx * n, by * n, n);
+        if l == 0 || n <= min {
+            return;
+        }
+        if let (Some(f), Some(c)) = (p.fit(l, bx, by), p.children_sse(l, bx, by)) {
+            let gain = (f.sse - c) * weight[pi] / (tol * tol).max(1e-20);
+            heap.push(Candidate {
+                gain,
+                split: (pi, l, bx, by),
+            });
+        }
+    };
+    for (pi, p) in pyramids.iter().enumerate() {
+        // Walk the forced splits; the inside blocks they reach are the first ranges.
+        let top = p.fits.len() - 1;
+        let n_top = p.header.size(top);
+        let mut stack = Vec::new();
+        for by in 0..(p.header.frame[1] as usize).div_ceil(n_top) {
+            for bx in 0..(p.header.frame[0] as usize).div_ceil(n_top) {
+                stack.push((top, bx, by));
+            }
+        }
+        while let Some((l, bx, by)) = stack.pop() {
+            match coverage(p.header.frame, p.header.size(l), bx, by) {
+                Coverage::Outside => {}
+                Coverage::Partial => {
+                    for (cx, cy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                        stack.push((l - 1, 2 * bx + cx, 2 * by + cy));
+                    }
+                }
+                Coverage::Inside => {
+                    initial += 1;
+                    push(&mut heap, pi, l, bx, by);
+                }
+            }
+        }
+    }
+    let mut order = Vec::new();
+    while let Some(c) = heap.pop() {
+        order.push(c.split);
+        let (pi, l, bx, by) = c.split;
+        for (cx, cy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+            push(&mut heap, pi, l - 1, 2 * bx + cx, 2 * by + cy);
+        }
+    }
+    (initial, order)
+}
+
+/// The partitions of each plane after the first `k` splits of a greedy order.
+pub fn partitions_after(pyramids: &[&Pyramid], order: &[Split], k: usize) -> Vec<Partition> {
+    let mut parts: Vec<Partition> = pyramids.iter().map(|p| Partition::empty(p)).collect();
+    for &(pi, l, bx, by) in &order[..k.min(order.len())] {
+        parts[pi].split[l][by * pyramids[pi].cols[l] + bx] = true;
+    }
+    parts
+}

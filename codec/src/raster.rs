@@ -1,0 +1,316 @@
+//! Sample grids in and out: images (PNG, JPEG through `image`) and height fields (GeoTIFF through
+//! `tiff`, 16-bit PNG). A [`Raster`] holds values in their own units plus a validity mask; the
+//! codec normalises them itself.
+
+use std::path::Path;
+
+use fractile_proto::{AssetKind, ColourModel, Georef, SampleFormat};
+
+use crate::Error;
+
+/// A grid of samples in source units, row-major, row 0 at the top (north).
+#[derive(Clone, Debug)]
+pub struct Raster {
+    /// Width in samples.
+    pub width: usize,
+    /// Height in samples.
+    pub height: usize,
+    /// One plane per channel (1 grey/height, 3 RGB).
+    pub channels: Vec<Vec<f32>>,
+    /// `false` where a cell has no data (nodata value, NaN); `None` when every cell is valid.
+    pub valid: Option<Vec<bool>>,
+    /// Image or height field.
+    pub kind: AssetKind,
+    /// Sample type of the source file.
+    pub sample: SampleFormat,
+    /// Units of the values, when known.
+    pub units: Option<String>,
+    /// The source's nodata value.
+    pub nodata: Option<f64>,
+    /// Georeference, for GeoTIFFs that carry one.
+    pub georef: Option<Georef>,
+}
+
+impl Raster {
+    /// A single-channel raster from values (NaN marks nodata).
+    pub fn from_values(width: usize, height: usize, values: Vec<f32>, kind: AssetKind) -> Result<Raster, Error> {
+        if values.len() != width * height {
+            return Err(Error::Input(format!(
+                "{} values for a {width}x{height} grid",
+                values.len()
+            )));
+        }
+        let mut r = Raster {
+            width,
+            height,
+            channels: vec![values],
+            valid: None,
+            kind,
+            sample: SampleFormat::F32,
+            units: None,
+            nodata: None,
+            georef: None,
+        };
+        r.mask_invalid();
+        r.check()?;
+        Ok(r)
+    }
+
+    /// Reads an image (PNG, JPEG) or a height field (GeoTIFF, 16-bit grey PNG) by file extension.
+    pub fn open(path: &Path) -> Result<Raster, Error> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        let r = match ext.as_str() {
+            "tif" | "tiff" => read_geotiff(path)?,
+            _ => read_image(path)?,
+        };
+        r.check()?;
+        Ok(r)
+    }
+
+    /// Colour model of the channels.
+    pub fn colour(&self) -> ColourModel {
+        if self.channels.len() == 3 { ColourModel::YCbCr } else { ColourModel::Grey }
+    }
+
+    /// Whether cell `i` holds data.
+    pub fn is_valid(&self, i: usize) -> bool {
+        self.valid.as_ref().is_none_or(|v| v[i])
+    }
+
+    /// Marks NaN cells and cells equal to the nodata value as invalid.
+    fn mask_invalid(&mut self) {
+        let nodata = self.nodata.map(|v| v as f32);
+        let n = self.width * self.height;
+        let mut valid = vec![true; n];
+        let mut any = false;
+        for ch in &self.channels {
+            for (i, &v) in ch.iter().enumerate() {
+                if !v.is_finite() || Some(v) == nodata {
+                    valid[i] = false;
+                    any = true;
+                }
+            }
+        }
+        self.valid = any.then_some(valid);
+    }
+
+    fn check(&self) -> Result<(), Error> {
+        if self.width == 0 || self.height == 0 {
+            return Err(Error::Input("the grid is empty (0 samples)".into()));
+        }
+        const MAX_SIDE: usize = 1 << 15;
+        if self.width > MAX_SIDE || self.height > MAX_SIDE {
+            return Err(Error::Input(format!(
+                "{}x{} is larger than the {MAX_SIDE} samples a side this version encodes",
+                self.width, self.height
+            )));
+        }
+        if let Some(v) = &self.valid
+            && !v.iter().any(|&b| b)
+        {
+            return Err(Error::Input("every cell is nodata: nothing to encode".into()));
+        }
+        Ok(())
+    }
+
+    /// Min and max of the valid values over all channels.
+    pub fn value_range(&self) -> (f64, f64) {
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for ch in &self.channels {
+            for (i, &v) in ch.iter().enumerate() {
+                if self.is_valid(i) {
+                    lo = lo.min(v as f64);
+                    hi = hi.max(v as f64);
+                }
+            }
+        }
+        (lo, hi)
+    }
+}
+
+fn read_image(path: &Path) -> Result<Raster, Error> {
+    use image::DynamicImage as D;
+    let img = image::ImageReader::open(path)
+        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?
+        .with_guessed_format()
+        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?
+        .decode()
+        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+    let (w, h) = (img.width() as usize, img.height() as usize);
+    let (channels, kind, sample) = match &img {
+        D::ImageLuma8(_) | D::ImageLumaA8(_) => (
+            vec![img.to_luma8().into_raw().into_iter().map(f32::from).collect()],
+            AssetKind::Image,
+            SampleFormat::U8,
+        ),
+        // A 16-bit grey PNG is how many DEMs travel: treat it as a height field.
+        D::ImageLuma16(_) | D::ImageLumaA16(_) => (
+            vec![img.to_luma16().into_raw().into_iter().map(f32::from).collect()],
+            AssetKind::HeightField,
+            SampleFormat::U16,
+        ),
+        D::ImageRgb16(_) | D::ImageRgba16(_) => {
+            (split_rgb(&img.to_rgb16().into_raw()), AssetKind::Image, SampleFormat::U16)
+        }
+        D::ImageRgb32F(_) | D::ImageRgba32F(_) => {
+            (split_rgb(&img.to_rgb32f().into_raw()), AssetKind::Image, SampleFormat::F32)
+        }
+        _ => (split_rgb(&img.to_rgb8().into_raw()), AssetKind::Image, SampleFormat::U8),
+    };
+    let mut r = Raster {
+        width: w,
+        height: h,
+        channels,
+        valid: None,
+        kind,
+        sample,
+        units: None,
+        nodata: None,
+        georef: None,
+    };
+    r.mask_invalid();
+    Ok(r)
+}
+
+fn split_rgb<T: Copy + Into<f64>>(px: &[T]) -> Vec<Vec<f32>> {
+    (0..3)
+        .map(|c| px.iter().skip(c).step_by(3).map(|&v| v.into() as f32).collect())
+        .collect()
+}
+
+fn read_geotiff(path: &Path) -> Result<Raster, Error> {
+    use tiff::decoder::{Decoder, DecodingResult as R};
+    use tiff::tags::Tag;
+    let bad = |e: tiff::TiffError| Error::Input(format!("{}: {e}", path.display()));
+    let file = std::fs::File::open(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+    let mut dec = Decoder::new(std::io::BufReader::new(file)).map_err(bad)?;
+    let (w, h) = dec.dimensions().map_err(bad)?;
+    let (w, h) = (w as usize, h as usize);
+    let nodata = dec
+        .find_tag(Tag::GdalNodata)
+        .ok()
+        .flatten()
+        .and_then(|v| v.into_string().ok())
+        .and_then(|s| s.trim_matches(char::from(0)).trim().parse::<f64>().ok());
+    let tie = dec.get_tag_f64_vec(Tag::ModelTiepointTag).ok();
+    let scale = dec.get_tag_f64_vec(Tag::ModelPixelScaleTag).ok();
+    let keys = dec.get_tag_u16_vec(Tag::GeoKeyDirectoryTag).ok();
+    let data = dec.read_image().map_err(bad)?;
+    let (values, sample): (Vec<f32>, _) = match data {
+        R::U8(v) => (v.into_iter().map(f32::from).collect(), SampleFormat::U8),
+        R::U16(v) => (v.into_iter().map(f32::from).collect(), SampleFormat::U16),
+        R::I16(v) => (v.into_iter().map(f32::from).collect(), SampleFormat::I16),
+        R::I8(v) => (v.into_iter().map(f32::from).collect(), SampleFormat::I16),
+        R::I32(v) => (v.into_iter().map(|x| x as f32).collect(), SampleFormat::F32),
+        R::U32(v) => (v.into_iter().map(|x| x as f32).collect(), SampleFormat::F32),
+        R::F32(v) => (v, SampleFormat::F32),
+        R::F64(v) => (v.into_iter().map(|x| x as f32).collect(), SampleFormat::F32),
+        _ => return Err(Error::Input(format!("{}: unsupported sample type", path.display()))),
+    };
+    if values.len() != w * h {
+        return Err(Error::Input(format!(
+            "{}: {} samples for {w}x{h}: only single-band GeoTIFFs are supported",
+            path.display(),
+            values.len()
+        )));
+    }
+    let georef = match (tie, scale) {
+        (Some(t), Some(s)) if t.len() >= 6 && s.len() >= 2 => Some(Georef {
+            epsg: keys.as_deref().and_then(epsg_of),
+            origin: [t[3] - t[0] * s[0], t[4] + t[1] * s[1]],
+            pixel_size: [s[0], -s[1]],
+        }),
+        _ => None,
+    };
+    let mut r = Raster {
+        width: w,
+        height: h,
+        channels: vec![values],
+        valid: None,
+        kind: AssetKind::HeightField,
+        sample,
+        // GeoTIFF DEMs are in metres unless a vertical-units key says otherwise; we read no
+        // vertical units key, so we say metres only for georeferenced grids.
+        units: georef.as_ref().map(|_| "m".to_string()),
+        nodata,
+        georef,
+    };
+    r.mask_invalid();
+    Ok(r)
+}
+
+/// The EPSG code in a GeoKeyDirectory: ProjectedCSTypeGeoKey (3072) or GeographicTypeGeoKey (2048).
+fn epsg_of(keys: &[u16]) -> Option<u32> {
+    let entries = keys.get(4..)?;
+    let find = |id: u16| {
+        entries
+            .chunks_exact(4)
+            .find(|e| e[0] == id && e[1] == 0)
+            .map(|e| e[3] as u32)
+    };
+    find(3072).or_else(|| find(2048)).filter(|&c| c != 0 && c != 32767)
+}
+
+/// Writes 8-bit grey or RGB (channels 1 or 3) PNG; values are clamped and rounded.
+pub fn write_png8(path: &Path, width: usize, height: usize, channels: &[Vec<f32>]) -> Result<(), Error> {
+    let n = width * height;
+    let q = |v: f32| v.round().clamp(0.0, 255.0) as u8;
+    let img = if channels.len() == 3 {
+        let mut px = Vec::with_capacity(n * 3);
+        for i in 0..n {
+            px.extend(channels.iter().map(|c| q(c[i])));
+        }
+        image::DynamicImage::ImageRgb8(image::RgbImage::from_raw(width as u32, height as u32, px).expect("size"))
+    } else {
+        let px = channels[0].iter().map(|&v| q(v)).collect();
+        image::DynamicImage::ImageLuma8(image::GrayImage::from_raw(width as u32, height as u32, px).expect("size"))
+    };
+    img.save(path).map_err(|e| Error::Output(format!("{}: {e}", path.display())))
+}
+
+/// Writes a 16-bit grey PNG of values already mapped to 0..=65535.
+pub fn write_png16(path: &Path, width: usize, height: usize, values: &[f32]) -> Result<(), Error> {
+    let px = values.iter().map(|&v| v.round().clamp(0.0, 65535.0) as u16).collect();
+    let img: image::ImageBuffer<image::Luma<u16>, Vec<u16>> =
+        image::ImageBuffer::from_raw(width as u32, height as u32, px).expect("size");
+    img.save(path).map_err(|e| Error::Output(format!("{}: {e}", path.display())))
+}
+
+/// Writes a float32 GeoTIFF, with georeference and nodata tags when given.
+pub fn write_geotiff_f32(
+    path: &Path,
+    width: usize,
+    height: usize,
+    values: &[f32],
+    georef: Option<&Georef>,
+    nodata: Option<f64>,
+) -> Result<(), Error> {
+    use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
+    use tiff::tags::Tag;
+    let err = |e: tiff::TiffError| Error::Output(format!("{}: {e}", path.display()));
+    let file = std::fs::File::create(path).map_err(|e| Error::Output(format!("{}: {e}", path.display())))?;
+    let mut enc = TiffEncoder::new(std::io::BufWriter::new(file)).map_err(err)?;
+    let mut img = enc.new_image::<Gray32Float>(width as u32, height as u32).map_err(err)?;
+    if let Some(g) = georef {
+        let d = img.encoder();
+        d.write_tag(Tag::ModelPixelScaleTag, &[g.pixel_size[0], -g.pixel_size[1], 0.0][..])
+            .map_err(err)?;
+        d.write_tag(Tag::ModelTiepointTag, &[0.0, 0.0, 0.0, g.origin[0], g.origin[1], 0.0][..])
+            .map_err(err)?;
+        if let Some(code) = g.epsg {
+            // GeoKeyDirectory v1.1.0: model type, raster type PixelIsArea, the CRS code.
+            let geographic = (4000..5000).contains(&code);
+            let (model, key) = if geographic { (2u16, 2048u16) } else { (1u16, 3072u16) };
+            let keys: [u16; 16] = [1, 1, 0, 3, 1024, 0, 1, model, 1025, 0, 1, 1, key, 0, 1, code as u16];
+            d.write_tag(Tag::GeoKeyDirectoryTag, &keys[..]).map_err(err)?;
+        }
+    }
+    if let Some(nd) = nodata {
+        img.encoder().write_tag(Tag::GdalNodata, format!("{nd}").as_str()).map_err(err)?;
+    }
+    img.write_data(values).map_err(err)
+}

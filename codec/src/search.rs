@@ -1,0 +1,546 @@
+//! Finding, for one range, the domain block, isometry, contrast and offset with the least
+//! (weighted) collage error.
+//!
+//! Three searches over the same pool, each scored by the same exact least-squares fit:
+//! * [`SearchMode::Full`]: every domain under every isometry; the reference in tests.
+//! * [`SearchMode::Classified`]: the seed's classification (Fisher): a block's class is the
+//!   brightness order of its four quadrants; only domains (under an isometry) whose order matches
+//!   the range's (s > 0) or is its reverse (s < 0) are scored.
+//! * [`SearchMode::Nearest`]: Saupe's nearest-neighbour search. With zero-mean, unit-norm block
+//!   vectors r̂ and d̂, the least-squares collage error is `|r - mean r|^2 (1 - <r̂, d̂>^2)`, so the
+//!   best domains are the nearest d̂ to r̂ or to -r̂. Blocks are reduced to 4x4 (16 features) and
+//!   indexed in a k-d tree (`kiddo`); the nearest candidates are then scored exactly.
+
+use std::num::NonZero;
+
+use kiddo::{ImmutableKdTree, SquaredEuclidean};
+
+use crate::transform::{Quantiser, SQUARE_ISOMETRIES, isometry_index};
+
+/// The grid the encoder fits: normalised values in [0, 1] over a padded frame, with a weight per
+/// sample (1 for source data, 0 for padding and nodata, which then never count in the error).
+#[derive(Clone, Debug)]
+pub struct CodingPlane {
+    /// Frame width.
+    pub width: usize,
+    /// Frame height.
+    pub height: usize,
+    /// Values, row-major; padding and nodata cells are filled with plausible values because
+    /// domains read them.
+    pub values: Vec<f32>,
+    /// 1.0 where the error counts, 0.0 elsewhere.
+    pub weights: Vec<f32>,
+    /// Extent of the source in frame units.
+    pub valid: [f32; 2],
+}
+
+impl CodingPlane {
+    /// Mean of 2x2 blocks at every position: `avg2[y * (w-1) + x]` averages
+    /// `values[x..x+2, y..y+2]`. A domain block of side 2n read at half resolution is
+    /// `avg2[dx + 2i, dy + 2j]`.
+    pub fn average2(&self) -> Vec<f32> {
+        let (w, h) = (self.width, self.height);
+        if w < 2 || h < 2 {
+            return Vec::new();
+        }
+        let mut out = Vec::with_capacity((w - 1) * (h - 1));
+        for y in 0..h - 1 {
+            let (a, b) = (&self.values[y * w..(y + 1) * w], &self.values[(y + 1) * w..(y + 2) * w]);
+            for x in 0..w - 1 {
+                out.push(0.25 * (a[x] + a[x + 1] + b[x] + b[x + 1]));
+            }
+        }
+        out
+    }
+}
+
+/// How domains are searched.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum SearchMode {
+    /// Every domain and isometry.
+    Full,
+    /// Fisher's quadrant-brightness classes.
+    Classified,
+    /// Saupe's nearest-neighbour search, scoring this many candidates for r̂ and as many for -r̂.
+    Nearest(usize),
+}
+
+impl Default for SearchMode {
+    fn default() -> Self {
+        SearchMode::Nearest(24)
+    }
+}
+
+/// The best map found for a range, quantised.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Fit {
+    /// Weighted sum of squared errors of the quantised map against the range (normalised units).
+    pub sse: f32,
+    /// Sum of the range's weights (source samples it covers).
+    pub weight: f32,
+    /// Contrast index (0: a constant map, no domain).
+    pub contrast: i32,
+    /// Offset index.
+    pub offset: u32,
+    /// Isometry, 0..8.
+    pub isometry: u8,
+    /// Domain index in its level's lattice.
+    pub domain: u32,
+}
+
+const FEATURES: usize = 16;
+
+/// All domains of one range size: the lattice, the blocks at half resolution, their sums, and the
+/// index the chosen search needs.
+pub struct DomainPool {
+    /// Range side n (domains have side 2n).
+    pub size: usize,
+    /// Lattice step in frame samples.
+    pub step: usize,
+    /// Domains per row.
+    pub cols: usize,
+    /// Domain rows.
+    pub rows: usize,
+    blocks: Vec<f32>,
+    sums: Vec<f32>,
+    sums2: Vec<f32>,
+    perms: Vec<Vec<u32>>,
+    tree: Option<(ImmutableKdTree<f32, FEATURES>, Vec<(u32, u8)>)>,
+    classes: Option<Vec<Vec<(u32, u8)>>>,
+}
+
+/// Domain lattice size along one axis for frame side `frame`, range side `n`, step `step`.
+pub fn lattice(frame: usize, n: usize, step: usize) -> usize {
+    if frame >= 2 * n { (frame - 2 * n) / step.max(1) + 1 } else { 0 }
+}
+
+impl DomainPool {
+    /// Builds the pool of domains of side `2n` on a lattice of `step` over the plane.
+    pub fn new(plane: &CodingPlane, avg2: &[f32], n: usize, step: usize, mode: SearchMode) -> DomainPool {
+        let cols = lattice(plane.width, n, step);
+        let rows = lattice(plane.height, n, step);
+        let count = cols * rows;
+        let aw = plane.width.saturating_sub(1);
+        let mut blocks = Vec::with_capacity(count * n * n);
+        let (mut sums, mut sums2) = (Vec::with_capacity(count), Vec::with_capacity(count));
+        for d in 0..count {
+            let (dx, dy) = ((d % cols) * step, (d / cols) * step);
+            let (mut s, mut s2) = (0.0f32, 0.0f32);
+            for j in 0..n {
+                for i in 0..n {
+                    let v = avg2[(dy + 2 * j) * aw + dx + 2 * i];
+                    blocks.push(v);
+                    s += v;
+                    s2 += v * v;
+                }
+            }
+            sums.push(s);
+            sums2.push(s2);
+        }
+        let perms = (0..SQUARE_ISOMETRIES)
+            .map(|k| {
+                let mut p = vec![0u32; n * n];
+                for j in 0..n {
+                    for i in 0..n {
+                        let (ii, jj) = isometry_index(k, i, j, n);
+                        p[j * n + i] = (jj * n + ii) as u32;
+                    }
+                }
+                p
+            })
+            .collect();
+        let mut pool = DomainPool {
+            size: n,
+            step,
+            cols,
+            rows,
+            blocks,
+            sums,
+            sums2,
+            perms,
+            tree: None,
+            classes: None,
+        };
+        match mode {
+            SearchMode::Nearest(_) if count > 0 => pool.build_tree(),
+            SearchMode::Classified if count > 0 && n >= 2 => pool.build_classes(),
+            _ => {}
+        }
+        pool
+    }
+
+    /// Number of domains.
+    pub fn count(&self) -> usize {
+        self.cols * self.rows
+    }
+
+    /// Top-left corner of domain `d` in frame samples.
+    pub fn position(&self, d: usize) -> (usize, usize) {
+        ((d % self.cols) * self.step, (d / self.cols) * self.step)
+    }
+
+    fn block(&self, d: usize) -> &[f32] {
+        let nn = self.size * self.size;
+        &self.blocks[d * nn..(d + 1) * nn]
+    }
+
+    fn build_tree(&mut self) {
+        let mut points = Vec::with_capacity(self.count() * 8);
+        let mut items = Vec::with_capacity(self.count() * 8);
+        for d in 0..self.count() {
+            let base = reduce(self.block(d), self.size);
+            let Some(base) = normalise(base) else { continue };
+            for k in 0..SQUARE_ISOMETRIES {
+                let mut f = [0.0f32; FEATURES];
+                for j in 0..4 {
+                    for i in 0..4 {
+                        let (ii, jj) = isometry_index(k, i, j, 4);
+                        f[j * 4 + i] = base[jj * 4 + ii];
+                    }
+                }
+                // A jitter far below any meaningful difference breaks exact ties between blocks
+                // (padding repeats edges), which k-d trees split badly.
+                let h = (d as u32).wrapping_mul(2_654_435_761).wrapping_add(k as u32 * 40_503);
+                f[(h >> 28) as usize] += (h & 0xFFFF) as f32 * 1e-12;
+                points.push(f);
+                items.push((d as u32, k));
+            }
+        }
+        if !points.is_empty() {
+            self.tree = Some((ImmutableKdTree::new_from_slice(&points), items));
+        }
+    }
+
+    fn build_classes(&mut self) {
+        let mut classes = vec![Vec::new(); 24];
+        for d in 0..self.count() {
+            let q = quadrant_means(self.block(d), self.size);
+            for k in 0..SQUARE_ISOMETRIES {
+                // Quadrant (qi, qj) of the oriented domain reads quadrant iso(qi, qj) of the block.
+                let mut m = [0.0f32; 4];
+                for (qj, qi) in [(0, 0), (0, 1), (1, 0), (1, 1)] {
+                    let (ii, jj) = isometry_index(k, qi, qj, 2);
+                    m[qj * 2 + qi] = q[jj * 2 + ii];
+                }
+                classes[order_class(&m)].push((d as u32, k));
+            }
+        }
+        self.classes = Some(classes);
+    }
+}
+
+/// Reduces an n x n block to 4 x 4 (box average for n >= 4, replication for n < 4).
+fn reduce(block: &[f32], n: usize) -> [f32; FEATURES] {
+    let mut f = [0.0f32; FEATURES];
+    if n >= 4 {
+        let b = n / 4;
+        for j in 0..n {
+            for i in 0..n {
+                f[(j / b).min(3) * 4 + (i / b).min(3)] += block[j * n + i];
+            }
+        }
+    } else {
+        for j in 0..4 {
+            for i in 0..4 {
+                f[j * 4 + i] = block[(j * n / 4) * n + i * n / 4];
+            }
+        }
+    }
+    f
+}
+
+/// Zero mean, unit norm; `None` for flat blocks (only a constant map fits them).
+fn normalise(mut f: [f32; FEATURES]) -> Option<[f32; FEATURES]> {
+    let mean = f.iter().sum::<f32>() / FEATURES as f32;
+    let mut norm = 0.0;
+    for v in &mut f {
+        *v -= mean;
+        norm += *v * *v;
+    }
+    if norm < 1e-12 {
+        return None;
+    }
+    let inv = 1.0 / norm.sqrt();
+    f.iter_mut().for_each(|v| *v *= inv);
+    Some(f)
+}
+
+fn quadrant_means(block: &[f32], n: usize) -> [f32; 4] {
+    let h = n / 2;
+    let mut q = [0.0f32; 4];
+    for j in 0..n {
+        for i in 0..n {
+            q[(j / h).min(1) * 2 + (i / h).min(1)] += block[j * n + i];
+        }
+    }
+    q
+}
+
+/// Index (0..24) of the permutation that sorts four quadrant means, brightest first.
+fn order_class(m: &[f32; 4]) -> usize {
+    let mut idx = [0usize, 1, 2, 3];
+    idx.sort_by(|&a, &b| m[b].total_cmp(&m[a]).then(a.cmp(&b)));
+    // Lehmer code of the permutation.
+    let mut code = 0;
+    for i in 0..4 {
+        let smaller = (i + 1..4).filter(|&j| idx[j] < idx[i]).count();
+        code = code * (4 - i) + smaller;
+    }
+    code
+}
+
+fn reversed_class(m: &[f32; 4]) -> usize {
+    order_class(&[-m[0], -m[1], -m[2], -m[3]])
+}
+
+/// A range block and its weighted sums.
+struct RangeBlock {
+    values: Vec<f32>,
+    weights: Option<Vec<f32>>,
+    n: f32,
+    sr: f32,
+    srr: f32,
+}
+
+/// Fits the range of side `n` at (x, y).
+pub fn fit_range(plane: &CodingPlane, pool: &DomainPool, x: usize, y: usize, q: &Quantiser, mode: SearchMode) -> Fit {
+    let n = pool.size;
+    let mut values = Vec::with_capacity(n * n);
+    let mut weights = Vec::with_capacity(n * n);
+    for j in 0..n {
+        let row = (y + j) * plane.width + x;
+        values.extend_from_slice(&plane.values[row..row + n]);
+        weights.extend_from_slice(&plane.weights[row..row + n]);
+    }
+    let all_one = weights.iter().all(|&w| w == 1.0);
+    let (mut wn, mut sr, mut srr) = (0.0f32, 0.0f32, 0.0f32);
+    for (&v, &w) in values.iter().zip(&weights) {
+        wn += w;
+        sr += w * v;
+        srr += w * v * v;
+    }
+    if wn == 0.0 {
+        // Nothing of the source here (padding, nodata): a constant map at the filled mean.
+        let mean = values.iter().sum::<f32>() / values.len() as f32;
+        return Fit {
+            sse: 0.0,
+            weight: 0.0,
+            contrast: 0,
+            offset: q.offset_index(0.0, mean),
+            isometry: 0,
+            domain: 0,
+        };
+    }
+    let rb = RangeBlock {
+        values,
+        weights: (!all_one).then_some(weights),
+        n: wn,
+        sr,
+        srr,
+    };
+    // The constant map is always a candidate, and the only one for flat ranges.
+    let mut best = constant_fit(&rb, q);
+    let var = rb.srr - rb.sr * rb.sr / rb.n;
+    if pool.count() == 0 || var <= 1e-10 * rb.n {
+        return best;
+    }
+    let mut consider = |d: u32, k: u8| {
+        let f = score(&rb, pool, d as usize, k, q);
+        if f.sse < best.sse {
+            best = f;
+        }
+    };
+    match mode {
+        SearchMode::Full => {
+            for d in 0..pool.count() as u32 {
+                for k in 0..SQUARE_ISOMETRIES {
+                    consider(d, k);
+                }
+            }
+        }
+        SearchMode::Classified => {
+            if let Some(classes) = &pool.classes {
+                let m = quadrant_means(&rb.values, n);
+                for c in [order_class(&m), reversed_class(&m)] {
+                    for &(d, k) in &classes[c] {
+                        consider(d, k);
+                    }
+                }
+            }
+        }
+        SearchMode::Nearest(k) => {
+            if let (Some((tree, items)), Some(r)) = (&pool.tree, normalise(reduce(&rb.values, n))) {
+                let neg = r.map(|v| -v);
+                let k = NonZero::new(k.max(1)).expect("k >= 1");
+                for query in [r, neg] {
+                    for nb in tree.nearest_n::<SquaredEuclidean>(&query, k) {
+                        let (d, iso) = items[nb.item as usize];
+                        consider(d, iso);
+                    }
+                }
+            }
+        }
+    }
+    best
+}
+
+fn constant_fit(rb: &RangeBlock, q: &Quantiser) -> Fit {
+    let oi = q.offset_index(0.0, rb.sr / rb.n);
+    let o = q.offset(0.0, oi);
+    Fit {
+        sse: (rb.srr - 2.0 * o * rb.sr + rb.n * o * o).max(0.0),
+        weight: rb.n,
+        contrast: 0,
+        offset: oi,
+        isometry: 0,
+        domain: 0,
+    }
+}
+
+/// Exact least-squares fit of domain `d` under isometry `k`, quantised; trying the quantised
+/// contrast nearest to the optimum and its two neighbours.
+fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> Fit {
+    let block = pool.block(d);
+    let perm = &pool.perms[k as usize];
+    let (sd, sdd, sdr) = match &rb.weights {
+        None => {
+            let mut sdr = 0.0f32;
+            for (&r, &p) in rb.values.iter().zip(perm) {
+                sdr += r * block[p as usize];
+            }
+            (pool.sums[d], pool.sums2[d], sdr)
+        }
+        Some(w) => {
+            let (mut sd, mut sdd, mut sdr) = (0.0f32, 0.0f32, 0.0f32);
+            for ((&r, &p), &w) in rb.values.iter().zip(perm).zip(w) {
+                let v = block[p as usize];
+                sd += w * v;
+                sdd += w * v * v;
+                sdr += w * r * v;
+            }
+            (sd, sdd, sdr)
+        }
+    };
+    let den = rb.n * sdd - sd * sd;
+    let s_opt = if den > 1e-12 { (rb.n * sdr - sd * rb.sr) / den } else { 0.0 };
+    let qi = q.contrast_index(s_opt);
+    let l = q.contrast_levels();
+    let mut best = Fit {
+        sse: f32::INFINITY,
+        weight: rb.n,
+        contrast: 0,
+        offset: 0,
+        isometry: k,
+        domain: d as u32,
+    };
+    for qs in [qi, qi - 1, qi + 1] {
+        if qs == 0 || qs.abs() > l {
+            continue;
+        }
+        let s = q.contrast(qs);
+        let oi = q.offset_index(s, (rb.sr - s * sd) / rb.n);
+        let o = q.offset(s, oi);
+        let sse = rb.srr + s * s * sdd + rb.n * o * o + 2.0 * s * o * sd - 2.0 * s * sdr - 2.0 * o * rb.sr;
+        if sse < best.sse {
+            best.sse = sse.max(0.0);
+            best.contrast = qs;
+            best.offset = oi;
+        }
+    }
+    best
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn plane(w: usize, h: usize, f: impl Fn(usize, usize) -> f32) -> CodingPlane {
+        CodingPlane {
+            width: w,
+            height: h,
+            values: (0..w * h).map(|i| f(i % w, i / w)).collect(),
+            weights: vec![1.0; w * h],
+            valid: [w as f32, h as f32],
+        }
+    }
+
+    #[test]
+    fn order_classes_are_a_bijection_of_the_24_orders() {
+        let perms = [[4.0f32, 3.0, 2.0, 1.0], [1.0, 2.0, 3.0, 4.0], [2.0, 4.0, 1.0, 3.0]];
+        let set: std::collections::HashSet<usize> = perms.iter().map(order_class).collect();
+        assert_eq!(set.len(), 3);
+        assert_eq!(reversed_class(&perms[0]), order_class(&perms[1]));
+        assert!(perms.iter().all(|m| order_class(m) < 24));
+    }
+
+    #[test]
+    fn a_range_that_is_a_scaled_rotated_domain_is_found_exactly() {
+        // The image at (x, y) is a smooth non-symmetric pattern; the range at (16, 0) of side 4 is
+        // built as 0.5 * (domain at (0, 0), rotated 180) + 0.25, which full search must recover.
+        let mut p = plane(32, 32, |x, y| ((x * 7 + y * 3) % 11) as f32 / 11.0 * 0.5 + (x as f32 / 64.0));
+        let avg = p.average2();
+        let n = 4;
+        for j in 0..n {
+            for i in 0..n {
+                let (ii, jj) = isometry_index(3, i, j, n);
+                let d = avg[(2 * jj) * 31 + 2 * ii];
+                p.values[j * 32 + 16 + i] = 0.5 * d + 0.25;
+            }
+        }
+        let avg = p.average2();
+        let q = Quantiser {
+            contrast_bits: 8,
+            offset_bits: 12,
+            max_contrast: 0.9,
+        };
+        for mode in [SearchMode::Full, SearchMode::Nearest(4), SearchMode::Classified] {
+            let pool = DomainPool::new(&p, &avg, n, 4, mode);
+            let fit = fit_range(&p, &pool, 16, 0, &q, mode);
+            assert!(fit.sse < 1e-4, "{mode:?}: {fit:?}");
+            // The pattern has symmetries, so another domain may fit as exactly; it must be a real
+            // (non-constant) map, since no constant fits this range.
+            assert!(q.contrast(fit.contrast).abs() > 0.1, "{mode:?}: {fit:?}");
+        }
+    }
+
+    #[test]
+    fn nearest_search_is_close_to_full_search() {
+        let p = plane(64, 64, |x, y| {
+            let (x, y) = (x as f32, y as f32);
+            0.5 + 0.4 * (x * 0.21).sin() * (y * 0.13 + x * 0.05).cos()
+        });
+        let avg = p.average2();
+        let q = Quantiser::default();
+        let full = DomainPool::new(&p, &avg, 4, 4, SearchMode::Full);
+        let near = DomainPool::new(&p, &avg, 4, 4, SearchMode::Nearest(16));
+        let (mut ef, mut en) = (0.0, 0.0);
+        for y in (0..64).step_by(4) {
+            for x in (0..64).step_by(4) {
+                let f = fit_range(&p, &full, x, y, &q, SearchMode::Full);
+                let nn = fit_range(&p, &near, x, y, &q, SearchMode::Nearest(16));
+                assert!(f.sse <= nn.sse + 1e-6, "full search must be the optimum");
+                ef += f.sse;
+                en += nn.sse;
+            }
+        }
+        assert!(en <= ef * 1.5 + 1e-6, "nearest {en} vs full {ef}");
+    }
+
+    #[test]
+    fn zero_weight_samples_do_not_count() {
+        let mut p = plane(16, 16, |x, _| x as f32 / 16.0);
+        // A wild value under zero weight must not change the fit of the range around it.
+        let clean = {
+            let avg = p.average2();
+            let pool = DomainPool::new(&p, &avg, 4, 2, SearchMode::Full);
+            fit_range(&p, &pool, 4, 4, &Quantiser::default(), SearchMode::Full)
+        };
+        p.values[5 * 16 + 5] = 1.0;
+        p.weights[5 * 16 + 5] = 0.0;
+        let avg = p.average2();
+        let pool = DomainPool::new(&p, &avg, 4, 2, SearchMode::Full);
+        let masked = fit_range(&p, &pool, 4, 4, &Quantiser::default(), SearchMode::Full);
+        assert_eq!(masked.weight, 15.0);
+        assert!(masked.sse <= clean.sse + 1e-4, "{masked:?} {clean:?}");
+    }
+}

@@ -1,0 +1,289 @@
+//! The transform stream of one plane: quadtree split flags and each range's map, entropy coded.
+//!
+//! Encoding and decoding walk the tree with one function ([`code`]) so that they cannot drift
+//! apart. Order: top-level blocks in raster order, children depth first (TL, TR, BL, BR). Blocks
+//! wholly outside the frame are skipped; blocks partly outside are split without a flag. A leaf
+//! codes its contrast index (context: level), offset index (context: level, constant or not) and,
+//! unless the map is constant, its isometry and domain index (context: level).
+
+use serde::{Deserialize, Serialize};
+
+use crate::entropy::{Bit, BitTree, Decoder, Encoder};
+use crate::operator::{QuadtreeOperator, RangeMap};
+use crate::search::{Fit, lattice};
+use crate::transform::Quantiser;
+
+/// Everything a decoder needs besides the stream: stored in the asset for each plane.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PlaneHeader {
+    /// Frame (coding grid) size; multiples of `min_size`.
+    pub frame: [u32; 2],
+    /// Extent of the source in frame units (the unit square maps onto `[0, valid)`).
+    pub valid: [f32; 2],
+    /// Smallest range side.
+    pub min_size: u32,
+    /// Number of range sizes: `min_size << l` for `l` in `0..levels`.
+    pub levels: u32,
+    /// Domain lattice step for each level.
+    pub domain_steps: Vec<u32>,
+    /// Contrast and offset quantisation.
+    pub quantiser: Quantiser,
+}
+
+impl PlaneHeader {
+    /// Rejects headers no encoder writes (a corrupt or hostile asset).
+    pub fn validate(&self) -> Result<(), String> {
+        self.quantiser.validate()?;
+        let [w, h] = self.frame;
+        if self.min_size == 0 || self.levels == 0 || self.levels > 12 {
+            return Err(format!("bad range sizes: min {} levels {}", self.min_size, self.levels));
+        }
+        if (self.min_size as u64) << (self.levels - 1) > 1 << 16 {
+            return Err("largest range side over 65536".into());
+        }
+        if w == 0 || h == 0 || w > 1 << 16 || h > 1 << 16 || w % self.min_size != 0 || h % self.min_size != 0 {
+            return Err(format!("bad frame {w}x{h} for range side {}", self.min_size));
+        }
+        if !(self.valid[0] > 0.0 && self.valid[0] <= w as f32 && self.valid[1] > 0.0 && self.valid[1] <= h as f32) {
+            return Err(format!("bad valid extent {:?} in frame {w}x{h}", self.valid));
+        }
+        if self.domain_steps.len() != self.levels as usize || self.domain_steps.contains(&0) {
+            return Err("bad domain steps".into());
+        }
+        Ok(())
+    }
+
+    /// Range side of level `l`.
+    pub fn size(&self, l: usize) -> usize {
+        (self.min_size as usize) << l
+    }
+
+    /// Domain lattice (cols, rows) of level `l`.
+    pub fn lattice(&self, l: usize) -> (usize, usize) {
+        let (n, step) = (self.size(l), self.domain_steps[l] as usize);
+        (lattice(self.frame[0] as usize, n, step), lattice(self.frame[1] as usize, n, step))
+    }
+}
+
+/// Where a block lies relative to the frame.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum Coverage {
+    /// Wholly outside: no data.
+    Outside,
+    /// Partly inside: always split.
+    Partial,
+    /// Wholly inside: a range or a split, as coded.
+    Inside,
+}
+
+/// Coverage of block (bx, by) of side n.
+pub fn coverage(frame: [u32; 2], n: usize, bx: usize, by: usize) -> Coverage {
+    let (x0, y0) = (bx * n, by * n);
+    if x0 >= frame[0] as usize || y0 >= frame[1] as usize {
+        Coverage::Outside
+    } else if x0 + n <= frame[0] as usize && y0 + n <= frame[1] as usize {
+        Coverage::Inside
+    } else {
+        Coverage::Partial
+    }
+}
+
+/// A coded range: its block and its quantised map.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Leaf {
+    /// Level (range side `min_size << level`).
+    pub level: usize,
+    /// Block column at that level.
+    pub bx: usize,
+    /// Block row at that level.
+    pub by: usize,
+    /// The map (sse and weight are not coded and read back as 0).
+    pub fit: Fit,
+}
+
+struct Models {
+    split: Vec<Bit>,
+    contrast: Vec<BitTree>,
+    offset: Vec<[BitTree; 2]>,
+    isometry: Vec<BitTree>,
+    domain: Vec<BitTree>,
+}
+
+impl Models {
+    fn new(h: &PlaneHeader) -> Models {
+        let levels = h.levels as usize;
+        let bits_for = |count: usize| usize::BITS - count.saturating_sub(1).leading_zeros();
+        Models {
+            split: vec![Bit::default(); levels],
+            contrast: (0..levels).map(|_| BitTree::new(h.quantiser.contrast_bits as u32)).collect(),
+            offset: (0..levels)
+                .map(|_| {
+                    let b = h.quantiser.offset_bits as u32;
+                    [BitTree::new(b), BitTree::new(b)]
+                })
+                .collect(),
+            isometry: (0..levels).map(|_| BitTree::new(3)).collect(),
+            domain: (0..levels)
+                .map(|l| {
+                    let (c, r) = h.lattice(l);
+                    BitTree::new(bits_for(c * r))
+                })
+                .collect(),
+        }
+    }
+}
+
+/// One direction of the coder.
+enum Dir<'a, 'b> {
+    Enc(&'a mut Encoder),
+    Dec(&'a mut Decoder<'b>),
+}
+
+impl Dir<'_, '_> {
+    fn bit(&mut self, p: &mut Bit, v: bool) -> bool {
+        match self {
+            Dir::Enc(e) => {
+                e.bit(p, v);
+                v
+            }
+            Dir::Dec(d) => d.bit(p),
+        }
+    }
+
+    fn tree(&mut self, t: &mut BitTree, v: u32) -> u32 {
+        match self {
+            Dir::Enc(e) => {
+                e.tree(t, v);
+                v
+            }
+            Dir::Dec(d) => d.tree(t),
+        }
+    }
+}
+
+/// Walks the tree, coding in the direction given. In encoding, `decide(level, bx, by)` says for
+/// each inside block: `None` to split, `Some(fit)` for a leaf.
+fn code(
+    dir: &mut Dir,
+    h: &PlaneHeader,
+    decide: &dyn Fn(usize, usize, usize) -> Option<Fit>,
+) -> Result<Vec<Leaf>, String> {
+    let mut m = Models::new(h);
+    let top = h.levels as usize - 1;
+    let n = h.size(top);
+    let (cols, rows) = ((h.frame[0] as usize).div_ceil(n), (h.frame[1] as usize).div_ceil(n));
+    let mut leaves = Vec::new();
+    let mut stack = Vec::new();
+    let l_s = h.quantiser.contrast_levels();
+    for by in 0..rows {
+        for bx in 0..cols {
+            stack.push((top, bx, by));
+            while let Some((l, bx, by)) = stack.pop() {
+                let split = match coverage(h.frame, h.size(l), bx, by) {
+                    Coverage::Outside => continue,
+                    Coverage::Partial => true,
+                    Coverage::Inside if l == 0 => false,
+                    Coverage::Inside => {
+                        let wanted = decide(l, bx, by).is_none();
+                        dir.bit(&mut m.split[l], wanted)
+                    }
+                };
+                if split {
+                    if l == 0 {
+                        return Err("a block at the smallest size lies partly outside the frame".into());
+                    }
+                    // Pushed in reverse so that TL is coded first.
+                    for (cx, cy) in [(1, 1), (0, 1), (1, 0), (0, 0)] {
+                        stack.push((l - 1, 2 * bx + cx, 2 * by + cy));
+                    }
+                    continue;
+                }
+                let fit = decide(l, bx, by).unwrap_or(Fit {
+                    sse: 0.0,
+                    weight: 0.0,
+                    contrast: 0,
+                    offset: 0,
+                    isometry: 0,
+                    domain: 0,
+                });
+                let (dc, dr) = h.lattice(l);
+                let qs = dir.tree(&mut m.contrast[l], (fit.contrast + l_s) as u32) as i32 - l_s;
+                if qs.abs() > l_s {
+                    return Err(format!("contrast index {qs} out of range"));
+                }
+                let qo = dir.tree(&mut m.offset[l][usize::from(qs != 0)], fit.offset);
+                let (mut iso, mut dom) = (0, 0);
+                if qs != 0 {
+                    if dc * dr == 0 {
+                        return Err("a non-constant map at a size with no domains".into());
+                    }
+                    iso = dir.tree(&mut m.isometry[l], fit.isometry as u32) as u8;
+                    dom = dir.tree(&mut m.domain[l], fit.domain);
+                    if dom as usize >= dc * dr {
+                        return Err(format!("domain index {dom} outside the lattice of {}", dc * dr));
+                    }
+                }
+                leaves.push(Leaf {
+                    level: l,
+                    bx,
+                    by,
+                    fit: Fit {
+                        sse: 0.0,
+                        weight: 0.0,
+                        contrast: qs,
+                        offset: qo,
+                        isometry: iso,
+                        domain: dom,
+                    },
+                });
+            }
+        }
+    }
+    Ok(leaves)
+}
+
+/// Codes a plane's partition and maps.
+pub fn encode_plane(h: &PlaneHeader, decide: &dyn Fn(usize, usize, usize) -> Option<Fit>) -> Vec<u8> {
+    let mut enc = Encoder::new();
+    code(&mut Dir::Enc(&mut enc), h, decide).expect("the encoder writes only what it can read");
+    enc.finish()
+}
+
+/// Reads a plane's partition and maps.
+pub fn decode_plane(h: &PlaneHeader, bytes: &[u8]) -> Result<Vec<Leaf>, String> {
+    h.validate()?;
+    // A stream can hold no more leaves than the frame has smallest blocks.
+    let mut dec = Decoder::new(bytes);
+    let leaves = code(&mut Dir::Dec(&mut dec), h, &|_, _, _| None)?;
+    if dec.overrun() {
+        return Err("the transform stream is truncated".into());
+    }
+    Ok(leaves)
+}
+
+/// The decoding operator of a plane's leaves.
+pub fn operator(h: &PlaneHeader, leaves: &[Leaf]) -> Result<QuadtreeOperator, String> {
+    let q = &h.quantiser;
+    let ranges = leaves
+        .iter()
+        .map(|leaf| {
+            let n = h.size(leaf.level);
+            let (dc, _) = h.lattice(leaf.level);
+            let step = h.domain_steps[leaf.level] as usize;
+            let s = q.contrast(leaf.fit.contrast);
+            let d = leaf.fit.domain as usize;
+            let (dx, dy) = if dc > 0 { ((d % dc) * step, (d / dc) * step) } else { (0, 0) };
+            RangeMap {
+                x: (leaf.bx * n) as u32,
+                y: (leaf.by * n) as u32,
+                size: n as u32,
+                domain_x: dx as u32,
+                domain_y: dy as u32,
+                isometry: leaf.fit.isometry,
+                contrast: s,
+                offset: q.offset(s, leaf.fit.offset),
+            }
+        })
+        .collect();
+    QuadtreeOperator::new(h.frame, h.valid, h.min_size, ranges)
+}
