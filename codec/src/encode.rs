@@ -212,12 +212,16 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
 
     // Frame geometry shared by every plane.
     let roi_min = settings.rois.iter().filter_map(|r| r.min_range).min().unwrap_or(settings.min_range);
+    let half = (w.min(h) / 2).max(1) as u32;
+    let narrow = 1u32 << (31 - half.leading_zeros()); // largest power of two <= half
     let (min_size, levels, supersample) = match settings.rate {
         RateMode::ConstRange(1) => (2u32, 1u32, true),
         RateMode::ConstRange(r) => (r, 1, false),
         _ => {
-            let m = settings.min_range.min(roi_min);
-            (m, settings.max_range.trailing_zeros() - m.trailing_zeros() + 1, false)
+            // Narrow inputs (a 3 x 1000 strip) cannot hold a domain of twice the smallest range:
+            // shrink the smallest range until one fits, down to single samples.
+            let m = settings.min_range.min(roi_min).min(narrow);
+            (m, settings.max_range.max(m).trailing_zeros() - m.trailing_zeros() + 1, false)
         }
     };
     let planes: Vec<CodingPlane> = sources.iter().map(|s| coding_plane(s, min_size as usize, supersample)).collect();
@@ -276,7 +280,7 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
                     )
                 })
                 .collect();
-            let global_min = settings.min_range as usize;
+            let global_min = settings.min_range.min(narrow) as usize;
             let f: Box<dyn Fn(usize, usize, usize) -> (f32, usize) + Sync> = Box::new(move |x, y, n| {
                 let (x0, y0, x1, y1) = (x as f32, y as f32, (x + n) as f32, (y + n) as f32);
                 let (mut tol, mut min) = (plane_tol, global_min);

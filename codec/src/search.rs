@@ -89,6 +89,33 @@ pub struct Fit {
 }
 
 const FEATURES: usize = 16;
+/// Dimensions indexed by the k-d tree: the lowest-frequency AC coefficients of the orthonormal 4x4
+/// DCT of the normalised block. The DCT is orthonormal, so distances in this subspace never exceed
+/// the full distance (a lower bound that keeps the true nearest among the candidates often), and
+/// k-d trees prune well in 8 dimensions where in 16 they degrade to a linear scan (measured:
+/// 420 µs a query on 129k points at 16 dims).
+const INDEXED: usize = 8;
+/// (u, v) frequencies of the indexed coefficients, lowest first.
+const ZIGZAG: [(usize, usize); INDEXED] = [(1, 0), (0, 1), (0, 2), (1, 1), (2, 0), (3, 0), (2, 1), (1, 2)];
+
+fn dct_features(f: &[f32; FEATURES]) -> [f32; INDEXED] {
+    // Orthonormal DCT-II basis for N = 4.
+    let basis = |k: usize, n: usize| -> f32 {
+        let c = if k == 0 { 0.5 } else { std::f32::consts::FRAC_1_SQRT_2 };
+        c * ((std::f32::consts::PI * (2 * n + 1) as f32 * k as f32) / 8.0).cos()
+    };
+    let mut out = [0.0f32; INDEXED];
+    for (o, &(u, v)) in out.iter_mut().zip(&ZIGZAG) {
+        let mut acc = 0.0;
+        for j in 0..4 {
+            for i in 0..4 {
+                acc += f[j * 4 + i] * basis(u, i) * basis(v, j);
+            }
+        }
+        *o = acc;
+    }
+    out
+}
 
 /// All domains of one range size: the lattice, the blocks at half resolution, their sums, and the
 /// index the chosen search needs.
@@ -105,7 +132,7 @@ pub struct DomainPool {
     sums: Vec<f32>,
     sums2: Vec<f32>,
     perms: Vec<Vec<u32>>,
-    tree: Option<(ImmutableKdTree<f32, FEATURES>, Vec<(u32, u8)>)>,
+    tree: Option<(ImmutableKdTree<f32, INDEXED>, Vec<(u32, u8)>)>,
     classes: Option<Vec<Vec<(u32, u8)>>>,
 }
 
@@ -200,8 +227,9 @@ impl DomainPool {
                 }
                 // A jitter far below any meaningful difference breaks exact ties between blocks
                 // (padding repeats edges), which k-d trees split badly.
+                let mut f = dct_features(&f);
                 let h = (d as u32).wrapping_mul(2_654_435_761).wrapping_add(k as u32 * 40_503);
-                f[(h >> 28) as usize] += (h & 0xFFFF) as f32 * 1e-12;
+                f[(h >> 29) as usize] += (h & 0xFFFF) as f32 * 1e-12;
                 points.push(f);
                 items.push((d as u32, k));
             }
@@ -370,6 +398,7 @@ pub fn fit_range(plane: &CodingPlane, pool: &DomainPool, x: usize, y: usize, q: 
         }
         SearchMode::Nearest(k) => {
             if let (Some((tree, items)), Some(r)) = (&pool.tree, normalise(reduce(&rb.values, n))) {
+                let r = dct_features(&r);
                 let neg = r.map(|v| -v);
                 let k = NonZero::new(k.max(1)).expect("k >= 1");
                 for query in [r, neg] {

@@ -1,1 +1,397 @@
-fn main(){}
+//! `fractile`: encode rasters into fractal assets, decode them at any size, inspect and compare.
+//! (`fractile serve` arrives with the HTTP service.)
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use anyhow::{Context, Result, bail};
+use clap::{Parser, Subcommand, ValueEnum};
+use fractile_codec::{
+    Asset, DiscreteOptions, EncodeSettings, Method, Quantiser, RateMode, Raster, Roi, SearchMode, encode, metrics, raster,
+};
+use fractile_proto::{AssetKind, SampleFormat};
+use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
+use serde_json::json;
+
+#[derive(Parser)]
+#[command(name = "fractile", version, about = "Fractal (IFS) compression of images and terrain, decoded at any resolution")]
+struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// Encode an image (PNG, JPEG) or a height field (GeoTIFF, 16-bit PNG) into an asset.
+    Encode(EncodeArgs),
+    /// Decode an asset to PNG (images, 16-bit for height fields) or float32 GeoTIFF (height fields).
+    Decode(DecodeArgs),
+    /// Describe an asset.
+    Info {
+        /// The asset file.
+        asset: PathBuf,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+    /// Compare a decoded raster with its original: PSNR, RMSE, MAE, max error.
+    Compare {
+        /// The original raster.
+        original: PathBuf,
+        /// The decoded raster (same size).
+        decoded: PathBuf,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum Search {
+    /// Every domain and isometry (slow; the reference).
+    Full,
+    /// Fisher's quadrant-brightness classes.
+    Classified,
+    /// Saupe's nearest-neighbour search on normalised block features.
+    Nearest,
+}
+
+#[derive(clap::Args)]
+struct EncodeArgs {
+    /// Input raster.
+    input: PathBuf,
+    /// Output asset file.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Largest file size in bits per source pixel (rate control).
+    #[arg(long, group = "rate")]
+    target_bpp: Option<f64>,
+    /// Split ranges while their RMS collage error exceeds this (source units: grey levels, metres).
+    #[arg(long, group = "rate")]
+    tolerance: Option<f32>,
+    /// Split until this many ranges (the seed's "quad N").
+    #[arg(long, group = "rate")]
+    transforms: Option<usize>,
+    /// A regular grid of R x R ranges (the seed's "const range R"; 1 = quasi-lossless).
+    #[arg(long, group = "rate")]
+    const_range: Option<u32>,
+    /// Region of interest `x0,y0,x1,y1:tolerance[:min_range]` in source pixels (repeatable).
+    #[arg(long, value_parser = parse_roi)]
+    roi: Vec<Roi>,
+    /// Smallest range side (power of two).
+    #[arg(long, default_value_t = 4)]
+    min_range: u32,
+    /// Largest range side (power of two).
+    #[arg(long, default_value_t = 32)]
+    max_range: u32,
+    /// Domain lattice step, as a fraction of the range side.
+    #[arg(long, default_value_t = 1.0)]
+    domain_step: f32,
+    /// Bits of the contrast index.
+    #[arg(long, default_value_t = 5)]
+    contrast_bits: u8,
+    /// Bits of the offset index.
+    #[arg(long, default_value_t = 7)]
+    offset_bits: u8,
+    /// Largest |contrast| (< 1).
+    #[arg(long, default_value_t = 0.9)]
+    max_contrast: f32,
+    /// Domain search.
+    #[arg(long, value_enum, default_value_t = Search::Nearest)]
+    search: Search,
+    /// Candidates scored per range by the nearest-neighbour search.
+    #[arg(long, default_value_t = 24)]
+    candidates: usize,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+#[derive(clap::Args)]
+struct DecodeArgs {
+    /// The asset file.
+    asset: PathBuf,
+    /// Output: .png or .tif/.tiff (float32 GeoTIFF, height fields).
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Scale factor against the source size (any positive real).
+    #[arg(long, conflicts_with_all = ["width", "height"])]
+    scale: Option<f32>,
+    /// Output width (height follows the aspect ratio unless given).
+    #[arg(long)]
+    width: Option<usize>,
+    /// Output height.
+    #[arg(long)]
+    height: Option<usize>,
+    /// Iterations (discrete) or inverse steps (continuous); default: until converged.
+    #[arg(long)]
+    iterations: Option<u32>,
+    /// Window `u0,v0,u1,v1` of the unit square (default: all of it).
+    #[arg(long, value_parser = parse_window)]
+    window: Option<[f32; 4]>,
+    /// Decoding method.
+    #[arg(long, value_enum, default_value_t = MethodArg::Auto)]
+    method: MethodArg,
+}
+
+#[derive(Clone, Copy, ValueEnum)]
+enum MethodArg {
+    Auto,
+    Discrete,
+    Continuous,
+}
+
+fn parse_roi(s: &str) -> Result<Roi, String> {
+    let mut parts = s.split(':');
+    let rect: Vec<f32> = parts
+        .next()
+        .unwrap_or("")
+        .split(',')
+        .map(|v| v.trim().parse::<f32>().map_err(|e| format!("{v:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    if rect.len() != 4 {
+        return Err("expected x0,y0,x1,y1:tolerance[:min_range]".into());
+    }
+    let tolerance = parts.next().ok_or("missing :tolerance")?.parse::<f32>().map_err(|e| e.to_string())?;
+    let min_range = parts.next().map(|m| m.parse::<u32>().map_err(|e| e.to_string())).transpose()?;
+    Ok(Roi {
+        rect: [rect[0], rect[1], rect[2], rect[3]],
+        tolerance,
+        min_range,
+    })
+}
+
+fn parse_window(s: &str) -> Result<[f32; 4], String> {
+    let v: Vec<f32> = s.split(',').map(|v| v.trim().parse::<f32>().map_err(|e| e.to_string())).collect::<Result<_, _>>()?;
+    match v[..] {
+        [a, b, c, d] if (0.0..=1.0).contains(&a) && (0.0..=1.0).contains(&b) && c > a && d > b && c <= 1.0 && d <= 1.0 => {
+            Ok([a, b, c, d])
+        }
+        _ => Err("expected u0,v0,u1,v1 with 0 <= u0 < u1 <= 1 and 0 <= v0 < v1 <= 1".into()),
+    }
+}
+
+fn main() {
+    let cli = Cli::parse();
+    let result = match cli.command {
+        Command::Encode(a) => run_encode(a),
+        Command::Decode(a) => run_decode(a),
+        Command::Info { asset, json } => run_info(&asset, json),
+        Command::Compare { original, decoded, json } => run_compare(&original, &decoded, json),
+    };
+    if let Err(e) = result {
+        eprintln!("fractile: {e:#}");
+        std::process::exit(1);
+    }
+}
+
+fn run_encode(a: EncodeArgs) -> Result<()> {
+    let raster = Raster::open(&a.input)?;
+    let rate = match (a.target_bpp, a.tolerance, a.transforms, a.const_range) {
+        (Some(b), ..) => RateMode::TargetBpp(b),
+        (_, Some(t), ..) => RateMode::Tolerance(t),
+        (_, _, Some(n), _) => RateMode::Transforms(n),
+        (.., Some(r)) => RateMode::ConstRange(r),
+        _ => RateMode::Tolerance(f32::NAN),
+    };
+    let settings = EncodeSettings {
+        rate,
+        min_range: a.min_range,
+        max_range: a.max_range,
+        domain_step: a.domain_step,
+        quantiser: Quantiser {
+            contrast_bits: a.contrast_bits,
+            offset_bits: a.offset_bits,
+            max_contrast: a.max_contrast,
+        },
+        search: match a.search {
+            Search::Full => SearchMode::Full,
+            Search::Classified => SearchMode::Classified,
+            Search::Nearest => SearchMode::Nearest(a.candidates.max(1)),
+        },
+        rois: a.roi,
+        ..EncodeSettings::default()
+    };
+    // The bar appears only once an encode has run for a second (short encodes stay quiet).
+    let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
+    bar.set_style(ProgressStyle::with_template("{spinner} fitting blocks {bar:30} {pos}/{len} {elapsed}").expect("template"));
+    let started = Instant::now();
+    let shown = std::sync::atomic::AtomicBool::new(false);
+    let progress = |done: u64, total: u64| {
+        bar.set_length(total);
+        bar.set_position(done);
+        if !a.json && started.elapsed().as_secs_f32() > 1.0 && !shown.swap(true, std::sync::atomic::Ordering::Relaxed) {
+            bar.set_draw_target(ProgressDrawTarget::stderr());
+        }
+    };
+    let enc = encode(&raster, &settings, &progress)?;
+    bar.finish_and_clear();
+    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
+    let report = json!({
+        "input": a.input, "output": a.output,
+        "bytes": enc.bytes.len(), "source_bytes": enc.asset.meta.source_bytes(),
+        "ratio": enc.ratio(), "bpp": enc.bpp(), "transforms": enc.transforms,
+        "seconds": enc.seconds, "psnr": enc.errors.psnr, "rmse": enc.errors.rmse,
+        "max_error": enc.errors.max_error,
+    });
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} -> {}: {} bytes, {:.2}:1, {:.3} bpp, {} transforms, {:.2} s, PSNR {:.2} dB, RMSE {:.3}",
+            a.input.display(),
+            a.output.display(),
+            enc.bytes.len(),
+            enc.ratio(),
+            enc.bpp(),
+            enc.transforms,
+            enc.seconds,
+            enc.errors.psnr,
+            enc.errors.rmse
+        );
+    }
+    Ok(())
+}
+
+fn run_decode(a: DecodeArgs) -> Result<()> {
+    let asset = Asset::read(&a.asset)?;
+    let (sw, sh) = (asset.meta.width as f32, asset.meta.height as f32);
+    let window = a.window.unwrap_or([0.0, 0.0, 1.0, 1.0]);
+    let (ww, wh) = ((window[2] - window[0]) * sw, (window[3] - window[1]) * sh);
+    let (width, height) = match (a.scale, a.width, a.height) {
+        (Some(s), ..) if s > 0.0 && s.is_finite() => ((ww * s).round() as usize, (wh * s).round() as usize),
+        (Some(s), ..) => bail!("scale {s} must be a positive number"),
+        (None, Some(w), Some(h)) => (w, h),
+        (None, Some(w), None) => (w, (w as f32 * wh / ww).round() as usize),
+        (None, None, Some(h)) => ((h as f32 * ww / wh).round() as usize, h),
+        (None, None, None) => (ww.round() as usize, wh.round() as usize),
+    };
+    const MAX_PIXELS: usize = 1 << 28;
+    if width == 0 || height == 0 || width.saturating_mul(height) > MAX_PIXELS {
+        bail!("output size {width}x{height} must be at least 1x1 and at most {MAX_PIXELS} pixels");
+    }
+    let started = Instant::now();
+    let method = match a.method {
+        MethodArg::Auto => Method::Auto,
+        MethodArg::Discrete => Method::Discrete,
+        MethodArg::Continuous => Method::Continuous,
+    };
+    let (decoded, used) = if a.window.is_none() && method != Method::Continuous {
+        let opts = a.iterations.map(DiscreteOptions::fixed).unwrap_or_default();
+        (asset.decode(width, height, opts).0, Method::Discrete)
+    } else {
+        asset.window(window, width, height, a.iterations, method)
+    };
+    write_decoded(&asset, &decoded, window, &a.output)?;
+    eprintln!(
+        "decoded {}x{} ({used:?}) in {:.1} ms -> {}",
+        width,
+        height,
+        started.elapsed().as_secs_f64() * 1e3,
+        a.output.display()
+    );
+    Ok(())
+}
+
+fn write_decoded(asset: &Asset, d: &fractile_codec::extract::Decoded, window: [f32; 4], out: &Path) -> Result<()> {
+    let ext = out.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+    let m = &asset.meta;
+    match (ext.as_str(), m.kind) {
+        ("tif" | "tiff", AssetKind::HeightField) => {
+            let georef = m.georef.as_ref().map(|g| {
+                let sx = (window[2] - window[0]) as f64 * m.width as f64 / d.width as f64;
+                let sy = (window[3] - window[1]) as f64 * m.height as f64 / d.height as f64;
+                fractile_proto::Georef {
+                    epsg: g.epsg,
+                    origin: [
+                        g.origin[0] + window[0] as f64 * m.width as f64 * g.pixel_size[0],
+                        g.origin[1] + window[1] as f64 * m.height as f64 * g.pixel_size[1],
+                    ],
+                    pixel_size: [g.pixel_size[0] * sx, g.pixel_size[1] * sy],
+                }
+            });
+            let nodata = m.nodata.unwrap_or(f64::NAN);
+            let values: Vec<f32> = d.channels[0].iter().map(|&v| if v.is_nan() { nodata as f32 } else { v }).collect();
+            raster::write_geotiff_f32(out, d.width, d.height, &values, georef.as_ref(), asset.mask.as_ref().map(|_| nodata))?;
+        }
+        ("tif" | "tiff", _) => bail!("GeoTIFF output is for height fields; write a .png"),
+        ("png", AssetKind::HeightField) => {
+            // U16 sources keep their own values; others map the value range onto 0..=65535.
+            let (lo, span) = (m.value_min as f32, (m.value_max - m.value_min) as f32);
+            let values: Vec<f32> = d.channels[0]
+                .iter()
+                .map(|&v| match (v.is_nan(), m.sample) {
+                    (true, _) => 0.0,
+                    (false, SampleFormat::U16) => v,
+                    _ => (v - lo) / span * 65535.0,
+                })
+                .collect();
+            raster::write_png16(out, d.width, d.height, &values)?;
+        }
+        ("png", _) => raster::write_png8(out, d.width, d.height, &d.channels)?,
+        _ => bail!("unknown output type {:?}: use .png or .tif", out.display()),
+    }
+    Ok(())
+}
+
+fn run_info(path: &Path, as_json: bool) -> Result<()> {
+    let asset = Asset::read(path)?;
+    let bytes = std::fs::metadata(path).context("asset size")?.len();
+    let m = &asset.meta;
+    let ranges: usize = asset.planes.iter().map(|p| p.operator.ranges().len()).sum();
+    let info = json!({
+        "kind": format!("{:?}", m.kind), "width": m.width, "height": m.height, "channels": m.channels,
+        "colour": format!("{:?}", m.colour), "sample": format!("{:?}", m.sample), "units": m.units,
+        "value_range": [m.value_min, m.value_max], "nodata": m.nodata,
+        "georef": m.georef.as_ref().map(|g| json!({"epsg": g.epsg, "origin": g.origin, "pixel_size": g.pixel_size})),
+        "codec": "quadtree-pifs", "format_version": fractile_codec::asset::FORMAT_VERSION,
+        "bytes": bytes, "source_bytes": m.source_bytes(), "ratio": m.source_bytes() as f64 / bytes as f64,
+        "bpp": bytes as f64 * 8.0 / (m.width as f64 * m.height as f64),
+        "transforms": ranges, "max_contrast": asset.max_contrast(),
+        "error_bound_after_10_steps": asset.bound_after(10),
+        "encoder": m.encoder,
+        "encode_stats": {"rmse": m.stats.rmse, "psnr": m.stats.psnr, "max_error": m.stats.max_error, "seconds": m.stats.seconds},
+    });
+    if as_json {
+        println!("{info:#}");
+    } else {
+        for (k, v) in info.as_object().expect("object") {
+            println!("{k:>28}: {v}");
+        }
+    }
+    Ok(())
+}
+
+fn run_compare(original: &Path, decoded: &Path, as_json: bool) -> Result<()> {
+    let a = Raster::open(original)?;
+    let b = Raster::open(decoded)?;
+    if (a.width, a.height, a.channels.len()) != (b.width, b.height, b.channels.len()) {
+        bail!(
+            "sizes differ: {}x{}x{} vs {}x{}x{}",
+            a.width,
+            a.height,
+            a.channels.len(),
+            b.width,
+            b.height,
+            b.channels.len()
+        );
+    }
+    let peak = match (a.kind, a.sample) {
+        (AssetKind::Image, SampleFormat::U8) => 255.0,
+        (AssetKind::Image, SampleFormat::U16) => 65535.0,
+        _ => {
+            let (lo, hi) = a.value_range();
+            (hi - lo).max(f64::MIN_POSITIVE)
+        }
+    };
+    let e = metrics::compare(&a.channels, &b.channels, a.valid.as_deref(), peak);
+    if as_json {
+        println!("{}", json!({"psnr": e.psnr, "rmse": e.rmse, "mae": e.mae, "max_error": e.max_error, "peak": peak, "samples": e.samples}));
+    } else {
+        println!(
+            "PSNR {:.3} dB (peak {peak}), RMSE {:.4}, MAE {:.4}, max error {:.4}, {} samples",
+            e.psnr, e.rmse, e.mae, e.max_error, e.samples
+        );
+    }
+    Ok(())
+}
