@@ -1,1 +1,140 @@
-fn main(){}
+//! Codec bench: prints a table per test image and setting (bpp, ratio, PSNR, encode s, decode
+//! ms, and JPEG at the same rate beside it), then decoder speeds. Release build:
+//! `cargo bench -p fractile-codec --bench codec`. Uses `testdata/` and, when present,
+//! `../shared/data` (etopo20).
+
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+
+use fractile_codec::decode::{self, DiscreteOptions};
+use fractile_codec::{EncodeSettings, RateMode, Raster, SearchMode, encode, metrics};
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn quiet(_: u64, _: u64) {}
+
+/// JPEG (image crate, baseline) at the highest quality whose size is at most `bpp`.
+fn jpeg_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
+    if r.sample != fractile_proto::SampleFormat::U8 {
+        return None;
+    }
+    let (w, h) = (r.width as u32, r.height as u32);
+    let px: Vec<u8> = if r.channels.len() == 3 {
+        (0..r.width * r.height).flat_map(|i| (0..3).map(move |c| (c, i))).map(|(c, i)| r.channels[c][i] as u8).collect()
+    } else {
+        r.channels[0].iter().map(|&v| v as u8).collect()
+    };
+    let colour = if r.channels.len() == 3 { image::ExtendedColorType::Rgb8 } else { image::ExtendedColorType::L8 };
+    let mut best = None;
+    for q in 1..=100u8 {
+        let mut out = Vec::new();
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, q).encode(&px, w, h, colour).ok()?;
+        let b = out.len() as f64 * 8.0 / (w * h) as f64;
+        if b > bpp {
+            break;
+        }
+        let dec = image::load_from_memory(&out).ok()?;
+        let chans: Vec<Vec<f32>> = if r.channels.len() == 3 {
+            let d = dec.to_rgb8().into_raw();
+            (0..3).map(|c| d.iter().skip(c).step_by(3).map(|&v| v as f32).collect()).collect()
+        } else {
+            vec![dec.to_luma8().into_raw().into_iter().map(f32::from).collect()]
+        };
+        best = Some((b, metrics::compare(&r.channels, &chans, None, 255.0).psnr));
+    }
+    best
+}
+
+fn row(name: &str, setting: &str, r: &Raster, s: &EncodeSettings, jpeg_bpp: bool) {
+    let enc = encode(r, s, &quiet).expect("encode");
+    let t = Instant::now();
+    let (_d, rep) = enc.asset.decode_native();
+    let dec_ms = t.elapsed().as_secs_f64() * 1e3;
+    let jpeg = if jpeg_bpp { jpeg_at(r, enc.bpp()) } else { None };
+    println!(
+        "| {name} | {setting} | {} | {:.3} | {:.2}:1 | {:.2} | {:.2} | {:.1} ({} it) | {} |",
+        enc.bytes.len(),
+        enc.bpp(),
+        enc.ratio(),
+        enc.errors.psnr,
+        enc.seconds,
+        dec_ms,
+        rep.iterations,
+        jpeg.map(|(b, p)| format!("{p:.2} dB at {b:.3} bpp")).unwrap_or_else(|| "-".into())
+    );
+}
+
+fn main() {
+    let filter = std::env::args().nth(1).filter(|a| !a.starts_with('-'));
+    let want = |n: &str| filter.as_deref().is_none_or(|f| n.contains(f));
+    println!("## Rate and quality (release, {} threads)\n", rayon::current_num_threads());
+    println!("| image | setting | bytes | bpp | ratio | PSNR dB | encode s | decode ms | JPEG same bpp |");
+    println!("|---|---|---|---|---|---|---|---|---|");
+    let camera = Raster::open(&root().join("testdata/camera.png")).expect("camera");
+    let bpp = |b| EncodeSettings { rate: RateMode::TargetBpp(b), ..EncodeSettings::default() };
+    if want("camera") {
+        for b in [0.48, 0.20] {
+            row("camera 512", &format!("target {b} bpp"), &camera, &bpp(b), true);
+            let s = EncodeSettings { search: SearchMode::Classified, ..bpp(b) };
+            row("camera 512", &format!("target {b} bpp, classified"), &camera, &s, true);
+        }
+    }
+    if want("astronaut") {
+        let a = Raster::open(&root().join("testdata/astronaut.png")).expect("astronaut");
+        row("astronaut 512 RGB", "target 0.5 bpp", &a, &bpp(0.5), true);
+    }
+    if want("jacksboro") {
+        let j = Raster::open(&root().join("testdata/jacksboro.tif")).expect("jacksboro");
+        row("jacksboro", "ratio 20:1 (0.8 bpp)", &j, &bpp(0.8), false);
+    }
+    let etopo_path = root().join("../shared/data/dem/etopo20.tif");
+    if want("etopo") && Path::new(&etopo_path).exists() {
+        let e = Raster::open(&etopo_path).expect("etopo20");
+        row("etopo20", "ratio 20:1 (0.8 bpp)", &e, &bpp(0.8), false);
+    }
+
+    if want("decode") {
+        println!("\n## Decoders (camera at 0.48 bpp)\n");
+        let enc = encode(&camera, &bpp(0.48), &quiet).expect("encode");
+        let op = &enc.asset.planes[0].operator;
+        let reps = 10;
+        let t = Instant::now();
+        for _ in 0..reps {
+            std::hint::black_box(decode::discrete(op, 512, 512, DiscreteOptions::default()));
+        }
+        let disc = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        // Continuous: 256 x 256 points x 10 steps on one core (no rayon).
+        let t = Instant::now();
+        let mut acc = 0.0f32;
+        for _ in 0..reps {
+            for j in 0..256 {
+                for i in 0..256 {
+                    acc += decode::point(op, [(i as f32 + 0.5) / 256.0, (j as f32 + 0.5) / 256.0], 10).value;
+                }
+            }
+        }
+        std::hint::black_box(acc);
+        let cont = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        // Discrete vs continuous at pixel centres: the measured difference of averaging and sampling.
+        let (grid, _) = decode::discrete(op, 512, 512, DiscreteOptions::fixed(40));
+        let mut diff = 0.0f64;
+        for k in 0..512 * 512 {
+            let p = decode::point(op, [((k % 512) as f32 + 0.5) / 512.0, ((k / 512) as f32 + 0.5) / 512.0], 40);
+            diff += (p.value - grid.values[k]).abs() as f64;
+        }
+        let cont_psnr = {
+            let vals: Vec<f32> = (0..512 * 512)
+                .map(|k| 255.0 * decode::point(op, [((k % 512) as f32 + 0.5) / 512.0, ((k / 512) as f32 + 0.5) / 512.0], 40).value)
+                .collect();
+            metrics::compare(&camera.channels, &[vals], None, 255.0).psnr
+        };
+        println!("| decoder | figure |");
+        println!("|---|---|");
+        println!("| discrete 512x512, to convergence (all cores) | {disc:.1} ms |");
+        println!("| continuous 256x256 points x 10 steps (one core) | {cont:.2} ms |");
+        println!("| mean abs(discrete - continuous) at pixel centres | {:.2} grey levels |", diff / (512.0 * 512.0) * 255.0);
+        println!("| PSNR discrete / continuous (40 steps) vs source | {:.2} / {:.2} dB |", enc.errors.psnr, cont_psnr);
+    }
+}

@@ -1,0 +1,119 @@
+//! The `fractile` command line as a user runs it, on the repo's real test data.
+
+use std::path::PathBuf;
+use std::process::Command;
+
+fn bin() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_fractile"))
+}
+
+fn data(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata").join(name)
+}
+
+fn json(out: &std::process::Output) -> serde_json::Value {
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    serde_json::from_slice(&out.stdout).expect("JSON on stdout")
+}
+
+fn tempdir(name: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("fractile-cli-{}-{name}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+#[test]
+fn encode_info_decode_compare_round_trip_on_a_dem() {
+    let dir = tempdir("dem");
+    let asset = dir.join("topo.fra");
+    let enc = json(
+        &bin()
+            .arg("encode")
+            .arg(data("topobathy.tif"))
+            .arg("-o")
+            .arg(&asset)
+            .args(["--tolerance", "4", "--json"])
+            .output()
+            .unwrap(),
+    );
+    let bytes = std::fs::metadata(&asset).unwrap().len();
+    assert_eq!(enc["bytes"].as_u64(), Some(bytes));
+    assert!(enc["ratio"].as_f64().unwrap() > 2.0);
+
+    let info = json(&bin().arg("info").arg(&asset).arg("--json").output().unwrap());
+    assert_eq!(info["kind"], "HeightField");
+    assert_eq!((info["width"].as_u64(), info["height"].as_u64()), (Some(120), Some(91)));
+    assert_eq!(info["georef"]["epsg"], 4326);
+
+    // Float GeoTIFF at native size: `compare` must find the error the encoder reported.
+    let tif = dir.join("topo.tif");
+    let out = bin().arg("decode").arg(&asset).arg("-o").arg(&tif).output().unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let cmp = json(&bin().arg("compare").arg(data("topobathy.tif")).arg(&tif).arg("--json").output().unwrap());
+    let (a, b) = (cmp["rmse"].as_f64().unwrap(), enc["rmse"].as_f64().unwrap());
+    assert!((a - b).abs() < 1e-3 * b.max(1.0), "compare {a} vs encoder {b}");
+
+    // Any size, and a window decoded continuously.
+    let big = dir.join("big.png");
+    assert!(bin().arg("decode").arg(&asset).arg("-o").arg(&big).args(["--scale", "2.5"]).status().unwrap().success());
+    let img = image::open(&big).unwrap();
+    assert_eq!((img.width(), img.height()), (300, 228));
+    let win = dir.join("win.tif");
+    let st = bin()
+        .arg("decode")
+        .arg(&asset)
+        .arg("-o")
+        .arg(&win)
+        .args(["--window", "0.25,0.25,0.5,0.75", "--width", "64", "--method", "continuous", "--iterations", "12"])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let r = fractile_codec::Raster::open(&win).unwrap();
+    assert_eq!((r.width, r.height), (64, 97));
+    assert!(r.georef.is_some(), "the window keeps a georeference");
+}
+
+#[test]
+fn target_bpp_lands_at_or_under_the_target() {
+    let dir = tempdir("bpp");
+    let asset = dir.join("cam.fra");
+    let enc = json(
+        &bin()
+            .arg("encode")
+            .arg(data("camera.png"))
+            .arg("-o")
+            .arg(&asset)
+            .args(["--target-bpp", "0.25", "--json"])
+            .output()
+            .unwrap(),
+    );
+    let bpp = enc["bpp"].as_f64().unwrap();
+    assert!(bpp <= 0.25 && bpp > 0.2, "{bpp}");
+    assert!(enc["psnr"].as_f64().unwrap() > 25.0);
+}
+
+#[test]
+fn bad_input_gives_a_clear_error_and_no_output() {
+    let dir = tempdir("bad");
+    let junk = dir.join("junk.fra");
+    std::fs::write(&junk, b"FRACTILE not really an asset").unwrap();
+    let out = bin().arg("info").arg(&junk).output().unwrap();
+    assert!(!out.status.success());
+    let msg = String::from_utf8_lossy(&out.stderr);
+    assert!(msg.contains("asset") && msg.contains("junk.fra"), "{msg}");
+
+    let missing = bin().arg("encode").arg(dir.join("nope.png")).arg("-o").arg(dir.join("x.fra")).output().unwrap();
+    assert!(!missing.status.success());
+    assert!(!dir.join("x.fra").exists());
+
+    let bad = bin()
+        .arg("encode")
+        .arg(data("camera.png"))
+        .arg("-o")
+        .arg(dir.join("y.fra"))
+        .args(["--min-range", "3"])
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("powers of two"));
+    assert!(!dir.join("y.fra").exists());
+}
