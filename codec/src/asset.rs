@@ -228,6 +228,9 @@ impl Asset {
         if kind_byte(meta.kind) != kind {
             return Err(bad("kind byte and metadata disagree".into()));
         }
+        if meta.width == 0 || meta.height == 0 || meta.width > 1 << 16 || meta.height > 1 << 16 {
+            return Err(bad(format!("bad size {}x{} in the metadata", meta.width, meta.height)));
+        }
         let payload: Payload = fractile_proto::decode(&bytes[p_start..body]).map_err(|e| bad(e.to_string()))?;
         let mask = match payload.mask {
             Some(m) => Some(Mask::decode(meta.width as usize, meta.height as usize, &m)?),

@@ -6,7 +6,6 @@
 //! and s (contrast) per range and phi mapping the range onto its domain (scale 2, one of 8
 //! isometries). Fractal interpolation surfaces plug in later with bilinear g and s.
 
-use crate::transform::isometry;
 
 /// What the operator does at one point: `(W f)(p) = offset + contrast * f(next)`.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -84,15 +83,73 @@ pub struct RangeMap {
     pub offset: f32,
 }
 
+/// A range's map in the form the decoders evaluate: `phi(p) = (ax px + bx py + cx,
+/// ay px + by py + cy)`, with offset and contrast. Precomputed so that a step is branch-free and
+/// has no division (the isometry and the scale 2 fold into the coefficients).
+#[derive(Clone, Copy, Debug, PartialEq)]
+#[repr(C)]
+pub struct AffineCell {
+    /// x coefficient of phi_x.
+    pub ax: f32,
+    /// y coefficient of phi_x.
+    pub bx: f32,
+    /// Constant of phi_x.
+    pub cx: f32,
+    /// x coefficient of phi_y.
+    pub ay: f32,
+    /// y coefficient of phi_y.
+    pub by: f32,
+    /// Constant of phi_y.
+    pub cy: f32,
+    /// Contrast s.
+    pub contrast: f32,
+    /// Offset o.
+    pub offset: f32,
+}
+
+impl AffineCell {
+    fn of(r: &RangeMap) -> AffineCell {
+        // Local coordinates after the isometry, as (coef of a, coef of b, constant).
+        let (mut ua, mut ub) = ([1.0f32, 0.0, 0.0], [0.0f32, 1.0, 0.0]);
+        if r.isometry & 4 != 0 {
+            std::mem::swap(&mut ua, &mut ub);
+        }
+        if r.isometry & 1 != 0 {
+            ua = [-ua[0], -ua[1], 1.0 - ua[2]];
+        }
+        if r.isometry & 2 != 0 {
+            ub = [-ub[0], -ub[1], 1.0 - ub[2]];
+        }
+        // a = (px - x) / n; phi = d + 2n a' = 2 ua0 px + 2 ua1 py + (d + 2n ua2 - 2 ua0 x - 2 ua1 y).
+        let (x, y, n) = (r.x as f32, r.y as f32, r.size as f32);
+        let row = |u: [f32; 3], d: f32| (2.0 * u[0], 2.0 * u[1], d + 2.0 * n * u[2] - 2.0 * u[0] * x - 2.0 * u[1] * y);
+        let (ax, bx, cx) = row(ua, r.domain_x as f32);
+        let (ay, by, cy) = row(ub, r.domain_y as f32);
+        AffineCell {
+            ax,
+            bx,
+            cx,
+            ay,
+            by,
+            cy,
+            contrast: r.contrast,
+            offset: r.offset,
+        }
+    }
+}
+
 /// A quadtree partitioned IFS on a 2D frame: ranges that tile the frame, each with its map.
 #[derive(Clone, Debug)]
 pub struct QuadtreeOperator {
     frame: [u32; 2],
     valid: [f32; 2],
     cell: u32,
+    inv_cell: f32,
     lut_cols: usize,
+    lut_rows: usize,
     lut: Vec<u32>,
     ranges: Vec<RangeMap>,
+    cells: Vec<AffineCell>,
     interval: (f32, f32),
 }
 
@@ -135,13 +192,17 @@ impl QuadtreeOperator {
             return Err("the ranges leave part of the frame uncovered".into());
         }
         let interval = invariant_interval(ranges.iter().map(|r| (r.contrast, r.offset)));
+        let cells = ranges.iter().map(AffineCell::of).collect();
         Ok(QuadtreeOperator {
             frame,
             valid,
             cell,
+            inv_cell: 1.0 / cell as f32,
             lut_cols: cols,
+            lut_rows: rows,
             lut,
             ranges,
+            cells,
             interval,
         })
     }
@@ -151,12 +212,25 @@ impl QuadtreeOperator {
         &self.ranges
     }
 
+    /// The ranges' maps in affine form, in the order of [`Self::ranges`].
+    pub fn cells(&self) -> &[AffineCell] {
+        &self.cells
+    }
+
+    /// The cell-index map at the smallest range size (row-major, `frame / cell` per side): what a
+    /// GPU kernel uploads to find a point's range.
+    pub fn lookup(&self) -> (&[u32], u32) {
+        (&self.lut, self.cell)
+    }
+
     /// Index of the range that holds frame point `p` (clamped into the frame).
     #[inline(always)]
     pub fn range_at(&self, p: [f32; 2]) -> usize {
-        let x = (p[0].max(0.0) as u32).min(self.frame[0] - 1) / self.cell;
-        let y = (p[1].max(0.0) as u32).min(self.frame[1] - 1) / self.cell;
-        self.lut[y as usize * self.lut_cols + x as usize] as usize
+        // A multiplication by the reciprocal, not an integer division: this is the hot path of
+        // continuous decoding. (`as usize` saturates: NaN and negatives give 0.)
+        let x = ((p[0] * self.inv_cell) as usize).min(self.lut_cols - 1);
+        let y = ((p[1] * self.inv_cell) as usize).min(self.lut_rows - 1);
+        self.lut[y * self.lut_cols + x] as usize
     }
 
     /// Frame size in samples (integer form of [`Operator::frame`]).
@@ -180,16 +254,11 @@ impl Operator<2> for QuadtreeOperator {
 
     #[inline(always)]
     fn step(&self, p: [f32; 2]) -> Step<2> {
-        let r = &self.ranges[self.range_at(p)];
-        let n = r.size as f32;
-        // Local coordinates in [0, 1]; clamped so points on the far frame edge stay in their range.
-        let a = ((p[0] - r.x as f32) / n).clamp(0.0, 1.0);
-        let b = ((p[1] - r.y as f32) / n).clamp(0.0, 1.0);
-        let (a, b) = isometry(r.isometry, a, b);
+        let c = &self.cells[self.range_at(p)];
         Step {
-            offset: r.offset,
-            contrast: r.contrast,
-            next: [r.domain_x as f32 + 2.0 * n * a, r.domain_y as f32 + 2.0 * n * b],
+            offset: c.offset,
+            contrast: c.contrast,
+            next: [c.ax * p[0] + c.bx * p[1] + c.cx, c.ay * p[0] + c.by * p[1] + c.cy],
         }
     }
 
@@ -213,6 +282,30 @@ mod tests {
         // A negative contrast flips the interval: x -> -0.5 x + 0.75 has the fixed point 0.5.
         let (lo, hi) = invariant_interval([(-0.5, 0.75)].into_iter());
         assert!((lo - 0.5).abs() < 1e-4 && (hi - 0.5).abs() < 1e-4, "{lo} {hi}");
+    }
+
+    #[test]
+    fn affine_form_agrees_with_the_isometry_definition() {
+        use crate::transform::isometry;
+        for k in 0..8u8 {
+            let r = RangeMap {
+                x: 8,
+                y: 4,
+                size: 4,
+                domain_x: 2,
+                domain_y: 6,
+                isometry: k,
+                contrast: 0.5,
+                offset: 0.1,
+            };
+            let c = AffineCell::of(&r);
+            for &(px, py) in &[(8.0f32, 4.0f32), (9.3, 7.9), (11.99, 5.5)] {
+                let (a, b) = isometry(k, (px - 8.0) / 4.0, (py - 4.0) / 4.0);
+                let want = (2.0 + 8.0 * a, 6.0 + 8.0 * b);
+                let got = (c.ax * px + c.bx * py + c.cx, c.ay * px + c.by * py + c.cy);
+                assert!((want.0 - got.0).abs() < 1e-4 && (want.1 - got.1).abs() < 1e-4, "{k}: {want:?} {got:?}");
+            }
+        }
     }
 
     #[test]

@@ -44,7 +44,11 @@ impl PlaneHeader {
         if w == 0 || h == 0 || w > 1 << 16 || h > 1 << 16 || w % self.min_size != 0 || h % self.min_size != 0 {
             return Err(format!("bad frame {w}x{h} for range side {}", self.min_size));
         }
-        if !(self.valid[0] > 0.0 && self.valid[0] <= w as f32 && self.valid[1] > 0.0 && self.valid[1] <= h as f32) {
+        // The encoder pads by less than one smallest range (plus half a sample for odd chroma):
+        // anything else would make decoders allocate frames far larger than their output.
+        let slack = self.min_size as f32 + 1.0;
+        let fits = |v: f32, f: u32| v > 0.0 && v <= f as f32 && v > f as f32 - slack;
+        if !(fits(self.valid[0], w) && fits(self.valid[1], h)) {
             return Err(format!("bad valid extent {:?} in frame {w}x{h}", self.valid));
         }
         if self.domain_steps.len() != self.levels as usize || self.domain_steps.contains(&0) {
@@ -106,8 +110,13 @@ struct Models {
     contrast: Vec<BitTree>,
     offset: Vec<[BitTree; 2]>,
     isometry: Vec<BitTree>,
-    domain: Vec<BitTree>,
+    /// High bits of the domain index (at most [`DOMAIN_TREE_BITS`]), then one adaptive bit per
+    /// remaining low bit: a full tree over 2^30 domains would need gigabytes of contexts.
+    domain: Vec<(BitTree, Vec<Bit>)>,
 }
+
+/// Largest bit tree for domain indices.
+const DOMAIN_TREE_BITS: u32 = 14;
 
 impl Models {
     fn new(h: &PlaneHeader) -> Models {
@@ -126,7 +135,9 @@ impl Models {
             domain: (0..levels)
                 .map(|l| {
                     let (c, r) = h.lattice(l);
-                    BitTree::new(bits_for(c * r))
+                    let bits = bits_for(c * r);
+                    let high = bits.min(DOMAIN_TREE_BITS);
+                    (BitTree::new(high), vec![Bit::default(); (bits - high) as usize])
                 })
                 .collect(),
         }
@@ -218,7 +229,13 @@ fn code(
                         return Err("a non-constant map at a size with no domains".into());
                     }
                     iso = dir.tree(&mut m.isometry[l], fit.isometry as u32) as u8;
-                    dom = dir.tree(&mut m.domain[l], fit.domain);
+                    let (tree, low) = &mut m.domain[l];
+                    let nlow = low.len() as u32;
+                    dom = dir.tree(tree, fit.domain >> nlow) << nlow;
+                    for (i, bit) in low.iter_mut().enumerate() {
+                        let shift = nlow - 1 - i as u32;
+                        dom |= u32::from(dir.bit(bit, (fit.domain >> shift) & 1 == 1)) << shift;
+                    }
                     if dom as usize >= dc * dr {
                         return Err(format!("domain index {dom} outside the lattice of {}", dc * dr));
                     }
