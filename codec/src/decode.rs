@@ -77,13 +77,18 @@ pub fn points<const D: usize, O: Operator<D> + ?Sized>(op: &O, pts: &[[f32; D]],
             }
         }
         for _ in 0..iterations {
-            for l in 0..chunk.len() {
+            // All lanes step (padding lanes too, at the origin): a fixed trip count unrolls.
+            for l in 0..LANES {
                 // After a constant map (s = 0) the lane keeps stepping harmlessly: acc_s stays 0.
                 let st = op.step(q[l]);
                 taken[l] += u32::from(acc_s[l] != 0.0);
                 acc_g[l] += acc_s[l] * st.offset;
                 acc_s[l] *= st.contrast;
                 q[l] = st.next;
+            }
+            // Constant maps (s = 0) end chains exactly; stop when every lane has met one.
+            if acc_s.iter().all(|&s| s == 0.0) {
+                break;
             }
         }
         for l in 0..chunk.len() {

@@ -335,20 +335,28 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
             partitions_after(&pyr_refs, &order, n.saturating_sub(initial).div_ceil(3))
         }
         RateMode::TargetBpp(bpp) => {
-            let (_, order) = greedy_order(&pyr_refs, &weights, &limits);
             let max_bytes = (bpp * (w * h) as f64 / 8.0).floor() as usize;
-            let size_at = |k: usize| -> Result<usize, Error> { Ok(build(&partitions_after(&pyr_refs, &order, k), &meta)?.file_size()) };
-            // Largest prefix of the split order whose file fits (bisection; size grows with k).
-            let (mut good, mut bad) = (0usize, order.len() + 1);
-            if size_at(order.len())? <= max_bytes {
-                good = order.len();
+            let at = |lambda: f32| -> Vec<Partition> {
+                pyramids
+                    .iter()
+                    .zip(&limits)
+                    .zip(&weights)
+                    .map(|((p, l), &wt)| Partition::by_lagrangian(p, lambda, wt, *l))
+                    .collect()
+            };
+            let size_at = |lambda: f32| -> Result<usize, Error> { Ok(build(&at(lambda), &meta)?.file_size()) };
+            // Smallest lambda (best quality) whose file fits: bisection on log(lambda); the size
+            // falls as lambda grows.
+            let (mut lo_l, mut hi_l) = (-30.0f32, 10.0f32);
+            if size_at(lo_l.exp2())? <= max_bytes {
+                hi_l = lo_l;
             } else {
-                while bad - good > 1 {
-                    let mid = (good + bad) / 2;
-                    if size_at(mid)? <= max_bytes { good = mid } else { bad = mid }
+                for _ in 0..28 {
+                    let mid = 0.5 * (lo_l + hi_l);
+                    if size_at(mid.exp2())? <= max_bytes { hi_l = mid } else { lo_l = mid }
                 }
             }
-            partitions_after(&pyr_refs, &order, good)
+            at(hi_l.exp2())
         }
     };
     let asset = build(&parts, &meta)?;

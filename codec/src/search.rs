@@ -86,6 +86,24 @@ pub struct Fit {
     pub isometry: u8,
     /// Domain index in its level's lattice.
     pub domain: u32,
+    /// SSE of the best constant map (s = 0), the cheap alternative rate control may prefer.
+    pub constant_sse: f32,
+    /// Offset index of that constant map.
+    pub constant_offset: u32,
+}
+
+impl Fit {
+    /// The constant-map alternative of this fit.
+    pub fn as_constant(&self) -> Fit {
+        Fit {
+            sse: self.constant_sse,
+            contrast: 0,
+            offset: self.constant_offset,
+            isometry: 0,
+            domain: 0,
+            ..*self
+        }
+    }
 }
 
 const FEATURES: usize = 16;
@@ -350,13 +368,16 @@ pub fn fit_range(plane: &CodingPlane, pool: &DomainPool, x: usize, y: usize, q: 
     if wn == 0.0 {
         // Nothing of the source here (padding, nodata): a constant map at the filled mean.
         let mean = values.iter().sum::<f32>() / values.len() as f32;
+        let offset = q.offset_index(0.0, mean);
         return Fit {
             sse: 0.0,
             weight: 0.0,
             contrast: 0,
-            offset: q.offset_index(0.0, mean),
+            offset,
             isometry: 0,
             domain: 0,
+            constant_sse: 0.0,
+            constant_offset: offset,
         };
     }
     let rb = RangeBlock {
@@ -367,7 +388,8 @@ pub fn fit_range(plane: &CodingPlane, pool: &DomainPool, x: usize, y: usize, q: 
         srr,
     };
     // The constant map is always a candidate, and the only one for flat ranges.
-    let mut best = constant_fit(&rb, q);
+    let constant = constant_fit(&rb, q);
+    let mut best = constant;
     let var = rb.srr - rb.sr * rb.sr / rb.n;
     if pool.count() == 0 || var <= 1e-10 * rb.n {
         return best;
@@ -410,19 +432,24 @@ pub fn fit_range(plane: &CodingPlane, pool: &DomainPool, x: usize, y: usize, q: 
             }
         }
     }
+    best.constant_sse = constant.sse;
+    best.constant_offset = constant.offset;
     best
 }
 
 fn constant_fit(rb: &RangeBlock, q: &Quantiser) -> Fit {
     let oi = q.offset_index(0.0, rb.sr / rb.n);
     let o = q.offset(0.0, oi);
+    let sse = (rb.srr - 2.0 * o * rb.sr + rb.n * o * o).max(0.0);
     Fit {
-        sse: (rb.srr - 2.0 * o * rb.sr + rb.n * o * o).max(0.0),
+        sse,
         weight: rb.n,
         contrast: 0,
         offset: oi,
         isometry: 0,
         domain: 0,
+        constant_sse: sse,
+        constant_offset: oi,
     }
 }
 
@@ -461,6 +488,8 @@ fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> 
         offset: 0,
         isometry: k,
         domain: d as u32,
+        constant_sse: f32::INFINITY,
+        constant_offset: 0,
     };
     for qs in [qi, qi - 1, qi + 1] {
         if qs == 0 || qs.abs() > l {

@@ -216,6 +216,8 @@ fn code(
                     offset: 0,
                     isometry: 0,
                     domain: 0,
+                    constant_sse: 0.0,
+                    constant_offset: 0,
                 });
                 let (dc, dr) = h.lattice(l);
                 let qs = dir.tree(&mut m.contrast[l], (fit.contrast + l_s) as u32) as i32 - l_s;
@@ -251,6 +253,8 @@ fn code(
                         offset: qo,
                         isometry: iso,
                         domain: dom,
+                        constant_sse: 0.0,
+                        constant_offset: 0,
                     },
                 });
             }
