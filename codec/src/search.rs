@@ -67,7 +67,7 @@ pub enum SearchMode {
 
 impl Default for SearchMode {
     fn default() -> Self {
-        SearchMode::Nearest(24)
+        SearchMode::Nearest(32)
     }
 }
 

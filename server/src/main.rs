@@ -79,28 +79,28 @@ struct EncodeArgs {
     #[arg(long, value_parser = parse_roi)]
     roi: Vec<Roi>,
     /// Smallest range side (power of two).
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = EncodeSettings::default().min_range)]
     min_range: u32,
     /// Largest range side (power of two).
-    #[arg(long, default_value_t = 32)]
+    #[arg(long, default_value_t = EncodeSettings::default().max_range)]
     max_range: u32,
     /// Domain lattice step, as a fraction of the range side.
-    #[arg(long, default_value_t = 1.0)]
+    #[arg(long, default_value_t = EncodeSettings::default().domain_step)]
     domain_step: f32,
     /// Bits of the contrast index.
-    #[arg(long, default_value_t = 5)]
+    #[arg(long, default_value_t = EncodeSettings::default().quantiser.contrast_bits)]
     contrast_bits: u8,
     /// Bits of the offset index.
-    #[arg(long, default_value_t = 7)]
+    #[arg(long, default_value_t = EncodeSettings::default().quantiser.offset_bits)]
     offset_bits: u8,
     /// Largest |contrast| (< 1).
-    #[arg(long, default_value_t = 0.9)]
+    #[arg(long, default_value_t = EncodeSettings::default().quantiser.max_contrast)]
     max_contrast: f32,
     /// Domain search.
     #[arg(long, value_enum, default_value_t = Search::Nearest)]
     search: Search,
     /// Candidates scored per range by the nearest-neighbour search.
-    #[arg(long, default_value_t = 24)]
+    #[arg(long, default_value_t = 32)]
     candidates: usize,
     /// Print JSON.
     #[arg(long)]
