@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use fractile_codec::decode::{self, DiscreteOptions};
-use fractile_codec::{EncodeSettings, RateMode, Raster, SearchMode, encode, metrics};
+use fractile_codec::{EncodeSettings, Raster, RateMode, SearchMode, encode, metrics};
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -22,15 +22,24 @@ fn jpeg_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
     }
     let (w, h) = (r.width as u32, r.height as u32);
     let px: Vec<u8> = if r.channels.len() == 3 {
-        (0..r.width * r.height).flat_map(|i| (0..3).map(move |c| (c, i))).map(|(c, i)| r.channels[c][i] as u8).collect()
+        (0..r.width * r.height)
+            .flat_map(|i| (0..3).map(move |c| (c, i)))
+            .map(|(c, i)| r.channels[c][i] as u8)
+            .collect()
     } else {
         r.channels[0].iter().map(|&v| v as u8).collect()
     };
-    let colour = if r.channels.len() == 3 { image::ExtendedColorType::Rgb8 } else { image::ExtendedColorType::L8 };
+    let colour = if r.channels.len() == 3 {
+        image::ExtendedColorType::Rgb8
+    } else {
+        image::ExtendedColorType::L8
+    };
     let mut best = None;
     for q in 1..=100u8 {
         let mut out = Vec::new();
-        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, q).encode(&px, w, h, colour).ok()?;
+        image::codecs::jpeg::JpegEncoder::new_with_quality(&mut out, q)
+            .encode(&px, w, h, colour)
+            .ok()?;
         let b = out.len() as f64 * 8.0 / (w * h) as f64;
         if b > bpp {
             break;
@@ -38,9 +47,17 @@ fn jpeg_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
         let dec = image::load_from_memory(&out).ok()?;
         let chans: Vec<Vec<f32>> = if r.channels.len() == 3 {
             let d = dec.to_rgb8().into_raw();
-            (0..3).map(|c| d.iter().skip(c).step_by(3).map(|&v| v as f32).collect()).collect()
+            (0..3)
+                .map(|c| d.iter().skip(c).step_by(3).map(|&v| v as f32).collect())
+                .collect()
         } else {
-            vec![dec.to_luma8().into_raw().into_iter().map(f32::from).collect()]
+            vec![
+                dec.to_luma8()
+                    .into_raw()
+                    .into_iter()
+                    .map(f32::from)
+                    .collect(),
+            ]
         };
         best = Some((b, metrics::compare(&r.channels, &chans, None, 255.0).psnr));
     }
@@ -52,7 +69,11 @@ fn row(name: &str, setting: &str, r: &Raster, s: &EncodeSettings, jpeg_bpp: bool
     let t = Instant::now();
     let (_d, rep) = enc.asset.decode_native();
     let dec_ms = t.elapsed().as_secs_f64() * 1e3;
-    let jpeg = if jpeg_bpp { jpeg_at(r, enc.bpp()) } else { None };
+    let jpeg = if jpeg_bpp {
+        jpeg_at(r, enc.bpp())
+    } else {
+        None
+    };
     println!(
         "| {name} | {setting} | {} | {:.3} | {:.2}:1 | {:.2} | {:.2} | {:.1} ({} it) | {} |",
         enc.bytes.len(),
@@ -62,23 +83,47 @@ fn row(name: &str, setting: &str, r: &Raster, s: &EncodeSettings, jpeg_bpp: bool
         enc.seconds,
         dec_ms,
         rep.iterations,
-        jpeg.map(|(b, p)| format!("{p:.2} dB at {b:.3} bpp")).unwrap_or_else(|| "-".into())
+        jpeg.map(|(b, p)| format!("{p:.2} dB at {b:.3} bpp"))
+            .unwrap_or_else(|| "-".into())
     );
 }
 
 fn main() {
     let filter = std::env::args().nth(1).filter(|a| !a.starts_with('-'));
     let want = |n: &str| filter.as_deref().is_none_or(|f| n.contains(f));
-    println!("## Rate and quality (release, {} threads)\n", rayon::current_num_threads());
-    println!("| image | setting | bytes | bpp | ratio | PSNR dB | encode s | decode ms | JPEG same bpp |");
+    println!(
+        "## Rate and quality (release, {} threads)\n",
+        rayon::current_num_threads()
+    );
+    println!(
+        "| image | setting | bytes | bpp | ratio | PSNR dB | encode s | decode ms | JPEG same bpp |"
+    );
     println!("|---|---|---|---|---|---|---|---|---|");
     let camera = Raster::open(&root().join("testdata/camera.png")).expect("camera");
-    let bpp = |b| EncodeSettings { rate: RateMode::TargetBpp(b), ..EncodeSettings::default() };
+    let bpp = |b| EncodeSettings {
+        rate: RateMode::TargetBpp(b),
+        ..EncodeSettings::default()
+    };
     if want("camera") {
         for b in [0.48, 0.20] {
-            row("camera 512", &format!("target {b} bpp"), &camera, &bpp(b), true);
-            let s = EncodeSettings { search: SearchMode::Classified, ..bpp(b) };
-            row("camera 512", &format!("target {b} bpp, classified"), &camera, &s, true);
+            row(
+                "camera 512",
+                &format!("target {b} bpp"),
+                &camera,
+                &bpp(b),
+                true,
+            );
+            let s = EncodeSettings {
+                search: SearchMode::Classified,
+                ..bpp(b)
+            };
+            row(
+                "camera 512",
+                &format!("target {b} bpp, classified"),
+                &camera,
+                &s,
+                true,
+            );
         }
     }
     if want("astronaut") {
@@ -106,7 +151,14 @@ fn main() {
         }
         let disc = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         // Continuous: 256 x 256 points x 10 steps on one core (no rayon).
-        let pts: Vec<[f32; 2]> = (0..256 * 256).map(|k| [((k % 256) as f32 + 0.5) / 256.0, ((k / 256) as f32 + 0.5) / 256.0]).collect();
+        let pts: Vec<[f32; 2]> = (0..256 * 256)
+            .map(|k| {
+                [
+                    ((k % 256) as f32 + 0.5) / 256.0,
+                    ((k / 256) as f32 + 0.5) / 256.0,
+                ]
+            })
+            .collect();
         let t = Instant::now();
         let mut acc = 0.0f32;
         for _ in 0..reps {
@@ -125,21 +177,50 @@ fn main() {
         let (grid, _) = decode::discrete(op, 512, 512, DiscreteOptions::fixed(40));
         let mut diff = 0.0f64;
         for k in 0..512 * 512 {
-            let p = decode::point(op, [((k % 512) as f32 + 0.5) / 512.0, ((k / 512) as f32 + 0.5) / 512.0], 40);
+            let p = decode::point(
+                op,
+                [
+                    ((k % 512) as f32 + 0.5) / 512.0,
+                    ((k / 512) as f32 + 0.5) / 512.0,
+                ],
+                40,
+            );
             diff += (p.value - grid.values[k]).abs() as f64;
         }
         let cont_psnr = {
             let vals: Vec<f32> = (0..512 * 512)
-                .map(|k| 255.0 * decode::point(op, [((k % 512) as f32 + 0.5) / 512.0, ((k / 512) as f32 + 0.5) / 512.0], 40).value)
+                .map(|k| {
+                    255.0
+                        * decode::point(
+                            op,
+                            [
+                                ((k % 512) as f32 + 0.5) / 512.0,
+                                ((k / 512) as f32 + 0.5) / 512.0,
+                            ],
+                            40,
+                        )
+                        .value
+                })
                 .collect();
             metrics::compare(&camera.channels, &[vals], None, 255.0).psnr
         };
         println!("| decoder | figure |");
         println!("|---|---|");
         println!("| discrete 512x512, to convergence (all cores) | {disc:.1} ms |");
-        println!("| continuous 256x256 points x 10 steps, one point at a time (one core) | {single:.2} ms |");
-        println!("| continuous 256x256 points x 10 steps, batched (one core) | {cont:.2} ms ({:.1}x) |", single / cont);
-        println!("| mean abs(discrete - continuous) at pixel centres | {:.2} grey levels |", diff / (512.0 * 512.0) * 255.0);
-        println!("| PSNR discrete / continuous (40 steps) vs source | {:.2} / {:.2} dB |", enc.errors.psnr, cont_psnr);
+        println!(
+            "| continuous 256x256 points x 10 steps, one point at a time (one core) | {single:.2} ms |"
+        );
+        println!(
+            "| continuous 256x256 points x 10 steps, batched (one core) | {cont:.2} ms ({:.1}x) |",
+            single / cont
+        );
+        println!(
+            "| mean abs(discrete - continuous) at pixel centres | {:.2} grey levels |",
+            diff / (512.0 * 512.0) * 255.0
+        );
+        println!(
+            "| PSNR discrete / continuous (40 steps) vs source | {:.2} / {:.2} dB |",
+            enc.errors.psnr, cont_psnr
+        );
     }
 }

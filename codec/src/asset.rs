@@ -140,14 +140,24 @@ fn kind_byte(k: AssetKind) -> u8 {
 impl Asset {
     /// Builds an asset from coded planes, decoding each stream (so that what is served is exactly
     /// what a reader of the file gets).
-    pub fn from_parts(meta: AssetMeta, planes: Vec<(PlaneHeader, Vec<u8>)>, mask: Option<Mask>) -> Result<Asset, Error> {
+    pub fn from_parts(
+        meta: AssetMeta,
+        planes: Vec<(PlaneHeader, Vec<u8>)>,
+        mask: Option<Mask>,
+    ) -> Result<Asset, Error> {
         let planes = planes
             .into_iter()
             .enumerate()
             .map(|(i, (header, stream))| {
-                let leaves = stream::decode_plane(&header, &stream).map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
-                let operator = stream::operator(&header, &leaves).map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
-                Ok(Plane { header, stream, operator })
+                let leaves = stream::decode_plane(&header, &stream)
+                    .map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
+                let operator = stream::operator(&header, &leaves)
+                    .map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
+                Ok(Plane {
+                    header,
+                    stream,
+                    operator,
+                })
             })
             .collect::<Result<Vec<_>, Error>>()?;
         let asset = Asset { meta, planes, mask };
@@ -169,8 +179,15 @@ impl Asset {
                 m.colour
             )));
         }
-        if m.width == 0 || m.height == 0 || !(m.value_max >= m.value_min) || !m.value_min.is_finite() || !m.value_max.is_finite() {
-            return Err(Error::Asset("bad size or value range in the metadata".into()));
+        if m.width == 0
+            || m.height == 0
+            || m.value_max < m.value_min
+            || !m.value_min.is_finite()
+            || !m.value_max.is_finite()
+        {
+            return Err(Error::Asset(
+                "bad size or value range in the metadata".into(),
+            ));
         }
         Ok(())
     }
@@ -178,7 +195,11 @@ impl Asset {
     /// The file's bytes.
     pub fn to_bytes(&self) -> Vec<u8> {
         let payload = Payload {
-            planes: self.planes.iter().map(|p| (p.header.clone(), p.stream.clone())).collect(),
+            planes: self
+                .planes
+                .iter()
+                .map(|p| (p.header.clone(), p.stream.clone()))
+                .collect(),
             mask: self.mask.as_ref().map(Mask::encode),
         };
         assemble(&self.meta, &fractile_proto::encode(&payload))
@@ -193,7 +214,10 @@ impl Asset {
     pub fn from_bytes(bytes: &[u8]) -> Result<Asset, Error> {
         let bad = |m: String| Error::Asset(m);
         if bytes.len() < 24 {
-            return Err(bad(format!("{} bytes is too short for an asset", bytes.len())));
+            return Err(bad(format!(
+                "{} bytes is too short for an asset",
+                bytes.len()
+            )));
         }
         if &bytes[..8] != MAGIC {
             return Err(bad("not a fractile asset (bad magic)".into()));
@@ -207,18 +231,24 @@ impl Asset {
         let body = bytes.len() - 4;
         let crc = u32::from_le_bytes(bytes[body..].try_into().expect("4 bytes"));
         if crc32fast::hash(&bytes[..body]) != crc {
-            return Err(bad("checksum mismatch: the file is corrupt or truncated".into()));
+            return Err(bad(
+                "checksum mismatch: the file is corrupt or truncated".into()
+            ));
         }
         let (kind, codec) = (bytes[10], bytes[11]);
         if codec != Codec::QuadtreePifs as u8 {
             return Err(bad(format!("unknown codec {codec}")));
         }
         let read_len = |at: usize| -> Result<usize, Error> {
-            let b = bytes.get(at..at + 4).ok_or_else(|| bad("truncated length field".into()))?;
+            let b = bytes
+                .get(at..at + 4)
+                .ok_or_else(|| bad("truncated length field".into()))?;
             Ok(u32::from_le_bytes(b.try_into().expect("4 bytes")) as usize)
         };
         let m_len = read_len(12)?;
-        let meta_bytes = bytes.get(16..16 + m_len).ok_or_else(|| bad("truncated metadata".into()))?;
+        let meta_bytes = bytes
+            .get(16..16 + m_len)
+            .ok_or_else(|| bad("truncated metadata".into()))?;
         let p_len = read_len(16 + m_len)?;
         let p_start = 20 + m_len;
         if p_start + p_len != body {
@@ -229,9 +259,13 @@ impl Asset {
             return Err(bad("kind byte and metadata disagree".into()));
         }
         if meta.width == 0 || meta.height == 0 || meta.width > 1 << 16 || meta.height > 1 << 16 {
-            return Err(bad(format!("bad size {}x{} in the metadata", meta.width, meta.height)));
+            return Err(bad(format!(
+                "bad size {}x{} in the metadata",
+                meta.width, meta.height
+            )));
         }
-        let payload: Payload = fractile_proto::decode(&bytes[p_start..body]).map_err(|e| bad(e.to_string()))?;
+        let payload: Payload =
+            fractile_proto::decode(&bytes[p_start..body]).map_err(|e| bad(e.to_string()))?;
         let mask = match payload.mask {
             Some(m) => Some(Mask::decode(meta.width as usize, meta.height as usize, &m)?),
             None => None,
@@ -241,7 +275,8 @@ impl Asset {
 
     /// Reads an asset file.
     pub fn read(path: &Path) -> Result<Asset, Error> {
-        let bytes = std::fs::read(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+        let bytes =
+            std::fs::read(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
         Asset::from_bytes(&bytes).map_err(|e| match e {
             Error::Asset(m) => Error::Asset(format!("{}: {m}", path.display())),
             e => e,
@@ -273,9 +308,18 @@ fn assemble(meta: &AssetMeta, payload: &[u8]) -> Vec<u8> {
 /// Writes bytes to `path` atomically (temporary file in the same directory, fsync, rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     let err = |e: std::io::Error| Error::Output(format!("{}: {e}", path.display()));
-    let dir = path.parent().filter(|p| !p.as_os_str().is_empty()).unwrap_or(Path::new("."));
-    let name = path.file_name().ok_or_else(|| Error::Output(format!("{}: not a file path", path.display())))?;
-    let tmp = dir.join(format!(".{}.tmp-{}", name.to_string_lossy(), std::process::id()));
+    let dir = path
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let name = path
+        .file_name()
+        .ok_or_else(|| Error::Output(format!("{}: not a file path", path.display())))?;
+    let tmp = dir.join(format!(
+        ".{}.tmp-{}",
+        name.to_string_lossy(),
+        std::process::id()
+    ));
     let result = (|| {
         let mut f = std::fs::File::create(&tmp)?;
         f.write_all(bytes)?;

@@ -30,7 +30,11 @@ pub struct PointValue {
 /// Continuous decoding of the point `p` given in unit coordinates (`[0, 1]` per axis over the
 /// source extent), with `iterations` inverse steps.
 #[inline]
-pub fn point<const D: usize, O: Operator<D> + ?Sized>(op: &O, p: [f32; D], iterations: u32) -> PointValue {
+pub fn point<const D: usize, O: Operator<D> + ?Sized>(
+    op: &O,
+    p: [f32; D],
+    iterations: u32,
+) -> PointValue {
     let valid = op.valid();
     let mut q = [0.0f32; D];
     for d in 0..D {
@@ -60,7 +64,11 @@ pub fn point<const D: usize, O: Operator<D> + ?Sized>(op: &O, p: [f32; D], itera
 /// Continuous decoding of many points (unit coordinates), in the order given. Points are taken
 /// eight at a time and stepped in lockstep: each chain of steps is a sequence of dependent
 /// loads, and interleaving independent chains lets the CPU overlap them (measured in the bench).
-pub fn points<const D: usize, O: Operator<D> + ?Sized>(op: &O, pts: &[[f32; D]], iterations: u32) -> Vec<PointValue> {
+pub fn points<const D: usize, O: Operator<D> + ?Sized>(
+    op: &O,
+    pts: &[[f32; D]],
+    iterations: u32,
+) -> Vec<PointValue> {
     const LANES: usize = 8;
     let valid = op.valid();
     let (lo, hi) = op.invariant_interval();
@@ -172,7 +180,12 @@ struct PixelMap {
 
 /// Discrete decoding of the whole source extent at `width x height` (any size: smaller, equal or
 /// larger than the source, any ratio).
-pub fn discrete<O: Operator<2> + ?Sized>(op: &O, width: usize, height: usize, opts: DiscreteOptions) -> (Grid, DiscreteReport) {
+pub fn discrete<O: Operator<2> + ?Sized>(
+    op: &O,
+    width: usize,
+    height: usize,
+    opts: DiscreteOptions,
+) -> (Grid, DiscreteReport) {
     let valid = op.valid();
     let frame = op.frame();
     let e = op.expansion().max(1) as usize;
@@ -191,7 +204,10 @@ pub fn discrete<O: Operator<2> + ?Sized>(op: &O, width: usize, height: usize, op
             // Top-left of the e x e box centred on phi(p), in output pixels.
             let bx = (st.next[0] * sx - half).clamp(0.0, (dw - 1) as f32);
             let by = (st.next[1] * sy - half).clamp(0.0, (dh - 1) as f32);
-            let (ix, iy) = ((bx as usize).min(dw.saturating_sub(2)), (by as usize).min(dh.saturating_sub(2)));
+            let (ix, iy) = (
+                (bx as usize).min(dw.saturating_sub(2)),
+                (by as usize).min(dh.saturating_sub(2)),
+            );
             PixelMap {
                 offset: st.offset,
                 contrast: st.contrast,
@@ -231,7 +247,8 @@ pub fn discrete<O: Operator<2> + ?Sized>(op: &O, width: usize, height: usize, op
                 for (x, (out, m)) in row.iter_mut().zip(mrow).enumerate() {
                     let i = m.index as usize;
                     let top = boxed[i] + (boxed[i + step_x] - boxed[i]) * m.fx;
-                    let bot = boxed[i + step_y] + (boxed[i + step_y + step_x] - boxed[i + step_y]) * m.fx;
+                    let bot =
+                        boxed[i + step_y] + (boxed[i + step_y + step_x] - boxed[i + step_y]) * m.fx;
                     let v = m.offset + m.contrast * (top + (bot - top) * m.fy);
                     if x < width && y < height {
                         ch += (v - f[y * fw + x]).abs() as f64;
@@ -252,7 +269,14 @@ pub fn discrete<O: Operator<2> + ?Sized>(op: &O, width: usize, height: usize, op
     for y in 0..height {
         values.extend_from_slice(&f[y * fw..y * fw + width]);
     }
-    (Grid { width, height, values }, report)
+    (
+        Grid {
+            width,
+            height,
+            values,
+        },
+        report,
+    )
 }
 
 /// How a window is decoded.
@@ -311,16 +335,26 @@ pub fn window<O: Operator<2> + ?Sized>(
         _ => {
             let n = iterations.unwrap_or(12);
             let mut values = vec![0.0f32; width * height];
-            values.par_chunks_mut(width).enumerate().for_each(|(j, row)| {
-                let pts: Vec<[f32; 2]> = (0..width).map(|i| centre(i, j)).collect();
-                for (v, p) in row.iter_mut().zip(points(op, &pts, n)) {
-                    *v = p.value;
-                }
-            });
+            values
+                .par_chunks_mut(width)
+                .enumerate()
+                .for_each(|(j, row)| {
+                    let pts: Vec<[f32; 2]> = (0..width).map(|i| centre(i, j)).collect();
+                    for (v, p) in row.iter_mut().zip(points(op, &pts, n)) {
+                        *v = p.value;
+                    }
+                });
             values
         }
     };
-    (Grid { width, height, values }, chosen)
+    (
+        Grid {
+            width,
+            height,
+            values,
+        },
+        chosen,
+    )
 }
 
 /// Bilinear sample of a grid at continuous pixel coordinates (pixel centres at integers), clamped.
@@ -357,7 +391,12 @@ mod tests {
             [8, 8],
             [8.0, 8.0],
             4,
-            vec![mk(0, 0, 0.5, 0.1, 0), mk(4, 0, -0.5, 0.7, 1), mk(0, 4, 0.25, 0.3, 3), mk(4, 4, 0.0, 0.9, 0)],
+            vec![
+                mk(0, 0, 0.5, 0.1, 0),
+                mk(4, 0, -0.5, 0.7, 1),
+                mk(0, 4, 0.25, 0.3, 3),
+                mk(4, 4, 0.0, 0.9, 0),
+            ],
         )
         .unwrap()
     }
@@ -371,7 +410,10 @@ mod tests {
             let st = op.step([u * 8.0, v * 8.0]);
             let b = point(&op, [st.next[0] / 8.0, st.next[1] / 8.0], 40);
             let rhs = st.offset + st.contrast * b.value;
-            assert!((a.value - rhs).abs() <= a.error_bound + b.error_bound + 1e-5, "{a:?} vs {rhs}");
+            assert!(
+                (a.value - rhs).abs() <= a.error_bound + b.error_bound + 1e-5,
+                "{a:?} vs {rhs}"
+            );
         }
     }
 
@@ -406,8 +448,18 @@ mod tests {
         let (c, _) = discrete(&op, 5, 13, DiscreteOptions::fixed(60));
         // Means over quadrants agree across sizes (same attractor, other sampling).
         let mean = |g: &Grid| g.values.iter().sum::<f32>() / g.values.len() as f32;
-        assert!((mean(&a) - mean(&b)).abs() < 0.02, "{} {}", mean(&a), mean(&b));
-        assert!((mean(&a) - mean(&c)).abs() < 0.05, "{} {}", mean(&a), mean(&c));
+        assert!(
+            (mean(&a) - mean(&b)).abs() < 0.02,
+            "{} {}",
+            mean(&a),
+            mean(&b)
+        );
+        assert!(
+            (mean(&a) - mean(&c)).abs() < 0.05,
+            "{} {}",
+            mean(&a),
+            mean(&c)
+        );
         // The constant range decodes to its offset everywhere.
         assert!((b.values[31 * 32 + 31] - 0.9).abs() < 1e-6);
     }
@@ -415,11 +467,16 @@ mod tests {
     #[test]
     fn batched_points_equal_single_points() {
         let op = toy();
-        let pts: Vec<[f32; 2]> = (0..37).map(|i| [(i as f32 * 0.37) % 1.0, (i as f32 * 0.61) % 1.0]).collect();
+        let pts: Vec<[f32; 2]> = (0..37)
+            .map(|i| [(i as f32 * 0.37) % 1.0, (i as f32 * 0.61) % 1.0])
+            .collect();
         let batch = points(&op, &pts, 15);
         for (p, b) in pts.iter().zip(&batch) {
             let single = point(&op, *p, 15);
-            assert!((single.value - b.value).abs() < 1e-6 && single.iterations == b.iterations, "{single:?} {b:?}");
+            assert!(
+                (single.value - b.value).abs() < 1e-6 && single.iterations == b.iterations,
+                "{single:?} {b:?}"
+            );
         }
     }
 

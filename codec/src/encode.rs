@@ -94,32 +94,52 @@ impl Default for EncodeSettings {
 impl EncodeSettings {
     fn validate(&self) -> Result<(), Error> {
         let pow2 = |v: u32| v >= 1 && v.is_power_of_two();
-        if !pow2(self.min_range) || !pow2(self.max_range) || self.min_range > self.max_range || self.max_range > 256 {
+        if !pow2(self.min_range)
+            || !pow2(self.max_range)
+            || self.min_range > self.max_range
+            || self.max_range > 256
+        {
             return Err(Error::Settings(format!(
                 "range sizes must be powers of two with min <= max <= 256 (min {}, max {})",
                 self.min_range, self.max_range
             )));
         }
         if !(self.domain_step > 0.0 && self.domain_step <= 8.0) {
-            return Err(Error::Settings(format!("domain step {} must be in (0, 8]", self.domain_step)));
+            return Err(Error::Settings(format!(
+                "domain step {} must be in (0, 8]",
+                self.domain_step
+            )));
         }
         self.quantiser.validate().map_err(Error::Settings)?;
         match self.rate {
-            RateMode::Tolerance(t) if t < 0.0 => return Err(Error::Settings("tolerance must be >= 0".into())),
-            RateMode::Transforms(0) => return Err(Error::Settings("at least one transform".into())),
+            RateMode::Tolerance(t) if t < 0.0 => {
+                return Err(Error::Settings("tolerance must be >= 0".into()));
+            }
+            RateMode::Transforms(0) => {
+                return Err(Error::Settings("at least one transform".into()));
+            }
             RateMode::ConstRange(r) if r == 0 || r > 256 => {
                 return Err(Error::Settings("const range must be in 1..=256".into()));
             }
-            RateMode::TargetBpp(b) if !(b > 0.0) => return Err(Error::Settings("target bpp must be > 0".into())),
+            RateMode::TargetBpp(b) if b.is_nan() || b <= 0.0 => {
+                return Err(Error::Settings("target bpp must be > 0".into()));
+            }
             _ => {}
         }
         for r in &self.rois {
-            if r.min_range.is_some_and(|m| !pow2(m)) || !(r.tolerance >= 0.0) || r.rect[2] <= r.rect[0] || r.rect[3] <= r.rect[1] {
+            if r.min_range.is_some_and(|m| !pow2(m))
+                || r.tolerance.is_nan()
+                || r.tolerance < 0.0
+                || r.rect[2] <= r.rect[0]
+                || r.rect[3] <= r.rect[1]
+            {
                 return Err(Error::Settings(format!("bad region of interest {r:?}")));
             }
         }
         if let (RateMode::ConstRange(_), false) = (self.rate, self.rois.is_empty()) {
-            return Err(Error::Settings("regions of interest need a quadtree mode, not const range".into()));
+            return Err(Error::Settings(
+                "regions of interest need a quadtree mode, not const range".into(),
+            ));
         }
         Ok(())
     }
@@ -159,7 +179,8 @@ pub struct Encoded {
 impl Encoded {
     /// Bits per source pixel of the whole file.
     pub fn bpp(&self) -> f64 {
-        self.bytes.len() as f64 * 8.0 / (self.asset.meta.width as f64 * self.asset.meta.height as f64)
+        self.bytes.len() as f64 * 8.0
+            / (self.asset.meta.width as f64 * self.asset.meta.height as f64)
     }
 
     /// Source bytes (at the source's sample type) over file bytes.
@@ -179,8 +200,15 @@ struct SourcePlane {
     extent: [f32; 2],
 }
 
+/// Owned form of [`Limits`].
+type BoxedLimits = Box<dyn Fn(usize, usize, usize) -> (f32, usize) + Sync>;
+
 /// Encodes a raster. `progress(done, total)` is called as blocks are fitted.
-pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64, u64) + Sync)) -> Result<Encoded, Error> {
+pub fn encode(
+    raster: &Raster,
+    settings: &EncodeSettings,
+    progress: &(dyn Fn(u64, u64) + Sync),
+) -> Result<Encoded, Error> {
     let start = Instant::now();
     settings.validate()?;
     let (w, h) = (raster.width, raster.height);
@@ -194,7 +222,11 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
     };
     let span = (hi - lo) as f32;
     let valid = raster.valid.clone().unwrap_or_else(|| vec![true; w * h]);
-    let norm = |v: &[f32]| -> Vec<f32> { v.iter().map(|&x| ((x - lo as f32) / span).clamp(0.0, 1.0)).collect() };
+    let norm = |v: &[f32]| -> Vec<f32> {
+        v.iter()
+            .map(|&x| ((x - lo as f32) / span).clamp(0.0, 1.0))
+            .collect()
+    };
     let colour = raster.colour();
     let sources: Vec<SourcePlane> = match colour {
         ColourModel::Grey => vec![SourcePlane {
@@ -219,7 +251,12 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
     };
 
     // Frame geometry shared by every plane.
-    let roi_min = settings.rois.iter().filter_map(|r| r.min_range).min().unwrap_or(settings.min_range);
+    let roi_min = settings
+        .rois
+        .iter()
+        .filter_map(|r| r.min_range)
+        .min()
+        .unwrap_or(settings.min_range);
     let half = (w.min(h) / 2).max(1) as u32;
     let narrow = 1u32 << (31 - half.leading_zeros()); // largest power of two <= half
     let (min_size, levels, supersample) = match settings.rate {
@@ -229,10 +266,17 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
             // Narrow inputs (a 3 x 1000 strip) cannot hold a domain of twice the smallest range:
             // shrink the smallest range until one fits, down to single samples.
             let m = settings.min_range.min(roi_min).min(narrow);
-            (m, settings.max_range.max(m).trailing_zeros() - m.trailing_zeros() + 1, false)
+            (
+                m,
+                settings.max_range.max(m).trailing_zeros() - m.trailing_zeros() + 1,
+                false,
+            )
         }
     };
-    let planes: Vec<CodingPlane> = sources.iter().map(|s| coding_plane(s, min_size as usize, supersample)).collect();
+    let planes: Vec<CodingPlane> = sources
+        .iter()
+        .map(|s| coding_plane(s, min_size as usize, supersample))
+        .collect();
     let headers: Vec<PlaneHeader> = planes
         .iter()
         .map(|p| PlaneHeader {
@@ -251,7 +295,7 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
     let done = std::sync::atomic::AtomicU64::new(0);
     let tick = |k: u64| {
         let d = done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
-        if d % 256 == 0 || d == total {
+        if d.is_multiple_of(256) || d == total {
             progress(d, total);
         }
     };
@@ -269,7 +313,7 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
         _ => 1.0,
     };
     let chroma_tol = 1.0 / settings.chroma_weight.max(1e-3).sqrt();
-    let limit_fns: Vec<Box<dyn Fn(usize, usize, usize) -> (f32, usize) + Sync>> = sources
+    let limit_fns: Vec<BoxedLimits> = sources
         .iter()
         .zip(&planes)
         .enumerate()
@@ -289,7 +333,7 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
                 })
                 .collect();
             let global_min = settings.min_range.min(narrow) as usize;
-            let f: Box<dyn Fn(usize, usize, usize) -> (f32, usize) + Sync> = Box::new(move |x, y, n| {
+            let f: BoxedLimits = Box::new(move |x, y, n| {
                 let (x0, y0, x1, y1) = (x as f32, y as f32, (x + n) as f32, (y + n) as f32);
                 let (mut tol, mut min) = (plane_tol, global_min);
                 for &(r, t, m) in &rois {
@@ -304,7 +348,15 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
         })
         .collect();
     let limits: Vec<Limits> = limit_fns.iter().map(|f| f.as_ref() as Limits).collect();
-    let weights: Vec<f32> = (0..planes.len()).map(|i| if i == 0 { 1.0 } else { 4.0 * settings.chroma_weight }).collect();
+    let weights: Vec<f32> = (0..planes.len())
+        .map(|i| {
+            if i == 0 {
+                1.0
+            } else {
+                4.0 * settings.chroma_weight
+            }
+        })
+        .collect();
 
     let mask = raster.valid.as_ref().map(|v| Mask {
         width: w,
@@ -331,13 +383,22 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
         let coded = pyramids
             .iter()
             .zip(parts)
-            .map(|(p, part)| (p.header.clone(), encode_plane(&p.header, &|l, bx, by| part.decide(p, l, bx, by))))
+            .map(|(p, part)| {
+                (
+                    p.header.clone(),
+                    encode_plane(&p.header, &|l, bx, by| part.decide(p, l, bx, by)),
+                )
+            })
             .collect();
         Asset::from_parts(meta.clone(), coded, mask.clone())
     };
     let parts: Vec<Partition> = match settings.rate {
         RateMode::ConstRange(_) => pyramids.iter().map(Partition::whole_level).collect(),
-        RateMode::Tolerance(_) => pyramids.iter().zip(&limits).map(|(p, l)| Partition::by_tolerance(p, *l)).collect(),
+        RateMode::Tolerance(_) => pyramids
+            .iter()
+            .zip(&limits)
+            .map(|(p, l)| Partition::by_tolerance(p, *l))
+            .collect(),
         RateMode::Transforms(n) => {
             let (initial, order) = greedy_order(&pyr_refs, &weights, &limits);
             partitions_after(&pyr_refs, &order, n.saturating_sub(initial).div_ceil(3))
@@ -352,7 +413,9 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
                     .map(|((p, l), &wt)| Partition::by_lagrangian(p, lambda, wt, *l))
                     .collect()
             };
-            let size_at = |lambda: f32| -> Result<usize, Error> { Ok(build(&at(lambda), &meta)?.file_size()) };
+            let size_at = |lambda: f32| -> Result<usize, Error> {
+                Ok(build(&at(lambda), &meta)?.file_size())
+            };
             // Smallest lambda (best quality) whose file fits: bisection on log(lambda); the size
             // falls as lambda grows.
             let (mut lo_l, mut hi_l) = (-30.0f32, 10.0f32);
@@ -361,7 +424,11 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
             } else {
                 for _ in 0..28 {
                     let mid = 0.5 * (lo_l + hi_l);
-                    if size_at(mid.exp2())? <= max_bytes { hi_l = mid } else { lo_l = mid }
+                    if size_at(mid.exp2())? <= max_bytes {
+                        hi_l = mid
+                    } else {
+                        lo_l = mid
+                    }
                 }
             }
             at(hi_l.exp2())
@@ -370,7 +437,12 @@ pub fn encode(raster: &Raster, settings: &EncodeSettings, progress: &(dyn Fn(u64
     let asset = build(&parts, &meta)?;
     let transforms: usize = asset.planes.iter().map(|p| p.operator.ranges().len()).sum();
     let (decoded, _) = asset.decode_native();
-    let errors = compare(&raster.channels, &decoded.channels, raster.valid.as_deref(), meta.psnr_peak());
+    let errors = compare(
+        &raster.channels,
+        &decoded.channels,
+        raster.valid.as_deref(),
+        meta.psnr_peak(),
+    );
     let seconds = start.elapsed().as_secs_f64();
     meta.stats = EncodeStats {
         transforms: transforms as u64,
@@ -426,7 +498,14 @@ fn halve(values: &[f32], valid: &[bool], w: usize, h: usize) -> SourcePlane {
 fn coding_plane(s: &SourcePlane, align: usize, supersample: bool) -> CodingPlane {
     let mut values = s.values.clone();
     fill_invalid(&mut values, &s.valid, s.width, s.height);
-    let (mut w, mut h, mut weights) = (s.width, s.height, s.valid.iter().map(|&v| f32::from(u8::from(v))).collect::<Vec<_>>());
+    let (mut w, mut h, mut weights) = (
+        s.width,
+        s.height,
+        s.valid
+            .iter()
+            .map(|&v| f32::from(u8::from(v)))
+            .collect::<Vec<_>>(),
+    );
     // The source extent in frame units: chroma keeps the exact half of the source (w / 2) so
     // that unit coordinates line up with luma.
     let mut valid = s.extent;
@@ -482,10 +561,16 @@ fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
         return;
     }
     // Level 0: (sum, weight) per cell; each coarser level sums 2x2 children.
-    let mut levels: Vec<(usize, usize, Vec<(f32, f32)>)> = vec![(
+    // (width, height, (sum, weight) per cell) per level.
+    type Level = (usize, usize, Vec<(f32, f32)>);
+    let mut levels: Vec<Level> = vec![(
         w,
         h,
-        values.iter().zip(valid).map(|(&v, &ok)| if ok { (v, 1.0) } else { (0.0, 0.0) }).collect(),
+        values
+            .iter()
+            .zip(valid)
+            .map(|(&v, &ok)| if ok { (v, 1.0) } else { (0.0, 0.0) })
+            .collect(),
     )];
     while levels.last().is_some_and(|(lw, lh, _)| *lw > 1 || *lh > 1) {
         let (lw, lh, cells) = levels.last().expect("non-empty");

@@ -246,7 +246,7 @@ mod tests {
         let mut state = 12345u32;
         for _ in 0..10_000 {
             state = state.wrapping_mul(1_103_515_245).wrapping_add(12345);
-            enc.bit(&mut p, (state >> 16) % 20 == 0);
+            enc.bit(&mut p, (state >> 16).is_multiple_of(20));
         }
         let n = enc.finish().len();
         assert!(n < 450, "{n} bytes for a 0.286-bit/bit source");

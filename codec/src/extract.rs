@@ -63,7 +63,11 @@ impl Asset {
             })
             .fold(0.0, f32::max);
         let b = self.max_contrast().powi(n as i32) * half * self.span();
-        if self.meta.colour == ColourModel::YCbCr { rgb_bound(b, b, b) } else { b }
+        if self.meta.colour == ColourModel::YCbCr {
+            rgb_bound(b, b, b)
+        } else {
+            b
+        }
     }
 
     /// Iterations for the a-priori bound to fall under `tolerance` (source units), capped.
@@ -76,18 +80,29 @@ impl Asset {
     }
 
     /// Brings normalised planes sampled at unit points back to source units.
-    fn to_source(&self, planes: Vec<Vec<f32>>, points: impl Fn(usize) -> (f32, f32) + Sync) -> Vec<Vec<f32>> {
+    fn to_source(
+        &self,
+        planes: Vec<Vec<f32>>,
+        points: impl Fn(usize) -> (f32, f32) + Sync,
+    ) -> Vec<Vec<f32>> {
         let (lo, span) = (self.meta.value_min as f32, self.span());
         let mut out: Vec<Vec<f32>> = match self.meta.colour {
-            ColourModel::Grey => planes.into_iter().map(|p| p.into_iter().map(|v| lo + v * span).collect()).collect(),
+            ColourModel::Grey => planes
+                .into_iter()
+                .map(|p| p.into_iter().map(|v| lo + v * span).collect())
+                .collect(),
             ColourModel::YCbCr => {
                 let peak = self.peak();
                 let n = planes[0].len();
-                let mut rgb = vec![Vec::with_capacity(n), Vec::with_capacity(n), Vec::with_capacity(n)];
-                for i in 0..n {
-                    let c = ycbcr_to_rgb(planes[0][i] * span + lo, planes[1][i] * span + lo, planes[2][i] * span + lo, peak);
-                    for k in 0..3 {
-                        rgb[k].push(c[k]);
+                let mut rgb = vec![
+                    Vec::with_capacity(n),
+                    Vec::with_capacity(n),
+                    Vec::with_capacity(n),
+                ];
+                for ((&y, &cb), &cr) in planes[0].iter().zip(&planes[1]).zip(&planes[2]) {
+                    let c = ycbcr_to_rgb(y * span + lo, cb * span + lo, cr * span + lo, peak);
+                    for (plane, v) in rgb.iter_mut().zip(c) {
+                        plane.push(v);
                     }
                 }
                 rgb
@@ -107,40 +122,77 @@ impl Asset {
     }
 
     /// Discrete decoding of the whole asset at `width x height`.
-    pub fn decode(&self, width: usize, height: usize, opts: DiscreteOptions) -> (Decoded, DiscreteReport) {
-        let results: Vec<(Grid, DiscreteReport)> =
-            self.planes.iter().map(|p| decode::discrete(&p.operator, width, height, opts)).collect();
+    pub fn decode(
+        &self,
+        width: usize,
+        height: usize,
+        opts: DiscreteOptions,
+    ) -> (Decoded, DiscreteReport) {
+        let results: Vec<(Grid, DiscreteReport)> = self
+            .planes
+            .iter()
+            .map(|p| decode::discrete(&p.operator, width, height, opts))
+            .collect();
         let report = DiscreteReport {
             iterations: results.iter().map(|r| r.1.iterations).max().unwrap_or(0),
             last_change: results.iter().map(|r| r.1.last_change).fold(0.0, f32::max),
         };
         let planes = results.into_iter().map(|r| r.0.values).collect();
         let channels = self.to_source(planes, |i| {
-            (((i % width) as f32 + 0.5) / width as f32, ((i / width) as f32 + 0.5) / height as f32)
+            (
+                ((i % width) as f32 + 0.5) / width as f32,
+                ((i / width) as f32 + 0.5) / height as f32,
+            )
         });
-        (Decoded { width, height, channels }, report)
+        (
+            Decoded {
+                width,
+                height,
+                channels,
+            },
+            report,
+        )
     }
 
     /// Discrete decoding at the source's own size.
     pub fn decode_native(&self) -> (Decoded, DiscreteReport) {
-        self.decode(self.meta.width as usize, self.meta.height as usize, DiscreteOptions::default())
+        self.decode(
+            self.meta.width as usize,
+            self.meta.height as usize,
+            DiscreteOptions::default(),
+        )
     }
 
     /// Continuous decoding of one unit point (u, v) with `iterations` inverse steps.
     pub fn point(&self, u: f32, v: f32, iterations: u32) -> PointSample {
-        let pv: Vec<_> = self.planes.iter().map(|p| decode::point(&p.operator, [u, v], iterations)).collect();
+        let pv: Vec<_> = self
+            .planes
+            .iter()
+            .map(|p| decode::point(&p.operator, [u, v], iterations))
+            .collect();
         let span = self.span();
         let bounds: Vec<f32> = pv.iter().map(|p| p.error_bound * span).collect();
         let values = self.to_source(pv.iter().map(|p| vec![p.value]).collect(), |_| (u, v));
         PointSample {
             values: values.into_iter().map(|c| c[0]).collect(),
-            error_bound: if bounds.len() == 3 { rgb_bound(bounds[0], bounds[1], bounds[2]) } else { bounds[0] },
+            error_bound: if bounds.len() == 3 {
+                rgb_bound(bounds[0], bounds[1], bounds[2])
+            } else {
+                bounds[0]
+            },
             iterations: pv.iter().map(|p| p.iterations).max().unwrap_or(0),
         }
     }
 
     /// A window `[u0, v0, u1, v1]` of the unit square at `width x height`.
-    pub fn window(&self, rect: [f32; 4], width: usize, height: usize, iterations: Option<u32>, method: Method) -> (Decoded, Method) {
+    pub fn window(
+        &self,
+        rect: [f32; 4],
+        width: usize,
+        height: usize,
+        iterations: Option<u32>,
+        method: Method,
+    ) -> (Decoded, Method) {
         let mut chosen = method;
         let planes = self
             .planes
@@ -158,7 +210,14 @@ impl Asset {
                 v0 + ((i / width) as f32 + 0.5) / height as f32 * (v1 - v0),
             )
         });
-        (Decoded { width, height, channels }, chosen)
+        (
+            Decoded {
+                width,
+                height,
+                channels,
+            },
+            chosen,
+        )
     }
 
     /// Whether the asset is a height field.

@@ -19,7 +19,12 @@ pub struct Errors {
 
 /// Compares channel planes sample by sample where `valid` (if any) holds; NaNs in either side are
 /// skipped as nodata.
-pub fn compare(source: &[Vec<f32>], decoded: &[Vec<f32>], valid: Option<&[bool]>, peak: f64) -> Errors {
+pub fn compare(
+    source: &[Vec<f32>],
+    decoded: &[Vec<f32>],
+    valid: Option<&[bool]>,
+    peak: f64,
+) -> Errors {
     let (mut se, mut ae, mut max, mut n) = (0.0f64, 0.0f64, 0.0f64, 0u64);
     for (s, d) in source.iter().zip(decoded) {
         for (i, (&a, &b)) in s.iter().zip(d).enumerate() {
@@ -39,7 +44,11 @@ pub fn compare(source: &[Vec<f32>], decoded: &[Vec<f32>], valid: Option<&[bool]>
         rmse,
         mae: ae / n_f,
         max_error: max,
-        psnr: if rmse > 0.0 { 20.0 * (peak / rmse).log10() } else { f64::INFINITY },
+        psnr: if rmse > 0.0 {
+            20.0 * (peak / rmse).log10()
+        } else {
+            f64::INFINITY
+        },
         samples: n,
     }
 }

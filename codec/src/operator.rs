@@ -6,7 +6,6 @@
 //! and s (contrast) per range and phi mapping the range onto its domain (scale 2, one of 8
 //! isometries). Fractal interpolation surfaces plug in later with bilinear g and s.
 
-
 /// What the operator does at one point: `(W f)(p) = offset + contrast * f(next)`.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Step<const D: usize> {
@@ -122,7 +121,13 @@ impl AffineCell {
         }
         // a = (px - x) / n; phi = d + 2n a' = 2 ua0 px + 2 ua1 py + (d + 2n ua2 - 2 ua0 x - 2 ua1 y).
         let (x, y, n) = (r.x as f32, r.y as f32, r.size as f32);
-        let row = |u: [f32; 3], d: f32| (2.0 * u[0], 2.0 * u[1], d + 2.0 * n * u[2] - 2.0 * u[0] * x - 2.0 * u[1] * y);
+        let row = |u: [f32; 3], d: f32| {
+            (
+                2.0 * u[0],
+                2.0 * u[1],
+                d + 2.0 * n * u[2] - 2.0 * u[0] * x - 2.0 * u[1] * y,
+            )
+        };
         let (ax, bx, cx) = row(ua, r.domain_x as f32);
         let (ay, by, cy) = row(ub, r.domain_y as f32);
         AffineCell {
@@ -156,9 +161,21 @@ pub struct QuadtreeOperator {
 impl QuadtreeOperator {
     /// Builds the operator; `cell` is a side that divides every range's position and size
     /// (the smallest range size) and the frame. Fails if the ranges do not tile the frame.
-    pub fn new(frame: [u32; 2], valid: [f32; 2], cell: u32, ranges: Vec<RangeMap>) -> Result<Self, String> {
-        if cell == 0 || frame[0] % cell != 0 || frame[1] % cell != 0 || frame[0] == 0 || frame[1] == 0 {
-            return Err(format!("frame {frame:?} is not a multiple of the cell size {cell}"));
+    pub fn new(
+        frame: [u32; 2],
+        valid: [f32; 2],
+        cell: u32,
+        ranges: Vec<RangeMap>,
+    ) -> Result<Self, String> {
+        if cell == 0
+            || !frame[0].is_multiple_of(cell)
+            || !frame[1].is_multiple_of(cell)
+            || frame[0] == 0
+            || frame[1] == 0
+        {
+            return Err(format!(
+                "frame {frame:?} is not a multiple of the cell size {cell}"
+            ));
         }
         let cols = (frame[0] / cell) as usize;
         let rows = (frame[1] / cell) as usize;
@@ -174,11 +191,18 @@ impl QuadtreeOperator {
                 && r.contrast.is_finite()
                 && r.offset.is_finite()
                 && (r.contrast == 0.0
-                    || (r.domain_x + 2 * r.size <= frame[0] && r.domain_y + 2 * r.size <= frame[1]));
+                    || (r.domain_x + 2 * r.size <= frame[0]
+                        && r.domain_y + 2 * r.size <= frame[1]));
             if !fits {
-                return Err(format!("range {i} ({r:?}) does not fit the frame {frame:?}"));
+                return Err(format!(
+                    "range {i} ({r:?}) does not fit the frame {frame:?}"
+                ));
             }
-            let (c0, r0, n) = ((r.x / cell) as usize, (r.y / cell) as usize, (r.size / cell) as usize);
+            let (c0, r0, n) = (
+                (r.x / cell) as usize,
+                (r.y / cell) as usize,
+                (r.size / cell) as usize,
+            );
             for row in r0..r0 + n {
                 for slot in &mut lut[row * cols + c0..row * cols + c0 + n] {
                     if *slot != u32::MAX {
@@ -258,7 +282,10 @@ impl Operator<2> for QuadtreeOperator {
         Step {
             offset: c.offset,
             contrast: c.contrast,
-            next: [c.ax * p[0] + c.bx * p[1] + c.cx, c.ay * p[0] + c.by * p[1] + c.cy],
+            next: [
+                c.ax * p[0] + c.bx * p[1] + c.cx,
+                c.ay * p[0] + c.by * p[1] + c.cy,
+            ],
         }
     }
 
@@ -278,10 +305,16 @@ mod tests {
         assert!(lo.abs() < 1e-4 && (hi - 1.0).abs() < 1e-4, "{lo} {hi}");
         // x -> 0.2 x + 0.3 alone: the fixed point 0.375.
         let (lo, hi) = invariant_interval([(0.2, 0.3)].into_iter());
-        assert!((lo - 0.375).abs() < 1e-4 && (hi - 0.375).abs() < 1e-4, "{lo} {hi}");
+        assert!(
+            (lo - 0.375).abs() < 1e-4 && (hi - 0.375).abs() < 1e-4,
+            "{lo} {hi}"
+        );
         // A negative contrast flips the interval: x -> -0.5 x + 0.75 has the fixed point 0.5.
         let (lo, hi) = invariant_interval([(-0.5, 0.75)].into_iter());
-        assert!((lo - 0.5).abs() < 1e-4 && (hi - 0.5).abs() < 1e-4, "{lo} {hi}");
+        assert!(
+            (lo - 0.5).abs() < 1e-4 && (hi - 0.5).abs() < 1e-4,
+            "{lo} {hi}"
+        );
     }
 
     #[test]
@@ -303,7 +336,10 @@ mod tests {
                 let (a, b) = isometry(k, (px - 8.0) / 4.0, (py - 4.0) / 4.0);
                 let want = (2.0 + 8.0 * a, 6.0 + 8.0 * b);
                 let got = (c.ax * px + c.bx * py + c.cx, c.ay * px + c.by * py + c.cy);
-                assert!((want.0 - got.0).abs() < 1e-4 && (want.1 - got.1).abs() < 1e-4, "{k}: {want:?} {got:?}");
+                assert!(
+                    (want.0 - got.0).abs() < 1e-4 && (want.1 - got.1).abs() < 1e-4,
+                    "{k}: {want:?} {got:?}"
+                );
             }
         }
     }
@@ -322,7 +358,9 @@ mod tests {
         };
         assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(0, 0, 8)]).is_ok());
         assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(0, 0, 4)]).is_err());
-        assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(0, 0, 8), r(4, 4, 4)]).is_err());
+        assert!(
+            QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(0, 0, 8), r(4, 4, 4)]).is_err()
+        );
         assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(4, 4, 8)]).is_err());
     }
 }

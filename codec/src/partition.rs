@@ -119,7 +119,11 @@ impl Partition {
             return None;
         }
         let f = p.fit(l, bx, by)?;
-        Some(if self.constant[l][by * p.cols[l] + bx] { f.as_constant() } else { f })
+        Some(if self.constant[l][by * p.cols[l] + bx] {
+            f.as_constant()
+        } else {
+            f
+        })
     }
 
     /// The rate-distortion optimal partition for the Lagrange multiplier `lambda`
@@ -129,7 +133,11 @@ impl Partition {
     pub fn by_lagrangian(p: &Pyramid, lambda: f32, weight: f32, limits: Limits) -> Partition {
         let mut part = Partition::empty(p);
         let levels = p.fits.len();
-        let mut cost: Vec<Vec<f32>> = p.fits.iter().map(|f| vec![f32::INFINITY; f.len()]).collect();
+        let mut cost: Vec<Vec<f32>> = p
+            .fits
+            .iter()
+            .map(|f| vec![f32::INFINITY; f.len()])
+            .collect();
         for l in 0..levels {
             let n = p.header.size(l);
             let (dc, dr) = p.header.lattice(l);
@@ -230,7 +238,9 @@ impl PartialOrd for Candidate {
 }
 impl Ord for Candidate {
     fn cmp(&self, o: &Self) -> std::cmp::Ordering {
-        self.gain.total_cmp(&o.gain).then_with(|| o.split.cmp(&self.split))
+        self.gain
+            .total_cmp(&o.gain)
+            .then_with(|| o.split.cmp(&self.split))
     }
 }
 
@@ -238,7 +248,11 @@ impl Ord for Candidate {
 /// whose split removes the most weighted error. `weight[plane]` scales a plane's error (chroma
 /// counts less); `limits[plane]` scales by the region of interest (gain / tol²) and bounds sizes.
 /// Also returns the number of ranges before the first split (forced splits only).
-pub fn greedy_order(pyramids: &[&Pyramid], weight: &[f32], limits: &[Limits]) -> (usize, Vec<Split>) {
+pub fn greedy_order(
+    pyramids: &[&Pyramid],
+    weight: &[f32],
+    limits: &[Limits],
+) -> (usize, Vec<Split>) {
     let mut heap = BinaryHeap::new();
     let mut initial = 0usize;
     let push = |heap: &mut BinaryHeap<Candidate>, pi: usize, l: usize, bx: usize, by: usize| {

@@ -33,7 +33,12 @@ pub struct Raster {
 
 impl Raster {
     /// A single-channel raster from values (NaN marks nodata).
-    pub fn from_values(width: usize, height: usize, values: Vec<f32>, kind: AssetKind) -> Result<Raster, Error> {
+    pub fn from_values(
+        width: usize,
+        height: usize,
+        values: Vec<f32>,
+        kind: AssetKind,
+    ) -> Result<Raster, Error> {
         if values.len() != width * height {
             return Err(Error::Input(format!(
                 "{} values for a {width}x{height} grid",
@@ -73,7 +78,11 @@ impl Raster {
 
     /// Colour model of the channels.
     pub fn colour(&self) -> ColourModel {
-        if self.channels.len() == 3 { ColourModel::YCbCr } else { ColourModel::Grey }
+        if self.channels.len() == 3 {
+            ColourModel::YCbCr
+        } else {
+            ColourModel::Grey
+        }
     }
 
     /// Whether cell `i` holds data.
@@ -112,7 +121,9 @@ impl Raster {
         if let Some(v) = &self.valid
             && !v.iter().any(|&b| b)
         {
-            return Err(Error::Input("every cell is nodata: nothing to encode".into()));
+            return Err(Error::Input(
+                "every cell is nodata: nothing to encode".into(),
+            ));
         }
         Ok(())
     }
@@ -143,23 +154,43 @@ fn read_image(path: &Path) -> Result<Raster, Error> {
     let (w, h) = (img.width() as usize, img.height() as usize);
     let (channels, kind, sample) = match &img {
         D::ImageLuma8(_) | D::ImageLumaA8(_) => (
-            vec![img.to_luma8().into_raw().into_iter().map(f32::from).collect()],
+            vec![
+                img.to_luma8()
+                    .into_raw()
+                    .into_iter()
+                    .map(f32::from)
+                    .collect(),
+            ],
             AssetKind::Image,
             SampleFormat::U8,
         ),
         // A 16-bit grey PNG is how many DEMs travel: treat it as a height field.
         D::ImageLuma16(_) | D::ImageLumaA16(_) => (
-            vec![img.to_luma16().into_raw().into_iter().map(f32::from).collect()],
+            vec![
+                img.to_luma16()
+                    .into_raw()
+                    .into_iter()
+                    .map(f32::from)
+                    .collect(),
+            ],
             AssetKind::HeightField,
             SampleFormat::U16,
         ),
-        D::ImageRgb16(_) | D::ImageRgba16(_) => {
-            (split_rgb(&img.to_rgb16().into_raw()), AssetKind::Image, SampleFormat::U16)
-        }
-        D::ImageRgb32F(_) | D::ImageRgba32F(_) => {
-            (split_rgb(&img.to_rgb32f().into_raw()), AssetKind::Image, SampleFormat::F32)
-        }
-        _ => (split_rgb(&img.to_rgb8().into_raw()), AssetKind::Image, SampleFormat::U8),
+        D::ImageRgb16(_) | D::ImageRgba16(_) => (
+            split_rgb(&img.to_rgb16().into_raw()),
+            AssetKind::Image,
+            SampleFormat::U16,
+        ),
+        D::ImageRgb32F(_) | D::ImageRgba32F(_) => (
+            split_rgb(&img.to_rgb32f().into_raw()),
+            AssetKind::Image,
+            SampleFormat::F32,
+        ),
+        _ => (
+            split_rgb(&img.to_rgb8().into_raw()),
+            AssetKind::Image,
+            SampleFormat::U8,
+        ),
     };
     let mut r = Raster {
         width: w,
@@ -178,7 +209,13 @@ fn read_image(path: &Path) -> Result<Raster, Error> {
 
 fn split_rgb<T: Copy + Into<f64>>(px: &[T]) -> Vec<Vec<f32>> {
     (0..3)
-        .map(|c| px.iter().skip(c).step_by(3).map(|&v| v.into() as f32).collect())
+        .map(|c| {
+            px.iter()
+                .skip(c)
+                .step_by(3)
+                .map(|&v| v.into() as f32)
+                .collect()
+        })
         .collect()
 }
 
@@ -186,7 +223,8 @@ fn read_geotiff(path: &Path) -> Result<Raster, Error> {
     use tiff::decoder::{Decoder, DecodingResult as R};
     use tiff::tags::Tag;
     let bad = |e: tiff::TiffError| Error::Input(format!("{}: {e}", path.display()));
-    let file = std::fs::File::open(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+    let file =
+        std::fs::File::open(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
     let mut dec = Decoder::new(std::io::BufReader::new(file)).map_err(bad)?;
     let (w, h) = dec.dimensions().map_err(bad)?;
     let (w, h) = (w as usize, h as usize);
@@ -209,7 +247,12 @@ fn read_geotiff(path: &Path) -> Result<Raster, Error> {
         R::U32(v) => (v.into_iter().map(|x| x as f32).collect(), SampleFormat::F32),
         R::F32(v) => (v, SampleFormat::F32),
         R::F64(v) => (v.into_iter().map(|x| x as f32).collect(), SampleFormat::F32),
-        _ => return Err(Error::Input(format!("{}: unsupported sample type", path.display()))),
+        _ => {
+            return Err(Error::Input(format!(
+                "{}: unsupported sample type",
+                path.display()
+            )));
+        }
     };
     if values.len() != w * h {
         return Err(Error::Input(format!(
@@ -252,11 +295,18 @@ fn epsg_of(keys: &[u16]) -> Option<u32> {
             .find(|e| e[0] == id && e[1] == 0)
             .map(|e| e[3] as u32)
     };
-    find(3072).or_else(|| find(2048)).filter(|&c| c != 0 && c != 32767)
+    find(3072)
+        .or_else(|| find(2048))
+        .filter(|&c| c != 0 && c != 32767)
 }
 
 /// Writes 8-bit grey or RGB (channels 1 or 3) PNG; values are clamped and rounded.
-pub fn write_png8(path: &Path, width: usize, height: usize, channels: &[Vec<f32>]) -> Result<(), Error> {
+pub fn write_png8(
+    path: &Path,
+    width: usize,
+    height: usize,
+    channels: &[Vec<f32>],
+) -> Result<(), Error> {
     let n = width * height;
     let q = |v: f32| v.round().clamp(0.0, 255.0) as u8;
     let img = if channels.len() == 3 {
@@ -264,20 +314,29 @@ pub fn write_png8(path: &Path, width: usize, height: usize, channels: &[Vec<f32>
         for i in 0..n {
             px.extend(channels.iter().map(|c| q(c[i])));
         }
-        image::DynamicImage::ImageRgb8(image::RgbImage::from_raw(width as u32, height as u32, px).expect("size"))
+        image::DynamicImage::ImageRgb8(
+            image::RgbImage::from_raw(width as u32, height as u32, px).expect("size"),
+        )
     } else {
         let px = channels[0].iter().map(|&v| q(v)).collect();
-        image::DynamicImage::ImageLuma8(image::GrayImage::from_raw(width as u32, height as u32, px).expect("size"))
+        image::DynamicImage::ImageLuma8(
+            image::GrayImage::from_raw(width as u32, height as u32, px).expect("size"),
+        )
     };
-    img.save(path).map_err(|e| Error::Output(format!("{}: {e}", path.display())))
+    img.save(path)
+        .map_err(|e| Error::Output(format!("{}: {e}", path.display())))
 }
 
 /// Writes a 16-bit grey PNG of values already mapped to 0..=65535.
 pub fn write_png16(path: &Path, width: usize, height: usize, values: &[f32]) -> Result<(), Error> {
-    let px = values.iter().map(|&v| v.round().clamp(0.0, 65535.0) as u16).collect();
+    let px = values
+        .iter()
+        .map(|&v| v.round().clamp(0.0, 65535.0) as u16)
+        .collect();
     let img: image::ImageBuffer<image::Luma<u16>, Vec<u16>> =
         image::ImageBuffer::from_raw(width as u32, height as u32, px).expect("size");
-    img.save(path).map_err(|e| Error::Output(format!("{}: {e}", path.display())))
+    img.save(path)
+        .map_err(|e| Error::Output(format!("{}: {e}", path.display())))
 }
 
 /// Writes a float32 GeoTIFF, with georeference and nodata tags when given.
@@ -292,25 +351,58 @@ pub fn write_geotiff_f32(
     use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
     use tiff::tags::Tag;
     let err = |e: tiff::TiffError| Error::Output(format!("{}: {e}", path.display()));
-    let file = std::fs::File::create(path).map_err(|e| Error::Output(format!("{}: {e}", path.display())))?;
+    let file = std::fs::File::create(path)
+        .map_err(|e| Error::Output(format!("{}: {e}", path.display())))?;
     let mut enc = TiffEncoder::new(std::io::BufWriter::new(file)).map_err(err)?;
-    let mut img = enc.new_image::<Gray32Float>(width as u32, height as u32).map_err(err)?;
+    let mut img = enc
+        .new_image::<Gray32Float>(width as u32, height as u32)
+        .map_err(err)?;
     if let Some(g) = georef {
         let d = img.encoder();
-        d.write_tag(Tag::ModelPixelScaleTag, &[g.pixel_size[0], -g.pixel_size[1], 0.0][..])
-            .map_err(err)?;
-        d.write_tag(Tag::ModelTiepointTag, &[0.0, 0.0, 0.0, g.origin[0], g.origin[1], 0.0][..])
-            .map_err(err)?;
+        d.write_tag(
+            Tag::ModelPixelScaleTag,
+            &[g.pixel_size[0], -g.pixel_size[1], 0.0][..],
+        )
+        .map_err(err)?;
+        d.write_tag(
+            Tag::ModelTiepointTag,
+            &[0.0, 0.0, 0.0, g.origin[0], g.origin[1], 0.0][..],
+        )
+        .map_err(err)?;
         if let Some(code) = g.epsg {
             // GeoKeyDirectory v1.1.0: model type, raster type PixelIsArea, the CRS code.
             let geographic = (4000..5000).contains(&code);
-            let (model, key) = if geographic { (2u16, 2048u16) } else { (1u16, 3072u16) };
-            let keys: [u16; 16] = [1, 1, 0, 3, 1024, 0, 1, model, 1025, 0, 1, 1, key, 0, 1, code as u16];
-            d.write_tag(Tag::GeoKeyDirectoryTag, &keys[..]).map_err(err)?;
+            let (model, key) = if geographic {
+                (2u16, 2048u16)
+            } else {
+                (1u16, 3072u16)
+            };
+            let keys: [u16; 16] = [
+                1,
+                1,
+                0,
+                3,
+                1024,
+                0,
+                1,
+                model,
+                1025,
+                0,
+                1,
+                1,
+                key,
+                0,
+                1,
+                code as u16,
+            ];
+            d.write_tag(Tag::GeoKeyDirectoryTag, &keys[..])
+                .map_err(err)?;
         }
     }
     if let Some(nd) = nodata {
-        img.encoder().write_tag(Tag::GdalNodata, format!("{nd}").as_str()).map_err(err)?;
+        img.encoder()
+            .write_tag(Tag::GdalNodata, format!("{nd}").as_str())
+            .map_err(err)?;
     }
     img.write_data(values).map_err(err)
 }

@@ -45,7 +45,10 @@ impl CodingPlane {
         }
         let mut out = Vec::with_capacity((w - 1) * (h - 1));
         for y in 0..h - 1 {
-            let (a, b) = (&self.values[y * w..(y + 1) * w], &self.values[(y + 1) * w..(y + 2) * w]);
+            let (a, b) = (
+                &self.values[y * w..(y + 1) * w],
+                &self.values[(y + 1) * w..(y + 2) * w],
+            );
             for x in 0..w - 1 {
                 out.push(0.25 * (a[x] + a[x + 1] + b[x] + b[x + 1]));
             }
@@ -114,12 +117,25 @@ const FEATURES: usize = 16;
 /// 420 µs a query on 129k points at 16 dims).
 const INDEXED: usize = 8;
 /// (u, v) frequencies of the indexed coefficients, lowest first.
-const ZIGZAG: [(usize, usize); INDEXED] = [(1, 0), (0, 1), (0, 2), (1, 1), (2, 0), (3, 0), (2, 1), (1, 2)];
+const ZIGZAG: [(usize, usize); INDEXED] = [
+    (1, 0),
+    (0, 1),
+    (0, 2),
+    (1, 1),
+    (2, 0),
+    (3, 0),
+    (2, 1),
+    (1, 2),
+];
 
 fn dct_features(f: &[f32; FEATURES]) -> [f32; INDEXED] {
     // Orthonormal DCT-II basis for N = 4.
     let basis = |k: usize, n: usize| -> f32 {
-        let c = if k == 0 { 0.5 } else { std::f32::consts::FRAC_1_SQRT_2 };
+        let c = if k == 0 {
+            0.5
+        } else {
+            std::f32::consts::FRAC_1_SQRT_2
+        };
         c * ((std::f32::consts::PI * (2 * n + 1) as f32 * k as f32) / 8.0).cos()
     };
     let mut out = [0.0f32; INDEXED];
@@ -134,6 +150,9 @@ fn dct_features(f: &[f32; FEATURES]) -> [f32; INDEXED] {
     }
     out
 }
+
+/// A domain index and an isometry.
+type DomainOrientation = (u32, u8);
 
 /// All domains of one range size: the lattice, the blocks at half resolution, their sums, and the
 /// index the chosen search needs.
@@ -150,18 +169,28 @@ pub struct DomainPool {
     sums: Vec<f32>,
     sums2: Vec<f32>,
     perms: Vec<Vec<u32>>,
-    tree: Option<(ImmutableKdTree<f32, INDEXED>, Vec<(u32, u8)>)>,
+    tree: Option<(ImmutableKdTree<f32, INDEXED>, Vec<DomainOrientation>)>,
     classes: Option<Vec<Vec<(u32, u8)>>>,
 }
 
 /// Domain lattice size along one axis for frame side `frame`, range side `n`, step `step`.
 pub fn lattice(frame: usize, n: usize, step: usize) -> usize {
-    if frame >= 2 * n { (frame - 2 * n) / step.max(1) + 1 } else { 0 }
+    if frame >= 2 * n {
+        (frame - 2 * n) / step.max(1) + 1
+    } else {
+        0
+    }
 }
 
 impl DomainPool {
     /// Builds the pool of domains of side `2n` on a lattice of `step` over the plane.
-    pub fn new(plane: &CodingPlane, avg2: &[f32], n: usize, step: usize, mode: SearchMode) -> DomainPool {
+    pub fn new(
+        plane: &CodingPlane,
+        avg2: &[f32],
+        n: usize,
+        step: usize,
+        mode: SearchMode,
+    ) -> DomainPool {
         let cols = lattice(plane.width, n, step);
         let rows = lattice(plane.height, n, step);
         let count = cols * rows;
@@ -234,7 +263,9 @@ impl DomainPool {
         let mut items = Vec::with_capacity(self.count() * 8);
         for d in 0..self.count() {
             let base = reduce(self.block(d), self.size);
-            let Some(base) = normalise(base) else { continue };
+            let Some(base) = normalise(base) else {
+                continue;
+            };
             for k in 0..SQUARE_ISOMETRIES {
                 let mut f = [0.0f32; FEATURES];
                 for j in 0..4 {
@@ -246,7 +277,9 @@ impl DomainPool {
                 // A jitter far below any meaningful difference breaks exact ties between blocks
                 // (padding repeats edges), which k-d trees split badly.
                 let mut f = dct_features(&f);
-                let h = (d as u32).wrapping_mul(2_654_435_761).wrapping_add(k as u32 * 40_503);
+                let h = (d as u32)
+                    .wrapping_mul(2_654_435_761)
+                    .wrapping_add(k as u32 * 40_503);
                 f[(h >> 29) as usize] += (h & 0xFFFF) as f32 * 1e-12;
                 points.push(f);
                 items.push((d as u32, k));
@@ -349,7 +382,14 @@ struct RangeBlock {
 }
 
 /// Fits the range of side `n` at (x, y).
-pub fn fit_range(plane: &CodingPlane, pool: &DomainPool, x: usize, y: usize, q: &Quantiser, mode: SearchMode) -> Fit {
+pub fn fit_range(
+    plane: &CodingPlane,
+    pool: &DomainPool,
+    x: usize,
+    y: usize,
+    q: &Quantiser,
+    mode: SearchMode,
+) -> Fit {
     let n = pool.size;
     let mut values = Vec::with_capacity(n * n);
     let mut weights = Vec::with_capacity(n * n);
@@ -478,7 +518,11 @@ fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> 
         }
     };
     let den = rb.n * sdd - sd * sd;
-    let s_opt = if den > 1e-12 { (rb.n * sdr - sd * rb.sr) / den } else { 0.0 };
+    let s_opt = if den > 1e-12 {
+        (rb.n * sdr - sd * rb.sr) / den
+    } else {
+        0.0
+    };
     let qi = q.contrast_index(s_opt);
     let l = q.contrast_levels();
     let mut best = Fit {
@@ -498,7 +542,9 @@ fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> 
         let s = q.contrast(qs);
         let oi = q.offset_index(s, (rb.sr - s * sd) / rb.n);
         let o = q.offset(s, oi);
-        let sse = rb.srr + s * s * sdd + rb.n * o * o + 2.0 * s * o * sd - 2.0 * s * sdr - 2.0 * o * rb.sr;
+        let sse = rb.srr + s * s * sdd + rb.n * o * o + 2.0 * s * o * sd
+            - 2.0 * s * sdr
+            - 2.0 * o * rb.sr;
         if sse < best.sse {
             best.sse = sse.max(0.0);
             best.contrast = qs;
@@ -524,7 +570,11 @@ mod tests {
 
     #[test]
     fn order_classes_are_a_bijection_of_the_24_orders() {
-        let perms = [[4.0f32, 3.0, 2.0, 1.0], [1.0, 2.0, 3.0, 4.0], [2.0, 4.0, 1.0, 3.0]];
+        let perms = [
+            [4.0f32, 3.0, 2.0, 1.0],
+            [1.0, 2.0, 3.0, 4.0],
+            [2.0, 4.0, 1.0, 3.0],
+        ];
         let set: std::collections::HashSet<usize> = perms.iter().map(order_class).collect();
         assert_eq!(set.len(), 3);
         assert_eq!(reversed_class(&perms[0]), order_class(&perms[1]));
@@ -535,7 +585,9 @@ mod tests {
     fn a_range_that_is_a_scaled_rotated_domain_is_found_exactly() {
         // The image at (x, y) is a smooth non-symmetric pattern; the range at (16, 0) of side 4 is
         // built as 0.5 * (domain at (0, 0), rotated 180) + 0.25, which full search must recover.
-        let mut p = plane(32, 32, |x, y| ((x * 7 + y * 3) % 11) as f32 / 11.0 * 0.5 + (x as f32 / 64.0));
+        let mut p = plane(32, 32, |x, y| {
+            ((x * 7 + y * 3) % 11) as f32 / 11.0 * 0.5 + (x as f32 / 64.0)
+        });
         let avg = p.average2();
         let n = 4;
         for j in 0..n {
@@ -551,7 +603,11 @@ mod tests {
             offset_bits: 12,
             max_contrast: 0.9,
         };
-        for mode in [SearchMode::Full, SearchMode::Nearest(4), SearchMode::Classified] {
+        for mode in [
+            SearchMode::Full,
+            SearchMode::Nearest(4),
+            SearchMode::Classified,
+        ] {
             let pool = DomainPool::new(&p, &avg, n, 4, mode);
             let fit = fit_range(&p, &pool, 16, 0, &q, mode);
             assert!(fit.sse < 1e-4, "{mode:?}: {fit:?}");

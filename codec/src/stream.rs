@@ -36,20 +36,35 @@ impl PlaneHeader {
         self.quantiser.validate()?;
         let [w, h] = self.frame;
         if self.min_size == 0 || self.levels == 0 || self.levels > 12 {
-            return Err(format!("bad range sizes: min {} levels {}", self.min_size, self.levels));
+            return Err(format!(
+                "bad range sizes: min {} levels {}",
+                self.min_size, self.levels
+            ));
         }
         if (self.min_size as u64) << (self.levels - 1) > 1 << 16 {
             return Err("largest range side over 65536".into());
         }
-        if w == 0 || h == 0 || w > 1 << 16 || h > 1 << 16 || w % self.min_size != 0 || h % self.min_size != 0 {
-            return Err(format!("bad frame {w}x{h} for range side {}", self.min_size));
+        if w == 0
+            || h == 0
+            || w > 1 << 16
+            || h > 1 << 16
+            || w % self.min_size != 0
+            || h % self.min_size != 0
+        {
+            return Err(format!(
+                "bad frame {w}x{h} for range side {}",
+                self.min_size
+            ));
         }
         // The encoder pads by less than one smallest range (plus half a sample for odd chroma):
         // anything else would make decoders allocate frames far larger than their output.
         let slack = self.min_size as f32 + 1.0;
         let fits = |v: f32, f: u32| v > 0.0 && v <= f as f32 && v > f as f32 - slack;
         if !(fits(self.valid[0], w) && fits(self.valid[1], h)) {
-            return Err(format!("bad valid extent {:?} in frame {w}x{h}", self.valid));
+            return Err(format!(
+                "bad valid extent {:?} in frame {w}x{h}",
+                self.valid
+            ));
         }
         if self.domain_steps.len() != self.levels as usize || self.domain_steps.contains(&0) {
             return Err("bad domain steps".into());
@@ -65,7 +80,10 @@ impl PlaneHeader {
     /// Domain lattice (cols, rows) of level `l`.
     pub fn lattice(&self, l: usize) -> (usize, usize) {
         let (n, step) = (self.size(l), self.domain_steps[l] as usize);
-        (lattice(self.frame[0] as usize, n, step), lattice(self.frame[1] as usize, n, step))
+        (
+            lattice(self.frame[0] as usize, n, step),
+            lattice(self.frame[1] as usize, n, step),
+        )
     }
 }
 
@@ -124,7 +142,9 @@ impl Models {
         let bits_for = |count: usize| usize::BITS - count.saturating_sub(1).leading_zeros();
         Models {
             split: vec![Bit::default(); levels],
-            contrast: (0..levels).map(|_| BitTree::new(h.quantiser.contrast_bits as u32)).collect(),
+            contrast: (0..levels)
+                .map(|_| BitTree::new(h.quantiser.contrast_bits as u32))
+                .collect(),
             offset: (0..levels)
                 .map(|_| {
                     let b = h.quantiser.offset_bits as u32;
@@ -137,7 +157,10 @@ impl Models {
                     let (c, r) = h.lattice(l);
                     let bits = bits_for(c * r);
                     let high = bits.min(DOMAIN_TREE_BITS);
-                    (BitTree::new(high), vec![Bit::default(); (bits - high) as usize])
+                    (
+                        BitTree::new(high),
+                        vec![Bit::default(); (bits - high) as usize],
+                    )
                 })
                 .collect(),
         }
@@ -182,7 +205,10 @@ fn code(
     let mut m = Models::new(h);
     let top = h.levels as usize - 1;
     let n = h.size(top);
-    let (cols, rows) = ((h.frame[0] as usize).div_ceil(n), (h.frame[1] as usize).div_ceil(n));
+    let (cols, rows) = (
+        (h.frame[0] as usize).div_ceil(n),
+        (h.frame[1] as usize).div_ceil(n),
+    );
     let mut leaves = Vec::new();
     let mut stack = Vec::new();
     let l_s = h.quantiser.contrast_levels();
@@ -201,7 +227,9 @@ fn code(
                 };
                 if split {
                     if l == 0 {
-                        return Err("a block at the smallest size lies partly outside the frame".into());
+                        return Err(
+                            "a block at the smallest size lies partly outside the frame".into()
+                        );
                     }
                     // Pushed in reverse so that TL is coded first.
                     for (cx, cy) in [(1, 1), (0, 1), (1, 0), (0, 0)] {
@@ -239,7 +267,10 @@ fn code(
                         dom |= u32::from(dir.bit(bit, (fit.domain >> shift) & 1 == 1)) << shift;
                     }
                     if dom as usize >= dc * dr {
-                        return Err(format!("domain index {dom} outside the lattice of {}", dc * dr));
+                        return Err(format!(
+                            "domain index {dom} outside the lattice of {}",
+                            dc * dr
+                        ));
                     }
                 }
                 leaves.push(Leaf {
@@ -264,7 +295,10 @@ fn code(
 }
 
 /// Codes a plane's partition and maps.
-pub fn encode_plane(h: &PlaneHeader, decide: &dyn Fn(usize, usize, usize) -> Option<Fit>) -> Vec<u8> {
+pub fn encode_plane(
+    h: &PlaneHeader,
+    decide: &dyn Fn(usize, usize, usize) -> Option<Fit>,
+) -> Vec<u8> {
     let mut enc = Encoder::new();
     code(&mut Dir::Enc(&mut enc), h, decide).expect("the encoder writes only what it can read");
     enc.finish()
@@ -293,7 +327,11 @@ pub fn operator(h: &PlaneHeader, leaves: &[Leaf]) -> Result<QuadtreeOperator, St
             let step = h.domain_steps[leaf.level] as usize;
             let s = q.contrast(leaf.fit.contrast);
             let d = leaf.fit.domain as usize;
-            let (dx, dy) = if dc > 0 { ((d % dc) * step, (d / dc) * step) } else { (0, 0) };
+            let (dx, dy) = if dc > 0 {
+                ((d % dc) * step, (d / dc) * step)
+            } else {
+                (0, 0)
+            };
             RangeMap {
                 x: (leaf.bx * n) as u32,
                 y: (leaf.by * n) as u32,

@@ -63,7 +63,10 @@ impl Quantiser {
             ));
         }
         if !(self.max_contrast > 0.0 && self.max_contrast < 1.0) {
-            return Err(format!("max contrast {} is not in (0, 1)", self.max_contrast));
+            return Err(format!(
+                "max contrast {} is not in (0, 1)",
+                self.max_contrast
+            ));
         }
         Ok(())
     }
@@ -76,7 +79,9 @@ impl Quantiser {
     /// Index of the contrast nearest to `s` (clamped to ±max).
     pub fn contrast_index(&self, s: f32) -> i32 {
         let l = self.contrast_levels();
-        ((s / self.max_contrast) * l as f32).round().clamp(-l as f32, l as f32) as i32
+        ((s / self.max_contrast) * l as f32)
+            .round()
+            .clamp(-l as f32, l as f32) as i32
     }
 
     /// Contrast of an index.
@@ -119,7 +124,8 @@ mod tests {
             let mut seen = vec![false; n * n];
             for j in 0..n {
                 for i in 0..n {
-                    let (a, b) = isometry(k, (i as f32 + 0.5) / n as f32, (j as f32 + 0.5) / n as f32);
+                    let (a, b) =
+                        isometry(k, (i as f32 + 0.5) / n as f32, (j as f32 + 0.5) / n as f32);
                     let (ii, jj) = isometry_index(k, i, j, n);
                     assert!((a * n as f32 - 0.5 - ii as f32).abs() < 1e-5);
                     assert!((b * n as f32 - 0.5 - jj as f32).abs() < 1e-5);

@@ -4,12 +4,14 @@ use std::path::PathBuf;
 
 use fractile_codec::decode::{self, DiscreteOptions};
 use fractile_codec::operator::Operator;
-use fractile_codec::{Asset, EncodeSettings, RateMode, Raster, Roi, SearchMode, encode, metrics};
+use fractile_codec::{Asset, EncodeSettings, Raster, RateMode, Roi, SearchMode, encode, metrics};
 use fractile_proto::AssetKind;
 use proptest::prelude::*;
 
 fn data(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata")
+        .join(name)
 }
 
 fn quiet(_: u64, _: u64) {}
@@ -22,12 +24,17 @@ fn crop(r: &Raster, x: usize, y: usize, w: usize, h: usize) -> Raster {
     c.channels = r
         .channels
         .iter()
-        .map(|ch| (0..h).flat_map(|j| ch[(y + j) * r.width + x..(y + j) * r.width + x + w].to_vec()).collect())
+        .map(|ch| {
+            (0..h)
+                .flat_map(|j| ch[(y + j) * r.width + x..(y + j) * r.width + x + w].to_vec())
+                .collect()
+        })
         .collect();
-    c.valid = r
-        .valid
-        .as_ref()
-        .map(|v| (0..h).flat_map(|j| v[(y + j) * r.width + x..(y + j) * r.width + x + w].to_vec()).collect());
+    c.valid = r.valid.as_ref().map(|v| {
+        (0..h)
+            .flat_map(|j| v[(y + j) * r.width + x..(y + j) * r.width + x + w].to_vec())
+            .collect()
+    });
     c.georef = None;
     c
 }
@@ -109,8 +116,18 @@ fn unknown_versions_and_codecs_are_named_in_the_error() {
     bytes[8] = 9;
     let e = Asset::from_bytes(&bytes).unwrap_err().to_string();
     assert!(e.contains("version 9"), "{e}");
-    assert!(Asset::from_bytes(b"").unwrap_err().to_string().contains("too short"));
-    assert!(Asset::from_bytes(&[0u8; 64]).unwrap_err().to_string().contains("magic"));
+    assert!(
+        Asset::from_bytes(b"")
+            .unwrap_err()
+            .to_string()
+            .contains("too short")
+    );
+    assert!(
+        Asset::from_bytes(&[0u8; 64])
+            .unwrap_err()
+            .to_string()
+            .contains("magic")
+    );
 }
 
 #[test]
@@ -127,7 +144,10 @@ fn continuous_decoding_at_pixel_centres_is_close_to_discrete() {
     }
     let mean = diff / (w * h) as f64;
     // Point sampling and domain averaging differ at edges; on average by a few grey levels.
-    assert!(mean < 6.0, "mean |continuous - discrete| = {mean} grey levels");
+    assert!(
+        mean < 6.0,
+        "mean |continuous - discrete| = {mean} grey levels"
+    );
 }
 
 #[test]
@@ -144,28 +164,68 @@ fn nearest_search_is_within_reach_of_full_search_on_real_data() {
     s.search = SearchMode::Classified;
     let class = encode(&src, &s, &quiet).unwrap();
     // The same ranges: full search is the best collage; the fast searches lose at most 2 dB.
-    assert!(near.errors.psnr > full.errors.psnr - 2.0, "{} vs {}", near.errors.psnr, full.errors.psnr);
-    assert!(class.errors.psnr > full.errors.psnr - 2.0, "{} vs {}", class.errors.psnr, full.errors.psnr);
+    assert!(
+        near.errors.psnr > full.errors.psnr - 2.0,
+        "{} vs {}",
+        near.errors.psnr,
+        full.errors.psnr
+    );
+    assert!(
+        class.errors.psnr > full.errors.psnr - 2.0,
+        "{} vs {}",
+        class.errors.psnr,
+        full.errors.psnr
+    );
 }
 
 #[test]
 fn more_transforms_give_less_error_and_rate_control_lands_under_target() {
     let src = crop(&camera(), 128, 128, 128, 128);
-    let at = |n| encode(&src, &EncodeSettings { rate: RateMode::Transforms(n), ..EncodeSettings::default() }, &quiet).unwrap();
+    let at = |n| {
+        encode(
+            &src,
+            &EncodeSettings {
+                rate: RateMode::Transforms(n),
+                ..EncodeSettings::default()
+            },
+            &quiet,
+        )
+        .unwrap()
+    };
     let (a, b) = (at(200), at(800));
     assert!(b.errors.rmse < a.errors.rmse);
     assert!((200..210).contains(&a.transforms), "{}", a.transforms);
     for target in [0.3, 0.8] {
-        let e = encode(&src, &EncodeSettings { rate: RateMode::TargetBpp(target), ..EncodeSettings::default() }, &quiet).unwrap();
+        let e = encode(
+            &src,
+            &EncodeSettings {
+                rate: RateMode::TargetBpp(target),
+                ..EncodeSettings::default()
+            },
+            &quiet,
+        )
+        .unwrap();
         assert!(e.bpp() <= target, "{} > {target}", e.bpp());
-        assert!(e.bpp() > target * 0.8, "rate control wasted bits: {} for {target}", e.bpp());
+        assert!(
+            e.bpp() > target * 0.8,
+            "rate control wasted bits: {} for {target}",
+            e.bpp()
+        );
     }
 }
 
 #[test]
 fn const_range_one_is_quasi_lossless() {
     let src = crop(&camera(), 240, 60, 48, 40);
-    let e = encode(&src, &EncodeSettings { rate: RateMode::ConstRange(1), ..EncodeSettings::default() }, &quiet).unwrap();
+    let e = encode(
+        &src,
+        &EncodeSettings {
+            rate: RateMode::ConstRange(1),
+            ..EncodeSettings::default()
+        },
+        &quiet,
+    )
+    .unwrap();
     assert!(e.errors.psnr > 38.0, "{}", e.errors.psnr);
 }
 
@@ -175,24 +235,49 @@ fn region_of_interest_gets_its_tolerance() {
     let roi_rect = [0.0, 0.0, 64.0, 64.0];
     let base = encode(&src, &tolerance(20.0), &quiet).unwrap();
     let mut s = tolerance(20.0);
-    s.rois = vec![Roi { rect: roi_rect, tolerance: 2.0, min_range: Some(2) }];
+    s.rois = vec![Roi {
+        rect: roi_rect,
+        tolerance: 2.0,
+        min_range: Some(2),
+    }];
     let roi = encode(&src, &s, &quiet).unwrap();
     let err_in = |e: &fractile_codec::Encoded| {
         let (d, _) = e.asset.decode_native();
-        let pick = |c: &Vec<f32>| (0..64).flat_map(|j| c[j * 128..j * 128 + 64].to_vec()).collect::<Vec<_>>();
-        metrics::compare(&[pick(&src.channels[0])], &[pick(&d.channels[0])], None, 255.0).rmse
+        let pick = |c: &Vec<f32>| {
+            (0..64)
+                .flat_map(|j| c[j * 128..j * 128 + 64].to_vec())
+                .collect::<Vec<_>>()
+        };
+        metrics::compare(
+            &[pick(&src.channels[0])],
+            &[pick(&d.channels[0])],
+            None,
+            255.0,
+        )
+        .rmse
     };
-    assert!(err_in(&roi) < 0.7 * err_in(&base), "{} vs {}", err_in(&roi), err_in(&base));
+    assert!(
+        err_in(&roi) < 0.7 * err_in(&base),
+        "{} vs {}",
+        err_in(&roi),
+        err_in(&base)
+    );
 }
 
 #[test]
 fn geotiff_height_fields_keep_their_georeference_and_units() {
     let r = Raster::open(&data("jacksboro.tif")).unwrap();
     // 403 columns x 344 rows (the data README gives numpy's rows x columns).
-    assert_eq!((r.width, r.height, r.kind), (403, 344, AssetKind::HeightField));
+    assert_eq!(
+        (r.width, r.height, r.kind),
+        (403, 344, AssetKind::HeightField)
+    );
     let g = r.georef.as_ref().unwrap();
     assert_eq!(g.epsg, Some(4326));
-    assert!(g.pixel_size[1] < 0.0 && (g.pixel_size[0] - 1.0 / 1200.0).abs() < 1e-6, "{g:?}");
+    assert!(
+        g.pixel_size[1] < 0.0 && (g.pixel_size[0] - 1.0 / 1200.0).abs() < 1e-6,
+        "{g:?}"
+    );
     let enc = encode(&r, &tolerance(3.0), &quiet).unwrap();
     let a = Asset::from_bytes(&enc.bytes).unwrap();
     assert_eq!(a.meta.georef.as_ref(), Some(g));
@@ -211,20 +296,45 @@ fn decoding_at_twice_the_size_averages_back_to_the_native_decode() {
     for j in 0..h {
         for i in 0..w {
             let b = &big.channels[0];
-            let avg = (b[2 * j * 2 * w + 2 * i] + b[2 * j * 2 * w + 2 * i + 1] + b[(2 * j + 1) * 2 * w + 2 * i] + b[(2 * j + 1) * 2 * w + 2 * i + 1]) / 4.0;
+            let avg = (b[2 * j * 2 * w + 2 * i]
+                + b[2 * j * 2 * w + 2 * i + 1]
+                + b[(2 * j + 1) * 2 * w + 2 * i]
+                + b[(2 * j + 1) * 2 * w + 2 * i + 1])
+                / 4.0;
             diff += (avg - native.channels[0][j * w + i]).abs();
         }
     }
-    assert!(diff / ((w * h) as f32) < 1.5, "mean diff {}", diff / (w * h) as f32);
+    assert!(
+        diff / ((w * h) as f32) < 1.5,
+        "mean diff {}",
+        diff / (w * h) as f32
+    );
 }
 
 #[test]
 fn colour_images_code_in_ycbcr_and_decode_to_rgb() {
-    let src = crop(&Raster::open(&data("astronaut.png")).unwrap(), 160, 40, 96, 96);
-    let enc = encode(&src, &EncodeSettings { rate: RateMode::TargetBpp(1.0), ..EncodeSettings::default() }, &quiet).unwrap();
+    let src = crop(
+        &Raster::open(&data("astronaut.png")).unwrap(),
+        160,
+        40,
+        96,
+        96,
+    );
+    let enc = encode(
+        &src,
+        &EncodeSettings {
+            rate: RateMode::TargetBpp(1.0),
+            ..EncodeSettings::default()
+        },
+        &quiet,
+    )
+    .unwrap();
     assert_eq!(enc.asset.planes.len(), 3);
     // Chroma is coded on a half-resolution frame.
-    assert_eq!(enc.asset.planes[1].header.frame[0] * 2, enc.asset.planes[0].header.frame[0]);
+    assert_eq!(
+        enc.asset.planes[1].header.frame[0] * 2,
+        enc.asset.planes[0].header.frame[0]
+    );
     assert!(enc.errors.psnr > 24.0, "{}", enc.errors.psnr);
     let p = enc.asset.point(0.5, 0.5, 20);
     assert_eq!(p.values.len(), 3);
@@ -242,8 +352,16 @@ fn awkward_and_bad_inputs() {
     let jb = Raster::open(&data("jacksboro.tif")).unwrap();
     let jw = jb.width;
     // Rows walked down and back up (ping-pong), so the strip is continuous real terrain.
-    let row = |i: usize| if i % 680 < 340 { i % 680 } else { 679 - i % 680 };
-    let strip: Vec<f32> = (0..1000).flat_map(|i| jb.channels[0][row(i) * jw + 200..row(i) * jw + 203].to_vec()).collect();
+    let row = |i: usize| {
+        if i % 680 < 340 {
+            i % 680
+        } else {
+            679 - i % 680
+        }
+    };
+    let strip: Vec<f32> = (0..1000)
+        .flat_map(|i| jb.channels[0][row(i) * jw + 200..row(i) * jw + 203].to_vec())
+        .collect();
     let e = encode(&q(3, 1000, strip).unwrap(), &tolerance(2.0), &quiet).unwrap();
     assert!(e.errors.rmse < 20.0, "{:?}", e.errors);
     // All constant: exact.
@@ -255,14 +373,31 @@ fn awkward_and_bad_inputs() {
     v[2000..2100].iter_mut().for_each(|x| *x = f32::NAN);
     let nan = encode(&q(64, 64, v).unwrap(), &tolerance(2.0), &quiet).unwrap();
     let (d, _) = nan.asset.decode_native();
-    assert!(d.channels[0][100].is_nan() && d.channels[0][2050].is_nan() && d.channels[0][101].is_finite());
-    assert!(nan.asset.point((36.0 + 0.5) / 64.0, (1.0 + 0.5) / 64.0, 10).values[0].is_nan());
+    assert!(
+        d.channels[0][100].is_nan()
+            && d.channels[0][2050].is_nan()
+            && d.channels[0][101].is_finite()
+    );
+    assert!(
+        nan.asset
+            .point((36.0 + 0.5) / 64.0, (1.0 + 0.5) / 64.0, 10)
+            .values[0]
+            .is_nan()
+    );
     // Nodata everywhere: a clear error.
     let err = q(4, 4, vec![f32::NAN; 16]).unwrap_err().to_string();
     assert!(err.contains("nodata"), "{err}");
     // Bad settings are named.
-    let bad = EncodeSettings { min_range: 3, ..EncodeSettings::default() };
-    assert!(encode(&camera(), &bad, &quiet).unwrap_err().to_string().contains("powers of two"));
+    let bad = EncodeSettings {
+        min_range: 3,
+        ..EncodeSettings::default()
+    };
+    assert!(
+        encode(&camera(), &bad, &quiet)
+            .unwrap_err()
+            .to_string()
+            .contains("powers of two")
+    );
 }
 
 #[test]
@@ -273,7 +408,13 @@ fn window_methods_agree_on_smooth_terrain() {
     let rect = [0.2, 0.3, 0.6, 0.7];
     let (a, _) = decode::window(op, rect, 40, 40, Some(30), decode::Method::Discrete);
     let (b, _) = decode::window(op, rect, 40, 40, Some(30), decode::Method::Continuous);
-    let mean: f32 = a.values.iter().zip(&b.values).map(|(x, y)| (x - y).abs()).sum::<f32>() / 1600.0;
+    let mean: f32 = a
+        .values
+        .iter()
+        .zip(&b.values)
+        .map(|(x, y)| (x - y).abs())
+        .sum::<f32>()
+        / 1600.0;
     assert!(mean < 0.03, "mean normalised difference {mean}");
     assert!(op.valid()[0] > 90.0);
 }

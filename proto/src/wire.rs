@@ -34,11 +34,15 @@ pub fn encode<T: Serialize>(value: &T) -> Vec<u8> {
 
 /// Decodes a value from bytes; trailing bytes are an error.
 pub fn decode<T: DeserializeOwned>(bytes: &[u8]) -> Result<T, WireError> {
-    let what = std::any::type_name::<T>().rsplit("::").next().unwrap_or("value");
-    let (value, used) = bincode::serde::decode_from_slice(bytes, config()).map_err(|e| WireError {
-        what,
-        reason: e.to_string(),
-    })?;
+    let what = std::any::type_name::<T>()
+        .rsplit("::")
+        .next()
+        .unwrap_or("value");
+    let (value, used) =
+        bincode::serde::decode_from_slice(bytes, config()).map_err(|e| WireError {
+            what,
+            reason: e.to_string(),
+        })?;
     if used != bytes.len() {
         return Err(WireError {
             what,

@@ -7,14 +7,19 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use fractile_codec::{
-    Asset, DiscreteOptions, EncodeSettings, Method, Quantiser, RateMode, Raster, Roi, SearchMode, encode, metrics, raster,
+    Asset, DiscreteOptions, EncodeSettings, Method, Quantiser, Raster, RateMode, Roi, SearchMode,
+    encode, metrics, raster,
 };
 use fractile_proto::{AssetKind, SampleFormat};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde_json::json;
 
 #[derive(Parser)]
-#[command(name = "fractile", version, about = "Fractal (IFS) compression of images and terrain, decoded at any resolution")]
+#[command(
+    name = "fractile",
+    version,
+    about = "Fractal (IFS) compression of images and terrain, decoded at any resolution"
+)]
 struct Cli {
     #[command(subcommand)]
     command: Command,
@@ -152,8 +157,15 @@ fn parse_roi(s: &str) -> Result<Roi, String> {
     if rect.len() != 4 {
         return Err("expected x0,y0,x1,y1:tolerance[:min_range]".into());
     }
-    let tolerance = parts.next().ok_or("missing :tolerance")?.parse::<f32>().map_err(|e| e.to_string())?;
-    let min_range = parts.next().map(|m| m.parse::<u32>().map_err(|e| e.to_string())).transpose()?;
+    let tolerance = parts
+        .next()
+        .ok_or("missing :tolerance")?
+        .parse::<f32>()
+        .map_err(|e| e.to_string())?;
+    let min_range = parts
+        .next()
+        .map(|m| m.parse::<u32>().map_err(|e| e.to_string()))
+        .transpose()?;
     Ok(Roi {
         rect: [rect[0], rect[1], rect[2], rect[3]],
         tolerance,
@@ -162,9 +174,19 @@ fn parse_roi(s: &str) -> Result<Roi, String> {
 }
 
 fn parse_window(s: &str) -> Result<[f32; 4], String> {
-    let v: Vec<f32> = s.split(',').map(|v| v.trim().parse::<f32>().map_err(|e| e.to_string())).collect::<Result<_, _>>()?;
+    let v: Vec<f32> = s
+        .split(',')
+        .map(|v| v.trim().parse::<f32>().map_err(|e| e.to_string()))
+        .collect::<Result<_, _>>()?;
     match v[..] {
-        [a, b, c, d] if (0.0..=1.0).contains(&a) && (0.0..=1.0).contains(&b) && c > a && d > b && c <= 1.0 && d <= 1.0 => {
+        [a, b, c, d]
+            if (0.0..=1.0).contains(&a)
+                && (0.0..=1.0).contains(&b)
+                && c > a
+                && d > b
+                && c <= 1.0
+                && d <= 1.0 =>
+        {
             Ok([a, b, c, d])
         }
         _ => Err("expected u0,v0,u1,v1 with 0 <= u0 < u1 <= 1 and 0 <= v0 < v1 <= 1".into()),
@@ -177,7 +199,11 @@ fn main() {
         Command::Encode(a) => run_encode(a),
         Command::Decode(a) => run_decode(a),
         Command::Info { asset, json } => run_info(&asset, json),
-        Command::Compare { original, decoded, json } => run_compare(&original, &decoded, json),
+        Command::Compare {
+            original,
+            decoded,
+            json,
+        } => run_compare(&original, &decoded, json),
     };
     if let Err(e) = result {
         eprintln!("fractile: {e:#}");
@@ -214,13 +240,19 @@ fn run_encode(a: EncodeArgs) -> Result<()> {
     };
     // The bar appears only once an encode has run for a second (short encodes stay quiet).
     let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
-    bar.set_style(ProgressStyle::with_template("{spinner} fitting blocks {bar:30} {pos}/{len} {elapsed}").expect("template"));
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} fitting blocks {bar:30} {pos}/{len} {elapsed}")
+            .expect("template"),
+    );
     let started = Instant::now();
     let shown = std::sync::atomic::AtomicBool::new(false);
     let progress = |done: u64, total: u64| {
         bar.set_length(total);
         bar.set_position(done);
-        if !a.json && started.elapsed().as_secs_f32() > 1.0 && !shown.swap(true, std::sync::atomic::Ordering::Relaxed) {
+        if !a.json
+            && started.elapsed().as_secs_f32() > 1.0
+            && !shown.swap(true, std::sync::atomic::Ordering::Relaxed)
+        {
             bar.set_draw_target(ProgressDrawTarget::stderr());
         }
     };
@@ -259,7 +291,9 @@ fn run_decode(a: DecodeArgs) -> Result<()> {
     let window = a.window.unwrap_or([0.0, 0.0, 1.0, 1.0]);
     let (ww, wh) = ((window[2] - window[0]) * sw, (window[3] - window[1]) * sh);
     let (width, height) = match (a.scale, a.width, a.height) {
-        (Some(s), ..) if s > 0.0 && s.is_finite() => ((ww * s).round() as usize, (wh * s).round() as usize),
+        (Some(s), ..) if s > 0.0 && s.is_finite() => {
+            ((ww * s).round() as usize, (wh * s).round() as usize)
+        }
         (Some(s), ..) => bail!("scale {s} must be a positive number"),
         (None, Some(w), Some(h)) => (w, h),
         (None, Some(w), None) => (w, (w as f32 * wh / ww).round() as usize),
@@ -293,8 +327,17 @@ fn run_decode(a: DecodeArgs) -> Result<()> {
     Ok(())
 }
 
-fn write_decoded(asset: &Asset, d: &fractile_codec::extract::Decoded, window: [f32; 4], out: &Path) -> Result<()> {
-    let ext = out.extension().and_then(|e| e.to_str()).unwrap_or("").to_ascii_lowercase();
+fn write_decoded(
+    asset: &Asset,
+    d: &fractile_codec::extract::Decoded,
+    window: [f32; 4],
+    out: &Path,
+) -> Result<()> {
+    let ext = out
+        .extension()
+        .and_then(|e| e.to_str())
+        .unwrap_or("")
+        .to_ascii_lowercase();
     let m = &asset.meta;
     match (ext.as_str(), m.kind) {
         ("tif" | "tiff", AssetKind::HeightField) => {
@@ -311,8 +354,18 @@ fn write_decoded(asset: &Asset, d: &fractile_codec::extract::Decoded, window: [f
                 }
             });
             let nodata = m.nodata.unwrap_or(f64::NAN);
-            let values: Vec<f32> = d.channels[0].iter().map(|&v| if v.is_nan() { nodata as f32 } else { v }).collect();
-            raster::write_geotiff_f32(out, d.width, d.height, &values, georef.as_ref(), asset.mask.as_ref().map(|_| nodata))?;
+            let values: Vec<f32> = d.channels[0]
+                .iter()
+                .map(|&v| if v.is_nan() { nodata as f32 } else { v })
+                .collect();
+            raster::write_geotiff_f32(
+                out,
+                d.width,
+                d.height,
+                &values,
+                georef.as_ref(),
+                asset.mask.as_ref().map(|_| nodata),
+            )?;
         }
         ("tif" | "tiff", _) => bail!("GeoTIFF output is for height fields; write a .png"),
         ("png", AssetKind::HeightField) => {
@@ -386,7 +439,10 @@ fn run_compare(original: &Path, decoded: &Path, as_json: bool) -> Result<()> {
     };
     let e = metrics::compare(&a.channels, &b.channels, a.valid.as_deref(), peak);
     if as_json {
-        println!("{}", json!({"psnr": e.psnr, "rmse": e.rmse, "mae": e.mae, "max_error": e.max_error, "peak": peak, "samples": e.samples}));
+        println!(
+            "{}",
+            json!({"psnr": e.psnr, "rmse": e.rmse, "mae": e.mae, "max_error": e.max_error, "peak": peak, "samples": e.samples})
+        );
     } else {
         println!(
             "PSNR {:.3} dB (peak {peak}), RMSE {:.4}, MAE {:.4}, max error {:.4}, {} samples",

@@ -8,11 +8,17 @@ fn bin() -> Command {
 }
 
 fn data(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata").join(name)
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata")
+        .join(name)
 }
 
 fn json(out: &std::process::Output) -> serde_json::Value {
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
     serde_json::from_slice(&out.stdout).expect("JSON on stdout")
 }
 
@@ -40,22 +46,63 @@ fn encode_info_decode_compare_round_trip_on_a_dem() {
     assert_eq!(enc["bytes"].as_u64(), Some(bytes));
     assert!(enc["ratio"].as_f64().unwrap() > 2.0);
 
-    let info = json(&bin().arg("info").arg(&asset).arg("--json").output().unwrap());
+    let info = json(
+        &bin()
+            .arg("info")
+            .arg(&asset)
+            .arg("--json")
+            .output()
+            .unwrap(),
+    );
     assert_eq!(info["kind"], "HeightField");
-    assert_eq!((info["width"].as_u64(), info["height"].as_u64()), (Some(120), Some(91)));
+    assert_eq!(
+        (info["width"].as_u64(), info["height"].as_u64()),
+        (Some(120), Some(91))
+    );
     assert_eq!(info["georef"]["epsg"], 4326);
 
     // Float GeoTIFF at native size: `compare` must find the error the encoder reported.
     let tif = dir.join("topo.tif");
-    let out = bin().arg("decode").arg(&asset).arg("-o").arg(&tif).output().unwrap();
-    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
-    let cmp = json(&bin().arg("compare").arg(data("topobathy.tif")).arg(&tif).arg("--json").output().unwrap());
+    let out = bin()
+        .arg("decode")
+        .arg(&asset)
+        .arg("-o")
+        .arg(&tif)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let cmp = json(
+        &bin()
+            .arg("compare")
+            .arg(data("topobathy.tif"))
+            .arg(&tif)
+            .arg("--json")
+            .output()
+            .unwrap(),
+    );
     let (a, b) = (cmp["rmse"].as_f64().unwrap(), enc["rmse"].as_f64().unwrap());
-    assert!((a - b).abs() < 1e-3 * b.max(1.0), "compare {a} vs encoder {b}");
+    assert!(
+        (a - b).abs() < 1e-3 * b.max(1.0),
+        "compare {a} vs encoder {b}"
+    );
 
     // Any size, and a window decoded continuously.
     let big = dir.join("big.png");
-    assert!(bin().arg("decode").arg(&asset).arg("-o").arg(&big).args(["--scale", "2.5"]).status().unwrap().success());
+    assert!(
+        bin()
+            .arg("decode")
+            .arg(&asset)
+            .arg("-o")
+            .arg(&big)
+            .args(["--scale", "2.5"])
+            .status()
+            .unwrap()
+            .success()
+    );
     let img = image::open(&big).unwrap();
     assert_eq!((img.width(), img.height()), (300, 228));
     let win = dir.join("win.tif");
@@ -64,7 +111,16 @@ fn encode_info_decode_compare_round_trip_on_a_dem() {
         .arg(&asset)
         .arg("-o")
         .arg(&win)
-        .args(["--window", "0.25,0.25,0.5,0.75", "--width", "64", "--method", "continuous", "--iterations", "12"])
+        .args([
+            "--window",
+            "0.25,0.25,0.5,0.75",
+            "--width",
+            "64",
+            "--method",
+            "continuous",
+            "--iterations",
+            "12",
+        ])
         .status()
         .unwrap();
     assert!(st.success());
@@ -102,7 +158,13 @@ fn bad_input_gives_a_clear_error_and_no_output() {
     let msg = String::from_utf8_lossy(&out.stderr);
     assert!(msg.contains("asset") && msg.contains("junk.fra"), "{msg}");
 
-    let missing = bin().arg("encode").arg(dir.join("nope.png")).arg("-o").arg(dir.join("x.fra")).output().unwrap();
+    let missing = bin()
+        .arg("encode")
+        .arg(dir.join("nope.png"))
+        .arg("-o")
+        .arg(dir.join("x.fra"))
+        .output()
+        .unwrap();
     assert!(!missing.status.success());
     assert!(!dir.join("x.fra").exists());
 
