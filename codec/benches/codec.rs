@@ -133,11 +133,13 @@ fn main() {
     if want("jacksboro") {
         let j = Raster::open(&root().join("testdata/jacksboro.tif")).expect("jacksboro");
         row("jacksboro", "ratio 20:1 (0.8 bpp)", &j, &bpp(0.8), false);
+        row("jacksboro", "ratio 20:1, planar offsets", &j, &dem(0.8), false);
     }
     let etopo_path = root().join("../shared/data/dem/etopo20.tif");
     if want("etopo") && Path::new(&etopo_path).exists() {
         let e = Raster::open(&etopo_path).expect("etopo20");
         row("etopo20", "ratio 20:1 (0.8 bpp)", &e, &bpp(0.8), false);
+        row("etopo20", "ratio 20:1, planar offsets", &e, &dem(0.8), false);
     }
 
     if want("decode") {

@@ -386,6 +386,7 @@ mod tests {
             isometry: iso,
             contrast: s,
             offset: o,
+            slope: [0.0; 2],
         };
         QuadtreeOperator::new(
             [8, 8],

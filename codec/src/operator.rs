@@ -35,16 +35,18 @@ pub trait Operator<const D: usize>: Send + Sync {
     fn invariant_interval(&self) -> (f32, f32);
 }
 
-/// The smallest interval I with `hull(o_c + s_c * I) ⊂ I` over all cells, by iterating that map
-/// from [0, 1] (which every fractile operator keeps invariant, see [`crate::transform`]).
-pub fn invariant_interval(maps: impl Iterator<Item = (f32, f32)> + Clone) -> (f32, f32) {
+/// The smallest interval I with `hull(g_c + s_c * I) ⊂ I` over all cells, where each cell gives
+/// `(s, g_min, g_max)`, the range of its offset function over the cell; found by iterating that
+/// map from [0, 1] (a constant-offset fractile operator keeps [0, 1] invariant, see
+/// [`crate::transform`]; a planar one may overshoot it a little, and the iteration finds by how much).
+pub fn invariant_interval(maps: impl Iterator<Item = (f32, f32, f32)> + Clone) -> (f32, f32) {
     let (mut lo, mut hi) = (0.0f32, 1.0f32);
     for _ in 0..500 {
         let (mut nlo, mut nhi) = (f32::INFINITY, f32::NEG_INFINITY);
-        for (s, o) in maps.clone() {
-            let (a, b) = (o + s * lo, o + s * hi);
-            nlo = nlo.min(a.min(b));
-            nhi = nhi.max(a.max(b));
+        for (s, glo, ghi) in maps.clone() {
+            let (a, b) = (s * lo, s * hi);
+            nlo = nlo.min(glo + a.min(b));
+            nhi = nhi.max(ghi + a.max(b));
         }
         if !nlo.is_finite() {
             return (0.0, 1.0);
@@ -78,8 +80,19 @@ pub struct RangeMap {
     pub isometry: u8,
     /// Contrast s.
     pub contrast: f32,
-    /// Offset o.
+    /// Offset o: the value of g at the range's centre.
     pub offset: f32,
+    /// Rise of g across the range along x and y (planar offset term; 0 for the classic codec):
+    /// `g(p) = offset + slope_x * (px - cx) / size + slope_y * (py - cy) / size`.
+    pub slope: [f32; 2],
+}
+
+impl RangeMap {
+    /// Least and greatest value of g over the range.
+    pub fn offset_range(&self) -> (f32, f32) {
+        let half = 0.5 * (self.slope[0].abs() + self.slope[1].abs());
+        (self.offset - half, self.offset + half)
+    }
 }
 
 /// A range's map in the form the decoders evaluate: `phi(p) = (ax px + bx py + cx,
@@ -102,8 +115,12 @@ pub struct AffineCell {
     pub cy: f32,
     /// Contrast s.
     pub contrast: f32,
-    /// Offset o.
+    /// Constant of g: `g(p) = offset + gx px + gy py`.
     pub offset: f32,
+    /// x coefficient of g.
+    pub gx: f32,
+    /// y coefficient of g.
+    pub gy: f32,
 }
 
 impl AffineCell {
@@ -130,6 +147,7 @@ impl AffineCell {
         };
         let (ax, bx, cx) = row(ua, r.domain_x as f32);
         let (ay, by, cy) = row(ub, r.domain_y as f32);
+        let (gx, gy) = (r.slope[0] / n, r.slope[1] / n);
         AffineCell {
             ax,
             bx,
@@ -138,7 +156,9 @@ impl AffineCell {
             by,
             cy,
             contrast: r.contrast,
-            offset: r.offset,
+            offset: r.offset - gx * (x + 0.5 * n) - gy * (y + 0.5 * n),
+            gx,
+            gy,
         }
     }
 }
@@ -190,6 +210,7 @@ impl QuadtreeOperator {
                 && r.contrast.abs() < 1.0
                 && r.contrast.is_finite()
                 && r.offset.is_finite()
+                && r.slope.iter().all(|v| v.is_finite())
                 && (r.contrast == 0.0
                     || (r.domain_x + 2 * r.size <= frame[0]
                         && r.domain_y + 2 * r.size <= frame[1]));
@@ -215,7 +236,10 @@ impl QuadtreeOperator {
         if lut.contains(&u32::MAX) {
             return Err("the ranges leave part of the frame uncovered".into());
         }
-        let interval = invariant_interval(ranges.iter().map(|r| (r.contrast, r.offset)));
+        let interval = invariant_interval(ranges.iter().map(|r| {
+            let (lo, hi) = r.offset_range();
+            (r.contrast, lo, hi)
+        }));
         let cells = ranges.iter().map(AffineCell::of).collect();
         Ok(QuadtreeOperator {
             frame,
@@ -280,7 +304,7 @@ impl Operator<2> for QuadtreeOperator {
     fn step(&self, p: [f32; 2]) -> Step<2> {
         let c = &self.cells[self.range_at(p)];
         Step {
-            offset: c.offset,
+            offset: c.offset + c.gx * p[0] + c.gy * p[1],
             contrast: c.contrast,
             next: [
                 c.ax * p[0] + c.bx * p[1] + c.cx,
@@ -301,16 +325,16 @@ mod tests {
     #[test]
     fn invariant_interval_is_the_fixed_interval() {
         // Maps x -> 0.5 x and x -> 0.5 x + 0.5: the attractor is [0, 1].
-        let (lo, hi) = invariant_interval([(0.5, 0.0), (0.5, 0.5)].into_iter());
+        let (lo, hi) = invariant_interval([(0.5, 0.0, 0.0), (0.5, 0.5, 0.5)].into_iter());
         assert!(lo.abs() < 1e-4 && (hi - 1.0).abs() < 1e-4, "{lo} {hi}");
         // x -> 0.2 x + 0.3 alone: the fixed point 0.375.
-        let (lo, hi) = invariant_interval([(0.2, 0.3)].into_iter());
+        let (lo, hi) = invariant_interval([(0.2, 0.3, 0.3)].into_iter());
         assert!(
             (lo - 0.375).abs() < 1e-4 && (hi - 0.375).abs() < 1e-4,
             "{lo} {hi}"
         );
         // A negative contrast flips the interval: x -> -0.5 x + 0.75 has the fixed point 0.5.
-        let (lo, hi) = invariant_interval([(-0.5, 0.75)].into_iter());
+        let (lo, hi) = invariant_interval([(-0.5, 0.75, 0.75)].into_iter());
         assert!(
             (lo - 0.5).abs() < 1e-4 && (hi - 0.5).abs() < 1e-4,
             "{lo} {hi}"
@@ -330,8 +354,12 @@ mod tests {
                 isometry: k,
                 contrast: 0.5,
                 offset: 0.1,
+                slope: [0.2, -0.1],
             };
             let c = AffineCell::of(&r);
+            // g at the range centre is the offset; at the right edge it has risen by 0.1.
+            assert!((c.offset + c.gx * 10.0 + c.gy * 6.0 - 0.1).abs() < 1e-6);
+            assert!((c.offset + c.gx * 12.0 + c.gy * 6.0 - 0.2).abs() < 1e-6);
             for &(px, py) in &[(8.0f32, 4.0f32), (9.3, 7.9), (11.99, 5.5)] {
                 let (a, b) = isometry(k, (px - 8.0) / 4.0, (py - 4.0) / 4.0);
                 let want = (2.0 + 8.0 * a, 6.0 + 8.0 * b);
@@ -355,6 +383,7 @@ mod tests {
             isometry: 0,
             contrast: 0.0,
             offset: 0.5,
+            slope: [0.0; 2],
         };
         assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(0, 0, 8)]).is_ok());
         assert!(QuadtreeOperator::new([8, 8], [8.0, 8.0], 4, vec![r(0, 0, 4)]).is_err());

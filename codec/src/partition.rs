@@ -50,7 +50,7 @@ impl Pyramid {
                 fits.push(vec![None; c * r]);
                 continue;
             }
-            let pool = DomainPool::new(plane, &avg2, n, header.domain_steps[l] as usize, mode);
+            let pool = DomainPool::new(plane, &avg2, n, header.domain_steps[l] as usize, mode, header.quantiser.slope_bits > 0);
             let level: Vec<Option<Fit>> = (0..c * r)
                 .into_par_iter()
                 .map(|i| {
@@ -141,7 +141,7 @@ impl Partition {
         for l in 0..levels {
             let n = p.header.size(l);
             let (dc, dr) = p.header.lattice(l);
-            let (b_const, b_map) = estimated_bits(dc * dr, l > 0);
+            let (b_const, b_map) = estimated_bits(dc * dr, l > 0, p.header.quantiser.slope_bits);
             let rows = p.fits[l].len() / p.cols[l];
             for by in 0..rows {
                 for bx in 0..p.cols[l] {
@@ -216,10 +216,12 @@ impl Partition {
 /// Estimated bits of a leaf with a constant map and with a full map, at a level with `domains`
 /// domains (`flag`: whether a split flag is coded). Measured on camera.png's streams: offsets cost
 /// about 6 bits, contrasts 4, isometries 3, domain indices close to log2 of the lattice.
-pub fn estimated_bits(domains: usize, flag: bool) -> (f32, f32) {
+pub fn estimated_bits(domains: usize, flag: bool, slope_bits: u8) -> (f32, f32) {
     let f = if flag { 1.0 } else { 0.0 };
     let d = (domains.max(1) as f32).log2();
-    (f + 2.0 + 6.0, f + 4.0 + 6.0 + 3.0 + d)
+    // Slopes cluster near zero; the adaptive coder spends about half their raw bits.
+    let g = slope_bits as f32;
+    (f + 2.0 + 6.0 + g, f + 4.0 + 6.0 + 3.0 + d + g)
 }
 
 /// One split of the greedy order: plane, level, block.

@@ -89,10 +89,14 @@ pub struct Fit {
     pub isometry: u8,
     /// Domain index in its level's lattice.
     pub domain: u32,
+    /// Slope indices (x, y) of the planar offset term (0 without one).
+    pub slope: [i32; 2],
     /// SSE of the best constant map (s = 0), the cheap alternative rate control may prefer.
     pub constant_sse: f32,
     /// Offset index of that constant map.
     pub constant_offset: u32,
+    /// Slope indices of that constant map.
+    pub constant_slope: [i32; 2],
 }
 
 impl Fit {
@@ -102,6 +106,7 @@ impl Fit {
             sse: self.constant_sse,
             contrast: 0,
             offset: self.constant_offset,
+            slope: self.constant_slope,
             isometry: 0,
             domain: 0,
             ..*self
@@ -168,6 +173,9 @@ pub struct DomainPool {
     blocks: Vec<f32>,
     sums: Vec<f32>,
     sums2: Vec<f32>,
+    /// Sums of d * X and d * Y (centred pixel coordinates), for the planar offset term.
+    sums_xy: Vec<[f32; 2]>,
+    plane: bool,
     perms: Vec<Vec<u32>>,
     tree: Option<(ImmutableKdTree<f32, INDEXED>, Vec<DomainOrientation>)>,
     classes: Option<Vec<Vec<(u32, u8)>>>,
@@ -190,6 +198,7 @@ impl DomainPool {
         n: usize,
         step: usize,
         mode: SearchMode,
+        planar: bool,
     ) -> DomainPool {
         let cols = lattice(plane.width, n, step);
         let rows = lattice(plane.height, n, step);
@@ -197,19 +206,24 @@ impl DomainPool {
         let aw = plane.width.saturating_sub(1);
         let mut blocks = Vec::with_capacity(count * n * n);
         let (mut sums, mut sums2) = (Vec::with_capacity(count), Vec::with_capacity(count));
+        let mut sums_xy = Vec::with_capacity(count);
+        let c = (n as f32 - 1.0) * 0.5;
         for d in 0..count {
             let (dx, dy) = ((d % cols) * step, (d / cols) * step);
-            let (mut s, mut s2) = (0.0f32, 0.0f32);
+            let (mut s, mut s2, mut sx, mut sy) = (0.0f32, 0.0f32, 0.0f32, 0.0f32);
             for j in 0..n {
                 for i in 0..n {
                     let v = avg2[(dy + 2 * j) * aw + dx + 2 * i];
                     blocks.push(v);
                     s += v;
                     s2 += v * v;
+                    sx += v * (i as f32 - c);
+                    sy += v * (j as f32 - c);
                 }
             }
             sums.push(s);
             sums2.push(s2);
+            sums_xy.push([sx, sy]);
         }
         let perms = (0..SQUARE_ISOMETRIES)
             .map(|k| {
@@ -231,6 +245,8 @@ impl DomainPool {
             blocks,
             sums,
             sums2,
+            sums_xy,
+            plane: planar,
             perms,
             tree: None,
             classes: None,
@@ -263,9 +279,9 @@ impl DomainPool {
         let mut items = Vec::with_capacity(self.count() * 8);
         for d in 0..self.count() {
             let base = reduce(self.block(d), self.size);
-            let Some(base) = normalise(base) else {
+            if normalise(base, self.plane).is_none() {
                 continue;
-            };
+            }
             for k in 0..SQUARE_ISOMETRIES {
                 let mut f = [0.0f32; FEATURES];
                 for j in 0..4 {
@@ -274,6 +290,7 @@ impl DomainPool {
                         f[j * 4 + i] = base[jj * 4 + ii];
                     }
                 }
+                let f = normalise(f, self.plane).expect("an isometry keeps the norm");
                 // A jitter far below any meaningful difference breaks exact ties between blocks
                 // (padding repeats edges), which k-d trees split badly.
                 let mut f = dct_features(&f);
@@ -328,12 +345,23 @@ fn reduce(block: &[f32], n: usize) -> [f32; FEATURES] {
     f
 }
 
-/// Zero mean, unit norm; `None` for flat blocks (only a constant map fits them).
-fn normalise(mut f: [f32; FEATURES]) -> Option<[f32; FEATURES]> {
+/// Zero mean (and, with `plane`, no planar part), unit norm; `None` for blocks with nothing
+/// left (only a constant map fits them).
+fn normalise(mut f: [f32; FEATURES], plane: bool) -> Option<[f32; FEATURES]> {
     let mean = f.iter().sum::<f32>() / FEATURES as f32;
+    let (mut gx, mut gy) = (0.0f32, 0.0f32);
+    if plane {
+        // Centred 4x4 coordinates: X = i - 1.5, and the sum of X^2 is 20.
+        for j in 0..4 {
+            for i in 0..4 {
+                gx += f[j * 4 + i] * (i as f32 - 1.5) / 20.0;
+                gy += f[j * 4 + i] * (j as f32 - 1.5) / 20.0;
+            }
+        }
+    }
     let mut norm = 0.0;
-    for v in &mut f {
-        *v -= mean;
+    for (k, v) in f.iter_mut().enumerate() {
+        *v -= mean + gx * ((k % 4) as f32 - 1.5) + gy * ((k / 4) as f32 - 1.5);
         norm += *v * *v;
     }
     if norm < 1e-12 {
@@ -379,6 +407,9 @@ struct RangeBlock {
     n: f32,
     sr: f32,
     srr: f32,
+    /// Sums of r * X and r * Y, and of X^2 (= of Y^2), when the planar term is fitted.
+    plane: Option<([f32; 2], f32)>,
+    side: usize,
 }
 
 /// Fits the range of side `n` at (x, y).
@@ -416,21 +447,42 @@ pub fn fit_range(
             offset,
             isometry: 0,
             domain: 0,
+            slope: [0; 2],
             constant_sse: 0.0,
             constant_offset: offset,
+            constant_slope: [0; 2],
         };
     }
+    // The planar term is fitted on whole blocks only: with partial weights the centred
+    // coordinates are no longer orthogonal to the constant and the closed form below fails.
+    let plane = (q.slope_bits > 0 && all_one && n > 1).then(|| {
+        let c = (n as f32 - 1.0) * 0.5;
+        let (mut sx, mut sy) = (0.0f32, 0.0f32);
+        for j in 0..n {
+            for i in 0..n {
+                sx += values[j * n + i] * (i as f32 - c);
+                sy += values[j * n + i] * (j as f32 - c);
+            }
+        }
+        let sxx = n as f32 * (n * (n * n - 1)) as f32 / 12.0;
+        ([sx, sy], sxx)
+    });
     let rb = RangeBlock {
         values,
         weights: (!all_one).then_some(weights),
         n: wn,
         sr,
         srr,
+        plane,
+        side: n,
     };
     // The constant map is always a candidate, and the only one for flat ranges.
     let constant = constant_fit(&rb, q);
     let mut best = constant;
-    let var = rb.srr - rb.sr * rb.sr / rb.n;
+    let var = match rb.plane {
+        Some(([sx, sy], sxx)) => rb.srr - rb.sr * rb.sr / rb.n - (sx * sx + sy * sy) / sxx,
+        None => rb.srr - rb.sr * rb.sr / rb.n,
+    };
     if pool.count() == 0 || var <= 1e-10 * rb.n {
         return best;
     }
@@ -459,7 +511,7 @@ pub fn fit_range(
             }
         }
         SearchMode::Nearest(k) => {
-            if let (Some((tree, items)), Some(r)) = (&pool.tree, normalise(reduce(&rb.values, n))) {
+            if let (Some((tree, items)), Some(r)) = (&pool.tree, normalise(reduce(&rb.values, n), pool.plane)) {
                 let r = dct_features(&r);
                 let neg = r.map(|v| -v);
                 let k = NonZero::new(k.max(1)).expect("k >= 1");
@@ -474,10 +526,38 @@ pub fn fit_range(
     }
     best.constant_sse = constant.sse;
     best.constant_offset = constant.offset;
+    best.constant_slope = constant.slope;
     best
 }
 
+/// Quantised planar part of a fit with contrast `s`: (offset index, slope indices, the squared
+/// error quantisation adds). `o` and `a` are the exact offset and per-sample slopes; the terms
+/// add because 1, X and Y are orthogonal over a whole block.
+fn quantise_plane(q: &Quantiser, rb: &RangeBlock, s: f32, o: f32, a: [f32; 2], sxx: f32) -> (u32, [i32; 2], f32) {
+    let oi = q.offset_index(s, o);
+    let n = rb.side as f32;
+    let si = [q.slope_index(a[0] * n), q.slope_index(a[1] * n)];
+    let (eo, ex, ey) = (q.offset(s, oi) - o, q.slope(si[0]) / n - a[0], q.slope(si[1]) / n - a[1]);
+    (oi, si, rb.n * eo * eo + sxx * (ex * ex + ey * ey))
+}
+
 fn constant_fit(rb: &RangeBlock, q: &Quantiser) -> Fit {
+    if let Some(([sx, sy], sxx)) = rb.plane {
+        let resid = (rb.srr - rb.sr * rb.sr / rb.n - (sx * sx + sy * sy) / sxx).max(0.0);
+        let (oi, si, extra) = quantise_plane(q, rb, 0.0, rb.sr / rb.n, [sx / sxx, sy / sxx], sxx);
+        return Fit {
+            sse: resid + extra,
+            weight: rb.n,
+            contrast: 0,
+            offset: oi,
+            isometry: 0,
+            domain: 0,
+            slope: si,
+            constant_sse: resid + extra,
+            constant_offset: oi,
+            constant_slope: si,
+        };
+    }
     let oi = q.offset_index(0.0, rb.sr / rb.n);
     let o = q.offset(0.0, oi);
     let sse = (rb.srr - 2.0 * o * rb.sr + rb.n * o * o).max(0.0);
@@ -488,8 +568,10 @@ fn constant_fit(rb: &RangeBlock, q: &Quantiser) -> Fit {
         offset: oi,
         isometry: 0,
         domain: 0,
+        slope: [0; 2],
         constant_sse: sse,
         constant_offset: oi,
+        constant_slope: [0; 2],
     }
 }
 
@@ -532,9 +614,39 @@ fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> 
         offset: 0,
         isometry: k,
         domain: d as u32,
+        slope: [0; 2],
         constant_sse: f32::INFINITY,
         constant_offset: 0,
+        constant_slope: [0; 2],
     };
+    if let Some(([rx, ry], sxx)) = rb.plane {
+        // Project r and the oriented domain onto the complement of {1, X, Y}; the isometry maps
+        // the domain's planar sums by swapping (transpose) and negating (mirrors).
+        let [dx0, dy0] = pool.sums_xy[d];
+        let (fx, fy) = (if k & 1 != 0 { -1.0 } else { 1.0 }, if k & 2 != 0 { -1.0 } else { 1.0 });
+        let (dx, dy) = if k & 4 != 0 { (fy * dy0, fx * dx0) } else { (fx * dx0, fy * dy0) };
+        let rd = sdr - rb.sr * sd / rb.n - (rx * dx + ry * dy) / sxx;
+        let dd = sdd - sd * sd / rb.n - (dx * dx + dy * dy) / sxx;
+        let rr = rb.srr - rb.sr * rb.sr / rb.n - (rx * rx + ry * ry) / sxx;
+        let s_opt = if dd > 1e-12 { rd / dd } else { 0.0 };
+        let qi = q.contrast_index(s_opt);
+        for qs in [qi, qi - 1, qi + 1] {
+            if qs == 0 || qs.abs() > l {
+                continue;
+            }
+            let s = q.contrast(qs);
+            let resid = (rr - 2.0 * s * rd + s * s * dd).max(0.0);
+            let o = (rb.sr - s * sd) / rb.n;
+            let (oi, si, extra) = quantise_plane(q, rb, s, o, [(rx - s * dx) / sxx, (ry - s * dy) / sxx], sxx);
+            if resid + extra < best.sse {
+                best.sse = resid + extra;
+                best.contrast = qs;
+                best.offset = oi;
+                best.slope = si;
+            }
+        }
+        return best;
+    }
     for qs in [qi, qi - 1, qi + 1] {
         if qs == 0 || qs.abs() > l {
             continue;
@@ -602,13 +714,14 @@ mod tests {
             contrast_bits: 8,
             offset_bits: 12,
             max_contrast: 0.9,
+            slope_bits: 0,
         };
         for mode in [
             SearchMode::Full,
             SearchMode::Nearest(4),
             SearchMode::Classified,
         ] {
-            let pool = DomainPool::new(&p, &avg, n, 4, mode);
+            let pool = DomainPool::new(&p, &avg, n, 4, mode, false);
             let fit = fit_range(&p, &pool, 16, 0, &q, mode);
             assert!(fit.sse < 1e-4, "{mode:?}: {fit:?}");
             // The pattern has symmetries, so another domain may fit as exactly; it must be a real
@@ -625,8 +738,8 @@ mod tests {
         });
         let avg = p.average2();
         let q = Quantiser::default();
-        let full = DomainPool::new(&p, &avg, 4, 4, SearchMode::Full);
-        let near = DomainPool::new(&p, &avg, 4, 4, SearchMode::Nearest(16));
+        let full = DomainPool::new(&p, &avg, 4, 4, SearchMode::Full, false);
+        let near = DomainPool::new(&p, &avg, 4, 4, SearchMode::Nearest(16), false);
         let (mut ef, mut en) = (0.0, 0.0);
         for y in (0..64).step_by(4) {
             for x in (0..64).step_by(4) {
@@ -646,13 +759,13 @@ mod tests {
         // A wild value under zero weight must not change the fit of the range around it.
         let clean = {
             let avg = p.average2();
-            let pool = DomainPool::new(&p, &avg, 4, 2, SearchMode::Full);
+            let pool = DomainPool::new(&p, &avg, 4, 2, SearchMode::Full, false);
             fit_range(&p, &pool, 4, 4, &Quantiser::default(), SearchMode::Full)
         };
         p.values[5 * 16 + 5] = 1.0;
         p.weights[5 * 16 + 5] = 0.0;
         let avg = p.average2();
-        let pool = DomainPool::new(&p, &avg, 4, 2, SearchMode::Full);
+        let pool = DomainPool::new(&p, &avg, 4, 2, SearchMode::Full, false);
         let masked = fit_range(&p, &pool, 4, 4, &Quantiser::default(), SearchMode::Full);
         assert_eq!(masked.weight, 15.0);
         assert!(masked.sse <= clean.sse + 1e-4, "{masked:?} {clean:?}");

@@ -128,6 +128,8 @@ struct Models {
     contrast: Vec<BitTree>,
     offset: Vec<[BitTree; 2]>,
     isometry: Vec<BitTree>,
+    /// Slope indices of the planar offset term, x and y (context: level, constant map or not).
+    slope: Vec<[[BitTree; 2]; 2]>,
     /// High bits of the domain index (at most [`DOMAIN_TREE_BITS`]), then one adaptive bit per
     /// remaining low bit: a full tree over 2^30 domains would need gigabytes of contexts.
     domain: Vec<(BitTree, Vec<Bit>)>,
@@ -152,6 +154,12 @@ impl Models {
                 })
                 .collect(),
             isometry: (0..levels).map(|_| BitTree::new(3)).collect(),
+            slope: (0..levels)
+                .map(|_| {
+                    let b = (h.quantiser.slope_bits as u32).max(1);
+                    [[BitTree::new(b), BitTree::new(b)], [BitTree::new(b), BitTree::new(b)]]
+                })
+                .collect(),
             domain: (0..levels)
                 .map(|l| {
                     let (c, r) = h.lattice(l);
@@ -244,8 +252,10 @@ fn code(
                     offset: 0,
                     isometry: 0,
                     domain: 0,
+                    slope: [0; 2],
                     constant_sse: 0.0,
                     constant_offset: 0,
+                    constant_slope: [0; 2],
                 });
                 let (dc, dr) = h.lattice(l);
                 let qs = dir.tree(&mut m.contrast[l], (fit.contrast + l_s) as u32) as i32 - l_s;
@@ -253,6 +263,17 @@ fn code(
                     return Err(format!("contrast index {qs} out of range"));
                 }
                 let qo = dir.tree(&mut m.offset[l][usize::from(qs != 0)], fit.offset);
+                let mut slope = [0i32; 2];
+                let l_g = h.quantiser.slope_levels();
+                if l_g > 0 {
+                    for (axis, v) in slope.iter_mut().enumerate() {
+                        let t = &mut m.slope[l][usize::from(qs != 0)][axis];
+                        *v = dir.tree(t, (fit.slope[axis] + l_g) as u32) as i32 - l_g;
+                        if v.abs() > l_g {
+                            return Err(format!("slope index {v} out of range"));
+                        }
+                    }
+                }
                 let (mut iso, mut dom) = (0, 0);
                 if qs != 0 {
                     if dc * dr == 0 {
@@ -284,8 +305,10 @@ fn code(
                         offset: qo,
                         isometry: iso,
                         domain: dom,
+                        slope,
                         constant_sse: 0.0,
                         constant_offset: 0,
+                        constant_slope: [0; 2],
                     },
                 });
             }
@@ -341,6 +364,7 @@ pub fn operator(h: &PlaneHeader, leaves: &[Leaf]) -> Result<QuadtreeOperator, St
                 isometry: leaf.fit.isometry,
                 contrast: s,
                 offset: q.offset(s, leaf.fit.offset),
+                slope: [q.slope(leaf.fit.slope[0]), q.slope(leaf.fit.slope[1])],
             }
         })
         .collect();

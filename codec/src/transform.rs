@@ -41,6 +41,10 @@ pub struct Quantiser {
     pub offset_bits: u8,
     /// Largest |s|; below 1 so that every map contracts.
     pub max_contrast: f32,
+    /// Bits of each slope index of the planar offset term (0: constant offsets, the seed's
+    /// classic codec). A slope is the rise of g across the range, in [-1, 1] of the value range.
+    #[serde(default)]
+    pub slope_bits: u8,
 }
 
 impl Default for Quantiser {
@@ -49,6 +53,7 @@ impl Default for Quantiser {
             contrast_bits: 5,
             offset_bits: 7,
             max_contrast: 0.9,
+            slope_bits: 0,
         }
     }
 }
@@ -61,6 +66,9 @@ impl Quantiser {
                 "quantiser bits out of range: contrast {} (2..=8), offset {} (1..=12)",
                 self.contrast_bits, self.offset_bits
             ));
+        }
+        if self.slope_bits == 1 || self.slope_bits > 12 {
+            return Err(format!("slope bits {} not 0 or in 2..=12", self.slope_bits));
         }
         if !(self.max_contrast > 0.0 && self.max_contrast < 1.0) {
             return Err(format!(
@@ -110,6 +118,23 @@ impl Quantiser {
         let (lo, width) = Self::offset_interval(s);
         lo + width * q as f32 / self.offset_levels() as f32
     }
+
+    /// Largest slope index (slopes take indices -S..=S).
+    pub fn slope_levels(&self) -> i32 {
+        if self.slope_bits < 2 { 0 } else { (1 << (self.slope_bits - 1)) - 1 }
+    }
+
+    /// Index of the rise nearest to `rise` (the change of g across the range).
+    pub fn slope_index(&self, rise: f32) -> i32 {
+        let l = self.slope_levels();
+        (rise * l as f32).round().clamp(-l as f32, l as f32) as i32
+    }
+
+    /// Rise of a slope index.
+    pub fn slope(&self, q: i32) -> f32 {
+        let l = self.slope_levels();
+        if l == 0 { 0.0 } else { q as f32 / l as f32 }
+    }
 }
 
 #[cfg(test)]
@@ -149,7 +174,7 @@ mod tests {
         fn quantised_maps_contract_and_keep_the_unit_interval(
             s in -2.0f32..2.0, o in -2.0f32..3.0, cb in 2u8..8, ob in 1u8..12, smax in 0.05f32..0.99
         ) {
-            let q = Quantiser { contrast_bits: cb, offset_bits: ob, max_contrast: smax };
+            let q = Quantiser { contrast_bits: cb, offset_bits: ob, max_contrast: smax, slope_bits: 0 };
             let sq = q.contrast(q.contrast_index(s));
             prop_assert!(sq.abs() < 1.0);
             prop_assert!(sq.abs() <= smax + 1e-6);

@@ -98,6 +98,10 @@ struct EncodeArgs {
     /// Bits of the offset index.
     #[arg(long, default_value_t = EncodeSettings::default().quantiser.offset_bits)]
     offset_bits: u8,
+    /// Bits of each slope of a planar offset term (0: constant offsets, the seed's codec).
+    /// Default: 6 for height fields, 0 for images.
+    #[arg(long)]
+    slope_bits: Option<u8>,
     /// Largest |contrast| (< 1).
     #[arg(long, default_value_t = EncodeSettings::default().quantiser.max_contrast)]
     max_contrast: f32,
@@ -229,6 +233,7 @@ fn run_encode(a: EncodeArgs) -> Result<()> {
             contrast_bits: a.contrast_bits,
             offset_bits: a.offset_bits,
             max_contrast: a.max_contrast,
+            slope_bits: a.slope_bits.unwrap_or(EncodeSettings::default_slope_bits(raster.kind)),
         },
         search: match a.search {
             Search::Full => SearchMode::Full,
