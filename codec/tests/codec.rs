@@ -56,9 +56,11 @@ proptest! {
     /// Decoding the written file reproduces exactly the error the encoder reported, the file
     /// round-trips bit-exactly, and every map contracts.
     #[test]
-    fn decode_of_the_file_matches_the_encoder_report(x in 0usize..400, y in 0usize..400, w in 3usize..100, h in 3usize..100, t in 2.0f32..30.0) {
+    fn decode_of_the_file_matches_the_encoder_report(x in 0usize..400, y in 0usize..400, w in 3usize..100, h in 3usize..100, t in 2.0f32..30.0, planar in any::<bool>()) {
         let src = crop(&camera(), x, y, w.min(512 - x), h.min(512 - y));
-        let enc = encode(&src, &tolerance(t), &quiet).unwrap();
+        let mut s = tolerance(t);
+        s.quantiser.slope_bits = if planar { 6 } else { 0 };
+        let enc = encode(&src, &s, &quiet).unwrap();
         let asset = Asset::from_bytes(&enc.bytes).unwrap();
         prop_assert_eq!(asset.to_bytes(), enc.bytes.clone());
         let (dec, _) = asset.decode_native();
@@ -72,15 +74,17 @@ proptest! {
         }
     }
 
-    /// The a-priori bound of continuous decoding holds against a 200-step reference.
+    /// The a-priori bound of continuous decoding holds against a 200-step reference, for
+    /// constant (image) and planar (terrain) offsets.
     #[test]
     fn error_bound_holds(u in 0.0f32..1.0, v in 0.0f32..1.0, n in 1u32..25) {
-        let asset = small_camera_asset();
-        let op = &asset.planes[0].operator;
-        let r = decode::point(op, [u, v], n);
-        let reference = decode::point(op, [u, v], 200);
-        prop_assert!((r.value - reference.value).abs() <= r.error_bound + 1e-5,
-            "n={} value {} ref {} bound {}", n, r.value, reference.value, r.error_bound);
+        for asset in [small_camera_asset(), small_terrain_asset()] {
+            let op = &asset.planes[0].operator;
+            let r = decode::point(op, [u, v], n);
+            let reference = decode::point(op, [u, v], 200);
+            prop_assert!((r.value - reference.value).abs() <= r.error_bound + 1e-5,
+                "n={} value {} ref {} bound {}", n, r.value, reference.value, r.error_bound);
+        }
     }
 
     /// Corrupt files are rejected with an error (never a panic), whatever byte is hit.
@@ -100,6 +104,20 @@ proptest! {
     }
 }
 
+fn small_terrain_asset() -> Asset {
+    static ASSET: std::sync::OnceLock<Asset> = std::sync::OnceLock::new();
+    ASSET
+        .get_or_init(|| {
+            let src = crop(&Raster::open(&data("jacksboro.tif")).unwrap(), 100, 80, 120, 90);
+            let mut s = tolerance(2.0);
+            s.quantiser.slope_bits = 6;
+            let a = encode(&src, &s, &quiet).unwrap().asset;
+            assert!(a.planes[0].operator.ranges().iter().any(|r| r.slope != [0.0; 2]), "slopes in use");
+            a
+        })
+        .clone()
+}
+
 fn small_camera_asset() -> Asset {
     static ASSET: std::sync::OnceLock<Asset> = std::sync::OnceLock::new();
     ASSET
@@ -108,6 +126,17 @@ fn small_camera_asset() -> Asset {
             encode(&src, &tolerance(6.0), &quiet).unwrap().asset
         })
         .clone()
+}
+
+#[test]
+fn planar_offsets_improve_terrain_at_the_same_rate() {
+    let src = crop(&Raster::open(&data("jacksboro.tif")).unwrap(), 0, 0, 256, 256);
+    let mut s = EncodeSettings { rate: RateMode::TargetBpp(0.8), ..EncodeSettings::default() };
+    let flat = encode(&src, &s, &quiet).unwrap();
+    s.quantiser.slope_bits = 6;
+    let planar = encode(&src, &s, &quiet).unwrap();
+    assert!(planar.bpp() <= 0.8 && flat.bpp() <= 0.8);
+    assert!(planar.errors.psnr > flat.errors.psnr, "{} vs {}", planar.errors.psnr, flat.errors.psnr);
 }
 
 #[test]
