@@ -50,7 +50,14 @@ impl Pyramid {
                 fits.push(vec![None; c * r]);
                 continue;
             }
-            let pool = DomainPool::new(plane, &avg2, n, header.domain_steps[l] as usize, mode, header.quantiser.slope_bits > 0);
+            let pool = DomainPool::new(
+                plane,
+                &avg2,
+                n,
+                header.domain_steps[l] as usize,
+                mode,
+                header.quantiser.slope_bits > 0,
+            );
             let level: Vec<Option<Fit>> = (0..c * r)
                 .into_par_iter()
                 .map(|i| {

@@ -134,15 +134,22 @@ const ZIGZAG: [(usize, usize); INDEXED] = [
 ];
 
 fn dct_features(f: &[f32; FEATURES]) -> [f32; INDEXED] {
-    // Orthonormal DCT-II basis for N = 4.
-    let basis = |k: usize, n: usize| -> f32 {
-        let c = if k == 0 {
-            0.5
-        } else {
-            std::f32::consts::FRAC_1_SQRT_2
-        };
-        c * ((std::f32::consts::PI * (2 * n + 1) as f32 * k as f32) / 8.0).cos()
-    };
+    // Orthonormal DCT-II basis for N = 4, computed once.
+    static BASIS: std::sync::LazyLock<[[f32; 4]; 4]> = std::sync::LazyLock::new(|| {
+        let mut b = [[0.0f32; 4]; 4];
+        for (k, row) in b.iter_mut().enumerate() {
+            let c = if k == 0 {
+                0.5
+            } else {
+                std::f32::consts::FRAC_1_SQRT_2
+            };
+            for (n, v) in row.iter_mut().enumerate() {
+                *v = c * ((std::f32::consts::PI * (2 * n + 1) as f32 * k as f32) / 8.0).cos();
+            }
+        }
+        b
+    });
+    let basis = |k: usize, n: usize| BASIS[k][n];
     let mut out = [0.0f32; INDEXED];
     for (o, &(u, v)) in out.iter_mut().zip(&ZIGZAG) {
         let mut acc = 0.0;
@@ -511,7 +518,9 @@ pub fn fit_range(
             }
         }
         SearchMode::Nearest(k) => {
-            if let (Some((tree, items)), Some(r)) = (&pool.tree, normalise(reduce(&rb.values, n), pool.plane)) {
+            if let (Some((tree, items)), Some(r)) =
+                (&pool.tree, normalise(reduce(&rb.values, n), pool.plane))
+            {
                 let r = dct_features(&r);
                 let neg = r.map(|v| -v);
                 let k = NonZero::new(k.max(1)).expect("k >= 1");
@@ -533,11 +542,22 @@ pub fn fit_range(
 /// Quantised planar part of a fit with contrast `s`: (offset index, slope indices, the squared
 /// error quantisation adds). `o` and `a` are the exact offset and per-sample slopes; the terms
 /// add because 1, X and Y are orthogonal over a whole block.
-fn quantise_plane(q: &Quantiser, rb: &RangeBlock, s: f32, o: f32, a: [f32; 2], sxx: f32) -> (u32, [i32; 2], f32) {
+fn quantise_plane(
+    q: &Quantiser,
+    rb: &RangeBlock,
+    s: f32,
+    o: f32,
+    a: [f32; 2],
+    sxx: f32,
+) -> (u32, [i32; 2], f32) {
     let oi = q.offset_index(s, o);
     let n = rb.side as f32;
     let si = [q.slope_index(a[0] * n), q.slope_index(a[1] * n)];
-    let (eo, ex, ey) = (q.offset(s, oi) - o, q.slope(si[0]) / n - a[0], q.slope(si[1]) / n - a[1]);
+    let (eo, ex, ey) = (
+        q.offset(s, oi) - o,
+        q.slope(si[0]) / n - a[0],
+        q.slope(si[1]) / n - a[1],
+    );
     (oi, si, rb.n * eo * eo + sxx * (ex * ex + ey * ey))
 }
 
@@ -623,8 +643,15 @@ fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> 
         // Project r and the oriented domain onto the complement of {1, X, Y}; the isometry maps
         // the domain's planar sums by swapping (transpose) and negating (mirrors).
         let [dx0, dy0] = pool.sums_xy[d];
-        let (fx, fy) = (if k & 1 != 0 { -1.0 } else { 1.0 }, if k & 2 != 0 { -1.0 } else { 1.0 });
-        let (dx, dy) = if k & 4 != 0 { (fy * dy0, fx * dx0) } else { (fx * dx0, fy * dy0) };
+        let (fx, fy) = (
+            if k & 1 != 0 { -1.0 } else { 1.0 },
+            if k & 2 != 0 { -1.0 } else { 1.0 },
+        );
+        let (dx, dy) = if k & 4 != 0 {
+            (fy * dy0, fx * dx0)
+        } else {
+            (fx * dx0, fy * dy0)
+        };
         let rd = sdr - rb.sr * sd / rb.n - (rx * dx + ry * dy) / sxx;
         let dd = sdd - sd * sd / rb.n - (dx * dx + dy * dy) / sxx;
         let rr = rb.srr - rb.sr * rb.sr / rb.n - (rx * rx + ry * ry) / sxx;
@@ -637,7 +664,8 @@ fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> 
             let s = q.contrast(qs);
             let resid = (rr - 2.0 * s * rd + s * s * dd).max(0.0);
             let o = (rb.sr - s * sd) / rb.n;
-            let (oi, si, extra) = quantise_plane(q, rb, s, o, [(rx - s * dx) / sxx, (ry - s * dy) / sxx], sxx);
+            let (oi, si, extra) =
+                quantise_plane(q, rb, s, o, [(rx - s * dx) / sxx, (ry - s * dy) / sxx], sxx);
             if resid + extra < best.sse {
                 best.sse = resid + extra;
                 best.contrast = qs;

@@ -157,7 +157,10 @@ impl Models {
             slope: (0..levels)
                 .map(|_| {
                     let b = (h.quantiser.slope_bits as u32).max(1);
-                    [[BitTree::new(b), BitTree::new(b)], [BitTree::new(b), BitTree::new(b)]]
+                    [
+                        [BitTree::new(b), BitTree::new(b)],
+                        [BitTree::new(b), BitTree::new(b)],
+                    ]
                 })
                 .collect(),
             domain: (0..levels)

@@ -121,7 +121,11 @@ impl Quantiser {
 
     /// Largest slope index (slopes take indices -S..=S).
     pub fn slope_levels(&self) -> i32 {
-        if self.slope_bits < 2 { 0 } else { (1 << (self.slope_bits - 1)) - 1 }
+        if self.slope_bits < 2 {
+            0
+        } else {
+            (1 << (self.slope_bits - 1)) - 1
+        }
     }
 
     /// Index of the rise nearest to `rise` (the change of g across the range).

@@ -108,11 +108,24 @@ fn small_terrain_asset() -> Asset {
     static ASSET: std::sync::OnceLock<Asset> = std::sync::OnceLock::new();
     ASSET
         .get_or_init(|| {
-            let src = crop(&Raster::open(&data("jacksboro.tif")).unwrap(), 100, 80, 120, 90);
+            let src = crop(
+                &Raster::open(&data("jacksboro.tif")).unwrap(),
+                100,
+                80,
+                120,
+                90,
+            );
             let mut s = tolerance(2.0);
             s.quantiser.slope_bits = 6;
             let a = encode(&src, &s, &quiet).unwrap().asset;
-            assert!(a.planes[0].operator.ranges().iter().any(|r| r.slope != [0.0; 2]), "slopes in use");
+            assert!(
+                a.planes[0]
+                    .operator
+                    .ranges()
+                    .iter()
+                    .any(|r| r.slope != [0.0; 2]),
+                "slopes in use"
+            );
             a
         })
         .clone()
@@ -130,13 +143,27 @@ fn small_camera_asset() -> Asset {
 
 #[test]
 fn planar_offsets_improve_terrain_at_the_same_rate() {
-    let src = crop(&Raster::open(&data("jacksboro.tif")).unwrap(), 0, 0, 256, 256);
-    let mut s = EncodeSettings { rate: RateMode::TargetBpp(0.8), ..EncodeSettings::default() };
+    let src = crop(
+        &Raster::open(&data("jacksboro.tif")).unwrap(),
+        0,
+        0,
+        256,
+        256,
+    );
+    let mut s = EncodeSettings {
+        rate: RateMode::TargetBpp(0.8),
+        ..EncodeSettings::default()
+    };
     let flat = encode(&src, &s, &quiet).unwrap();
     s.quantiser.slope_bits = 6;
     let planar = encode(&src, &s, &quiet).unwrap();
     assert!(planar.bpp() <= 0.8 && flat.bpp() <= 0.8);
-    assert!(planar.errors.psnr > flat.errors.psnr, "{} vs {}", planar.errors.psnr, flat.errors.psnr);
+    assert!(
+        planar.errors.psnr > flat.errors.psnr,
+        "{} vs {}",
+        planar.errors.psnr,
+        flat.errors.psnr
+    );
 }
 
 #[test]

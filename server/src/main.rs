@@ -233,7 +233,9 @@ fn run_encode(a: EncodeArgs) -> Result<()> {
             contrast_bits: a.contrast_bits,
             offset_bits: a.offset_bits,
             max_contrast: a.max_contrast,
-            slope_bits: a.slope_bits.unwrap_or(EncodeSettings::default_slope_bits(raster.kind)),
+            slope_bits: a
+                .slope_bits
+                .unwrap_or(EncodeSettings::default_slope_bits(raster.kind)),
         },
         search: match a.search {
             Search::Full => SearchMode::Full,
