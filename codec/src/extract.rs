@@ -184,6 +184,35 @@ impl Asset {
         }
     }
 
+    /// Continuous decoding of many unit points at once (batched), each with its own bound.
+    pub fn points(&self, pts: &[[f32; 2]], iterations: u32) -> Vec<PointSample> {
+        let per_plane: Vec<Vec<decode::PointValue>> = self
+            .planes
+            .iter()
+            .map(|p| decode::points(&p.operator, pts, iterations))
+            .collect();
+        let span = self.span();
+        let planes: Vec<Vec<f32>> = per_plane
+            .iter()
+            .map(|v| v.iter().map(|p| p.value).collect())
+            .collect();
+        let values = self.to_source(planes, |i| (pts[i][0], pts[i][1]));
+        (0..pts.len())
+            .map(|i| {
+                let b: Vec<f32> = per_plane.iter().map(|v| v[i].error_bound * span).collect();
+                PointSample {
+                    values: values.iter().map(|c| c[i]).collect(),
+                    error_bound: if b.len() == 3 {
+                        rgb_bound(b[0], b[1], b[2])
+                    } else {
+                        b[0]
+                    },
+                    iterations: per_plane.iter().map(|v| v[i].iterations).max().unwrap_or(0),
+                }
+            })
+            .collect()
+    }
+
     /// A window `[u0, v0, u1, v1]` of the unit square at `width x height`.
     pub fn window(
         &self,
@@ -218,6 +247,58 @@ impl Asset {
             },
             chosen,
         )
+    }
+
+    /// Values at many unit points (`None`: outside the asset, answered as NaN), each standing for
+    /// a pixel of `footprint` (unit coordinates). Where a pixel covers more than a source cell the
+    /// asset is decoded discretely at the pixels' own scale and sampled (a filtered answer, no
+    /// aliasing); otherwise each point is decoded continuously with `iterations` steps. Returns
+    /// the channels and the a-priori error bound (source units).
+    pub fn sample(
+        &self,
+        points: &[Option<[f32; 2]>],
+        footprint: [f32; 2],
+        iterations: u32,
+    ) -> (Vec<Vec<f32>>, f32) {
+        let (w, h) = (self.meta.width as f32, self.meta.height as f32);
+        let coarse = footprint[0] * w > 1.0 || footprint[1] * h > 1.0;
+        let inside: Vec<[f32; 2]> = points.iter().map(|p| p.unwrap_or([0.0, 0.0])).collect();
+        let planes: Vec<Vec<f32>> = if coarse {
+            let gw = ((1.0 / footprint[0]).ceil() as usize).clamp(1, self.meta.width as usize);
+            let gh = ((1.0 / footprint[1]).ceil() as usize).clamp(1, self.meta.height as usize);
+            self.planes
+                .iter()
+                .map(|p| {
+                    let (g, _) =
+                        decode::discrete(&p.operator, gw, gh, DiscreteOptions::fixed(iterations));
+                    inside
+                        .iter()
+                        .map(|&[u, v]| {
+                            decode::sample_bilinear(&g, u * gw as f32 - 0.5, v * gh as f32 - 0.5)
+                        })
+                        .collect()
+                })
+                .collect()
+        } else {
+            self.planes
+                .iter()
+                .map(|p| {
+                    decode::points(&p.operator, &inside, iterations)
+                        .into_iter()
+                        .map(|r| r.value)
+                        .collect()
+                })
+                .collect()
+        };
+        let mut channels = self.to_source(planes, |i| (inside[i][0], inside[i][1]));
+        for ch in &mut channels {
+            for (v, p) in ch.iter_mut().zip(points) {
+                if p.is_none() {
+                    *v = f32::NAN;
+                }
+            }
+        }
+        (channels, self.bound_after(iterations))
     }
 
     /// Whether the asset is a height field.

@@ -1,5 +1,5 @@
-//! `fractile`: encode rasters into fractal assets, decode them at any size, inspect and compare.
-//! (`fractile serve` arrives with the HTTP service.)
+//! `fractile`: encode rasters into fractal assets, decode them at any size, inspect and compare,
+//! and serve them over HTTP (`fractile serve`).
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -38,6 +38,18 @@ enum Command {
         /// Print JSON.
         #[arg(long)]
         json: bool,
+    },
+    /// Serve assets over HTTP (tiles, points, regions); with no --assets, the built-in demo assets.
+    Serve {
+        /// Directory of `.fra` assets.
+        #[arg(long, env = "FRACTILE_ASSETS")]
+        assets: Option<PathBuf>,
+        /// Address to listen on.
+        #[arg(long, env = "FRACTILE_BIND", default_value = "127.0.0.1:8080")]
+        bind: std::net::SocketAddr,
+        /// Public base URL for absolute links in TileJSON (behind a proxy).
+        #[arg(long, env = "FRACTILE_PUBLIC_URL")]
+        public_url: Option<String>,
     },
     /// Compare a decoded raster with its original: PSNR, RMSE, MAE, max error.
     Compare {
@@ -208,11 +220,37 @@ fn main() {
             decoded,
             json,
         } => run_compare(&original, &decoded, json),
+        Command::Serve {
+            assets,
+            bind,
+            public_url,
+        } => run_serve(assets, bind, public_url),
     };
     if let Err(e) = result {
         eprintln!("fractile: {e:#}");
         std::process::exit(1);
     }
+}
+
+fn run_serve(
+    assets: Option<PathBuf>,
+    bind: std::net::SocketAddr,
+    public_url: Option<String>,
+) -> Result<()> {
+    tracing_subscriber::fmt()
+        .with_env_filter(
+            tracing_subscriber::EnvFilter::try_from_default_env()
+                .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
+        )
+        .init();
+    let rt = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()?;
+    rt.block_on(fractile_server::serve(fractile_server::ServeOptions {
+        assets,
+        bind,
+        public_url,
+    }))
 }
 
 fn run_encode(a: EncodeArgs) -> Result<()> {

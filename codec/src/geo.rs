@@ -1,0 +1,186 @@
+//! Where tile pixels fall on an asset: Web Mercator (EPSG:3857, XYZ scheme, y down from the
+//! north) tile geometry, and the mapping from longitude/latitude to an asset's unit square
+//! through its georeference. Assets without a georeference are tiled over the unit square.
+
+use std::f64::consts::PI;
+
+use fractile_proto::Georef;
+
+/// Largest Web Mercator latitude (the square world).
+pub const MAX_LATITUDE: f64 = 85.051_128_779_806_59;
+
+/// Longitude and latitude (degrees) of a point of tile (z, x, y) given as fractions (fx, fy) of
+/// the tile (0..1 from the north-west corner).
+pub fn tile_lonlat(z: u8, x: u32, y: u32, fx: f64, fy: f64) -> (f64, f64) {
+    let n = (1u64 << z) as f64;
+    let lon = (x as f64 + fx) / n * 360.0 - 180.0;
+    let lat = (PI * (1.0 - 2.0 * (y as f64 + fy) / n))
+        .sinh()
+        .atan()
+        .to_degrees();
+    (lon, lat)
+}
+
+/// Bounds `[west, south, east, north]` (degrees) of a tile.
+pub fn tile_bounds(z: u8, x: u32, y: u32) -> [f64; 4] {
+    let (w, n) = tile_lonlat(z, x, y, 0.0, 0.0);
+    let (e, s) = tile_lonlat(z, x, y, 1.0, 1.0);
+    [w, s, e, n]
+}
+
+/// The tile (x, y) at zoom z that holds (lon, lat).
+pub fn lonlat_tile(z: u8, lon: f64, lat: f64) -> (u32, u32) {
+    let n = (1u64 << z) as f64;
+    let lat = lat.clamp(-MAX_LATITUDE, MAX_LATITUDE).to_radians();
+    let x = ((lon + 180.0) / 360.0 * n).floor().clamp(0.0, n - 1.0);
+    let y = ((1.0 - (lat.tan() + 1.0 / lat.cos()).ln() / PI) / 2.0 * n)
+        .floor()
+        .clamp(0.0, n - 1.0);
+    (x as u32, y as u32)
+}
+
+/// How an asset's unit square sits on the Earth (for geographic georeferences, EPSG:4326 or
+/// none given with degree-like numbers).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Placement {
+    west: f64,
+    north: f64,
+    width_deg: f64,
+    height_deg: f64,
+    /// Whether the asset spans all longitudes (then u wraps around at +-180).
+    global: bool,
+}
+
+impl Placement {
+    /// The placement of a `width x height` grid with this georeference; `None` for projected
+    /// CRSs (tiles of those need a reprojection library: not supported yet).
+    pub fn of(g: &Georef, width: u32, height: u32) -> Option<Placement> {
+        if g.epsg.is_some_and(|c| c != 4326) {
+            return None;
+        }
+        let width_deg = g.pixel_size[0] * width as f64;
+        let height_deg = -g.pixel_size[1] * height as f64;
+        (width_deg > 0.0 && height_deg > 0.0).then_some(Placement {
+            west: g.origin[0],
+            north: g.origin[1],
+            width_deg,
+            height_deg,
+            global: (width_deg - 360.0).abs() < 1e-6 * 360.0,
+        })
+    }
+
+    /// `[west, south, east, north]` in degrees.
+    pub fn bounds(&self) -> [f64; 4] {
+        [
+            self.west,
+            self.north - self.height_deg,
+            self.west + self.width_deg,
+            self.north,
+        ]
+    }
+
+    /// Unit coordinates of (lon, lat); `None` outside the asset.
+    pub fn unit(&self, lon: f64, lat: f64) -> Option<[f32; 2]> {
+        let mut u = (lon - self.west) / self.width_deg;
+        if self.global {
+            u = u.rem_euclid(1.0);
+        }
+        let v = (self.north - lat) / self.height_deg;
+        ((0.0..=1.0).contains(&u) && (0.0..=1.0).contains(&v)).then_some([u as f32, v as f32])
+    }
+
+    /// Degrees of longitude per unit of u, and of latitude per unit of v.
+    pub fn degrees_per_unit(&self) -> [f64; 2] {
+        [self.width_deg, self.height_deg]
+    }
+}
+
+/// The unit point and footprint (size of one pixel in unit coordinates) of each pixel centre of a
+/// tile; `None` for pixels outside the asset. Non-georeferenced assets tile the unit square.
+pub fn tile_points(
+    placement: Option<&Placement>,
+    z: u8,
+    x: u32,
+    y: u32,
+    size: usize,
+) -> (Vec<Option<[f32; 2]>>, [f32; 2]) {
+    let mut pts = Vec::with_capacity(size * size);
+    for j in 0..size {
+        for i in 0..size {
+            let (fx, fy) = (
+                (i as f64 + 0.5) / size as f64,
+                (j as f64 + 0.5) / size as f64,
+            );
+            pts.push(match placement {
+                Some(p) => {
+                    let (lon, lat) = tile_lonlat(z, x, y, fx, fy);
+                    p.unit(lon, lat)
+                }
+                None => {
+                    let n = (1u64 << z) as f64;
+                    Some([((x as f64 + fx) / n) as f32, ((y as f64 + fy) / n) as f32])
+                }
+            });
+        }
+    }
+    let footprint = match placement {
+        Some(p) => {
+            // A pixel's size at the tile's centre (Mercator stretches latitude away from it).
+            let [w, s, e, n] = tile_bounds(z, x, y);
+            let d = p.degrees_per_unit();
+            [
+                ((e - w) / size as f64 / d[0]) as f32,
+                ((n - s) / size as f64 / d[1]) as f32,
+            ]
+        }
+        None => {
+            let f = (1.0 / ((1u64 << z) as f64 * size as f64)) as f32;
+            [f, f]
+        }
+    };
+    (pts, footprint)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn tile_geometry_matches_the_web_mercator_definition() {
+        // Zoom 0 covers the whole world; its centre is (0, 0).
+        let (lon, lat) = tile_lonlat(0, 0, 0, 0.5, 0.5);
+        assert!(lon.abs() < 1e-9 && lat.abs() < 1e-9);
+        let [w, s, e, n] = tile_bounds(0, 0, 0);
+        assert!((w + 180.0).abs() < 1e-9 && (e - 180.0).abs() < 1e-9);
+        assert!((n - MAX_LATITUDE).abs() < 1e-9 && (s + MAX_LATITUDE).abs() < 1e-9);
+        // Round trip through the tile index at zoom 12 (Jacksboro, Tennessee).
+        let (x, y) = lonlat_tile(12, -84.2, 36.4);
+        let [w, s, e, n] = tile_bounds(12, x, y);
+        assert!(w <= -84.2 && -84.2 < e && s < 36.4 && 36.4 <= n);
+    }
+
+    #[test]
+    fn global_assets_wrap_at_the_antimeridian() {
+        let g = Georef {
+            epsg: Some(4326),
+            origin: [-180.0, 90.0],
+            pixel_size: [1.0 / 3.0, -1.0 / 3.0],
+        };
+        let p = Placement::of(&g, 1080, 540).unwrap();
+        let a = p.unit(179.999, 0.0).unwrap();
+        let b = p.unit(-179.999, 0.0).unwrap();
+        assert!(a[0] > 0.999 && b[0] < 0.001);
+        assert!(p.unit(0.0, 91.0).is_none());
+        assert!(
+            Placement::of(
+                &Georef {
+                    epsg: Some(32633),
+                    ..g
+                },
+                10,
+                10
+            )
+            .is_none()
+        );
+    }
+}

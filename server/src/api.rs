@@ -1,0 +1,617 @@
+//! The HTTP API (versioned under /v1). Handlers parse and check requests, run decoding on the
+//! blocking pool (bounded by a semaphore, never on the async workers), and encode answers.
+//! The server adds no fractal math: it calls the codec.
+
+use std::hash::{Hash, Hasher};
+use std::sync::Arc;
+use std::time::Duration;
+
+use axum::body::Bytes;
+use axum::extract::{Path, Query, State};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use fractile_codec::geo;
+use fractile_proto::{AssetKind, ColourModel};
+use serde::Deserialize;
+use serde_json::{Value, json};
+use tokio::sync::Semaphore;
+
+use crate::encoding::{self, HeightEncoding};
+use crate::error::AppError;
+use crate::store::{Store, StoredAsset};
+
+/// Limits on what one request may ask for.
+#[derive(Clone, Debug)]
+pub struct Limits {
+    /// Most inverse steps or iterations a request may ask for.
+    pub max_iterations: u32,
+    /// Most pixels of a region.
+    pub max_region_pixels: usize,
+    /// Most points of a batch.
+    pub max_points: usize,
+    /// Deepest zoom served.
+    pub max_zoom: u8,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_iterations: 64,
+            max_region_pixels: 4096 * 4096,
+            max_points: 100_000,
+            max_zoom: 24,
+        }
+    }
+}
+
+/// Shared state of the handlers.
+pub struct AppState {
+    /// The catalog.
+    pub store: Store,
+    /// Request limits.
+    pub limits: Limits,
+    /// Decoding slots: at most this many decodes run at once on the blocking pool.
+    pub decoders: Semaphore,
+    /// Encoded tiles keyed like their ETag, bounded in bytes.
+    pub cache: moka::sync::Cache<String, Arc<Cached>>,
+    /// `Cache-Control` value of tiles.
+    pub cache_control: String,
+    /// Public base URL for absolute links (TileJSON), e.g. behind a proxy.
+    pub public_url: String,
+}
+
+/// A cached answer.
+pub struct Cached {
+    content_type: &'static str,
+    body: Bytes,
+    error_bound: f32,
+}
+
+impl AppState {
+    /// State over a store with default limits, a 256 MiB tile cache and one decoder per core.
+    pub fn new(store: Store, public_url: String) -> AppState {
+        let cores = std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(2);
+        AppState {
+            store,
+            limits: Limits::default(),
+            decoders: Semaphore::new(cores),
+            cache: moka::sync::Cache::builder()
+                .weigher(|_k: &String, v: &Arc<Cached>| v.body.len().try_into().unwrap_or(u32::MAX))
+                .max_capacity(256 * 1024 * 1024)
+                .build(),
+            cache_control: "public, max-age=3600".into(),
+            public_url,
+        }
+    }
+}
+
+type Shared = State<Arc<AppState>>;
+
+/// The router of the whole API.
+pub fn router(state: Arc<AppState>) -> Router {
+    Router::new()
+        .route("/healthz", get(|| async { "ok" }))
+        .route("/readyz", get(|| async { "ready" }))
+        .route("/v1/assets", get(list_assets))
+        .route("/v1/assets/{id}", get(asset_info))
+        .route("/v1/assets/{id}/tilejson.json", get(tilejson))
+        .route("/v1/assets/{id}/tiles/{z}/{x}/{tile}", get(tile))
+        .route("/v1/assets/{id}/point", get(point_unit))
+        .route("/v1/assets/{id}/point/{coords}", get(point_lonlat))
+        .route("/v1/assets/{id}/points", post(points))
+        .route("/v1/assets/{id}/region", get(region))
+        .with_state(state)
+}
+
+/// Runs `f` on the blocking pool once a decoding slot is free.
+async fn decode<T: Send + 'static>(
+    state: &AppState,
+    f: impl FnOnce() -> T + Send + 'static,
+) -> Result<T, AppError> {
+    let _permit = state
+        .decoders
+        .acquire()
+        .await
+        .map_err(|_| AppError::internal("decoder pool closed"))?;
+    tokio::task::spawn_blocking(f)
+        .await
+        .map_err(|e| AppError::internal(format!("decoding failed: {e}")))
+}
+
+fn summary(state: &AppState, a: &StoredAsset) -> Value {
+    let m = &a.asset.meta;
+    json!({
+        "id": a.id,
+        "kind": format!("{:?}", m.kind),
+        "width": m.width, "height": m.height, "channels": m.channels,
+        "colour": format!("{:?}", m.colour),
+        "bounds": a.placement.map(|p| p.bounds()),
+        "georeferenced": a.placement.is_some(),
+        "value_range": [m.value_min, m.value_max],
+        "units": m.units,
+        "nodata": m.nodata,
+        "codec": "quadtree-pifs",
+        "bytes": a.bytes,
+        "ratio": m.source_bytes() as f64 / a.bytes as f64,
+        "transforms": m.stats.transforms,
+        "encode_psnr": m.stats.psnr,
+        "encode_rmse": m.stats.rmse,
+        "tilejson": format!("{}/v1/assets/{}/tilejson.json", state.public_url, a.id),
+    })
+}
+
+async fn list_assets(State(state): Shared) -> Json<Value> {
+    Json(
+        json!({"assets": state.store.list().iter().map(|a| summary(&state, a)).collect::<Vec<_>>()}),
+    )
+}
+
+async fn asset_info(State(state): Shared, Path(id): Path<String>) -> Result<Json<Value>, AppError> {
+    let a = state.store.get(&id)?;
+    Ok(Json(summary(&state, &a)))
+}
+
+/// Zoom at which a tile pixel is about the size of a source cell (deeper zooms decode detail the
+/// source never had: the point of a fractal codec, hence `maxzoom` goes 4 levels further).
+fn native_zoom(a: &StoredAsset, tile_size: usize) -> u8 {
+    let width = a.asset.meta.width as f64;
+    let degrees = a
+        .placement
+        .map(|p| p.degrees_per_unit()[0])
+        .unwrap_or(360.0);
+    let pixels_world = width * 360.0 / degrees;
+    (pixels_world / tile_size as f64)
+        .log2()
+        .ceil()
+        .clamp(0.0, 22.0) as u8
+}
+
+async fn tilejson(State(state): Shared, Path(id): Path<String>) -> Result<Json<Value>, AppError> {
+    let a = state.store.get(&id)?;
+    let heights = a.asset.meta.kind == AssetKind::HeightField;
+    let (ext, query) = if heights {
+        ("png", "?encoding=terrarium")
+    } else {
+        ("png", "")
+    };
+    let native = native_zoom(&a, 256);
+    let bounds = a.placement.map(|p| {
+        let [w, s, e, n] = p.bounds();
+        [
+            w.max(-180.0),
+            s.max(-geo::MAX_LATITUDE),
+            e.min(180.0),
+            n.min(geo::MAX_LATITUDE),
+        ]
+    });
+    Ok(Json(json!({
+        "tilejson": "3.0.0",
+        "name": a.id,
+        "tiles": [format!("{}/v1/assets/{}/tiles/{{z}}/{{x}}/{{y}}.{ext}{query}", state.public_url, a.id)],
+        "minzoom": 0,
+        "maxzoom": (native + 4).min(state.limits.max_zoom),
+        "bounds": bounds.unwrap_or([-180.0, -geo::MAX_LATITUDE, 180.0, geo::MAX_LATITUDE]),
+        "tileSize": 256,
+        "encoding": if heights { Some("terrarium") } else { None },
+    })))
+}
+
+#[derive(Deserialize)]
+struct TileQuery {
+    iterations: Option<u32>,
+    tilesize: Option<usize>,
+    encoding: Option<String>,
+    rescale: Option<String>,
+}
+
+fn iterations_for(state: &AppState, a: &StoredAsset, asked: Option<u32>) -> Result<u32, AppError> {
+    let max = state.limits.max_iterations;
+    match asked {
+        Some(0) => Err(AppError::bad_request(
+            "bad_iterations",
+            "iterations must be at least 1",
+        )),
+        Some(n) if n > max => Err(AppError::bad_request(
+            "bad_iterations",
+            format!("iterations {n} over the limit {max}"),
+        )),
+        Some(n) => Ok(n),
+        // Enough for the bound to fall under half a quantisation step of the source.
+        None => {
+            let m = &a.asset.meta;
+            let step = match m.sample {
+                fractile_proto::SampleFormat::F32 => (m.value_max - m.value_min) / 65535.0,
+                _ => 1.0,
+            };
+            Ok(a.asset.iterations_for(0.5 * step as f32, max.min(32)))
+        }
+    }
+}
+
+fn etag(a: &StoredAsset, key: &str) -> String {
+    let mut h = std::hash::DefaultHasher::new();
+    (a.hash, key).hash(&mut h);
+    format!("\"{:016x}\"", h.finish())
+}
+
+fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Response {
+    let mut r = (StatusCode::OK, c.body.clone()).into_response();
+    let h = r.headers_mut();
+    h.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static(c.content_type),
+    );
+    h.insert(header::ETAG, HeaderValue::from_str(tag).expect("hex etag"));
+    if let Ok(v) = HeaderValue::from_str(&state.cache_control) {
+        h.insert(header::CACHE_CONTROL, v);
+    }
+    h.insert(
+        "x-error-bound",
+        HeaderValue::from_str(&format!("{}", c.error_bound)).expect("number"),
+    );
+    r
+}
+
+fn not_modified(headers: &HeaderMap, tag: &str) -> bool {
+    headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == tag))
+}
+
+async fn tile(
+    State(state): Shared,
+    Path((id, z, x, tile)): Path<(String, u8, u32, String)>,
+    Query(q): Query<TileQuery>,
+    headers: HeaderMap,
+) -> Result<Response, AppError> {
+    let a = state.store.get(&id)?;
+    let (y, ext) = tile
+        .split_once('.')
+        .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.png or {y}.f32"))?;
+    let y: u32 = y
+        .parse()
+        .map_err(|_| AppError::bad_request("bad_tile", format!("bad tile row {y:?}")))?;
+    if z > state.limits.max_zoom || x >= (1u32 << z) || y >= (1u32 << z) {
+        return Err(AppError::not_found(
+            "no_tile",
+            format!("tile {z}/{x}/{y} does not exist"),
+        ));
+    }
+    let size = q.tilesize.unwrap_or(256);
+    if size != 256 && size != 512 {
+        return Err(AppError::bad_request(
+            "bad_tilesize",
+            "tilesize must be 256 or 512",
+        ));
+    }
+    let heights = a.asset.meta.kind == AssetKind::HeightField;
+    let format = match (ext, heights, q.encoding.as_deref()) {
+        ("f32", true, _) => encoding::TileFormat::F32,
+        ("f32", false, _) => {
+            return Err(AppError::bad_request(
+                "bad_format",
+                "f32 tiles are for height fields",
+            ));
+        }
+        ("png", true, Some("terrainrgb")) => {
+            encoding::TileFormat::Heights(HeightEncoding::TerrainRgb)
+        }
+        ("png", true, Some("terrarium")) => {
+            encoding::TileFormat::Heights(HeightEncoding::Terrarium)
+        }
+        ("png", true, Some("gray16")) => encoding::TileFormat::Heights(HeightEncoding::Gray16),
+        ("png", true, None) => encoding::TileFormat::Visual(parse_rescale(&q.rescale, &a)?),
+        ("png", false, None) => encoding::TileFormat::Visual(None),
+        ("png", _, Some(e)) => {
+            return Err(AppError::bad_request(
+                "bad_encoding",
+                format!("unknown encoding {e:?} (terrainrgb, terrarium, gray16)"),
+            ));
+        }
+        (e, ..) => {
+            return Err(AppError::bad_request(
+                "bad_format",
+                format!("unknown tile format {e:?} (png, f32)"),
+            ));
+        }
+    };
+    let iterations = iterations_for(&state, &a, q.iterations)?;
+    let (pts, footprint) = geo::tile_points(a.placement.as_ref(), z, x, y, size);
+    if pts.iter().all(Option::is_none) {
+        // Outside the asset: 404, so that map clients over-zoom the parent instead.
+        return Err(AppError::not_found(
+            "outside",
+            format!("tile {z}/{x}/{y} is outside the asset"),
+        ));
+    }
+    let key = format!(
+        "{id}/{z}/{x}/{y}.{ext}?{iterations}&{size}&{:?}&{:?}",
+        q.encoding, q.rescale
+    );
+    let tag = etag(&a, &key);
+    if not_modified(&headers, &tag) {
+        return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, tag)]).into_response());
+    }
+    if let Some(c) = state.cache.get(&key) {
+        return Ok(cached_response(&state, &tag, &c));
+    }
+    let asset = a.clone();
+    let cached = decode(&state, move || {
+        let (channels, bound) = asset.asset.sample(&pts, footprint, iterations);
+        let (content_type, body) =
+            encoding::encode_tile(&asset.asset.meta, &channels, size, format);
+        Cached {
+            content_type,
+            body: Bytes::from(body),
+            error_bound: bound,
+        }
+    })
+    .await?;
+    let cached = Arc::new(cached);
+    state.cache.insert(key, cached.clone());
+    Ok(cached_response(&state, &tag, &cached))
+}
+
+fn parse_rescale(r: &Option<String>, a: &StoredAsset) -> Result<Option<(f32, f32)>, AppError> {
+    let Some(r) = r else {
+        return Ok(Some((
+            a.asset.meta.value_min as f32,
+            a.asset.meta.value_max as f32,
+        )));
+    };
+    let v: Vec<f32> = r.split(',').filter_map(|s| s.trim().parse().ok()).collect();
+    match v[..] {
+        [lo, hi] if hi > lo => Ok(Some((lo, hi))),
+        _ => Err(AppError::bad_request(
+            "bad_rescale",
+            "rescale must be min,max with max > min",
+        )),
+    }
+}
+
+fn point_json(coords: [f64; 2], values: &[f32], bound: f32, iterations: u32) -> Value {
+    json!({
+        "coordinates": coords,
+        "values": values.iter().map(|v| if v.is_finite() { json!(v) } else { Value::Null }).collect::<Vec<_>>(),
+        "error_bound": bound,
+        "iterations": iterations,
+    })
+}
+
+/// Unit coordinates of a request point: lon/lat for georeferenced assets, unit x/y otherwise.
+fn unit_of(a: &StoredAsset, c: [f64; 2]) -> Option<[f32; 2]> {
+    match &a.placement {
+        Some(p) => p.unit(c[0], c[1]),
+        None => ((0.0..=1.0).contains(&c[0]) && (0.0..=1.0).contains(&c[1]))
+            .then_some([c[0] as f32, c[1] as f32]),
+    }
+}
+
+#[derive(Deserialize)]
+struct PointQuery {
+    x: Option<f64>,
+    y: Option<f64>,
+    iterations: Option<u32>,
+}
+
+async fn point_unit(
+    State(state): Shared,
+    Path(id): Path<String>,
+    Query(q): Query<PointQuery>,
+) -> Result<Json<Value>, AppError> {
+    let (Some(x), Some(y)) = (q.x, q.y) else {
+        return Err(AppError::bad_request(
+            "bad_point",
+            "give ?x=&y= in unit coordinates (or /point/{lon},{lat})",
+        ));
+    };
+    answer_points(&state, &id, vec![[x, y]], q.iterations, true)
+        .await
+        .map(|mut v| Json(v.remove(0)))
+}
+
+async fn point_lonlat(
+    State(state): Shared,
+    Path((id, coords)): Path<(String, String)>,
+    Query(q): Query<PointQuery>,
+) -> Result<Json<Value>, AppError> {
+    let c: Vec<f64> = coords
+        .split(',')
+        .filter_map(|s| s.trim().parse().ok())
+        .collect();
+    let [lon, lat] = c[..] else {
+        return Err(AppError::bad_request(
+            "bad_point",
+            format!("expected lon,lat, got {coords:?}"),
+        ));
+    };
+    answer_points(&state, &id, vec![[lon, lat]], q.iterations, true)
+        .await
+        .map(|mut v| Json(v.remove(0)))
+}
+
+#[derive(Deserialize)]
+struct PointsBody {
+    points: Vec<[f64; 2]>,
+    iterations: Option<u32>,
+}
+
+async fn points(
+    State(state): Shared,
+    Path(id): Path<String>,
+    body: Result<Json<PointsBody>, axum::extract::rejection::JsonRejection>,
+) -> Result<Json<Value>, AppError> {
+    let Json(body) = body.map_err(|e| AppError::bad_request("bad_body", e.body_text()))?;
+    if body.points.len() > state.limits.max_points {
+        return Err(AppError {
+            status: StatusCode::PAYLOAD_TOO_LARGE,
+            code: "too_many_points",
+            detail: format!(
+                "{} points over the limit {}",
+                body.points.len(),
+                state.limits.max_points
+            ),
+        });
+    }
+    let results = answer_points(&state, &id, body.points, body.iterations, false).await?;
+    Ok(Json(json!({"results": results})))
+}
+
+async fn answer_points(
+    state: &Arc<AppState>,
+    id: &str,
+    coords: Vec<[f64; 2]>,
+    iterations: Option<u32>,
+    single: bool,
+) -> Result<Vec<Value>, AppError> {
+    let a = state.store.get(id)?;
+    let n = iterations_for(state, &a, iterations)?;
+    let units: Vec<Option<[f32; 2]>> = coords.iter().map(|&c| unit_of(&a, c)).collect();
+    if single && units[0].is_none() {
+        return Err(AppError::not_found(
+            "outside",
+            format!("point {:?} is outside the asset", coords[0]),
+        ));
+    }
+    decode(state, move || {
+        let inside: Vec<[f32; 2]> = units.iter().map(|u| u.unwrap_or([0.0, 0.0])).collect();
+        let samples = a.asset.points(&inside, n);
+        coords
+            .iter()
+            .zip(&units)
+            .zip(samples)
+            .map(|((&c, u), s)| match u {
+                Some(_) => point_json(c, &s.values, s.error_bound, s.iterations),
+                None => json!({"coordinates": c, "values": Value::Null, "error_bound": Value::Null, "iterations": 0, "outside": true}),
+            })
+            .collect()
+    })
+    .await
+}
+
+#[derive(Deserialize)]
+struct RegionQuery {
+    bbox: String,
+    width: usize,
+    height: usize,
+    iterations: Option<u32>,
+    format: Option<String>,
+}
+
+async fn region(
+    State(state): Shared,
+    Path(id): Path<String>,
+    Query(q): Query<RegionQuery>,
+) -> Result<Response, AppError> {
+    let a = state.store.get(&id)?;
+    let b: Vec<f64> = q
+        .bbox
+        .split(',')
+        .filter_map(|s| s.trim().parse().ok())
+        .collect();
+    let [x0, y0, x1, y1] = b[..] else {
+        return Err(AppError::bad_request(
+            "bad_bbox",
+            "bbox must be minx,miny,maxx,maxy",
+        ));
+    };
+    if !(x1 > x0 && y1 > y0) {
+        return Err(AppError::bad_request(
+            "bad_bbox",
+            "bbox must have maxx > minx and maxy > miny",
+        ));
+    }
+    if q.width == 0
+        || q.height == 0
+        || q.width.saturating_mul(q.height) > state.limits.max_region_pixels
+    {
+        return Err(AppError::bad_request(
+            "bad_size",
+            format!(
+                "width x height must be 1..={} pixels",
+                state.limits.max_region_pixels
+            ),
+        ));
+    }
+    let n = iterations_for(&state, &a, q.iterations)?;
+    let format = q.format.as_deref().unwrap_or("png");
+    if !matches!(format, "png" | "f32") {
+        return Err(AppError::bad_request(
+            "bad_format",
+            "format must be png or f32",
+        ));
+    }
+    let (w, h) = (q.width, q.height);
+    // Pixel centres in the request's coordinates: lon/lat (north up) or unit x/y (y down).
+    let geo_ref = a.placement.is_some();
+    let pts: Vec<Option<[f32; 2]>> = (0..w * h)
+        .map(|k| {
+            let (fx, fy) = (
+                ((k % w) as f64 + 0.5) / w as f64,
+                ((k / w) as f64 + 0.5) / h as f64,
+            );
+            let c = if geo_ref {
+                [x0 + fx * (x1 - x0), y1 - fy * (y1 - y0)]
+            } else {
+                [x0 + fx * (x1 - x0), y0 + fy * (y1 - y0)]
+            };
+            unit_of(&a, c)
+        })
+        .collect();
+    let footprint = {
+        let (du, dv) = match a.placement {
+            Some(p) => {
+                let d = p.degrees_per_unit();
+                ((x1 - x0) / d[0], (y1 - y0) / d[1])
+            }
+            None => (x1 - x0, y1 - y0),
+        };
+        [(du / w as f64) as f32, (dv / h as f64) as f32]
+    };
+    let f32_out = format == "f32";
+    let (ct, body, bound) = decode(&state, move || {
+        let (channels, bound) = a.asset.sample(&pts, footprint, n);
+        let (ct, body) = if f32_out {
+            (
+                "application/octet-stream",
+                channels
+                    .iter()
+                    .flat_map(|c| c.iter().flat_map(|v| v.to_le_bytes()))
+                    .collect(),
+            )
+        } else {
+            let fmt = if a.asset.meta.kind == AssetKind::HeightField {
+                encoding::TileFormat::Visual(Some((
+                    a.asset.meta.value_min as f32,
+                    a.asset.meta.value_max as f32,
+                )))
+            } else {
+                encoding::TileFormat::Visual(None)
+            };
+            encoding::encode_raster(&a.asset.meta, &channels, w, h, fmt)
+        };
+        (ct, body, bound)
+    })
+    .await?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, ct.to_string()),
+            ("x-error-bound".parse().expect("name"), format!("{bound}")),
+        ],
+        body,
+    )
+        .into_response())
+}
+
+/// Tells whether a colour model has three channels (used by encodings).
+pub fn is_colour(m: &fractile_proto::AssetMeta) -> bool {
+    m.colour == ColourModel::YCbCr
+}
+
+/// The default request timeout.
+pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);

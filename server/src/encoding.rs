@@ -1,0 +1,197 @@
+//! Output encodings of decoded samples: PNG (grey, RGB, terrain-RGB, Terrarium, 16-bit grey) and
+//! little-endian float32. These are file formats, not math: the formulas are MapLibre's.
+
+use fractile_proto::{AssetKind, AssetMeta};
+
+/// How a height tile is packed into a PNG.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum HeightEncoding {
+    /// Mapbox/MapLibre terrain-RGB: `h = -10000 + (R * 65536 + G * 256 + B) * 0.1`.
+    TerrainRgb,
+    /// Terrarium: `h = (R * 256 + G + B / 256) - 32768`.
+    Terrarium,
+    /// 16-bit grey of the asset's value range.
+    Gray16,
+}
+
+/// What a tile or region answer is.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum TileFormat {
+    /// Heights packed for a `raster-dem` source.
+    Heights(HeightEncoding),
+    /// A picture: images as they are; heights mapped from `(min, max)` to grey.
+    Visual(Option<(f32, f32)>),
+    /// Raw float32 heights, little-endian, row-major (NaN for nodata).
+    F32,
+}
+
+/// Height used where there is no data: 0 clamped into the asset's range, so that a map never
+/// sees a -10000 m hole or a spike (the camera would jump).
+fn nodata_height(m: &AssetMeta) -> f32 {
+    0.0f32.clamp(m.value_min as f32, m.value_max as f32)
+}
+
+/// Encodes a square tile.
+pub fn encode_tile(
+    m: &AssetMeta,
+    channels: &[Vec<f32>],
+    size: usize,
+    f: TileFormat,
+) -> (&'static str, Vec<u8>) {
+    encode_raster(m, channels, size, size, f)
+}
+
+/// Encodes a `w x h` raster.
+pub fn encode_raster(
+    m: &AssetMeta,
+    channels: &[Vec<f32>],
+    w: usize,
+    h: usize,
+    f: TileFormat,
+) -> (&'static str, Vec<u8>) {
+    let fill = nodata_height(m);
+    let height = |v: f32| if v.is_finite() { v } else { fill };
+    match f {
+        TileFormat::F32 => (
+            "application/octet-stream",
+            channels[0].iter().flat_map(|v| v.to_le_bytes()).collect(),
+        ),
+        TileFormat::Heights(e) => {
+            let px: Vec<u8> = channels[0]
+                .iter()
+                .flat_map(|&v| {
+                    let v = height(v);
+                    match e {
+                        HeightEncoding::TerrainRgb => {
+                            let c = (((v + 10000.0) * 10.0).round().max(0.0) as u32).min(0xFF_FFFF);
+                            [(c >> 16) as u8, (c >> 8) as u8, c as u8]
+                        }
+                        HeightEncoding::Terrarium => {
+                            let c = (v + 32768.0).clamp(0.0, 65535.996);
+                            let i = c.floor();
+                            [
+                                (i as u32 >> 8) as u8,
+                                (i as u32 & 0xFF) as u8,
+                                ((c - i) * 256.0) as u8,
+                            ]
+                        }
+                        HeightEncoding::Gray16 => [0, 0, 0],
+                    }
+                })
+                .collect();
+            if e == HeightEncoding::Gray16 {
+                let (lo, span) = (
+                    m.value_min as f32,
+                    (m.value_max - m.value_min).max(f64::MIN_POSITIVE) as f32,
+                );
+                let g: Vec<u16> = channels[0]
+                    .iter()
+                    .map(|&v| {
+                        (((height(v) - lo) / span) * 65535.0)
+                            .round()
+                            .clamp(0.0, 65535.0) as u16
+                    })
+                    .collect();
+                return (
+                    "image/png",
+                    png(
+                        w,
+                        h,
+                        image::ExtendedColorType::L16,
+                        &g.iter().flat_map(|v| v.to_be_bytes()).collect::<Vec<_>>(),
+                    ),
+                );
+            }
+            ("image/png", png(w, h, image::ExtendedColorType::Rgb8, &px))
+        }
+        TileFormat::Visual(rescale) => {
+            let q = |v: f32| -> u8 {
+                let v = match rescale {
+                    Some((lo, hi)) if m.kind == AssetKind::HeightField => {
+                        (v - lo) / (hi - lo) * 255.0
+                    }
+                    _ => v,
+                };
+                if v.is_finite() {
+                    v.round().clamp(0.0, 255.0) as u8
+                } else {
+                    0
+                }
+            };
+            if channels.len() == 3 {
+                let px: Vec<u8> = (0..w * h)
+                    .flat_map(|i| [q(channels[0][i]), q(channels[1][i]), q(channels[2][i])])
+                    .collect();
+                ("image/png", png(w, h, image::ExtendedColorType::Rgb8, &px))
+            } else {
+                let px: Vec<u8> = channels[0].iter().map(|&v| q(v)).collect();
+                ("image/png", png(w, h, image::ExtendedColorType::L8, &px))
+            }
+        }
+    }
+}
+
+fn png(w: usize, h: usize, colour: image::ExtendedColorType, px: &[u8]) -> Vec<u8> {
+    use image::ImageEncoder;
+    let mut out = Vec::new();
+    // Fast compression: tiles are small and latency matters more than a few per cent of bytes.
+    let enc = image::codecs::png::PngEncoder::new_with_quality(
+        &mut out,
+        image::codecs::png::CompressionType::Fast,
+        image::codecs::png::FilterType::Adaptive,
+    );
+    enc.write_image(px, w as u32, h as u32, colour)
+        .expect("PNG of a well-formed buffer");
+    out
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn decode_terrain_rgb(p: [u8; 3]) -> f32 {
+        -10000.0 + (p[0] as f32 * 65536.0 + p[1] as f32 * 256.0 + p[2] as f32) * 0.1
+    }
+
+    fn decode_terrarium(p: [u8; 3]) -> f32 {
+        p[0] as f32 * 256.0 + p[1] as f32 + p[2] as f32 / 256.0 - 32768.0
+    }
+
+    #[test]
+    fn height_encodings_invert_with_maplibre_formulas() {
+        let m = AssetMeta {
+            kind: AssetKind::HeightField,
+            width: 2,
+            height: 1,
+            channels: 1,
+            colour: fractile_proto::ColourModel::Grey,
+            sample: fractile_proto::SampleFormat::I16,
+            units: None,
+            value_min: -500.0,
+            value_max: 2000.0,
+            nodata: None,
+            georef: None,
+            encoder: String::new(),
+            stats: Default::default(),
+        };
+        for v in [-432.1f32, 0.0, 1234.56] {
+            for (e, dec, tol) in [
+                (
+                    HeightEncoding::TerrainRgb,
+                    decode_terrain_rgb as fn([u8; 3]) -> f32,
+                    0.051,
+                ),
+                (HeightEncoding::Terrarium, decode_terrarium, 0.004),
+            ] {
+                let (_, bytes) = encode_raster(&m, &[vec![v]], 1, 1, TileFormat::Heights(e));
+                let img = image::load_from_memory(&bytes).unwrap().to_rgb8();
+                let p = img.get_pixel(0, 0).0;
+                assert!(
+                    (dec(p) - v).abs() <= tol,
+                    "{e:?}: {v} -> {p:?} -> {}",
+                    dec(p)
+                );
+            }
+        }
+    }
+}

@@ -1,0 +1,199 @@
+//! The assets the server holds: loaded from a directory at start (a broken file is reported and
+//! skipped, the rest serve), or the built-in demo assets, encoded from small real files shipped
+//! in the binary at first start and cached on disk afterwards.
+
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, RwLock};
+
+use fractile_codec::geo::Placement;
+use fractile_codec::{Asset, EncodeSettings, Raster, RateMode, encode};
+
+use crate::error::AppError;
+
+/// An asset with what the server derives from it once.
+pub struct StoredAsset {
+    /// Its id (file stem).
+    pub id: String,
+    /// The decoded asset.
+    pub asset: Asset,
+    /// File size in bytes.
+    pub bytes: u64,
+    /// Checksum of the file, part of every ETag.
+    pub hash: u32,
+    /// Where it lies on the Earth (geographic georeference), if it does.
+    pub placement: Option<Placement>,
+}
+
+/// The asset catalog.
+pub struct Store {
+    assets: RwLock<BTreeMap<String, Arc<StoredAsset>>>,
+}
+
+/// Checks an asset id: 1-64 characters of letters, digits, `-` and `_`, not starting with `-`
+/// or `_` (so no paths, no `..`, no hidden files).
+pub fn validate_id(id: &str) -> Result<(), AppError> {
+    let ok = !id.is_empty()
+        && id.len() <= 64
+        && id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        && id.chars().next().is_some_and(|c| c.is_ascii_alphanumeric());
+    if ok {
+        Ok(())
+    } else {
+        Err(AppError::bad_request(
+            "bad_id",
+            format!("asset id {id:?} must be 1-64 letters, digits, '-' or '_'"),
+        ))
+    }
+}
+
+impl Store {
+    /// Loads every `*.fra` file of `dir`; returns the store and one message per skipped file.
+    pub fn open(dir: &Path) -> std::io::Result<(Store, Vec<String>)> {
+        let mut assets = BTreeMap::new();
+        let mut skipped = Vec::new();
+        let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)?
+            .filter_map(|e| e.ok().map(|e| e.path()))
+            .collect();
+        entries.sort();
+        for path in entries {
+            if path.extension().and_then(|e| e.to_str()) != Some("fra") {
+                continue;
+            }
+            let Some(id) = path
+                .file_stem()
+                .and_then(|s| s.to_str())
+                .map(str::to_string)
+            else {
+                continue;
+            };
+            if validate_id(&id).is_err() {
+                skipped.push(format!("{}: not a valid asset id", path.display()));
+                continue;
+            }
+            match std::fs::read(&path)
+                .map_err(|e| e.to_string())
+                .and_then(|b| load(&id, &b).map_err(|e| e.to_string()))
+            {
+                Ok(a) => {
+                    assets.insert(id, Arc::new(a));
+                }
+                Err(e) => skipped.push(format!("{}: {e}", path.display())),
+            }
+        }
+        Ok((
+            Store {
+                assets: RwLock::new(assets),
+            },
+            skipped,
+        ))
+    }
+
+    /// The asset `id`, or 404.
+    pub fn get(&self, id: &str) -> Result<Arc<StoredAsset>, AppError> {
+        validate_id(id)?;
+        self.assets
+            .read()
+            .expect("store lock")
+            .get(id)
+            .cloned()
+            .ok_or_else(|| AppError::not_found("unknown_asset", format!("no asset {id:?}")))
+    }
+
+    /// Every asset, by id.
+    pub fn list(&self) -> Vec<Arc<StoredAsset>> {
+        self.assets
+            .read()
+            .expect("store lock")
+            .values()
+            .cloned()
+            .collect()
+    }
+}
+
+/// Parses an asset file's bytes into a stored asset.
+pub fn load(id: &str, bytes: &[u8]) -> Result<StoredAsset, fractile_codec::Error> {
+    let asset = Asset::from_bytes(bytes)?;
+    let placement = asset
+        .meta
+        .georef
+        .as_ref()
+        .and_then(|g| Placement::of(g, asset.meta.width, asset.meta.height));
+    Ok(StoredAsset {
+        id: id.to_string(),
+        asset,
+        bytes: bytes.len() as u64,
+        hash: crc32(bytes),
+        placement,
+    })
+}
+
+fn crc32(bytes: &[u8]) -> u32 {
+    // The asset file ends with its own CRC-32 of everything before it: reuse it.
+    bytes
+        .len()
+        .checked_sub(4)
+        .map(|n| u32::from_le_bytes(bytes[n..].try_into().expect("4 bytes")))
+        .unwrap_or(0)
+}
+
+/// The demo assets: real data shipped in the binary, with how each is encoded.
+const DEMO: &[(&str, &str, &[u8], RateMode)] = &[
+    (
+        "jacksboro",
+        "jacksboro.tif",
+        include_bytes!("../../testdata/jacksboro.tif"),
+        RateMode::TargetBpp(0.8),
+    ),
+    (
+        "topobathy",
+        "topobathy.tif",
+        include_bytes!("../../testdata/topobathy.tif"),
+        RateMode::TargetBpp(1.6),
+    ),
+    (
+        "camera",
+        "camera.png",
+        include_bytes!("../../testdata/camera.png"),
+        RateMode::TargetBpp(0.48),
+    ),
+    (
+        "astronaut",
+        "astronaut.png",
+        include_bytes!("../../testdata/astronaut.png"),
+        RateMode::TargetBpp(0.5),
+    ),
+];
+
+/// Encodes the demo assets into `dir` unless they are there already (a progress line each).
+pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
+    std::fs::create_dir_all(dir)
+        .map_err(|e| fractile_codec::Error::Output(format!("{}: {e}", dir.display())))?;
+    for (id, name, bytes, rate) in DEMO {
+        let out = dir.join(format!("{id}.fra"));
+        if out.exists() {
+            continue;
+        }
+        tracing::info!("encoding demo asset {id} from {name} (first start only)");
+        let src = dir.join(format!(".{name}"));
+        fractile_codec::asset::write_atomic(&src, bytes)?;
+        let raster = Raster::open(&src)?;
+        let mut settings = EncodeSettings {
+            rate: *rate,
+            ..EncodeSettings::default()
+        };
+        settings.quantiser.slope_bits = EncodeSettings::default_slope_bits(raster.kind);
+        let enc = encode(&raster, &settings, &|_, _| {})?;
+        fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
+        let _ = std::fs::remove_file(&src);
+        tracing::info!(
+            "demo asset {id}: {} bytes, {:.2}:1, PSNR {:.2} dB",
+            enc.bytes.len(),
+            enc.ratio(),
+            enc.errors.psnr
+        );
+    }
+    Ok(())
+}

@@ -1,0 +1,332 @@
+//! The HTTP API in-process (tower `oneshot`), on assets encoded from the repo's real test data.
+
+use std::sync::{Arc, OnceLock};
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode, header};
+use fractile_codec::geo::{self, Placement};
+use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_server::api::AppState;
+use fractile_server::store::Store;
+use http_body_util::BodyExt;
+use tower::ServiceExt;
+
+fn data(name: &str) -> std::path::PathBuf {
+    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata")
+        .join(name)
+}
+
+/// Encoding RMSE of the jacksboro asset, measured by the encoder.
+static JACKSBORO_RMSE: OnceLock<f64> = OnceLock::new();
+
+fn state() -> Arc<AppState> {
+    static STATE: OnceLock<Arc<AppState>> = OnceLock::new();
+    STATE
+        .get_or_init(|| {
+            let dir = std::env::temp_dir().join(format!("fractile-http-{}", std::process::id()));
+            std::fs::create_dir_all(&dir).unwrap();
+            for (id, file, bpp) in [
+                ("jacksboro", "jacksboro.tif", 1.6),
+                ("camera", "camera.png", 0.48),
+            ] {
+                let r = Raster::open(&data(file)).unwrap();
+                let mut s = EncodeSettings {
+                    rate: RateMode::TargetBpp(bpp),
+                    ..EncodeSettings::default()
+                };
+                s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+                let enc = encode(&r, &s, &|_, _| {}).unwrap();
+                if id == "jacksboro" {
+                    JACKSBORO_RMSE.set(enc.errors.rmse).unwrap();
+                }
+                std::fs::write(dir.join(format!("{id}.fra")), &enc.bytes).unwrap();
+            }
+            // A broken file must be skipped, not stop the server.
+            std::fs::write(dir.join("broken.fra"), b"FRACTILE garbage").unwrap();
+            let (store, skipped) = Store::open(&dir).unwrap();
+            assert_eq!(skipped.len(), 1, "{skipped:?}");
+            Arc::new(AppState::new(store, "http://test".into()))
+        })
+        .clone()
+}
+
+async fn get(uri: &str) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
+    send(Request::get(uri).body(Body::empty()).unwrap()).await
+}
+
+async fn send(req: Request<Body>) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
+    let resp = fractile_server::app(state()).oneshot(req).await.unwrap();
+    let (parts, body) = resp.into_parts();
+    (
+        parts.status,
+        parts.headers,
+        body.collect().await.unwrap().to_bytes().to_vec(),
+    )
+}
+
+fn json(b: &[u8]) -> serde_json::Value {
+    serde_json::from_slice(b).unwrap()
+}
+
+fn terrain_rgb(p: [u8; 3]) -> f64 {
+    -10000.0 + (p[0] as f64 * 65536.0 + p[1] as f64 * 256.0 + p[2] as f64) * 0.1
+}
+
+#[tokio::test]
+async fn catalog_metadata_and_tilejson() {
+    let (s, _, b) = get("/v1/assets").await;
+    assert_eq!(s, StatusCode::OK);
+    let ids: Vec<String> = json(&b)["assets"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|a| a["id"].as_str().unwrap().to_string())
+        .collect();
+    assert_eq!(ids, ["camera", "jacksboro"]);
+    let (s, _, b) = get("/v1/assets/jacksboro").await;
+    assert_eq!(s, StatusCode::OK);
+    let m = json(&b);
+    assert_eq!(m["kind"], "HeightField");
+    assert!(m["ratio"].as_f64().unwrap() > 5.0);
+    let (_, _, b) = get("/v1/assets/jacksboro/tilejson.json").await;
+    let tj = json(&b);
+    assert_eq!(tj["tilejson"], "3.0.0");
+    assert!(
+        tj["tiles"][0]
+            .as_str()
+            .unwrap()
+            .starts_with("http://test/v1/assets/jacksboro/tiles/{z}/{x}/{y}.png")
+    );
+    // Deeper than the source: jacksboro's 3" cells are about zoom 12 at 256 px.
+    assert!(tj["maxzoom"].as_u64().unwrap() >= 14, "{tj}");
+}
+
+#[tokio::test]
+async fn terrain_rgb_tile_matches_the_source_within_the_encoding_error() {
+    let st = state();
+    let a = st.store.get("jacksboro").unwrap();
+    let place: Placement = a.placement.unwrap();
+    let (x, y) = geo::lonlat_tile(12, -84.25, 36.6);
+    let (s, h, b) = get(&format!(
+        "/v1/assets/jacksboro/tiles/12/{x}/{y}.png?encoding=terrainrgb"
+    ))
+    .await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    assert_eq!(h[header::CONTENT_TYPE], "image/png");
+    assert!(h.contains_key("x-error-bound") && h.contains_key(header::ETAG));
+    let img = image::load_from_memory(&b).unwrap().to_rgb8();
+    assert_eq!(img.dimensions(), (256, 256));
+    // Heights against the source DEM sampled bilinearly at the same points.
+    let src = Raster::open(&data("jacksboro.tif")).unwrap();
+    let (pts, _) = geo::tile_points(Some(&place), 12, x, y, 256);
+    let (mut se, mut n) = (0.0, 0);
+    for (k, p) in pts.iter().enumerate() {
+        let Some([u, v]) = p else { continue };
+        let (fx, fy) = (u * src.width as f32 - 0.5, v * src.height as f32 - 0.5);
+        if fx < 0.0 || fy < 0.0 || fx > (src.width - 1) as f32 || fy > (src.height - 1) as f32 {
+            continue;
+        }
+        let g = fractile_codec::decode::Grid {
+            width: src.width,
+            height: src.height,
+            values: src.channels[0].clone(),
+        };
+        let truth = fractile_codec::decode::sample_bilinear(&g, fx, fy) as f64;
+        let got = terrain_rgb(img.get_pixel((k % 256) as u32, (k / 256) as u32).0);
+        se += (got - truth).powi(2);
+        n += 1;
+    }
+    assert!(n > 10_000, "{n} pixels inside");
+    let rmse = (se / n as f64).sqrt();
+    let enc = *JACKSBORO_RMSE.get().unwrap();
+    assert!(
+        rmse < enc + 8.0,
+        "tile RMSE {rmse} m vs encoding RMSE {enc} m"
+    );
+}
+
+#[tokio::test]
+async fn points_at_source_pixel_centres_are_as_good_as_the_encoding() {
+    let st = state();
+    let a = st.store.get("jacksboro").unwrap();
+    let g = a.asset.meta.georef.clone().unwrap();
+    let src = Raster::open(&data("jacksboro.tif")).unwrap();
+    let mut pts = Vec::new();
+    let mut truth = Vec::new();
+    for j in (0..src.height).step_by(7) {
+        for i in (0..src.width).step_by(7) {
+            let lon = g.origin[0] + (i as f64 + 0.5) * g.pixel_size[0];
+            let lat = g.origin[1] + (j as f64 + 0.5) * g.pixel_size[1];
+            pts.push([lon, lat]);
+            truth.push(src.channels[0][j * src.width + i] as f64);
+        }
+    }
+    let body = serde_json::json!({"points": pts, "iterations": 20}).to_string();
+    let req = Request::post("/v1/assets/jacksboro/points")
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from(body))
+        .unwrap();
+    let (s, _, b) = send(req).await;
+    assert_eq!(s, StatusCode::OK);
+    let r = json(&b);
+    let results = r["results"].as_array().unwrap();
+    assert_eq!(results.len(), pts.len());
+    let se: f64 = results
+        .iter()
+        .zip(&truth)
+        .map(|(r, t)| (r["values"][0].as_f64().unwrap() - t).powi(2))
+        .sum();
+    let rmse = (se / truth.len() as f64).sqrt();
+    let enc = *JACKSBORO_RMSE.get().unwrap();
+    assert!(rmse < 1.25 * enc, "point RMSE {rmse} vs encoding {enc}");
+    // The single-point form answers the same.
+    let (s, _, b) = get(&format!(
+        "/v1/assets/jacksboro/point/{},{}?iterations=20",
+        pts[5][0], pts[5][1]
+    ))
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let p = json(&b);
+    assert!(
+        (p["values"][0].as_f64().unwrap() - results[5]["values"][0].as_f64().unwrap()).abs() < 1e-3
+    );
+    assert!(p["error_bound"].as_f64().unwrap() >= 0.0);
+}
+
+#[tokio::test]
+async fn neighbouring_tiles_meet_without_a_seam() {
+    let (x, y) = geo::lonlat_tile(13, -84.25, 36.6);
+    let tile = |x: u32| async move {
+        let (s, _, b) = get(&format!("/v1/assets/jacksboro/tiles/13/{x}/{y}.f32")).await;
+        assert_eq!(s, StatusCode::OK);
+        b.chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect::<Vec<f32>>()
+    };
+    let (left, right) = (tile(x).await, tile(x + 1).await);
+    let (mut seam, mut inner) = (0.0f32, 0.0f32);
+    for j in 0..256 {
+        seam = seam.max((left[j * 256 + 255] - right[j * 256]).abs());
+        inner = inner
+            .max((left[j * 256 + 254] - left[j * 256 + 255]).abs())
+            .max((right[j * 256] - right[j * 256 + 1]).abs());
+    }
+    assert!(
+        seam <= inner * 1.5 + 1e-3,
+        "seam jump {seam} vs inner jumps {inner}"
+    );
+}
+
+#[tokio::test]
+async fn etag_answers_304_and_tiles_are_cacheable() {
+    let uri = "/v1/assets/camera/tiles/1/0/1.png";
+    let (s, h, b) = get(uri).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(image::load_from_memory(&b).unwrap().width(), 256);
+    assert_eq!(h[header::CACHE_CONTROL], "public, max-age=3600");
+    let tag = h[header::ETAG].to_str().unwrap().to_string();
+    let req = Request::get(uri)
+        .header(header::IF_NONE_MATCH, &tag)
+        .body(Body::empty())
+        .unwrap();
+    let (s, _, b) = send(req).await;
+    assert_eq!(s, StatusCode::NOT_MODIFIED);
+    assert!(b.is_empty());
+    // Other parameters, other tag.
+    let (_, h2, _) = get("/v1/assets/camera/tiles/1/0/1.png?iterations=3").await;
+    assert_ne!(h2[header::ETAG], tag.as_str());
+}
+
+#[tokio::test]
+async fn regions_at_any_resolution() {
+    let (s, _, b) =
+        get("/v1/assets/camera/region?bbox=0.4,0.2,0.5,0.3&width=300&height=200&format=f32").await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(b.len(), 300 * 200 * 4);
+    let (s, h, b) =
+        get("/v1/assets/jacksboro/region?bbox=-84.3,36.5,-84.2,36.6&width=128&height=128").await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(h[header::CONTENT_TYPE], "image/png");
+    assert_eq!(image::load_from_memory(&b).unwrap().height(), 128);
+}
+
+#[tokio::test]
+async fn bad_requests_get_precise_errors() {
+    for (uri, status, code) in [
+        ("/v1/assets/nope", StatusCode::NOT_FOUND, "unknown_asset"),
+        (
+            "/v1/assets/..%2F..%2Fetc",
+            StatusCode::BAD_REQUEST,
+            "bad_id",
+        ),
+        ("/v1/assets/.hidden", StatusCode::BAD_REQUEST, "bad_id"),
+        (
+            "/v1/assets/camera/tiles/2/9/0.png",
+            StatusCode::NOT_FOUND,
+            "no_tile",
+        ),
+        (
+            "/v1/assets/camera/tiles/2/0/0.jpg",
+            StatusCode::BAD_REQUEST,
+            "bad_format",
+        ),
+        (
+            "/v1/assets/camera/tiles/2/0/0.f32",
+            StatusCode::BAD_REQUEST,
+            "bad_format",
+        ),
+        (
+            "/v1/assets/camera/tiles/2/0/0.png?tilesize=300",
+            StatusCode::BAD_REQUEST,
+            "bad_tilesize",
+        ),
+        (
+            "/v1/assets/camera/tiles/2/0/0.png?iterations=100000",
+            StatusCode::BAD_REQUEST,
+            "bad_iterations",
+        ),
+        (
+            "/v1/assets/jacksboro/tiles/12/0/0.png",
+            StatusCode::NOT_FOUND,
+            "outside",
+        ),
+        (
+            "/v1/assets/jacksboro/tiles/10/0/0.png?encoding=lerc",
+            StatusCode::BAD_REQUEST,
+            "bad_encoding",
+        ),
+        (
+            "/v1/assets/jacksboro/point/10,10",
+            StatusCode::NOT_FOUND,
+            "outside",
+        ),
+        (
+            "/v1/assets/jacksboro/point/abc",
+            StatusCode::BAD_REQUEST,
+            "bad_point",
+        ),
+        (
+            "/v1/assets/camera/region?bbox=0,0,1,1&width=100000&height=100000",
+            StatusCode::BAD_REQUEST,
+            "bad_size",
+        ),
+        (
+            "/v1/assets/camera/region?bbox=1,0,0,1&width=10&height=10",
+            StatusCode::BAD_REQUEST,
+            "bad_bbox",
+        ),
+    ] {
+        let (s, _, b) = get(uri).await;
+        assert_eq!(s, status, "{uri}: {}", String::from_utf8_lossy(&b));
+        assert_eq!(json(&b)["code"], code, "{uri}");
+        assert!(json(&b)["detail"].as_str().is_some_and(|d| !d.is_empty()));
+    }
+    let req = Request::post("/v1/assets/camera/points")
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from("{\"points\": 3}"))
+        .unwrap();
+    let (s, _, b) = send(req).await;
+    assert_eq!(s, StatusCode::BAD_REQUEST);
+    assert_eq!(json(&b)["code"], "bad_body");
+}
