@@ -60,6 +60,10 @@ pub struct AppState {
     pub cache_control: String,
     /// Public base URL for absolute links (TileJSON), e.g. behind a proxy.
     pub public_url: String,
+    /// Bearer token that PUT and DELETE need; `None` leaves writes open (demo and local use).
+    pub write_token: Option<String>,
+    /// Largest asset upload in bytes.
+    pub max_upload: usize,
 }
 
 /// A cached answer.
@@ -85,6 +89,8 @@ impl AppState {
                 .build(),
             cache_control: "public, max-age=3600".into(),
             public_url,
+            write_token: None,
+            max_upload: 64 * 1024 * 1024,
         }
     }
 }
@@ -97,7 +103,13 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/healthz", get(|| async { "ok" }))
         .route("/readyz", get(|| async { "ready" }))
         .route("/v1/assets", get(list_assets))
-        .route("/v1/assets/{id}", get(asset_info))
+        .route(
+            "/v1/assets/{id}",
+            get(asset_info)
+                .put(put_asset)
+                .delete(delete_asset)
+                .layer(axum::extract::DefaultBodyLimit::max(state.max_upload)),
+        )
         .route("/v1/assets/{id}/tilejson.json", get(tilejson))
         .route("/v1/assets/{id}/tiles/{z}/{x}/{tile}", get(tile))
         .route("/v1/assets/{id}/point", get(point_unit))
@@ -148,6 +160,69 @@ async fn list_assets(State(state): Shared) -> Json<Value> {
     Json(
         json!({"assets": state.store.list().iter().map(|a| summary(&state, a)).collect::<Vec<_>>()}),
     )
+}
+
+fn authorise(state: &AppState, headers: &HeaderMap) -> Result<(), AppError> {
+    let Some(token) = &state.write_token else {
+        return Ok(());
+    };
+    let given = headers
+        .get(header::AUTHORIZATION)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.strip_prefix("Bearer "));
+    // Constant-time comparison: the token must not leak through timing.
+    let ok = given.is_some_and(|g| {
+        g.len() == token.len()
+            && g.bytes()
+                .zip(token.bytes())
+                .fold(0u8, |acc, (a, b)| acc | (a ^ b))
+                == 0
+    });
+    if ok {
+        Ok(())
+    } else {
+        Err(AppError {
+            status: StatusCode::UNAUTHORIZED,
+            code: "unauthorised",
+            detail: "writes need Authorization: Bearer <token>".into(),
+        })
+    }
+}
+
+async fn put_asset(
+    State(state): Shared,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+    body: Result<Bytes, axum::extract::rejection::BytesRejection>,
+) -> Result<Response, AppError> {
+    authorise(&state, &headers)?;
+    let body = body.map_err(|e| AppError {
+        status: e.status(),
+        code: "bad_body",
+        detail: e.body_text(),
+    })?;
+    crate::store::validate_id(&id)?;
+    let existed = state.store.get(&id).is_ok();
+    let st = state.clone();
+    let id2 = id.clone();
+    // Parsing checks the whole file (checksum, headers, streams) before anything is written.
+    let stored = decode(&state, move || st.store.put(&id2, &body)).await??;
+    let status = if existed {
+        StatusCode::OK
+    } else {
+        StatusCode::CREATED
+    };
+    Ok((status, Json(summary(&state, &stored))).into_response())
+}
+
+async fn delete_asset(
+    State(state): Shared,
+    Path(id): Path<String>,
+    headers: HeaderMap,
+) -> Result<StatusCode, AppError> {
+    authorise(&state, &headers)?;
+    state.store.delete(&id)?;
+    Ok(StatusCode::NO_CONTENT)
 }
 
 async fn asset_info(State(state): Shared, Path(id): Path<String>) -> Result<Json<Value>, AppError> {
@@ -329,9 +404,10 @@ async fn tile(
             format!("tile {z}/{x}/{y} is outside the asset"),
         ));
     }
+    // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
     let key = format!(
-        "{id}/{z}/{x}/{y}.{ext}?{iterations}&{size}&{:?}&{:?}",
-        q.encoding, q.rescale
+        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{iterations}&{size}&{:?}&{:?}",
+        a.hash, q.encoding, q.rescale
     );
     let tag = etag(&a, &key);
     if not_modified(&headers, &tag) {

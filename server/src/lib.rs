@@ -23,6 +23,8 @@ pub struct ServeOptions {
     pub bind: SocketAddr,
     /// Public base URL for absolute links (defaults to `http://{bind}`).
     pub public_url: Option<String>,
+    /// Bearer token for PUT and DELETE; writes are open without one.
+    pub write_token: Option<String>,
 }
 
 /// The full application: API routes and middleware.
@@ -70,10 +72,15 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
         .public_url
         .clone()
         .unwrap_or_else(|| format!("http://{}", opts.bind));
-    let state = Arc::new(api::AppState::new(
-        store,
-        public.trim_end_matches('/').to_string(),
-    ));
+    let mut state = api::AppState::new(store, public.trim_end_matches('/').to_string());
+    if opts.write_token.is_none() {
+        tracing::warn!(
+            "no write token configured: PUT and DELETE are open to anyone who can reach {}",
+            opts.bind
+        );
+    }
+    state.write_token = opts.write_token.clone();
+    let state = Arc::new(state);
     let listener = tokio::net::TcpListener::bind(opts.bind).await?;
     tracing::info!("listening on http://{}", listener.local_addr()?);
     axum::serve(listener, app(state))

@@ -50,6 +50,10 @@ enum Command {
         /// Public base URL for absolute links in TileJSON (behind a proxy).
         #[arg(long, env = "FRACTILE_PUBLIC_URL")]
         public_url: Option<String>,
+        /// Bearer token that uploads and deletes need (from the environment, not argv, in
+        /// production: argv is visible to other users).
+        #[arg(long, env = "FRACTILE_WRITE_TOKEN", hide_env_values = true)]
+        write_token: Option<String>,
     },
     /// Compare a decoded raster with its original: PSNR, RMSE, MAE, max error.
     Compare {
@@ -224,7 +228,8 @@ fn main() {
             assets,
             bind,
             public_url,
-        } => run_serve(assets, bind, public_url),
+            write_token,
+        } => run_serve(assets, bind, public_url, write_token),
     };
     if let Err(e) = result {
         eprintln!("fractile: {e:#}");
@@ -236,6 +241,7 @@ fn run_serve(
     assets: Option<PathBuf>,
     bind: std::net::SocketAddr,
     public_url: Option<String>,
+    write_token: Option<String>,
 ) -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -250,6 +256,7 @@ fn run_serve(
         assets,
         bind,
         public_url,
+        write_token,
     }))
 }
 

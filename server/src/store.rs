@@ -25,8 +25,9 @@ pub struct StoredAsset {
     pub placement: Option<Placement>,
 }
 
-/// The asset catalog.
+/// The asset catalog, backed by a directory of `{id}.fra` files.
 pub struct Store {
+    dir: PathBuf,
     assets: RwLock<BTreeMap<String, Arc<StoredAsset>>>,
 }
 
@@ -85,10 +86,43 @@ impl Store {
         }
         Ok((
             Store {
+                dir: dir.to_path_buf(),
                 assets: RwLock::new(assets),
             },
             skipped,
         ))
+    }
+
+    /// Validates an uploaded asset and stores it (atomically: temporary file, then rename),
+    /// replacing any asset of that id.
+    pub fn put(&self, id: &str, bytes: &[u8]) -> Result<Arc<StoredAsset>, AppError> {
+        validate_id(id)?;
+        let stored = Arc::new(load(id, bytes).map_err(|e| AppError {
+            status: axum::http::StatusCode::UNPROCESSABLE_ENTITY,
+            code: "bad_asset",
+            detail: e.to_string(),
+        })?);
+        fractile_codec::asset::write_atomic(&self.dir.join(format!("{id}.fra")), bytes)
+            .map_err(|e| AppError::internal(e.to_string()))?;
+        self.assets
+            .write()
+            .expect("store lock")
+            .insert(id.to_string(), stored.clone());
+        Ok(stored)
+    }
+
+    /// Removes an asset and its file.
+    pub fn delete(&self, id: &str) -> Result<(), AppError> {
+        validate_id(id)?;
+        let removed = self.assets.write().expect("store lock").remove(id);
+        if removed.is_none() {
+            return Err(AppError::not_found(
+                "unknown_asset",
+                format!("no asset {id:?}"),
+            ));
+        }
+        std::fs::remove_file(self.dir.join(format!("{id}.fra")))
+            .map_err(|e| AppError::internal(e.to_string()))
     }
 
     /// The asset `id`, or 404.

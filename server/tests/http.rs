@@ -330,3 +330,142 @@ async fn bad_requests_get_precise_errors() {
     assert_eq!(s, StatusCode::BAD_REQUEST);
     assert_eq!(json(&b)["code"], "bad_body");
 }
+
+/// A store of its own (writes must not disturb the shared one), with a token and a small limit.
+fn writable(token: Option<&str>, max_upload: usize) -> (Arc<AppState>, Vec<u8>) {
+    let dir = std::env::temp_dir().join(format!(
+        "fractile-http-w-{}-{}",
+        std::process::id(),
+        token.unwrap_or("open")
+    ));
+    let _ = std::fs::remove_dir_all(&dir);
+    std::fs::create_dir_all(&dir).unwrap();
+    let (store, _) = Store::open(&dir).unwrap();
+    let mut st = AppState::new(store, "http://test".into());
+    st.write_token = token.map(str::to_string);
+    st.max_upload = max_upload;
+    let r = Raster::open(&data("topobathy.tif")).unwrap();
+    let enc = encode(
+        &r,
+        &EncodeSettings {
+            rate: RateMode::TargetBpp(1.0),
+            ..EncodeSettings::default()
+        },
+        &|_, _| {},
+    )
+    .unwrap();
+    (Arc::new(st), enc.bytes)
+}
+
+async fn call(st: &Arc<AppState>, req: Request<Body>) -> (StatusCode, Vec<u8>) {
+    let resp = fractile_server::app(st.clone()).oneshot(req).await.unwrap();
+    let s = resp.status();
+    (
+        s,
+        resp.into_body()
+            .collect()
+            .await
+            .unwrap()
+            .to_bytes()
+            .to_vec(),
+    )
+}
+
+#[tokio::test]
+async fn upload_replace_and_delete() {
+    let (st, bytes) = writable(None, 1 << 20);
+    let put = |b: Vec<u8>| Request::put("/v1/assets/topo").body(Body::from(b)).unwrap();
+    let (s, b) = call(&st, put(bytes.clone())).await;
+    assert_eq!(s, StatusCode::CREATED, "{}", String::from_utf8_lossy(&b));
+    assert_eq!(json(&b)["kind"], "HeightField");
+    let (s, _) = call(
+        &st,
+        Request::get("/v1/assets/topo/point/-125.5,49.5")
+            .body(Body::empty())
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let (s, _) = call(&st, put(bytes.clone())).await;
+    assert_eq!(s, StatusCode::OK, "replacing an asset answers 200");
+    // A corrupt upload is refused and loses nothing: the old asset still serves.
+    let mut bad = bytes.clone();
+    bad[40] ^= 0xFF;
+    let (s, b) = call(&st, put(bad)).await;
+    assert_eq!(s, StatusCode::UNPROCESSABLE_ENTITY);
+    assert_eq!(json(&b)["code"], "bad_asset");
+    let (s, _) = call(
+        &st,
+        Request::get("/v1/assets/topo").body(Body::empty()).unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    // Bad ids never reach the disk.
+    let (s, _) = call(
+        &st,
+        Request::put("/v1/assets/..")
+            .body(Body::from(bytes.clone()))
+            .unwrap(),
+    )
+    .await;
+    assert_ne!(s, StatusCode::CREATED);
+    let (s, _) = call(
+        &st,
+        Request::delete("/v1/assets/topo")
+            .body(Body::empty())
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::NO_CONTENT);
+    let (s, _) = call(
+        &st,
+        Request::get("/v1/assets/topo").body(Body::empty()).unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    let (s, _) = call(
+        &st,
+        Request::delete("/v1/assets/topo")
+            .body(Body::empty())
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+}
+
+#[tokio::test]
+async fn writes_need_the_token_and_respect_the_size_limit() {
+    let (st, bytes) = writable(Some("s3cret"), 1 << 20);
+    let (s, b) = call(
+        &st,
+        Request::put("/v1/assets/topo")
+            .body(Body::from(bytes.clone()))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::UNAUTHORIZED);
+    assert_eq!(json(&b)["code"], "unauthorised");
+    let wrong = Request::put("/v1/assets/topo")
+        .header(header::AUTHORIZATION, "Bearer nope")
+        .body(Body::from(bytes.clone()))
+        .unwrap();
+    assert_eq!(call(&st, wrong).await.0, StatusCode::UNAUTHORIZED);
+    let right = Request::put("/v1/assets/topo")
+        .header(header::AUTHORIZATION, "Bearer s3cret")
+        .body(Body::from(bytes.clone()))
+        .unwrap();
+    assert_eq!(call(&st, right).await.0, StatusCode::CREATED);
+    let del = Request::delete("/v1/assets/topo")
+        .body(Body::empty())
+        .unwrap();
+    assert_eq!(call(&st, del).await.0, StatusCode::UNAUTHORIZED);
+
+    let (small, bytes) = writable(Some("t"), 100);
+    let big = Request::put("/v1/assets/topo")
+        .header(header::AUTHORIZATION, "Bearer t")
+        .body(Body::from(bytes))
+        .unwrap();
+    let (s, b) = call(&small, big).await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE);
+    assert_eq!(json(&b)["code"], "bad_body");
+}
