@@ -129,9 +129,12 @@ async fn decode<T: Send + 'static>(
         .acquire()
         .await
         .map_err(|_| AppError::internal("decoder pool closed"))?;
-    tokio::task::spawn_blocking(f)
+    let start = std::time::Instant::now();
+    let out = tokio::task::spawn_blocking(f)
         .await
-        .map_err(|e| AppError::internal(format!("decoding failed: {e}")))
+        .map_err(|e| AppError::internal(format!("decoding failed: {e}")));
+    metrics::histogram!("fractile_decode_seconds").record(start.elapsed().as_secs_f64());
+    out
 }
 
 fn summary(state: &AppState, a: &StoredAsset) -> Value {
@@ -414,8 +417,10 @@ async fn tile(
         return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, tag)]).into_response());
     }
     if let Some(c) = state.cache.get(&key) {
+        metrics::counter!("fractile_tile_cache_total", "result" => "hit").increment(1);
         return Ok(cached_response(&state, &tag, &c));
     }
+    metrics::counter!("fractile_tile_cache_total", "result" => "miss").increment(1);
     let asset = a.clone();
     let cached = decode(&state, move || {
         let (channels, bound) = asset.asset.sample(&pts, footprint, iterations);

@@ -6,6 +6,7 @@ pub mod api;
 pub mod encoding;
 pub mod error;
 pub mod store;
+pub mod telemetry;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -29,7 +30,13 @@ pub struct ServeOptions {
 
 /// The full application: API routes and middleware.
 pub fn app(state: Arc<api::AppState>) -> axum::Router {
+    telemetry::handle();
     api::router(state)
+        .route(
+            "/metrics",
+            axum::routing::get(|| async { telemetry::handle().render() }),
+        )
+        .layer(axum::middleware::from_fn(telemetry::track))
         .layer(
             CorsLayer::new()
                 .allow_origin(Any)

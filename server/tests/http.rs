@@ -469,3 +469,25 @@ async fn writes_need_the_token_and_respect_the_size_limit() {
     assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE);
     assert_eq!(json(&b)["code"], "bad_body");
 }
+
+#[tokio::test]
+async fn metrics_count_requests_by_route_and_cache_hits() {
+    let uri = "/v1/assets/camera/tiles/2/1/1.png";
+    get(uri).await;
+    get(uri).await;
+    let (s, _, b) = get("/metrics").await;
+    assert_eq!(s, StatusCode::OK);
+    let text = String::from_utf8(b).unwrap();
+    assert!(
+        text.contains(
+            "fractile_requests_total{route=\"/v1/assets/{id}/tiles/{z}/{x}/{tile}\",status=\"200\"}"
+        ),
+        "{text}"
+    );
+    assert!(
+        text.contains("fractile_tile_cache_total{result=\"hit\"}"),
+        "{text}"
+    );
+    assert!(text.contains("fractile_request_seconds_bucket"), "{text}");
+    assert!(text.contains("fractile_decode_seconds"), "{text}");
+}
