@@ -4,7 +4,9 @@
 //! so the serializer (bincode 2.0 today, see its note) can be swapped by editing one file.
 
 pub mod asset;
+pub mod points;
 pub mod wire;
 
 pub use asset::*;
+pub use points::*;
 pub use wire::{WireError, decode, encode};

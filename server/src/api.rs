@@ -13,7 +13,9 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use fractile_codec::geo;
-use fractile_proto::{AssetKind, ColourModel};
+use fractile_proto::{
+    AssetKind, BINARY_MEDIA_TYPE, ColourModel, PointResult, PointsRequest, PointsResponse,
+};
 use serde::Deserialize;
 use serde_json::{Value, json};
 use tokio::sync::Semaphore;
@@ -455,15 +457,6 @@ fn parse_rescale(r: &Option<String>, a: &StoredAsset) -> Result<Option<(f32, f32
     }
 }
 
-fn point_json(coords: [f64; 2], values: &[f32], bound: f32, iterations: u32) -> Value {
-    json!({
-        "coordinates": coords,
-        "values": values.iter().map(|v| if v.is_finite() { json!(v) } else { Value::Null }).collect::<Vec<_>>(),
-        "error_bound": bound,
-        "iterations": iterations,
-    })
-}
-
 /// Unit coordinates of a request point: lon/lat for georeferenced assets, unit x/y otherwise.
 fn unit_of(a: &StoredAsset, c: [f64; 2]) -> Option<[f32; 2]> {
     match &a.placement {
@@ -484,7 +477,7 @@ async fn point_unit(
     State(state): Shared,
     Path(id): Path<String>,
     Query(q): Query<PointQuery>,
-) -> Result<Json<Value>, AppError> {
+) -> Result<Json<PointResult>, AppError> {
     let (Some(x), Some(y)) = (q.x, q.y) else {
         return Err(AppError::bad_request(
             "bad_point",
@@ -500,7 +493,7 @@ async fn point_lonlat(
     State(state): Shared,
     Path((id, coords)): Path<(String, String)>,
     Query(q): Query<PointQuery>,
-) -> Result<Json<Value>, AppError> {
+) -> Result<Json<PointResult>, AppError> {
     let c: Vec<f64> = coords
         .split(',')
         .filter_map(|s| s.trim().parse().ok())
@@ -516,31 +509,45 @@ async fn point_lonlat(
         .map(|mut v| Json(v.remove(0)))
 }
 
-#[derive(Deserialize)]
-struct PointsBody {
-    points: Vec<[f64; 2]>,
-    iterations: Option<u32>,
-}
-
 async fn points(
     State(state): Shared,
     Path(id): Path<String>,
-    body: Result<Json<PointsBody>, axum::extract::rejection::JsonRejection>,
-) -> Result<Json<Value>, AppError> {
-    let Json(body) = body.map_err(|e| AppError::bad_request("bad_body", e.body_text()))?;
-    if body.points.len() > state.limits.max_points {
+    headers: HeaderMap,
+    body: Bytes,
+) -> Result<Response, AppError> {
+    let binary = headers
+        .get(header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with(BINARY_MEDIA_TYPE));
+    let req: PointsRequest = if binary {
+        fractile_proto::decode(&body)
+            .map_err(|e| AppError::bad_request("bad_body", e.to_string()))?
+    } else {
+        serde_json::from_slice(&body)
+            .map_err(|e| AppError::bad_request("bad_body", e.to_string()))?
+    };
+    if req.points.len() > state.limits.max_points {
         return Err(AppError {
             status: StatusCode::PAYLOAD_TOO_LARGE,
             code: "too_many_points",
             detail: format!(
                 "{} points over the limit {}",
-                body.points.len(),
+                req.points.len(),
                 state.limits.max_points
             ),
         });
     }
-    let results = answer_points(&state, &id, body.points, body.iterations, false).await?;
-    Ok(Json(json!({"results": results})))
+    let results = answer_points(&state, &id, req.points, req.iterations, false).await?;
+    let resp = PointsResponse { results };
+    Ok(if binary {
+        (
+            [(header::CONTENT_TYPE, BINARY_MEDIA_TYPE)],
+            fractile_proto::encode(&resp),
+        )
+            .into_response()
+    } else {
+        Json(resp).into_response()
+    })
 }
 
 async fn answer_points(
@@ -549,7 +556,7 @@ async fn answer_points(
     coords: Vec<[f64; 2]>,
     iterations: Option<u32>,
     single: bool,
-) -> Result<Vec<Value>, AppError> {
+) -> Result<Vec<PointResult>, AppError> {
     let a = state.store.get(id)?;
     let n = iterations_for(state, &a, iterations)?;
     let units: Vec<Option<[f32; 2]>> = coords.iter().map(|&c| unit_of(&a, c)).collect();
@@ -567,8 +574,25 @@ async fn answer_points(
             .zip(&units)
             .zip(samples)
             .map(|((&c, u), s)| match u {
-                Some(_) => point_json(c, &s.values, s.error_bound, s.iterations),
-                None => json!({"coordinates": c, "values": Value::Null, "error_bound": Value::Null, "iterations": 0, "outside": true}),
+                Some(_) => PointResult {
+                    coordinates: c,
+                    values: Some(
+                        s.values
+                            .iter()
+                            .map(|v| v.is_finite().then_some(*v))
+                            .collect(),
+                    ),
+                    error_bound: Some(s.error_bound),
+                    iterations: s.iterations,
+                    outside: false,
+                },
+                None => PointResult {
+                    coordinates: c,
+                    values: None,
+                    error_bound: None,
+                    iterations: 0,
+                    outside: true,
+                },
             })
             .collect()
     })

@@ -491,3 +491,35 @@ async fn metrics_count_requests_by_route_and_cache_hits() {
     assert!(text.contains("fractile_request_seconds_bucket"), "{text}");
     assert!(text.contains("fractile_decode_seconds"), "{text}");
 }
+
+#[tokio::test]
+async fn point_batches_in_bincode_answer_the_same_as_json() {
+    use fractile_proto::{BINARY_MEDIA_TYPE, PointsRequest, PointsResponse};
+    let req = PointsRequest {
+        points: vec![[0.25, 0.5], [0.9, 0.1], [2.0, 2.0]],
+        iterations: Some(12),
+    };
+    let bin = Request::post("/v1/assets/camera/points")
+        .header(header::CONTENT_TYPE, BINARY_MEDIA_TYPE)
+        .body(Body::from(fractile_proto::encode(&req)))
+        .unwrap();
+    let (s, h, b) = send(bin).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(h[header::CONTENT_TYPE], BINARY_MEDIA_TYPE);
+    let from_bin: PointsResponse = fractile_proto::decode(&b).unwrap();
+    let js = Request::post("/v1/assets/camera/points")
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from(serde_json::to_vec(&req).unwrap()))
+        .unwrap();
+    let (_, _, b) = send(js).await;
+    let from_json: PointsResponse = serde_json::from_slice(&b).unwrap();
+    assert_eq!(from_bin, from_json);
+    assert!(from_bin.results[2].outside && from_bin.results[2].values.is_none());
+    assert!(from_bin.results[0].values.as_ref().unwrap()[0].unwrap() > 0.0);
+    // Garbage in the binary form is a 400, not a panic.
+    let junk = Request::post("/v1/assets/camera/points")
+        .header(header::CONTENT_TYPE, BINARY_MEDIA_TYPE)
+        .body(Body::from(vec![7u8; 5]))
+        .unwrap();
+    assert_eq!(send(junk).await.0, StatusCode::BAD_REQUEST);
+}

@@ -1,0 +1,40 @@
+//! Point queries: the request and answer of `POST /v1/assets/{id}/points`, in JSON or in proto's
+//! binary encoding (`Content-Type: application/x-bincode`).
+
+use serde::{Deserialize, Serialize};
+
+/// Media type of proto's binary encoding.
+pub const BINARY_MEDIA_TYPE: &str = "application/x-bincode";
+
+/// Many points of one asset.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PointsRequest {
+    /// `[lon, lat]` for georeferenced assets, `[x, y]` in unit coordinates otherwise.
+    pub points: Vec<[f64; 2]>,
+    /// Inverse steps; the server's default (enough for half a quantisation step) when absent.
+    pub iterations: Option<u32>,
+}
+
+/// The value of an asset at one point.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PointResult {
+    /// The point as asked.
+    pub coordinates: [f64; 2],
+    /// One value per channel; `None` where the source had no data or outside the asset.
+    pub values: Option<Vec<Option<f32>>>,
+    /// Bound on the error against the attractor, in value units; `None` outside the asset.
+    pub error_bound: Option<f32>,
+    /// Inverse steps taken.
+    pub iterations: u32,
+    /// Whether the point lies outside the asset. (Always written: the binary encoding has no
+    /// field names, so no field may be skipped.)
+    #[serde(default)]
+    pub outside: bool,
+}
+
+/// Answers to a [`PointsRequest`], in its order.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct PointsResponse {
+    /// One result per point.
+    pub results: Vec<PointResult>,
+}
