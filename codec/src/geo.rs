@@ -95,6 +95,13 @@ impl Placement {
     }
 }
 
+/// Metres per degree of longitude and of latitude at latitude `lat` (spherical Earth of the
+/// WGS84 equatorial radius; good to about 0.5% for local meshes).
+pub fn metres_per_degree(lat: f64) -> [f64; 2] {
+    let m = 6_378_137.0 * PI / 180.0;
+    [m * lat.to_radians().cos(), m]
+}
+
 /// The unit point and footprint (size of one pixel in unit coordinates) of each pixel centre of a
 /// tile; `None` for pixels outside the asset. Non-georeferenced assets tile the unit square.
 pub fn tile_points(

@@ -13,6 +13,7 @@ pub mod encode;
 pub mod entropy;
 pub mod extract;
 pub mod geo;
+pub mod mesh;
 pub mod metrics;
 pub mod operator;
 pub mod partition;

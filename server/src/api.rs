@@ -118,6 +118,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/assets/{id}/point/{coords}", get(point_lonlat))
         .route("/v1/assets/{id}/points", post(points))
         .route("/v1/assets/{id}/region", get(region))
+        .route("/v1/assets/{id}/mesh", get(mesh))
         .with_state(state)
 }
 
@@ -597,6 +598,114 @@ async fn answer_points(
             .collect()
     })
     .await
+}
+
+#[derive(Deserialize)]
+struct MeshQuery {
+    bbox: Option<String>,
+    resolution: Option<usize>,
+    iterations: Option<u32>,
+    format: Option<String>,
+}
+
+/// A terrain mesh of a region: a regular grid of `resolution x resolution` vertices. For
+/// georeferenced assets x and y are metres east and north of the box's south-west corner (a
+/// local tangent plane) and z is the height; otherwise x and y are source pixels.
+async fn mesh(
+    State(state): Shared,
+    Path(id): Path<String>,
+    Query(q): Query<MeshQuery>,
+) -> Result<Response, AppError> {
+    let a = state.store.get(&id)?;
+    if a.asset.meta.kind != AssetKind::HeightField {
+        return Err(AppError::bad_request(
+            "not_terrain",
+            "meshes are made of height fields",
+        ));
+    }
+    let n = q.resolution.unwrap_or(256);
+    if !(2..=2048).contains(&n) {
+        return Err(AppError::bad_request(
+            "bad_resolution",
+            "resolution must be 2..=2048 vertices a side",
+        ));
+    }
+    let format = q.format.unwrap_or_else(|| "glb".into());
+    if !matches!(format.as_str(), "obj" | "ply" | "glb") {
+        return Err(AppError::bad_request(
+            "bad_format",
+            "format must be obj, ply or glb",
+        ));
+    }
+    let [x0, y0, x1, y1] = match &q.bbox {
+        Some(b) => {
+            let v: Vec<f64> = b.split(',').filter_map(|s| s.trim().parse().ok()).collect();
+            match v[..] {
+                [a0, b0, a1, b1] if a1 > a0 && b1 > b0 => [a0, b0, a1, b1],
+                _ => {
+                    return Err(AppError::bad_request(
+                        "bad_bbox",
+                        "bbox must be minx,miny,maxx,maxy with max > min",
+                    ));
+                }
+            }
+        }
+        None => match a.placement {
+            Some(p) => p.bounds(),
+            None => [0.0, 0.0, 1.0, 1.0],
+        },
+    };
+    let iterations = iterations_for(&state, &a, q.iterations)?;
+    let geo_ref = a.placement.is_some();
+    // Vertex (i, j): i east, j south, corners included.
+    let at = |i: usize, j: usize| {
+        let (fx, fy) = (i as f64 / (n - 1) as f64, j as f64 / (n - 1) as f64);
+        if geo_ref {
+            [x0 + fx * (x1 - x0), y1 - fy * (y1 - y0)]
+        } else {
+            [x0 + fx * (x1 - x0), y0 + fy * (y1 - y0)]
+        }
+    };
+    let pts: Vec<Option<[f32; 2]>> = (0..n * n).map(|k| unit_of(&a, at(k % n, k / n))).collect();
+    if pts.iter().all(Option::is_none) {
+        return Err(AppError::not_found(
+            "outside",
+            "the box is outside the asset",
+        ));
+    }
+    let (du, dv) = match a.placement {
+        Some(p) => {
+            let d = p.degrees_per_unit();
+            ((x1 - x0) / d[0], (y1 - y0) / d[1])
+        }
+        None => (x1 - x0, y1 - y0),
+    };
+    let footprint = [(du / (n - 1) as f64) as f32, (dv / (n - 1) as f64) as f32];
+    let (extent_x, extent_y) = if geo_ref {
+        let m = geo::metres_per_degree(0.5 * (y0 + y1));
+        ((x1 - x0) * m[0], (y1 - y0) * m[1])
+    } else {
+        (
+            (x1 - x0) * a.asset.meta.width as f64,
+            (y1 - y0) * a.asset.meta.height as f64,
+        )
+    };
+    let body = decode(&state, move || {
+        let (channels, _) = a.asset.sample(&pts, footprint, iterations);
+        let spacing = [
+            (extent_x / (n - 1) as f64) as f32,
+            (extent_y / (n - 1) as f64) as f32,
+        ];
+        let m =
+            fractile_codec::mesh::Mesh::grid(&channels[0], n, n, [0.0, extent_y as f32], spacing);
+        match format.as_str() {
+            "obj" => ("text/plain", m.to_obj()),
+            "ply" => ("application/octet-stream", m.to_ply()),
+            _ => ("model/gltf-binary", m.to_glb()),
+        }
+    })
+    .await?;
+    Ok(([(header::CONTENT_TYPE, body.0)], body.1).into_response())
 }
 
 #[derive(Deserialize)]

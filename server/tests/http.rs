@@ -523,3 +523,67 @@ async fn point_batches_in_bincode_answer_the_same_as_json() {
         .unwrap();
     assert_eq!(send(junk).await.0, StatusCode::BAD_REQUEST);
 }
+
+#[tokio::test]
+async fn terrain_meshes_in_three_formats() {
+    let bbox = "-84.3,36.5,-84.2,36.6";
+    let (s, h, b) = get(&format!(
+        "/v1/assets/jacksboro/mesh?bbox={bbox}&resolution=65&format=obj"
+    ))
+    .await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    assert_eq!(h[header::CONTENT_TYPE], "text/plain");
+    let obj = String::from_utf8(b).unwrap();
+    let zs: Vec<f64> = obj
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| l.split(' ').nth(2).unwrap().parse().unwrap())
+        .collect();
+    assert_eq!(zs.len(), 65 * 65);
+    assert_eq!(
+        obj.lines().filter(|l| l.starts_with("f ")).count(),
+        2 * 64 * 64
+    );
+    // The south-west vertex (last row, first column) is the height at the box's corner.
+    let (_, _, p) = get("/v1/assets/jacksboro/point/-84.3,36.5").await;
+    let corner = json(&p)["values"][0].as_f64().unwrap();
+    assert!(
+        (zs[64 * 65] - corner).abs() < 15.0,
+        "{} vs {corner}",
+        zs[64 * 65]
+    );
+    // About 9 km east-west at 36.5 N: the last vertex of the first row.
+    let x_east: f64 = obj
+        .lines()
+        .filter(|l| l.starts_with("v "))
+        .nth(64)
+        .unwrap()
+        .split(' ')
+        .nth(1)
+        .unwrap()
+        .parse()
+        .unwrap();
+    assert!((x_east - 8_950.0).abs() < 100.0, "{x_east}");
+    let (s, h, b) = get(&format!(
+        "/v1/assets/jacksboro/mesh?bbox={bbox}&resolution=33&format=glb"
+    ))
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(h[header::CONTENT_TYPE], "model/gltf-binary");
+    assert_eq!(&b[..4], b"glTF");
+    let (s, _, b) = get(&format!(
+        "/v1/assets/jacksboro/mesh?bbox={bbox}&resolution=33&format=ply"
+    ))
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(b.starts_with(b"ply\n"));
+    for (uri, code) in [
+        ("/v1/assets/camera/mesh", "not_terrain"),
+        ("/v1/assets/jacksboro/mesh?resolution=1", "bad_resolution"),
+        ("/v1/assets/jacksboro/mesh?format=stl", "bad_format"),
+    ] {
+        let (s, _, b) = get(uri).await;
+        assert_eq!(s, StatusCode::BAD_REQUEST, "{uri}");
+        assert_eq!(json(&b)["code"], code);
+    }
+}
