@@ -5,6 +5,7 @@
 pub mod api;
 pub mod encoding;
 pub mod error;
+pub mod openapi;
 pub mod store;
 pub mod telemetry;
 

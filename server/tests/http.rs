@@ -587,3 +587,36 @@ async fn terrain_meshes_in_three_formats() {
         assert_eq!(json(&b)["code"], code);
     }
 }
+
+#[tokio::test]
+async fn every_documented_path_is_routed() {
+    let (s, _, b) = get("/v1/openapi.json").await;
+    assert_eq!(s, StatusCode::OK);
+    let doc = json(&b);
+    assert_eq!(doc["openapi"], "3.1.0");
+    let paths = doc["paths"].as_object().unwrap();
+    assert!(paths.len() >= 13);
+    for (path, ops) in paths {
+        let uri = path
+            .replace("{id}", "camera")
+            .replace("{z}/{x}/{y}.{format}", "0/0/0.png")
+            .replace("{coords}", "0.5,0.5");
+        for (method, _) in ops
+            .as_object()
+            .unwrap()
+            .iter()
+            .filter(|(k, _)| *k != "parameters")
+        {
+            if method != "get" {
+                continue; // writes are exercised by their own tests
+            }
+            let (s, _, body) = get(&uri).await;
+            // An unrouted path is axum's bare 404; our handlers always explain themselves.
+            assert!(
+                !(s == StatusCode::NOT_FOUND && body.is_empty()),
+                "{path} is documented but not routed"
+            );
+            assert_ne!(s, StatusCode::METHOD_NOT_ALLOWED, "{path}");
+        }
+    }
+}

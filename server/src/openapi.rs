@@ -1,0 +1,93 @@
+//! The OpenAPI 3.1 description of the HTTP API, served at `/v1/openapi.json`. Written by hand
+//! (a derive crate would need annotations on every handler and type for the same result); a test
+//! requests every documented path to keep this document and the router in step.
+
+use serde_json::{Value, json};
+
+fn param(name: &str, place: &str, schema: Value, description: &str) -> Value {
+    json!({"name": name, "in": place, "required": place == "path", "schema": schema, "description": description})
+}
+
+fn error_responses() -> Value {
+    json!({
+        "400": {"$ref": "#/components/responses/Error"},
+        "404": {"$ref": "#/components/responses/Error"}
+    })
+}
+
+/// The document.
+pub fn document() -> Value {
+    let id = param(
+        "id",
+        "path",
+        json!({"type": "string", "pattern": "^[A-Za-z0-9][A-Za-z0-9_-]{0,63}$"}),
+        "Asset id",
+    );
+    let iterations = param(
+        "iterations",
+        "query",
+        json!({"type": "integer", "minimum": 1, "maximum": 64}),
+        "Inverse steps (default: enough for the error bound to fall under half a quantisation step)",
+    );
+    let mut ok_tile = error_responses();
+    ok_tile["200"] = json!({"description": "The tile", "headers": {"X-Error-Bound": {"schema": {"type": "number"}, "description": "A-priori bound on the error, value units"}, "ETag": {"schema": {"type": "string"}}}, "content": {"image/png": {}, "application/octet-stream": {}}});
+    ok_tile["304"] = json!({"description": "Not modified (If-None-Match)"});
+    json!({
+        "openapi": "3.1.0",
+        "info": {"title": "fractile", "version": env!("CARGO_PKG_VERSION"), "description": "Images and terrain stored as fractals, decoded on request at any resolution. Every decoded answer carries an a-priori error bound."},
+        "paths": {
+            "/healthz": {"get": {"summary": "Liveness", "responses": {"200": {"description": "ok"}}}},
+            "/readyz": {"get": {"summary": "Readiness", "responses": {"200": {"description": "ready"}}}},
+            "/metrics": {"get": {"summary": "Prometheus metrics", "responses": {"200": {"description": "text exposition format"}}}},
+            "/v1/openapi.json": {"get": {"summary": "This document", "responses": {"200": {"description": "OpenAPI 3.1"}}}},
+            "/v1/assets": {"get": {"summary": "Catalog", "responses": {"200": {"description": "{\"assets\": [AssetSummary]}"}}}},
+            "/v1/assets/{id}": {
+                "parameters": [id],
+                "get": {"summary": "Asset metadata", "responses": {"200": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/AssetSummary"}}}, "description": "metadata"}, "404": {"$ref": "#/components/responses/Error"}}},
+                "put": {"summary": "Upload an asset file (validated before it is stored; atomic)", "security": [{"bearer": []}],
+                        "requestBody": {"content": {"application/octet-stream": {}}},
+                        "responses": {"200": {"description": "replaced"}, "201": {"description": "created"}, "401": {"$ref": "#/components/responses/Error"}, "413": {"$ref": "#/components/responses/Error"}, "422": {"$ref": "#/components/responses/Error"}}},
+                "delete": {"summary": "Delete an asset", "security": [{"bearer": []}], "responses": {"204": {"description": "deleted"}, "401": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}
+            },
+            "/v1/assets/{id}/tilejson.json": {"get": {"summary": "TileJSON 3.0.0 for MapLibre (raster or raster-dem source)", "parameters": [id], "responses": {"200": {"description": "TileJSON"}, "404": {"$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/tiles/{z}/{x}/{y}.{format}": {"get": {
+                "summary": "A WebMercatorQuad tile (georeferenced assets) or a tile of the unit square (others), decoded by continuous extraction; filtered at zooms coarser than the source. 404 outside the asset.",
+                "parameters": [id,
+                    param("z", "path", json!({"type": "integer", "minimum": 0, "maximum": 24}), "Zoom"),
+                    param("x", "path", json!({"type": "integer"}), "Column"),
+                    param("y", "path", json!({"type": "integer"}), "Row (from the north)"),
+                    param("format", "path", json!({"enum": ["png", "f32"]}), "png, or f32 (little-endian float32 heights)"),
+                    iterations.clone(),
+                    param("tilesize", "query", json!({"enum": [256, 512]}), "Tile size"),
+                    param("encoding", "query", json!({"enum": ["terrainrgb", "terrarium", "gray16"]}), "Height packing (MapLibre's formulas)"),
+                    param("rescale", "query", json!({"type": "string"}), "min,max for visual PNGs of heights")],
+                "responses": ok_tile}},
+            "/v1/assets/{id}/point": {"get": {"summary": "Value at a unit point (non-georeferenced assets)", "parameters": [id, param("x", "query", json!({"type": "number"}), "0..1"), param("y", "query", json!({"type": "number"}), "0..1"), iterations.clone()],
+                "responses": {"200": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointResult"}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/point/{coords}": {"get": {"summary": "Value at lon,lat", "parameters": [id, param("coords", "path", json!({"type": "string"}), "lon,lat"), iterations.clone()],
+                "responses": {"200": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointResult"}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/points": {"post": {"summary": "Values at many points, in order (JSON or application/x-bincode)", "parameters": [id],
+                "requestBody": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointsRequest"}}, "application/x-bincode": {}}},
+                "responses": {"200": {"content": {"application/json": {"schema": {"type": "object", "properties": {"results": {"type": "array", "items": {"$ref": "#/components/schemas/PointResult"}}}}}, "application/x-bincode": {}}, "description": "values"}, "400": {"$ref": "#/components/responses/Error"}, "413": {"$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/region": {"get": {"summary": "A window at any resolution", "parameters": [id,
+                    param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (lon/lat, or unit coordinates)"),
+                    param("width", "query", json!({"type": "integer"}), "pixels"), param("height", "query", json!({"type": "integer"}), "pixels"),
+                    iterations.clone(), param("format", "query", json!({"enum": ["png", "f32"]}), "output")],
+                "responses": {"200": {"description": "image or float32 samples"}, "400": {"$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/mesh": {"get": {"summary": "Terrain mesh of a region (regular grid)", "parameters": [id,
+                    param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (default: the whole asset)"),
+                    param("resolution", "query", json!({"type": "integer", "minimum": 2, "maximum": 2048}), "vertices a side"),
+                    iterations, param("format", "query", json!({"enum": ["obj", "ply", "glb"]}), "file format")],
+                "responses": {"200": {"description": "mesh file"}, "400": {"$ref": "#/components/responses/Error"}}}}
+        },
+        "components": {
+            "securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}},
+            "responses": {"Error": {"description": "An error", "content": {"application/json": {"schema": {"type": "object", "required": ["detail", "code"], "properties": {"detail": {"type": "string"}, "code": {"type": "string"}}}}}}},
+            "schemas": {
+                "AssetSummary": {"type": "object", "properties": {"id": {"type": "string"}, "kind": {"enum": ["Image", "HeightField", "Volume", "Curve"]}, "width": {"type": "integer"}, "height": {"type": "integer"}, "bounds": {"type": ["array", "null"]}, "value_range": {"type": "array"}, "units": {"type": ["string", "null"]}, "codec": {"type": "string"}, "bytes": {"type": "integer"}, "ratio": {"type": "number"}}},
+                "PointsRequest": {"type": "object", "required": ["points"], "properties": {"points": {"type": "array", "items": {"type": "array", "minItems": 2, "maxItems": 2}}, "iterations": {"type": ["integer", "null"]}}},
+                "PointResult": {"type": "object", "properties": {"coordinates": {"type": "array"}, "values": {"type": ["array", "null"]}, "error_bound": {"type": ["number", "null"]}, "iterations": {"type": "integer"}, "outside": {"type": "boolean"}}}
+            }
+        }
+    })
+}
