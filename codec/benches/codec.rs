@@ -191,7 +191,7 @@ fn main() {
         let single = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         let t = Instant::now();
         for _ in 0..reps {
-            std::hint::black_box(decode::points(op, &pts, 10));
+            std::hint::black_box(decode::points(op, &pts, 10, 0.0));
         }
         let cont = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
         // Discrete vs continuous at pixel centres: the measured difference of averaging and sampling.

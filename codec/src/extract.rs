@@ -184,12 +184,14 @@ impl Asset {
         }
     }
 
-    /// Continuous decoding of many unit points at once (batched), each with its own bound.
-    pub fn points(&self, pts: &[[f32; 2]], iterations: u32) -> Vec<PointSample> {
+    /// Continuous decoding of many unit points at once (batched), each with its own bound; a
+    /// chain stops early once its bound is at most `tolerance` (source units; 0: never early).
+    pub fn points(&self, pts: &[[f32; 2]], iterations: u32, tolerance: f32) -> Vec<PointSample> {
+        let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
         let per_plane: Vec<Vec<decode::PointValue>> = self
             .planes
             .iter()
-            .map(|p| decode::points(&p.operator, pts, iterations))
+            .map(|p| decode::points(&p.operator, pts, iterations, tol))
             .collect();
         let span = self.span();
         let planes: Vec<Vec<f32>> = per_plane
@@ -252,17 +254,21 @@ impl Asset {
     /// Values at many unit points (`None`: outside the asset, answered as NaN), each standing for
     /// a pixel of `footprint` (unit coordinates). Where a pixel covers more than a source cell the
     /// asset is decoded discretely at the pixels' own scale and sampled (a filtered answer, no
-    /// aliasing); otherwise each point is decoded continuously with `iterations` steps. Returns
-    /// the channels and the a-priori error bound (source units).
+    /// aliasing); otherwise each point is decoded continuously with at most `iterations` steps,
+    /// stopping once its bound is at most `tolerance` (source units; 0: never early). Returns
+    /// the channels and the a-priori error bound (source units, largest over the points).
     pub fn sample(
         &self,
         points: &[Option<[f32; 2]>],
         footprint: [f32; 2],
         iterations: u32,
+        tolerance: f32,
     ) -> (Vec<Vec<f32>>, f32) {
         let (w, h) = (self.meta.width as f32, self.meta.height as f32);
         let coarse = footprint[0] * w > 1.0 || footprint[1] * h > 1.0;
         let inside: Vec<[f32; 2]> = points.iter().map(|p| p.unwrap_or([0.0, 0.0])).collect();
+        // Largest per-point bound of the continuous path (normalised).
+        let mut worst = 0.0f32;
         let planes: Vec<Vec<f32>> = if coarse {
             let gw = ((1.0 / footprint[0]).ceil() as usize).clamp(1, self.meta.width as usize);
             let gh = ((1.0 / footprint[1]).ceil() as usize).clamp(1, self.meta.height as usize);
@@ -280,12 +286,16 @@ impl Asset {
                 })
                 .collect()
         } else {
+            let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
             self.planes
                 .iter()
                 .map(|p| {
-                    decode::points(&p.operator, &inside, iterations)
+                    decode::points(&p.operator, &inside, iterations, tol)
                         .into_iter()
-                        .map(|r| r.value)
+                        .map(|r| {
+                            worst = worst.max(r.error_bound);
+                            r.value
+                        })
                         .collect()
                 })
                 .collect()
@@ -298,7 +308,17 @@ impl Asset {
                 }
             }
         }
-        (channels, self.bound_after(iterations))
+        let bound = if coarse {
+            self.bound_after(iterations)
+        } else {
+            let b = worst * self.span();
+            if self.meta.colour == ColourModel::YCbCr {
+                rgb_bound(b, b, b)
+            } else {
+                b
+            }
+        };
+        (channels, bound)
     }
 
     /// Whether the asset is a height field.

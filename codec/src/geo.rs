@@ -111,25 +111,32 @@ pub fn tile_points(
     y: u32,
     size: usize,
 ) -> (Vec<Option<[f32; 2]>>, [f32; 2]) {
-    let mut pts = Vec::with_capacity(size * size);
-    for j in 0..size {
-        for i in 0..size {
-            let (fx, fy) = (
-                (i as f64 + 0.5) / size as f64,
-                (j as f64 + 0.5) / size as f64,
-            );
-            pts.push(match placement {
-                Some(p) => {
-                    let (lon, lat) = tile_lonlat(z, x, y, fx, fy);
-                    p.unit(lon, lat)
-                }
-                None => {
-                    let n = (1u64 << z) as f64;
-                    Some([((x as f64 + fx) / n) as f32, ((y as f64 + fy) / n) as f32])
-                }
-            });
+    // Longitude depends on the column only, latitude on the row only: 2 x size evaluations.
+    let frac = |k: usize| (k as f64 + 0.5) / size as f64;
+    let pts = match placement {
+        Some(p) => {
+            let lons: Vec<f64> = (0..size)
+                .map(|i| tile_lonlat(z, x, y, frac(i), 0.5).0)
+                .collect();
+            let lats: Vec<f64> = (0..size)
+                .map(|j| tile_lonlat(z, x, y, 0.5, frac(j)).1)
+                .collect();
+            (0..size * size)
+                .map(|k| p.unit(lons[k % size], lats[k / size]))
+                .collect()
         }
-    }
+        None => {
+            let n = (1u64 << z) as f64;
+            (0..size * size)
+                .map(|k| {
+                    Some([
+                        ((x as f64 + frac(k % size)) / n) as f32,
+                        ((y as f64 + frac(k / size)) / n) as f32,
+                    ])
+                })
+                .collect()
+        }
+    };
     let footprint = match placement {
         Some(p) => {
             // A pixel's size at the tile's centre (Mercator stretches latitude away from it).

@@ -87,6 +87,27 @@ proptest! {
         }
     }
 
+    /// Stopping each chain at a tolerance keeps the bound honest: every point's bound is under the
+    /// tolerance (or the step cap was reached), and the value is within its bound of a
+    /// 200-step reference; a point's answer does not depend on the other points of its batch.
+    #[test]
+    fn per_point_tolerance_stops_early_and_stays_within_bound(seed in 0u32..1000, tol in 0.0005f32..0.05) {
+        let asset = small_terrain_asset();
+        let op = &asset.planes[0].operator;
+        let pts: Vec<[f32; 2]> = (0..37).map(|i| {
+            let h = (seed.wrapping_mul(2_654_435_761).wrapping_add(i * 40_503)) as f32;
+            [(h * 1e-3).fract().abs(), (h * 7e-3).fract().abs()]
+        }).collect();
+        let batch = decode::points(op, &pts, 40, tol);
+        let alone = decode::points(op, &pts[5..6], 40, tol);
+        prop_assert_eq!(batch[5], alone[0]);
+        for (p, r) in pts.iter().zip(&batch) {
+            prop_assert!(r.error_bound <= tol || r.iterations == 40, "{:?}", r);
+            let reference = decode::point(op, *p, 200);
+            prop_assert!((r.value - reference.value).abs() <= r.error_bound + 1e-5);
+        }
+    }
+
     /// Corrupt files are rejected with an error (never a panic), whatever byte is hit.
     #[test]
     fn corrupt_assets_are_rejected(pos in 0usize..10_000, xor in 1u8..=255, cut in 0usize..10_000) {

@@ -293,7 +293,14 @@ struct TileQuery {
     rescale: Option<String>,
 }
 
-fn iterations_for(state: &AppState, a: &StoredAsset, asked: Option<u32>) -> Result<u32, AppError> {
+/// Steps and per-point tolerance of a request: the steps asked for exactly, or by default up to
+/// the limit, each point stopping once its own bound is under half a quantisation step of the
+/// source (1 for integer samples, 1/65535 of the range for floats).
+fn iterations_for(
+    state: &AppState,
+    a: &StoredAsset,
+    asked: Option<u32>,
+) -> Result<(u32, f32), AppError> {
     let max = state.limits.max_iterations;
     match asked {
         Some(0) => Err(AppError::bad_request(
@@ -304,15 +311,14 @@ fn iterations_for(state: &AppState, a: &StoredAsset, asked: Option<u32>) -> Resu
             "bad_iterations",
             format!("iterations {n} over the limit {max}"),
         )),
-        Some(n) => Ok(n),
-        // Enough for the bound to fall under half a quantisation step of the source.
+        Some(n) => Ok((n, 0.0)),
         None => {
             let m = &a.asset.meta;
             let step = match m.sample {
                 fractile_proto::SampleFormat::F32 => (m.value_max - m.value_min) / 65535.0,
                 _ => 1.0,
             };
-            Ok(a.asset.iterations_for(0.5 * step as f32, max.min(32)))
+            Ok((max, 0.5 * step as f32))
         }
     }
 }
@@ -405,19 +411,24 @@ async fn tile(
             ));
         }
     };
-    let iterations = iterations_for(&state, &a, q.iterations)?;
-    let (pts, footprint) = geo::tile_points(a.placement.as_ref(), z, x, y, size);
-    if pts.iter().all(Option::is_none) {
-        // Outside the asset: 404, so that map clients over-zoom the parent instead.
-        return Err(AppError::not_found(
-            "outside",
-            format!("tile {z}/{x}/{y} is outside the asset"),
-        ));
+    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations)?;
+    // Outside the asset: 404, so that map clients over-zoom the parent instead. Checked on the
+    // tile's bounds first (cheap); a tile that only grazes the asset is decoded.
+    if let Some(p) = &a.placement {
+        let [w, s, e, n] = geo::tile_bounds(z, x, y);
+        let [aw, as_, ae, an] = p.bounds();
+        let global = ae - aw >= 360.0 - 1e-9;
+        if (!global && (e <= aw || w >= ae)) || n <= as_ || s >= an {
+            return Err(AppError::not_found(
+                "outside",
+                format!("tile {z}/{x}/{y} is outside the asset"),
+            ));
+        }
     }
     // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
     let key = format!(
-        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{iterations}&{size}&{:?}&{:?}",
-        a.hash, q.encoding, q.rescale
+        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{size}&{:?}&{:?}",
+        a.hash, q.iterations, q.encoding, q.rescale
     );
     let tag = etag(&a, &key);
     if not_modified(&headers, &tag) {
@@ -430,16 +441,23 @@ async fn tile(
     metrics::counter!("fractile_tile_cache_total", "result" => "miss").increment(1);
     let asset = a.clone();
     let cached = decode(&state, move || {
-        let (channels, bound) = asset.asset.sample(&pts, footprint, iterations);
+        let (pts, footprint) = geo::tile_points(asset.placement.as_ref(), z, x, y, size);
+        if pts.iter().all(Option::is_none) {
+            return None;
+        }
+        let (channels, bound) = asset.asset.sample(&pts, footprint, iterations, tolerance);
         let (content_type, body) =
             encoding::encode_tile(&asset.asset.meta, &channels, size, format);
-        Cached {
+        Some(Cached {
             content_type,
             body: Bytes::from(body),
             error_bound: bound,
-        }
+        })
     })
-    .await?;
+    .await?
+    .ok_or_else(|| {
+        AppError::not_found("outside", format!("tile {z}/{x}/{y} is outside the asset"))
+    })?;
     let cached = Arc::new(cached);
     state.cache.insert(key, cached.clone());
     Ok(cached_response(&state, &tag, &cached))
@@ -563,7 +581,7 @@ async fn answer_points(
     single: bool,
 ) -> Result<Vec<PointResult>, AppError> {
     let a = state.store.get(id)?;
-    let n = iterations_for(state, &a, iterations)?;
+    let (n, tolerance) = iterations_for(state, &a, iterations)?;
     let units: Vec<Option<[f32; 2]>> = coords.iter().map(|&c| unit_of(&a, c)).collect();
     if single && units[0].is_none() {
         return Err(AppError::not_found(
@@ -573,7 +591,7 @@ async fn answer_points(
     }
     decode(state, move || {
         let inside: Vec<[f32; 2]> = units.iter().map(|u| u.unwrap_or([0.0, 0.0])).collect();
-        let samples = a.asset.points(&inside, n);
+        let samples = a.asset.points(&inside, n, tolerance);
         coords
             .iter()
             .zip(&units)
@@ -659,7 +677,7 @@ async fn mesh(
             None => [0.0, 0.0, 1.0, 1.0],
         },
     };
-    let iterations = iterations_for(&state, &a, q.iterations)?;
+    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations)?;
     let geo_ref = a.placement.is_some();
     // Vertex (i, j): i east, j south, corners included.
     let at = |i: usize, j: usize| {
@@ -695,7 +713,7 @@ async fn mesh(
         )
     };
     let body = decode(&state, move || {
-        let (channels, _) = a.asset.sample(&pts, footprint, iterations);
+        let (channels, _) = a.asset.sample(&pts, footprint, iterations, tolerance);
         let spacing = [
             (extent_x / (n - 1) as f64) as f32,
             (extent_y / (n - 1) as f64) as f32,
@@ -756,7 +774,7 @@ async fn region(
             ),
         ));
     }
-    let n = iterations_for(&state, &a, q.iterations)?;
+    let (n, tolerance) = iterations_for(&state, &a, q.iterations)?;
     let format = q.format.as_deref().unwrap_or("png");
     if !matches!(format, "png" | "f32") {
         return Err(AppError::bad_request(
@@ -793,7 +811,7 @@ async fn region(
     };
     let f32_out = format == "f32";
     let (ct, body, bound) = decode(&state, move || {
-        let (channels, bound) = a.asset.sample(&pts, footprint, n);
+        let (channels, bound) = a.asset.sample(&pts, footprint, n, tolerance);
         let (ct, body) = if f32_out {
             (
                 "application/octet-stream",
