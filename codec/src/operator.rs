@@ -95,33 +95,53 @@ impl RangeMap {
     }
 }
 
-/// A range's map in the form the decoders evaluate: `phi(p) = (ax px + bx py + cx,
-/// ay px + by py + cy)`, with offset and contrast. Precomputed so that a step is branch-free and
-/// has no division (the isometry and the scale 2 fold into the coefficients).
+/// A range's map in the form the decoders evaluate: `phi(p) = L_k p + (cx, cy)` where `L_k` is
+/// twice the linear part of isometry k ([`ISOMETRY_MATRICES`]), and `g(p) = offset + gx px + gy
+/// py`. Precomputed so that a step is branch-free and has no division; 32 bytes and aligned, so
+/// that a cell never straddles two cache lines (the decoders' hot loop is bound by these loads).
 #[derive(Clone, Copy, Debug, PartialEq)]
-#[repr(C)]
+#[repr(C, align(32))]
 pub struct AffineCell {
-    /// x coefficient of phi_x.
-    pub ax: f32,
-    /// y coefficient of phi_x.
-    pub bx: f32,
     /// Constant of phi_x.
     pub cx: f32,
-    /// x coefficient of phi_y.
-    pub ay: f32,
-    /// y coefficient of phi_y.
-    pub by: f32,
     /// Constant of phi_y.
     pub cy: f32,
     /// Contrast s.
     pub contrast: f32,
-    /// Constant of g: `g(p) = offset + gx px + gy py`.
+    /// Constant of g.
     pub offset: f32,
     /// x coefficient of g.
     pub gx: f32,
     /// y coefficient of g.
     pub gy: f32,
+    /// Isometry index, 0..8, selecting the linear part of phi.
+    pub isometry: u32,
 }
+
+/// `[ax, bx, ay, by]` of each isometry with the scale 2 of a domain over its range:
+/// `phi_x = ax px + bx py + cx`, `phi_y = ay px + by py + cy`.
+pub const ISOMETRY_MATRICES: [[f32; 4]; 8] = {
+    let mut m = [[0.0f32; 4]; 8];
+    let mut k = 0;
+    while k < 8 {
+        // Local a' and b' as (coef of a, coef of b), see `transform::isometry`.
+        let (mut ua, mut ub) = ([1.0f32, 0.0], [0.0f32, 1.0]);
+        if k & 4 != 0 {
+            let t = ua;
+            ua = ub;
+            ub = t;
+        }
+        if k & 1 != 0 {
+            ua = [-ua[0], -ua[1]];
+        }
+        if k & 2 != 0 {
+            ub = [-ub[0], -ub[1]];
+        }
+        m[k] = [2.0 * ua[0], 2.0 * ua[1], 2.0 * ub[0], 2.0 * ub[1]];
+        k += 1;
+    }
+    m
+};
 
 impl AffineCell {
     fn of(r: &RangeMap) -> AffineCell {
@@ -138,28 +158,27 @@ impl AffineCell {
         }
         // a = (px - x) / n; phi = d + 2n a' = 2 ua0 px + 2 ua1 py + (d + 2n ua2 - 2 ua0 x - 2 ua1 y).
         let (x, y, n) = (r.x as f32, r.y as f32, r.size as f32);
-        let row = |u: [f32; 3], d: f32| {
-            (
-                2.0 * u[0],
-                2.0 * u[1],
-                d + 2.0 * n * u[2] - 2.0 * u[0] * x - 2.0 * u[1] * y,
-            )
-        };
-        let (ax, bx, cx) = row(ua, r.domain_x as f32);
-        let (ay, by, cy) = row(ub, r.domain_y as f32);
+        let c = |u: [f32; 3], d: f32| d + 2.0 * n * u[2] - 2.0 * u[0] * x - 2.0 * u[1] * y;
         let (gx, gy) = (r.slope[0] / n, r.slope[1] / n);
         AffineCell {
-            ax,
-            bx,
-            cx,
-            ay,
-            by,
-            cy,
+            cx: c(ua, r.domain_x as f32),
+            cy: c(ub, r.domain_y as f32),
             contrast: r.contrast,
             offset: r.offset - gx * (x + 0.5 * n) - gy * (y + 0.5 * n),
             gx,
             gy,
+            isometry: r.isometry as u32 & 7,
         }
+    }
+
+    /// phi at p.
+    #[inline(always)]
+    pub fn phi(&self, p: [f32; 2]) -> [f32; 2] {
+        let [ax, bx, ay, by] = ISOMETRY_MATRICES[self.isometry as usize & 7];
+        [
+            ax * p[0] + bx * p[1] + self.cx,
+            ay * p[0] + by * p[1] + self.cy,
+        ]
     }
 }
 
@@ -306,10 +325,7 @@ impl Operator<2> for QuadtreeOperator {
         Step {
             offset: c.offset + c.gx * p[0] + c.gy * p[1],
             contrast: c.contrast,
-            next: [
-                c.ax * p[0] + c.bx * p[1] + c.cx,
-                c.ay * p[0] + c.by * p[1] + c.cy,
-            ],
+            next: c.phi(p),
         }
     }
 
@@ -357,13 +373,15 @@ mod tests {
                 slope: [0.2, -0.1],
             };
             let c = AffineCell::of(&r);
+            assert_eq!(std::mem::size_of::<AffineCell>(), 32);
             // g at the range centre is the offset; at the right edge it has risen by 0.1.
             assert!((c.offset + c.gx * 10.0 + c.gy * 6.0 - 0.1).abs() < 1e-6);
             assert!((c.offset + c.gx * 12.0 + c.gy * 6.0 - 0.2).abs() < 1e-6);
             for &(px, py) in &[(8.0f32, 4.0f32), (9.3, 7.9), (11.99, 5.5)] {
                 let (a, b) = isometry(k, (px - 8.0) / 4.0, (py - 4.0) / 4.0);
                 let want = (2.0 + 8.0 * a, 6.0 + 8.0 * b);
-                let got = (c.ax * px + c.bx * py + c.cx, c.ay * px + c.by * py + c.cy);
+                let [gx, gy] = c.phi([px, py]);
+                let got = (gx, gy);
                 assert!(
                     (want.0 - got.0).abs() < 1e-4 && (want.1 - got.1).abs() < 1e-4,
                     "{k}: {want:?} {got:?}"
