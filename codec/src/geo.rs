@@ -111,27 +111,41 @@ pub fn tile_points(
     y: u32,
     size: usize,
 ) -> (Vec<Option<[f32; 2]>>, [f32; 2]) {
+    tile_points_with_margin(placement, z, x, y, size, 0)
+}
+
+/// As [`tile_points`], on a `(size + 2 margin)` square grid that extends `margin` pixels beyond
+/// the tile on every side (for filters that need neighbours, such as hillshading).
+pub fn tile_points_with_margin(
+    placement: Option<&Placement>,
+    z: u8,
+    x: u32,
+    y: u32,
+    size: usize,
+    margin: usize,
+) -> (Vec<Option<[f32; 2]>>, [f32; 2]) {
     // Longitude depends on the column only, latitude on the row only: 2 x size evaluations.
-    let frac = |k: usize| (k as f64 + 0.5) / size as f64;
+    let side = size + 2 * margin;
+    let frac = |k: usize| (k as f64 - margin as f64 + 0.5) / size as f64;
     let pts = match placement {
         Some(p) => {
-            let lons: Vec<f64> = (0..size)
+            let lons: Vec<f64> = (0..side)
                 .map(|i| tile_lonlat(z, x, y, frac(i), 0.5).0)
                 .collect();
-            let lats: Vec<f64> = (0..size)
+            let lats: Vec<f64> = (0..side)
                 .map(|j| tile_lonlat(z, x, y, 0.5, frac(j)).1)
                 .collect();
-            (0..size * size)
-                .map(|k| p.unit(lons[k % size], lats[k / size]))
+            (0..side * side)
+                .map(|k| p.unit(lons[k % side], lats[k / side]))
                 .collect()
         }
         None => {
             let n = (1u64 << z) as f64;
-            (0..size * size)
+            (0..side * side)
                 .map(|k| {
                     Some([
-                        ((x as f64 + frac(k % size)) / n) as f32,
-                        ((y as f64 + frac(k / size)) / n) as f32,
+                        ((x as f64 + frac(k % side)) / n) as f32,
+                        ((y as f64 + frac(k / side)) / n) as f32,
                     ])
                 })
                 .collect()

@@ -18,6 +18,7 @@ pub mod metrics;
 pub mod operator;
 pub mod partition;
 pub mod raster;
+pub mod render;
 pub mod search;
 pub mod stream;
 pub mod transform;

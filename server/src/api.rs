@@ -291,6 +291,8 @@ struct TileQuery {
     tilesize: Option<usize>,
     encoding: Option<String>,
     rescale: Option<String>,
+    colormap: Option<String>,
+    hillshade: Option<bool>,
 }
 
 /// Steps and per-point tolerance of a request: the steps asked for exactly, or by default up to
@@ -412,6 +414,31 @@ async fn tile(
         }
     };
     let (iterations, tolerance) = iterations_for(&state, &a, q.iterations)?;
+    let visual_heights = heights && ext == "png" && q.encoding.is_none();
+    let colormap = match q.colormap.as_deref() {
+        None => None,
+        Some(name) if visual_heights => Some(
+            fractile_codec::render::Colormap::parse(name).ok_or_else(|| {
+                AppError::bad_request(
+                    "bad_colormap",
+                    format!("unknown colormap {name:?} (gray, terrain, viridis)"),
+                )
+            })?,
+        ),
+        Some(_) => {
+            return Err(AppError::bad_request(
+                "bad_colormap",
+                "colormap is for visual PNG tiles of height fields",
+            ));
+        }
+    };
+    let shade = q.hillshade.unwrap_or(false);
+    if shade && !visual_heights {
+        return Err(AppError::bad_request(
+            "bad_hillshade",
+            "hillshade is for visual PNG tiles of height fields",
+        ));
+    }
     // Outside the asset: 404, so that map clients over-zoom the parent instead. Checked on the
     // tile's bounds first (cheap); a tile that only grazes the asset is decoded.
     if let Some(p) = &a.placement {
@@ -427,8 +454,8 @@ async fn tile(
     }
     // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
     let key = format!(
-        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{size}&{:?}&{:?}",
-        a.hash, q.iterations, q.encoding, q.rescale
+        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{size}&{:?}&{:?}&{:?}&{shade}",
+        a.hash, q.iterations, q.encoding, q.rescale, q.colormap
     );
     let tag = etag(&a, &key);
     if not_modified(&headers, &tag) {
@@ -441,13 +468,48 @@ async fn tile(
     metrics::counter!("fractile_tile_cache_total", "result" => "miss").increment(1);
     let asset = a.clone();
     let cached = decode(&state, move || {
-        let (pts, footprint) = geo::tile_points(asset.placement.as_ref(), z, x, y, size);
+        // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile,
+        // so that shading is seamless across tiles.
+        let margin = usize::from(shade);
+        let (pts, footprint) =
+            geo::tile_points_with_margin(asset.placement.as_ref(), z, x, y, size, margin);
         if pts.iter().all(Option::is_none) {
             return None;
         }
-        let (channels, bound) = asset.asset.sample(&pts, footprint, iterations, tolerance);
+        let (mut channels, bound) = asset.asset.sample(&pts, footprint, iterations, tolerance);
+        let style = (colormap.is_some() || shade).then(|| {
+            let side = size + 2 * margin;
+            let shade = shade.then(|| {
+                // Cell size in the heights' units: metres for geographic assets, source pixels
+                // otherwise.
+                let spacing = match &asset.placement {
+                    Some(p) => {
+                        let [_, s, _, n] = geo::tile_bounds(z, x, y);
+                        let m = geo::metres_per_degree(0.5 * (s + n));
+                        let d = p.degrees_per_unit();
+                        [
+                            (footprint[0] as f64 * d[0] * m[0]) as f32,
+                            (footprint[1] as f64 * d[1] * m[1]) as f32,
+                        ]
+                    }
+                    None => [
+                        footprint[0] * asset.asset.meta.width as f32,
+                        footprint[1] * asset.asset.meta.height as f32,
+                    ],
+                };
+                fractile_codec::render::hillshade(&channels[0], size, size, spacing, 315.0, 45.0)
+            });
+            if margin > 0 {
+                for ch in &mut channels {
+                    *ch = (0..size * size)
+                        .map(|k| ch[(k / size + margin) * side + k % size + margin])
+                        .collect();
+                }
+            }
+            encoding::Style { colormap, shade }
+        });
         let (content_type, body) =
-            encoding::encode_tile(&asset.asset.meta, &channels, size, format);
+            encoding::encode_tile(&asset.asset.meta, &channels, size, format, style);
         Some(Cached {
             content_type,
             body: Bytes::from(body),
@@ -829,7 +891,7 @@ async fn region(
             } else {
                 encoding::TileFormat::Visual(None)
             };
-            encoding::encode_raster(&a.asset.meta, &channels, w, h, fmt)
+            encoding::encode_raster(&a.asset.meta, &channels, w, h, fmt, None)
         };
         (ct, body, bound)
     })

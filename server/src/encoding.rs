@@ -1,6 +1,7 @@
 //! Output encodings of decoded samples: PNG (grey, RGB, terrain-RGB, Terrarium, 16-bit grey) and
 //! little-endian float32. These are file formats, not math: the formulas are MapLibre's.
 
+use fractile_codec::render::Colormap;
 use fractile_proto::{AssetKind, AssetMeta};
 
 /// How a height tile is packed into a PNG.
@@ -31,14 +32,24 @@ fn nodata_height(m: &AssetMeta) -> f32 {
     0.0f32.clamp(m.value_min as f32, m.value_max as f32)
 }
 
+/// How visual PNGs of heights are drawn beyond the grey ramp.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct Style {
+    /// A colour ramp over the rescaled heights.
+    pub colormap: Option<Colormap>,
+    /// Hillshade in [0, 1] per pixel.
+    pub shade: Option<Vec<f32>>,
+}
+
 /// Encodes a square tile.
 pub fn encode_tile(
     m: &AssetMeta,
     channels: &[Vec<f32>],
     size: usize,
     f: TileFormat,
+    style: Option<Style>,
 ) -> (&'static str, Vec<u8>) {
-    encode_raster(m, channels, size, size, f)
+    encode_raster(m, channels, size, size, f, style)
 }
 
 /// Encodes a `w x h` raster.
@@ -48,6 +59,7 @@ pub fn encode_raster(
     w: usize,
     h: usize,
     f: TileFormat,
+    style: Option<Style>,
 ) -> (&'static str, Vec<u8>) {
     let fill = nodata_height(m);
     let height = |v: f32| if v.is_finite() { v } else { fill };
@@ -105,6 +117,7 @@ pub fn encode_raster(
             ("image/png", png(w, h, image::ExtendedColorType::Rgb8, &px))
         }
         TileFormat::Visual(rescale) => {
+            let style = style.unwrap_or_default();
             let q = |v: f32| -> u8 {
                 let v = match rescale {
                     Some((lo, hi)) if m.kind == AssetKind::HeightField => {
@@ -121,6 +134,24 @@ pub fn encode_raster(
             if channels.len() == 3 {
                 let px: Vec<u8> = (0..w * h)
                     .flat_map(|i| [q(channels[0][i]), q(channels[1][i]), q(channels[2][i])])
+                    .collect();
+                ("image/png", png(w, h, image::ExtendedColorType::Rgb8, &px))
+            } else if style.colormap.is_some() || style.shade.is_some() {
+                let ramp = style.colormap.unwrap_or(Colormap::Gray);
+                let px: Vec<u8> = channels[0]
+                    .iter()
+                    .enumerate()
+                    .flat_map(|(i, &v)| {
+                        let t = q(v) as f32 / 255.0;
+                        let c = match (style.colormap, &style.shade) {
+                            // Hillshade alone: grey shading.
+                            (None, Some(s)) => [255.0 * s[i]; 3],
+                            // A ramp, darkened by the shading (a quarter of ambient light).
+                            (_, Some(s)) => ramp.rgb(t).map(|c| c * (0.25 + 0.75 * s[i])),
+                            (_, None) => ramp.rgb(t),
+                        };
+                        c.map(|v| v.round().clamp(0.0, 255.0) as u8)
+                    })
                     .collect();
                 ("image/png", png(w, h, image::ExtendedColorType::Rgb8, &px))
             } else {
@@ -183,7 +214,7 @@ mod tests {
                 ),
                 (HeightEncoding::Terrarium, decode_terrarium, 0.004),
             ] {
-                let (_, bytes) = encode_raster(&m, &[vec![v]], 1, 1, TileFormat::Heights(e));
+                let (_, bytes) = encode_raster(&m, &[vec![v]], 1, 1, TileFormat::Heights(e), None);
                 let img = image::load_from_memory(&bytes).unwrap().to_rgb8();
                 let p = img.get_pixel(0, 0).0;
                 assert!(

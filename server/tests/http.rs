@@ -620,3 +620,54 @@ async fn every_documented_path_is_routed() {
         }
     }
 }
+
+#[tokio::test]
+async fn visual_tiles_with_colormap_and_hillshade() {
+    let (x, y) = geo::lonlat_tile(12, -84.25, 36.6);
+    let base = format!("/v1/assets/jacksboro/tiles/12/{x}/{y}.png");
+    let (s, _, grey) = get(&base).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(
+        image::load_from_memory(&grey).unwrap().color(),
+        image::ColorType::L8
+    );
+    let (s, _, b) = get(&format!("{base}?colormap=terrain&hillshade=true")).await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    let shaded = image::load_from_memory(&b).unwrap().to_rgb8();
+    let (_, _, b) = get(&format!("{base}?colormap=terrain")).await;
+    let flat = image::load_from_memory(&b).unwrap().to_rgb8();
+    // Shading darkens (never brightens) the ramp, and varies with the relief.
+    let (mut darker, mut differ) = (0, 0);
+    for (a, b) in shaded.pixels().zip(flat.pixels()) {
+        darker += usize::from(a.0.iter().zip(b.0).all(|(s, f)| *s <= f));
+        differ += usize::from(a.0 != b.0);
+    }
+    assert_eq!(darker, 256 * 256);
+    assert!(differ > 256 * 256 / 2, "{differ}");
+    // Seamless: the shaded tile's edge column continues into its eastern neighbour.
+    let (_, _, b) = get(&format!(
+        "/v1/assets/jacksboro/tiles/12/{}/{y}.png?hillshade=true",
+        x + 1
+    ))
+    .await;
+    let east = image::load_from_memory(&b).unwrap().to_rgb8();
+    let (_, _, b) = get(&format!("{base}?hillshade=true")).await;
+    let west = image::load_from_memory(&b).unwrap().to_rgb8();
+    let seam: f32 = (0..256)
+        .map(|j| (west.get_pixel(255, j).0[0] as f32 - east.get_pixel(0, j).0[0] as f32).abs())
+        .sum::<f32>()
+        / 256.0;
+    let inner: f32 = (0..256)
+        .map(|j| (west.get_pixel(254, j).0[0] as f32 - west.get_pixel(255, j).0[0] as f32).abs())
+        .sum::<f32>()
+        / 256.0;
+    assert!(seam <= 2.0 * inner + 2.0, "seam {seam} vs inner {inner}");
+    for (q, code) in [
+        ("colormap=magma", "bad_colormap"),
+        ("encoding=terrainrgb&hillshade=true", "bad_hillshade"),
+    ] {
+        let (s, _, b) = get(&format!("{base}?{q}")).await;
+        assert_eq!(s, StatusCode::BAD_REQUEST);
+        assert_eq!(json(&b)["code"], code);
+    }
+}
