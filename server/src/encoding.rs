@@ -118,6 +118,12 @@ pub fn encode_raster(
         }
         TileFormat::Visual(rescale) => {
             let style = style.unwrap_or_default();
+            // Nodata (and pixels outside the asset) are transparent, so a map shows what lies
+            // beneath instead of black.
+            let holes: Option<Vec<bool>> = channels[0]
+                .iter()
+                .any(|v| v.is_nan())
+                .then(|| channels[0].iter().map(|v| v.is_nan()).collect());
             let q = |v: f32| -> u8 {
                 let v = match rescale {
                     Some((lo, hi)) if m.kind == AssetKind::HeightField => {
@@ -135,7 +141,10 @@ pub fn encode_raster(
                 let px: Vec<u8> = (0..w * h)
                     .flat_map(|i| [q(channels[0][i]), q(channels[1][i]), q(channels[2][i])])
                     .collect();
-                ("image/png", png(w, h, image::ExtendedColorType::Rgb8, &px))
+                (
+                    "image/png",
+                    png_with_holes(w, h, image::ExtendedColorType::Rgb8, &px, holes.as_deref()),
+                )
             } else if style.colormap.is_some() || style.shade.is_some() {
                 let ramp = style.colormap.unwrap_or(Colormap::Gray);
                 let px: Vec<u8> = channels[0]
@@ -153,16 +162,47 @@ pub fn encode_raster(
                         c.map(|v| v.round().clamp(0.0, 255.0) as u8)
                     })
                     .collect();
-                ("image/png", png(w, h, image::ExtendedColorType::Rgb8, &px))
+                (
+                    "image/png",
+                    png_with_holes(w, h, image::ExtendedColorType::Rgb8, &px, holes.as_deref()),
+                )
             } else {
                 let px: Vec<u8> = channels[0].iter().map(|&v| q(v)).collect();
-                ("image/png", png(w, h, image::ExtendedColorType::L8, &px))
+                (
+                    "image/png",
+                    png_with_holes(w, h, image::ExtendedColorType::L8, &px, holes.as_deref()),
+                )
             }
         }
     }
 }
 
 fn png(w: usize, h: usize, colour: image::ExtendedColorType, px: &[u8]) -> Vec<u8> {
+    png_with_holes(w, h, colour, px, None)
+}
+
+/// A PNG, with an alpha channel added (0 where `holes` says so) when there are holes.
+fn png_with_holes(
+    w: usize,
+    h: usize,
+    colour: image::ExtendedColorType,
+    px: &[u8],
+    holes: Option<&[bool]>,
+) -> Vec<u8> {
+    use image::ExtendedColorType as C;
+    if let Some(holes) = holes {
+        let (n, with_alpha) = match colour {
+            C::L8 => (1, C::La8),
+            C::Rgb8 => (3, C::Rgba8),
+            _ => return png_with_holes(w, h, colour, px, None),
+        };
+        let mut out = Vec::with_capacity(px.len() / n * (n + 1));
+        for (p, &hole) in px.chunks_exact(n).zip(holes) {
+            out.extend_from_slice(p);
+            out.push(if hole { 0 } else { 255 });
+        }
+        return png_with_holes(w, h, with_alpha, &out, None);
+    }
     use image::ImageEncoder;
     let mut out = Vec::new();
     // Fast compression: tiles are small and latency matters more than a few per cent of bytes.

@@ -671,3 +671,22 @@ async fn visual_tiles_with_colormap_and_hillshade() {
         assert_eq!(json(&b)["code"], code);
     }
 }
+
+#[tokio::test]
+async fn visual_tiles_are_transparent_outside_the_data() {
+    // A zoom-10 tile that holds the whole DEM and much around it.
+    let (x, y) = geo::lonlat_tile(10, -84.25, 36.6);
+    let (s, _, b) = get(&format!(
+        "/v1/assets/jacksboro/tiles/10/{x}/{y}.png?colormap=terrain"
+    ))
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let img = image::load_from_memory(&b).unwrap().to_rgba8();
+    let transparent = img.pixels().filter(|p| p.0[3] == 0).count();
+    let opaque = img.pixels().filter(|p| p.0[3] == 255).count();
+    assert!(
+        transparent > 0 && opaque > 0,
+        "{transparent} transparent, {opaque} opaque"
+    );
+    assert_eq!(transparent + opaque, 256 * 256);
+}
