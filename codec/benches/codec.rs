@@ -148,7 +148,7 @@ fn main() {
             false,
         );
     }
-    let etopo_path = root().join("../shared/data/dem/etopo20.tif");
+    let etopo_path = root().join("testdata/etopo20.tif");
     if want("etopo") && Path::new(&etopo_path).exists() {
         let e = Raster::open(&etopo_path).expect("etopo20");
         row("etopo20", "ratio 20:1 (0.8 bpp)", &e, &bpp(0.8), false);
