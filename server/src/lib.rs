@@ -8,6 +8,7 @@ pub mod error;
 pub mod openapi;
 pub mod store;
 pub mod telemetry;
+pub mod web;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -37,6 +38,7 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
             "/metrics",
             axum::routing::get(|| async { telemetry::handle().render() }),
         )
+        .merge(web::routes())
         .layer(axum::middleware::from_fn(telemetry::track))
         .layer(
             CorsLayer::new()

@@ -1,0 +1,93 @@
+// The fractile demo viewer: a DEM as 3D terrain with hillshade, an image zoomable past its native
+// resolution, an iterations slider (progressive refinement) and point heights on click.
+// #status records tile loads and errors, for the headless browser test.
+(function () {
+  const status = document.getElementById('status');
+  const bump = (key) => { status.dataset[key] = String(Number(status.dataset[key]) + 1); };
+  const fail = (what) => { bump('errors'); status.textContent = 'error: ' + what; };
+  window.addEventListener('error', (e) => fail(e.message));
+  window.addEventListener('unhandledrejection', (e) => fail(String(e.reason)));
+  const consoleError = console.error;
+  console.error = function (...args) { fail(args.join(' ')); consoleError.apply(console, args); };
+
+  const origin = window.location.origin;
+  const params = new URLSearchParams(window.location.search);
+  const dem = params.get('dem') || 'jacksboro';
+  const picture = params.get('image') || 'camera';
+  const withIterations = (url, n) => n === 'auto' ? url : url + (url.includes('?') ? '&' : '?') + 'iterations=' + n;
+  const demTiles = (n) => [withIterations(`${origin}/v1/assets/${dem}/tiles/{z}/{x}/{y}.png?encoding=terrainrgb`, n)];
+  const imageTiles = (n) => [withIterations(`${origin}/v1/assets/${picture}/tiles/{z}/{x}/{y}.png`, n)];
+
+  const json = (r) => {
+    if (!r.ok) throw new Error(`${r.url}: HTTP ${r.status}`);
+    return r.json();
+  };
+  // Both assets must exist: a missing one is an error on the page, not an empty map.
+  fetch(`${origin}/v1/assets/${picture}`).then(json).catch((e) => fail(String(e)));
+  fetch(`${origin}/v1/assets/${dem}`).then(json).then((meta) => {
+    const [w, s, e, n] = meta.bounds || [-180, -85, 180, 85];
+    const terrain = new maplibregl.Map({
+      container: 'terrain',
+      style: {
+        version: 8,
+        sources: {
+          dem: { type: 'raster-dem', tiles: demTiles('auto'), tileSize: 256, encoding: 'mapbox', bounds: [w, s, e, n], maxzoom: 15 },
+          relief: { type: 'raster', tiles: [`${origin}/v1/assets/${dem}/tiles/{z}/{x}/{y}.png?colormap=terrain`], tileSize: 256, bounds: [w, s, e, n], maxzoom: 15 },
+        },
+        layers: [
+          { id: 'background', type: 'background', paint: { 'background-color': '#dde4ea' } },
+          { id: 'relief', type: 'raster', source: 'relief' },
+          { id: 'hillshade', type: 'hillshade', source: 'dem', paint: { 'hillshade-exaggeration': 0.5 } },
+        ],
+        terrain: { source: 'dem', exaggeration: 1.5 },
+      },
+      bounds: [w, s, e, n],
+      pitch: 55,
+      maxPitch: 80,
+    });
+    const image = new maplibregl.Map({
+      container: 'image',
+      style: {
+        version: 8,
+        sources: { img: { type: 'raster', tiles: imageTiles('auto'), tileSize: 256, maxzoom: 12 } },
+        layers: [{ id: 'img', type: 'raster', source: 'img' }],
+      },
+      center: [0, 0],
+      zoom: 1,
+      renderWorldCopies: false,
+    });
+    for (const [name, map] of [['terrainTiles', terrain], ['imageTiles', image]]) {
+      map.on('error', (e) => fail(e.error ? e.error.message : 'map error'));
+      map.on('data', (e) => {
+        if (e.dataType === 'source' && e.tile) {
+          bump('tiles');
+          bump(name);
+        }
+      });
+    }
+    Promise.all([terrain, image].map((m) => new Promise((ok) => m.once('idle', ok)))).then(() => {
+      status.dataset.loaded = 'true';
+    });
+
+    const slider = document.getElementById('iterations');
+    const label = document.getElementById('iterations-value');
+    slider.addEventListener('input', () => {
+      const n = slider.value === slider.max ? 'auto' : slider.value;
+      label.textContent = n;
+      terrain.getSource('dem').setTiles(demTiles(n));
+      image.getSource('img').setTiles(imageTiles(n));
+    });
+
+    terrain.on('click', (e) => {
+      const { lng, lat } = e.lngLat;
+      fetch(`${origin}/v1/assets/${dem}/point/${lng},${lat}`).then((r) => r.json()).then((p) => {
+        const out = document.getElementById('point');
+        if (p.values && p.values[0] !== null) {
+          out.textContent = `${lng.toFixed(4)}, ${lat.toFixed(4)}: ${p.values[0].toFixed(1)} ${meta.units || ''} ± ${p.error_bound.toFixed(2)} (${p.iterations} steps)`;
+        } else {
+          out.textContent = p.detail || 'no data here';
+        }
+      });
+    });
+  }).catch((e) => fail(String(e)));
+})();

@@ -1,0 +1,40 @@
+#!/usr/bin/env bash
+# End-to-end test of the web viewer: starts a release server on loopback with the demo assets,
+# loads the page in headless Chromium (Debian's `chromium`, software WebGL through SwiftShader),
+# and checks that the maps loaded tiles from the server and that the page logged no error.
+# Bounded: the browser gets 30 s of virtual time and 120 s of wall time; the server is stopped
+# on exit. Prints a closing "N passed, N failed" line.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+command -v chromium >/dev/null || { echo "chromium is needed (apt-get install chromium)" >&2; exit 1; }
+PORT=${PORT:-18197}
+WORK=$(mktemp -d)
+cargo build --release -p fractile -q
+FRACTILE_CACHE=$WORK/cache RUST_LOG=warn target/release/fractile serve --bind 127.0.0.1:$PORT &
+PID=$!
+trap 'kill $PID 2>/dev/null; wait $PID 2>/dev/null; rm -rf "$WORK"' EXIT
+for _ in $(seq 1 240); do curl -fs "http://127.0.0.1:$PORT/readyz" >/dev/null && break; sleep 0.5; done
+
+pass=0; fail=0
+check() { if eval "$2"; then pass=$((pass + 1)); echo "ok: $1"; else fail=$((fail + 1)); echo "FAILED: $1"; fi; }
+
+URL="http://127.0.0.1:$PORT/${PAGE_QUERY:-}"
+DOM=$(timeout 120 chromium --headless=new --no-sandbox --disable-background-networking \
+  --disable-component-update --disable-sync --no-first-run --disable-quic \
+  --user-data-dir="$WORK/profile" --use-angle=swiftshader --enable-unsafe-swiftshader \
+  --window-size=1200,700 --virtual-time-budget=30000 --dump-dom "$URL" 2>/dev/null || true)
+STATUS=$(grep -o '<span id="status"[^>]*>[^<]*' <<<"$DOM" || true)
+echo "page status: $STATUS"
+tiles=$(sed -n 's/.*data-tiles="\([0-9]*\)".*/\1/p' <<<"$STATUS")
+terrain=$(sed -n 's/.*data-terrain-tiles="\([0-9]*\)".*/\1/p' <<<"$STATUS")
+image=$(sed -n 's/.*data-image-tiles="\([0-9]*\)".*/\1/p' <<<"$STATUS")
+errors=$(sed -n 's/.*data-errors="\([0-9]*\)".*/\1/p' <<<"$STATUS")
+served=$(curl -fs "http://127.0.0.1:$PORT/metrics" | awk '/^fractile_requests_total\{route="\/v1\/assets\/\{id\}\/tiles\/\{z\}\/\{x\}\/\{tile\}",status="200"\}/ {s += $2} END {print s + 0}')
+echo "tiles loaded by the page: ${tiles:-none}; tile requests the server answered: $served"
+check "the page rendered its status" '[ -n "$STATUS" ]'
+check "the terrain map loaded tiles" '[ "${terrain:-0}" -gt 0 ]'
+check "the image map loaded tiles" '[ "${image:-0}" -gt 0 ]'
+check "the server answered the tile requests" '[ "$served" -gt 0 ]'
+check "no console or map error" '[ "${errors:-1}" -eq 0 ]'
+echo "browser: $pass passed, $fail failed"
+[ "$fail" -eq 0 ]
