@@ -339,7 +339,7 @@ pub fn write_png16(path: &Path, width: usize, height: usize, values: &[f32]) -> 
         .map_err(|e| Error::Output(format!("{}: {e}", path.display())))
 }
 
-/// Writes a float32 GeoTIFF, with georeference and nodata tags when given.
+/// Writes a float32 GeoTIFF, with georeference and nodata tags when given (atomically).
 pub fn write_geotiff_f32(
     path: &Path,
     width: usize,
@@ -348,12 +348,26 @@ pub fn write_geotiff_f32(
     georef: Option<&Georef>,
     nodata: Option<f64>,
 ) -> Result<(), Error> {
+    let bytes = geotiff_f32(width, height, values, georef, nodata).map_err(|e| match e {
+        Error::Output(m) => Error::Output(format!("{}: {m}", path.display())),
+        e => e,
+    })?;
+    crate::asset::write_atomic(path, &bytes)
+}
+
+/// A float32 GeoTIFF in memory, with georeference and nodata tags when given.
+pub fn geotiff_f32(
+    width: usize,
+    height: usize,
+    values: &[f32],
+    georef: Option<&Georef>,
+    nodata: Option<f64>,
+) -> Result<Vec<u8>, Error> {
     use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
     use tiff::tags::Tag;
-    let err = |e: tiff::TiffError| Error::Output(format!("{}: {e}", path.display()));
-    let file = std::fs::File::create(path)
-        .map_err(|e| Error::Output(format!("{}: {e}", path.display())))?;
-    let mut enc = TiffEncoder::new(std::io::BufWriter::new(file)).map_err(err)?;
+    let err = |e: tiff::TiffError| Error::Output(format!("GeoTIFF: {e}"));
+    let mut out = std::io::Cursor::new(Vec::new());
+    let mut enc = TiffEncoder::new(&mut out).map_err(err)?;
     let mut img = enc
         .new_image::<Gray32Float>(width as u32, height as u32)
         .map_err(err)?;
@@ -404,5 +418,6 @@ pub fn write_geotiff_f32(
             .write_tag(Tag::GdalNodata, format!("{nd}").as_str())
             .map_err(err)?;
     }
-    img.write_data(values).map_err(err)
+    img.write_data(values).map_err(err)?;
+    Ok(out.into_inner())
 }

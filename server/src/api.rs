@@ -75,6 +75,13 @@ pub struct Cached {
     error_bound: f32,
 }
 
+impl Cached {
+    /// Bytes it holds (its weight in the cache).
+    pub fn size(&self) -> usize {
+        self.body.len()
+    }
+}
+
 impl AppState {
     /// State over a store with default limits, a 256 MiB tile cache and one decoder per core.
     pub fn new(store: Store, public_url: String) -> AppState {
@@ -838,10 +845,16 @@ async fn region(
     }
     let (n, tolerance) = iterations_for(&state, &a, q.iterations)?;
     let format = q.format.as_deref().unwrap_or("png");
-    if !matches!(format, "png" | "f32") {
+    if format == "tif" && a.asset.meta.kind != AssetKind::HeightField {
         return Err(AppError::bad_request(
             "bad_format",
-            "format must be png or f32",
+            "GeoTIFF regions are for height fields (use png)",
+        ));
+    }
+    if !matches!(format, "png" | "f32" | "tif") {
+        return Err(AppError::bad_request(
+            "bad_format",
+            "format must be png, f32 or tif",
         ));
     }
     let (w, h) = (q.width, q.height);
@@ -872,8 +885,33 @@ async fn region(
         [(du / w as f64) as f32, (dv / h as f64) as f32]
     };
     let f32_out = format == "f32";
+    let tif_out = format == "tif";
+    // The GeoTIFF's georeference is the requested box (north-up, lon/lat for geographic assets).
+    let tif_georef = a
+        .asset
+        .meta
+        .georef
+        .as_ref()
+        .map(|g| fractile_proto::Georef {
+            epsg: g.epsg,
+            origin: [x0, y1],
+            pixel_size: [(x1 - x0) / w as f64, -(y1 - y0) / h as f64],
+        });
     let (ct, body, bound) = decode(&state, move || {
         let (channels, bound) = a.asset.sample(&pts, footprint, n, tolerance);
+        if tif_out {
+            let nodata = a.asset.meta.nodata;
+            let values: Vec<f32> = match nodata {
+                Some(nd) => channels[0]
+                    .iter()
+                    .map(|&v| if v.is_nan() { nd as f32 } else { v })
+                    .collect(),
+                None => channels[0].clone(),
+            };
+            return fractile_codec::raster::geotiff_f32(w, h, &values, tif_georef.as_ref(), nodata)
+                .map(|b| ("image/tiff", b, bound))
+                .map_err(|e| AppError::internal(e.to_string()));
+        }
         let (ct, body) = if f32_out {
             (
                 "application/octet-stream",
@@ -893,9 +931,9 @@ async fn region(
             };
             encoding::encode_raster(&a.asset.meta, &channels, w, h, fmt, None)
         };
-        (ct, body, bound)
+        Ok((ct, body, bound))
     })
-    .await?;
+    .await??;
     Ok((
         [
             (header::CONTENT_TYPE, ct.to_string()),

@@ -18,6 +18,40 @@ use tower_http::cors::{Any, CorsLayer};
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;
 
+/// Settings of `fractile.toml` (`fractile serve --config`); every key is optional. Command-line
+/// flags and `FRACTILE_*` environment variables override the file.
+#[derive(Debug, Default, serde::Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct FileConfig {
+    /// Asset directory.
+    pub assets: Option<PathBuf>,
+    /// Address to listen on.
+    pub bind: Option<SocketAddr>,
+    /// Public base URL for absolute links.
+    pub public_url: Option<String>,
+    /// Bearer token for PUT and DELETE.
+    pub write_token: Option<String>,
+    /// `Cache-Control` of tiles.
+    pub cache_control: Option<String>,
+    /// Largest upload, in MiB.
+    pub max_upload_mib: Option<usize>,
+    /// Most inverse steps a request may ask for.
+    pub max_iterations: Option<u32>,
+    /// Most requests in flight; more wait (and time out after 30 s).
+    pub max_concurrent_requests: Option<usize>,
+    /// Tile cache size in MiB.
+    pub tile_cache_mib: Option<u64>,
+}
+
+impl FileConfig {
+    /// Reads a TOML file; unknown keys are an error (a typo must not be ignored silently).
+    pub fn load(path: &std::path::Path) -> anyhow::Result<FileConfig> {
+        let text = std::fs::read_to_string(path)
+            .map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))?;
+        toml::from_str(&text).map_err(|e| anyhow::anyhow!("{}: {e}", path.display()))
+    }
+}
+
 /// How to run the server.
 pub struct ServeOptions {
     /// Asset directory; `None` serves the built-in demo assets.
@@ -28,6 +62,8 @@ pub struct ServeOptions {
     pub public_url: Option<String>,
     /// Bearer token for PUT and DELETE; writes are open without one.
     pub write_token: Option<String>,
+    /// Everything else the config file may set.
+    pub file: FileConfig,
 }
 
 /// The full application: API routes and middleware.
@@ -90,10 +126,27 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
         );
     }
     state.write_token = opts.write_token.clone();
+    if let Some(c) = &opts.file.cache_control {
+        state.cache_control = c.clone();
+    }
+    if let Some(m) = opts.file.max_upload_mib {
+        state.max_upload = m * 1024 * 1024;
+    }
+    if let Some(n) = opts.file.max_iterations {
+        state.limits.max_iterations = n.clamp(1, 256);
+    }
+    if let Some(m) = opts.file.tile_cache_mib {
+        state.cache = moka::sync::Cache::builder()
+            .weigher(|_k: &String, v: &Arc<api::Cached>| v.size().try_into().unwrap_or(u32::MAX))
+            .max_capacity(m * 1024 * 1024)
+            .build();
+    }
+    let concurrency = opts.file.max_concurrent_requests.unwrap_or(1024).max(1);
     let state = Arc::new(state);
     let listener = tokio::net::TcpListener::bind(opts.bind).await?;
     tracing::info!("listening on http://{}", listener.local_addr()?);
-    axum::serve(listener, app(state))
+    let app = app(state).layer(tower::limit::ConcurrencyLimitLayer::new(concurrency));
+    axum::serve(listener, app)
         .with_graceful_shutdown(shutdown())
         .await?;
     Ok(())

@@ -44,9 +44,14 @@ enum Command {
         /// Directory of `.fra` assets.
         #[arg(long, env = "FRACTILE_ASSETS")]
         assets: Option<PathBuf>,
-        /// Address to listen on.
-        #[arg(long, env = "FRACTILE_BIND", default_value = "127.0.0.1:8080")]
-        bind: std::net::SocketAddr,
+        /// Address to listen on [default: 127.0.0.1:8080].
+        #[arg(long, env = "FRACTILE_BIND")]
+        bind: Option<std::net::SocketAddr>,
+        /// A `fractile.toml` with any of: assets, bind, public_url, write_token, cache_control,
+        /// max_upload_mib, max_iterations, max_concurrent_requests, tile_cache_mib. Flags and
+        /// environment variables override it.
+        #[arg(long, env = "FRACTILE_CONFIG")]
+        config: Option<PathBuf>,
         /// Public base URL for absolute links in TileJSON (behind a proxy).
         #[arg(long, env = "FRACTILE_PUBLIC_URL")]
         public_url: Option<String>,
@@ -227,9 +232,10 @@ fn main() {
         Command::Serve {
             assets,
             bind,
+            config,
             public_url,
             write_token,
-        } => run_serve(assets, bind, public_url, write_token),
+        } => run_serve(assets, bind, config, public_url, write_token),
     };
     if let Err(e) = result {
         eprintln!("fractile: {e:#}");
@@ -239,7 +245,8 @@ fn main() {
 
 fn run_serve(
     assets: Option<PathBuf>,
-    bind: std::net::SocketAddr,
+    bind: Option<std::net::SocketAddr>,
+    config: Option<PathBuf>,
     public_url: Option<String>,
     write_token: Option<String>,
 ) -> Result<()> {
@@ -249,15 +256,23 @@ fn run_serve(
                 .unwrap_or_else(|_| tracing_subscriber::EnvFilter::new("info")),
         )
         .init();
+    let mut file = match &config {
+        Some(p) => fractile_server::FileConfig::load(p)?,
+        None => fractile_server::FileConfig::default(),
+    };
+    let opts = fractile_server::ServeOptions {
+        assets: assets.or(file.assets.take()),
+        bind: bind
+            .or(file.bind)
+            .unwrap_or_else(|| "127.0.0.1:8080".parse().expect("address")),
+        public_url: public_url.or(file.public_url.take()),
+        write_token: write_token.or(file.write_token.take()),
+        file,
+    };
     let rt = tokio::runtime::Builder::new_multi_thread()
         .enable_all()
         .build()?;
-    rt.block_on(fractile_server::serve(fractile_server::ServeOptions {
-        assets,
-        bind,
-        public_url,
-        write_token,
-    }))
+    rt.block_on(fractile_server::serve(opts))
 }
 
 fn run_encode(a: EncodeArgs) -> Result<()> {

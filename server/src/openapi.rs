@@ -74,7 +74,7 @@ pub fn document() -> Value {
             "/v1/assets/{id}/region": {"get": {"summary": "A window at any resolution", "parameters": [id,
                     param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (lon/lat, or unit coordinates)"),
                     param("width", "query", json!({"type": "integer"}), "pixels"), param("height", "query", json!({"type": "integer"}), "pixels"),
-                    iterations.clone(), param("format", "query", json!({"enum": ["png", "f32"]}), "output")],
+                    iterations.clone(), param("format", "query", json!({"enum": ["png", "f32", "tif"]}), "output (tif: float32 GeoTIFF of heights)")],
                 "responses": {"200": {"description": "image or float32 samples"}, "400": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/mesh": {"get": {"summary": "Terrain mesh of a region (regular grid)", "parameters": [id,
                     param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (default: the whole asset)"),

@@ -249,6 +249,32 @@ async fn regions_at_any_resolution() {
     assert_eq!(s, StatusCode::OK);
     assert_eq!(h[header::CONTENT_TYPE], "image/png");
     assert_eq!(image::load_from_memory(&b).unwrap().height(), 128);
+    // A float GeoTIFF of heights, georeferenced to the box: readable by our own reader.
+    let (s, h, b) = get(
+        "/v1/assets/jacksboro/region?bbox=-84.3,36.5,-84.2,36.6&width=100&height=80&format=tif",
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(h[header::CONTENT_TYPE], "image/tiff");
+    let path = std::env::temp_dir().join(format!("fractile-region-{}.tif", std::process::id()));
+    std::fs::write(&path, &b).unwrap();
+    let r = Raster::open(&path).unwrap();
+    assert_eq!((r.width, r.height), (100, 80));
+    let g = r.georef.unwrap();
+    assert!(
+        (g.origin[0] + 84.3).abs() < 1e-9
+            && (g.origin[1] - 36.6).abs() < 1e-9
+            && (g.pixel_size[0] - 0.001).abs() < 1e-12
+    );
+    let m = &state().store.get("jacksboro").unwrap().asset.meta;
+    let (lo, hi) = (m.value_min as f32 - 50.0, m.value_max as f32 + 50.0);
+    assert!(
+        r.channels[0].iter().all(|v| (lo..hi).contains(v)),
+        "heights in metres within {lo}..{hi}"
+    );
+    let (s, _, _) =
+        get("/v1/assets/camera/region?bbox=0,0,1,1&width=10&height=10&format=tif").await;
+    assert_eq!(s, StatusCode::BAD_REQUEST);
 }
 
 #[tokio::test]
@@ -769,4 +795,28 @@ async fn global_tiles_join_across_the_antimeridian() {
             "z{z}: jump across +-180 {seam_max} m, largest inside {inside_max} m"
         );
     }
+}
+
+#[test]
+fn config_files_parse_and_reject_typos() {
+    let dir = std::env::temp_dir().join(format!("fractile-config-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let good = dir.join("fractile.toml");
+    std::fs::write(
+        &good,
+        "bind = \"127.0.0.1:9999\"\nmax_iterations = 20\ncache_control = \"public, max-age=60\"\n",
+    )
+    .unwrap();
+    let c = fractile_server::FileConfig::load(&good).unwrap();
+    assert_eq!(c.bind.unwrap().port(), 9999);
+    assert_eq!(c.max_iterations, Some(20));
+    let bad = dir.join("typo.toml");
+    std::fs::write(&bad, "max_iteration = 20\n").unwrap();
+    let e = fractile_server::FileConfig::load(&bad)
+        .unwrap_err()
+        .to_string();
+    assert!(
+        e.contains("max_iteration") && e.contains("typo.toml"),
+        "{e}"
+    );
 }
