@@ -127,7 +127,13 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/assets/{id}/tiles/{z}/{x}/{tile}", get(tile))
         .route("/v1/assets/{id}/point", get(point_unit))
         .route("/v1/assets/{id}/point/{coords}", get(point_lonlat))
-        .route("/v1/assets/{id}/points", post(points))
+        // A full batch in JSON is about 40 bytes a point: room for the point limit, and more.
+        .route(
+            "/v1/assets/{id}/points",
+            post(points).layer(axum::extract::DefaultBodyLimit::max(
+                64 * state.limits.max_points.max(1),
+            )),
+        )
         .route("/v1/assets/{id}/region", get(region))
         .route("/v1/assets/{id}/mesh", get(mesh))
         .with_state(state)

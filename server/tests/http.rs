@@ -542,6 +542,50 @@ async fn point_batches_in_bincode_answer_the_same_as_json() {
     assert_eq!(from_bin, from_json);
     assert!(from_bin.results[2].outside && from_bin.results[2].values.is_none());
     assert!(from_bin.results[0].values.as_ref().unwrap()[0].unwrap() > 0.0);
+    // A batch at the point limit in JSON (several MB) is accepted; one over it is refused.
+    let many: Vec<[f64; 2]> = (0..100_000)
+        .map(|i| {
+            [
+                (i as f64 * 0.618_033_988_7) % 1.0,
+                (i as f64 * 0.414_213_562_3) % 1.0,
+            ]
+        })
+        .collect();
+    let big = serde_json::to_vec(&PointsRequest {
+        points: many.clone(),
+        iterations: Some(4),
+    })
+    .unwrap();
+    assert!(big.len() > 2_000_000);
+    let (s, _, b) = send(
+        Request::post("/v1/assets/camera/points")
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(big))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(
+        s,
+        StatusCode::OK,
+        "{}",
+        String::from_utf8_lossy(&b[..b.len().min(200)])
+    );
+    let mut over = many;
+    over.push([0.5, 0.5]);
+    let body = serde_json::to_vec(&PointsRequest {
+        points: over,
+        iterations: Some(4),
+    })
+    .unwrap();
+    let (s, _, b) = send(
+        Request::post("/v1/assets/camera/points")
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(body))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE);
+    assert_eq!(json(&b)["code"], "too_many_points");
     // Garbage in the binary form is a 400, not a panic.
     let junk = Request::post("/v1/assets/camera/points")
         .header(header::CONTENT_TYPE, BINARY_MEDIA_TYPE)
