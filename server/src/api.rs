@@ -697,6 +697,31 @@ async fn answer_points(
     .await
 }
 
+/// `minx,miny,maxx,maxy` with max > min.
+fn parse_bbox(b: &str) -> Result<[f64; 4], AppError> {
+    let v: Vec<f64> = b.split(',').filter_map(|s| s.trim().parse().ok()).collect();
+    match v[..] {
+        [x0, y0, x1, y1] if x1 > x0 && y1 > y0 => Ok([x0, y0, x1, y1]),
+        _ => Err(AppError::bad_request(
+            "bad_bbox",
+            "bbox must be minx,miny,maxx,maxy with max > min",
+        )),
+    }
+}
+
+/// Size in unit coordinates of one of `w x h` cells over a box given in request coordinates
+/// (lon/lat for georeferenced assets, unit coordinates otherwise).
+fn pixel_footprint(a: &StoredAsset, [x0, y0, x1, y1]: [f64; 4], w: usize, h: usize) -> [f32; 2] {
+    let (du, dv) = match a.placement {
+        Some(p) => {
+            let d = p.degrees_per_unit();
+            ((x1 - x0) / d[0], (y1 - y0) / d[1])
+        }
+        None => (x1 - x0, y1 - y0),
+    };
+    [(du / w.max(1) as f64) as f32, (dv / h.max(1) as f64) as f32]
+}
+
 #[derive(Deserialize)]
 struct MeshQuery {
     bbox: Option<String>,
@@ -735,18 +760,7 @@ async fn mesh(
         ));
     }
     let [x0, y0, x1, y1] = match &q.bbox {
-        Some(b) => {
-            let v: Vec<f64> = b.split(',').filter_map(|s| s.trim().parse().ok()).collect();
-            match v[..] {
-                [a0, b0, a1, b1] if a1 > a0 && b1 > b0 => [a0, b0, a1, b1],
-                _ => {
-                    return Err(AppError::bad_request(
-                        "bad_bbox",
-                        "bbox must be minx,miny,maxx,maxy with max > min",
-                    ));
-                }
-            }
-        }
+        Some(b) => parse_bbox(b)?,
         None => match a.placement {
             Some(p) => p.bounds(),
             None => [0.0, 0.0, 1.0, 1.0],
@@ -770,14 +784,7 @@ async fn mesh(
             "the box is outside the asset",
         ));
     }
-    let (du, dv) = match a.placement {
-        Some(p) => {
-            let d = p.degrees_per_unit();
-            ((x1 - x0) / d[0], (y1 - y0) / d[1])
-        }
-        None => (x1 - x0, y1 - y0),
-    };
-    let footprint = [(du / (n - 1) as f64) as f32, (dv / (n - 1) as f64) as f32];
+    let footprint = pixel_footprint(&a, [x0, y0, x1, y1], n - 1, n - 1);
     let (extent_x, extent_y) = if geo_ref {
         let m = geo::metres_per_degree(0.5 * (y0 + y1));
         ((x1 - x0) * m[0], (y1 - y0) * m[1])
@@ -820,23 +827,7 @@ async fn region(
     Query(q): Query<RegionQuery>,
 ) -> Result<Response, AppError> {
     let a = state.store.get(&id)?;
-    let b: Vec<f64> = q
-        .bbox
-        .split(',')
-        .filter_map(|s| s.trim().parse().ok())
-        .collect();
-    let [x0, y0, x1, y1] = b[..] else {
-        return Err(AppError::bad_request(
-            "bad_bbox",
-            "bbox must be minx,miny,maxx,maxy",
-        ));
-    };
-    if !(x1 > x0 && y1 > y0) {
-        return Err(AppError::bad_request(
-            "bad_bbox",
-            "bbox must have maxx > minx and maxy > miny",
-        ));
-    }
+    let [x0, y0, x1, y1] = parse_bbox(&q.bbox)?;
     if q.width == 0
         || q.height == 0
         || q.width.saturating_mul(q.height) > state.limits.max_region_pixels
@@ -880,16 +871,7 @@ async fn region(
             unit_of(&a, c)
         })
         .collect();
-    let footprint = {
-        let (du, dv) = match a.placement {
-            Some(p) => {
-                let d = p.degrees_per_unit();
-                ((x1 - x0) / d[0], (y1 - y0) / d[1])
-            }
-            None => (x1 - x0, y1 - y0),
-        };
-        [(du / w as f64) as f32, (dv / h as f64) as f32]
-    };
+    let footprint = pixel_footprint(&a, [x0, y0, x1, y1], w, h);
     let f32_out = format == "f32";
     let tif_out = format == "tif";
     // The GeoTIFF's georeference is the requested box (north-up, lon/lat for geographic assets).
