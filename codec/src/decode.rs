@@ -123,16 +123,6 @@ pub fn points<const D: usize, O: Operator<D> + ?Sized>(
     out
 }
 
-/// Iterations enough for the a-priori bound of [`point`] to fall under `tolerance` (normalised),
-/// using the largest |s| of the operator; capped at `cap`.
-pub fn iterations_for_bound(max_contrast: f32, half_width: f32, tolerance: f32, cap: u32) -> u32 {
-    if half_width <= tolerance || max_contrast <= 0.0 {
-        return 1;
-    }
-    let n = ((tolerance / half_width).ln() / max_contrast.ln()).ceil();
-    (n.max(1.0) as u32).min(cap)
-}
-
 /// A decoded grid (normalised values), row-major.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Grid {
@@ -492,12 +482,5 @@ mod tests {
                 "{single:?} {b:?}"
             );
         }
-    }
-
-    #[test]
-    fn iterations_for_bound_is_enough() {
-        let n = iterations_for_bound(0.9, 0.5, 0.001, 100);
-        assert!(0.9f32.powi(n as i32) * 0.5 <= 0.001);
-        assert!(0.9f32.powi(n as i32 - 1) * 0.5 > 0.001);
     }
 }

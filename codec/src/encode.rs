@@ -303,7 +303,7 @@ pub fn encode(
         })
         .collect();
 
-    let total: u64 = headers.iter().map(|h| Pyramid::work(h, None)).sum();
+    let total: u64 = headers.iter().map(|h| Pyramid::work(h)).sum();
     let done = std::sync::atomic::AtomicU64::new(0);
     let tick = |k: u64| {
         let d = done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
@@ -314,7 +314,7 @@ pub fn encode(
     let pyramids: Vec<Pyramid> = planes
         .iter()
         .zip(&headers)
-        .map(|(p, h)| Pyramid::build(p, h.clone(), settings.search, None, &tick))
+        .map(|(p, h)| Pyramid::build(p, h.clone(), settings.search, &tick))
         .collect();
     progress(total, total);
 

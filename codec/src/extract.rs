@@ -2,7 +2,7 @@
 //! brought back to source terms — value units, RGB from YCbCr, nodata where the source had none.
 //! This is what the CLI and the server call.
 
-use fractile_proto::{AssetKind, ColourModel, SampleFormat};
+use fractile_proto::{ColourModel, SampleFormat};
 use rayon::prelude::*;
 
 use crate::asset::Asset;
@@ -68,15 +68,6 @@ impl Asset {
         } else {
             b
         }
-    }
-
-    /// Iterations for the a-priori bound to fall under `tolerance` (source units), capped.
-    pub fn iterations_for(&self, tolerance: f32, cap: u32) -> u32 {
-        let mut n = 1;
-        while n < cap && self.bound_after(n) > tolerance {
-            n += 1;
-        }
-        n
     }
 
     /// Brings normalised planes sampled at unit points back to source units.
@@ -319,10 +310,5 @@ impl Asset {
             }
         };
         (channels, bound)
-    }
-
-    /// Whether the asset is a height field.
-    pub fn is_height_field(&self) -> bool {
-        self.meta.kind == AssetKind::HeightField
     }
 }

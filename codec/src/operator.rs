@@ -299,11 +299,6 @@ impl QuadtreeOperator {
         let y = ((p[1] * self.inv_cell) as usize).min(self.lut_rows - 1);
         self.lut[y * self.lut_cols + x] as usize
     }
-
-    /// Frame size in samples (integer form of [`Operator::frame`]).
-    pub fn frame_size(&self) -> [u32; 2] {
-        self.frame
-    }
 }
 
 impl Operator<2> for QuadtreeOperator {

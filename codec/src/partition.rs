@@ -31,12 +31,12 @@ pub struct Pyramid {
 pub type Limits<'a> = &'a (dyn Fn(usize, usize, usize) -> (f32, usize) + Sync);
 
 impl Pyramid {
-    /// Fits all blocks. `levels_wanted` restricts work to those levels (const-range mode).
+    /// Fits every inside block of every level (const-range mode has a single level), calling
+    /// `progress(1)` per block.
     pub fn build(
         plane: &CodingPlane,
         header: PlaneHeader,
         mode: SearchMode,
-        only_level: Option<usize>,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Pyramid {
         let avg2 = plane.average2();
@@ -46,10 +46,6 @@ impl Pyramid {
             let n = header.size(l);
             let (c, r) = ((plane.width).div_ceil(n), (plane.height).div_ceil(n));
             cols.push(c);
-            if only_level.is_some_and(|o| o != l) {
-                fits.push(vec![None; c * r]);
-                continue;
-            }
             let pool = DomainPool::new(
                 plane,
                 &avg2,
@@ -74,10 +70,9 @@ impl Pyramid {
         Pyramid { header, fits, cols }
     }
 
-    /// Number of inside blocks over the levels that will be fitted (for progress bars).
-    pub fn work(header: &PlaneHeader, only_level: Option<usize>) -> u64 {
+    /// Number of inside blocks over all levels (for progress bars).
+    pub fn work(header: &PlaneHeader) -> u64 {
         (0..header.levels as usize)
-            .filter(|&l| only_level.is_none_or(|o| o == l))
             .map(|l| {
                 let n = header.size(l);
                 ((header.frame[0] as usize / n) * (header.frame[1] as usize / n)) as u64

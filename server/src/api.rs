@@ -13,9 +13,7 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use fractile_codec::geo;
-use fractile_proto::{
-    AssetKind, BINARY_MEDIA_TYPE, ColourModel, PointResult, PointsRequest, PointsResponse,
-};
+use fractile_proto::{AssetKind, BINARY_MEDIA_TYPE, PointResult, PointsRequest, PointsResponse};
 use serde::Deserialize;
 use serde_json::{Value, json};
 use tokio::sync::Semaphore;
@@ -930,11 +928,6 @@ async fn region(
         body,
     )
         .into_response())
-}
-
-/// Tells whether a colour model has three channels (used by encodings).
-pub fn is_colour(m: &fractile_proto::AssetMeta) -> bool {
-    m.colour == ColourModel::YCbCr
 }
 
 /// The default request timeout.
