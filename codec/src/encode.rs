@@ -303,7 +303,7 @@ pub fn encode(
         })
         .collect();
 
-    let total: u64 = headers.iter().map(|h| Pyramid::work(h)).sum();
+    let total: u64 = headers.iter().map(Pyramid::work).sum();
     let done = std::sync::atomic::AtomicU64::new(0);
     let tick = |k: u64| {
         let d = done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
