@@ -4,9 +4,11 @@
 //! so the serializer (bincode 2.0 today, see its note) can be swapped by editing one file.
 
 pub mod asset;
+pub mod catalog;
 pub mod points;
 pub mod wire;
 
 pub use asset::*;
+pub use catalog::*;
 pub use points::*;
 pub use wire::{WireError, decode, encode};

@@ -13,6 +13,10 @@ pub struct PointsRequest {
     pub points: Vec<[f64; 2]>,
     /// Inverse steps; the server's default (enough for half a quantisation step) when absent.
     pub iterations: Option<u32>,
+    /// Value units: each point stops once its own error bound is under it (within
+    /// `iterations`, or the server's limit).
+    #[serde(default)]
+    pub tolerance: Option<f32>,
 }
 
 /// The value of an asset at one point.

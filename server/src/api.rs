@@ -13,9 +13,11 @@ use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use axum::{Json, Router};
 use fractile_codec::geo;
-use fractile_proto::{AssetKind, BINARY_MEDIA_TYPE, PointResult, PointsRequest, PointsResponse};
+use fractile_proto::{
+    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, PointResult, PointsRequest,
+    PointsResponse, TileJson,
+};
 use serde::Deserialize;
-use serde_json::{Value, json};
 use tokio::sync::Semaphore;
 
 use crate::encoding::{self, HeightEncoding};
@@ -155,32 +157,41 @@ async fn decode<T: Send + 'static>(
     out
 }
 
-fn summary(state: &AppState, a: &StoredAsset) -> Value {
+fn summary(state: &AppState, a: &StoredAsset) -> AssetSummary {
     let m = &a.asset.meta;
-    json!({
-        "id": a.id,
-        "kind": format!("{:?}", m.kind),
-        "width": m.width, "height": m.height, "channels": m.channels,
-        "colour": format!("{:?}", m.colour),
-        "bounds": a.placement.map(|p| p.bounds()),
-        "georeferenced": a.placement.is_some(),
-        "value_range": [m.value_min, m.value_max],
-        "units": m.units,
-        "nodata": m.nodata,
-        "codec": "quadtree-pifs",
-        "bytes": a.bytes,
-        "ratio": m.source_bytes() as f64 / a.bytes as f64,
-        "transforms": m.stats.transforms,
-        "encode_psnr": m.stats.psnr,
-        "encode_rmse": m.stats.rmse,
-        "tilejson": format!("{}/v1/assets/{}/tilejson.json", state.public_url, a.id),
-    })
+    AssetSummary {
+        id: a.id.clone(),
+        kind: m.kind,
+        width: m.width,
+        height: m.height,
+        channels: m.channels,
+        colour: m.colour,
+        bounds: a.placement.map(|p| p.bounds()),
+        georeferenced: a.placement.is_some(),
+        value_range: [m.value_min, m.value_max],
+        units: m.units.clone(),
+        nodata: m.nodata,
+        codec: "quadtree-pifs".into(),
+        bytes: a.bytes,
+        ratio: m.source_bytes() as f64 / a.bytes as f64,
+        transforms: m.stats.transforms,
+        encode_psnr: m.stats.psnr,
+        encode_rmse: m.stats.rmse,
+        max_contrast: a.asset.max_contrast(),
+        seed_bound: a.asset.bound_after(0),
+        tilejson: format!("{}/v1/assets/{}/tilejson.json", state.public_url, a.id),
+    }
 }
 
-async fn list_assets(State(state): Shared) -> Json<Value> {
-    Json(
-        json!({"assets": state.store.list().iter().map(|a| summary(&state, a)).collect::<Vec<_>>()}),
-    )
+async fn list_assets(State(state): Shared) -> Json<Catalog> {
+    Json(Catalog {
+        assets: state
+            .store
+            .list()
+            .iter()
+            .map(|a| summary(&state, a))
+            .collect(),
+    })
 }
 
 fn authorise(state: &AppState, headers: &HeaderMap) -> Result<(), AppError> {
@@ -246,7 +257,10 @@ async fn delete_asset(
     Ok(StatusCode::NO_CONTENT)
 }
 
-async fn asset_info(State(state): Shared, Path(id): Path<String>) -> Result<Json<Value>, AppError> {
+async fn asset_info(
+    State(state): Shared,
+    Path(id): Path<String>,
+) -> Result<Json<AssetSummary>, AppError> {
     let a = state.store.get(&id)?;
     Ok(Json(summary(&state, &a)))
 }
@@ -266,7 +280,10 @@ fn native_zoom(a: &StoredAsset, tile_size: usize) -> u8 {
         .clamp(0.0, 22.0) as u8
 }
 
-async fn tilejson(State(state): Shared, Path(id): Path<String>) -> Result<Json<Value>, AppError> {
+async fn tilejson(
+    State(state): Shared,
+    Path(id): Path<String>,
+) -> Result<Json<TileJson>, AppError> {
     let a = state.store.get(&id)?;
     let heights = a.asset.meta.kind == AssetKind::HeightField;
     let (ext, query) = if heights {
@@ -284,21 +301,25 @@ async fn tilejson(State(state): Shared, Path(id): Path<String>) -> Result<Json<V
             n.min(geo::MAX_LATITUDE),
         ]
     });
-    Ok(Json(json!({
-        "tilejson": "3.0.0",
-        "name": a.id,
-        "tiles": [format!("{}/v1/assets/{}/tiles/{{z}}/{{x}}/{{y}}.{ext}{query}", state.public_url, a.id)],
-        "minzoom": 0,
-        "maxzoom": (native + 4).min(state.limits.max_zoom),
-        "bounds": bounds.unwrap_or([-180.0, -geo::MAX_LATITUDE, 180.0, geo::MAX_LATITUDE]),
-        "tileSize": 256,
-        "encoding": if heights { Some("terrarium") } else { None },
-    })))
+    Ok(Json(TileJson {
+        tilejson: "3.0.0".into(),
+        name: a.id.clone(),
+        tiles: vec![format!(
+            "{}/v1/assets/{}/tiles/{{z}}/{{x}}/{{y}}.{ext}{query}",
+            state.public_url, a.id
+        )],
+        minzoom: 0,
+        maxzoom: (native + 4).min(state.limits.max_zoom),
+        bounds: bounds.unwrap_or([-180.0, -geo::MAX_LATITUDE, 180.0, geo::MAX_LATITUDE]),
+        tile_size: 256,
+        encoding: heights.then(|| "terrarium".into()),
+    }))
 }
 
 #[derive(Deserialize)]
 struct TileQuery {
     iterations: Option<u32>,
+    tolerance: Option<f32>,
     tilesize: Option<usize>,
     encoding: Option<String>,
     rescale: Option<String>,
@@ -306,26 +327,41 @@ struct TileQuery {
     hillshade: Option<bool>,
 }
 
-/// Steps and per-point tolerance of a request: the steps asked for exactly, or by default up to
-/// the limit, each point stopping once its own bound is under half a quantisation step of the
-/// source (1 for integer samples, 1/65535 of the range for floats).
+/// Steps and per-point tolerance of a request. `iterations` alone: exactly that many steps.
+/// `tolerance` (value units): each point stops once its own a-priori bound is under it, within
+/// `iterations` or the limit. Neither: the tolerance is half a quantisation step of the source
+/// (1 for integer samples, 1/65535 of the range for floats).
 fn iterations_for(
     state: &AppState,
     a: &StoredAsset,
     asked: Option<u32>,
+    tolerance: Option<f32>,
 ) -> Result<(u32, f32), AppError> {
     let max = state.limits.max_iterations;
-    match asked {
-        Some(0) => Err(AppError::bad_request(
-            "bad_iterations",
-            "iterations must be at least 1",
+    let n = match asked {
+        Some(0) => {
+            return Err(AppError::bad_request(
+                "bad_iterations",
+                "iterations must be at least 1",
+            ));
+        }
+        Some(n) if n > max => {
+            return Err(AppError::bad_request(
+                "bad_iterations",
+                format!("iterations {n} over the limit {max}"),
+            ));
+        }
+        Some(n) => n,
+        None => max,
+    };
+    match (asked, tolerance) {
+        (_, Some(t)) if !(t.is_finite() && t > 0.0) => Err(AppError::bad_request(
+            "bad_tolerance",
+            "tolerance must be a positive number (value units)",
         )),
-        Some(n) if n > max => Err(AppError::bad_request(
-            "bad_iterations",
-            format!("iterations {n} over the limit {max}"),
-        )),
-        Some(n) => Ok((n, 0.0)),
-        None => {
+        (_, Some(t)) => Ok((n, t)),
+        (Some(n), None) => Ok((n, 0.0)),
+        (None, None) => {
             let m = &a.asset.meta;
             let step = match m.sample {
                 fractile_proto::SampleFormat::F32 => (m.value_max - m.value_min) / 65535.0,
@@ -424,7 +460,7 @@ async fn tile(
             ));
         }
     };
-    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations)?;
+    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
     let visual_heights = heights && ext == "png" && q.encoding.is_none();
     let colormap = match q.colormap.as_deref() {
         None => None,
@@ -465,8 +501,8 @@ async fn tile(
     }
     // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
     let key = format!(
-        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{size}&{:?}&{:?}&{:?}&{shade}",
-        a.hash, q.iterations, q.encoding, q.rescale, q.colormap
+        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{:?}&{size}&{:?}&{:?}&{:?}&{shade}",
+        a.hash, q.iterations, q.tolerance, q.encoding, q.rescale, q.colormap
     );
     let tag = etag(&a, &key);
     if not_modified(&headers, &tag) {
@@ -567,6 +603,7 @@ struct PointQuery {
     x: Option<f64>,
     y: Option<f64>,
     iterations: Option<u32>,
+    tolerance: Option<f32>,
 }
 
 async fn point_unit(
@@ -580,7 +617,7 @@ async fn point_unit(
             "give ?x=&y= in unit coordinates (or /point/{lon},{lat})",
         ));
     };
-    answer_points(&state, &id, vec![[x, y]], q.iterations, true)
+    answer_points(&state, &id, vec![[x, y]], (q.iterations, q.tolerance), true)
         .await
         .map(|mut v| Json(v.remove(0)))
 }
@@ -600,9 +637,15 @@ async fn point_lonlat(
             format!("expected lon,lat, got {coords:?}"),
         ));
     };
-    answer_points(&state, &id, vec![[lon, lat]], q.iterations, true)
-        .await
-        .map(|mut v| Json(v.remove(0)))
+    answer_points(
+        &state,
+        &id,
+        vec![[lon, lat]],
+        (q.iterations, q.tolerance),
+        true,
+    )
+    .await
+    .map(|mut v| Json(v.remove(0)))
 }
 
 async fn points(
@@ -633,7 +676,14 @@ async fn points(
             ),
         });
     }
-    let results = answer_points(&state, &id, req.points, req.iterations, false).await?;
+    let results = answer_points(
+        &state,
+        &id,
+        req.points,
+        (req.iterations, req.tolerance),
+        false,
+    )
+    .await?;
     let resp = PointsResponse { results };
     Ok(if binary {
         (
@@ -650,11 +700,11 @@ async fn answer_points(
     state: &Arc<AppState>,
     id: &str,
     coords: Vec<[f64; 2]>,
-    iterations: Option<u32>,
+    (iterations, tolerance): (Option<u32>, Option<f32>),
     single: bool,
 ) -> Result<Vec<PointResult>, AppError> {
     let a = state.store.get(id)?;
-    let (n, tolerance) = iterations_for(state, &a, iterations)?;
+    let (n, tolerance) = iterations_for(state, &a, iterations, tolerance)?;
     let units: Vec<Option<[f32; 2]>> = coords.iter().map(|&c| unit_of(&a, c)).collect();
     if single && units[0].is_none() {
         return Err(AppError::not_found(
@@ -725,6 +775,7 @@ struct MeshQuery {
     bbox: Option<String>,
     resolution: Option<usize>,
     iterations: Option<u32>,
+    tolerance: Option<f32>,
     format: Option<String>,
 }
 
@@ -764,7 +815,7 @@ async fn mesh(
             None => [0.0, 0.0, 1.0, 1.0],
         },
     };
-    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations)?;
+    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
     let geo_ref = a.placement.is_some();
     // Vertex (i, j): i east, j south, corners included.
     let at = |i: usize, j: usize| {
@@ -793,21 +844,32 @@ async fn mesh(
         )
     };
     let body = decode(&state, move || {
-        let (channels, _) = a.asset.sample(&pts, footprint, iterations, tolerance);
+        let (channels, bound) = a.asset.sample(&pts, footprint, iterations, tolerance);
         let spacing = [
             (extent_x / (n - 1) as f64) as f32,
             (extent_y / (n - 1) as f64) as f32,
         ];
         let m =
             fractile_codec::mesh::Mesh::grid(&channels[0], n, n, [0.0, extent_y as f32], spacing);
-        match format.as_str() {
+        let (ct, body) = match format.as_str() {
             "obj" => ("text/plain", m.to_obj()),
             "ply" => ("application/octet-stream", m.to_ply()),
             _ => ("model/gltf-binary", m.to_glb()),
-        }
+        };
+        (ct, body, bound)
     })
     .await?;
-    Ok(([(header::CONTENT_TYPE, body.0)], body.1).into_response())
+    Ok((
+        [
+            (header::CONTENT_TYPE, body.0.to_string()),
+            (
+                "x-error-bound".parse().expect("name"),
+                format!("{}", body.2),
+            ),
+        ],
+        body.1,
+    )
+        .into_response())
 }
 
 #[derive(Deserialize)]
@@ -816,6 +878,7 @@ struct RegionQuery {
     width: usize,
     height: usize,
     iterations: Option<u32>,
+    tolerance: Option<f32>,
     format: Option<String>,
 }
 
@@ -838,7 +901,7 @@ async fn region(
             ),
         ));
     }
-    let (n, tolerance) = iterations_for(&state, &a, q.iterations)?;
+    let (n, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
     let format = q.format.as_deref().unwrap_or("png");
     if format == "tif" && a.asset.meta.kind != AssetKind::HeightField {
         return Err(AppError::bad_request(

@@ -110,7 +110,9 @@ pub fn encode_raster(
                         w,
                         h,
                         image::ExtendedColorType::L16,
-                        &g.iter().flat_map(|v| v.to_be_bytes()).collect::<Vec<_>>(),
+                        // image's encoders take 16-bit samples in native byte order (PNG stores them
+                        // big-endian; the encoder swaps).
+                        &g.iter().flat_map(|v| v.to_ne_bytes()).collect::<Vec<_>>(),
                     ),
                 );
             }

@@ -45,7 +45,10 @@ impl AppError {
 
 impl IntoResponse for AppError {
     fn into_response(self) -> Response {
-        let body = Json(serde_json::json!({"detail": self.detail, "code": self.code}));
+        let body = Json(fractile_proto::ErrorBody {
+            detail: self.detail,
+            code: self.code.into(),
+        });
         (self.status, body).into_response()
     }
 }

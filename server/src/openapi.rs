@@ -27,7 +27,13 @@ pub fn document() -> Value {
         "iterations",
         "query",
         json!({"type": "integer", "minimum": 1, "maximum": 64}),
-        "Inverse steps (default: enough for the error bound to fall under half a quantisation step)",
+        "Most inverse steps (default: the server's limit)",
+    );
+    let tolerance = param(
+        "tolerance",
+        "query",
+        json!({"type": "number", "exclusiveMinimum": 0}),
+        "Error bound wanted, value units: each point stops once its own bound is under it (default: half a quantisation step of the source)",
     );
     let mut ok_tile = error_responses();
     ok_tile["200"] = json!({"description": "The tile", "headers": {"X-Error-Bound": {"schema": {"type": "number"}, "description": "A-priori bound on the error, value units"}, "ETag": {"schema": {"type": "string"}}}, "content": {"image/png": {}, "application/octet-stream": {}}});
@@ -58,15 +64,16 @@ pub fn document() -> Value {
                     param("y", "path", json!({"type": "integer"}), "Row (from the north)"),
                     param("format", "path", json!({"enum": ["png", "f32"]}), "png, or f32 (little-endian float32 heights)"),
                     iterations.clone(),
+                    tolerance.clone(),
                     param("tilesize", "query", json!({"enum": [256, 512]}), "Tile size"),
                     param("encoding", "query", json!({"enum": ["terrainrgb", "terrarium", "gray16"]}), "Height packing (MapLibre's formulas)"),
                     param("rescale", "query", json!({"type": "string"}), "min,max for visual PNGs of heights"),
                     param("colormap", "query", json!({"enum": ["gray", "terrain", "viridis"]}), "Colour ramp for visual PNGs of heights"),
                     param("hillshade", "query", json!({"type": "boolean"}), "Hillshade visual PNGs of heights (sun at 315 degrees, 45 degrees up)")],
                 "responses": ok_tile}},
-            "/v1/assets/{id}/point": {"get": {"summary": "Value at a unit point (non-georeferenced assets)", "parameters": [id, param("x", "query", json!({"type": "number"}), "0..1"), param("y", "query", json!({"type": "number"}), "0..1"), iterations.clone()],
+            "/v1/assets/{id}/point": {"get": {"summary": "Value at a unit point (non-georeferenced assets)", "parameters": [id, param("x", "query", json!({"type": "number"}), "0..1"), param("y", "query", json!({"type": "number"}), "0..1"), iterations.clone(), tolerance.clone()],
                 "responses": {"200": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointResult"}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
-            "/v1/assets/{id}/point/{coords}": {"get": {"summary": "Value at lon,lat", "parameters": [id, param("coords", "path", json!({"type": "string"}), "lon,lat"), iterations.clone()],
+            "/v1/assets/{id}/point/{coords}": {"get": {"summary": "Value at lon,lat", "parameters": [id, param("coords", "path", json!({"type": "string"}), "lon,lat"), iterations.clone(), tolerance.clone()],
                 "responses": {"200": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointResult"}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/points": {"post": {"summary": "Values at many points, in order (JSON or application/x-bincode)", "parameters": [id],
                 "requestBody": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointsRequest"}}, "application/x-bincode": {}}},
@@ -74,12 +81,12 @@ pub fn document() -> Value {
             "/v1/assets/{id}/region": {"get": {"summary": "A window at any resolution", "parameters": [id,
                     param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (lon/lat, or unit coordinates)"),
                     param("width", "query", json!({"type": "integer"}), "pixels"), param("height", "query", json!({"type": "integer"}), "pixels"),
-                    iterations.clone(), param("format", "query", json!({"enum": ["png", "f32", "tif"]}), "output (tif: float32 GeoTIFF of heights)")],
+                    iterations.clone(), tolerance.clone(), param("format", "query", json!({"enum": ["png", "f32", "tif"]}), "output (tif: float32 GeoTIFF of heights)")],
                 "responses": {"200": {"description": "image or float32 samples"}, "400": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/mesh": {"get": {"summary": "Terrain mesh of a region (regular grid)", "parameters": [id,
                     param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (default: the whole asset)"),
                     param("resolution", "query", json!({"type": "integer", "minimum": 2, "maximum": 2048}), "vertices a side"),
-                    iterations, param("format", "query", json!({"enum": ["obj", "ply", "glb"]}), "file format")],
+                    iterations, tolerance, param("format", "query", json!({"enum": ["obj", "ply", "glb"]}), "file format")],
                 "responses": {"200": {"description": "mesh file"}, "400": {"$ref": "#/components/responses/Error"}}}}
         },
         "components": {
@@ -87,7 +94,7 @@ pub fn document() -> Value {
             "responses": {"Error": {"description": "An error", "content": {"application/json": {"schema": {"type": "object", "required": ["detail", "code"], "properties": {"detail": {"type": "string"}, "code": {"type": "string"}}}}}}},
             "schemas": {
                 "AssetSummary": {"type": "object", "properties": {"id": {"type": "string"}, "kind": {"enum": ["Image", "HeightField", "Volume", "Curve"]}, "width": {"type": "integer"}, "height": {"type": "integer"}, "bounds": {"type": ["array", "null"]}, "value_range": {"type": "array"}, "units": {"type": ["string", "null"]}, "codec": {"type": "string"}, "bytes": {"type": "integer"}, "ratio": {"type": "number"}}},
-                "PointsRequest": {"type": "object", "required": ["points"], "properties": {"points": {"type": "array", "items": {"type": "array", "minItems": 2, "maxItems": 2}}, "iterations": {"type": ["integer", "null"]}}},
+                "PointsRequest": {"type": "object", "required": ["points"], "properties": {"points": {"type": "array", "items": {"type": "array", "minItems": 2, "maxItems": 2}}, "iterations": {"type": ["integer", "null"]}, "tolerance": {"type": ["number", "null"]}}},
                 "PointResult": {"type": "object", "properties": {"coordinates": {"type": "array"}, "values": {"type": ["array", "null"]}, "error_bound": {"type": ["number", "null"]}, "iterations": {"type": "integer"}, "outside": {"type": "boolean"}}}
             }
         }

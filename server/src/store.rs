@@ -34,13 +34,7 @@ pub struct Store {
 /// Checks an asset id: 1-64 characters of letters, digits, `-` and `_`, not starting with `-`
 /// or `_` (so no paths, no `..`, no hidden files).
 pub fn validate_id(id: &str) -> Result<(), AppError> {
-    let ok = !id.is_empty()
-        && id.len() <= 64
-        && id
-            .chars()
-            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
-        && id.chars().next().is_some_and(|c| c.is_ascii_alphanumeric());
-    if ok {
+    if fractile_proto::valid_asset_id(id) {
         Ok(())
     } else {
         Err(AppError::bad_request(

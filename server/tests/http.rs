@@ -524,6 +524,7 @@ async fn point_batches_in_bincode_answer_the_same_as_json() {
     let req = PointsRequest {
         points: vec![[0.25, 0.5], [0.9, 0.1], [2.0, 2.0]],
         iterations: Some(12),
+        tolerance: None,
     };
     let bin = Request::post("/v1/assets/camera/points")
         .header(header::CONTENT_TYPE, BINARY_MEDIA_TYPE)
@@ -554,6 +555,7 @@ async fn point_batches_in_bincode_answer_the_same_as_json() {
     let big = serde_json::to_vec(&PointsRequest {
         points: many.clone(),
         iterations: Some(4),
+        tolerance: None,
     })
     .unwrap();
     assert!(big.len() > 2_000_000);
@@ -575,6 +577,7 @@ async fn point_batches_in_bincode_answer_the_same_as_json() {
     let body = serde_json::to_vec(&PointsRequest {
         points: over,
         iterations: Some(4),
+        tolerance: None,
     })
     .unwrap();
     let (s, _, b) = send(

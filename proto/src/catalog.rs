@@ -1,0 +1,119 @@
+//! The catalog: what `GET /v1/assets` and `GET /v1/assets/{id}` answer, the TileJSON document,
+//! and the error body every failing request carries. The server writes these types and the
+//! client reads them, so the two cannot drift apart.
+
+use serde::{Deserialize, Serialize};
+
+use crate::asset::{AssetKind, ColourModel};
+
+/// Whether `id` can name an asset: 1 to 64 ASCII letters, digits, `-` or `_`, starting with a
+/// letter or digit. Ids become file names and URL path segments, so nothing else (no `.`, no
+/// `/`) is allowed: no path can escape the asset folder or be rewritten by URL normalisation.
+pub fn valid_asset_id(id: &str) -> bool {
+    !id.is_empty()
+        && id.len() <= 64
+        && id
+            .chars()
+            .all(|c| c.is_ascii_alphanumeric() || c == '-' || c == '_')
+        && id.chars().next().is_some_and(|c| c.is_ascii_alphanumeric())
+}
+
+/// One asset as the catalog describes it.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct AssetSummary {
+    /// The asset's id (its file name without `.fractile`).
+    pub id: String,
+    /// What it depicts.
+    pub kind: AssetKind,
+    /// Width of the source grid in samples.
+    pub width: u32,
+    /// Height of the source grid in samples.
+    pub height: u32,
+    /// Channels of the source.
+    pub channels: u8,
+    /// How the channels map to colour.
+    pub colour: ColourModel,
+    /// `[west, south, east, north]` in degrees for georeferenced assets.
+    pub bounds: Option<[f64; 4]>,
+    /// Whether requests take lon/lat (true) or unit coordinates (false).
+    pub georeferenced: bool,
+    /// `[min, max]` of the valid source values.
+    pub value_range: [f64; 2],
+    /// Units of the values (`m` for DEMs), when known.
+    pub units: Option<String>,
+    /// The source's nodata value, when it had one.
+    pub nodata: Option<f64>,
+    /// The codec that made the asset.
+    pub codec: String,
+    /// Size of the asset file in bytes.
+    pub bytes: u64,
+    /// Compression ratio against the source at its own sample type.
+    pub ratio: f64,
+    /// Number of affine maps.
+    pub transforms: u64,
+    /// PSNR the encoder measured (dB).
+    pub encode_psnr: f64,
+    /// RMS error the encoder measured (value units).
+    pub encode_rmse: f64,
+    /// Largest |contrast| of the operator: the a-priori error bound after n steps is at most
+    /// `seed_bound * max_contrast^n`, which lets a client choose n for a tolerance.
+    pub max_contrast: f32,
+    /// A-priori error bound of the seed (n = 0), value units.
+    pub seed_bound: f32,
+    /// Absolute URL of the asset's TileJSON.
+    pub tilejson: String,
+}
+
+impl AssetSummary {
+    /// Fewest steps after which the a-priori bound is under `tolerance` everywhere (`None` if
+    /// the operator does not contract, which a valid asset never does).
+    pub fn iterations_for(&self, tolerance: f32) -> Option<u32> {
+        if self.seed_bound <= tolerance {
+            return Some(0);
+        }
+        if !(self.max_contrast > 0.0 && self.max_contrast < 1.0 && tolerance > 0.0) {
+            return (self.max_contrast == 0.0).then_some(1);
+        }
+        let n = (tolerance / self.seed_bound).ln() / self.max_contrast.ln();
+        Some(n.ceil().max(1.0) as u32)
+    }
+}
+
+/// `GET /v1/assets`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Catalog {
+    /// Every asset, sorted by id.
+    pub assets: Vec<AssetSummary>,
+}
+
+/// A TileJSON 3.0.0 document (the fields the server writes).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct TileJson {
+    /// Always `3.0.0`.
+    pub tilejson: String,
+    /// The asset id.
+    pub name: String,
+    /// Tile URL templates with `{z}`, `{x}`, `{y}`.
+    pub tiles: Vec<String>,
+    /// Shallowest zoom.
+    pub minzoom: u8,
+    /// Deepest zoom worth asking (native zoom plus fractal detail).
+    pub maxzoom: u8,
+    /// `[west, south, east, north]` in degrees, clipped to Web Mercator.
+    pub bounds: [f64; 4],
+    /// Tile size in pixels.
+    #[serde(rename = "tileSize")]
+    pub tile_size: u32,
+    /// `terrarium` for height fields (MapLibre's raster-dem encoding), absent for images.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub encoding: Option<String>,
+}
+
+/// The body of every error answer: `{"detail": "...", "code": "..."}`.
+#[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct ErrorBody {
+    /// What went wrong, for people.
+    pub detail: String,
+    /// A stable machine code (`unknown_asset`, `bad_tile`, `too_many_points`, ...).
+    pub code: String,
+}
