@@ -1,3 +1,611 @@
-//! The fractile client. The HTTP client and progressive refinement arrive with issue 4; until then
-//! this crate only re-exports the wire types it will speak, so that its users can depend on it.
-pub use fractile_proto as proto;
+//! The thin client of a fractile server.
+//!
+//! It decodes no fractal: it asks the server for answers at a number of iterations and reads
+//! back the a-priori error bound the server returns with each one. What it adds is the loop on
+//! top of that ([`refine`]: more iterations until the answer stops changing, the bound is small
+//! enough, or time runs out), the choice of tiles for a camera ([`view`]), and a load generator
+//! ([`mod@bench`]). Every endpoint of the server is one typed method of [`Client`]; the wire types
+//! come from `fractile-proto`, which the server writes with.
+
+pub mod bench;
+mod error;
+pub mod refine;
+pub mod tile;
+pub mod view;
+
+use std::time::{Duration, Instant};
+
+pub use error::ClientError;
+pub use fractile_proto::{
+    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, ErrorBody, PointResult, PointsRequest,
+    PointsResponse, TileJson,
+};
+use reqwest::header;
+pub use tile::{Tile, TileAddress, TileEncoding, TileRequest};
+
+/// A server's base URL plus the credentials writes need.
+#[derive(Clone, Debug)]
+pub struct Client {
+    http: reqwest::Client,
+    base: String,
+    token: Option<String>,
+}
+
+/// How a points batch travels: JSON (readable) or proto's binary encoding (about 3x smaller and
+/// faster to parse for large batches).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PointsEncoding {
+    /// `application/json`.
+    #[default]
+    Json,
+    /// `application/x-bincode`.
+    Binary,
+}
+
+/// Format of a region answer.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum RegionFormat {
+    /// A visual PNG (heights as grey over their range).
+    #[default]
+    Png,
+    /// Little-endian float32 values, channel after channel, row-major, NaN for nodata.
+    F32,
+    /// A float32 GeoTIFF georeferenced to the box (height fields).
+    Tif,
+}
+
+impl RegionFormat {
+    fn name(self) -> &'static str {
+        match self {
+            RegionFormat::Png => "png",
+            RegionFormat::F32 => "f32",
+            RegionFormat::Tif => "tif",
+        }
+    }
+}
+
+/// A window of an asset sampled on a `width x height` grid of pixel centres.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RegionRequest {
+    /// `[minx, miny, maxx, maxy]`: lon/lat for georeferenced assets, unit coordinates otherwise.
+    pub bbox: [f64; 4],
+    /// Columns.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// Exactly this many steps (`None`: the server's default).
+    pub iterations: Option<u32>,
+    /// Per-point stopping tolerance in value units.
+    pub tolerance: Option<f32>,
+    /// Answer format.
+    pub format: RegionFormat,
+}
+
+/// A region as answered.
+#[derive(Clone, Debug)]
+pub struct Region {
+    /// Columns.
+    pub width: u32,
+    /// Rows.
+    pub height: u32,
+    /// The body as the server sent it (PNG, float32 or GeoTIFF bytes).
+    pub body: Vec<u8>,
+    /// Per channel, `width * height` values, for [`RegionFormat::F32`] answers.
+    pub values: Option<Vec<Vec<f32>>>,
+    /// The server's a-priori error bound (value units).
+    pub error_bound: f32,
+}
+
+/// Format of a terrain mesh.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum MeshFormat {
+    /// Binary glTF.
+    #[default]
+    Glb,
+    /// Wavefront OBJ.
+    Obj,
+    /// Binary PLY.
+    Ply,
+}
+
+impl MeshFormat {
+    /// The format's name in the API and its file extension.
+    pub fn name(self) -> &'static str {
+        match self {
+            MeshFormat::Glb => "glb",
+            MeshFormat::Obj => "obj",
+            MeshFormat::Ply => "ply",
+        }
+    }
+}
+
+/// A terrain mesh request: a regular grid of `resolution x resolution` vertices.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct MeshRequest {
+    /// The box (`None`: the whole asset).
+    pub bbox: Option<[f64; 4]>,
+    /// Vertices a side (server default 256).
+    pub resolution: Option<u32>,
+    /// Exactly this many steps.
+    pub iterations: Option<u32>,
+    /// Per-point stopping tolerance in value units.
+    pub tolerance: Option<f32>,
+    /// File format.
+    pub format: MeshFormat,
+}
+
+/// A mesh as answered.
+#[derive(Clone, Debug)]
+pub struct MeshFile {
+    /// The file's bytes.
+    pub body: Vec<u8>,
+    /// Its media type.
+    pub content_type: String,
+    /// The server's a-priori error bound on the heights.
+    pub error_bound: f32,
+}
+
+/// Result of an upload.
+#[derive(Clone, Debug)]
+pub struct Uploaded {
+    /// The asset as the catalog now lists it.
+    pub summary: AssetSummary,
+    /// Whether the id was new (201) rather than replaced (200).
+    pub created: bool,
+}
+
+/// Appends `?a=b&c=d` for the parameters that are set.
+fn query(params: &[(&str, Option<String>)]) -> String {
+    let set: Vec<String> = params
+        .iter()
+        .filter_map(|(k, v)| v.as_ref().map(|v| format!("{k}={v}")))
+        .collect();
+    if set.is_empty() {
+        String::new()
+    } else {
+        format!("?{}", set.join("&"))
+    }
+}
+
+fn bbox(b: [f64; 4]) -> String {
+    format!("{},{},{},{}", b[0], b[1], b[2], b[3])
+}
+
+/// The `X-Error-Bound` header of an answer.
+fn error_bound(r: &reqwest::Response) -> Result<f32, ClientError> {
+    r.headers()
+        .get("x-error-bound")
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse().ok())
+        .ok_or_else(|| ClientError::malformed("answer", "no X-Error-Bound header"))
+}
+
+impl Client {
+    /// A client of the server at `base` (e.g. `http://127.0.0.1:8080`).
+    pub fn new(base: &str) -> Result<Client, ClientError> {
+        let url = reqwest::Url::parse(base)
+            .map_err(|e| ClientError::malformed("server URL", format!("{base:?}: {e}")))?;
+        if !matches!(url.scheme(), "http" | "https") {
+            return Err(ClientError::malformed(
+                "server URL",
+                format!("{base:?}: the scheme must be http or https"),
+            ));
+        }
+        let http = reqwest::Client::builder()
+            .user_agent(concat!("fractile-client/", env!("CARGO_PKG_VERSION")))
+            .connect_timeout(Duration::from_secs(10))
+            .timeout(Duration::from_secs(120))
+            .build()
+            .map_err(ClientError::Transport)?;
+        Ok(Client {
+            http,
+            base: base.trim_end_matches('/').to_string(),
+            token: None,
+        })
+    }
+
+    /// Sends `Authorization: Bearer <token>` with uploads and deletes.
+    pub fn with_token(mut self, token: Option<String>) -> Client {
+        self.token = token;
+        self
+    }
+
+    /// The base URL.
+    pub fn base(&self) -> &str {
+        &self.base
+    }
+
+    fn url(&self, path: &str) -> String {
+        format!("{}{path}", self.base)
+    }
+
+    /// `/v1/assets/{id}{rest}`, refusing ids the server would refuse: an id is a URL path
+    /// segment, and `..` in one would be normalised away before it left this machine.
+    fn asset_path(&self, id: &str, rest: &str) -> Result<String, ClientError> {
+        if !fractile_proto::valid_asset_id(id) {
+            return Err(ClientError::malformed(
+                "asset id",
+                format!("{id:?} must be 1-64 letters, digits, '-' or '_'"),
+            ));
+        }
+        Ok(format!("/v1/assets/{id}{rest}"))
+    }
+
+    /// Sends a request and turns error statuses into [`ClientError`] with the server's detail.
+    async fn send(&self, req: reqwest::RequestBuilder) -> Result<reqwest::Response, ClientError> {
+        let r = req.send().await.map_err(ClientError::Transport)?;
+        if r.status().is_success() {
+            return Ok(r);
+        }
+        let status = r.status().as_u16();
+        let text = r.text().await.unwrap_or_default();
+        Err(ClientError::from_answer(status, &text))
+    }
+
+    async fn get_json<T: serde::de::DeserializeOwned>(&self, path: &str) -> Result<T, ClientError> {
+        let r = self.send(self.http.get(self.url(path))).await?;
+        let bytes = r.bytes().await.map_err(ClientError::Transport)?;
+        serde_json::from_slice(&bytes).map_err(|e| ClientError::malformed(path, e.to_string()))
+    }
+
+    /// `GET /readyz`: whether the server answers.
+    pub async fn ready(&self) -> Result<(), ClientError> {
+        self.send(self.http.get(self.url("/readyz"))).await?;
+        Ok(())
+    }
+
+    /// `GET /v1/assets`: every asset.
+    pub async fn assets(&self) -> Result<Vec<AssetSummary>, ClientError> {
+        Ok(self.get_json::<Catalog>("/v1/assets").await?.assets)
+    }
+
+    /// `GET /v1/assets/{id}`: one asset's metadata.
+    pub async fn asset(&self, id: &str) -> Result<AssetSummary, ClientError> {
+        self.get_json(&self.asset_path(id, "")?).await
+    }
+
+    /// `GET /v1/assets/{id}/tilejson.json`.
+    pub async fn tilejson(&self, id: &str) -> Result<TileJson, ClientError> {
+        self.get_json(&self.asset_path(id, "/tilejson.json")?).await
+    }
+
+    /// `PUT /v1/assets/{id}`: stores an asset file (made by `fractile encode`).
+    pub async fn upload(&self, id: &str, file: Vec<u8>) -> Result<Uploaded, ClientError> {
+        let mut req = self
+            .http
+            .put(self.url(&self.asset_path(id, "")?))
+            .header(header::CONTENT_TYPE, "application/octet-stream")
+            .body(file);
+        if let Some(t) = &self.token {
+            req = req.bearer_auth(t);
+        }
+        let r = self.send(req).await?;
+        let created = r.status() == reqwest::StatusCode::CREATED;
+        let bytes = r.bytes().await.map_err(ClientError::Transport)?;
+        let summary = serde_json::from_slice(&bytes)
+            .map_err(|e| ClientError::malformed("upload answer", e.to_string()))?;
+        Ok(Uploaded { summary, created })
+    }
+
+    /// `DELETE /v1/assets/{id}`.
+    pub async fn delete(&self, id: &str) -> Result<(), ClientError> {
+        let mut req = self.http.delete(self.url(&self.asset_path(id, "")?));
+        if let Some(t) = &self.token {
+            req = req.bearer_auth(t);
+        }
+        self.send(req).await?;
+        Ok(())
+    }
+
+    /// `GET /v1/assets/{id}/tiles/{z}/{x}/{y}.{png|f32}`: one tile, its heights decoded back to
+    /// floats for the height encodings. A [`TileEncoding::Gray16`] tile needs the asset's value
+    /// range, fetched with one more request.
+    pub async fn tile(&self, id: &str, req: &TileRequest) -> Result<Tile, ClientError> {
+        let TileAddress { z, x, y } = req.address;
+        let ext = if req.encoding == TileEncoding::F32 {
+            "f32"
+        } else {
+            "png"
+        };
+        let rest = format!(
+            "/tiles/{z}/{x}/{y}.{ext}{}",
+            query(&[
+                ("encoding", req.encoding.query_name().map(str::to_string)),
+                ("iterations", req.iterations.map(|n| n.to_string())),
+                ("tolerance", req.tolerance.map(|t| t.to_string())),
+                (
+                    "tilesize",
+                    (req.tile_size != 256).then(|| req.tile_size.to_string())
+                ),
+            ])
+        );
+        let path = self.asset_path(id, &rest)?;
+        let start = Instant::now();
+        let r = self.send(self.http.get(self.url(&path))).await?;
+        let bound = error_bound(&r)?;
+        let etag = r
+            .headers()
+            .get(header::ETAG)
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_string);
+        let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
+        let elapsed = start.elapsed();
+        let range = match req.encoding {
+            TileEncoding::Gray16 => {
+                let a = self.asset(id).await?;
+                Some(a.value_range)
+            }
+            _ => None,
+        };
+        Tile::decode(req, body, bound, etag, elapsed, range)
+    }
+
+    /// `GET /v1/assets/{id}/point/{lon},{lat}` (georeferenced assets).
+    pub async fn point_lonlat(
+        &self,
+        id: &str,
+        lon: f64,
+        lat: f64,
+        iterations: Option<u32>,
+    ) -> Result<PointResult, ClientError> {
+        let q = query(&[("iterations", iterations.map(|n| n.to_string()))]);
+        self.get_json(&self.asset_path(id, &format!("/point/{lon},{lat}{q}"))?)
+            .await
+    }
+
+    /// `GET /v1/assets/{id}/point?x=&y=` (unit coordinates, any asset).
+    pub async fn point_unit(
+        &self,
+        id: &str,
+        x: f64,
+        y: f64,
+        iterations: Option<u32>,
+    ) -> Result<PointResult, ClientError> {
+        let q = query(&[
+            ("x", Some(x.to_string())),
+            ("y", Some(y.to_string())),
+            ("iterations", iterations.map(|n| n.to_string())),
+        ]);
+        self.get_json(&self.asset_path(id, &format!("/point{q}"))?)
+            .await
+    }
+
+    /// `POST /v1/assets/{id}/points`: a batch, in JSON or binary.
+    pub async fn points(
+        &self,
+        id: &str,
+        req: &PointsRequest,
+        encoding: PointsEncoding,
+    ) -> Result<PointsResponse, ClientError> {
+        let url = self.url(&self.asset_path(id, "/points")?);
+        match encoding {
+            PointsEncoding::Json => {
+                let r = self.send(self.http.post(url).json(req)).await?;
+                let bytes = r.bytes().await.map_err(ClientError::Transport)?;
+                serde_json::from_slice(&bytes)
+                    .map_err(|e| ClientError::malformed("points answer", e.to_string()))
+            }
+            PointsEncoding::Binary => {
+                let r = self
+                    .send(
+                        self.http
+                            .post(url)
+                            .header(header::CONTENT_TYPE, BINARY_MEDIA_TYPE)
+                            .header(header::ACCEPT, BINARY_MEDIA_TYPE)
+                            .body(fractile_proto::encode(req)),
+                    )
+                    .await?;
+                let bytes = r.bytes().await.map_err(ClientError::Transport)?;
+                fractile_proto::decode(&bytes)
+                    .map_err(|e| ClientError::malformed("points answer", e.to_string()))
+            }
+        }
+    }
+
+    /// `GET /v1/assets/{id}/region`.
+    pub async fn region(&self, id: &str, req: &RegionRequest) -> Result<Region, ClientError> {
+        let q = query(&[
+            ("bbox", Some(bbox(req.bbox))),
+            ("width", Some(req.width.to_string())),
+            ("height", Some(req.height.to_string())),
+            ("iterations", req.iterations.map(|n| n.to_string())),
+            ("tolerance", req.tolerance.map(|t| t.to_string())),
+            ("format", Some(req.format.name().to_string())),
+        ]);
+        let r = self
+            .send(
+                self.http
+                    .get(self.url(&self.asset_path(id, &format!("/region{q}"))?)),
+            )
+            .await?;
+        let bound = error_bound(&r)?;
+        let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
+        let values = if req.format == RegionFormat::F32 {
+            let n = req.width as usize * req.height as usize;
+            if n == 0 || body.len() % (4 * n) != 0 {
+                return Err(ClientError::malformed(
+                    "region",
+                    format!("{} bytes for {n} float32 pixels", body.len()),
+                ));
+            }
+            let floats: Vec<f32> = body
+                .chunks_exact(4)
+                .map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]]))
+                .collect();
+            Some(floats.chunks(n).map(<[f32]>::to_vec).collect())
+        } else {
+            None
+        };
+        Ok(Region {
+            width: req.width,
+            height: req.height,
+            body,
+            values,
+            error_bound: bound,
+        })
+    }
+
+    /// `GET /v1/assets/{id}/mesh`: a terrain mesh.
+    pub async fn mesh(&self, id: &str, req: &MeshRequest) -> Result<MeshFile, ClientError> {
+        let q = query(&[
+            ("bbox", req.bbox.map(bbox)),
+            ("resolution", req.resolution.map(|n| n.to_string())),
+            ("iterations", req.iterations.map(|n| n.to_string())),
+            ("tolerance", req.tolerance.map(|t| t.to_string())),
+            ("format", Some(req.format.name().to_string())),
+        ]);
+        let r = self
+            .send(
+                self.http
+                    .get(self.url(&self.asset_path(id, &format!("/mesh{q}"))?)),
+            )
+            .await?;
+        let bound = error_bound(&r)?;
+        let content_type = r
+            .headers()
+            .get(header::CONTENT_TYPE)
+            .and_then(|v| v.to_str().ok())
+            .unwrap_or("application/octet-stream")
+            .to_string();
+        let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
+        Ok(MeshFile {
+            body,
+            content_type,
+            error_bound: bound,
+        })
+    }
+}
+
+/// Value range the change criterion is a fraction of: 255 for pictures, the asset's span for
+/// heights.
+fn change_range(a: &AssetSummary, heights: bool) -> f32 {
+    if heights {
+        (a.value_range[1] - a.value_range[0]).max(f64::MIN_POSITIVE) as f32
+    } else {
+        255.0
+    }
+}
+
+impl Client {
+    /// Refines one tile (see [`refine`]); `req.iterations` is replaced by the schedule's.
+    pub async fn refine_tile(
+        &self,
+        id: &str,
+        req: &TileRequest,
+        options: &refine::RefineOptions,
+        on_step: impl FnMut(&refine::Step<Tile>),
+    ) -> Result<refine::Refined<Tile>, ClientError> {
+        let a = self.asset(id).await?;
+        let range = change_range(&a, req.encoding.is_heights());
+        refine::refine(
+            options,
+            range,
+            |n| {
+                let req = TileRequest {
+                    iterations: Some(n),
+                    tolerance: None,
+                    ..*req
+                };
+                async move { self.tile(id, &req).await }
+            },
+            on_step,
+        )
+        .await
+    }
+
+    /// Refines a region; a float32 region compares values, other formats compare nothing and
+    /// stop on the bound, the budget or the schedule.
+    pub async fn refine_region(
+        &self,
+        id: &str,
+        req: &RegionRequest,
+        options: &refine::RefineOptions,
+        on_step: impl FnMut(&refine::Step<Region>),
+    ) -> Result<refine::Refined<Region>, ClientError> {
+        let a = self.asset(id).await?;
+        let range = change_range(&a, a.kind == AssetKind::HeightField);
+        refine::refine(
+            options,
+            range,
+            |n| {
+                let req = RegionRequest {
+                    iterations: Some(n),
+                    tolerance: None,
+                    ..req.clone()
+                };
+                async move { self.region(id, &req).await }
+            },
+            on_step,
+        )
+        .await
+    }
+
+    /// Refines a set of points.
+    pub async fn refine_points(
+        &self,
+        id: &str,
+        points: &[[f64; 2]],
+        encoding: PointsEncoding,
+        options: &refine::RefineOptions,
+        on_step: impl FnMut(&refine::Step<PointsResponse>),
+    ) -> Result<refine::Refined<PointsResponse>, ClientError> {
+        let a = self.asset(id).await?;
+        let range = change_range(&a, a.kind == AssetKind::HeightField);
+        refine::refine(
+            options,
+            range,
+            |n| {
+                let req = PointsRequest {
+                    points: points.to_vec(),
+                    iterations: Some(n),
+                    tolerance: None,
+                };
+                async move { self.points(id, &req, encoding).await }
+            },
+            on_step,
+        )
+        .await
+    }
+
+    /// Fetches the tiles of a view plan ([`view::plan`]) nearest first, `concurrency` at a time,
+    /// each at its planned steps and tolerance. `on_tile` sees each answer as it arrives;
+    /// all come back in plan order.
+    pub async fn fetch_view(
+        &self,
+        id: &str,
+        plan: &[view::PlannedTile],
+        encoding: TileEncoding,
+        concurrency: usize,
+        mut on_tile: impl FnMut(&view::PlannedTile, &Result<Tile, ClientError>),
+    ) -> Vec<Result<Tile, ClientError>> {
+        let mut set = tokio::task::JoinSet::new();
+        let mut out: Vec<Option<Result<Tile, ClientError>>> =
+            (0..plan.len()).map(|_| None).collect();
+        let mut next = 0;
+        loop {
+            while next < plan.len() && set.len() < concurrency.max(1) {
+                let p = plan[next];
+                let (client, id) = (self.clone(), id.to_string());
+                set.spawn(async move {
+                    let req = TileRequest {
+                        iterations: Some(p.iterations),
+                        tolerance: Some(p.tolerance),
+                        ..TileRequest::new(p.address, encoding)
+                    };
+                    (next, client.tile(&id, &req).await)
+                });
+                next += 1;
+            }
+            let Some(done) = set.join_next().await else {
+                break;
+            };
+            // Tasks are never cancelled, so a join error is a panic: pass it on.
+            let (k, r) = done.unwrap_or_else(|e| std::panic::resume_unwind(e.into_panic()));
+            on_tile(&plan[k], &r);
+            out[k] = Some(r);
+        }
+        out.into_iter()
+            .map(|r| r.expect("every planned tile was fetched"))
+            .collect()
+    }
+}

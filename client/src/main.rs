@@ -1,0 +1,746 @@
+//! `fractile-client`: the command line of the thin client. Every command takes `--server URL`
+//! (or `FRACTILE_SERVER`) and `--json` for machine-readable output.
+
+use std::path::{Path, PathBuf};
+use std::time::Duration;
+
+use anyhow::{Context, Result, bail};
+use clap::{Args, Parser, Subcommand};
+use fractile_client::refine::{RefineOptions, Stop};
+use fractile_client::view::{Camera, PlanLimits};
+use fractile_client::{
+    Client, MeshFormat, MeshRequest, PointsEncoding, PointsRequest, RegionFormat, RegionRequest,
+    TileAddress, TileEncoding, TileRequest, bench,
+};
+use serde_json::json;
+
+#[derive(Parser)]
+#[command(
+    name = "fractile-client",
+    version,
+    about = "Thin client of a fractile server"
+)]
+struct Cli {
+    /// Base URL of the server.
+    #[arg(
+        long,
+        global = true,
+        env = "FRACTILE_SERVER",
+        default_value = "http://127.0.0.1:8080"
+    )]
+    server: String,
+    /// Bearer token for upload and delete.
+    #[arg(
+        long,
+        global = true,
+        env = "FRACTILE_WRITE_TOKEN",
+        hide_env_values = true
+    )]
+    token: Option<String>,
+    /// Print machine-readable JSON (with --refine: one object per step).
+    #[arg(long, global = true)]
+    json: bool,
+    #[command(subcommand)]
+    command: Command,
+}
+
+/// Options of progressive refinement.
+#[derive(Args, Clone)]
+struct RefineArgs {
+    /// Ask for 1, 2, 3, ... iterations until the answer settles; write every step.
+    #[arg(long)]
+    refine: bool,
+    /// With --refine: stop once the error bound is at most this (value units).
+    #[arg(long)]
+    tolerance: Option<f32>,
+    /// With --refine: stop once the mean change is at most this fraction of the value range.
+    #[arg(long, default_value_t = 0.002)]
+    change: f32,
+    /// With --refine: time budget in milliseconds.
+    #[arg(long)]
+    budget_ms: Option<u64>,
+    /// With --refine: iterations to ask for, e.g. 1,2,4,8 (default 1,2,...,64).
+    #[arg(long, value_delimiter = ',')]
+    schedule: Option<Vec<u32>>,
+    /// Exactly this many iterations (without --refine).
+    #[arg(long, conflicts_with = "refine")]
+    iterations: Option<u32>,
+}
+
+impl RefineArgs {
+    fn options(&self) -> RefineOptions {
+        let d = RefineOptions::default();
+        RefineOptions {
+            tolerance: self.tolerance,
+            change: self.change,
+            budget: self.budget_ms.map(Duration::from_millis),
+            schedule: self.schedule.clone().unwrap_or(d.schedule),
+        }
+    }
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// List the assets.
+    Assets,
+    /// Show one asset.
+    Info { id: String },
+    /// Upload an asset file made by `fractile encode`.
+    Upload {
+        file: PathBuf,
+        #[arg(long)]
+        id: String,
+    },
+    /// Delete an asset.
+    Delete { id: String },
+    /// Fetch a tile.
+    Tile {
+        id: String,
+        z: u8,
+        x: u32,
+        y: u32,
+        /// Output file.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// png (visual), terrarium, terrainrgb, gray16 or f32.
+        #[arg(long, default_value = "png")]
+        encoding: String,
+        /// 256 or 512.
+        #[arg(long, default_value_t = 256)]
+        tile_size: u32,
+        #[command(flatten)]
+        refine: RefineArgs,
+    },
+    /// The value at one point (lon lat, or x y in unit coordinates with --unit).
+    Point {
+        id: String,
+        #[arg(allow_hyphen_values = true)]
+        lon: f64,
+        #[arg(allow_hyphen_values = true)]
+        lat: f64,
+        /// The coordinates are unit x, y (any asset), not lon, lat.
+        #[arg(long)]
+        unit: bool,
+        #[arg(long)]
+        iterations: Option<u32>,
+    },
+    /// Values at the points of a CSV file (two columns: lon,lat or x,y; a header is skipped).
+    Points {
+        id: String,
+        file: PathBuf,
+        /// Write a CSV of the answers here (default: standard output).
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+        /// Send the batch in the binary encoding.
+        #[arg(long)]
+        binary: bool,
+        #[command(flatten)]
+        refine: RefineArgs,
+    },
+    /// A window sampled on a grid.
+    Region {
+        id: String,
+        /// minx,miny,maxx,maxy (lon/lat, or unit coordinates).
+        #[arg(long, allow_hyphen_values = true)]
+        bbox: String,
+        #[arg(long, default_value_t = 512)]
+        width: u32,
+        #[arg(long, default_value_t = 512)]
+        height: u32,
+        /// png, f32 or tif.
+        #[arg(long, default_value = "png")]
+        format: String,
+        #[arg(short, long)]
+        output: PathBuf,
+        #[command(flatten)]
+        refine: RefineArgs,
+    },
+    /// A terrain mesh.
+    Mesh {
+        id: String,
+        #[arg(long, allow_hyphen_values = true)]
+        bbox: Option<String>,
+        /// Vertices a side.
+        #[arg(long)]
+        resolution: Option<u32>,
+        /// glb, obj or ply.
+        #[arg(long, default_value = "glb")]
+        format: String,
+        #[arg(long)]
+        iterations: Option<u32>,
+        #[arg(short, long)]
+        output: PathBuf,
+    },
+    /// View-dependent fetch: tiles of a region chosen by distance from a camera, nearest first.
+    View {
+        id: String,
+        /// lon,lat,height (metres above sea level).
+        #[arg(long, allow_hyphen_values = true)]
+        camera: String,
+        /// west,south,east,north (default: the asset's bounds).
+        #[arg(long, allow_hyphen_values = true)]
+        bbox: Option<String>,
+        /// Allowed screen-space error in pixels.
+        #[arg(long, default_value_t = 1.0)]
+        pixel_error: f64,
+        /// Most tiles.
+        #[arg(long, default_value_t = 256)]
+        max_tiles: usize,
+        /// Requests in flight.
+        #[arg(long, default_value_t = 8)]
+        concurrency: usize,
+        /// png, terrarium, terrainrgb, gray16 or f32.
+        #[arg(long, default_value = "terrarium")]
+        encoding: String,
+        /// Only print the plan.
+        #[arg(long)]
+        plan_only: bool,
+        /// Write the tiles under this folder as Z/X/Y.ext.
+        #[arg(short, long)]
+        output: Option<PathBuf>,
+    },
+    /// Load test: each kind for --duration at --concurrency; prints a table per kind.
+    Bench {
+        #[arg(long, default_value = "jacksboro")]
+        asset: String,
+        #[arg(long, default_value_t = 16)]
+        concurrency: usize,
+        /// Seconds per kind.
+        #[arg(long, default_value_t = 10.0)]
+        duration: f64,
+        /// Kinds, in order: tiles-cold, tiles-warm, points, regions.
+        #[arg(
+            long,
+            value_delimiter = ',',
+            default_value = "tiles-cold,tiles-warm,points,regions"
+        )]
+        kinds: Vec<String>,
+        /// Points per batch.
+        #[arg(long, default_value_t = 1000)]
+        batch: usize,
+    },
+}
+
+fn parse_numbers<const N: usize>(s: &str, what: &str) -> Result<[f64; N]> {
+    let v: Vec<f64> = s
+        .split(',')
+        .map(|p| p.trim().parse::<f64>())
+        .collect::<Result<_, _>>()
+        .with_context(|| format!("{what} {s:?}: not numbers"))?;
+    v.try_into()
+        .map_err(|_| anyhow::anyhow!("{what} {s:?}: expected {N} comma-separated numbers"))
+}
+
+fn encoding(name: &str) -> Result<TileEncoding> {
+    TileEncoding::parse(name).with_context(|| {
+        format!("unknown encoding {name:?} (png, terrarium, terrainrgb, gray16, f32)")
+    })
+}
+
+/// `out.png` -> `out.step03.png`.
+fn step_path(out: &Path, step: usize) -> PathBuf {
+    let stem = out.file_stem().and_then(|s| s.to_str()).unwrap_or("out");
+    let name = match out.extension().and_then(|e| e.to_str()) {
+        Some(ext) => format!("{stem}.step{step:02}.{ext}"),
+        None => format!("{stem}.step{step:02}"),
+    };
+    out.with_file_name(name)
+}
+
+fn write(path: &Path, bytes: &[u8]) -> Result<()> {
+    std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
+}
+
+/// Prints one refinement step: a table row, or a JSON object per line.
+fn print_step(json: bool, step: usize, iterations: u32, bound: f32, change: Option<f32>, ms: f64) {
+    if json {
+        println!(
+            "{}",
+            json!({"step": step, "iterations": iterations, "error_bound": bound, "mean_change": change, "ms": ms})
+        );
+    } else {
+        let change = change.map_or("-".to_string(), |c| format!("{c:.4}"));
+        println!("| {step} | {iterations} | {bound:.4} | {change} | {ms:.1} |");
+    }
+}
+
+fn print_head(json: bool) {
+    if !json {
+        println!("| step | iterations | error bound | mean change | ms |\n|---|---|---|---|---|");
+    }
+}
+
+fn print_stop(json: bool, stop: Stop) {
+    if json {
+        println!("{}", json!({"stop": stop}));
+    } else {
+        let why = match stop {
+            Stop::Bound => "the error bound reached the tolerance",
+            Stop::Converged => "the answer stopped changing",
+            Stop::Budget => "the time budget ran out",
+            Stop::Schedule => "the schedule ended",
+        };
+        println!("stopped: {why}");
+    }
+}
+
+fn read_points(path: &Path) -> Result<Vec<[f64; 2]>> {
+    let mut r = csv::ReaderBuilder::new()
+        .has_headers(false)
+        .trim(csv::Trim::All)
+        .from_path(path)
+        .with_context(|| format!("reading {}", path.display()))?;
+    let mut out = Vec::new();
+    for (k, rec) in r.records().enumerate() {
+        let rec = rec.with_context(|| format!("{}: row {}", path.display(), k + 1))?;
+        let nums: Option<Vec<f64>> = rec.iter().take(2).map(|f| f.parse().ok()).collect();
+        match nums {
+            Some(v) if v.len() == 2 => out.push([v[0], v[1]]),
+            // A first row that is not numbers is a header.
+            _ if k == 0 => {}
+            _ => bail!("{}: row {} is not two numbers", path.display(), k + 1),
+        }
+    }
+    Ok(out)
+}
+
+fn points_csv(resp: &fractile_client::PointsResponse) -> String {
+    let channels = resp
+        .results
+        .iter()
+        .filter_map(|r| r.values.as_ref().map(Vec::len))
+        .max()
+        .unwrap_or(1);
+    let mut s = String::from("x,y");
+    for c in 0..channels {
+        s += &format!(",value{c}");
+    }
+    s += ",error_bound,iterations\n";
+    for r in &resp.results {
+        s += &format!("{},{}", r.coordinates[0], r.coordinates[1]);
+        for c in 0..channels {
+            let v = r.values.as_ref().and_then(|v| v.get(c).copied().flatten());
+            s += &v.map_or(",".into(), |v| format!(",{v}"));
+        }
+        s += &r.error_bound.map_or(",".into(), |b| format!(",{b}"));
+        s += &format!(",{}\n", r.iterations);
+    }
+    s
+}
+
+#[tokio::main]
+async fn main() -> Result<()> {
+    let cli = Cli::parse();
+    let client = Client::new(&cli.server)?.with_token(cli.token.clone());
+    let json = cli.json;
+    match cli.command {
+        Command::Assets => {
+            let assets = client.assets().await?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&assets)?);
+            } else {
+                println!(
+                    "| id | kind | size | bytes | ratio | PSNR dB |\n|---|---|---|---|---|---|"
+                );
+                for a in assets {
+                    println!(
+                        "| {} | {:?} | {}x{} | {} | {:.1} | {:.2} |",
+                        a.id, a.kind, a.width, a.height, a.bytes, a.ratio, a.encode_psnr
+                    );
+                }
+            }
+        }
+        Command::Info { id } => {
+            let a = client.asset(&id).await?;
+            println!("{}", serde_json::to_string_pretty(&a)?);
+        }
+        Command::Upload { file, id } => {
+            let bytes =
+                std::fs::read(&file).with_context(|| format!("reading {}", file.display()))?;
+            let up = client.upload(&id, bytes).await?;
+            if json {
+                println!("{}", json!({"created": up.created, "asset": up.summary}));
+            } else {
+                let verb = if up.created { "created" } else { "replaced" };
+                println!(
+                    "{verb} {} ({} bytes, {:.1}:1)",
+                    up.summary.id, up.summary.bytes, up.summary.ratio
+                );
+            }
+        }
+        Command::Delete { id } => {
+            client.delete(&id).await?;
+            if json {
+                println!("{}", json!({"deleted": id}));
+            } else {
+                println!("deleted {id}");
+            }
+        }
+        Command::Tile {
+            id,
+            z,
+            x,
+            y,
+            output,
+            encoding: enc,
+            tile_size,
+            refine,
+        } => {
+            let req = TileRequest {
+                iterations: refine.iterations,
+                tile_size,
+                ..TileRequest::new(TileAddress { z, x, y }, encoding(&enc)?)
+            };
+            if refine.refine {
+                print_head(json);
+                let mut failed = None;
+                let r = client
+                    .refine_tile(&id, &req, &refine.options(), |s| {
+                        if let Err(e) = write(&step_path(&output, s.step), &s.answer.body) {
+                            failed.get_or_insert(e);
+                        }
+                        print_step(
+                            json,
+                            s.step,
+                            s.iterations,
+                            s.error_bound,
+                            s.mean_change,
+                            s.elapsed.as_secs_f64() * 1e3,
+                        );
+                    })
+                    .await?;
+                if let Some(e) = failed {
+                    return Err(e);
+                }
+                write(
+                    &output,
+                    &r.steps.last().expect("at least one step").answer.body,
+                )?;
+                print_stop(json, r.stop);
+            } else {
+                let t = client.tile(&id, &req).await?;
+                write(&output, &t.body)?;
+                if json {
+                    println!(
+                        "{}",
+                        json!({"tile": t.address.to_string(), "bytes": t.body.len(), "error_bound": t.error_bound, "ms": t.elapsed.as_secs_f64() * 1e3})
+                    );
+                } else {
+                    println!(
+                        "{} -> {} ({} bytes, error bound {})",
+                        t.address,
+                        output.display(),
+                        t.body.len(),
+                        t.error_bound
+                    );
+                }
+            }
+        }
+        Command::Point {
+            id,
+            lon,
+            lat,
+            unit,
+            iterations,
+        } => {
+            let p = if unit {
+                client.point_unit(&id, lon, lat, iterations).await?
+            } else {
+                client.point_lonlat(&id, lon, lat, iterations).await?
+            };
+            if json {
+                println!("{}", serde_json::to_string(&p)?);
+            } else {
+                let values: Vec<String> = p
+                    .values
+                    .iter()
+                    .flatten()
+                    .map(|v| v.map_or("nodata".into(), |v| v.to_string()))
+                    .collect();
+                println!(
+                    "{} at {},{} (error bound {}, {} steps)",
+                    values.join(" "),
+                    lon,
+                    lat,
+                    p.error_bound.unwrap_or(f32::NAN),
+                    p.iterations
+                );
+            }
+        }
+        Command::Points {
+            id,
+            file,
+            output,
+            binary,
+            refine,
+        } => {
+            let points = read_points(&file)?;
+            let enc = if binary {
+                PointsEncoding::Binary
+            } else {
+                PointsEncoding::Json
+            };
+            let resp = if refine.refine {
+                print_head(json);
+                let r = client
+                    .refine_points(&id, &points, enc, &refine.options(), |s| {
+                        print_step(
+                            json,
+                            s.step,
+                            s.iterations,
+                            s.error_bound,
+                            s.mean_change,
+                            s.elapsed.as_secs_f64() * 1e3,
+                        );
+                    })
+                    .await?;
+                print_stop(json, r.stop);
+                r.steps
+                    .into_iter()
+                    .last()
+                    .expect("at least one step")
+                    .answer
+            } else {
+                let req = PointsRequest {
+                    points,
+                    iterations: refine.iterations,
+                    tolerance: None,
+                };
+                client.points(&id, &req, enc).await?
+            };
+            let csv = points_csv(&resp);
+            match output {
+                Some(path) => write(&path, csv.as_bytes())?,
+                None if json && !refine.refine => println!("{}", serde_json::to_string(&resp)?),
+                None => print!("{csv}"),
+            }
+        }
+        Command::Region {
+            id,
+            bbox,
+            width,
+            height,
+            format,
+            output,
+            refine,
+        } => {
+            let format = match format.as_str() {
+                "png" => RegionFormat::Png,
+                "f32" => RegionFormat::F32,
+                "tif" => RegionFormat::Tif,
+                f => bail!("unknown format {f:?} (png, f32, tif)"),
+            };
+            let req = RegionRequest {
+                bbox: parse_numbers(&bbox, "bbox")?,
+                width,
+                height,
+                iterations: refine.iterations,
+                tolerance: None,
+                format,
+            };
+            if refine.refine {
+                print_head(json);
+                let mut failed = None;
+                let r = client
+                    .refine_region(&id, &req, &refine.options(), |s| {
+                        if let Err(e) = write(&step_path(&output, s.step), &s.answer.body) {
+                            failed.get_or_insert(e);
+                        }
+                        print_step(
+                            json,
+                            s.step,
+                            s.iterations,
+                            s.error_bound,
+                            s.mean_change,
+                            s.elapsed.as_secs_f64() * 1e3,
+                        );
+                    })
+                    .await?;
+                if let Some(e) = failed {
+                    return Err(e);
+                }
+                write(
+                    &output,
+                    &r.steps.last().expect("at least one step").answer.body,
+                )?;
+                print_stop(json, r.stop);
+            } else {
+                let r = client.region(&id, &req).await?;
+                write(&output, &r.body)?;
+                if json {
+                    println!(
+                        "{}",
+                        json!({"bytes": r.body.len(), "error_bound": r.error_bound})
+                    );
+                } else {
+                    println!(
+                        "{}x{} -> {} (error bound {})",
+                        width,
+                        height,
+                        output.display(),
+                        r.error_bound
+                    );
+                }
+            }
+        }
+        Command::Mesh {
+            id,
+            bbox,
+            resolution,
+            format,
+            iterations,
+            output,
+        } => {
+            let format = match format.as_str() {
+                "glb" => MeshFormat::Glb,
+                "obj" => MeshFormat::Obj,
+                "ply" => MeshFormat::Ply,
+                f => bail!("unknown format {f:?} (glb, obj, ply)"),
+            };
+            let req = MeshRequest {
+                bbox: bbox.map(|b| parse_numbers(&b, "bbox")).transpose()?,
+                resolution,
+                iterations,
+                tolerance: None,
+                format,
+            };
+            let m = client.mesh(&id, &req).await?;
+            write(&output, &m.body)?;
+            if json {
+                println!(
+                    "{}",
+                    json!({"bytes": m.body.len(), "content_type": m.content_type, "error_bound": m.error_bound})
+                );
+            } else {
+                println!(
+                    "{} -> {} ({} bytes, error bound {})",
+                    m.content_type,
+                    output.display(),
+                    m.body.len(),
+                    m.error_bound
+                );
+            }
+        }
+        Command::View {
+            id,
+            camera,
+            bbox,
+            pixel_error,
+            max_tiles,
+            concurrency,
+            encoding: enc,
+            plan_only,
+            output,
+        } => {
+            let [lon, lat, h] = parse_numbers(&camera, "camera")?;
+            let asset = client.asset(&id).await?;
+            let tj = client.tilejson(&id).await?;
+            let region = match bbox {
+                Some(b) => parse_numbers(&b, "bbox")?,
+                None => tj.bounds,
+            };
+            let cam = Camera {
+                pixel_error,
+                ..Camera::new(lon, lat, h)
+            };
+            let limits = PlanLimits {
+                min_zoom: tj.minzoom,
+                max_zoom: tj.maxzoom,
+                max_tiles,
+                ..Default::default()
+            };
+            let plan = fractile_client::view::plan(&cam, region, &asset, limits)?;
+            let enc = encoding(&enc)?;
+            if !json {
+                println!(
+                    "| tile | distance m | tolerance | iterations | error bound | ms |\n|---|---|---|---|---|---|"
+                );
+            }
+            let row = |p: &fractile_client::view::PlannedTile,
+                       bound: Option<f32>,
+                       ms: Option<f64>| {
+                if json {
+                    println!(
+                        "{}",
+                        json!({"tile": p.address.to_string(), "distance": p.distance, "tolerance": p.tolerance, "iterations": p.iterations, "error_bound": bound, "ms": ms})
+                    );
+                } else {
+                    let b = bound.map_or("-".into(), |b| format!("{b:.3}"));
+                    let ms = ms.map_or("-".into(), |m| format!("{m:.1}"));
+                    println!(
+                        "| {} | {:.0} | {:.3} | {} | {b} | {ms} |",
+                        p.address, p.distance, p.tolerance, p.iterations
+                    );
+                }
+            };
+            if plan_only {
+                plan.iter().for_each(|p| row(p, None, None));
+                return Ok(());
+            }
+            let ext = if enc == TileEncoding::F32 {
+                "f32"
+            } else {
+                "png"
+            };
+            let mut failures = 0;
+            let results = client
+                .fetch_view(&id, &plan, enc, concurrency, |p, r| match r {
+                    Ok(t) => row(p, Some(t.error_bound), Some(t.elapsed.as_secs_f64() * 1e3)),
+                    Err(e) => {
+                        failures += 1;
+                        eprintln!("{}: {e}", p.address);
+                    }
+                })
+                .await;
+            if let Some(dir) = output {
+                for t in results.iter().flatten() {
+                    let a = t.address;
+                    let folder = dir.join(a.z.to_string()).join(a.x.to_string());
+                    std::fs::create_dir_all(&folder)
+                        .with_context(|| format!("creating {}", folder.display()))?;
+                    write(&folder.join(format!("{}.{ext}", a.y)), &t.body)?;
+                }
+            }
+            if failures > 0 {
+                bail!("{failures} of {} tiles failed", plan.len());
+            }
+        }
+        Command::Bench {
+            asset,
+            concurrency,
+            duration,
+            kinds,
+            batch,
+        } => {
+            let kinds = kinds
+                .iter()
+                .map(|k| bench::Kind::parse(k).with_context(|| format!("unknown kind {k:?}")))
+                .collect::<Result<Vec<_>>>()?;
+            if !(duration > 0.0 && duration <= 3600.0) {
+                bail!("duration must be in (0, 3600] seconds");
+            }
+            let options = bench::BenchOptions {
+                asset,
+                concurrency,
+                duration: Duration::from_secs_f64(duration),
+                kinds,
+                batch,
+                ..Default::default()
+            };
+            let reports = bench::run(&client, &options).await?;
+            if json {
+                println!("{}", serde_json::to_string_pretty(&reports)?);
+            } else {
+                print!("{}", bench::table(&reports, concurrency));
+                for r in reports.iter().filter(|r| r.errors > 0) {
+                    eprintln!(
+                        "{:?}: first error: {}",
+                        r.kind,
+                        r.first_error.as_deref().unwrap_or("?")
+                    );
+                }
+            }
+        }
+    }
+    Ok(())
+}

@@ -1,0 +1,276 @@
+//! Progressive refinement ("time-controlled decompression" in the seed papers): ask for the same
+//! answer at 1, 2, 3, ... iterations and stop when
+//! - the server's a-priori error bound is under a tolerance, or
+//! - the mean absolute change between two successive answers is under a fraction (0.002, the
+//!   seed's criterion) of the value range, or
+//! - the next step would not fit in a time budget, or
+//! - the schedule ends.
+//!
+//! Every step is handed to a callback as it arrives, so a viewer can draw the coarse answer at
+//! once and replace it, and all steps come back with their bound, change and time.
+
+use std::future::Future;
+use std::time::{Duration, Instant};
+
+use crate::{ClientError, PointsResponse, Region, Tile};
+
+/// When refinement stops.
+#[derive(Clone, Debug, PartialEq)]
+pub struct RefineOptions {
+    /// Stop once the server's error bound is at most this (value units).
+    pub tolerance: Option<f32>,
+    /// Stop once the mean absolute change between successive answers is at most this fraction
+    /// of the value range. The seed papers use 0.002.
+    pub change: f32,
+    /// Stop before a step that would end past this much time from the start (the next step is
+    /// predicted to take as long as the last).
+    pub budget: Option<Duration>,
+    /// Iterations to ask for, in order.
+    pub schedule: Vec<u32>,
+}
+
+impl Default for RefineOptions {
+    fn default() -> Self {
+        RefineOptions {
+            tolerance: None,
+            change: 0.002,
+            budget: None,
+            schedule: (1..=64).collect(),
+        }
+    }
+}
+
+/// Why refinement stopped.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Stop {
+    /// The error bound reached the tolerance.
+    Bound,
+    /// Successive answers stopped changing.
+    Converged,
+    /// The time budget would run out.
+    Budget,
+    /// The schedule ended.
+    Schedule,
+}
+
+/// One answer of a refinement.
+#[derive(Clone, Debug)]
+pub struct Step<T> {
+    /// 1-based step number.
+    pub step: usize,
+    /// Iterations asked for.
+    pub iterations: u32,
+    /// The server's a-priori error bound (value units).
+    pub error_bound: f32,
+    /// Mean absolute change against the previous step (value units); `None` on the first.
+    pub mean_change: Option<f32>,
+    /// Time this request took.
+    pub elapsed: Duration,
+    /// The answer.
+    pub answer: T,
+}
+
+/// Every step, and why the last was the last.
+#[derive(Clone, Debug)]
+pub struct Refined<T> {
+    /// The steps in order; the last is the best answer.
+    pub steps: Vec<Step<T>>,
+    /// Why refinement stopped.
+    pub stop: Stop,
+}
+
+/// What refinement reads from an answer.
+pub trait Answer {
+    /// The values to compare between steps (NaN where there is none).
+    fn values(&self) -> Vec<f32>;
+    /// The server's error bound.
+    fn error_bound(&self) -> f32;
+}
+
+impl Answer for Tile {
+    fn values(&self) -> Vec<f32> {
+        self.values.clone()
+    }
+    fn error_bound(&self) -> f32 {
+        self.error_bound
+    }
+}
+
+impl Answer for Region {
+    fn values(&self) -> Vec<f32> {
+        self.values.iter().flatten().flatten().copied().collect()
+    }
+    fn error_bound(&self) -> f32 {
+        self.error_bound
+    }
+}
+
+impl Answer for PointsResponse {
+    fn values(&self) -> Vec<f32> {
+        self.results
+            .iter()
+            .flat_map(|r| match &r.values {
+                Some(v) => v.iter().map(|x| x.unwrap_or(f32::NAN)).collect(),
+                None => vec![f32::NAN],
+            })
+            .collect()
+    }
+    fn error_bound(&self) -> f32 {
+        self.results
+            .iter()
+            .filter_map(|r| r.error_bound)
+            .fold(0.0, f32::max)
+    }
+}
+
+/// Mean of |a - b| over the pairs where both are finite (`None` when no pair is, or the lengths
+/// differ).
+pub fn mean_change(a: &[f32], b: &[f32]) -> Option<f32> {
+    if a.len() != b.len() {
+        return None;
+    }
+    let (sum, n) = a
+        .iter()
+        .zip(b)
+        .filter(|(x, y)| x.is_finite() && y.is_finite())
+        .fold((0.0f64, 0usize), |(s, n), (x, y)| {
+            (s + (x - y).abs() as f64, n + 1)
+        });
+    (n > 0).then(|| (sum / n as f64) as f32)
+}
+
+/// Refines an answer. `range` is the value range the change criterion is a fraction of (255 for
+/// visual tiles, `max - min` for heights); `fetch(n)` asks for the answer at `n` iterations;
+/// `on_step` sees each step as it arrives.
+pub async fn refine<T, F, Fut>(
+    options: &RefineOptions,
+    range: f32,
+    mut fetch: F,
+    mut on_step: impl FnMut(&Step<T>),
+) -> Result<Refined<T>, ClientError>
+where
+    T: Answer,
+    F: FnMut(u32) -> Fut,
+    Fut: Future<Output = Result<T, ClientError>>,
+{
+    if options.schedule.is_empty() {
+        return Err(ClientError::malformed("refinement", "empty schedule"));
+    }
+    let start = Instant::now();
+    let mut steps: Vec<Step<T>> = Vec::new();
+    let mut previous: Option<Vec<f32>> = None;
+    for &n in &options.schedule {
+        if let (Some(budget), Some(last)) = (options.budget, steps.last())
+            && start.elapsed() + last.elapsed >= budget
+        {
+            return Ok(Refined {
+                steps,
+                stop: Stop::Budget,
+            });
+        }
+        let t = Instant::now();
+        let answer = fetch(n).await?;
+        let elapsed = t.elapsed();
+        let values = answer.values();
+        let change = previous.as_deref().and_then(|p| mean_change(p, &values));
+        let step = Step {
+            step: steps.len() + 1,
+            iterations: n,
+            error_bound: answer.error_bound(),
+            mean_change: change,
+            elapsed,
+            answer,
+        };
+        on_step(&step);
+        let stop = if options.tolerance.is_some_and(|t| step.error_bound <= t) {
+            Some(Stop::Bound)
+        } else if change.is_some_and(|c| c <= options.change * range) {
+            Some(Stop::Converged)
+        } else {
+            None
+        };
+        steps.push(step);
+        if let Some(stop) = stop {
+            return Ok(Refined { steps, stop });
+        }
+        previous = Some(values);
+    }
+    Ok(Refined {
+        steps,
+        stop: Stop::Schedule,
+    })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A made-up answer whose values approach 100 geometrically, like a contractive operator's
+    /// iterates with contrast 1/2.
+    struct Fake(f32, f32);
+    impl Answer for Fake {
+        fn values(&self) -> Vec<f32> {
+            vec![self.0, f32::NAN]
+        }
+        fn error_bound(&self) -> f32 {
+            self.1
+        }
+    }
+    fn fake(n: u32) -> std::future::Ready<Result<Fake, ClientError>> {
+        let e = 64.0 * 0.5f32.powi(n as i32);
+        std::future::ready(Ok(Fake(100.0 - e, 2.0 * e)))
+    }
+    fn run<T>(f: impl Future<Output = T>) -> T {
+        tokio::runtime::Builder::new_current_thread()
+            .build()
+            .unwrap()
+            .block_on(f)
+    }
+
+    #[test]
+    fn stops_on_the_bound_the_change_or_the_schedule() {
+        let by_bound = RefineOptions {
+            tolerance: Some(1.0),
+            change: 0.0,
+            ..Default::default()
+        };
+        let r = run(refine(&by_bound, 100.0, fake, |_| {})).unwrap();
+        // The bound 128 / 2^n is under 1 first at n = 7.
+        assert_eq!((r.stop, r.steps.len()), (Stop::Bound, 7));
+        let by_change = RefineOptions::default();
+        let r = run(refine(&by_change, 100.0, fake, |_| {})).unwrap();
+        // The change 32 / 2^(n-1) ... is under 0.2 first at n = 9 (0.125); NaN is ignored.
+        assert_eq!((r.stop, r.steps.len()), (Stop::Converged, 9));
+        assert_eq!(r.steps[1].mean_change, Some(16.0));
+        let short = RefineOptions {
+            schedule: vec![1, 2, 4],
+            change: 0.0,
+            ..Default::default()
+        };
+        let mut seen = Vec::new();
+        let r = run(refine(&short, 100.0, fake, |s| seen.push(s.iterations))).unwrap();
+        assert_eq!((r.stop, seen), (Stop::Schedule, vec![1, 2, 4]));
+    }
+
+    #[test]
+    fn a_spent_budget_stops_after_the_first_step() {
+        let o = RefineOptions {
+            budget: Some(Duration::ZERO),
+            change: 0.0,
+            ..Default::default()
+        };
+        let r = run(refine(&o, 100.0, fake, |_| {})).unwrap();
+        assert_eq!((r.stop, r.steps.len()), (Stop::Budget, 1));
+    }
+
+    #[test]
+    fn change_ignores_missing_values() {
+        assert_eq!(
+            mean_change(&[1.0, f32::NAN, 3.0], &[2.0, 5.0, 1.0]),
+            Some(1.5)
+        );
+        assert_eq!(mean_change(&[f32::NAN], &[1.0]), None);
+        assert_eq!(mean_change(&[1.0], &[1.0, 2.0]), None);
+    }
+}
