@@ -250,7 +250,7 @@ pub async fn run(client: &Client, options: &BenchOptions) -> Result<Vec<KindRepo
                             _ => walk[i % replay],
                         };
                         let start = Instant::now();
-                        let r = client.tile(&id, &TileRequest::new(t, encoding)).await;
+                        let r = client.tile_body(&id, &TileRequest::new(t, encoding)).await;
                         Some(match r {
                             Ok(_) => Ok((1, start.elapsed())),
                             // Tiles of the walk's edge rows may miss the asset: the server says

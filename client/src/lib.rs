@@ -301,6 +301,24 @@ impl Client {
     /// floats for the height encodings. A [`TileEncoding::Gray16`] tile needs the asset's value
     /// range, fetched with one more request.
     pub async fn tile(&self, id: &str, req: &TileRequest) -> Result<Tile, ClientError> {
+        let raw = self.tile_body(id, req).await?;
+        let range = match req.encoding {
+            TileEncoding::Gray16 => {
+                let a = self.asset(id).await?;
+                Some(a.value_range)
+            }
+            _ => None,
+        };
+        Tile::decode(req, raw.body, raw.error_bound, raw.etag, raw.elapsed, range)
+    }
+
+    /// A tile's body as sent, undecoded: what the load generator times, so that the client's
+    /// PNG decoding does not take the cores the server is measured on.
+    pub(crate) async fn tile_body(
+        &self,
+        id: &str,
+        req: &TileRequest,
+    ) -> Result<TileBody, ClientError> {
         let TileAddress { z, x, y } = req.address;
         let ext = if req.encoding == TileEncoding::F32 {
             "f32"
@@ -322,22 +340,19 @@ impl Client {
         let path = self.asset_path(id, &rest)?;
         let start = Instant::now();
         let r = self.send(self.http.get(self.url(&path))).await?;
-        let bound = error_bound(&r)?;
+        let error_bound = error_bound(&r)?;
         let etag = r
             .headers()
             .get(header::ETAG)
             .and_then(|v| v.to_str().ok())
             .map(str::to_string);
         let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
-        let elapsed = start.elapsed();
-        let range = match req.encoding {
-            TileEncoding::Gray16 => {
-                let a = self.asset(id).await?;
-                Some(a.value_range)
-            }
-            _ => None,
-        };
-        Tile::decode(req, body, bound, etag, elapsed, range)
+        Ok(TileBody {
+            body,
+            error_bound,
+            etag,
+            elapsed: start.elapsed(),
+        })
     }
 
     /// `GET /v1/assets/{id}/point/{lon},{lat}` (georeferenced assets).
@@ -608,4 +623,12 @@ impl Client {
             .map(|r| r.expect("every planned tile was fetched"))
             .collect()
     }
+}
+
+/// A tile as it came off the wire.
+pub(crate) struct TileBody {
+    pub(crate) body: Vec<u8>,
+    pub(crate) error_bound: f32,
+    pub(crate) etag: Option<String>,
+    pub(crate) elapsed: Duration,
 }

@@ -6,7 +6,7 @@ use std::time::Duration;
 
 use anyhow::{Context, Result, bail};
 use clap::{Args, Parser, Subcommand};
-use fractile_client::refine::{RefineOptions, Stop};
+use fractile_client::refine::{RefineOptions, Step, Stop};
 use fractile_client::view::{Camera, PlanLimits};
 use fractile_client::{
     Client, MeshFormat, MeshRequest, PointsEncoding, PointsRequest, RegionFormat, RegionRequest,
@@ -102,9 +102,10 @@ enum Command {
         /// Output file.
         #[arg(short, long)]
         output: PathBuf,
-        /// png (visual), terrarium, terrainrgb, gray16 or f32.
-        #[arg(long, default_value = "png")]
-        encoding: String,
+        /// png (visual), terrarium, terrainrgb, gray16 or f32 (default: f32 when the output
+        /// ends in .f32, png otherwise).
+        #[arg(long)]
+        encoding: Option<String>,
         /// 256 or 512.
         #[arg(long, default_value_t = 256)]
         tile_size: u32,
@@ -248,19 +249,28 @@ fn step_path(out: &Path, step: usize) -> PathBuf {
 }
 
 fn write(path: &Path, bytes: &[u8]) -> Result<()> {
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).with_context(|| format!("creating {}", dir.display()))?;
+    }
     std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
 }
 
-/// Prints one refinement step: a table row, or a JSON object per line.
-fn print_step(json: bool, step: usize, iterations: u32, bound: f32, change: Option<f32>, ms: f64) {
+/// Prints one refinement step as it arrives: a table row, or one JSON object per line (the
+/// last carries why it is the last in `stop`; the others have `stop: null`).
+fn print_step<T>(json: bool, s: &Step<T>) {
+    let ms = s.elapsed.as_secs_f64() * 1e3;
     if json {
         println!(
             "{}",
-            json!({"step": step, "iterations": iterations, "error_bound": bound, "mean_change": change, "ms": ms})
+            json!({"step": s.step, "iterations": s.iterations, "error_bound": s.error_bound,
+                   "mean_change": s.mean_change, "ms": ms, "stop": s.stop})
         );
     } else {
-        let change = change.map_or("-".to_string(), |c| format!("{c:.4}"));
-        println!("| {step} | {iterations} | {bound:.4} | {change} | {ms:.1} |");
+        let change = s.mean_change.map_or("-".to_string(), |c| format!("{c:.4}"));
+        println!(
+            "| {} | {} | {:.4} | {change} | {ms:.1} |",
+            s.step, s.iterations, s.error_bound
+        );
     }
 }
 
@@ -271,9 +281,7 @@ fn print_head(json: bool) {
 }
 
 fn print_stop(json: bool, stop: Stop) {
-    if json {
-        println!("{}", json!({"stop": stop}));
-    } else {
+    if !json {
         let why = match stop {
             Stop::Bound => "the error bound reached the tolerance",
             Stop::Converged => "the answer stopped changing",
@@ -330,6 +338,13 @@ fn points_csv(resp: &fractile_client::PointsResponse) -> String {
 
 #[tokio::main]
 async fn main() -> Result<()> {
+    // Rust ignores SIGPIPE, so `fractile-client ... | head` would panic on the closed pipe; a
+    // command-line tool should just stop, as every Unix tool does (rust-lang/rust#62569).
+    #[cfg(unix)]
+    // SAFETY: restores the default disposition before any thread or I/O exists.
+    unsafe {
+        libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+    }
     let cli = Cli::parse();
     let client = Client::new(&cli.server)?.with_token(cli.token.clone());
     let json = cli.json;
@@ -389,7 +404,11 @@ async fn main() -> Result<()> {
             let req = TileRequest {
                 iterations: refine.iterations,
                 tile_size,
-                ..TileRequest::new(TileAddress { z, x, y }, encoding(&enc)?)
+                ..TileRequest::new(TileAddress { z, x, y }, {
+                    let by_name = output.extension().is_some_and(|e| e == "f32");
+                    let name = enc.unwrap_or_else(|| if by_name { "f32" } else { "png" }.into());
+                    encoding(&name)?
+                })
             };
             if refine.refine {
                 print_head(json);
@@ -399,14 +418,7 @@ async fn main() -> Result<()> {
                         if let Err(e) = write(&step_path(&output, s.step), &s.answer.body) {
                             failed.get_or_insert(e);
                         }
-                        print_step(
-                            json,
-                            s.step,
-                            s.iterations,
-                            s.error_bound,
-                            s.mean_change,
-                            s.elapsed.as_secs_f64() * 1e3,
-                        );
+                        print_step(json, s);
                     })
                     .await?;
                 if let Some(e) = failed {
@@ -484,14 +496,7 @@ async fn main() -> Result<()> {
                 print_head(json);
                 let r = client
                     .refine_points(&id, &points, enc, &refine.options(), |s| {
-                        print_step(
-                            json,
-                            s.step,
-                            s.iterations,
-                            s.error_bound,
-                            s.mean_change,
-                            s.elapsed.as_secs_f64() * 1e3,
-                        );
+                        print_step(json, s);
                     })
                     .await?;
                 print_stop(json, r.stop);
@@ -546,14 +551,7 @@ async fn main() -> Result<()> {
                         if let Err(e) = write(&step_path(&output, s.step), &s.answer.body) {
                             failed.get_or_insert(e);
                         }
-                        print_step(
-                            json,
-                            s.step,
-                            s.iterations,
-                            s.error_bound,
-                            s.mean_change,
-                            s.elapsed.as_secs_f64() * 1e3,
-                        );
+                        print_step(json, s);
                     })
                     .await?;
                 if let Some(e) = failed {

@@ -67,6 +67,9 @@ pub struct Step<T> {
     pub mean_change: Option<f32>,
     /// Time this request took.
     pub elapsed: Duration,
+    /// Why this step is the last (`None` on every other step), known before `on_step` sees it
+    /// so a caller streaming steps can say so at once.
+    pub stop: Option<Stop>,
     /// The answer.
     pub answer: T,
 }
@@ -160,46 +163,45 @@ where
     let start = Instant::now();
     let mut steps: Vec<Step<T>> = Vec::new();
     let mut previous: Option<Vec<f32>> = None;
-    for &n in &options.schedule {
-        if let (Some(budget), Some(last)) = (options.budget, steps.last())
-            && start.elapsed() + last.elapsed >= budget
-        {
-            return Ok(Refined {
-                steps,
-                stop: Stop::Budget,
-            });
-        }
+    for (k, &n) in options.schedule.iter().enumerate() {
         let t = Instant::now();
         let answer = fetch(n).await?;
         let elapsed = t.elapsed();
         let values = answer.values();
         let change = previous.as_deref().and_then(|p| mean_change(p, &values));
-        let step = Step {
-            step: steps.len() + 1,
-            iterations: n,
-            error_bound: answer.error_bound(),
-            mean_change: change,
-            elapsed,
-            answer,
-        };
-        on_step(&step);
-        let stop = if options.tolerance.is_some_and(|t| step.error_bound <= t) {
+        let error_bound = answer.error_bound();
+        let stop = if options.tolerance.is_some_and(|t| error_bound <= t) {
             Some(Stop::Bound)
         } else if change.is_some_and(|c| c <= options.change * range) {
             Some(Stop::Converged)
+        } else if k + 1 == options.schedule.len() {
+            Some(Stop::Schedule)
+        } else if options
+            .budget
+            // Another step takes at least as long as this one did (more iterations).
+            .is_some_and(|b| start.elapsed() + elapsed >= b)
+        {
+            Some(Stop::Budget)
         } else {
             None
         };
+        let step = Step {
+            step: k + 1,
+            iterations: n,
+            error_bound,
+            mean_change: change,
+            elapsed,
+            stop,
+            answer,
+        };
+        on_step(&step);
         steps.push(step);
         if let Some(stop) = stop {
             return Ok(Refined { steps, stop });
         }
         previous = Some(values);
     }
-    Ok(Refined {
-        steps,
-        stop: Stop::Schedule,
-    })
+    unreachable!("the last step of a non-empty schedule always stops")
 }
 
 #[cfg(test)]

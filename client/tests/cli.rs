@@ -1,0 +1,122 @@
+//! The `fractile-client` binary against the shared in-process test server: what a user types.
+
+use std::path::Path;
+use std::process::{Command, Output};
+
+fn cli(args: &[&str]) -> Output {
+    Command::new(env!("CARGO_BIN_EXE_fractile-client"))
+        .arg("--server")
+        .arg(fractile_e2e::server())
+        .args(args)
+        .env_remove("FRACTILE_WRITE_TOKEN")
+        .output()
+        .expect("the binary runs")
+}
+
+fn stdout(o: &Output) -> String {
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+#[test]
+fn refining_a_tile_writes_every_step_and_one_json_object_each() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("t.f32");
+    let o = cli(&[
+        "--json",
+        "tile",
+        "jacksboro",
+        "12",
+        "1088",
+        "1599",
+        "-o",
+        out.to_str().unwrap(),
+        "--refine",
+        "--tolerance",
+        "0.5",
+        "--schedule",
+        "1,2,4,8,16,32",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let steps: Vec<serde_json::Value> = stdout(&o)
+        .lines()
+        .map(|l| serde_json::from_str(l).expect("one JSON object per line"))
+        .collect();
+    assert!(steps.len() >= 2, "{steps:?}");
+    let bounds: Vec<f64> = steps
+        .iter()
+        .map(|s| s["error_bound"].as_f64().unwrap())
+        .collect();
+    assert!(bounds.windows(2).all(|w| w[1] <= w[0]), "{bounds:?}");
+    let its: Vec<u64> = steps
+        .iter()
+        .map(|s| s["iterations"].as_u64().unwrap())
+        .collect();
+    assert_eq!(its, [1, 2, 4, 8, 16, 32][..its.len()].to_vec());
+    // Every step is on disk, 256 x 256 float32 heights each, and the last is also at -o.
+    for k in 1..=steps.len() {
+        let p = dir.path().join(format!("t.step{k:02}.f32"));
+        assert_eq!(
+            std::fs::metadata(&p).unwrap().len(),
+            256 * 256 * 4,
+            "{}",
+            p.display()
+        );
+    }
+    let last = dir.path().join(format!("t.step{:02}.f32", steps.len()));
+    assert_eq!(std::fs::read(&out).unwrap(), std::fs::read(last).unwrap());
+}
+
+#[test]
+fn points_from_a_csv_come_back_in_order_with_outside_marked() {
+    let dir = tempfile::tempdir().unwrap();
+    let csv = dir.path().join("p.csv");
+    // Inside, inside, and far outside the DEM.
+    std::fs::write(&csv, "lon,lat\n-84.2,36.6\n-84.3,36.5\n-90,0\n").unwrap();
+    let answers = dir.path().join("a.csv");
+    let o = cli(&[
+        "points",
+        "jacksboro",
+        csv.to_str().unwrap(),
+        "-o",
+        answers.to_str().unwrap(),
+        "--binary",
+    ]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let text = std::fs::read_to_string(&answers).unwrap();
+    let rows: Vec<Vec<&str>> = text
+        .lines()
+        .skip(1)
+        .map(|l| l.split(',').collect())
+        .collect();
+    assert_eq!(rows.len(), 3);
+    assert_eq!(
+        (rows[0][0], rows[1][1], rows[2][0]),
+        ("-84.2", "36.5", "-90")
+    );
+    for r in &rows[..2] {
+        let h: f64 = r[2].parse().unwrap();
+        assert!((236.0..=1076.0).contains(&h), "{r:?}");
+    }
+    assert_eq!(rows[2][2], "", "outside has no value");
+    // The same point by the single-point command agrees.
+    let one = cli(&["--json", "point", "jacksboro", "-84.2", "36.6"]);
+    let v: serde_json::Value = serde_json::from_slice(&one.stdout).unwrap();
+    let h = v["values"][0].as_f64().unwrap();
+    assert!((h - rows[0][2].parse::<f64>().unwrap()).abs() < 1e-3, "{v}");
+}
+
+#[test]
+fn errors_exit_non_zero_with_the_servers_detail() {
+    let o = cli(&["info", "no-such-asset"]);
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("unknown_asset"), "{err}");
+    let o = cli(&[
+        "upload",
+        Path::new("Cargo.toml").to_str().unwrap(),
+        "--id",
+        "x",
+    ]);
+    assert!(!o.status.success());
+    assert!(String::from_utf8_lossy(&o.stderr).contains("unauthorised"));
+}
