@@ -7,7 +7,7 @@
 //! | 0 | 8 | magic `FRACTILE` |
 //! | 8 | 2 | format version (1) |
 //! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
-//! | 11 | 1 | codec (1 quadtree PIFS) |
+//! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface) |
 //! | 12 | 4 | metadata length M |
 //! | 16 | M | metadata ([`AssetMeta`], proto's binary encoding) |
 //! | 16+M | 4 | payload length P |
@@ -25,7 +25,8 @@ use serde::{Deserialize, Serialize};
 
 use crate::Error;
 use crate::entropy::{Bit, Decoder, Encoder};
-use crate::operator::QuadtreeOperator;
+use crate::fis::{FisHeader, FisOperator};
+use crate::operator::{Operator, QuadtreeOperator, RangeMap, Step};
 use crate::stream::{self, PlaneHeader};
 
 /// File magic.
@@ -39,17 +40,119 @@ pub const FORMAT_VERSION: u16 = 1;
 pub enum Codec {
     /// Quadtree partitioned IFS, 2D (images and height fields).
     QuadtreePifs = 1,
+    /// Fractal interpolation surfaces (height fields), any layout of the vertical scaling.
+    Fis = 2,
 }
 
-/// A coded plane: its header, its stream and the operator decoded from them.
+/// How a plane is coded: the header a reader needs and the entropy-coded stream.
+#[derive(Clone, Debug)]
+pub enum Coding {
+    /// Quadtree PIFS: partition and maps.
+    Quadtree {
+        /// Frame, sizes, quantiser.
+        header: PlaneHeader,
+        /// The transform stream.
+        stream: Vec<u8>,
+    },
+    /// Fractal interpolation surface: node heights and vertical scalings.
+    Fis {
+        /// Node grid, layout of s, quantisers.
+        header: FisHeader,
+        /// The parameter stream.
+        stream: Vec<u8>,
+    },
+}
+
+/// The decoding operator of a plane, whichever codec made it. Decoders see only
+/// [`Operator`]; the match costs one predictable branch a step.
+#[derive(Clone, Debug)]
+pub enum PlaneOperator {
+    /// A quadtree PIFS.
+    Quadtree(QuadtreeOperator),
+    /// A fractal interpolation surface.
+    Fis(FisOperator),
+}
+
+impl PlaneOperator {
+    /// The quadtree's ranges (empty for other codecs).
+    pub fn ranges(&self) -> &[RangeMap] {
+        match self {
+            PlaneOperator::Quadtree(q) => q.ranges(),
+            PlaneOperator::Fis(_) => &[],
+        }
+    }
+
+    /// Largest |s| anywhere.
+    pub fn max_contrast(&self) -> f32 {
+        match self {
+            PlaneOperator::Quadtree(q) => q
+                .ranges()
+                .iter()
+                .fold(0.0f32, |m, r| m.max(r.contrast.abs())),
+            PlaneOperator::Fis(f) => f.max_scaling(),
+        }
+    }
+
+    /// Maps of the operator: ranges, or cells of the node grid.
+    pub fn transforms(&self) -> usize {
+        match self {
+            PlaneOperator::Quadtree(q) => q.ranges().len(),
+            PlaneOperator::Fis(f) => f.cells(),
+        }
+    }
+}
+
+impl Operator<2> for PlaneOperator {
+    fn frame(&self) -> [f32; 2] {
+        match self {
+            PlaneOperator::Quadtree(q) => q.frame(),
+            PlaneOperator::Fis(f) => f.frame(),
+        }
+    }
+    fn valid(&self) -> [f32; 2] {
+        match self {
+            PlaneOperator::Quadtree(q) => q.valid(),
+            PlaneOperator::Fis(f) => f.valid(),
+        }
+    }
+    fn expansion(&self) -> u32 {
+        match self {
+            PlaneOperator::Quadtree(q) => q.expansion(),
+            PlaneOperator::Fis(f) => f.expansion(),
+        }
+    }
+    #[inline]
+    fn step(&self, p: [f32; 2]) -> Step<2> {
+        match self {
+            PlaneOperator::Quadtree(q) => q.step(p),
+            PlaneOperator::Fis(f) => f.step(p),
+        }
+    }
+    fn invariant_interval(&self) -> (f32, f32) {
+        match self {
+            PlaneOperator::Quadtree(q) => q.invariant_interval(),
+            PlaneOperator::Fis(f) => f.invariant_interval(),
+        }
+    }
+}
+
+/// A coded plane: how it is coded and the operator decoded from that.
 #[derive(Clone, Debug)]
 pub struct Plane {
-    /// Frame, sizes, quantiser.
-    pub header: PlaneHeader,
-    /// The entropy-coded transform stream.
-    pub stream: Vec<u8>,
+    /// Header and stream, as stored.
+    pub coding: Coding,
     /// The decoding operator.
-    pub operator: QuadtreeOperator,
+    pub operator: PlaneOperator,
+}
+
+impl Plane {
+    /// The quadtree header, for quadtree planes.
+    pub fn header(&self) -> Option<&PlaneHeader> {
+        match &self.coding {
+            Coding::Quadtree { header, .. } => Some(header),
+            Coding::Fis { .. } => None,
+        }
+    }
 }
 
 /// Which source cells held data (height fields with nodata).
@@ -117,6 +220,12 @@ struct Payload {
     mask: Option<Vec<u8>>,
 }
 
+#[derive(Serialize, Deserialize)]
+struct FisPayload {
+    planes: Vec<(FisHeader, Vec<u8>)>,
+    mask: Option<Vec<u8>>,
+}
+
 /// A decoded asset file: metadata, planes with their operators, and the nodata mask.
 #[derive(Clone, Debug)]
 pub struct Asset {
@@ -154,15 +263,62 @@ impl Asset {
                 let operator = stream::operator(&header, &leaves)
                     .map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
                 Ok(Plane {
-                    header,
-                    stream,
-                    operator,
+                    coding: Coding::Quadtree { header, stream },
+                    operator: PlaneOperator::Quadtree(operator),
                 })
             })
             .collect::<Result<Vec<_>, Error>>()?;
         let asset = Asset { meta, planes, mask };
         asset.check()?;
         Ok(asset)
+    }
+
+    /// Builds an asset of fractal interpolation surfaces from coded planes (height fields).
+    pub fn from_fis_parts(
+        meta: AssetMeta,
+        planes: Vec<(FisHeader, Vec<u8>)>,
+        mask: Option<Mask>,
+    ) -> Result<Asset, Error> {
+        if meta.kind != AssetKind::HeightField {
+            return Err(Error::Asset(
+                "fractal interpolation surfaces code height fields only".into(),
+            ));
+        }
+        let planes = planes
+            .into_iter()
+            .enumerate()
+            .map(|(i, (header, stream))| {
+                let bad = |e: String| Error::Asset(format!("plane {i}: {e}"));
+                if header.samples != [meta.width, meta.height] {
+                    return Err(bad("sample grid and metadata disagree".into()));
+                }
+                let params = crate::fis::decode_params(&header, &stream).map_err(bad)?;
+                let operator = FisOperator::new(&header, &params).map_err(bad)?;
+                Ok(Plane {
+                    coding: Coding::Fis { header, stream },
+                    operator: PlaneOperator::Fis(operator),
+                })
+            })
+            .collect::<Result<Vec<_>, Error>>()?;
+        let asset = Asset { meta, planes, mask };
+        asset.check()?;
+        Ok(asset)
+    }
+
+    /// The codec of the planes.
+    pub fn codec(&self) -> Codec {
+        match self.planes.first().map(|p| &p.coding) {
+            Some(Coding::Fis { .. }) => Codec::Fis,
+            _ => Codec::QuadtreePifs,
+        }
+    }
+
+    /// The codec's name as the CLI and the API spell it.
+    pub fn codec_name(&self) -> &'static str {
+        match self.planes.first().map(|p| &p.coding) {
+            Some(Coding::Fis { header, .. }) => crate::fis::codec_name(header.scaling),
+            _ => "quadtree-pifs",
+        }
     }
 
     fn check(&self) -> Result<(), Error> {
@@ -194,15 +350,34 @@ impl Asset {
 
     /// The file's bytes.
     pub fn to_bytes(&self) -> Vec<u8> {
-        let payload = Payload {
-            planes: self
-                .planes
-                .iter()
-                .map(|p| (p.header.clone(), p.stream.clone()))
-                .collect(),
-            mask: self.mask.as_ref().map(Mask::encode),
+        let mask = self.mask.as_ref().map(Mask::encode);
+        let payload = match self.codec() {
+            Codec::QuadtreePifs => fractile_proto::encode(&Payload {
+                planes: self
+                    .planes
+                    .iter()
+                    .filter_map(|p| match &p.coding {
+                        Coding::Quadtree { header, stream } => {
+                            Some((header.clone(), stream.clone()))
+                        }
+                        Coding::Fis { .. } => None,
+                    })
+                    .collect(),
+                mask,
+            }),
+            Codec::Fis => fractile_proto::encode(&FisPayload {
+                planes: self
+                    .planes
+                    .iter()
+                    .filter_map(|p| match &p.coding {
+                        Coding::Fis { header, stream } => Some((header.clone(), stream.clone())),
+                        Coding::Quadtree { .. } => None,
+                    })
+                    .collect(),
+                mask,
+            }),
         };
-        assemble(&self.meta, &fractile_proto::encode(&payload))
+        assemble(&self.meta, self.codec(), &payload)
     }
 
     /// Size of the file in bytes.
@@ -236,8 +411,10 @@ impl Asset {
             ));
         }
         let (kind, codec) = (bytes[10], bytes[11]);
-        if codec != Codec::QuadtreePifs as u8 {
-            return Err(bad(format!("unknown codec {codec}")));
+        if codec != Codec::QuadtreePifs as u8 && codec != Codec::Fis as u8 {
+            return Err(bad(format!(
+                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS)"
+            )));
         }
         let read_len = |at: usize| -> Result<usize, Error> {
             let b = bytes
@@ -264,13 +441,19 @@ impl Asset {
                 meta.width, meta.height
             )));
         }
-        let payload: Payload =
-            fractile_proto::decode(&bytes[p_start..body]).map_err(|e| bad(e.to_string()))?;
-        let mask = match payload.mask {
-            Some(m) => Some(Mask::decode(meta.width as usize, meta.height as usize, &m)?),
-            None => None,
+        let mask = |m: Option<Vec<u8>>| -> Result<Option<Mask>, Error> {
+            m.map(|m| Mask::decode(meta.width as usize, meta.height as usize, &m))
+                .transpose()
         };
-        Asset::from_parts(meta, payload.planes, mask)
+        let payload = &bytes[p_start..body];
+        if codec == Codec::Fis as u8 {
+            let p: FisPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+            let mask = mask(p.mask)?;
+            return Asset::from_fis_parts(meta, p.planes, mask);
+        }
+        let p: Payload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+        let mask = mask(p.mask)?;
+        Asset::from_parts(meta, p.planes, mask)
     }
 
     /// Reads an asset file.
@@ -289,13 +472,13 @@ impl Asset {
     }
 }
 
-fn assemble(meta: &AssetMeta, payload: &[u8]) -> Vec<u8> {
+fn assemble(meta: &AssetMeta, codec: Codec, payload: &[u8]) -> Vec<u8> {
     let meta_bytes = fractile_proto::encode(meta);
     let mut out = Vec::with_capacity(24 + meta_bytes.len() + payload.len());
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
     out.push(kind_byte(meta.kind));
-    out.push(Codec::QuadtreePifs as u8);
+    out.push(codec as u8);
     out.extend_from_slice(&(meta_bytes.len() as u32).to_le_bytes());
     out.extend_from_slice(&meta_bytes);
     out.extend_from_slice(&(payload.len() as u32).to_le_bytes());

@@ -13,6 +13,7 @@ use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleForma
 use crate::Error;
 use crate::asset::{Asset, Mask};
 use crate::colour::rgb_to_ycbcr;
+use crate::fis::{FisHeader, FisSettings};
 use crate::metrics::{Errors, compare};
 use crate::partition::{Limits, Partition, Pyramid, greedy_order, partitions_after};
 use crate::raster::Raster;
@@ -447,7 +448,7 @@ pub fn encode(
         }
     };
     let asset = build(&parts, &meta)?;
-    let transforms: usize = asset.planes.iter().map(|p| p.operator.ranges().len()).sum();
+    let transforms: usize = asset.planes.iter().map(|p| p.operator.transforms()).sum();
     let (decoded, _) = asset.decode_native();
     let errors = compare(
         &raster.channels,
@@ -620,6 +621,147 @@ fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
             *v = levels[0].2[i].0;
         }
     }
+}
+
+/// Encodes a height field as a fractal interpolation surface ([`crate::fis`]).
+/// `target_bpp`, when given, overrides `settings.spacing` with the smallest spacing (the best
+/// quality) whose file fits: size falls as the spacing grows, so the first fit is the answer.
+pub fn encode_fis(
+    raster: &Raster,
+    settings: &FisSettings,
+    target_bpp: Option<f64>,
+) -> Result<Encoded, Error> {
+    let start = Instant::now();
+    if raster.kind != AssetKind::HeightField || raster.channels.len() != 1 {
+        return Err(Error::Settings(
+            "fractal interpolation surfaces code single-channel height fields (use the quadtree \
+             codec for images)"
+                .into(),
+        ));
+    }
+    let (w, h) = (raster.width, raster.height);
+    if w < 2 || h < 2 {
+        return Err(Error::Input(format!(
+            "a {w}x{h} grid is too small for an interpolation surface (2x2 at least)"
+        )));
+    }
+    if !(settings.max_scaling > 0.0 && settings.max_scaling < 1.0) {
+        return Err(Error::Settings("max scaling must be in (0, 1)".into()));
+    }
+    let (lo, hi) = raster.value_range();
+    let hi = if hi > lo { hi } else { lo + 1.0 };
+    let span = hi - lo;
+    let mut values: Vec<f32> = raster.channels[0]
+        .iter()
+        .map(|&x| ((x as f64 - lo) / span).clamp(0.0, 1.0) as f32)
+        .collect();
+    let valid = raster.valid.clone().unwrap_or_else(|| vec![true; w * h]);
+    fill_invalid(&mut values, &valid, w, h);
+    let quantum = match raster.sample {
+        SampleFormat::F32 => span / 65535.0,
+        _ => 1.0,
+    };
+    let source = crate::fis::Source {
+        width: w,
+        height: h,
+        values: &values,
+    };
+    let mask = raster.valid.as_ref().map(|v| Mask {
+        width: w,
+        height: h,
+        valid: v.clone(),
+    });
+    let mut meta = AssetMeta {
+        kind: raster.kind,
+        width: w as u32,
+        height: h as u32,
+        channels: 1,
+        colour: ColourModel::Grey,
+        sample: raster.sample,
+        units: raster.units.clone(),
+        value_min: lo,
+        value_max: hi,
+        nodata: raster.nodata,
+        georef: raster.georef.clone(),
+        encoder: String::new(),
+        stats: EncodeStats::default(),
+    };
+    let build = |spacing: u32| -> Result<Asset, Error> {
+        let step = settings.height_step.unwrap_or_else(|| {
+            let limit = crate::fis::interpolation_rmse(&source, spacing) as f64 * span / 4.0;
+            let mut step = quantum;
+            while step * 2.0 <= limit {
+                step *= 2.0;
+            }
+            step
+        });
+        let height_step = ((step / span) as f32).clamp(1e-9, 1.0);
+        let header = FisHeader {
+            samples: [w as u32, h as u32],
+            spacing,
+            scaling: settings.scaling,
+            height_step,
+            scaling_bits: settings.scaling_bits,
+            max_scaling: settings.max_scaling,
+        };
+        let params = crate::fis::fit(&source, &header)?;
+        let stream = crate::fis::encode_params(&header, &params);
+        let mut m = meta.clone();
+        m.encoder = format!(
+            "{} spacing={spacing} height_step={step} scaling_bits={} max_scaling={}",
+            crate::fis::codec_name(settings.scaling),
+            settings.scaling_bits,
+            settings.max_scaling
+        );
+        Asset::from_fis_parts(m, vec![(header, stream)], mask.clone())
+    };
+    let asset = match target_bpp {
+        None => build(settings.spacing.max(1))?,
+        Some(bpp) => {
+            let max_bytes = (bpp * (w * h) as f64 / 8.0).floor() as usize;
+            let mut found = None;
+            let largest = (w.max(h) - 1).clamp(1, 4096) as u32;
+            for k in 1..=largest {
+                let a = build(k)?;
+                if a.file_size() <= max_bytes {
+                    found = Some(a);
+                    break;
+                }
+            }
+            found.ok_or_else(|| {
+                Error::Settings(format!(
+                    "no interpolation surface fits in {bpp} bits per pixel (the coarsest takes more)"
+                ))
+            })?
+        }
+    };
+    let (decoded, _) = asset.decode_native();
+    meta = asset.meta.clone();
+    let errors = compare(
+        &raster.channels,
+        &decoded.channels,
+        raster.valid.as_deref(),
+        meta.psnr_peak(),
+    );
+    let transforms = asset.planes.iter().map(|p| p.operator.transforms()).sum();
+    let seconds = start.elapsed().as_secs_f64();
+    meta.stats = EncodeStats {
+        transforms: transforms as u64,
+        rmse: errors.rmse,
+        psnr: errors.psnr,
+        max_error: errors.max_error,
+        seconds,
+    };
+    let mut asset = asset;
+    asset.meta = meta;
+    let bytes = asset.to_bytes();
+    Ok(Encoded {
+        asset,
+        bytes,
+        errors,
+        transforms,
+        seconds,
+    })
 }
 
 #[cfg(test)]

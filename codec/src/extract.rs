@@ -48,7 +48,7 @@ impl Asset {
     pub fn max_contrast(&self) -> f32 {
         self.planes
             .iter()
-            .flat_map(|p| p.operator.ranges().iter().map(|r| r.contrast.abs()))
+            .map(|p| p.operator.max_contrast())
             .fold(0.0, f32::max)
     }
 

@@ -12,6 +12,7 @@ pub mod decode;
 pub mod encode;
 pub mod entropy;
 pub mod extract;
+pub mod fis;
 pub mod geo;
 pub mod mesh;
 pub mod metrics;

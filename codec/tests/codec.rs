@@ -409,8 +409,8 @@ fn colour_images_code_in_ycbcr_and_decode_to_rgb() {
     assert_eq!(enc.asset.planes.len(), 3);
     // Chroma is coded on a half-resolution frame.
     assert_eq!(
-        enc.asset.planes[1].header.frame[0] * 2,
-        enc.asset.planes[0].header.frame[0]
+        enc.asset.planes[1].header().unwrap().frame[0] * 2,
+        enc.asset.planes[0].header().unwrap().frame[0]
     );
     assert!(enc.errors.psnr > 24.0, "{}", enc.errors.psnr);
     let p = enc.asset.point(0.5, 0.5, 20);
@@ -494,4 +494,105 @@ fn window_methods_agree_on_smooth_terrain() {
         / 1600.0;
     assert!(mean < 0.03, "mean normalised difference {mean}");
     assert!(op.valid()[0] > 90.0);
+}
+
+/// The three fractal interpolation surface codecs on a real DEM: the file round-trips, the
+/// served surface passes through every interpolation point (the source sample, to the node
+/// height step), and the fractal detail beats plain bilinear interpolation of the same nodes.
+#[test]
+fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
+    use fractile_codec::encode::encode_fis;
+    use fractile_codec::fis::{FisSettings, Scaling};
+    let r = Raster::open(&data("jacksboro.tif")).unwrap();
+    let (w, h) = (r.width, r.height);
+    for scaling in [Scaling::Global, Scaling::PerCell, Scaling::PerNode] {
+        let settings = FisSettings {
+            scaling,
+            spacing: 6,
+            ..FisSettings::default()
+        };
+        let enc = encode_fis(&r, &settings, None).unwrap();
+        let back = Asset::from_bytes(&enc.bytes).unwrap();
+        assert_eq!(back.to_bytes(), enc.bytes);
+        assert_eq!(back.codec_name(), fractile_codec::fis::codec_name(scaling));
+        let step = match &back.planes[0].coding {
+            fractile_codec::asset::Coding::Fis { header, .. } => {
+                header.height_step as f64 * (back.meta.value_max - back.meta.value_min)
+            }
+            _ => panic!("not an FIS plane"),
+        };
+        let mut checked = 0;
+        for j in (0..h).step_by(6) {
+            for i in (0..w).step_by(6) {
+                // The unit coordinate whose f32 product with the size is the node's centre
+                // exactly: a hair beside a node, the per-cell surface may step by centimetres.
+                let exact = |k: usize, n: usize| {
+                    let (t, u) = (k as f32 + 0.5, (k as f32 + 0.5) / n as f32);
+                    [u, u.next_up(), u.next_down()]
+                        .into_iter()
+                        .find(|c| c * n as f32 == t)
+                };
+                let (Some(u), Some(v)) = (exact(i, w), exact(j, h)) else {
+                    continue;
+                };
+                let p = back.point(u, v, 300);
+                let source = r.channels[0][j * w + i] as f64;
+                let err = (p.values[0] as f64 - source).abs();
+                assert!(
+                    err <= step / 2.0 + p.error_bound as f64 + 1e-3,
+                    "{scaling:?} node ({i}, {j}): {} vs {source} (step {step}, bound {})",
+                    p.values[0],
+                    p.error_bound
+                );
+                checked += 1;
+            }
+        }
+        assert!(checked > 3000, "{checked}");
+    }
+    // Bilinear interpolation of the nodes (a surface whose scaling is ~0) against the fitted one.
+    let psnr = |scaling, max_scaling| {
+        let s = FisSettings {
+            scaling,
+            spacing: 6,
+            max_scaling,
+            ..FisSettings::default()
+        };
+        encode_fis(&r, &s, None).unwrap().errors.psnr
+    };
+    let (flat, fitted) = (psnr(Scaling::Global, 1e-4), psnr(Scaling::PerCell, 0.9));
+    assert!(
+        fitted > flat + 0.3,
+        "fitted {fitted} dB, bilinear {flat} dB"
+    );
+}
+
+#[test]
+fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
+    use fractile_codec::encode::encode_fis;
+    use fractile_codec::fis::FisSettings;
+    let r = Raster::open(&data("topobathy.tif")).unwrap();
+    for bpp in [0.5, 1.0] {
+        let enc = encode_fis(&r, &FisSettings::default(), Some(bpp)).unwrap();
+        assert!(enc.bpp() <= bpp, "{} > {bpp}", enc.bpp());
+        // The next finer spacing would not have fitted: rate control picks the best that does.
+        let k: u32 = enc
+            .asset
+            .meta
+            .encoder
+            .split_whitespace()
+            .find_map(|t| t.strip_prefix("spacing="))
+            .unwrap()
+            .parse()
+            .unwrap();
+        if k > 1 {
+            let finer = FisSettings {
+                spacing: k - 1,
+                ..FisSettings::default()
+            };
+            assert!(encode_fis(&r, &finer, None).unwrap().bpp() > bpp);
+        }
+    }
+    let camera = Raster::open(&data("camera.png")).unwrap();
+    let e = encode_fis(&camera, &FisSettings::default(), None).unwrap_err();
+    assert!(e.to_string().contains("height fields"), "{e}");
 }

@@ -171,7 +171,7 @@ fn summary(state: &AppState, a: &StoredAsset) -> AssetSummary {
         value_range: [m.value_min, m.value_max],
         units: m.units.clone(),
         nodata: m.nodata,
-        codec: "quadtree-pifs".into(),
+        codec: a.asset.codec_name().into(),
         bytes: a.bytes,
         ratio: m.source_bytes() as f64 / a.bytes as f64,
         transforms: m.stats.transforms,

@@ -6,6 +6,7 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
+use fractile_codec::fis::FisSettings;
 use fractile_codec::{
     Asset, DiscreteOptions, EncodeSettings, Method, Quantiser, Raster, RateMode, Roi, SearchMode,
     encode, metrics, raster,
@@ -132,6 +133,20 @@ struct EncodeArgs {
     /// Candidates scored per range by the nearest-neighbour search.
     #[arg(long, default_value_t = 32)]
     candidates: usize,
+    /// Codec: quadtree-pifs (images and height fields), or a fractal interpolation surface for
+    /// height fields: fis-bilinear (s per node, Wu and Zhou), fis-rect (s per cell),
+    /// fis-rect-global (one s, Drakopoulos and Manousopoulos).
+    #[arg(long, default_value = "quadtree-pifs")]
+    codec: String,
+    /// FIS: samples between interpolation points (ignored with --target-bpp, which picks it).
+    #[arg(long, default_value_t = FisSettings::default().spacing)]
+    spacing: u32,
+    /// FIS: node height step in source units (default: the source's quantum).
+    #[arg(long)]
+    height_step: Option<f64>,
+    /// FIS: bits of each vertical scaling.
+    #[arg(long, default_value_t = FisSettings::default().scaling_bits)]
+    scaling_bits: u8,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -220,6 +235,16 @@ fn parse_window(s: &str) -> Result<[f32; 4], String> {
 
 fn main() {
     let cli = Cli::parse();
+    // `fractile info x.fra | head` should end quietly as Unix tools do, not panic on the closed
+    // pipe (Rust ignores SIGPIPE, rust-lang/rust#62569). Not for `serve`: a server must see
+    // EPIPE on a socket whose peer left, not die of the signal.
+    #[cfg(unix)]
+    if !matches!(cli.command, Command::Serve { .. }) {
+        // SAFETY: restores the default disposition before any thread or I/O exists.
+        unsafe {
+            libc::signal(libc::SIGPIPE, libc::SIG_DFL);
+        }
+    }
     let result = match cli.command {
         Command::Encode(a) => run_encode(a),
         Command::Decode(a) => run_decode(a),
@@ -277,6 +302,56 @@ fn run_serve(
 
 fn run_encode(a: EncodeArgs) -> Result<()> {
     let raster = Raster::open(&a.input)?;
+    let enc = if a.codec == "quadtree-pifs" {
+        encode_quadtree(&a, &raster)?
+    } else {
+        let Some(scaling) = fractile_codec::fis::scaling_of_codec(&a.codec) else {
+            bail!(
+                "unknown codec {:?}: quadtree-pifs, fis-bilinear, fis-rect, fis-rect-global",
+                a.codec
+            );
+        };
+        if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
+            bail!("--codec {} takes --spacing or --target-bpp", a.codec);
+        }
+        let settings = FisSettings {
+            scaling,
+            spacing: a.spacing,
+            height_step: a.height_step,
+            scaling_bits: a.scaling_bits,
+            max_scaling: a.max_contrast,
+        };
+        fractile_codec::encode::encode_fis(&raster, &settings, a.target_bpp)?
+    };
+    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
+    let report = json!({
+        "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
+        "bytes": enc.bytes.len(), "source_bytes": enc.asset.meta.source_bytes(),
+        "ratio": enc.ratio(), "bpp": enc.bpp(), "transforms": enc.transforms,
+        "seconds": enc.seconds, "psnr": enc.errors.psnr, "rmse": enc.errors.rmse,
+        "max_error": enc.errors.max_error,
+    });
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} -> {}: {} {} bytes, {:.2}:1, {:.3} bpp, {} transforms, {:.2} s, PSNR {:.2} dB, RMSE {:.3}",
+            a.input.display(),
+            a.output.display(),
+            enc.asset.codec_name(),
+            enc.bytes.len(),
+            enc.ratio(),
+            enc.bpp(),
+            enc.transforms,
+            enc.seconds,
+            enc.errors.psnr,
+            enc.errors.rmse
+        );
+    }
+    Ok(())
+}
+
+fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractile_codec::Encoded> {
     let rate = match (a.target_bpp, a.tolerance, a.transforms, a.const_range) {
         (Some(b), ..) => RateMode::TargetBpp(b),
         (_, Some(t), ..) => RateMode::Tolerance(t),
@@ -302,7 +377,7 @@ fn run_encode(a: EncodeArgs) -> Result<()> {
             Search::Classified => SearchMode::Classified,
             Search::Nearest => SearchMode::Nearest(a.candidates.max(1)),
         },
-        rois: a.roi,
+        rois: a.roi.clone(),
         ..EncodeSettings::default()
     };
     // The bar appears only once an encode has run for a second (short encodes stay quiet).
@@ -323,33 +398,9 @@ fn run_encode(a: EncodeArgs) -> Result<()> {
             bar.set_draw_target(ProgressDrawTarget::stderr());
         }
     };
-    let enc = encode(&raster, &settings, &progress)?;
+    let enc = encode(raster, &settings, &progress)?;
     bar.finish_and_clear();
-    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
-    let report = json!({
-        "input": a.input, "output": a.output,
-        "bytes": enc.bytes.len(), "source_bytes": enc.asset.meta.source_bytes(),
-        "ratio": enc.ratio(), "bpp": enc.bpp(), "transforms": enc.transforms,
-        "seconds": enc.seconds, "psnr": enc.errors.psnr, "rmse": enc.errors.rmse,
-        "max_error": enc.errors.max_error,
-    });
-    if a.json {
-        println!("{report}");
-    } else {
-        println!(
-            "{} -> {}: {} bytes, {:.2}:1, {:.3} bpp, {} transforms, {:.2} s, PSNR {:.2} dB, RMSE {:.3}",
-            a.input.display(),
-            a.output.display(),
-            enc.bytes.len(),
-            enc.ratio(),
-            enc.bpp(),
-            enc.transforms,
-            enc.seconds,
-            enc.errors.psnr,
-            enc.errors.rmse
-        );
-    }
-    Ok(())
+    Ok(enc)
 }
 
 fn run_decode(a: DecodeArgs) -> Result<()> {
@@ -458,13 +509,13 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
     let asset = Asset::read(path)?;
     let bytes = std::fs::metadata(path).context("asset size")?.len();
     let m = &asset.meta;
-    let ranges: usize = asset.planes.iter().map(|p| p.operator.ranges().len()).sum();
+    let ranges: usize = asset.planes.iter().map(|p| p.operator.transforms()).sum();
     let info = json!({
         "kind": format!("{:?}", m.kind), "width": m.width, "height": m.height, "channels": m.channels,
         "colour": format!("{:?}", m.colour), "sample": format!("{:?}", m.sample), "units": m.units,
         "value_range": [m.value_min, m.value_max], "nodata": m.nodata,
         "georef": m.georef.as_ref().map(|g| json!({"epsg": g.epsg, "origin": g.origin, "pixel_size": g.pixel_size})),
-        "codec": "quadtree-pifs", "format_version": fractile_codec::asset::FORMAT_VERSION,
+        "codec": asset.codec_name(), "format_version": fractile_codec::asset::FORMAT_VERSION,
         "bytes": bytes, "source_bytes": m.source_bytes(), "ratio": m.source_bytes() as f64 / bytes as f64,
         "bpp": bytes as f64 * 8.0 / (m.width as f64 * m.height as f64),
         "transforms": ranges, "max_contrast": asset.max_contrast(),
