@@ -624,8 +624,8 @@ fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
 }
 
 /// Encodes a height field as a fractal interpolation surface ([`crate::fis`]).
-/// `target_bpp`, when given, overrides `settings.spacing` with the smallest spacing (the best
-/// quality) whose file fits: size falls as the spacing grows, so the first fit is the answer.
+/// `target_bpp`, when given, overrides `settings.spacing` (and the automatic height step) with
+/// the better of two fits under the target (see the body).
 pub fn encode_fis(
     raster: &Raster,
     settings: &FisSettings,
@@ -686,15 +686,17 @@ pub fn encode_fis(
         encoder: String::new(),
         stats: EncodeStats::default(),
     };
-    let build = |spacing: u32| -> Result<Asset, Error> {
-        let step = settings.height_step.unwrap_or_else(|| {
+    let auto_step = |spacing: u32| {
+        settings.height_step.unwrap_or_else(|| {
             let limit = crate::fis::interpolation_rmse(&source, spacing) as f64 * span / 4.0;
             let mut step = quantum;
             while step * 2.0 <= limit {
                 step *= 2.0;
             }
             step
-        });
+        })
+    };
+    let build = |spacing: u32, step: f64| -> Result<Asset, Error> {
         let height_step = ((step / span) as f32).clamp(1e-9, 1.0);
         let header = FisHeader {
             samples: [w as u32, h as u32],
@@ -715,24 +717,55 @@ pub fn encode_fis(
         );
         Asset::from_fis_parts(m, vec![(header, stream)], mask.clone())
     };
+    let psnr = |a: &Asset| {
+        let (d, _) = a.decode_native();
+        compare(
+            &raster.channels,
+            &d.channels,
+            raster.valid.as_deref(),
+            a.meta.psnr_peak(),
+        )
+        .psnr
+    };
     let asset = match target_bpp {
-        None => build(settings.spacing.max(1))?,
+        None => {
+            let k = settings.spacing.max(1);
+            build(k, auto_step(k))?
+        }
         Some(bpp) => {
+            // Spacing moves the size in steps (x2.25 from 2 to 3); the node height step fills
+            // in between. The smallest spacing that fits at its own height step, against the
+            // next finer spacing with the finest coarser height step that fits: the better
+            // PSNR wins (coarse heights cost little where interpolation error dominates).
             let max_bytes = (bpp * (w * h) as f64 / 8.0).floor() as usize;
-            let mut found = None;
             let largest = (w.max(h) - 1).clamp(1, 4096) as u32;
+            let mut found = None;
             for k in 1..=largest {
-                let a = build(k)?;
+                let a = build(k, auto_step(k))?;
                 if a.file_size() <= max_bytes {
-                    found = Some(a);
+                    found = Some((k, a));
                     break;
                 }
             }
-            found.ok_or_else(|| {
-                Error::Settings(format!(
+            let Some((k, a)) = found else {
+                return Err(Error::Settings(format!(
                     "no interpolation surface fits in {bpp} bits per pixel (the coarsest takes more)"
-                ))
-            })?
+                )));
+            };
+            let mut best = a;
+            if k > 1 && settings.height_step.is_none() {
+                let base = auto_step(k - 1);
+                for m in 1..=8 {
+                    let finer = build(k - 1, base * f64::from(1u32 << m))?;
+                    if finer.file_size() <= max_bytes {
+                        if psnr(&finer) > psnr(&best) {
+                            best = finer;
+                        }
+                        break;
+                    }
+                }
+            }
+            best
         }
     };
     let (decoded, _) = asset.decode_native();
