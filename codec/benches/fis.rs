@@ -5,8 +5,9 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use fractile_codec::encode::encode_fis;
+use fractile_codec::encode::{encode_fis, encode_psa};
 use fractile_codec::fis::{FisSettings, Scaling, codec_name};
+use fractile_codec::psa::{Domains, PsaSettings, Tiling};
 use fractile_codec::{EncodeSettings, Encoded, Raster, RateMode, encode};
 use rustfft::FftPlanner;
 use rustfft::num_complex::Complex;
@@ -132,12 +133,41 @@ fn main() {
         );
         println!("| DEM | codec | bytes | ratio | PSNR dB | max error | encode s | decode ms |");
         println!("|---|---|---|---|---|---|---|---|");
-        for dem in ["jacksboro.tif", "etopo20.tif", "topobathy.tif"] {
-            let r = Raster::open(&data(dem)).expect("testdata");
-            let name = dem.trim_end_matches(".tif");
+        for file in [
+            "jacksboro.tif",
+            "etopo20.tif",
+            "topobathy.tif",
+            "camera.png",
+        ] {
+            let r = Raster::open(&data(file)).expect("testdata");
+            let name = file.split('.').next().unwrap_or(file);
+            let image = r.kind == fractile_proto::AssetKind::Image;
             for ratio in [16.0, 32.0, 64.0] {
                 let bpp = (r.sample.bytes() * 8) as f64 / ratio;
+                for (tiling, domains) in [
+                    (Tiling::Rectangular, Domains::Overlapping),
+                    (Tiling::Rectangular, Domains::Touching),
+                    (Tiling::Triangular, Domains::Overlapping),
+                ] {
+                    let s = PsaSettings {
+                        tiling,
+                        domains,
+                        ..PsaSettings::default()
+                    };
+                    let label = format!(
+                        "{} {}",
+                        fractile_codec::psa::codec_name(tiling),
+                        format!("{domains:?}").to_lowercase()
+                    );
+                    match encode_psa(&r, &s, Some(bpp)) {
+                        Ok(e) => row(name, &label, &e),
+                        Err(e) => println!("| {name} | {label} | - | {ratio}:1 | {e} | | | |"),
+                    }
+                }
                 for s in codecs {
+                    if image {
+                        continue;
+                    }
                     match encode_fis(
                         &r,
                         &FisSettings {

@@ -7,7 +7,7 @@
 //! | 0 | 8 | magic `FRACTILE` |
 //! | 8 | 2 | format version (1) |
 //! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
-//! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface) |
+//! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine) |
 //! | 12 | 4 | metadata length M |
 //! | 16 | M | metadata ([`AssetMeta`], proto's binary encoding) |
 //! | 16+M | 4 | payload length P |
@@ -27,6 +27,7 @@ use crate::Error;
 use crate::entropy::{Bit, Decoder, Encoder};
 use crate::fis::{FisHeader, FisOperator};
 use crate::operator::{Operator, QuadtreeOperator, RangeMap, Step};
+use crate::psa::{PsaHeader, PsaOperator};
 use crate::stream::{self, PlaneHeader};
 
 /// File magic.
@@ -42,6 +43,8 @@ pub enum Codec {
     QuadtreePifs = 1,
     /// Fractal interpolation surfaces (height fields), any layout of the vertical scaling.
     Fis = 2,
+    /// Piecewise self-affine model on a rectangular lattice (psa2d), grey images and heights.
+    Psa = 3,
 }
 
 /// How a plane is coded: the header a reader needs and the entropy-coded stream.
@@ -61,6 +64,13 @@ pub enum Coding {
         /// The parameter stream.
         stream: Vec<u8>,
     },
+    /// Piecewise self-affine model: vertex heights and region codes.
+    Psa {
+        /// Lattice, tiling, domains, quantisers.
+        header: PsaHeader,
+        /// The parameter stream.
+        stream: Vec<u8>,
+    },
 }
 
 /// The decoding operator of a plane, whichever codec made it. Decoders see only
@@ -71,6 +81,8 @@ pub enum PlaneOperator {
     Quadtree(QuadtreeOperator),
     /// A fractal interpolation surface.
     Fis(FisOperator),
+    /// A piecewise self-affine surface.
+    Psa(PsaOperator),
 }
 
 impl PlaneOperator {
@@ -78,7 +90,7 @@ impl PlaneOperator {
     pub fn ranges(&self) -> &[RangeMap] {
         match self {
             PlaneOperator::Quadtree(q) => q.ranges(),
-            PlaneOperator::Fis(_) => &[],
+            PlaneOperator::Fis(_) | PlaneOperator::Psa(_) => &[],
         }
     }
 
@@ -90,6 +102,7 @@ impl PlaneOperator {
                 .iter()
                 .fold(0.0f32, |m, r| m.max(r.contrast.abs())),
             PlaneOperator::Fis(f) => f.max_scaling(),
+            PlaneOperator::Psa(f) => f.max_scaling(),
         }
     }
 
@@ -98,6 +111,7 @@ impl PlaneOperator {
         match self {
             PlaneOperator::Quadtree(q) => q.ranges().len(),
             PlaneOperator::Fis(f) => f.cells(),
+            PlaneOperator::Psa(f) => f.regions(),
         }
     }
 }
@@ -107,18 +121,21 @@ impl Operator<2> for PlaneOperator {
         match self {
             PlaneOperator::Quadtree(q) => q.frame(),
             PlaneOperator::Fis(f) => f.frame(),
+            PlaneOperator::Psa(f) => f.frame(),
         }
     }
     fn valid(&self) -> [f32; 2] {
         match self {
             PlaneOperator::Quadtree(q) => q.valid(),
             PlaneOperator::Fis(f) => f.valid(),
+            PlaneOperator::Psa(f) => f.valid(),
         }
     }
     fn expansion(&self) -> u32 {
         match self {
             PlaneOperator::Quadtree(q) => q.expansion(),
             PlaneOperator::Fis(f) => f.expansion(),
+            PlaneOperator::Psa(f) => f.expansion(),
         }
     }
     #[inline]
@@ -126,12 +143,14 @@ impl Operator<2> for PlaneOperator {
         match self {
             PlaneOperator::Quadtree(q) => q.step(p),
             PlaneOperator::Fis(f) => f.step(p),
+            PlaneOperator::Psa(f) => f.step(p),
         }
     }
     fn invariant_interval(&self) -> (f32, f32) {
         match self {
             PlaneOperator::Quadtree(q) => q.invariant_interval(),
             PlaneOperator::Fis(f) => f.invariant_interval(),
+            PlaneOperator::Psa(f) => f.invariant_interval(),
         }
     }
 }
@@ -150,7 +169,7 @@ impl Plane {
     pub fn header(&self) -> Option<&PlaneHeader> {
         match &self.coding {
             Coding::Quadtree { header, .. } => Some(header),
-            Coding::Fis { .. } => None,
+            Coding::Fis { .. } | Coding::Psa { .. } => None,
         }
     }
 }
@@ -217,6 +236,12 @@ impl Mask {
 #[derive(Serialize, Deserialize)]
 struct Payload {
     planes: Vec<(PlaneHeader, Vec<u8>)>,
+    mask: Option<Vec<u8>>,
+}
+
+#[derive(Serialize, Deserialize)]
+struct PsaPayload {
+    planes: Vec<(PsaHeader, Vec<u8>)>,
     mask: Option<Vec<u8>>,
 }
 
@@ -305,10 +330,38 @@ impl Asset {
         Ok(asset)
     }
 
+    /// Builds a piecewise self-affine asset from coded planes (one grey plane).
+    pub fn from_psa_parts(
+        meta: AssetMeta,
+        planes: Vec<(PsaHeader, Vec<u8>)>,
+        mask: Option<Mask>,
+    ) -> Result<Asset, Error> {
+        let planes = planes
+            .into_iter()
+            .enumerate()
+            .map(|(i, (header, stream))| {
+                let bad = |e: String| Error::Asset(format!("plane {i}: {e}"));
+                if header.samples != [meta.width, meta.height] {
+                    return Err(bad("sample grid and metadata disagree".into()));
+                }
+                let params = crate::psa::decode_params(&header, &stream).map_err(bad)?;
+                let operator = PsaOperator::new(&header, &params).map_err(bad)?;
+                Ok(Plane {
+                    coding: Coding::Psa { header, stream },
+                    operator: PlaneOperator::Psa(operator),
+                })
+            })
+            .collect::<Result<Vec<_>, Error>>()?;
+        let asset = Asset { meta, planes, mask };
+        asset.check()?;
+        Ok(asset)
+    }
+
     /// The codec of the planes.
     pub fn codec(&self) -> Codec {
         match self.planes.first().map(|p| &p.coding) {
             Some(Coding::Fis { .. }) => Codec::Fis,
+            Some(Coding::Psa { .. }) => Codec::Psa,
             _ => Codec::QuadtreePifs,
         }
     }
@@ -317,6 +370,7 @@ impl Asset {
     pub fn codec_name(&self) -> &'static str {
         match self.planes.first().map(|p| &p.coding) {
             Some(Coding::Fis { header, .. }) => crate::fis::codec_name(header.scaling),
+            Some(Coding::Psa { header, .. }) => crate::psa::codec_name(header.tiling),
             _ => "quadtree-pifs",
         }
     }
@@ -360,7 +414,7 @@ impl Asset {
                         Coding::Quadtree { header, stream } => {
                             Some((header.clone(), stream.clone()))
                         }
-                        Coding::Fis { .. } => None,
+                        _ => None,
                     })
                     .collect(),
                 mask,
@@ -371,7 +425,18 @@ impl Asset {
                     .iter()
                     .filter_map(|p| match &p.coding {
                         Coding::Fis { header, stream } => Some((header.clone(), stream.clone())),
-                        Coding::Quadtree { .. } => None,
+                        _ => None,
+                    })
+                    .collect(),
+                mask,
+            }),
+            Codec::Psa => fractile_proto::encode(&PsaPayload {
+                planes: self
+                    .planes
+                    .iter()
+                    .filter_map(|p| match &p.coding {
+                        Coding::Psa { header, stream } => Some((header.clone(), stream.clone())),
+                        _ => None,
                     })
                     .collect(),
                 mask,
@@ -411,9 +476,9 @@ impl Asset {
             ));
         }
         let (kind, codec) = (bytes[10], bytes[11]);
-        if codec != Codec::QuadtreePifs as u8 && codec != Codec::Fis as u8 {
+        if !(1..=3).contains(&codec) {
             return Err(bad(format!(
-                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS)"
+                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d)"
             )));
         }
         let read_len = |at: usize| -> Result<usize, Error> {
@@ -446,6 +511,11 @@ impl Asset {
                 .transpose()
         };
         let payload = &bytes[p_start..body];
+        if codec == Codec::Psa as u8 {
+            let p: PsaPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+            let mask = mask(p.mask)?;
+            return Asset::from_psa_parts(meta, p.planes, mask);
+        }
         if codec == Codec::Fis as u8 {
             let p: FisPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
             let mask = mask(p.mask)?;

@@ -16,6 +16,7 @@ use crate::colour::rgb_to_ycbcr;
 use crate::fis::{FisHeader, FisSettings};
 use crate::metrics::{Errors, compare};
 use crate::partition::{Limits, Partition, Pyramid, greedy_order, partitions_after};
+use crate::psa::{PsaHeader, PsaSettings};
 use crate::raster::Raster;
 use crate::search::{CodingPlane, SearchMode};
 use crate::stream::{PlaneHeader, encode_plane};
@@ -624,32 +625,148 @@ fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
 }
 
 /// Encodes a height field as a fractal interpolation surface ([`crate::fis`]).
-/// `target_bpp`, when given, overrides `settings.spacing` (and the automatic height step) with
-/// the better of two fits under the target (see the body).
+/// `target_bpp`, when given, overrides `settings.spacing` (and the automatic height step); see
+/// [`encode_lattice`].
 pub fn encode_fis(
     raster: &Raster,
     settings: &FisSettings,
     target_bpp: Option<f64>,
 ) -> Result<Encoded, Error> {
-    let start = Instant::now();
-    if raster.kind != AssetKind::HeightField || raster.channels.len() != 1 {
+    if raster.kind != AssetKind::HeightField {
         return Err(Error::Settings(
-            "fractal interpolation surfaces code single-channel height fields (use the quadtree \
-             codec for images)"
+            "fractal interpolation surfaces code height fields (use quadtree-pifs or psa2d for \
+             images)"
                 .into(),
         ));
-    }
-    let (w, h) = (raster.width, raster.height);
-    if w < 2 || h < 2 {
-        return Err(Error::Input(format!(
-            "a {w}x{h} grid is too small for an interpolation surface (2x2 at least)"
-        )));
     }
     if !(settings.max_scaling > 0.0 && settings.max_scaling < 1.0) {
         return Err(Error::Settings("max scaling must be in (0, 1)".into()));
     }
-    let (lo, hi) = raster.value_range();
-    let hi = if hi > lo { hi } else { lo + 1.0 };
+    let lattice = Lattice {
+        spacing: settings.spacing,
+        height_step: settings.height_step,
+        target_bpp,
+    };
+    encode_lattice(
+        raster,
+        &lattice,
+        |source, spacing, height_step, meta, mask| {
+            let header = FisHeader {
+                samples: [source.width as u32, source.height as u32],
+                spacing,
+                scaling: settings.scaling,
+                height_step,
+                scaling_bits: settings.scaling_bits,
+                max_scaling: settings.max_scaling,
+            };
+            let params = crate::fis::fit(source, &header)?;
+            let stream = crate::fis::encode_params(&header, &params);
+            let mut m = meta.clone();
+            m.encoder = format!(
+                "{} spacing={spacing} height_step={} scaling_bits={} max_scaling={}",
+                crate::fis::codec_name(settings.scaling),
+                height_step as f64 * (meta.value_max - meta.value_min),
+                settings.scaling_bits,
+                settings.max_scaling
+            );
+            Asset::from_fis_parts(m, vec![(header, stream)], mask)
+        },
+    )
+}
+
+/// Encodes a grey image or a height field with the piecewise self-affine model
+/// ([`crate::psa`]); `target_bpp` picks the region size (see [`encode_lattice`]).
+pub fn encode_psa(
+    raster: &Raster,
+    settings: &PsaSettings,
+    target_bpp: Option<f64>,
+) -> Result<Encoded, Error> {
+    if !(settings.max_scaling > 0.0 && settings.max_scaling < 1.0) {
+        return Err(Error::Settings("max scaling must be in (0, 1)".into()));
+    }
+    let lattice = Lattice {
+        spacing: settings.region,
+        height_step: None,
+        target_bpp,
+    };
+    encode_lattice(
+        raster,
+        &lattice,
+        |source, region, height_step, meta, mask| {
+            let header = PsaHeader {
+                samples: [source.width as u32, source.height as u32],
+                region,
+                ratio: settings.ratio,
+                tiling: settings.tiling,
+                domains: settings.domains,
+                radius: settings.radius,
+                height_step,
+                scaling_bits: settings.scaling_bits,
+                max_scaling: settings.max_scaling,
+            };
+            let params = crate::psa::fit(source, &header)?;
+            let stream = crate::psa::encode_params(&header, &params);
+            let mut m = meta.clone();
+            m.encoder = format!(
+                "{} spacing={region} ratio={} domains={:?} radius={} height_step={}",
+                crate::psa::codec_name(settings.tiling),
+                settings.ratio,
+                settings.domains,
+                settings.radius,
+                height_step as f64 * (meta.value_max - meta.value_min)
+            );
+            Asset::from_psa_parts(m, vec![(header, stream)], mask)
+        },
+    )
+}
+
+/// How a lattice codec's vertices are placed and quantised.
+struct Lattice {
+    /// Samples between vertices.
+    spacing: u32,
+    /// Vertex height step, source units (`None`: automatic).
+    height_step: Option<f64>,
+    /// Rate control: overrides `spacing` and the automatic height step.
+    target_bpp: Option<f64>,
+}
+
+/// The pipeline of the lattice codecs (interpolation surfaces, psa2d): one grey channel,
+/// normalised, nodata filled (and masked), vertices every `spacing` samples, then measured.
+///
+/// The automatic height step is the largest power-of-two multiple of the source's quantum under
+/// a quarter of the RMS error of bilinear interpolation between the vertices, so quantising them
+/// adds under 1/190 of the error's variance (`(1/4)^2 / 12`) while each halving would cost a bit
+/// per vertex for nothing.
+///
+/// Rate control: the spacing moves the size in steps (x2.25 from 2 to 3) and the height step
+/// fills in between. The smallest spacing that fits at its own height step is weighed against
+/// the next finer spacing with the finest coarser height step that fits; the better PSNR wins.
+fn encode_lattice(
+    raster: &Raster,
+    lattice: &Lattice,
+    build: impl Fn(&crate::fis::Source, u32, f32, &AssetMeta, Option<Mask>) -> Result<Asset, Error>,
+) -> Result<Encoded, Error> {
+    let start = Instant::now();
+    if raster.channels.len() != 1 {
+        return Err(Error::Settings(format!(
+            "this codec codes one grey channel; the input has {} (use quadtree-pifs for colour)",
+            raster.channels.len()
+        )));
+    }
+    let (w, h) = (raster.width, raster.height);
+    if w < 2 || h < 2 {
+        return Err(Error::Input(format!(
+            "a {w}x{h} grid is too small for a vertex lattice (2x2 at least)"
+        )));
+    }
+    let (lo, hi) = match (raster.kind, raster.sample) {
+        (AssetKind::Image, SampleFormat::U8) => (0.0, 255.0),
+        (AssetKind::Image, SampleFormat::U16) => (0.0, 65535.0),
+        _ => {
+            let (lo, hi) = raster.value_range();
+            (lo, if hi > lo { hi } else { lo + 1.0 })
+        }
+    };
     let span = hi - lo;
     let mut values: Vec<f32> = raster.channels[0]
         .iter()
@@ -687,7 +804,7 @@ pub fn encode_fis(
         stats: EncodeStats::default(),
     };
     let auto_step = |spacing: u32| {
-        settings.height_step.unwrap_or_else(|| {
+        lattice.height_step.unwrap_or_else(|| {
             let limit = crate::fis::interpolation_rmse(&source, spacing) as f64 * span / 4.0;
             let mut step = quantum;
             while step * 2.0 <= limit {
@@ -696,28 +813,11 @@ pub fn encode_fis(
             step
         })
     };
-    let build = |spacing: u32, step: f64| -> Result<Asset, Error> {
+    let make = |spacing: u32, step: f64| {
         let height_step = ((step / span) as f32).clamp(1e-9, 1.0);
-        let header = FisHeader {
-            samples: [w as u32, h as u32],
-            spacing,
-            scaling: settings.scaling,
-            height_step,
-            scaling_bits: settings.scaling_bits,
-            max_scaling: settings.max_scaling,
-        };
-        let params = crate::fis::fit(&source, &header)?;
-        let stream = crate::fis::encode_params(&header, &params);
-        let mut m = meta.clone();
-        m.encoder = format!(
-            "{} spacing={spacing} height_step={step} scaling_bits={} max_scaling={}",
-            crate::fis::codec_name(settings.scaling),
-            settings.scaling_bits,
-            settings.max_scaling
-        );
-        Asset::from_fis_parts(m, vec![(header, stream)], mask.clone())
+        build(&source, spacing, height_step, &meta, mask.clone())
     };
-    let psnr = |a: &Asset| {
+    let errors_of = |a: &Asset| {
         let (d, _) = a.decode_native();
         compare(
             &raster.channels,
@@ -725,23 +825,18 @@ pub fn encode_fis(
             raster.valid.as_deref(),
             a.meta.psnr_peak(),
         )
-        .psnr
     };
-    let asset = match target_bpp {
+    let asset = match lattice.target_bpp {
         None => {
-            let k = settings.spacing.max(1);
-            build(k, auto_step(k))?
+            let k = lattice.spacing.max(1);
+            make(k, auto_step(k))?
         }
         Some(bpp) => {
-            // Spacing moves the size in steps (x2.25 from 2 to 3); the node height step fills
-            // in between. The smallest spacing that fits at its own height step, against the
-            // next finer spacing with the finest coarser height step that fits: the better
-            // PSNR wins (coarse heights cost little where interpolation error dominates).
             let max_bytes = (bpp * (w * h) as f64 / 8.0).floor() as usize;
             let largest = (w.max(h) - 1).clamp(1, 4096) as u32;
             let mut found = None;
             for k in 1..=largest {
-                let a = build(k, auto_step(k))?;
+                let a = make(k, auto_step(k))?;
                 if a.file_size() <= max_bytes {
                     found = Some((k, a));
                     break;
@@ -749,16 +844,16 @@ pub fn encode_fis(
             }
             let Some((k, a)) = found else {
                 return Err(Error::Settings(format!(
-                    "no interpolation surface fits in {bpp} bits per pixel (the coarsest takes more)"
+                    "nothing fits in {bpp} bits per pixel (the coarsest lattice takes more)"
                 )));
             };
             let mut best = a;
-            if k > 1 && settings.height_step.is_none() {
+            if k > 1 && lattice.height_step.is_none() {
                 let base = auto_step(k - 1);
                 for m in 1..=8 {
-                    let finer = build(k - 1, base * f64::from(1u32 << m))?;
+                    let finer = make(k - 1, base * f64::from(1u32 << m))?;
                     if finer.file_size() <= max_bytes {
-                        if psnr(&finer) > psnr(&best) {
+                        if errors_of(&finer).psnr > errors_of(&best).psnr {
                             best = finer;
                         }
                         break;
@@ -768,14 +863,8 @@ pub fn encode_fis(
             best
         }
     };
-    let (decoded, _) = asset.decode_native();
+    let errors = errors_of(&asset);
     meta = asset.meta.clone();
-    let errors = compare(
-        &raster.channels,
-        &decoded.channels,
-        raster.valid.as_deref(),
-        meta.psnr_peak(),
-    );
     let transforms = asset.planes.iter().map(|p| p.operator.transforms()).sum();
     let seconds = start.elapsed().as_secs_f64();
     meta.stats = EncodeStats {

@@ -132,7 +132,7 @@ pub struct FisParams {
 /// Adaptive Elias-gamma-like code of a signed integer on the binary range coder: a zero flag, a
 /// sign, the magnitude's bit length in unary, then its lower bits. Each unary position and each
 /// mantissa position has its own context, so the code learns the residuals' distribution.
-struct IntCoder {
+pub(crate) struct IntCoder {
     zero: Bit,
     sign: Bit,
     unary: [Bit; 32],
@@ -140,7 +140,7 @@ struct IntCoder {
 }
 
 impl IntCoder {
-    fn new() -> IntCoder {
+    pub(crate) fn new() -> IntCoder {
         IntCoder {
             zero: Bit::default(),
             sign: Bit::default(),
@@ -149,7 +149,7 @@ impl IntCoder {
         }
     }
 
-    fn put(&mut self, enc: &mut Encoder, v: i32) {
+    pub(crate) fn put(&mut self, enc: &mut Encoder, v: i32) {
         enc.bit(&mut self.zero, v == 0);
         if v == 0 {
             return;
@@ -168,7 +168,7 @@ impl IntCoder {
         }
     }
 
-    fn get(&mut self, dec: &mut Decoder) -> i32 {
+    pub(crate) fn get(&mut self, dec: &mut Decoder) -> i32 {
         if dec.bit(&mut self.zero) {
             return 0;
         }
@@ -198,7 +198,7 @@ fn med(a: i32, b: i32, c: i32) -> i32 {
     }
 }
 
-fn predict(v: &[i32], nx: usize, i: usize, j: usize) -> i32 {
+pub(crate) fn predict(v: &[i32], nx: usize, i: usize, j: usize) -> i32 {
     match (i, j) {
         (0, 0) => 0,
         (_, 0) => v[i - 1],
@@ -495,10 +495,8 @@ pub struct FisSettings {
     pub scaling: Scaling,
     /// Samples between interpolation points.
     pub spacing: u32,
-    /// Node height step in source units. `None`: the largest power-of-two multiple of the
-    /// source's quantum under a quarter of the RMS error of bilinear interpolation at this
-    /// spacing, so that quantising the nodes adds under 1/190 of the error's variance
-    /// (`(1/4)^2 / 12`) while each halving of the step would cost a bit per node for nothing.
+    /// Node height step in source units (`None`: automatic, see
+    /// `encode::encode_lattice`).
     pub height_step: Option<f64>,
     /// Bits of an s index.
     pub scaling_bits: u8,
@@ -530,7 +528,7 @@ pub struct Source<'a> {
 }
 
 impl Source<'_> {
-    fn at(&self, x: usize, y: usize) -> f32 {
+    pub(crate) fn at(&self, x: usize, y: usize) -> f32 {
         self.values[y.min(self.height - 1) * self.width + x.min(self.width - 1)]
     }
 

@@ -7,6 +7,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use fractile_codec::fis::FisSettings;
+use fractile_codec::psa::{Domains, PsaSettings, Tiling};
 use fractile_codec::{
     Asset, DiscreteOptions, EncodeSettings, Method, Quantiser, Raster, RateMode, Roi, SearchMode,
     encode, metrics, raster,
@@ -133,12 +134,23 @@ struct EncodeArgs {
     /// Candidates scored per range by the nearest-neighbour search.
     #[arg(long, default_value_t = 32)]
     candidates: usize,
-    /// Codec: quadtree-pifs (images and height fields), or a fractal interpolation surface for
+    /// Codec: quadtree-pifs (images and height fields); a fractal interpolation surface for
     /// height fields: fis-bilinear (s per node, Wu and Zhou), fis-rect (s per cell),
-    /// fis-rect-global (one s, Drakopoulos and Manousopoulos).
+    /// fis-rect-global (one s, Drakopoulos and Manousopoulos); or the piecewise self-affine
+    /// model for grey images and height fields: psa2d-rect, psa2d-tri.
     #[arg(long, default_value = "quadtree-pifs")]
     codec: String,
-    /// FIS: samples between interpolation points (ignored with --target-bpp, which picks it).
+    /// psa2d: touching or overlapping domains.
+    #[arg(long, default_value = "overlapping")]
+    domains: String,
+    /// psa2d: domain side in regions.
+    #[arg(long, default_value_t = fractile_codec::psa::PsaSettings::default().ratio)]
+    domain_ratio: u32,
+    /// psa2d: domain search radius (regions, or domains when touching).
+    #[arg(long, default_value_t = fractile_codec::psa::PsaSettings::default().radius)]
+    radius: u32,
+    /// FIS and psa2d: samples between interpolation points (ignored with --target-bpp, which
+    /// picks it).
     #[arg(long, default_value_t = FisSettings::default().spacing)]
     spacing: u32,
     /// FIS: node height step in source units (default: the source's quantum).
@@ -304,6 +316,28 @@ fn run_encode(a: EncodeArgs) -> Result<()> {
     let raster = Raster::open(&a.input)?;
     let enc = if a.codec == "quadtree-pifs" {
         encode_quadtree(&a, &raster)?
+    } else if let Some(tiling) = [Tiling::Rectangular, Tiling::Triangular]
+        .into_iter()
+        .find(|&t| fractile_codec::psa::codec_name(t) == a.codec)
+    {
+        if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
+            bail!("--codec {} takes --spacing or --target-bpp", a.codec);
+        }
+        let domains = match a.domains.as_str() {
+            "touching" => Domains::Touching,
+            "overlapping" => Domains::Overlapping,
+            d => bail!("unknown --domains {d:?}: touching or overlapping"),
+        };
+        let settings = PsaSettings {
+            tiling,
+            domains,
+            region: a.spacing,
+            ratio: a.domain_ratio,
+            radius: a.radius,
+            max_scaling: a.max_contrast,
+            ..PsaSettings::default()
+        };
+        fractile_codec::encode::encode_psa(&raster, &settings, a.target_bpp)?
     } else {
         let Some(scaling) = fractile_codec::fis::scaling_of_codec(&a.codec) else {
             bail!(
