@@ -116,6 +116,16 @@ impl PlaneOperator {
     }
 }
 
+impl crate::pieces::Flatten for PlaneOperator {
+    fn pieces(&self) -> crate::pieces::PieceTable {
+        match self {
+            PlaneOperator::Quadtree(q) => q.pieces(),
+            PlaneOperator::Fis(f) => f.pieces(),
+            PlaneOperator::Psa(f) => f.pieces(),
+        }
+    }
+}
+
 impl Operator<2> for PlaneOperator {
     fn frame(&self) -> [f32; 2] {
         match self {

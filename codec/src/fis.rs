@@ -295,6 +295,11 @@ pub struct FisOperator {
     /// s per the layout.
     s: Vec<f32>,
     interval: (f32, f32),
+    /// The same maps flattened; `step` walks these, so that the CPU and the GPU kernel do the
+    /// same arithmetic. phi expands lengths by the number of cells a side, so a last-bit
+    /// difference in u grows that much each step and two formulas would soon follow different
+    /// chains (both valid, but not comparable point by point).
+    table: crate::pieces::PieceTable,
 }
 
 impl FisOperator {
@@ -321,8 +326,19 @@ impl FisOperator {
                 .map(|&q| header.scaling_of(q))
                 .collect(),
             interval: (0.0, 1.0),
+            table: crate::pieces::PieceTable {
+                frame: [0.0; 2],
+                valid: [0.0; 2],
+                lut_origin: [0.0; 2],
+                lut_cell: [1.0; 2],
+                lut_size: [0; 2],
+                lut: Vec::new(),
+                pieces: Vec::new(),
+                interval: (0.0, 1.0),
+            },
         };
         op.interval = crate::operator::invariant_interval(op.cell_bounds().into_iter());
+        op.table = crate::pieces::Flatten::pieces(&op);
         Ok(op)
     }
 
@@ -440,35 +456,59 @@ impl Operator<2> for FisOperator {
         1
     }
 
+    /// Frame pixels have centres at k + 0.5; samples (and nodes) sit on those centres. The cell
+    /// of p and its local (u, v), then g and s bilinear from the corners and phi onto the
+    /// mirrored grid, as flattened in `pieces` (see the `table` field for why).
     #[inline]
     fn step(&self, p: [f32; 2]) -> Step<2> {
-        // Frame pixels have centres at k + 0.5; samples (and nodes) sit on those centres.
-        let (ci, cj, u, v) = self.locate([p[0] - 0.5, p[1] - 0.5]);
-        let c = self.corners(ci, cj);
-        let w = [(1.0 - u) * (1.0 - v), u * (1.0 - v), (1.0 - u) * v, u * v];
-        let mut g = 0.0;
-        let mut s = 0.0;
-        for k in 0..4 {
-            g += w[k] * (c[k].z - c[k].s * c[k].zd);
-            s += w[k] * c[k].s;
-        }
-        let (du, dv) = (
-            if ci & 1 == 1 { 1.0 - u } else { u },
-            if cj & 1 == 1 { 1.0 - v } else { v },
-        );
-        let span = [
-            (self.nodes[0] - 1) as f32 * self.spacing,
-            (self.nodes[1] - 1) as f32 * self.spacing,
-        ];
-        Step {
-            offset: g,
-            contrast: s,
-            next: [du * span[0] + 0.5, dv * span[1] + 0.5],
-        }
+        self.table.step(p)
     }
 
     fn invariant_interval(&self) -> (f32, f32) {
         self.interval
+    }
+}
+
+impl crate::pieces::Flatten for FisOperator {
+    /// One piece per cell: g and s bilinear from the corners, phi onto the (mirrored) grid.
+    fn pieces(&self) -> crate::pieces::PieceTable {
+        use crate::pieces::{Piece, PieceTable, bilinear};
+        let [nx, ny] = self.nodes;
+        let k = self.spacing;
+        let span = [(nx - 1) as f32 * k, (ny - 1) as f32 * k];
+        let mut pieces = Vec::with_capacity(self.cells());
+        for cj in 0..ny - 1 {
+            for ci in 0..nx - 1 {
+                let c = self.corners(ci, cj);
+                let axis = |flip: bool, span: f32| {
+                    if flip {
+                        (span + 0.5, -span)
+                    } else {
+                        (0.5, span)
+                    }
+                };
+                let (x0, xu) = axis(ci & 1 == 1, span[0]);
+                let (y0, yv) = axis(cj & 1 == 1, span[1]);
+                pieces.push(Piece {
+                    origin: [0.5 + ci as f32 * k, 0.5 + cj as f32 * k],
+                    inv_size: [1.0 / k; 2],
+                    g: bilinear(std::array::from_fn(|q| c[q].z - c[q].s * c[q].zd)),
+                    s: bilinear(std::array::from_fn(|q| c[q].s)),
+                    next_x: [x0, xu, 0.0, 0.0],
+                    next_y: [y0, 0.0, yv, 0.0],
+                });
+            }
+        }
+        PieceTable {
+            frame: self.frame(),
+            valid: self.valid,
+            lut_origin: [0.5; 2],
+            lut_cell: [k; 2],
+            lut_size: [(nx - 1) as u32, (ny - 1) as u32],
+            lut: (0..pieces.len() as u32).collect(),
+            pieces,
+            interval: self.interval,
+        }
     }
 }
 

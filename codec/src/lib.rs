@@ -18,6 +18,7 @@ pub mod mesh;
 pub mod metrics;
 pub mod operator;
 pub mod partition;
+pub mod pieces;
 pub mod psa;
 pub mod raster;
 pub mod render;

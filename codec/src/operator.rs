@@ -329,6 +329,39 @@ impl Operator<2> for QuadtreeOperator {
     }
 }
 
+impl crate::pieces::Flatten for QuadtreeOperator {
+    /// One piece per range, looked up through the range map at the smallest range size.
+    fn pieces(&self) -> crate::pieces::PieceTable {
+        let pieces = self
+            .ranges
+            .iter()
+            .zip(&self.cells)
+            .map(|(r, c)| {
+                let (x, y, n) = (r.x as f32, r.y as f32, r.size as f32);
+                let [ax, bx, ay, by] = ISOMETRY_MATRICES[c.isometry as usize & 7];
+                crate::pieces::Piece {
+                    origin: [x, y],
+                    inv_size: [1.0 / n; 2],
+                    g: [c.offset + c.gx * x + c.gy * y, c.gx * n, c.gy * n, 0.0],
+                    s: [c.contrast, 0.0, 0.0, 0.0],
+                    next_x: [ax * x + bx * y + c.cx, ax * n, bx * n, 0.0],
+                    next_y: [ay * x + by * y + c.cy, ay * n, by * n, 0.0],
+                }
+            })
+            .collect();
+        crate::pieces::PieceTable {
+            frame: self.frame(),
+            valid: self.valid,
+            lut_origin: [0.0; 2],
+            lut_cell: [self.cell as f32; 2],
+            lut_size: [self.lut_cols as u32, self.lut_rows as u32],
+            lut: self.lut.clone(),
+            pieces,
+            interval: self.interval,
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -382,6 +415,40 @@ mod tests {
                     "{k}: {want:?} {got:?}"
                 );
             }
+        }
+    }
+
+    #[test]
+    fn a_flattened_quadtree_decodes_like_the_operator() {
+        use crate::pieces::Flatten;
+        // Four ranges of 8 in a 16 x 16 frame, each mapped from a domain with its own isometry.
+        let ranges: Vec<RangeMap> = (0..4u32)
+            .map(|k| RangeMap {
+                x: (k % 2) * 8,
+                y: (k / 2) * 8,
+                size: 8,
+                domain_x: 0,
+                domain_y: 0,
+                isometry: (k * 3 % 8) as u8,
+                contrast: 0.6 - 0.3 * k as f32,
+                offset: 0.2 + 0.1 * k as f32,
+                slope: [0.05 * k as f32, -0.02],
+            })
+            .collect();
+        let op = QuadtreeOperator::new([16, 16], [15.0, 13.0], 8, ranges).unwrap();
+        let t = op.pieces();
+        for i in 0..500 {
+            let p = [(i as f32 * 0.37).fract(), (i as f32 * 0.731).fract()];
+            let (a, b) = (
+                crate::decode::point(&op, p, 15),
+                crate::decode::point(&t, p, 15),
+            );
+            assert!(
+                (a.value - b.value).abs() < 1e-5,
+                "{p:?}: {} {}",
+                a.value,
+                b.value
+            );
         }
     }
 

@@ -521,6 +521,56 @@ impl Operator<2> for PsaOperator {
     }
 }
 
+impl crate::pieces::Flatten for PsaOperator {
+    /// One piece per region, or two (split on the diagonal) for triangles.
+    fn pieces(&self) -> crate::pieces::PieceTable {
+        use crate::pieces::{Piece, PieceTable, SPLIT};
+        let [nx, ny] = self.vertices;
+        let d = self.region;
+        let span = self.ratio * d;
+        let halves = if self.triangular { 2 } else { 1 };
+        let mut pieces = Vec::with_capacity(self.maps.len() * halves);
+        let mut lut = Vec::with_capacity(self.maps.len());
+        for cj in 0..ny - 1 {
+            for ci in 0..nx - 1 {
+                let m = &self.maps[cj * (nx - 1) + ci];
+                let origin = [0.5 + ci as f32 * d, 0.5 + cj as f32 * d];
+                let first = pieces.len() as u32;
+                lut.push(if self.triangular {
+                    first | SPLIT
+                } else {
+                    first
+                });
+                for h in 0..halves {
+                    let (next_x, next_y) = match m.domain {
+                        Some([dx, dy]) => ([dx + 0.5, span, 0.0, 0.0], [dy + 0.5, 0.0, span, 0.0]),
+                        // s = 0: phi is never followed; the identity keeps it in the frame.
+                        None => ([origin[0], d, 0.0, 0.0], [origin[1], 0.0, d, 0.0]),
+                    };
+                    pieces.push(Piece {
+                        origin,
+                        inv_size: [1.0 / d; 2],
+                        g: m.g[h],
+                        s: [m.s[h], 0.0, 0.0, 0.0],
+                        next_x,
+                        next_y,
+                    });
+                }
+            }
+        }
+        PieceTable {
+            frame: self.frame(),
+            valid: self.valid,
+            lut_origin: [0.5; 2],
+            lut_cell: [d; 2],
+            lut_size: [(nx - 1) as u32, (ny - 1) as u32],
+            lut,
+            pieces,
+            interval: self.interval,
+        }
+    }
+}
+
 /// Settings of the psa2d encoder.
 #[derive(Clone, Debug, PartialEq)]
 pub struct PsaSettings {

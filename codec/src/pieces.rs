@@ -1,0 +1,227 @@
+//! Any 2D operator of fractile flattened into two tables that a GPU kernel can walk with
+//! lookups and multiply-adds only: a grid of lookup cells naming pieces, and per piece the maps
+//! in local coordinates. The kernel in `shaders/decode2d.wgsl` mirrors [`PieceTable::step`]
+//! line by line; `PieceTable` is itself an [`Operator`], so the CPU decoders check the
+//! flattening against the codec's own operator (tests below) and the GPU against both.
+//!
+//! For a frame point p: the lookup cell is `clamp(floor((p - lut_origin) / lut_cell), 0, n-1)`;
+//! its entry names a piece (the low 31 bits) and, with the top bit set, says the cell is split
+//! along its diagonal into two pieces (the second for local `u + v > 1`, psa2d's triangles).
+//! Local coordinates `(u, v) = clamp((p - origin) * inv_size, 0, 1)`; then
+//! `g = g0 + gu u + gv v + guv u v`, the same for s, and `phi(p) = n0 + nu u + nv v` per axis.
+
+use crate::operator::{Operator, Step};
+
+/// One piece: a range, a cell or a triangle, with its maps in local coordinates.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct Piece {
+    /// Frame point at local (0, 0).
+    pub origin: [f32; 2],
+    /// 1 / the piece's extent, per axis.
+    pub inv_size: [f32; 2],
+    /// g: constant, u, v and u v coefficients.
+    pub g: [f32; 4],
+    /// s: constant, u, v and u v coefficients.
+    pub s: [f32; 4],
+    /// phi's x: constant, u and v coefficients (and a pad).
+    pub next_x: [f32; 4],
+    /// phi's y: constant, u and v coefficients (and a pad).
+    pub next_y: [f32; 4],
+}
+
+impl Piece {
+    /// The piece as 20 f32 (five vec4 in the kernel): origin and inverse size, g, s, phi x, phi y.
+    pub fn to_array(&self) -> [f32; 20] {
+        let mut a = [0.0; 20];
+        a[..2].copy_from_slice(&self.origin);
+        a[2..4].copy_from_slice(&self.inv_size);
+        a[4..8].copy_from_slice(&self.g);
+        a[8..12].copy_from_slice(&self.s);
+        a[12..16].copy_from_slice(&self.next_x);
+        a[16..20].copy_from_slice(&self.next_y);
+        a
+    }
+}
+
+/// Bit of a lookup entry that marks a cell split along its diagonal.
+pub const SPLIT: u32 = 1 << 31;
+
+/// The flattened operator.
+#[derive(Clone, Debug, PartialEq)]
+pub struct PieceTable {
+    /// The operator's frame.
+    pub frame: [f32; 2],
+    /// The operator's valid extent (unit coordinates map onto it).
+    pub valid: [f32; 2],
+    /// Frame point of the lookup grid's corner.
+    pub lut_origin: [f32; 2],
+    /// Side of a lookup cell, frame units.
+    pub lut_cell: [f32; 2],
+    /// Lookup grid columns and rows.
+    pub lut_size: [u32; 2],
+    /// Row-major lookup entries: piece index, or'ed with [`SPLIT`].
+    pub lut: Vec<u32>,
+    /// The pieces.
+    pub pieces: Vec<Piece>,
+    /// The operator's invariant interval.
+    pub interval: (f32, f32),
+}
+
+impl PieceTable {
+    /// Bytes the two tables take on a device.
+    pub fn device_bytes(&self) -> usize {
+        self.lut.len() * 4 + self.pieces.len() * 80
+    }
+
+    #[inline]
+    fn piece(&self, p: [f32; 2]) -> (&Piece, f32, f32) {
+        let cell = |d: usize| -> usize {
+            let c = ((p[d] - self.lut_origin[d]) / self.lut_cell[d]).floor();
+            (c.max(0.0) as usize).min(self.lut_size[d] as usize - 1)
+        };
+        let entry = self.lut[cell(1) * self.lut_size[0] as usize + cell(0)];
+        let mut k = (entry & !SPLIT) as usize;
+        let local = |pc: &Piece| {
+            (
+                ((p[0] - pc.origin[0]) * pc.inv_size[0]).clamp(0.0, 1.0),
+                ((p[1] - pc.origin[1]) * pc.inv_size[1]).clamp(0.0, 1.0),
+            )
+        };
+        let (u, v) = local(&self.pieces[k]);
+        if entry & SPLIT != 0 && u + v > 1.0 {
+            k += 1;
+        }
+        (&self.pieces[k], u, v)
+    }
+}
+
+impl Operator<2> for PieceTable {
+    fn frame(&self) -> [f32; 2] {
+        self.frame
+    }
+
+    fn valid(&self) -> [f32; 2] {
+        self.valid
+    }
+
+    /// Pieces serve continuous decoding, which does not use the footprint.
+    fn expansion(&self) -> u32 {
+        1
+    }
+
+    #[inline]
+    fn step(&self, p: [f32; 2]) -> Step<2> {
+        let (pc, u, v) = self.piece(p);
+        let bil = |c: [f32; 4]| c[0] + c[1] * u + c[2] * v + c[3] * u * v;
+        Step {
+            offset: bil(pc.g),
+            contrast: bil(pc.s),
+            next: [
+                pc.next_x[0] + pc.next_x[1] * u + pc.next_x[2] * v,
+                pc.next_y[0] + pc.next_y[1] * u + pc.next_y[2] * v,
+            ],
+        }
+    }
+
+    fn invariant_interval(&self) -> (f32, f32) {
+        self.interval
+    }
+}
+
+/// Operators that can be flattened.
+pub trait Flatten {
+    /// The operator as lookup and piece tables.
+    fn pieces(&self) -> PieceTable;
+}
+
+/// Coefficients (constant, u, v, u v) of the bilinear function through four corner values in the
+/// order (0,0), (1,0), (0,1), (1,1).
+pub fn bilinear(c: [f32; 4]) -> [f32; 4] {
+    [c[0], c[1] - c[0], c[2] - c[0], c[0] - c[1] - c[2] + c[3]]
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::decode;
+    use crate::fis::{FisHeader, FisOperator, FisParams, Scaling};
+    use crate::psa::{Domains, PsaHeader, PsaOperator, RegionCode, Tiling};
+
+    fn agree<O: Operator<2> + Flatten>(op: &O, what: &str) {
+        let t = op.pieces();
+        let pts: Vec<[f32; 2]> = (0..4000)
+            .map(|i| {
+                let h = (i as u32).wrapping_mul(2_654_435_761) as f32 / u32::MAX as f32;
+                let k = (i as u32).wrapping_mul(40_503).wrapping_add(7) as f32 / u32::MAX as f32;
+                [h, (k * 977.0).fract()]
+            })
+            .chain([[0.0, 0.0], [1.0, 1.0], [0.0, 1.0], [1.0, 0.0]])
+            .collect();
+        let a = decode::points(op, &pts, 12, 0.0);
+        let b = decode::points(&t, &pts, 12, 0.0);
+        for (k, (x, y)) in a.iter().zip(&b).enumerate() {
+            assert!(
+                (x.value - y.value).abs() < 1e-4,
+                "{what} point {:?}: operator {} pieces {}",
+                pts[k],
+                x.value,
+                y.value
+            );
+        }
+    }
+
+    #[test]
+    fn flattened_interpolation_surfaces_decode_like_their_operators() {
+        for scaling in [Scaling::Global, Scaling::PerCell, Scaling::PerNode] {
+            let h = FisHeader {
+                samples: [37, 29],
+                spacing: 4,
+                scaling,
+                height_step: 1.0 / 1000.0,
+                scaling_bits: 6,
+                max_scaling: 0.9,
+            };
+            let [nx, ny] = h.nodes();
+            let p = FisParams {
+                heights: (0..nx * ny).map(|i| (i * 377 % 1000) as i32).collect(),
+                scalings: (0..h.parameters())
+                    .map(|i| (i as i32 * 7 % 61) - 30)
+                    .collect(),
+            };
+            agree(&FisOperator::new(&h, &p).unwrap(), &format!("{scaling:?}"));
+        }
+    }
+
+    #[test]
+    fn flattened_psa2d_decodes_like_its_operator() {
+        for tiling in [Tiling::Rectangular, Tiling::Triangular] {
+            let h = PsaHeader {
+                samples: [41, 33],
+                region: 4,
+                ratio: 2,
+                tiling,
+                domains: Domains::Overlapping,
+                radius: 3,
+                height_step: 1.0 / 1000.0,
+                scaling_bits: 5,
+                max_scaling: 0.9,
+            };
+            let src: Vec<f32> = (0..41 * 33)
+                .map(|i| {
+                    let (x, y) = ((i % 41) as f32, (i / 41) as f32);
+                    0.5 + 0.3 * (x * 0.3).sin() * (y * 0.2).cos()
+                        + 0.1 * ((i * 31) % 7) as f32 / 7.0
+                })
+                .collect();
+            let source = crate::fis::Source {
+                width: 41,
+                height: 33,
+                values: &src,
+            };
+            let params = crate::psa::fit(&source, &h).unwrap();
+            assert!(params.regions.iter().any(|r| *r != RegionCode::Patch));
+            let op = PsaOperator::new(&h, &params).unwrap();
+            agree(&op, &format!("{tiling:?}"));
+        }
+    }
+}
