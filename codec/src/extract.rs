@@ -206,6 +206,29 @@ impl Asset {
             .collect()
     }
 
+    /// Normalised planes of a `width x height` window `[u0, v0, u1, v1]` decoded elsewhere (the
+    /// GPU), brought back to source units as [`Asset::window`] does.
+    pub fn window_from_planes(
+        &self,
+        rect: [f32; 4],
+        width: usize,
+        height: usize,
+        planes: Vec<Vec<f32>>,
+    ) -> Decoded {
+        let [u0, v0, u1, v1] = rect;
+        let channels = self.to_source(planes, |i| {
+            (
+                u0 + ((i % width) as f32 + 0.5) / width as f32 * (u1 - u0),
+                v0 + ((i / width) as f32 + 0.5) / height as f32 * (v1 - v0),
+            )
+        });
+        Decoded {
+            width,
+            height,
+            channels,
+        }
+    }
+
     /// A window `[u0, v0, u1, v1]` of the unit square at `width x height`.
     pub fn window(
         &self,

@@ -189,6 +189,17 @@ struct DecodeArgs {
     /// Decoding method.
     #[arg(long, value_enum, default_value_t = MethodArg::Auto)]
     method: MethodArg,
+    /// Where continuous decoding runs: cpu, gpu (fails without an adapter), or auto (the GPU
+    /// for windows of a million pixels or more when an adapter exists, else the CPU).
+    #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
+    backend: BackendArg,
+}
+
+#[derive(Clone, Copy, PartialEq, Eq, clap::ValueEnum)]
+enum BackendArg {
+    Cpu,
+    Gpu,
+    Auto,
 }
 
 #[derive(Clone, Copy, ValueEnum)]
@@ -462,15 +473,59 @@ fn run_decode(a: DecodeArgs) -> Result<()> {
         MethodArg::Discrete => Method::Discrete,
         MethodArg::Continuous => Method::Continuous,
     };
-    let (decoded, used) = if a.window.is_none() && method != Method::Continuous {
-        let opts = a.iterations.map(DiscreteOptions::fixed).unwrap_or_default();
-        (asset.decode(width, height, opts).0, Method::Discrete)
+    // The GPU runs continuous decoding: asked for, or (auto) a continuous-capable request of a
+    // million pixels or more, where the transfer pays for itself.
+    let wants_gpu = match a.backend {
+        BackendArg::Cpu => false,
+        BackendArg::Gpu => true,
+        BackendArg::Auto => method != Method::Discrete && width * height >= 1 << 20,
+    };
+    let gpu = if wants_gpu {
+        match fractile_gpu::Gpu::new() {
+            Ok(g) => Some(g),
+            Err(e) if a.backend == BackendArg::Auto => {
+                eprintln!("{e}: decoding on the CPU");
+                None
+            }
+            Err(e) => return Err(e.into()),
+        }
     } else {
-        asset.window(window, width, height, a.iterations, method)
+        None
+    };
+    let (decoded, used, backend) = if let Some(g) = &gpu {
+        // As many steps as the CPU's continuous window takes by default.
+        let n = a.iterations.unwrap_or(12);
+        let mut planes = Vec::new();
+        for p in &asset.planes {
+            let dev = g.upload(&fractile_codec::pieces::Flatten::pieces(&p.operator))?;
+            let grid = fractile_gpu::Grid::Window {
+                rect: window,
+                width: width as u32,
+                height: height as u32,
+            };
+            planes.push(
+                g.grid(&dev, grid, n, 0.0)?
+                    .into_iter()
+                    .map(|v| v.value)
+                    .collect(),
+            );
+        }
+        let d = asset.window_from_planes(window, width, height, planes);
+        (d, Method::Continuous, g.adapter())
+    } else if a.window.is_none() && method != Method::Continuous {
+        let opts = a.iterations.map(DiscreteOptions::fixed).unwrap_or_default();
+        (
+            asset.decode(width, height, opts).0,
+            Method::Discrete,
+            "CPU".into(),
+        )
+    } else {
+        let (d, m) = asset.window(window, width, height, a.iterations, method);
+        (d, m, "CPU".into())
     };
     write_decoded(&asset, &decoded, window, &a.output)?;
     eprintln!(
-        "decoded {}x{} ({used:?}) in {:.1} ms -> {}",
+        "decoded {}x{} ({used:?}, {backend}) in {:.1} ms -> {}",
         width,
         height,
         started.elapsed().as_secs_f64() * 1e3,

@@ -1,0 +1,456 @@
+//! GPU decoding of fractile's 2D operators with wgpu compute, on any adapter (a discrete GPU,
+//! an integrated one, or Mesa's lavapipe on machines without one).
+//!
+//! An asset's operator is flattened once ([`fractile_codec::pieces`]) and uploaded as two
+//! storage buffers ([`GpuOperator`], resident until dropped); each request then dispatches the
+//! kernel of `shaders/decode2d.wgsl` over a list of points, a window's grid, or a Web Mercator
+//! tile's pixels (reprojected on the GPU). The kernel mirrors the CPU's continuous decoder, in
+//! f32, so answers agree with it to rounding (Mesa and GPUs reorder float additions: compare
+//! with a tolerance, never for equality).
+//!
+//! Work is cut into dispatches of at most [`CHUNK`] points: a storage binding may hold 128 MiB
+//! and a dispatch dimension 65,535 workgroups (a 2D grid of groups covers more).
+
+use bytemuck::{Pod, Zeroable};
+use fractile_codec::decode::PointValue;
+use fractile_codec::pieces::PieceTable;
+use wgpu::util::DeviceExt;
+
+/// The kernel's source.
+pub const SHADER: &str = include_str!("../../shaders/decode2d.wgsl");
+
+/// Most points in one dispatch (16 bytes of result each: 64 MiB).
+pub const CHUNK: usize = 1 << 22;
+
+const WORKGROUP: u32 = 256;
+
+/// Why the GPU could not answer.
+#[derive(Debug, thiserror::Error)]
+pub enum GpuError {
+    /// No adapter (the message names each backend's reason); callers fall back to the CPU.
+    #[error("no GPU adapter: {0}")]
+    NoAdapter(String),
+    /// The adapter refused a device.
+    #[error("GPU device: {0}")]
+    Device(String),
+    /// Reading results back failed (device lost, out of memory).
+    #[error("GPU readback: {0}")]
+    Readback(String),
+    /// A table is over what one binding may hold.
+    #[error("GPU: {0}")]
+    TooLarge(String),
+}
+
+/// Uniforms of one dispatch; the layout of `Params` in the kernel (96 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+struct Params {
+    count: u32,
+    first: u32,
+    iterations: u32,
+    mode: u32,
+    tolerance: f32,
+    seed: f32,
+    half: f32,
+    width: u32,
+    lut_origin: [f32; 2],
+    lut_cell: [f32; 2],
+    lut_size: [u32; 2],
+    valid: [f32; 2],
+    a: [f32; 2],
+    b: [f32; 2],
+    row: u32,
+    pad: [u32; 3],
+}
+
+/// Where a dispatch's points come from.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Grid {
+    /// A `width x height` grid over the unit-square window `[u0, v0, u1, v1]` (pixel centres).
+    Window {
+        /// `[u0, v0, u1, v1]`.
+        rect: [f32; 4],
+        /// Points a row.
+        width: u32,
+        /// Rows.
+        height: u32,
+    },
+    /// A separable grid: point (i, j) is `(xs[i], ys[j])` in unit coordinates. The pixels of a
+    /// Web Mercator tile over an asset placed in lon/lat are one: see [`mercator_axes`].
+    Separable {
+        /// Unit x of each column.
+        xs: Vec<f32>,
+        /// Unit y of each row.
+        ys: Vec<f32>,
+    },
+}
+
+/// The unit coordinates of the pixel centres of Web Mercator tile z/x/y (`size` pixels a side)
+/// over an asset placed in lon/lat: `u = u_of_lon[0] + u_of_lon[1] * lon`,
+/// `v = v_of_lat[0] + v_of_lat[1] * lat` (degrees), computed in f64 and rounded once, exactly as
+/// a CPU computing the same pixels does.
+pub fn mercator_axes(
+    (z, x, y): (u8, u32, u32),
+    size: u32,
+    u_of_lon: [f64; 2],
+    v_of_lat: [f64; 2],
+) -> (Vec<f32>, Vec<f32>) {
+    let n = f64::from(1u32 << z.min(30)) * f64::from(size);
+    let xs = (0..size)
+        .map(|i| {
+            let mx = (f64::from(x) * f64::from(size) + f64::from(i) + 0.5) / n;
+            (u_of_lon[0] + u_of_lon[1] * (mx * 360.0 - 180.0)) as f32
+        })
+        .collect();
+    let ys = (0..size)
+        .map(|j| {
+            let my = (f64::from(y) * f64::from(size) + f64::from(j) + 0.5) / n;
+            let lat = (std::f64::consts::PI * (1.0 - 2.0 * my))
+                .sinh()
+                .atan()
+                .to_degrees();
+            (v_of_lat[0] + v_of_lat[1] * lat) as f32
+        })
+        .collect();
+    (xs, ys)
+}
+
+/// An operator resident on the device.
+pub struct GpuOperator {
+    lut: wgpu::Buffer,
+    pieces: wgpu::Buffer,
+    params: Params,
+    bytes: usize,
+}
+
+impl GpuOperator {
+    /// Device memory it holds.
+    pub fn bytes(&self) -> usize {
+        self.bytes
+    }
+}
+
+/// A device with the decoding pipeline.
+pub struct Gpu {
+    device: wgpu::Device,
+    queue: wgpu::Queue,
+    pipeline: wgpu::ComputePipeline,
+    layout: wgpu::BindGroupLayout,
+    info: wgpu::AdapterInfo,
+    max_binding: u64,
+    chunk: usize,
+}
+
+impl Gpu {
+    /// The first high-performance adapter of any backend. `Err(NoAdapter)` when there is none,
+    /// for the caller to fall back to the CPU.
+    pub fn new() -> Result<Gpu, GpuError> {
+        pollster::block_on(Self::open())
+    }
+
+    async fn open() -> Result<Gpu, GpuError> {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
+        let adapter = instance
+            .request_adapter(&wgpu::RequestAdapterOptions {
+                power_preference: wgpu::PowerPreference::HighPerformance,
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        let info = adapter.get_info();
+        let limits = adapter.limits();
+        let (device, queue) = adapter
+            .request_device(&wgpu::DeviceDescriptor {
+                label: Some("fractile"),
+                required_features: wgpu::Features::empty(),
+                // The adapter's own limits: storage bindings as large as it allows.
+                required_limits: limits.clone(),
+                ..Default::default()
+            })
+            .await
+            .map_err(|e| GpuError::Device(e.to_string()))?;
+        let module = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("decode2d"),
+            source: wgpu::ShaderSource::Wgsl(SHADER.into()),
+        });
+        let entry = |binding: u32, ty: wgpu::BufferBindingType| wgpu::BindGroupLayoutEntry {
+            binding,
+            visibility: wgpu::ShaderStages::COMPUTE,
+            ty: wgpu::BindingType::Buffer {
+                ty,
+                has_dynamic_offset: false,
+                min_binding_size: None,
+            },
+            count: None,
+        };
+        let read = wgpu::BufferBindingType::Storage { read_only: true };
+        let layout = device.create_bind_group_layout(&wgpu::BindGroupLayoutDescriptor {
+            label: Some("decode2d"),
+            entries: &[
+                entry(0, wgpu::BufferBindingType::Uniform),
+                entry(1, read),
+                entry(2, read),
+                entry(3, read),
+                entry(4, wgpu::BufferBindingType::Storage { read_only: false }),
+            ],
+        });
+        let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
+            label: Some("decode2d"),
+            bind_group_layouts: &[Some(&layout)],
+            immediate_size: 0,
+        });
+        let pipeline = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("decode2d"),
+            layout: Some(&pipeline_layout),
+            module: &module,
+            entry_point: Some("main"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
+        let max_binding = limits.max_storage_buffer_binding_size;
+        Ok(Gpu {
+            device,
+            queue,
+            pipeline,
+            layout,
+            info,
+            max_binding,
+            chunk: CHUNK,
+        })
+    }
+
+    /// The adapter, as "name (backend, device type)".
+    pub fn adapter(&self) -> String {
+        format!(
+            "{} ({:?}, {:?})",
+            self.info.name, self.info.backend, self.info.device_type
+        )
+    }
+
+    /// Points per dispatch (default [`CHUNK`]); smaller values exercise chunking in tests.
+    pub fn set_chunk(&mut self, points: usize) {
+        self.chunk = points.clamp(1, CHUNK);
+    }
+
+    /// Uploads a flattened operator.
+    pub fn upload(&self, table: &PieceTable) -> Result<GpuOperator, GpuError> {
+        let pieces: Vec<f32> = table.pieces.iter().flat_map(|p| p.to_array()).collect();
+        let bytes = table.device_bytes();
+        if (table.lut.len() * 4) as u64 > self.max_binding
+            || (pieces.len() * 4) as u64 > self.max_binding
+        {
+            return Err(GpuError::TooLarge(format!(
+                "operator tables of {bytes} bytes exceed a binding of {} bytes",
+                self.max_binding
+            )));
+        }
+        let init = |label, contents: &[u8]| {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents,
+                    usage: wgpu::BufferUsages::STORAGE,
+                })
+        };
+        let (lo, hi) = table.interval;
+        Ok(GpuOperator {
+            lut: init("lut", bytemuck::cast_slice(&table.lut)),
+            pieces: init("pieces", bytemuck::cast_slice(&pieces)),
+            params: Params {
+                seed: (lo + hi) * 0.5,
+                half: (hi - lo) * 0.5,
+                lut_origin: table.lut_origin,
+                lut_cell: table.lut_cell,
+                lut_size: table.lut_size,
+                valid: table.valid,
+                ..Params::default()
+            },
+            bytes,
+        })
+    }
+
+    /// Continuous decoding of points in unit coordinates (normalised values), like
+    /// `decode::points`; points outside the unit square come back NaN with bound 0.
+    pub fn points(
+        &self,
+        op: &GpuOperator,
+        points: &[[f32; 2]],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Result<Vec<PointValue>, GpuError> {
+        let mut out = Vec::with_capacity(points.len());
+        for chunk in points.chunks(self.chunk) {
+            let params = Params {
+                count: chunk.len() as u32,
+                first: 0,
+                iterations,
+                mode: 0,
+                tolerance,
+                ..op.params
+            };
+            out.extend(self.dispatch(op, params, bytemuck::cast_slice(chunk))?);
+        }
+        Ok(out)
+    }
+
+    /// Continuous decoding of a grid of points generated on the device (a window, or a
+    /// separable grid such as a tile's reprojected pixels); row-major, normalised values.
+    pub fn grid(
+        &self,
+        op: &GpuOperator,
+        grid: Grid,
+        iterations: u32,
+        tolerance: f32,
+    ) -> Result<Vec<PointValue>, GpuError> {
+        let (width, height, mode, a, b, axes) = match &grid {
+            Grid::Window {
+                rect,
+                width,
+                height,
+            } => (
+                *width,
+                *height,
+                1,
+                [rect[0], rect[1]],
+                [
+                    (rect[2] - rect[0]) / (*width).max(1) as f32,
+                    (rect[3] - rect[1]) / (*height).max(1) as f32,
+                ],
+                vec![0.0f32; 2],
+            ),
+            Grid::Separable { xs, ys } => (
+                xs.len() as u32,
+                ys.len() as u32,
+                2,
+                [0.0; 2],
+                [0.0; 2],
+                xs.iter().chain(ys).copied().collect(),
+            ),
+        };
+        let total = width as usize * height as usize;
+        let mut out = Vec::with_capacity(total);
+        let mut first = 0usize;
+        while first < total {
+            let count = (total - first).min(self.chunk);
+            let params = Params {
+                count: count as u32,
+                first: first as u32,
+                iterations,
+                mode,
+                tolerance,
+                width,
+                a,
+                b,
+                ..op.params
+            };
+            out.extend(self.dispatch(op, params, bytemuck::cast_slice(&axes))?);
+            first += count;
+        }
+        Ok(out)
+    }
+
+    fn dispatch(
+        &self,
+        op: &GpuOperator,
+        mut params: Params,
+        points: &[u8],
+    ) -> Result<Vec<PointValue>, GpuError> {
+        let count = params.count as usize;
+        if count == 0 {
+            return Ok(Vec::new());
+        }
+        let groups = (params.count).div_ceil(WORKGROUP);
+        let gx = groups.min(65_535);
+        let gy = groups.div_ceil(gx);
+        params.row = gx * WORKGROUP;
+        let dev = &self.device;
+        let uniform = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("params"),
+            contents: bytemuck::bytes_of(&params),
+            usage: wgpu::BufferUsages::UNIFORM,
+        });
+        let input = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("points"),
+            contents: points,
+            usage: wgpu::BufferUsages::STORAGE,
+        });
+        let size = (count * 16) as u64;
+        let results = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("results"),
+            size,
+            usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+            mapped_at_creation: false,
+        });
+        let readback = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        let bind = dev.create_bind_group(&wgpu::BindGroupDescriptor {
+            label: Some("decode2d"),
+            layout: &self.layout,
+            entries: &[
+                wgpu::BindGroupEntry {
+                    binding: 0,
+                    resource: uniform.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 1,
+                    resource: op.lut.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 2,
+                    resource: op.pieces.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 3,
+                    resource: input.as_entire_binding(),
+                },
+                wgpu::BindGroupEntry {
+                    binding: 4,
+                    resource: results.as_entire_binding(),
+                },
+            ],
+        });
+        let mut encoder = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("decode2d"),
+        });
+        {
+            let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("decode2d"),
+                timestamp_writes: None,
+            });
+            pass.set_pipeline(&self.pipeline);
+            pass.set_bind_group(0, &bind, &[]);
+            pass.dispatch_workgroups(gx, gy, 1);
+        }
+        encoder.copy_buffer_to_buffer(&results, 0, &readback, 0, size);
+        self.queue.submit([encoder.finish()]);
+        let slice = readback.slice(..);
+        let (tx, rx) = std::sync::mpsc::channel();
+        slice.map_async(wgpu::MapMode::Read, move |r| {
+            let _ = tx.send(r);
+        });
+        dev.poll(wgpu::PollType::wait_indefinitely())
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        rx.recv()
+            .map_err(|e| GpuError::Readback(e.to_string()))?
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let view = slice
+            .get_mapped_range()
+            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let raw: &[[f32; 4]] = bytemuck::cast_slice(&view);
+        let out = raw
+            .iter()
+            .map(|r| PointValue {
+                value: r[0],
+                error_bound: r[1],
+                iterations: r[2] as u32,
+            })
+            .collect();
+        drop(view);
+        readback.unmap();
+        Ok(out)
+    }
+}

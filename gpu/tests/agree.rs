@@ -1,0 +1,201 @@
+//! Every GPU path against the CPU decoder on real assets (CI runs this on Mesa's lavapipe):
+//! within 1e-4 of the value range (values are normalised, so 1e-4 absolute).
+
+use std::path::PathBuf;
+
+use fractile_codec::decode;
+use fractile_codec::encode::{encode_fis, encode_psa};
+use fractile_codec::fis::{FisSettings, Scaling};
+use fractile_codec::pieces::Flatten;
+use fractile_codec::psa::{PsaSettings, Tiling};
+use fractile_codec::{Asset, EncodeSettings, Raster, RateMode, encode};
+use fractile_gpu::{Gpu, Grid};
+
+fn data(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata")
+        .join(name)
+}
+
+/// CI installs lavapipe: no adapter is a failure there, not a skip.
+fn gpu() -> Gpu {
+    Gpu::new().unwrap_or_else(|e| panic!("{e} (install mesa-vulkan-drivers)"))
+}
+
+fn quadtree(file: &str, bpp: f64) -> Asset {
+    let r = Raster::open(&data(file)).unwrap();
+    let mut s = EncodeSettings {
+        rate: RateMode::TargetBpp(bpp),
+        ..EncodeSettings::default()
+    };
+    s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+    encode(&r, &s, &|_, _| {}).unwrap().asset
+}
+
+fn scatter(n: usize, seed: u32) -> Vec<[f32; 2]> {
+    (0..n as u32)
+        .map(|i| {
+            let h = i
+                .wrapping_mul(2_654_435_761)
+                .wrapping_add(seed.wrapping_mul(97));
+            let k = i.wrapping_mul(40_503).wrapping_add(seed) ^ (h >> 7);
+            [h as f32 / u32::MAX as f32, k as f32 / u32::MAX as f32]
+        })
+        .collect()
+}
+
+fn close(what: &str, cpu: &[decode::PointValue], gpu: &[decode::PointValue]) {
+    assert_eq!(cpu.len(), gpu.len(), "{what}");
+    let mut worst = 0.0f32;
+    for (k, (c, g)) in cpu.iter().zip(gpu).enumerate() {
+        let d = (c.value - g.value).abs();
+        assert!(
+            d <= 1e-4,
+            "{what} point {k}: cpu {} gpu {}",
+            c.value,
+            g.value
+        );
+        assert!(
+            (c.error_bound - g.error_bound).abs() <= 1e-4,
+            "{what} bound {k}"
+        );
+        worst = worst.max(d);
+    }
+    eprintln!("{what}: {} points, worst difference {worst:e}", cpu.len());
+}
+
+#[test]
+fn points_agree_on_images_and_dems_for_every_codec() {
+    let mut gpu = gpu();
+    eprintln!("adapter: {}", gpu.adapter());
+    let dem = Raster::open(&data("jacksboro.tif")).unwrap();
+    let assets: Vec<(String, Asset, u32)> = vec![
+        ("camera quadtree".into(), quadtree("camera.png", 0.48), 12),
+        (
+            "jacksboro quadtree".into(),
+            quadtree("jacksboro.tif", 1.0),
+            12,
+        ),
+        (
+            "jacksboro fis-rect".into(),
+            encode_fis(
+                &dem,
+                &FisSettings {
+                    scaling: Scaling::PerCell,
+                    ..FisSettings::default()
+                },
+                None,
+            )
+            .unwrap()
+            .asset,
+            // phi expands by the cell count (50 here) a step: f32 rounding that differs in the last
+            // bit moves a chain to another cell after a few steps, so compare short chains.
+            3,
+        ),
+        (
+            "jacksboro psa2d-tri".into(),
+            encode_psa(
+                &dem,
+                &PsaSettings {
+                    tiling: Tiling::Triangular,
+                    ..PsaSettings::default()
+                },
+                None,
+            )
+            .unwrap()
+            .asset,
+            12,
+        ),
+    ];
+    for (name, asset, n) in &assets {
+        let op = &asset.planes[0].operator;
+        let dev = gpu.upload(&op.pieces()).unwrap();
+        // Sizes: a few points, an odd count, and more than one chunk.
+        for (count, chunk) in [(7usize, 1 << 22), (10_001, 1 << 22), (70_000, 30_000)] {
+            gpu.set_chunk(chunk);
+            let pts = scatter(count, count as u32);
+            for tolerance in [0.0, 1e-3] {
+                let cpu = decode::points(op, &pts, *n, tolerance);
+                let got = gpu.points(&dev, &pts, *n, tolerance).unwrap();
+                close(&format!("{name} n={count} tol={tolerance}"), &cpu, &got);
+            }
+        }
+    }
+}
+
+#[test]
+fn windows_and_reprojected_tiles_agree_with_the_cpu() {
+    let mut gpu = gpu();
+    let asset = quadtree("jacksboro.tif", 1.0);
+    let op = &asset.planes[0].operator;
+    let dev = gpu.upload(&op.pieces()).unwrap();
+    // A window at 300 x 200 (the kernel makes the points), dispatched in chunks of 7,000.
+    gpu.set_chunk(7_000);
+    let rect = [0.2f32, 0.3, 0.45, 0.5];
+    let (w, h) = (300u32, 200u32);
+    let got = gpu
+        .grid(
+            &dev,
+            Grid::Window {
+                rect,
+                width: w,
+                height: h,
+            },
+            10,
+            0.0,
+        )
+        .unwrap();
+    let pts: Vec<[f32; 2]> = (0..w * h)
+        .map(|k| {
+            let (i, j) = ((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
+            [
+                rect[0] + i * ((rect[2] - rect[0]) / w as f32),
+                rect[1] + j * ((rect[3] - rect[1]) / h as f32),
+            ]
+        })
+        .collect();
+    close("window", &decode::points(op, &pts, 10, 0.0), &got);
+
+    // A zoom-14 tile over the DEM: pixel centres to lon/lat to unit coordinates, on the GPU.
+    let g = asset.meta.georef.as_ref().expect("georeferenced");
+    let (w0, n0) = (g.origin[0], g.origin[1]);
+    let (dx, dy) = (g.pixel_size[0], g.pixel_size[1]);
+    let (sw, sh) = (asset.meta.width as f64, asset.meta.height as f64);
+    let u_of_lon = [-w0 / (dx * sw), 1.0 / (dx * sw)];
+    let v_of_lat = [-n0 / (dy * sh), 1.0 / (dy * sh)];
+    let lon_c = w0 + 0.5 * dx * sw;
+    let lat_c = n0 + 0.5 * dy * sh;
+    let z = 14u8;
+    let nz = f64::from(1u32 << z);
+    let tx = ((lon_c + 180.0) / 360.0 * nz) as u32;
+    let lat_r = lat_c.to_radians();
+    let ty =
+        ((1.0 - (lat_r.tan() + 1.0 / lat_r.cos()).ln() / std::f64::consts::PI) / 2.0 * nz) as u32;
+    let size = 256u32;
+    let (xs, ys) = fractile_gpu::mercator_axes((z, tx, ty), size, u_of_lon, v_of_lat);
+    let got = gpu.grid(&dev, Grid::Separable { xs, ys }, 10, 0.0).unwrap();
+    // The CPU's own reprojection of the same pixels, in f64.
+    let pts: Vec<[f32; 2]> = (0..size * size)
+        .map(|k| {
+            let (i, j) = ((k % size) as f64 + 0.5, (k / size) as f64 + 0.5);
+            let (mx, my) = (
+                (tx as f64 * 256.0 + i) / (nz * 256.0),
+                (ty as f64 * 256.0 + j) / (nz * 256.0),
+            );
+            let lon = mx * 360.0 - 180.0;
+            let lat = (std::f64::consts::PI * (1.0 - 2.0 * my))
+                .sinh()
+                .atan()
+                .to_degrees();
+            [
+                (u_of_lon[0] + u_of_lon[1] * lon) as f32,
+                (v_of_lat[0] + v_of_lat[1] * lat) as f32,
+            ]
+        })
+        .collect();
+    assert!(
+        pts.iter()
+            .all(|p| (0.0..=1.0).contains(&p[0]) && (0.0..=1.0).contains(&p[1]))
+    );
+    close("zoom-14 tile", &decode::points(op, &pts, 10, 0.0), &got);
+}

@@ -1,0 +1,108 @@
+// Continuous decoding of a flattened 2D operator (codec::pieces), one invocation per point.
+// Mirrors PieceTable::step and decode::points line by line, in f32:
+//   cell = clamp(floor((p - lut_origin) / lut_cell), 0, size - 1); entry = lut[cell]
+//   piece = entry & 0x7fffffff (+1 on the far half of a split cell, u + v > 1)
+//   (u, v) = clamp((p - origin) * inv_size, 0, 1)
+//   g, s bilinear in (u, v); phi(p) = n0 + nu u + nv v per axis
+//   value = sum_k g_k prod_{j<k} s_j + seed prod s, bound = |prod s| * half
+// Points come from a list (mode 0), a regular grid over a unit-square window (mode 1), or a
+// separable grid (mode 2: the pixels of a Web Mercator tile over a lon/lat-placed asset, whose
+// unit x depends on the column only and unit y on the row only). For mode 2 the host sends the
+// two axes (width + height floats, computed in f64): the chains that follow expand position
+// errors by the domain/range ratio at every step, and an f32 reprojection here (sinh, atan, and
+// an offset of hundreds cancelling to a unit coordinate) starts them a few thousandths of a
+// source pixel off, enough to end ten steps later in other ranges than the CPU's.
+
+struct Params {
+    // Number of points in this dispatch and the first point's index (chunked dispatches).
+    count: u32,
+    first: u32,
+    iterations: u32,
+    mode: u32,
+    tolerance: f32,
+    seed: f32,
+    half: f32,
+    width: u32,          // grid width in points (modes 1 and 2)
+    lut_origin: vec2<f32>,
+    lut_cell: vec2<f32>,
+    lut_size: vec2<u32>,
+    valid: vec2<f32>,
+    // Mode 1: unit point of grid point (i, j) = a + (i + 0.5, j + 0.5) * b.
+    a: vec2<f32>,
+    b: vec2<f32>,
+    // Points per row of the dispatch grid (x groups * 256), for 2D dispatches past 65,535 groups.
+    row: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
+};
+
+@group(0) @binding(0) var<uniform> params: Params;
+@group(0) @binding(1) var<storage, read> lut: array<u32>;
+@group(0) @binding(2) var<storage, read> pieces: array<vec4<f32>>;
+// Mode 0: x0, y0, x1, y1, ...; mode 2: the width unit xs, then the height unit ys.
+@group(0) @binding(3) var<storage, read> points: array<f32>;
+@group(0) @binding(4) var<storage, read_write> results: array<vec4<f32>>;
+
+const SPLIT: u32 = 0x80000000u;
+
+fn unit_point(k: u32) -> vec2<f32> {
+    if (params.mode == 0u) {
+        return vec2<f32>(points[2u * k], points[2u * k + 1u]);
+    }
+    let i = k % params.width;
+    let j = k / params.width;
+    if (params.mode == 2u) {
+        return vec2<f32>(points[i], points[params.width + j]);
+    }
+    let ij = vec2<f32>(f32(i), f32(j)) + vec2<f32>(0.5, 0.5);
+    return params.a + ij * params.b;
+}
+
+@compute @workgroup_size(256)
+fn main(@builtin(global_invocation_id) id: vec3<u32>) {
+    let idx = id.x + id.y * params.row;
+    if (idx >= params.count) {
+        return;
+    }
+    let k = params.first + idx;
+    let unit = unit_point(k);
+    // Outside the unit square: no value (NaN), as the CPU answers outside points.
+    if (unit.x < 0.0 || unit.x > 1.0 || unit.y < 0.0 || unit.y > 1.0 || unit.x != unit.x) {
+        let nan = bitcast<f32>(0x7fc00000u);
+        results[idx] = vec4<f32>(nan, 0.0, 0.0, 0.0);
+        return;
+    }
+    var p = unit * params.valid;
+    var acc_g = 0.0;
+    var acc_s = 1.0;
+    var taken = 0u;
+    for (var n = 0u; n < params.iterations; n = n + 1u) {
+        if (acc_s == 0.0 || abs(acc_s) * params.half <= params.tolerance) {
+            break;
+        }
+        let cf = floor((p - params.lut_origin) / params.lut_cell);
+        let cx = min(u32(max(cf.x, 0.0)), params.lut_size.x - 1u);
+        let cy = min(u32(max(cf.y, 0.0)), params.lut_size.y - 1u);
+        let entry = lut[cy * params.lut_size.x + cx];
+        var piece = entry & 0x7fffffffu;
+        let head = pieces[piece * 5u];
+        let uv = clamp((p - head.xy) * head.zw, vec2<f32>(0.0), vec2<f32>(1.0));
+        if ((entry & SPLIT) != 0u && uv.x + uv.y > 1.0) {
+            piece = piece + 1u;
+        }
+        let g = pieces[piece * 5u + 1u];
+        let s = pieces[piece * 5u + 2u];
+        let nx = pieces[piece * 5u + 3u];
+        let ny = pieces[piece * 5u + 4u];
+        let u = uv.x;
+        let v = uv.y;
+        let offset = g.x + g.y * u + g.z * v + g.w * u * v;
+        let contrast = s.x + s.y * u + s.z * v + s.w * u * v;
+        acc_g = acc_g + acc_s * offset;
+        acc_s = acc_s * contrast;
+        taken = taken + 1u;
+        p = vec2<f32>(nx.x + nx.y * u + nx.z * v, ny.x + ny.y * u + ny.z * v);
+    }
+    results[idx] = vec4<f32>(acc_g + acc_s * params.seed, abs(acc_s) * params.half, f32(taken), 1.0);
+}
