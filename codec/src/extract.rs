@@ -10,6 +10,11 @@ use crate::colour::{rgb_bound, ycbcr_to_rgb};
 use crate::decode::{self, DiscreteOptions, DiscreteReport, Grid, Method};
 use crate::operator::Operator;
 
+/// Decodes one plane's point chains elsewhere (a GPU): `(plane, unit points, iterations,
+/// normalised tolerance)`, or `None` to leave them to the CPU.
+pub type ContinuousHook<'a> =
+    dyn Fn(usize, &[[f32; 2]], u32, f32) -> Option<Vec<decode::PointValue>> + Sync + 'a;
+
 /// A decoded raster in source units.
 #[derive(Clone, Debug)]
 pub struct Decoded {
@@ -278,6 +283,20 @@ impl Asset {
         iterations: u32,
         tolerance: f32,
     ) -> (Vec<Vec<f32>>, f32) {
+        self.sample_with(points, footprint, iterations, tolerance, &|_, _, _, _| None)
+    }
+
+    /// [`Asset::sample`], with the continuous chains of each plane offered first to
+    /// `continuous(plane, points, iterations, tolerance)` (normalised tolerance), which may
+    /// answer them elsewhere (a GPU) or return `None` to leave them to the CPU.
+    pub fn sample_with(
+        &self,
+        points: &[Option<[f32; 2]>],
+        footprint: [f32; 2],
+        iterations: u32,
+        tolerance: f32,
+        continuous: &ContinuousHook<'_>,
+    ) -> (Vec<Vec<f32>>, f32) {
         let (w, h) = (self.meta.width as f32, self.meta.height as f32);
         let coarse = footprint[0] * w > 1.0 || footprint[1] * h > 1.0;
         let inside: Vec<[f32; 2]> = points.iter().map(|p| p.unwrap_or([0.0, 0.0])).collect();
@@ -303,8 +322,10 @@ impl Asset {
             let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
             self.planes
                 .iter()
-                .map(|p| {
-                    decode::points(&p.operator, &inside, iterations, tol)
+                .enumerate()
+                .map(|(k, p)| {
+                    continuous(k, &inside, iterations, tol)
+                        .unwrap_or_else(|| decode::points(&p.operator, &inside, iterations, tol))
                         .into_iter()
                         .map(|r| {
                             worst = worst.max(r.error_bound);

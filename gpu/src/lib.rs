@@ -227,6 +227,11 @@ impl Gpu {
         )
     }
 
+    /// Whether the adapter is a software rasteriser (lavapipe, llvmpipe, WARP).
+    pub fn is_software(&self) -> bool {
+        self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
     /// Points per dispatch (default [`CHUNK`]); smaller values exercise chunking in tests.
     pub fn set_chunk(&mut self, points: usize) {
         self.chunk = points.clamp(1, CHUNK);

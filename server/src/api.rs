@@ -20,6 +20,7 @@ use fractile_proto::{
 use serde::Deserialize;
 use tokio::sync::Semaphore;
 
+use crate::backend::{Backend, GpuBackend};
 use crate::encoding::{self, HeightEncoding};
 use crate::error::AppError;
 use crate::store::{Store, StoredAsset};
@@ -66,6 +67,10 @@ pub struct AppState {
     pub write_token: Option<String>,
     /// Largest asset upload in bytes.
     pub max_upload: usize,
+    /// Where continuous decoding runs unless a request says otherwise.
+    pub backend: Backend,
+    /// The GPU, when the server has one.
+    pub gpu: Option<Arc<GpuBackend>>,
 }
 
 /// A cached answer.
@@ -100,6 +105,8 @@ impl AppState {
             public_url,
             write_token: None,
             max_upload: 64 * 1024 * 1024,
+            backend: Backend::Auto,
+            gpu: None,
         }
     }
 }
@@ -155,6 +162,44 @@ async fn decode<T: Send + 'static>(
         .map_err(|e| AppError::internal(format!("decoding failed: {e}")));
     metrics::histogram!("fractile_decode_seconds").record(start.elapsed().as_secs_f64());
     out
+}
+
+/// The backend of a request: its `backend` parameter, else the server's. Asking for the GPU
+/// of a server without one is an error, not a silent fallback.
+fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppError> {
+    let b = match asked {
+        Some(s) => s
+            .parse::<Backend>()
+            .map_err(|e| AppError::bad_request("bad_backend", e))?,
+        None => state.backend,
+    };
+    if b == Backend::Gpu && state.gpu.is_none() {
+        return Err(AppError::bad_request(
+            "gpu_unavailable",
+            "this server has no GPU adapter: use backend=cpu or auto",
+        ));
+    }
+    Ok(b)
+}
+
+/// `Asset::sample` on the chosen backend (runs inside `decode`, on the blocking pool).
+fn sample_on(
+    gpu: Option<&GpuBackend>,
+    choice: Backend,
+    a: &StoredAsset,
+    pts: &[Option<[f32; 2]>],
+    footprint: [f32; 2],
+    iterations: u32,
+    tolerance: f32,
+) -> (Vec<Vec<f32>>, f32) {
+    match gpu.filter(|g| g.takes(choice, pts.len())) {
+        Some(g) => a
+            .asset
+            .sample_with(pts, footprint, iterations, tolerance, &|k, p, n, t| {
+                g.points(a, k, p, n, t)
+            }),
+        None => a.asset.sample(pts, footprint, iterations, tolerance),
+    }
 }
 
 fn summary(state: &AppState, a: &StoredAsset) -> AssetSummary {
@@ -320,6 +365,7 @@ async fn tilejson(
 struct TileQuery {
     iterations: Option<u32>,
     tolerance: Option<f32>,
+    backend: Option<String>,
     tilesize: Option<usize>,
     encoding: Option<String>,
     rescale: Option<String>,
@@ -499,6 +545,8 @@ async fn tile(
             ));
         }
     }
+    // Checked before the cache, so that a bad parameter is refused even for a cached tile.
+    let choice = backend_for(&state, q.backend.as_deref())?;
     // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
     let key = format!(
         "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{:?}&{size}&{:?}&{:?}&{:?}&{shade}",
@@ -514,6 +562,7 @@ async fn tile(
     }
     metrics::counter!("fractile_tile_cache_total", "result" => "miss").increment(1);
     let asset = a.clone();
+    let gpu = state.gpu.clone();
     let cached = decode(&state, move || {
         // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile,
         // so that shading is seamless across tiles.
@@ -523,7 +572,15 @@ async fn tile(
         if pts.iter().all(Option::is_none) {
             return None;
         }
-        let (mut channels, bound) = asset.asset.sample(&pts, footprint, iterations, tolerance);
+        let (mut channels, bound) = sample_on(
+            gpu.as_deref(),
+            choice,
+            &asset,
+            &pts,
+            footprint,
+            iterations,
+            tolerance,
+        );
         let style = (colormap.is_some() || shade).then(|| {
             let side = size + 2 * margin;
             let shade = shade.then(|| {
@@ -776,6 +833,7 @@ struct MeshQuery {
     resolution: Option<usize>,
     iterations: Option<u32>,
     tolerance: Option<f32>,
+    backend: Option<String>,
     format: Option<String>,
 }
 
@@ -843,8 +901,20 @@ async fn mesh(
             (y1 - y0) * a.asset.meta.height as f64,
         )
     };
+    let (choice, gpu) = (
+        backend_for(&state, q.backend.as_deref())?,
+        state.gpu.clone(),
+    );
     let body = decode(&state, move || {
-        let (channels, bound) = a.asset.sample(&pts, footprint, iterations, tolerance);
+        let (channels, bound) = sample_on(
+            gpu.as_deref(),
+            choice,
+            &a,
+            &pts,
+            footprint,
+            iterations,
+            tolerance,
+        );
         let spacing = [
             (extent_x / (n - 1) as f64) as f32,
             (extent_y / (n - 1) as f64) as f32,
@@ -879,6 +949,7 @@ struct RegionQuery {
     height: usize,
     iterations: Option<u32>,
     tolerance: Option<f32>,
+    backend: Option<String>,
     format: Option<String>,
 }
 
@@ -946,8 +1017,13 @@ async fn region(
             origin: [x0, y1],
             pixel_size: [(x1 - x0) / w as f64, -(y1 - y0) / h as f64],
         });
+    let (choice, gpu) = (
+        backend_for(&state, q.backend.as_deref())?,
+        state.gpu.clone(),
+    );
     let (ct, body, bound) = decode(&state, move || {
-        let (channels, bound) = a.asset.sample(&pts, footprint, n, tolerance);
+        let (channels, bound) =
+            sample_on(gpu.as_deref(), choice, &a, &pts, footprint, n, tolerance);
         if tif_out {
             let nodata = a.asset.meta.nodata;
             let values: Vec<f32> = match nodata {

@@ -3,6 +3,7 @@
 //! command line (encode, decode, info, compare, serve).
 
 pub mod api;
+pub mod backend;
 pub mod encoding;
 pub mod error;
 pub mod openapi;
@@ -41,6 +42,10 @@ pub struct FileConfig {
     pub max_concurrent_requests: Option<usize>,
     /// Tile cache size in MiB.
     pub tile_cache_mib: Option<u64>,
+    /// Where continuous decoding runs: `cpu`, `gpu` or `auto` (default; see `backend`).
+    pub backend: Option<String>,
+    /// GPU memory for resident operators, in MiB (default 1024).
+    pub gpu_memory_mib: Option<u64>,
 }
 
 impl FileConfig {
@@ -140,6 +145,21 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
             .weigher(|_k: &String, v: &Arc<api::Cached>| v.size().try_into().unwrap_or(u32::MAX))
             .max_capacity(m * 1024 * 1024)
             .build();
+    }
+    state.backend = match &opts.file.backend {
+        Some(b) => b.parse().map_err(|e: String| anyhow::anyhow!(e))?,
+        None => backend::Backend::Auto,
+    };
+    if state.backend != backend::Backend::Cpu {
+        let memory = opts.file.gpu_memory_mib.unwrap_or(1024) * 1024 * 1024;
+        // Opening an adapter blocks (and may take a second): not on the async executor.
+        match tokio::task::spawn_blocking(move || backend::GpuBackend::open(memory)).await? {
+            Ok(g) => {
+                tracing::info!("GPU decoding on {} ({:?})", g.adapter(), state.backend);
+                state.gpu = Some(Arc::new(g));
+            }
+            Err(e) => tracing::warn!("{e}: decoding on the CPU"),
+        }
     }
     let concurrency = opts.file.max_concurrent_requests.unwrap_or(1024).max(1);
     let state = Arc::new(state);

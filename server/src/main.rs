@@ -50,8 +50,8 @@ enum Command {
         #[arg(long, env = "FRACTILE_BIND")]
         bind: Option<std::net::SocketAddr>,
         /// A `fractile.toml` with any of: assets, bind, public_url, write_token, cache_control,
-        /// max_upload_mib, max_iterations, max_concurrent_requests, tile_cache_mib. Flags and
-        /// environment variables override it.
+        /// max_upload_mib, max_iterations, max_concurrent_requests, tile_cache_mib, backend,
+        /// gpu_memory_mib. Flags and environment variables override it.
         #[arg(long, env = "FRACTILE_CONFIG")]
         config: Option<PathBuf>,
         /// Public base URL for absolute links in TileJSON (behind a proxy).
@@ -61,6 +61,10 @@ enum Command {
         /// production: argv is visible to other users).
         #[arg(long, env = "FRACTILE_WRITE_TOKEN", hide_env_values = true)]
         write_token: Option<String>,
+        /// Where continuous decoding runs: cpu, gpu or auto (the GPU for work of a tile or more
+        /// on a hardware adapter); requests may override it with `backend=`.
+        #[arg(long, env = "FRACTILE_BACKEND")]
+        backend: Option<String>,
     },
     /// Compare a decoded raster with its original: PSNR, RMSE, MAE, max error.
     Compare {
@@ -283,7 +287,8 @@ fn main() {
             config,
             public_url,
             write_token,
-        } => run_serve(assets, bind, config, public_url, write_token),
+            backend,
+        } => run_serve(assets, bind, config, public_url, write_token, backend),
     };
     if let Err(e) = result {
         eprintln!("fractile: {e:#}");
@@ -297,6 +302,7 @@ fn run_serve(
     config: Option<PathBuf>,
     public_url: Option<String>,
     write_token: Option<String>,
+    backend: Option<String>,
 ) -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -308,6 +314,9 @@ fn run_serve(
         Some(p) => fractile_server::FileConfig::load(p)?,
         None => fractile_server::FileConfig::default(),
     };
+    if backend.is_some() {
+        file.backend = backend;
+    }
     let opts = fractile_server::ServeOptions {
         assets: assets.or(file.assets.take()),
         bind: bind

@@ -35,6 +35,12 @@ pub fn document() -> Value {
         json!({"type": "number", "exclusiveMinimum": 0}),
         "Error bound wanted, value units: each point stops once its own bound is under it (default: half a quantisation step of the source)",
     );
+    let backend = param(
+        "backend",
+        "query",
+        json!({"enum": ["cpu", "gpu", "auto"]}),
+        "Where continuous decoding runs (default: the server's setting; gpu on a server without an adapter is 400 gpu_unavailable)",
+    );
     let mut ok_tile = error_responses();
     ok_tile["200"] = json!({"description": "The tile", "headers": {"X-Error-Bound": {"schema": {"type": "number"}, "description": "A-priori bound on the error, value units"}, "ETag": {"schema": {"type": "string"}}}, "content": {"image/png": {}, "application/octet-stream": {}}});
     ok_tile["304"] = json!({"description": "Not modified (If-None-Match)"});
@@ -65,6 +71,7 @@ pub fn document() -> Value {
                     param("format", "path", json!({"enum": ["png", "f32"]}), "png, or f32 (little-endian float32 heights)"),
                     iterations.clone(),
                     tolerance.clone(),
+                    backend.clone(),
                     param("tilesize", "query", json!({"enum": [256, 512]}), "Tile size"),
                     param("encoding", "query", json!({"enum": ["terrainrgb", "terrarium", "gray16"]}), "Height packing (MapLibre's formulas)"),
                     param("rescale", "query", json!({"type": "string"}), "min,max for visual PNGs of heights"),
@@ -81,12 +88,12 @@ pub fn document() -> Value {
             "/v1/assets/{id}/region": {"get": {"summary": "A window at any resolution", "parameters": [id,
                     param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (lon/lat, or unit coordinates)"),
                     param("width", "query", json!({"type": "integer"}), "pixels"), param("height", "query", json!({"type": "integer"}), "pixels"),
-                    iterations.clone(), tolerance.clone(), param("format", "query", json!({"enum": ["png", "f32", "tif"]}), "output (tif: float32 GeoTIFF of heights)")],
+                    iterations.clone(), tolerance.clone(), backend.clone(), param("format", "query", json!({"enum": ["png", "f32", "tif"]}), "output (tif: float32 GeoTIFF of heights)")],
                 "responses": {"200": {"description": "image or float32 samples"}, "400": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/mesh": {"get": {"summary": "Terrain mesh of a region (regular grid)", "parameters": [id,
                     param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (default: the whole asset)"),
                     param("resolution", "query", json!({"type": "integer", "minimum": 2, "maximum": 2048}), "vertices a side"),
-                    iterations, tolerance, param("format", "query", json!({"enum": ["obj", "ply", "glb"]}), "file format")],
+                    iterations, tolerance, backend, param("format", "query", json!({"enum": ["obj", "ply", "glb"]}), "file format")],
                 "responses": {"200": {"description": "mesh file"}, "400": {"$ref": "#/components/responses/Error"}}}}
         },
         "components": {

@@ -867,3 +867,90 @@ fn config_files_parse_and_reject_typos() {
         "{e}"
     );
 }
+
+/// The GPU backend (lavapipe in CI) answers tiles like the CPU, per request; a bad or
+/// unavailable backend is a typed 400.
+#[tokio::test]
+async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
+    state(); // writes the assets
+    let dir = std::env::temp_dir().join(format!("fractile-http-{}", std::process::id()));
+    let (store, _) = Store::open(&dir).unwrap();
+    let mut st = AppState::new(store, "http://test".into());
+    let gpu = fractile_server::backend::GpuBackend::open(64 << 20)
+        .unwrap_or_else(|e| panic!("{e} (install mesa-vulkan-drivers)"));
+    st.gpu = Some(Arc::new(gpu));
+    let st = Arc::new(st);
+    // A zoom-15 tile inside the DEM: finer than the source, so every pixel is a point chain.
+    let (lon, lat, z) = (-84.25f64, 36.6f64, 15u32);
+    let n = f64::from(1u32 << z);
+    let x = ((lon + 180.0) / 360.0 * n) as u32;
+    let r = lat.to_radians();
+    let y = ((1.0 - (r.tan() + 1.0 / r.cos()).ln() / std::f64::consts::PI) / 2.0 * n) as u32;
+    let fetch = |backend: &str| {
+        let st = st.clone();
+        let uri =
+            format!("/v1/assets/jacksboro/tiles/{z}/{x}/{y}.f32?iterations=12&backend={backend}");
+        async move {
+            let resp = fractile_server::app(st)
+                .oneshot(Request::get(uri).body(Body::empty()).unwrap())
+                .await
+                .unwrap();
+            let status = resp.status();
+            let body = resp
+                .into_body()
+                .collect()
+                .await
+                .unwrap()
+                .to_bytes()
+                .to_vec();
+            (status, body)
+        }
+    };
+    let (s, cpu) = fetch("cpu").await;
+    assert_eq!(s, StatusCode::OK);
+    // The tile cache would answer the second request from the first: a different key is needed,
+    // and the tolerance is part of it.
+    let uri = format!(
+        "/v1/assets/jacksboro/tiles/{z}/{x}/{y}.f32?iterations=12&tolerance=0.000001&backend=gpu"
+    );
+    let resp = fractile_server::app(st.clone())
+        .oneshot(Request::get(&uri).body(Body::empty()).unwrap())
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    let gpu = resp
+        .into_body()
+        .collect()
+        .await
+        .unwrap()
+        .to_bytes()
+        .to_vec();
+    let f = |b: &[u8]| -> Vec<f32> {
+        b.chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect()
+    };
+    let (a, b) = (f(&cpu), f(&gpu));
+    assert_eq!(a.len(), 256 * 256);
+    // 1e-4 of the value range (236..1076 m), plus the 1e-6 m tolerance the GPU request used.
+    let worst = a
+        .iter()
+        .zip(&b)
+        .map(|(p, q)| (p - q).abs())
+        .fold(0.0f32, f32::max);
+    assert!(worst <= 0.084, "worst difference {worst} m");
+    let (s, body) = fetch("quantum").await;
+    assert_eq!(
+        (s, json(&body)["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("bad_backend"))
+    );
+    // The shared state has no GPU: asking for one is refused, not silently served by the CPU.
+    let (s, _, body) = get(&format!(
+        "/v1/assets/jacksboro/tiles/{z}/{x}/{y}.f32?backend=gpu"
+    ))
+    .await;
+    assert_eq!(
+        (s, json(&body)["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("gpu_unavailable"))
+    );
+}

@@ -1,0 +1,120 @@
+//! Where continuous decoding runs: the CPU (always there) or a GPU (`fractile-gpu`), chosen per
+//! server (`backend` in the config, `--backend`, `FRACTILE_BACKEND`) and per request
+//! (`?backend=cpu|gpu|auto`). No math here: the codec decides what to decode, this module only
+//! hands the point chains to one device or the other.
+//!
+//! `auto` sends a request to the GPU when it decodes at least [`AUTO_POINTS`] points on a
+//! hardware adapter. A software adapter (Mesa's lavapipe, device type Cpu) is slower than the
+//! CPU decoder itself (the GPU bench measures 10x), so `auto` never picks it; `gpu` still can.
+//! Operators are uploaded on first use and stay resident in an LRU cache bounded in bytes
+//! (`gpu_memory_mib`); an asset replaced by upload has a new hash, hence new entries.
+
+use std::str::FromStr;
+use std::sync::Arc;
+
+use fractile_codec::decode::PointValue;
+use fractile_codec::pieces::Flatten;
+use fractile_gpu::{Gpu, GpuOperator};
+
+use crate::store::StoredAsset;
+
+/// Smallest continuous decode `auto` sends to a hardware GPU: one 256 x 256 tile.
+pub const AUTO_POINTS: usize = 256 * 256;
+
+/// A backend choice.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Backend {
+    /// Always the CPU.
+    Cpu,
+    /// The GPU for every continuous decode.
+    Gpu,
+    /// The GPU when it pays (see the module docs).
+    #[default]
+    Auto,
+}
+
+impl FromStr for Backend {
+    type Err = String;
+    fn from_str(s: &str) -> Result<Backend, String> {
+        match s {
+            "cpu" => Ok(Backend::Cpu),
+            "gpu" => Ok(Backend::Gpu),
+            "auto" => Ok(Backend::Auto),
+            _ => Err(format!("backend {s:?}: cpu, gpu or auto")),
+        }
+    }
+}
+
+/// The server's GPU: the device and its resident operators.
+pub struct GpuBackend {
+    gpu: Gpu,
+    software: bool,
+    resident: moka::sync::Cache<(String, u32, usize), Arc<GpuOperator>>,
+}
+
+impl GpuBackend {
+    /// Opens the first adapter; `memory` bounds the resident operators, in bytes.
+    pub fn open(memory: u64) -> Result<GpuBackend, fractile_gpu::GpuError> {
+        let gpu = Gpu::new()?;
+        let software = gpu.is_software();
+        Ok(GpuBackend {
+            gpu,
+            software,
+            resident: moka::sync::Cache::builder()
+                .weigher(|_k, v: &Arc<GpuOperator>| v.bytes().try_into().unwrap_or(u32::MAX))
+                .max_capacity(memory)
+                .build(),
+        })
+    }
+
+    /// The adapter, in words.
+    pub fn adapter(&self) -> String {
+        self.gpu.adapter()
+    }
+
+    /// Whether `choice` sends a decode of `points` points here.
+    pub fn takes(&self, choice: Backend, points: usize) -> bool {
+        match choice {
+            Backend::Cpu => false,
+            Backend::Gpu => true,
+            Backend::Auto => !self.software && points >= AUTO_POINTS,
+        }
+    }
+
+    /// Continuous decoding of one plane's points; `None` (logged) when the device fails, for
+    /// the caller to use the CPU.
+    pub fn points(
+        &self,
+        a: &StoredAsset,
+        plane: usize,
+        points: &[[f32; 2]],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Option<Vec<PointValue>> {
+        let key = (a.id.clone(), a.hash, plane);
+        let op = match self.resident.get(&key) {
+            Some(op) => op,
+            None => {
+                let table = a.asset.planes.get(plane)?.operator.pieces();
+                match self.gpu.upload(&table) {
+                    Ok(op) => {
+                        let op = Arc::new(op);
+                        self.resident.insert(key, op.clone());
+                        op
+                    }
+                    Err(e) => {
+                        tracing::warn!("GPU upload of {} failed, decoding on the CPU: {e}", a.id);
+                        return None;
+                    }
+                }
+            }
+        };
+        match self.gpu.points(&op, points, iterations, tolerance) {
+            Ok(v) => Some(v),
+            Err(e) => {
+                tracing::warn!("GPU decode of {} failed, decoding on the CPU: {e}", a.id);
+                None
+            }
+        }
+    }
+}
