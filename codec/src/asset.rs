@@ -289,23 +289,14 @@ impl Asset {
         planes: Vec<(PlaneHeader, Vec<u8>)>,
         mask: Option<Mask>,
     ) -> Result<Asset, Error> {
-        let planes = planes
-            .into_iter()
-            .enumerate()
-            .map(|(i, (header, stream))| {
-                let leaves = stream::decode_plane(&header, &stream)
-                    .map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
-                let operator = stream::operator(&header, &leaves)
-                    .map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
-                Ok(Plane {
-                    coding: Coding::Quadtree { header, stream },
-                    operator: PlaneOperator::Quadtree(operator),
-                })
+        Asset::assemble(meta, planes, mask, |_, header, stream| {
+            let leaves = stream::decode_plane(&header, &stream)?;
+            let operator = stream::operator(&header, &leaves)?;
+            Ok(Plane {
+                coding: Coding::Quadtree { header, stream },
+                operator: PlaneOperator::Quadtree(operator),
             })
-            .collect::<Result<Vec<_>, Error>>()?;
-        let asset = Asset { meta, planes, mask };
-        asset.check()?;
-        Ok(asset)
+        })
     }
 
     /// Builds an asset of fractal interpolation surfaces from coded planes (height fields).
@@ -319,25 +310,17 @@ impl Asset {
                 "fractal interpolation surfaces code height fields only".into(),
             ));
         }
-        let planes = planes
-            .into_iter()
-            .enumerate()
-            .map(|(i, (header, stream))| {
-                let bad = |e: String| Error::Asset(format!("plane {i}: {e}"));
-                if header.samples != [meta.width, meta.height] {
-                    return Err(bad("sample grid and metadata disagree".into()));
-                }
-                let params = crate::fis::decode_params(&header, &stream).map_err(bad)?;
-                let operator = FisOperator::new(&header, &params).map_err(bad)?;
-                Ok(Plane {
-                    coding: Coding::Fis { header, stream },
-                    operator: PlaneOperator::Fis(operator),
-                })
+        Asset::assemble(meta, planes, mask, |meta, header, stream| {
+            if header.samples != [meta.width, meta.height] {
+                return Err("sample grid and metadata disagree".into());
+            }
+            let params = crate::fis::decode_params(&header, &stream)?;
+            let operator = FisOperator::new(&header, &params)?;
+            Ok(Plane {
+                coding: Coding::Fis { header, stream },
+                operator: PlaneOperator::Fis(operator),
             })
-            .collect::<Result<Vec<_>, Error>>()?;
-        let asset = Asset { meta, planes, mask };
-        asset.check()?;
-        Ok(asset)
+        })
     }
 
     /// Builds a piecewise self-affine asset from coded planes (one grey plane).
@@ -346,20 +329,31 @@ impl Asset {
         planes: Vec<(PsaHeader, Vec<u8>)>,
         mask: Option<Mask>,
     ) -> Result<Asset, Error> {
+        Asset::assemble(meta, planes, mask, |meta, header, stream| {
+            if header.samples != [meta.width, meta.height] {
+                return Err("sample grid and metadata disagree".into());
+            }
+            let params = crate::psa::decode_params(&header, &stream)?;
+            let operator = PsaOperator::new(&header, &params)?;
+            Ok(Plane {
+                coding: Coding::Psa { header, stream },
+                operator: PlaneOperator::Psa(operator),
+            })
+        })
+    }
+
+    /// Decodes every coded plane with `plane` (errors name the plane) and checks the whole.
+    fn assemble<H>(
+        meta: AssetMeta,
+        planes: Vec<(H, Vec<u8>)>,
+        mask: Option<Mask>,
+        plane: impl Fn(&AssetMeta, H, Vec<u8>) -> Result<Plane, String>,
+    ) -> Result<Asset, Error> {
         let planes = planes
             .into_iter()
             .enumerate()
             .map(|(i, (header, stream))| {
-                let bad = |e: String| Error::Asset(format!("plane {i}: {e}"));
-                if header.samples != [meta.width, meta.height] {
-                    return Err(bad("sample grid and metadata disagree".into()));
-                }
-                let params = crate::psa::decode_params(&header, &stream).map_err(bad)?;
-                let operator = PsaOperator::new(&header, &params).map_err(bad)?;
-                Ok(Plane {
-                    coding: Coding::Psa { header, stream },
-                    operator: PlaneOperator::Psa(operator),
-                })
+                plane(&meta, header, stream).map_err(|e| Error::Asset(format!("plane {i}: {e}")))
             })
             .collect::<Result<Vec<_>, Error>>()?;
         let asset = Asset { meta, planes, mask };

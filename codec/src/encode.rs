@@ -377,7 +377,7 @@ pub fn encode(
         height: h,
         valid: v.clone(),
     });
-    let mut meta = AssetMeta {
+    let meta = AssetMeta {
         kind: raster.kind,
         width: w as u32,
         height: h as u32,
@@ -449,32 +449,36 @@ pub fn encode(
         }
     };
     let asset = build(&parts, &meta)?;
-    let transforms: usize = asset.planes.iter().map(|p| p.operator.transforms()).sum();
+    Ok(measured(asset, raster, start))
+}
+
+/// The encoder's report: the asset decoded at the source size and compared with the source
+/// (valid cells, source units), the figures stored in its metadata, and its bytes.
+fn measured(mut asset: Asset, raster: &Raster, start: Instant) -> Encoded {
     let (decoded, _) = asset.decode_native();
     let errors = compare(
         &raster.channels,
         &decoded.channels,
         raster.valid.as_deref(),
-        meta.psnr_peak(),
+        asset.meta.psnr_peak(),
     );
+    let transforms: usize = asset.planes.iter().map(|p| p.operator.transforms()).sum();
     let seconds = start.elapsed().as_secs_f64();
-    meta.stats = EncodeStats {
+    asset.meta.stats = EncodeStats {
         transforms: transforms as u64,
         rmse: errors.rmse,
         psnr: errors.psnr,
         max_error: errors.max_error,
         seconds,
     };
-    let mut asset = asset;
-    asset.meta = meta;
     let bytes = asset.to_bytes();
-    Ok(Encoded {
+    Encoded {
         asset,
         bytes,
         errors,
         transforms,
         seconds,
-    })
+    }
 }
 
 /// Halves a normalised plane (box average of valid cells) for chroma.
@@ -788,7 +792,7 @@ fn encode_lattice(
         height: h,
         valid: v.clone(),
     });
-    let mut meta = AssetMeta {
+    let meta = AssetMeta {
         kind: raster.kind,
         width: w as u32,
         height: h as u32,
@@ -863,27 +867,7 @@ fn encode_lattice(
             best
         }
     };
-    let errors = errors_of(&asset);
-    meta = asset.meta.clone();
-    let transforms = asset.planes.iter().map(|p| p.operator.transforms()).sum();
-    let seconds = start.elapsed().as_secs_f64();
-    meta.stats = EncodeStats {
-        transforms: transforms as u64,
-        rmse: errors.rmse,
-        psnr: errors.psnr,
-        max_error: errors.max_error,
-        seconds,
-    };
-    let mut asset = asset;
-    asset.meta = meta;
-    let bytes = asset.to_bytes();
-    Ok(Encoded {
-        asset,
-        bytes,
-        errors,
-        transforms,
-        seconds,
-    })
+    Ok(measured(asset, raster, start))
 }
 
 #[cfg(test)]

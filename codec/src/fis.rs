@@ -211,30 +211,70 @@ pub(crate) fn predict(v: &[i32], nx: usize, i: usize, j: usize) -> i32 {
     }
 }
 
+/// Codes a row-major grid of integers by MED prediction, with its own adaptive contexts.
+pub(crate) fn put_grid(enc: &mut Encoder, values: &[i32], nx: usize) {
+    let mut c = IntCoder::new();
+    for j in 0..values.len() / nx.max(1) {
+        for i in 0..nx {
+            c.put(enc, values[j * nx + i] - predict(values, nx, i, j));
+        }
+    }
+}
+
+/// Reads an `nx x ny` grid written by [`put_grid`]; a value outside `range` is an error naming
+/// `what` (a corrupt stream must not build an operator).
+pub(crate) fn get_grid(
+    dec: &mut Decoder,
+    [nx, ny]: [usize; 2],
+    range: std::ops::RangeInclusive<i64>,
+    what: &str,
+) -> Result<Vec<i32>, String> {
+    let mut c = IntCoder::new();
+    let mut values = vec![0i32; nx * ny];
+    for j in 0..ny {
+        for i in 0..nx {
+            let v = predict(&values, nx, i, j) as i64 + c.get(dec) as i64;
+            if !range.contains(&v) {
+                return Err(format!("{what} {v} out of range"));
+            }
+            values[j * nx + i] = v as i32;
+        }
+    }
+    Ok(values)
+}
+
+/// Largest height index a step allows (values are normalised to 0..1).
+pub(crate) fn top_index(height_step: f32) -> i64 {
+    (1.0 / height_step).ceil() as i64 + 1
+}
+
+/// Frame of a lattice of `n` vertices `spacing` samples apart.
+pub(crate) fn lattice_frame(n: [usize; 2], spacing: f32) -> [f32; 2] {
+    [
+        (n[0] - 1) as f32 * spacing + 1.0,
+        (n[1] - 1) as f32 * spacing + 1.0,
+    ]
+}
+
+/// The cell of a lattice holding sample point `t` (clamped into the lattice) and the local
+/// coordinates in it.
+pub(crate) fn lattice_locate(n: [usize; 2], spacing: f32, t: [f32; 2]) -> (usize, usize, f32, f32) {
+    let cell = |t: f32, n: usize| -> (usize, f32) {
+        let t = t.clamp(0.0, (n - 1) as f32 * spacing) / spacing;
+        let c = (t as usize).min(n - 2);
+        (c, t - c as f32)
+    };
+    let (ci, u) = cell(t[0], n[0]);
+    let (cj, v) = cell(t[1], n[1]);
+    (ci, cj, u, v)
+}
+
 /// Codes the parameters: heights by MED prediction, s indices by the same predictor on their own
 /// grid (s varies smoothly where the terrain's roughness does).
 pub fn encode_params(header: &FisHeader, p: &FisParams) -> Vec<u8> {
     let mut enc = Encoder::new();
-    let [nx, ny] = header.nodes();
-    let mut hc = IntCoder::new();
-    for j in 0..ny {
-        for i in 0..nx {
-            hc.put(
-                &mut enc,
-                p.heights[j * nx + i] - predict(&p.heights, nx, i, j),
-            );
-        }
-    }
-    let (sx, sy) = scaling_grid(header);
-    let mut sc = IntCoder::new();
-    for j in 0..sy {
-        for i in 0..sx {
-            sc.put(
-                &mut enc,
-                p.scalings[j * sx + i] - predict(&p.scalings, sx, i, j),
-            );
-        }
-    }
+    put_grid(&mut enc, &p.heights, header.nodes()[0]);
+    put_grid(&mut enc, &p.scalings, scaling_grid(header).0);
     enc.finish()
 }
 
@@ -250,33 +290,12 @@ fn scaling_grid(header: &FisHeader) -> (usize, usize) {
 /// Reads the parameters back (a truncated stream is an error, never a panic).
 pub fn decode_params(header: &FisHeader, bytes: &[u8]) -> Result<FisParams, String> {
     header.validate()?;
-    let [nx, ny] = header.nodes();
     let mut dec = Decoder::new(bytes);
-    let mut heights = vec![0i32; nx * ny];
-    let mut hc = IntCoder::new();
-    let top = (1.0 / header.height_step).ceil() as i64 + 1;
-    for j in 0..ny {
-        for i in 0..nx {
-            let v = predict(&heights, nx, i, j) as i64 + hc.get(&mut dec) as i64;
-            if !(0..=top).contains(&v) {
-                return Err(format!("node height index {v} out of range"));
-            }
-            heights[j * nx + i] = v as i32;
-        }
-    }
+    let top = top_index(header.height_step);
+    let heights = get_grid(&mut dec, header.nodes(), 0..=top, "node height index")?;
     let (sx, sy) = scaling_grid(header);
-    let mut scalings = vec![0i32; sx * sy];
-    let mut sc = IntCoder::new();
     let l = header.scaling_levels() as i64;
-    for j in 0..sy {
-        for i in 0..sx {
-            let v = predict(&scalings, sx, i, j) as i64 + sc.get(&mut dec) as i64;
-            if !(-l..=l).contains(&v) {
-                return Err(format!("scaling index {v} out of range"));
-            }
-            scalings[j * sx + i] = v as i32;
-        }
-    }
+    let scalings = get_grid(&mut dec, [sx, sy], -l..=l, "scaling index")?;
     if dec.overrun() {
         return Err("the FIS stream is truncated".into());
     }
@@ -418,16 +437,7 @@ impl FisOperator {
     /// The cell of a point in sample coordinates and the local coordinates in it.
     #[inline]
     fn locate(&self, t: [f32; 2]) -> (usize, usize, f32, f32) {
-        let [nx, ny] = self.nodes;
-        let cell = |t: f32, n: usize| -> (usize, f32) {
-            let span = (n - 1) as f32 * self.spacing;
-            let t = t.clamp(0.0, span) / self.spacing;
-            let c = (t as usize).min(n - 2);
-            (c, t - c as f32)
-        };
-        let (ci, u) = cell(t[0], nx);
-        let (cj, v) = cell(t[1], ny);
-        (ci, cj, u, v)
+        lattice_locate(self.nodes, self.spacing, t)
     }
 }
 
@@ -440,10 +450,7 @@ struct Corner {
 
 impl Operator<2> for FisOperator {
     fn frame(&self) -> [f32; 2] {
-        [
-            (self.nodes[0] - 1) as f32 * self.spacing + 1.0,
-            (self.nodes[1] - 1) as f32 * self.spacing + 1.0,
-        ]
+        lattice_frame(self.nodes, self.spacing)
     }
 
     fn valid(&self) -> [f32; 2] {

@@ -33,7 +33,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::Error;
 use crate::entropy::{Bit, Decoder, Encoder};
-use crate::fis::{IntCoder, Source, predict};
+use crate::fis::{IntCoder, Source, get_grid, lattice_frame, lattice_locate, put_grid, top_index};
 use crate::operator::{Operator, Step};
 
 /// How regions are split.
@@ -187,16 +187,7 @@ pub struct PsaParams {
 /// and (triangles) the two s indices, each predicted by the previous region's.
 pub fn encode_params(header: &PsaHeader, p: &PsaParams) -> Vec<u8> {
     let mut enc = Encoder::new();
-    let [nx, ny] = header.vertices();
-    let mut hc = IntCoder::new();
-    for j in 0..ny {
-        for i in 0..nx {
-            hc.put(
-                &mut enc,
-                p.heights[j * nx + i] - predict(&p.heights, nx, i, j),
-            );
-        }
-    }
+    put_grid(&mut enc, &p.heights, header.vertices()[0]);
     let (mut flag, mut ox, mut oy, mut sc) = (
         Bit::default(),
         IntCoder::new(),
@@ -227,18 +218,8 @@ pub fn decode_params(header: &PsaHeader, bytes: &[u8]) -> Result<PsaParams, Stri
     header.validate()?;
     let [nx, ny] = header.vertices();
     let mut dec = Decoder::new(bytes);
-    let mut hc = IntCoder::new();
-    let mut heights = vec![0i32; nx * ny];
-    let top = (1.0 / header.height_step).ceil() as i64 + 1;
-    for j in 0..ny {
-        for i in 0..nx {
-            let v = predict(&heights, nx, i, j) as i64 + hc.get(&mut dec) as i64;
-            if !(0..=top).contains(&v) {
-                return Err(format!("vertex height index {v} out of range"));
-            }
-            heights[j * nx + i] = v as i32;
-        }
-    }
+    let top = top_index(header.height_step);
+    let heights = get_grid(&mut dec, [nx, ny], 0..=top, "vertex height index")?;
     let (mut flag, mut ox, mut oy, mut sc) = (
         Bit::default(),
         IntCoder::new(),
@@ -464,24 +445,13 @@ impl PsaOperator {
 
     #[inline]
     fn locate(&self, t: [f32; 2]) -> (usize, usize, f32, f32) {
-        let [nx, ny] = self.vertices;
-        let cell = |t: f32, n: usize| -> (usize, f32) {
-            let t = t.clamp(0.0, (n - 1) as f32 * self.region) / self.region;
-            let c = (t as usize).min(n - 2);
-            (c, t - c as f32)
-        };
-        let (ci, u) = cell(t[0], nx);
-        let (cj, v) = cell(t[1], ny);
-        (ci, cj, u, v)
+        lattice_locate(self.vertices, self.region, t)
     }
 }
 
 impl Operator<2> for PsaOperator {
     fn frame(&self) -> [f32; 2] {
-        [
-            (self.vertices[0] - 1) as f32 * self.region + 1.0,
-            (self.vertices[1] - 1) as f32 * self.region + 1.0,
-        ]
+        lattice_frame(self.vertices, self.region)
     }
 
     fn valid(&self) -> [f32; 2] {
