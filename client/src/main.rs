@@ -255,6 +255,42 @@ fn write(path: &Path, bytes: &[u8]) -> Result<()> {
     std::fs::write(path, bytes).with_context(|| format!("writing {}", path.display()))
 }
 
+/// Refinement steps of a file answer (tiles, regions): each written beside the output as it
+/// arrives (`out.step01.png`, ...) and printed, the last also written to the output itself.
+struct StepFiles<'a> {
+    output: &'a Path,
+    json: bool,
+    failed: Option<anyhow::Error>,
+}
+
+impl<'a> StepFiles<'a> {
+    fn new(output: &'a Path, json: bool) -> StepFiles<'a> {
+        print_head(json);
+        StepFiles {
+            output,
+            json,
+            failed: None,
+        }
+    }
+
+    /// Writes and prints a step; the first write error is kept for `finish`.
+    fn step<T>(&mut self, s: &Step<T>, body: &[u8]) {
+        if let Err(e) = write(&step_path(self.output, s.step), body) {
+            self.failed.get_or_insert(e);
+        }
+        print_step(self.json, s);
+    }
+
+    fn finish(self, last: &[u8], stop: Stop) -> Result<()> {
+        if let Some(e) = self.failed {
+            return Err(e);
+        }
+        write(self.output, last)?;
+        print_stop(self.json, stop);
+        Ok(())
+    }
+}
+
 /// Prints one refinement step as it arrives: a table row, or one JSON object per line (the
 /// last carries why it is the last in `stop`; the others have `stop: null`).
 fn print_step<T>(json: bool, s: &Step<T>) {
@@ -411,24 +447,14 @@ async fn main() -> Result<()> {
                 })
             };
             if refine.refine {
-                print_head(json);
-                let mut failed = None;
+                let mut steps = StepFiles::new(&output, json);
                 let r = client
                     .refine_tile(&id, &req, &refine.options(), |s| {
-                        if let Err(e) = write(&step_path(&output, s.step), &s.answer.body) {
-                            failed.get_or_insert(e);
-                        }
-                        print_step(json, s);
+                        steps.step(s, &s.answer.body)
                     })
                     .await?;
-                if let Some(e) = failed {
-                    return Err(e);
-                }
-                write(
-                    &output,
-                    &r.steps.last().expect("at least one step").answer.body,
-                )?;
-                print_stop(json, r.stop);
+                let last = &r.steps.last().expect("at least one step").answer.body;
+                steps.finish(last, r.stop)?;
             } else {
                 let t = client.tile(&id, &req).await?;
                 write(&output, &t.body)?;
@@ -544,24 +570,14 @@ async fn main() -> Result<()> {
                 format,
             };
             if refine.refine {
-                print_head(json);
-                let mut failed = None;
+                let mut steps = StepFiles::new(&output, json);
                 let r = client
                     .refine_region(&id, &req, &refine.options(), |s| {
-                        if let Err(e) = write(&step_path(&output, s.step), &s.answer.body) {
-                            failed.get_or_insert(e);
-                        }
-                        print_step(json, s);
+                        steps.step(s, &s.answer.body)
                     })
                     .await?;
-                if let Some(e) = failed {
-                    return Err(e);
-                }
-                write(
-                    &output,
-                    &r.steps.last().expect("at least one step").answer.body,
-                )?;
-                print_stop(json, r.stop);
+                let last = &r.steps.last().expect("at least one step").answer.body;
+                steps.finish(last, r.stop)?;
             } else {
                 let r = client.region(&id, &req).await?;
                 write(&output, &r.body)?;
