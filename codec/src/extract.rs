@@ -183,11 +183,27 @@ impl Asset {
     /// Continuous decoding of many unit points at once (batched), each with its own bound; a
     /// chain stops early once its bound is at most `tolerance` (source units; 0: never early).
     pub fn points(&self, pts: &[[f32; 2]], iterations: u32, tolerance: f32) -> Vec<PointSample> {
+        self.points_with(pts, iterations, tolerance, &|_, _, _, _| None)
+    }
+
+    /// [`Asset::points`], each plane's chains offered first to `continuous` (see
+    /// [`ContinuousHook`]).
+    pub fn points_with(
+        &self,
+        pts: &[[f32; 2]],
+        iterations: u32,
+        tolerance: f32,
+        continuous: &ContinuousHook<'_>,
+    ) -> Vec<PointSample> {
         let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
         let per_plane: Vec<Vec<decode::PointValue>> = self
             .planes
             .iter()
-            .map(|p| decode::points(&p.operator, pts, iterations, tol))
+            .enumerate()
+            .map(|(k, p)| {
+                continuous(k, pts, iterations, tol)
+                    .unwrap_or_else(|| decode::points(&p.operator, pts, iterations, tol))
+            })
             .collect();
         let span = self.span();
         let planes: Vec<Vec<f32>> = per_plane

@@ -674,9 +674,16 @@ async fn point_unit(
             "give ?x=&y= in unit coordinates (or /point/{lon},{lat})",
         ));
     };
-    answer_points(&state, &id, vec![[x, y]], (q.iterations, q.tolerance), true)
-        .await
-        .map(|mut v| Json(v.remove(0)))
+    answer_points(
+        &state,
+        &id,
+        vec![[x, y]],
+        (q.iterations, q.tolerance),
+        true,
+        Backend::Cpu,
+    )
+    .await
+    .map(|mut v| Json(v.remove(0)))
 }
 
 async fn point_lonlat(
@@ -694,23 +701,32 @@ async fn point_lonlat(
             format!("expected lon,lat, got {coords:?}"),
         ));
     };
+    // One chain: never worth a device round trip.
     answer_points(
         &state,
         &id,
         vec![[lon, lat]],
         (q.iterations, q.tolerance),
         true,
+        Backend::Cpu,
     )
     .await
     .map(|mut v| Json(v.remove(0)))
 }
 
+#[derive(Deserialize)]
+struct PointsQuery {
+    backend: Option<String>,
+}
+
 async fn points(
     State(state): Shared,
     Path(id): Path<String>,
+    Query(q): Query<PointsQuery>,
     headers: HeaderMap,
     body: Bytes,
 ) -> Result<Response, AppError> {
+    let choice = backend_for(&state, q.backend.as_deref())?;
     let binary = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
@@ -739,6 +755,7 @@ async fn points(
         req.points,
         (req.iterations, req.tolerance),
         false,
+        choice,
     )
     .await?;
     let resp = PointsResponse { results };
@@ -759,6 +776,7 @@ async fn answer_points(
     coords: Vec<[f64; 2]>,
     (iterations, tolerance): (Option<u32>, Option<f32>),
     single: bool,
+    choice: Backend,
 ) -> Result<Vec<PointResult>, AppError> {
     let a = state.store.get(id)?;
     let (n, tolerance) = iterations_for(state, &a, iterations, tolerance)?;
@@ -769,9 +787,15 @@ async fn answer_points(
             format!("point {:?} is outside the asset", coords[0]),
         ));
     }
+    let gpu = state.gpu.clone();
     decode(state, move || {
         let inside: Vec<[f32; 2]> = units.iter().map(|u| u.unwrap_or([0.0, 0.0])).collect();
-        let samples = a.asset.points(&inside, n, tolerance);
+        let samples = match gpu.as_deref().filter(|g| g.takes(choice, inside.len())) {
+            Some(g) => a.asset.points_with(&inside, n, tolerance, &|k, p, n, t| {
+                g.points(&a, k, p, n, t)
+            }),
+            None => a.asset.points(&inside, n, tolerance),
+        };
         coords
             .iter()
             .zip(&units)

@@ -82,7 +82,7 @@ pub fn document() -> Value {
                 "responses": {"200": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointResult"}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/point/{coords}": {"get": {"summary": "Value at lon,lat", "parameters": [id, param("coords", "path", json!({"type": "string"}), "lon,lat"), iterations.clone(), tolerance.clone()],
                 "responses": {"200": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointResult"}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
-            "/v1/assets/{id}/points": {"post": {"summary": "Values at many points, in order (JSON or application/x-bincode)", "parameters": [id],
+            "/v1/assets/{id}/points": {"post": {"summary": "Values at many points, in order (JSON or application/x-bincode)", "parameters": [id, backend.clone()],
                 "requestBody": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointsRequest"}}, "application/x-bincode": {}}},
                 "responses": {"200": {"content": {"application/json": {"schema": {"type": "object", "properties": {"results": {"type": "array", "items": {"$ref": "#/components/schemas/PointResult"}}}}}, "application/x-bincode": {}}, "description": "values"}, "400": {"$ref": "#/components/responses/Error"}, "413": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/region": {"get": {"summary": "A window at any resolution", "parameters": [id,

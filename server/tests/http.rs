@@ -939,6 +939,38 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
         .map(|(p, q)| (p - q).abs())
         .fold(0.0f32, f32::max);
     assert!(worst <= 0.084, "worst difference {worst} m");
+    // A batch of points, on each backend.
+    let pts: Vec<[f64; 2]> = (0..3000)
+        .map(|i| {
+            let (a, b) = ((i as f64 * 0.618).fract(), (i as f64 * 0.377).fract());
+            [-84.40 + 0.3 * a, 36.46 + 0.25 * b]
+        })
+        .collect();
+    let body = serde_json::to_vec(&serde_json::json!({"points": pts, "iterations": 12})).unwrap();
+    let mut answers = Vec::new();
+    for backend in ["cpu", "gpu"] {
+        let req = Request::post(format!("/v1/assets/jacksboro/points?backend={backend}"))
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(body.clone()))
+            .unwrap();
+        let resp = fractile_server::app(st.clone()).oneshot(req).await.unwrap();
+        assert_eq!(resp.status(), StatusCode::OK);
+        let v = json(&resp.into_body().collect().await.unwrap().to_bytes());
+        let heights: Vec<f64> = v["results"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|r| r["values"][0].as_f64().unwrap())
+            .collect();
+        answers.push(heights);
+    }
+    assert_eq!(answers[0].len(), 3000);
+    let worst = answers[0]
+        .iter()
+        .zip(&answers[1])
+        .map(|(a, b)| (a - b).abs())
+        .fold(0.0, f64::max);
+    assert!(worst <= 0.084, "points: worst difference {worst} m");
     let (s, body) = fetch("quantum").await;
     assert_eq!(
         (s, json(&body)["code"].as_str()),
