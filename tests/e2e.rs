@@ -120,6 +120,46 @@ async fn tiles_in_every_encoding_agree() {
 }
 
 #[tokio::test]
+async fn the_decoding_backend_is_the_clients_to_ask_for() {
+    let c = client();
+    let t = deep_tile(&c).await;
+    let req = TileRequest::new(t, TileEncoding::F32);
+    let cpu = c
+        .clone()
+        .with_backend(Some("cpu"))
+        .tile("jacksboro", &req)
+        .await
+        .unwrap();
+    let auto = c
+        .clone()
+        .with_backend(Some("auto"))
+        .tile("jacksboro", &req)
+        .await
+        .unwrap();
+    assert_eq!(cpu.values, auto.values);
+    // The test server has no GPU: asking for one is refused with the server's reason.
+    let e = c
+        .clone()
+        .with_backend(Some("gpu"))
+        .tile("jacksboro", &req)
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Some("gpu_unavailable"), "{e}");
+    let pts = PointsRequest {
+        points: vec![[-84.2, 36.6]],
+        iterations: None,
+        tolerance: None,
+    };
+    let e = c
+        .clone()
+        .with_backend(Some("gpu"))
+        .points("jacksboro", &pts, PointsEncoding::Binary)
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Some("gpu_unavailable"), "{e}");
+}
+
+#[tokio::test]
 async fn bad_tile_requests_are_typed_errors() {
     let c = client();
     let code = |r: Result<_, ClientError>| r.map(|_| ()).unwrap_err();

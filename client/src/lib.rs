@@ -29,6 +29,7 @@ pub struct Client {
     http: reqwest::Client,
     base: String,
     token: Option<String>,
+    backend: Option<String>,
 }
 
 /// How a points batch travels: JSON (readable) or proto's binary encoding (about 3x smaller and
@@ -201,12 +202,21 @@ impl Client {
             http,
             base: base.trim_end_matches('/').to_string(),
             token: None,
+            backend: None,
         })
     }
 
     /// Sends `Authorization: Bearer <token>` with uploads and deletes.
     pub fn with_token(mut self, token: Option<String>) -> Client {
         self.token = token;
+        self
+    }
+
+    /// The same client asking the server to decode on `backend` (`cpu`, `gpu` or `auto`; `None`:
+    /// the server's setting) for every tile, region, mesh and points batch. A clone is cheap, so
+    /// one request can use its own.
+    pub fn with_backend(mut self, backend: Option<&str>) -> Client {
+        self.backend = backend.map(str::to_string);
         self
     }
 
@@ -335,6 +345,7 @@ impl Client {
                     "tilesize",
                     (req.tile_size != 256).then(|| req.tile_size.to_string())
                 ),
+                ("backend", self.backend.clone()),
             ])
         );
         let path = self.asset_path(id, &rest)?;
@@ -392,7 +403,8 @@ impl Client {
         req: &PointsRequest,
         encoding: PointsEncoding,
     ) -> Result<PointsResponse, ClientError> {
-        let url = self.url(&self.asset_path(id, "/points")?);
+        let rest = format!("/points{}", query(&[("backend", self.backend.clone())]));
+        let url = self.url(&self.asset_path(id, &rest)?);
         match encoding {
             PointsEncoding::Json => {
                 let r = self.send(self.http.post(url).json(req)).await?;
@@ -426,6 +438,7 @@ impl Client {
             ("iterations", req.iterations.map(|n| n.to_string())),
             ("tolerance", req.tolerance.map(|t| t.to_string())),
             ("format", Some(req.format.name().to_string())),
+            ("backend", self.backend.clone()),
         ]);
         let r = self
             .send(
@@ -468,6 +481,7 @@ impl Client {
             ("iterations", req.iterations.map(|n| n.to_string())),
             ("tolerance", req.tolerance.map(|t| t.to_string())),
             ("format", Some(req.format.name().to_string())),
+            ("backend", self.backend.clone()),
         ]);
         let r = self
             .send(

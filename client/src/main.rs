@@ -37,6 +37,9 @@ struct Cli {
         hide_env_values = true
     )]
     token: Option<String>,
+    /// Ask the server to decode on cpu, gpu or auto (default: the server's setting).
+    #[arg(long, global = true, value_parser = ["cpu", "gpu", "auto"])]
+    backend: Option<String>,
     /// Print machine-readable JSON (with --refine: one object per step).
     #[arg(long, global = true)]
     json: bool,
@@ -382,7 +385,9 @@ async fn main() -> Result<()> {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
     let cli = Cli::parse();
-    let client = Client::new(&cli.server)?.with_token(cli.token.clone());
+    let client = Client::new(&cli.server)?
+        .with_token(cli.token.clone())
+        .with_backend(cli.backend.as_deref());
     let json = cli.json;
     match cli.command {
         Command::Assets => {
