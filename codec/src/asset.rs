@@ -7,7 +7,7 @@
 //! | 0 | 8 | magic `FRACTILE` |
 //! | 8 | 2 | format version (1) |
 //! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
-//! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine) |
+//! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine, 4 octree PIFS of a volume) |
 //! | 12 | 4 | metadata length M |
 //! | 16 | M | metadata ([`AssetMeta`], proto's binary encoding) |
 //! | 16+M | 4 | payload length P |
@@ -45,6 +45,8 @@ pub enum Codec {
     Fis = 2,
     /// Piecewise self-affine model on a rectangular lattice (psa2d), grey images and heights.
     Psa = 3,
+    /// Octree partitioned IFS of a signed distance volume (IFS3D).
+    Octree = 4,
 }
 
 /// How a plane is coded: the header a reader needs and the entropy-coded stream.
@@ -256,6 +258,13 @@ struct PsaPayload {
 }
 
 #[derive(Serialize, Deserialize)]
+struct VolumePayload {
+    header: crate::octree::OctreeHeader,
+    stream: Vec<u8>,
+    placement: crate::volume::Placement,
+}
+
+#[derive(Serialize, Deserialize)]
 struct FisPayload {
     planes: Vec<(FisHeader, Vec<u8>)>,
     mask: Option<Vec<u8>>,
@@ -270,6 +279,8 @@ pub struct Asset {
     pub planes: Vec<Plane>,
     /// Source validity, for height fields with nodata.
     pub mask: Option<Mask>,
+    /// The coded volume, for volume assets (which have no planes).
+    pub volume: Option<crate::volume::Volume>,
 }
 
 fn kind_byte(k: AssetKind) -> u8 {
@@ -356,13 +367,53 @@ impl Asset {
                 plane(&meta, header, stream).map_err(|e| Error::Asset(format!("plane {i}: {e}")))
             })
             .collect::<Result<Vec<_>, Error>>()?;
-        let asset = Asset { meta, planes, mask };
+        let asset = Asset {
+            meta,
+            planes,
+            mask,
+            volume: None,
+        };
+        asset.check()?;
+        Ok(asset)
+    }
+
+    /// Builds a volume asset from its coded stream (decoding it, as a reader would).
+    pub fn from_volume_parts(
+        meta: AssetMeta,
+        header: crate::octree::OctreeHeader,
+        stream: Vec<u8>,
+        placement: crate::volume::Placement,
+    ) -> Result<Asset, Error> {
+        let bad = |m: String| Error::Asset(format!("volume: {m}"));
+        if meta.kind != AssetKind::Volume || meta.channels != 1 || meta.width != meta.height {
+            return Err(bad("metadata is not that of a cubic one-channel volume".into()));
+        }
+        if header.valid != meta.width as f32 {
+            return Err(bad("grid size and metadata disagree".into()));
+        }
+        placement.validate().map_err(bad)?;
+        let leaves = crate::octree::decode_stream(&header, &stream).map_err(bad)?;
+        let operator = crate::octree::OctreeOperator::new(&header, leaves).map_err(bad)?;
+        let asset = Asset {
+            meta,
+            planes: Vec::new(),
+            mask: None,
+            volume: Some(crate::volume::Volume {
+                header,
+                stream,
+                operator,
+                placement,
+            }),
+        };
         asset.check()?;
         Ok(asset)
     }
 
     /// The codec of the planes.
     pub fn codec(&self) -> Codec {
+        if self.volume.is_some() {
+            return Codec::Octree;
+        }
         match self.planes.first().map(|p| &p.coding) {
             Some(Coding::Fis { .. }) => Codec::Fis,
             Some(Coding::Psa { .. }) => Codec::Psa,
@@ -372,6 +423,9 @@ impl Asset {
 
     /// The codec's name as the CLI and the API spell it.
     pub fn codec_name(&self) -> &'static str {
+        if self.volume.is_some() {
+            return "ifs3d-octree";
+        }
         match self.planes.first().map(|p| &p.coding) {
             Some(Coding::Fis { header, .. }) => crate::fis::codec_name(header.scaling),
             Some(Coding::Psa { header, .. }) => crate::psa::codec_name(header.tiling),
@@ -381,11 +435,15 @@ impl Asset {
 
     fn check(&self) -> Result<(), Error> {
         let m = &self.meta;
+        if (m.kind == AssetKind::Volume) != self.volume.is_some() {
+            return Err(Error::Asset("a volume asset must hold a volume, and only it".into()));
+        }
         let expected = match m.colour {
+            _ if self.volume.is_some() => 0,
             fractile_proto::ColourModel::Grey => 1,
             fractile_proto::ColourModel::YCbCr => 3,
         };
-        if self.planes.len() != expected || m.channels as usize != expected {
+        if self.planes.len() != expected || (expected > 0 && m.channels as usize != expected) {
             return Err(Error::Asset(format!(
                 "{} planes and {} channels for colour model {:?}",
                 self.planes.len(),
@@ -434,6 +492,14 @@ impl Asset {
                     .collect(),
                 mask,
             }),
+            Codec::Octree => {
+                let v = self.volume.as_ref().expect("an octree asset holds a volume");
+                fractile_proto::encode(&VolumePayload {
+                    header: v.header.clone(),
+                    stream: v.stream.clone(),
+                    placement: v.placement.clone(),
+                })
+            }
             Codec::Psa => fractile_proto::encode(&PsaPayload {
                 planes: self
                     .planes
@@ -480,9 +546,9 @@ impl Asset {
             ));
         }
         let (kind, codec) = (bytes[10], bytes[11]);
-        if !(1..=3).contains(&codec) {
+        if !(1..=4).contains(&codec) {
             return Err(bad(format!(
-                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d)"
+                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d, 4 IFS3D)"
             )));
         }
         let read_len = |at: usize| -> Result<usize, Error> {
@@ -515,6 +581,11 @@ impl Asset {
                 .transpose()
         };
         let payload = &bytes[p_start..body];
+        if codec == Codec::Octree as u8 {
+            let p: VolumePayload =
+                fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+            return Asset::from_volume_parts(meta, p.header, p.stream, p.placement);
+        }
         if codec == Codec::Psa as u8 {
             let p: PsaPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
             let mask = mask(p.mask)?;

@@ -54,6 +54,7 @@ impl Asset {
         self.planes
             .iter()
             .map(|p| p.operator.max_contrast())
+            .chain(self.volume.iter().map(|v| v.operator.max_contrast()))
             .fold(0.0, f32::max)
     }
 
@@ -62,10 +63,12 @@ impl Asset {
         let half = self
             .planes
             .iter()
-            .map(|p| {
-                let (lo, hi) = p.operator.invariant_interval();
-                (hi - lo) / 2.0
-            })
+            .map(|p| p.operator.invariant_interval())
+            .chain(self.volume.iter().map(|v| {
+                use crate::operator::Operator;
+                v.operator.invariant_interval()
+            }))
+            .map(|(lo, hi)| (hi - lo) / 2.0)
             .fold(0.0, f32::max);
         let b = self.max_contrast().powi(n as i32) * half * self.span();
         if self.meta.colour == ColourModel::YCbCr {

@@ -1,15 +1,26 @@
-//! Triangle meshes and their files: a regular-grid terrain mesh from sampled heights, and
-//! writers for OBJ (text), PLY (binary little-endian) and glTF 2.0 binary (GLB). Hand-written:
-//! each format is a page of spec, and the crates that write them pull in far more than these
-//! few lines (the glTF crate's writer needs its full JSON model).
+//! Triangle meshes and their files: a regular-grid terrain mesh from sampled heights, readers
+//! for OFF, OBJ, PLY and STL (IFS3D's input), and writers for OBJ (text), PLY (binary
+//! little-endian) and glTF 2.0 binary (GLB).
+//!
+//! Reading uses the maintained crates where they exist (`tobj` for OBJ, `ply-rs-bw` for PLY,
+//! `stl_io` for STL); OFF has no maintained crate and is a three-line format, so it is parsed
+//! here. Writing is hand-written: each format is a page of spec, and the crates that write them
+//! pull in far more than these few lines (the glTF crate's writer needs its full JSON model).
+
+use std::path::Path;
+
+use crate::Error;
 
 /// Vertices and triangles.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Mesh {
     /// Vertex positions.
     pub positions: Vec<[f32; 3]>,
-    /// Triangles, counter-clockwise seen from +z (up).
+    /// Triangles, counter-clockwise seen from outside (from +z for terrain).
     pub triangles: Vec<[u32; 3]>,
+    /// Unit normal per vertex, pointing out; empty when the mesh has none (then the writers
+    /// leave normals out and viewers compute flat ones).
+    pub normals: Vec<[f32; 3]>,
 }
 
 impl Mesh {
@@ -55,34 +66,298 @@ impl Mesh {
         Mesh {
             positions,
             triangles,
+            normals: Vec::new(),
         }
+    }
+
+    /// Reads a triangle mesh from an OFF, OBJ, PLY or STL file (chosen by extension). Polygons
+    /// are fanned into triangles; faces naming a missing vertex and non-finite coordinates are
+    /// errors, not silent holes.
+    pub fn read(path: &Path) -> Result<Mesh, Error> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .map(str::to_ascii_lowercase)
+            .unwrap_or_default();
+        let named = |e: String| Error::Input(format!("{}: {e}", path.display()));
+        let mesh = match ext.as_str() {
+            "off" => {
+                let text = std::fs::read_to_string(path).map_err(|e| named(e.to_string()))?;
+                Mesh::parse_off(&text).map_err(named)?
+            }
+            "obj" => {
+                let opts = tobj::LoadOptions {
+                    triangulate: true,
+                    single_index: true,
+                    ..Default::default()
+                };
+                let (models, _) = tobj::load_obj(path, &opts).map_err(|e| named(e.to_string()))?;
+                let mut m = Mesh::default();
+                for model in models {
+                    let base = m.positions.len() as u32;
+                    m.positions.extend(
+                        model
+                            .mesh
+                            .positions
+                            .chunks_exact(3)
+                            .map(|c| [c[0], c[1], c[2]]),
+                    );
+                    m.triangles.extend(
+                        model
+                            .mesh
+                            .indices
+                            .chunks_exact(3)
+                            .map(|t| [base + t[0], base + t[1], base + t[2]]),
+                    );
+                }
+                m
+            }
+            "stl" => {
+                let mut f = std::fs::File::open(path).map_err(|e| named(e.to_string()))?;
+                let stl = stl_io::read_stl(&mut f).map_err(|e| named(e.to_string()))?;
+                Mesh {
+                    positions: stl.vertices.iter().map(|v| v.0).collect(),
+                    triangles: stl
+                        .faces
+                        .iter()
+                        .map(|f| f.vertices.map(|i| i as u32))
+                        .collect(),
+                    normals: Vec::new(),
+                }
+            }
+            "ply" => Mesh::read_ply(path).map_err(named)?,
+            _ => {
+                return Err(named(format!(
+                    "unknown mesh extension {ext:?} (off, obj, ply or stl)"
+                )));
+            }
+        };
+        mesh.check().map_err(named)?;
+        Ok(mesh)
+    }
+
+    /// Parses OFF text: `OFF`, `V F E`, V lines of `x y z`, F lines of `n i j k ...`.
+    pub fn parse_off(text: &str) -> Result<Mesh, String> {
+        // Comments run from '#' to the end of a line; the counts may share the OFF line.
+        let mut words = text
+            .lines()
+            .map(|l| l.split('#').next().unwrap_or(""))
+            .flat_map(str::split_whitespace);
+        match words.next() {
+            Some(w) if w.ends_with("OFF") => {}
+            _ => return Err("not an OFF file (no OFF header)".into()),
+        }
+        let mut number = |what: &str| -> Result<f64, String> {
+            words
+                .next()
+                .ok_or_else(|| format!("truncated OFF: expected {what}"))?
+                .parse::<f64>()
+                .map_err(|e| format!("bad {what} in OFF: {e}"))
+        };
+        let (v, f) = (number("vertex count")?, number("face count")?);
+        number("edge count")?;
+        if !(v >= 0.0 && f >= 0.0 && v < 1e8 && f < 1e8) {
+            return Err(format!("bad OFF counts {v} {f}"));
+        }
+        let mut m = Mesh::default();
+        for _ in 0..v as usize {
+            m.positions.push([
+                number("x")? as f32,
+                number("y")? as f32,
+                number("z")? as f32,
+            ]);
+        }
+        for _ in 0..f as usize {
+            let n = number("face size")? as usize;
+            if !(3..=1024).contains(&n) {
+                return Err(format!("OFF face of {n} vertices"));
+            }
+            let idx = (0..n)
+                .map(|_| number("vertex index").map(|i| i as u32))
+                .collect::<Result<Vec<_>, _>>()?;
+            for k in 1..n - 1 {
+                m.triangles.push([idx[0], idx[k], idx[k + 1]]);
+            }
+        }
+        Ok(m)
+    }
+
+    fn read_ply(path: &Path) -> Result<Mesh, String> {
+        use ply_rs_bw::ply::Property;
+        let mut f = std::io::BufReader::new(std::fs::File::open(path).map_err(|e| e.to_string())?);
+        let parser = ply_rs_bw::parser::Parser::<ply_rs_bw::ply::DefaultElement>::new();
+        let ply = parser.read_ply(&mut f).map_err(|e| e.to_string())?;
+        let scalar = |p: Option<&Property>| -> Option<f32> {
+            Some(match p? {
+                Property::Float(v) => *v,
+                Property::Double(v) => *v as f32,
+                Property::Int(v) => *v as f32,
+                Property::UInt(v) => *v as f32,
+                Property::Short(v) => *v as f32,
+                Property::UShort(v) => *v as f32,
+                Property::Char(v) => *v as f32,
+                Property::UChar(v) => *v as f32,
+                _ => return None,
+            })
+        };
+        let list = |p: Option<&Property>| -> Option<Vec<u32>> {
+            Some(match p? {
+                Property::ListInt(v) => v.iter().map(|&i| i as u32).collect(),
+                Property::ListUInt(v) => v.clone(),
+                Property::ListShort(v) => v.iter().map(|&i| i as u32).collect(),
+                Property::ListUShort(v) => v.iter().map(|&i| i as u32).collect(),
+                Property::ListUChar(v) => v.iter().map(|&i| i as u32).collect(),
+                Property::ListChar(v) => v.iter().map(|&i| i as u32).collect(),
+                _ => return None,
+            })
+        };
+        let mut m = Mesh::default();
+        for v in ply.payload.get("vertex").map(Vec::as_slice).unwrap_or(&[]) {
+            let c = ["x", "y", "z"].map(|k| scalar(v.get(k)));
+            let [Some(x), Some(y), Some(z)] = c else {
+                return Err("a PLY vertex without numeric x, y, z".into());
+            };
+            m.positions.push([x, y, z]);
+        }
+        for f in ply.payload.get("face").map(Vec::as_slice).unwrap_or(&[]) {
+            let idx = list(f.get("vertex_indices"))
+                .or_else(|| list(f.get("vertex_index")))
+                .ok_or("a PLY face without vertex_indices")?;
+            for k in 1..idx.len().saturating_sub(1) {
+                m.triangles.push([idx[0], idx[k], idx[k + 1]]);
+            }
+        }
+        Ok(m)
+    }
+
+    /// Rejects meshes no encoder can use: no triangles, indices past the vertex list,
+    /// non-finite coordinates.
+    pub fn check(&self) -> Result<(), String> {
+        if self.triangles.is_empty() {
+            return Err("the mesh has no triangles".into());
+        }
+        let n = self.positions.len() as u32;
+        if let Some(t) = self.triangles.iter().find(|t| t.iter().any(|&i| i >= n)) {
+            return Err(format!(
+                "triangle {t:?} names a vertex past the {n} vertices"
+            ));
+        }
+        if self.positions.iter().flatten().any(|v| !v.is_finite()) {
+            return Err("a vertex has a NaN or infinite coordinate".into());
+        }
+        Ok(())
+    }
+
+    /// Axis-aligned bounds of the vertices that triangles use: (min, max).
+    pub fn bounds(&self) -> ([f32; 3], [f32; 3]) {
+        let (mut lo, mut hi) = ([f32::INFINITY; 3], [f32::NEG_INFINITY; 3]);
+        for t in &self.triangles {
+            for &i in t {
+                let p = self.positions[i as usize];
+                for k in 0..3 {
+                    lo[k] = lo[k].min(p[k]);
+                    hi[k] = hi[k].max(p[k]);
+                }
+            }
+        }
+        (lo, hi)
+    }
+
+    /// Total area of the triangles.
+    pub fn area(&self) -> f64 {
+        self.triangles
+            .iter()
+            .map(|t| {
+                let [a, b, c] = t.map(|i| self.positions[i as usize].map(f64::from));
+                0.5 * norm(cross(sub(b, a), sub(c, a)))
+            })
+            .sum()
+    }
+
+    /// `count` points spread over the surface in proportion to area (deterministic: a
+    /// low-discrepancy sequence, not a random one, so that measurements repeat), plus every
+    /// vertex. For Chamfer and Hausdorff distances between meshes.
+    pub fn surface_samples(&self, count: usize) -> Vec<[f32; 3]> {
+        let total = self.area().max(f64::MIN_POSITIVE);
+        let mut out: Vec<[f32; 3]> = self
+            .triangles
+            .iter()
+            .flatten()
+            .map(|&i| self.positions[i as usize])
+            .collect();
+        out.sort_unstable_by(|a, b| a.partial_cmp(b).unwrap_or(std::cmp::Ordering::Equal));
+        out.dedup();
+        let mut carry = 0.0f64;
+        let mut k = 0u64;
+        for t in &self.triangles {
+            let [a, b, c] = t.map(|i| self.positions[i as usize].map(f64::from));
+            carry += 0.5 * norm(cross(sub(b, a), sub(c, a))) / total * count as f64;
+            while carry >= 1.0 {
+                carry -= 1.0;
+                k += 1;
+                // R2 sequence (Roberts) folded into the triangle.
+                let (mut u, mut v) = (
+                    (0.5 + k as f64 * 0.754_877_666_246_692_8).fract(),
+                    (0.5 + k as f64 * 0.569_840_290_998_053_2).fract(),
+                );
+                if u + v > 1.0 {
+                    (u, v) = (1.0 - u, 1.0 - v);
+                }
+                out.push(std::array::from_fn(|d| {
+                    (a[d] + u * (b[d] - a[d]) + v * (c[d] - a[d])) as f32
+                }));
+            }
+        }
+        out
     }
 
     /// Wavefront OBJ text.
     pub fn to_obj(&self) -> Vec<u8> {
         use std::fmt::Write;
         let mut s = String::with_capacity(self.positions.len() * 32 + self.triangles.len() * 24);
-        s.push_str("# fractile terrain mesh\n");
+        s.push_str("# fractile mesh\n");
         for p in &self.positions {
             let _ = writeln!(s, "v {} {} {}", p[0], p[1], p[2]);
         }
+        let normals = self.has_normals();
+        if normals {
+            for n in &self.normals {
+                let _ = writeln!(s, "vn {} {} {}", n[0], n[1], n[2]);
+            }
+        }
         for t in &self.triangles {
-            let _ = writeln!(s, "f {} {} {}", t[0] + 1, t[1] + 1, t[2] + 1);
+            let [a, b, c] = t.map(|i| i + 1);
+            let _ = if normals {
+                writeln!(s, "f {a}//{a} {b}//{b} {c}//{c}")
+            } else {
+                writeln!(s, "f {a} {b} {c}")
+            };
         }
         s.into_bytes()
     }
 
     /// Binary little-endian PLY.
     pub fn to_ply(&self) -> Vec<u8> {
+        let normals = self.has_normals();
         let mut out = format!(
-            "ply\nformat binary_little_endian 1.0\ncomment fractile terrain mesh\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\nelement face {}\nproperty list uchar uint vertex_indices\nend_header\n",
+            "ply\nformat binary_little_endian 1.0\ncomment fractile mesh\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n{}element face {}\nproperty list uchar uint vertex_indices\nend_header\n",
             self.positions.len(),
+            if normals {
+                "property float nx\nproperty float ny\nproperty float nz\n"
+            } else {
+                ""
+            },
             self.triangles.len()
         )
         .into_bytes();
-        for p in &self.positions {
+        for (i, p) in self.positions.iter().enumerate() {
             p.iter()
                 .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+            if normals {
+                self.normals[i]
+                    .iter()
+                    .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+            }
         }
         for t in &self.triangles {
             out.push(3);
@@ -107,24 +382,47 @@ impl Mesh {
             (lo, hi) = ([0.0; 3], [0.0; 3]);
         }
         let pos_len = bin.len();
+        if self.has_normals() {
+            for n in &self.normals {
+                n.iter().for_each(|v| bin.extend_from_slice(&v.to_le_bytes()));
+            }
+        }
+        let nrm_len = bin.len() - pos_len;
         for t in &self.triangles {
             t.iter()
                 .for_each(|v| bin.extend_from_slice(&v.to_le_bytes()));
         }
-        let idx_len = bin.len() - pos_len;
+        let idx_len = bin.len() - pos_len - nrm_len;
+        // Views: 0 positions, 1 indices, 2 normals (when present); accessors likewise.
+        let (normal_attr, normal_view, normal_accessor) = if nrm_len > 0 {
+            (
+                r#","NORMAL":2"#.to_string(),
+                format!(
+                    r#",{{"buffer":0,"byteOffset":{pos_len},"byteLength":{nrm_len},"target":34962}}"#
+                ),
+                format!(
+                    r#",{{"bufferView":2,"componentType":5126,"count":{},"type":"VEC3"}}"#,
+                    self.normals.len()
+                ),
+            )
+        } else {
+            Default::default()
+        };
         let json = format!(
             concat!(
                 r#"{{"asset":{{"version":"2.0","generator":"fractile"}},"scene":0,"scenes":[{{"nodes":[0]}}],"#,
-                r#""nodes":[{{"mesh":0}}],"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0}},"indices":1,"mode":4}}]}}],"#,
+                r#""nodes":[{{"mesh":0}}],"meshes":[{{"primitives":[{{"attributes":{{"POSITION":0{}}},"indices":1,"mode":4}}]}}],"#,
                 r#""buffers":[{{"byteLength":{}}}],"#,
-                r#""bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":{},"target":34962}},{{"buffer":0,"byteOffset":{},"byteLength":{},"target":34963}}],"#,
+                r#""bufferViews":[{{"buffer":0,"byteOffset":0,"byteLength":{},"target":34962}},{{"buffer":0,"byteOffset":{},"byteLength":{},"target":34963}}{}],"#,
                 r#""accessors":[{{"bufferView":0,"componentType":5126,"count":{},"type":"VEC3","min":[{},{},{}],"max":[{},{},{}]}},"#,
-                r#"{{"bufferView":1,"componentType":5125,"count":{},"type":"SCALAR"}}]}}"#
+                r#"{{"bufferView":1,"componentType":5125,"count":{},"type":"SCALAR"}}{}]}}"#
             ),
+            normal_attr,
             bin.len(),
             pos_len,
-            pos_len,
+            pos_len + nrm_len,
             idx_len,
+            normal_view,
             self.positions.len(),
             lo[0],
             lo[1],
@@ -132,7 +430,8 @@ impl Mesh {
             hi[0],
             hi[1],
             hi[2],
-            self.triangles.len() * 3
+            self.triangles.len() * 3,
+            normal_accessor
         );
         let mut json = json.into_bytes();
         while json.len() % 4 != 0 {
@@ -154,6 +453,32 @@ impl Mesh {
         out.extend_from_slice(&bin);
         out
     }
+}
+
+impl Mesh {
+    fn has_normals(&self) -> bool {
+        !self.normals.is_empty() && self.normals.len() == self.positions.len()
+    }
+}
+
+pub(crate) fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+pub(crate) fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [
+        a[1] * b[2] - a[2] * b[1],
+        a[2] * b[0] - a[0] * b[2],
+        a[0] * b[1] - a[1] * b[0],
+    ]
+}
+
+pub(crate) fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
 }
 
 #[cfg(test)]

@@ -36,13 +36,16 @@ pub enum SampleFormat {
     I16,
     /// 32-bit float.
     F32,
+    /// 8-bit signed: the seed's signed-byte distance volumes, the baseline of IFS3D ratios.
+    /// (Appended last so that the binary encoding of earlier files is unchanged.)
+    I8,
 }
 
 impl SampleFormat {
     /// Bytes per sample of the source, the baseline of every compression ratio.
     pub fn bytes(self) -> usize {
         match self {
-            SampleFormat::U8 => 1,
+            SampleFormat::U8 | SampleFormat::I8 => 1,
             SampleFormat::U16 | SampleFormat::I16 => 2,
             SampleFormat::F32 => 4,
         }
@@ -108,8 +111,14 @@ pub struct AssetMeta {
 
 impl AssetMeta {
     /// Size of the source at its own sample type, the denominator-free baseline for ratios.
+    /// Volumes are cubes: `width` samples a side (`height` equals it).
     pub fn source_bytes(&self) -> u64 {
-        self.width as u64 * self.height as u64 * self.channels as u64 * self.sample.bytes() as u64
+        let depth = if self.kind == AssetKind::Volume { self.width as u64 } else { 1 };
+        self.width as u64
+            * self.height as u64
+            * depth
+            * self.channels as u64
+            * self.sample.bytes() as u64
     }
 
     /// Peak value for PSNR: 255 for 8-bit images, the value range for everything else.

@@ -411,6 +411,7 @@ fn iterations_for(
             let m = &a.asset.meta;
             let step = match m.sample {
                 fractile_proto::SampleFormat::F32 => (m.value_max - m.value_min) / 65535.0,
+                fractile_proto::SampleFormat::I8 => (m.value_max - m.value_min) / 254.0,
                 _ => 1.0,
             };
             Ok((max, 0.5 * step as f32))
