@@ -42,3 +42,21 @@ pub struct PointsResponse {
     /// One result per point.
     pub results: Vec<PointResult>,
 }
+
+/// The signed distance of a volume asset at one 3D point (`GET .../point?x=&y=&z=`, world units
+/// of the source mesh).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct DistanceResult {
+    /// The point as asked.
+    pub coordinates: [f64; 3],
+    /// Signed distance to the surface (negative inside), clamped to the asset's band;
+    /// `None` outside the grid.
+    pub distance: Option<f32>,
+    /// Bound on the error against the attractor, world units; `None` outside the grid.
+    pub error_bound: Option<f32>,
+    /// Inverse steps taken.
+    pub iterations: u32,
+    /// Whether the point lies outside the grid.
+    #[serde(default)]
+    pub outside: bool,
+}

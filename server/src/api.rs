@@ -14,7 +14,7 @@ use axum::routing::{get, post};
 use axum::{Json, Router};
 use fractile_codec::geo;
 use fractile_proto::{
-    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, PointResult, PointsRequest,
+    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, PointResult, PointsRequest,
     PointsResponse, TileJson,
 };
 use serde::Deserialize;
@@ -144,6 +144,21 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/assets/{id}/region", get(region))
         .route("/v1/assets/{id}/mesh", get(mesh))
         .with_state(state)
+}
+
+/// The asset of a request that works on 2D planes (tiles, regions, lon/lat and batch points):
+/// a volume is a 400 naming what it does answer instead.
+fn planar(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> {
+    if a.asset.meta.kind == AssetKind::Volume {
+        return Err(AppError::bad_request(
+            "volume_asset",
+            format!(
+                "{} is a volume: ask /mesh?bbox=x0,y0,z0,x1,y1,z1 or /point?x=&y=&z=",
+                a.id
+            ),
+        ));
+    }
+    Ok(a)
 }
 
 /// Runs `f` on the blocking pool once a decoding slot is free.
@@ -329,7 +344,7 @@ async fn tilejson(
     State(state): Shared,
     Path(id): Path<String>,
 ) -> Result<Json<TileJson>, AppError> {
-    let a = state.store.get(&id)?;
+    let a = planar(state.store.get(&id)?)?;
     let heights = a.asset.meta.kind == AssetKind::HeightField;
     let (ext, query) = if heights {
         ("png", "?encoding=terrarium")
@@ -456,7 +471,7 @@ async fn tile(
     Query(q): Query<TileQuery>,
     headers: HeaderMap,
 ) -> Result<Response, AppError> {
-    let a = state.store.get(&id)?;
+    let a = planar(state.store.get(&id)?)?;
     let (y, ext) = tile
         .split_once('.')
         .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.png or {y}.f32"))?;
@@ -660,6 +675,8 @@ fn unit_of(a: &StoredAsset, c: [f64; 2]) -> Option<[f32; 2]> {
 struct PointQuery {
     x: Option<f64>,
     y: Option<f64>,
+    /// Volumes only: the third coordinate.
+    z: Option<f64>,
     iterations: Option<u32>,
     tolerance: Option<f32>,
 }
@@ -668,7 +685,17 @@ async fn point_unit(
     State(state): Shared,
     Path(id): Path<String>,
     Query(q): Query<PointQuery>,
-) -> Result<Json<PointResult>, AppError> {
+) -> Result<Response, AppError> {
+    let a = state.store.get(&id)?;
+    if a.asset.meta.kind == AssetKind::Volume {
+        return volume_point(&state, a, &q).await.map(|r| Json(r).into_response());
+    }
+    if q.z.is_some() {
+        return Err(AppError::bad_request(
+            "bad_point",
+            "z is for volume assets; this one is 2D",
+        ));
+    }
     let (Some(x), Some(y)) = (q.x, q.y) else {
         return Err(AppError::bad_request(
             "bad_point",
@@ -684,7 +711,43 @@ async fn point_unit(
         Backend::Cpu,
     )
     .await
-    .map(|mut v| Json(v.remove(0)))
+    .map(|mut v| Json(v.remove(0)).into_response())
+}
+
+/// The signed distance of a volume at world point (x, y, z).
+async fn volume_point(
+    state: &Arc<AppState>,
+    a: Arc<StoredAsset>,
+    q: &PointQuery,
+) -> Result<DistanceResult, AppError> {
+    let (Some(x), Some(y), Some(z)) = (q.x, q.y, q.z) else {
+        return Err(AppError::bad_request(
+            "bad_point",
+            "give ?x=&y=&z= in the mesh's units for a volume asset",
+        ));
+    };
+    let p = [x, y, z];
+    if p.iter().any(|v| !v.is_finite()) {
+        return Err(AppError::bad_request("bad_point", "coordinates must be finite"));
+    }
+    let (n, tolerance) = iterations_for(state, &a, q.iterations, q.tolerance)?;
+    let sample = decode(state, move || a.asset.distances(&[p], n, tolerance))
+        .await?
+        .map_err(|e| AppError::internal(e.to_string()))?
+        .remove(0);
+    match sample {
+        Some(s) => Ok(DistanceResult {
+            coordinates: p,
+            distance: Some(s.distance),
+            error_bound: Some(s.error_bound),
+            iterations: s.iterations,
+            outside: false,
+        }),
+        None => Err(AppError::not_found(
+            "outside",
+            format!("point {p:?} is outside the volume's grid"),
+        )),
+    }
 }
 
 async fn point_lonlat(
@@ -779,7 +842,7 @@ async fn answer_points(
     single: bool,
     choice: Backend,
 ) -> Result<Vec<PointResult>, AppError> {
-    let a = state.store.get(id)?;
+    let a = planar(state.store.get(id)?)?;
     let (n, tolerance) = iterations_for(state, &a, iterations, tolerance)?;
     let units: Vec<Option<[f32; 2]>> = coords.iter().map(|&c| unit_of(&a, c)).collect();
     if single && units[0].is_none() {
@@ -871,10 +934,13 @@ async fn mesh(
     Query(q): Query<MeshQuery>,
 ) -> Result<Response, AppError> {
     let a = state.store.get(&id)?;
+    if a.asset.meta.kind == AssetKind::Volume {
+        return volume_mesh(&state, a, q).await;
+    }
     if a.asset.meta.kind != AssetKind::HeightField {
         return Err(AppError::bad_request(
             "not_terrain",
-            "meshes are made of height fields",
+            "meshes are made of height fields and volumes",
         ));
     }
     let n = q.resolution.unwrap_or(256);
@@ -967,6 +1033,93 @@ async fn mesh(
         .into_response())
 }
 
+/// Largest samples a volume mesh request decodes (256^3).
+const MAX_VOLUME_SAMPLES: usize = 1 << 24;
+
+/// The surface of a volume inside `bbox=x0,y0,z0,x1,y1,z1` (world units; default the whole
+/// grid) with `resolution` samples along the box's longest side (default the encoded grid).
+async fn volume_mesh(
+    state: &Arc<AppState>,
+    a: Arc<StoredAsset>,
+    q: MeshQuery,
+) -> Result<Response, AppError> {
+    let grid = a.asset.volume.as_ref().map_or(64, |v| v.size());
+    let n = q.resolution.unwrap_or(grid);
+    if !(2..=512).contains(&n) {
+        return Err(AppError::bad_request(
+            "bad_resolution",
+            "resolution must be 2..=512 samples along the box's longest side",
+        ));
+    }
+    let format = q.format.unwrap_or_else(|| "glb".into());
+    if !matches!(format.as_str(), "obj" | "ply" | "glb") {
+        return Err(AppError::bad_request(
+            "bad_format",
+            "format must be obj, ply or glb",
+        ));
+    }
+    let bbox = match &q.bbox {
+        None => None,
+        Some(b) => {
+            let v: Vec<f64> = b.split(',').filter_map(|s| s.trim().parse().ok()).collect();
+            match v[..] {
+                [x0, y0, z0, x1, y1, z1]
+                    if x1 > x0 && y1 > y0 && z1 > z0 && v.iter().all(|c| c.is_finite()) =>
+                {
+                    Some(([x0, y0, z0], [x1, y1, z1]))
+                }
+                _ => {
+                    return Err(AppError::bad_request(
+                        "bad_bbox",
+                        "a volume's bbox is x0,y0,z0,x1,y1,z1 with max > min on every axis",
+                    ));
+                }
+            }
+        }
+    };
+    // The samples the box will take, refused before any decoding.
+    if let Some((lo, hi)) = bbox {
+        let longest = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
+        let samples: f64 = (0..3)
+            .map(|k| ((hi[k] - lo[k]) / longest * (n - 1) as f64).round() + 1.0)
+            .product();
+        if samples > MAX_VOLUME_SAMPLES as f64 {
+            return Err(AppError::bad_request(
+                "too_many_samples",
+                format!("the box takes {samples} samples, over {MAX_VOLUME_SAMPLES}"),
+            ));
+        }
+    } else if n.pow(3) > MAX_VOLUME_SAMPLES {
+        return Err(AppError::bad_request(
+            "too_many_samples",
+            format!("resolution {n} takes {} samples, over {MAX_VOLUME_SAMPLES}", n.pow(3)),
+        ));
+    }
+    let (iterations, tolerance) = iterations_for(state, &a, q.iterations, q.tolerance)?;
+    let out = decode(state, move || {
+        let (m, bound) = a.asset.volume_mesh(bbox, n, iterations, tolerance)?;
+        let (ct, body) = match format.as_str() {
+            "obj" => ("text/plain", m.to_obj()),
+            "ply" => ("application/octet-stream", m.to_ply()),
+            _ => ("model/gltf-binary", m.to_glb()),
+        };
+        Ok::<_, fractile_codec::Error>((ct, body, bound))
+    })
+    .await?
+    .map_err(|e| AppError::bad_request("bad_request", e.to_string()))?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, out.0.to_string()),
+            (
+                "x-error-bound".parse().expect("name"),
+                format!("{}", out.2),
+            ),
+        ],
+        out.1,
+    )
+        .into_response())
+}
+
 #[derive(Deserialize)]
 struct RegionQuery {
     bbox: String,
@@ -983,7 +1136,7 @@ async fn region(
     Path(id): Path<String>,
     Query(q): Query<RegionQuery>,
 ) -> Result<Response, AppError> {
-    let a = state.store.get(&id)?;
+    let a = planar(state.store.get(&id)?)?;
     let [x0, y0, x1, y1] = parse_bbox(&q.bbox)?;
     if q.width == 0
         || q.height == 0

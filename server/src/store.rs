@@ -195,10 +195,38 @@ const DEMO: &[(&str, &str, &[u8], RateMode)] = &[
     ),
 ];
 
+/// The demo volume: fandisk (a CAD part with sharp features) as a 64^3 distance field.
+const DEMO_VOLUME: (&str, &str, &[u8]) = (
+    "fandisk",
+    "fandisk.off",
+    include_bytes!("../../testdata/mesh/fandisk.off"),
+);
+
 /// Encodes the demo assets into `dir` unless they are there already (a progress line each).
 pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
     std::fs::create_dir_all(dir)
         .map_err(|e| fractile_codec::Error::Output(format!("{}: {e}", dir.display())))?;
+    let (id, name, bytes) = DEMO_VOLUME;
+    let out = dir.join(format!("{id}.fra"));
+    if !out.exists() {
+        tracing::info!("encoding demo volume {id} from {name} (first start only)");
+        let text = std::str::from_utf8(bytes)
+            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
+        let mesh = fractile_codec::mesh::Mesh::parse_off(text)
+            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
+        let enc = fractile_codec::volume::encode_mesh(
+            &mesh,
+            &fractile_codec::volume::MeshSettings::default(),
+            name,
+        )?;
+        fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
+        tracing::info!(
+            "demo volume {id}: {} bytes, {:.2}:1 against i8, PSNR {:.2} dB",
+            enc.bytes.len(),
+            enc.ratio_i8(),
+            enc.psnr()
+        );
+    }
     for (id, name, bytes, rate) in DEMO {
         let out = dir.join(format!("{id}.fra"));
         if out.exists() {
