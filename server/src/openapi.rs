@@ -78,8 +78,8 @@ pub fn document() -> Value {
                     param("colormap", "query", json!({"enum": ["gray", "terrain", "viridis"]}), "Colour ramp for visual PNGs of heights"),
                     param("hillshade", "query", json!({"type": "boolean"}), "Hillshade visual PNGs of heights (sun at 315 degrees, 45 degrees up)")],
                 "responses": ok_tile}},
-            "/v1/assets/{id}/point": {"get": {"summary": "Value at a unit point (non-georeferenced assets)", "parameters": [id, param("x", "query", json!({"type": "number"}), "0..1"), param("y", "query", json!({"type": "number"}), "0..1"), iterations.clone(), tolerance.clone()],
-                "responses": {"200": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointResult"}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/point": {"get": {"summary": "Value at a unit point (non-georeferenced assets); for volumes, the signed distance at world point x, y, z (DistanceResult)", "parameters": [id, param("x", "query", json!({"type": "number"}), "0..1 (volumes: world units)"), param("y", "query", json!({"type": "number"}), "0..1 (volumes: world units)"), param("z", "query", json!({"type": "number"}), "volumes only: world units"), iterations.clone(), tolerance.clone()],
+                "responses": {"200": {"content": {"application/json": {"schema": {"oneOf": [{"$ref": "#/components/schemas/PointResult"}, {"$ref": "#/components/schemas/DistanceResult"}]}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/point/{coords}": {"get": {"summary": "Value at lon,lat", "parameters": [id, param("coords", "path", json!({"type": "string"}), "lon,lat"), iterations.clone(), tolerance.clone()],
                 "responses": {"200": {"content": {"application/json": {"schema": {"$ref": "#/components/schemas/PointResult"}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/points": {"post": {"summary": "Values at many points, in order (JSON or application/x-bincode)", "parameters": [id, backend.clone()],
@@ -90,9 +90,9 @@ pub fn document() -> Value {
                     param("width", "query", json!({"type": "integer"}), "pixels"), param("height", "query", json!({"type": "integer"}), "pixels"),
                     iterations.clone(), tolerance.clone(), backend.clone(), param("format", "query", json!({"enum": ["png", "f32", "tif"]}), "output (tif: float32 GeoTIFF of heights)")],
                 "responses": {"200": {"description": "image or float32 samples"}, "400": {"$ref": "#/components/responses/Error"}}}},
-            "/v1/assets/{id}/mesh": {"get": {"summary": "Terrain mesh of a region (regular grid)", "parameters": [id,
-                    param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (default: the whole asset)"),
-                    param("resolution", "query", json!({"type": "integer", "minimum": 2, "maximum": 2048}), "vertices a side"),
+            "/v1/assets/{id}/mesh": {"get": {"summary": "Terrain mesh of a region (regular grid), or the surface of a volume in a box (marching over the continuous decode)", "parameters": [id,
+                    param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (volumes: x0,y0,z0,x1,y1,z1 in the mesh's units; default: the whole asset)"),
+                    param("resolution", "query", json!({"type": "integer", "minimum": 2, "maximum": 2048}), "vertices a side (volumes: samples along the box's longest side, at most 512, default the encoded grid)"),
                     iterations, tolerance, backend, param("format", "query", json!({"enum": ["obj", "ply", "glb"]}), "file format")],
                 "responses": {"200": {"description": "mesh file"}, "400": {"$ref": "#/components/responses/Error"}}}}
         },
@@ -102,6 +102,7 @@ pub fn document() -> Value {
             "schemas": {
                 "AssetSummary": {"type": "object", "properties": {"id": {"type": "string"}, "kind": {"enum": ["Image", "HeightField", "Volume", "Curve"]}, "width": {"type": "integer"}, "height": {"type": "integer"}, "bounds": {"type": ["array", "null"]}, "value_range": {"type": "array"}, "units": {"type": ["string", "null"]}, "codec": {"type": "string"}, "bytes": {"type": "integer"}, "ratio": {"type": "number"}}},
                 "PointsRequest": {"type": "object", "required": ["points"], "properties": {"points": {"type": "array", "items": {"type": "array", "minItems": 2, "maxItems": 2}}, "iterations": {"type": ["integer", "null"]}, "tolerance": {"type": ["number", "null"]}}},
+                "DistanceResult": {"type": "object", "properties": {"coordinates": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}, "distance": {"type": ["number", "null"]}, "error_bound": {"type": ["number", "null"]}, "iterations": {"type": "integer"}, "outside": {"type": "boolean"}}},
                 "PointResult": {"type": "object", "properties": {"coordinates": {"type": "array"}, "values": {"type": ["array", "null"]}, "error_bound": {"type": ["number", "null"]}, "iterations": {"type": "integer"}, "outside": {"type": "boolean"}}}
             }
         }

@@ -42,6 +42,18 @@ fn state() -> Arc<AppState> {
                 }
                 std::fs::write(dir.join(format!("{id}.fra")), &enc.bytes).unwrap();
             }
+            // A volume (IFS3D) from a real mesh.
+            let mesh = fractile_codec::mesh::Mesh::read(&data("mesh/fandisk.off")).unwrap();
+            let vol = fractile_codec::volume::encode_mesh(
+                &mesh,
+                &fractile_codec::volume::MeshSettings {
+                    grid: 40,
+                    ..Default::default()
+                },
+                "fandisk.off",
+            )
+            .unwrap();
+            std::fs::write(dir.join("fandisk.fra"), &vol.bytes).unwrap();
             // A broken file must be skipped, not stop the server.
             std::fs::write(dir.join("broken.fra"), b"FRACTILE garbage").unwrap();
             let (store, skipped) = Store::open(&dir).unwrap();
@@ -83,7 +95,7 @@ async fn catalog_metadata_and_tilejson() {
         .iter()
         .map(|a| a["id"].as_str().unwrap().to_string())
         .collect();
-    assert_eq!(ids, ["camera", "jacksboro"]);
+    assert_eq!(ids, ["camera", "fandisk", "jacksboro"]);
     let (s, _, b) = get("/v1/assets/jacksboro").await;
     assert_eq!(s, StatusCode::OK);
     let m = json(&b);
@@ -985,4 +997,95 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
         (s, json(&body)["code"].as_str()),
         (StatusCode::BAD_REQUEST, Some("gpu_unavailable"))
     );
+}
+
+#[tokio::test]
+async fn volume_meshes_points_and_refusals() {
+    let (s, _, b) = get("/v1/assets/fandisk").await;
+    assert_eq!(s, StatusCode::OK);
+    let m = json(&b);
+    assert_eq!(m["kind"], "Volume");
+    assert_eq!(m["codec"], "ifs3d-octree");
+    // The whole surface as OBJ: closed (every edge in two triangles), with its bound.
+    let (s, h, b) = get("/v1/assets/fandisk/mesh?format=obj&resolution=40").await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    assert!(h["x-error-bound"].to_str().unwrap().parse::<f32>().unwrap() >= 0.0);
+    let text = String::from_utf8(b).unwrap();
+    let verts: Vec<[f64; 3]> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("v "))
+        .map(|l| {
+            let v: Vec<f64> = l.split(' ').map(|x| x.parse().unwrap()).collect();
+            [v[0], v[1], v[2]]
+        })
+        .collect();
+    let faces: Vec<[usize; 3]> = text
+        .lines()
+        .filter_map(|l| l.strip_prefix("f "))
+        .map(|l| {
+            let v: Vec<usize> = l
+                .split(' ')
+                .map(|x| x.split('/').next().unwrap().parse().unwrap())
+                .collect();
+            [v[0], v[1], v[2]]
+        })
+        .collect();
+    assert!(faces.len() > 1000 && text.contains("\nvn "));
+    let mut uses = std::collections::HashMap::new();
+    for f in &faces {
+        for k in 0..3 {
+            let (a, b) = (f[k], f[(k + 1) % 3]);
+            *uses.entry((a.min(b), a.max(b))).or_insert(0) += 1;
+        }
+    }
+    assert!(uses.values().all(|&u| u == 2));
+    // The vertices lie on the source mesh's surface: near some source vertex (fandisk's
+    // vertices are dense), within a few voxels of 40.
+    let src = fractile_codec::mesh::Mesh::read(&data("mesh/fandisk.off")).unwrap();
+    let (lo, hi) = src.bounds();
+    let diag = (0..3).map(|k| ((hi[k] - lo[k]) as f64).powi(2)).sum::<f64>().sqrt();
+    for v in verts.iter().step_by(301) {
+        let near = src
+            .positions
+            .iter()
+            .map(|p| (0..3).map(|k| (p[k] as f64 - v[k]).powi(2)).sum::<f64>().sqrt())
+            .fold(f64::INFINITY, f64::min);
+        assert!(near < 0.06 * diag, "{v:?} is {near} from the source");
+    }
+    // A box of it, as GLB.
+    let c: Vec<f64> = (0..3).map(|k| 0.5 * (lo[k] + hi[k]) as f64).collect();
+    let bbox = format!("{},{},{},{},{},{}", lo[0], lo[1], lo[2], c[0], c[1], c[2]);
+    let (s, h, b) = get(&format!("/v1/assets/fandisk/mesh?bbox={bbox}&resolution=32")).await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(h[header::CONTENT_TYPE], "model/gltf-binary");
+    assert_eq!(&b[..4], b"glTF");
+    // The signed distance at a point of the surface is near zero; far in the grid, the band.
+    let p = src.positions[100];
+    let (s, _, b) = get(&format!(
+        "/v1/assets/fandisk/point?x={}&y={}&z={}",
+        p[0], p[1], p[2]
+    ))
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let r = json(&b);
+    let band = m["value_range"][1].as_f64().unwrap();
+    assert!(r["distance"].as_f64().unwrap().abs() < 0.3 * band, "{r}");
+    assert!(r["error_bound"].as_f64().unwrap() >= 0.0);
+    // Refusals: 2D requests, a 2D bbox, a huge box, a point without z, outside the grid.
+    for (uri, code) in [
+        ("/v1/assets/fandisk/tiles/0/0/0.png", "volume_asset"),
+        ("/v1/assets/fandisk/tilejson.json", "volume_asset"),
+        ("/v1/assets/fandisk/mesh?bbox=0,0,1,1", "bad_bbox"),
+        ("/v1/assets/fandisk/mesh?resolution=400", "too_many_samples"),
+        ("/v1/assets/fandisk/mesh?resolution=100000", "bad_resolution"),
+        ("/v1/assets/fandisk/point?x=0&y=0", "bad_point"),
+        ("/v1/assets/jacksboro/point?x=0.5&y=0.5&z=1", "bad_point"),
+    ] {
+        let (s, _, b) = get(uri).await;
+        assert_eq!(s, StatusCode::BAD_REQUEST, "{uri}");
+        assert_eq!(json(&b)["code"], code, "{uri}");
+    }
+    let (s, _, b) = get("/v1/assets/fandisk/point?x=1e9&y=0&z=0").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    assert_eq!(json(&b)["code"], "outside");
 }
