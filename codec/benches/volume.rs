@@ -19,9 +19,12 @@ use fractile_codec::volume::{MeshSettings, encode_mesh, surface_distance};
 
 fn find(name: &str) -> Option<PathBuf> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
-    [root.join("../shared/data/mesh").join(name), root.join("testdata/mesh").join(name)]
-        .into_iter()
-        .find(|p| p.exists())
+    [
+        root.join("../shared/data/mesh").join(name),
+        root.join("testdata/mesh").join(name),
+    ]
+    .into_iter()
+    .find(|p| p.exists())
 }
 
 fn main() {
@@ -32,7 +35,9 @@ fn main() {
         ("ChineseDragon-10kv.off", 128, 0.08),
         ("knot2.off", 128, 0.08),
     ];
-    let tol_override: Option<f64> = std::env::var("FRACTILE_TOL").ok().and_then(|v| v.parse().ok());
+    let tol_override: Option<f64> = std::env::var("FRACTILE_TOL")
+        .ok()
+        .and_then(|v| v.parse().ok());
     println!(
         "| mesh | grid | bytes | ratio vs i8 | vs f32 | vs mesh file | encode s (field) | PSNR dB | in band | Chamfer % diag | Hausdorff % diag | maps |"
     );
@@ -44,14 +49,20 @@ fn main() {
         };
         let mesh = Mesh::read(&path).expect("mesh");
         let file_bytes = std::fs::metadata(&path).map(|m| m.len()).unwrap_or(0);
-        let mut s = MeshSettings { grid, ..Default::default() };
+        let mut s = MeshSettings {
+            grid,
+            ..Default::default()
+        };
         let tol = tol_override.unwrap_or(tol);
         // Tolerance in voxels -> normalised units (the field spans 2 band voxels).
         s.codec.partition = Partition3::Tolerance((tol / (2.0 * s.band)) as f32);
         let enc = encode_mesh(&mesh, &s, name).expect("encode");
         let (decoded, _) = enc.asset.volume_mesh(None, grid, 16, 0.0).expect("mesh");
         let (lo, hi) = mesh.bounds();
-        let diag = (0..3).map(|k| ((hi[k] - lo[k]) as f64).powi(2)).sum::<f64>().sqrt();
+        let diag = (0..3)
+            .map(|k| ((hi[k] - lo[k]) as f64).powi(2))
+            .sum::<f64>()
+            .sqrt();
         let d = surface_distance(&decoded, &mesh, 200_000);
         // PSNR over the band alone (|d| < band), same peak: the whole-grid figure counts the
         // clamped voxels, which every codec gets exactly.

@@ -386,7 +386,9 @@ impl Asset {
     ) -> Result<Asset, Error> {
         let bad = |m: String| Error::Asset(format!("volume: {m}"));
         if meta.kind != AssetKind::Volume || meta.channels != 1 || meta.width != meta.height {
-            return Err(bad("metadata is not that of a cubic one-channel volume".into()));
+            return Err(bad(
+                "metadata is not that of a cubic one-channel volume".into()
+            ));
         }
         if header.valid != meta.width as f32 {
             return Err(bad("grid size and metadata disagree".into()));
@@ -436,7 +438,9 @@ impl Asset {
     fn check(&self) -> Result<(), Error> {
         let m = &self.meta;
         if (m.kind == AssetKind::Volume) != self.volume.is_some() {
-            return Err(Error::Asset("a volume asset must hold a volume, and only it".into()));
+            return Err(Error::Asset(
+                "a volume asset must hold a volume, and only it".into(),
+            ));
         }
         let expected = match m.colour {
             _ if self.volume.is_some() => 0,
@@ -493,7 +497,10 @@ impl Asset {
                 mask,
             }),
             Codec::Octree => {
-                let v = self.volume.as_ref().expect("an octree asset holds a volume");
+                let v = self
+                    .volume
+                    .as_ref()
+                    .expect("an octree asset holds a volume");
                 fractile_proto::encode(&VolumePayload {
                     header: v.header.clone(),
                     stream: v.stream.clone(),

@@ -373,8 +373,11 @@ pub fn discrete_volume<O: Operator<3> + ?Sized>(
     let frame = op.frame();
     let e = op.expansion().max(1) as usize;
     let scale: [f32; 3] = std::array::from_fn(|a| dims[a] as f32 / valid[a]);
-    let fd: [usize; 3] =
-        std::array::from_fn(|a| ((frame[a] * scale[a]).ceil() as usize).max(dims[a]).max(e + 1));
+    let fd: [usize; 3] = std::array::from_fn(|a| {
+        ((frame[a] * scale[a]).ceil() as usize)
+            .max(dims[a])
+            .max(e + 1)
+    });
     let bd: [usize; 3] = fd.map(|v| v - e + 1);
     let half = e as f32 * 0.5;
     struct VoxelMap {
@@ -500,7 +503,9 @@ pub fn volume_window<O: Operator<3> + ?Sized>(
         .into_par_iter()
         .map(|r| {
             let (y, z) = (r % dims[1], r / dims[1]);
-            let pts: Vec<[f32; 3]> = (0..dims[0]).map(|x| [at(0, x), at(1, y), at(2, z)]).collect();
+            let pts: Vec<[f32; 3]> = (0..dims[0])
+                .map(|x| [at(0, x), at(1, y), at(2, z)])
+                .collect();
             let pv = points(op, &pts, iterations, tolerance);
             let bound = pv.iter().fold(0.0f32, |m, p| m.max(p.error_bound));
             (pv.into_iter().map(|p| p.value).collect(), bound)

@@ -41,7 +41,13 @@ fn orientations() -> [bool; 6] {
 
 /// The surface `value = iso` of a grid of `dims` samples (x fastest), sample (i, j, k) at
 /// `origin + (i, j, k) * spacing`. Samples that are NaN count as outside.
-pub fn extract(values: &[f32], dims: [usize; 3], iso: f32, origin: [f64; 3], spacing: [f64; 3]) -> Mesh {
+pub fn extract(
+    values: &[f32],
+    dims: [usize; 3],
+    iso: f32,
+    origin: [f64; 3],
+    spacing: [f64; 3],
+) -> Mesh {
     let [nx, ny, nz] = dims;
     let mut mesh = Mesh::default();
     if nx < 2 || ny < 2 || nz < 2 || values.len() != nx * ny * nz {
@@ -62,7 +68,10 @@ pub fn extract(values: &[f32], dims: [usize; 3], iso: f32, origin: [f64; 3], spa
             let mut ch = c;
             cl[a] = lo;
             ch[a] = hi;
-            let (vl, vh) = (values[index(cl[0], cl[1], cl[2])], values[index(ch[0], ch[1], ch[2])]);
+            let (vl, vh) = (
+                values[index(cl[0], cl[1], cl[2])],
+                values[index(ch[0], ch[1], ch[2])],
+            );
             if hi > lo && vl.is_finite() && vh.is_finite() {
                 (vh - vl) as f64 / ((hi - lo) as f64 * spacing[a])
             } else {
@@ -90,14 +99,19 @@ pub fn extract(values: &[f32], dims: [usize; 3], iso: f32, origin: [f64; 3], spa
             let g: [f64; 3] = std::array::from_fn(|d| ga[d] + t * (gb[d] - ga[d]));
             let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();
             mesh.positions.push(p.map(|v| v as f32));
-            mesh.normals.push(if len > 0.0 { g.map(|v| (v / len) as f32) } else { [0.0, 0.0, 1.0] });
+            mesh.normals.push(if len > 0.0 {
+                g.map(|v| (v / len) as f32)
+            } else {
+                [0.0, 0.0, 1.0]
+            });
             (mesh.positions.len() - 1) as u32
         })
     };
     for k in 0..nz - 1 {
         for j in 0..ny - 1 {
             for i in 0..nx - 1 {
-                let corner: [usize; 8] = std::array::from_fn(|c| index(i + (c & 1), j + (c >> 1 & 1), k + (c >> 2)));
+                let corner: [usize; 8] =
+                    std::array::from_fn(|c| index(i + (c & 1), j + (c >> 1 & 1), k + (c >> 2)));
                 let inside: [bool; 8] = corner.map(|g| value(g) < 0.0);
                 if inside.iter().all(|&b| b) || inside.iter().all(|&b| !b) {
                     continue;
@@ -183,11 +197,17 @@ mod tests {
         assert!(!m.triangles.is_empty());
         // Watertight: every edge in exactly two triangles, in opposite directions.
         let uses = edge_uses(m);
-        assert!(uses.values().all(|&u| u == 2), "an edge not shared by two triangles");
+        assert!(
+            uses.values().all(|&u| u == 2),
+            "an edge not shared by two triangles"
+        );
         let mut directed = std::collections::HashSet::new();
         for t in &m.triangles {
             for e in 0..3 {
-                assert!(directed.insert((t[e], t[(e + 1) % 3])), "two triangles run an edge the same way");
+                assert!(
+                    directed.insert((t[e], t[(e + 1) % 3])),
+                    "two triangles run an edge the same way"
+                );
             }
         }
         // Outward: stepping along each face normal raises the field.
@@ -211,7 +231,11 @@ mod tests {
         let m = extract(&v, [33; 3], 0.0, o, h);
         check_closed_and_outward(&m, &f);
         // Vertices lie on the sphere within the chord error of linear interpolation, O(h^2 / r).
-        let worst = m.positions.iter().map(|p| f(p.map(f64::from)).abs()).fold(0.0, f64::max);
+        let worst = m
+            .positions
+            .iter()
+            .map(|p| f(p.map(f64::from)).abs())
+            .fold(0.0, f64::max);
         assert!(worst < 0.5 * h[0] * h[0] / 0.7, "{worst}");
         // Normals are the field's gradient: radial.
         for (p, n) in m.positions.iter().zip(&m.normals) {
@@ -234,7 +258,11 @@ mod tests {
         let (v, o, h) = sample(41, f);
         let m = extract(&v, [41; 3], 0.0, o, h);
         check_closed_and_outward(&m, &f);
-        let worst = m.positions.iter().map(|p| f(p.map(f64::from)).abs()).fold(0.0, f64::max);
+        let worst = m
+            .positions
+            .iter()
+            .map(|p| f(p.map(f64::from)).abs())
+            .fold(0.0, f64::max);
         assert!(worst < 0.5 * h[0] * h[0] / small, "{worst}");
         let chi = m.positions.len() as i64 - edge_uses(&m).len() as i64 + m.triangles.len() as i64;
         assert_eq!(chi, 0, "a torus has Euler characteristic 0");

@@ -384,7 +384,8 @@ impl Mesh {
         let pos_len = bin.len();
         if self.has_normals() {
             for n in &self.normals {
-                n.iter().for_each(|v| bin.extend_from_slice(&v.to_le_bytes()));
+                n.iter()
+                    .for_each(|v| bin.extend_from_slice(&v.to_le_bytes()));
             }
         }
         let nrm_len = bin.len() - pos_len;

@@ -40,10 +40,7 @@ const PERMUTATIONS: [[usize; 3]; 6] = [
 /// `a_{perm[i]}` of the range, mirrored (`1 - a`) where `mirror[i]`. 0 is the identity.
 pub fn cube_isometry(k: u8) -> ([usize; 3], [bool; 3]) {
     let k = (k % CUBE_ISOMETRIES) as usize;
-    (
-        PERMUTATIONS[k / 8],
-        [k & 1 != 0, k & 2 != 0, k & 4 != 0],
-    )
+    (PERMUTATIONS[k / 8], [k & 1 != 0, k & 2 != 0, k & 4 != 0])
 }
 
 /// Where voxel `q` of an `n^3` range block reads in the (downsampled) domain block under
@@ -94,8 +91,14 @@ impl OctreeHeader {
                 self.frame
             ));
         }
-        if !(self.valid > 0.0 && self.valid <= self.frame as f32 && self.valid > self.frame as f32 - top as f32) {
-            return Err(format!("bad valid extent {} in frame {}", self.valid, self.frame));
+        if !(self.valid > 0.0
+            && self.valid <= self.frame as f32
+            && self.valid > self.frame as f32 - top as f32)
+        {
+            return Err(format!(
+                "bad valid extent {} in frame {}",
+                self.valid, self.frame
+            ));
         }
         if self.domain_steps.len() != self.levels as usize
             || self.domain_steps.iter().any(|&s| s == 0 || s % 2 != 0)
@@ -112,7 +115,11 @@ impl OctreeHeader {
 
     /// Domain positions per axis at level `l` (0 when the frame is too small for a domain).
     pub fn lattice(&self, l: usize) -> usize {
-        let (f, d, step) = (self.frame as usize, 2 * self.size(l), self.domain_steps[l] as usize);
+        let (f, d, step) = (
+            self.frame as usize,
+            2 * self.size(l),
+            self.domain_steps[l] as usize,
+        );
         if f < d { 0 } else { (f - d) / step + 1 }
     }
 
@@ -166,7 +173,14 @@ pub struct OctCell {
 
 impl OctCell {
     /// The cell of range `origin`, side `n`, mapped from the domain at `domain` (side 2n).
-    pub fn new(origin: [u32; 3], n: u32, domain: [u32; 3], isometry: u8, contrast: f32, offset: f32) -> OctCell {
+    pub fn new(
+        origin: [u32; 3],
+        n: u32,
+        domain: [u32; 3],
+        isometry: u8,
+        contrast: f32,
+        offset: f32,
+    ) -> OctCell {
         let (perm, mirror) = cube_isometry(isometry);
         let (n, r) = (n as f32, origin.map(|v| v as f32));
         let mut cell = OctCell {
@@ -230,7 +244,9 @@ impl OctreeOperator {
             let (c0, k) = (origin.map(|v| (v / cell) as usize), (n / cell) as usize);
             for z in c0[2]..c0[2] + k {
                 for y in c0[1]..c0[1] + k {
-                    for slot in &mut lut[(z * side + y) * side + c0[0]..(z * side + y) * side + c0[0] + k] {
+                    for slot in
+                        &mut lut[(z * side + y) * side + c0[0]..(z * side + y) * side + c0[0] + k]
+                    {
                         if *slot != u32::MAX {
                             return Err(format!("range {i} overlaps another range"));
                         }
@@ -338,14 +354,21 @@ impl Models {
         let ob = h.quantiser.offset_bits as u32;
         Models {
             split: vec![Bit::default(); levels],
-            contrast: (0..levels).map(|_| BitTree::new(h.quantiser.contrast_bits as u32)).collect(),
-            offset: (0..levels).map(|_| [BitTree::new(ob), BitTree::new(ob)]).collect(),
+            contrast: (0..levels)
+                .map(|_| BitTree::new(h.quantiser.contrast_bits as u32))
+                .collect(),
+            offset: (0..levels)
+                .map(|_| [BitTree::new(ob), BitTree::new(ob)])
+                .collect(),
             isometry: (0..levels).map(|_| BitTree::new(6)).collect(),
             domain: (0..levels)
                 .map(|l| {
                     let bits = bits_for(h.lattice(l).pow(3));
                     let high = bits.min(DOMAIN_TREE_BITS);
-                    (BitTree::new(high), vec![Bit::default(); (bits - high) as usize])
+                    (
+                        BitTree::new(high),
+                        vec![Bit::default(); (bits - high) as usize],
+                    )
                 })
                 .collect(),
         }
@@ -401,7 +424,14 @@ fn code(
                         let wanted = decide(l, b).is_none();
                         if dir.bit(&mut m.split[l], wanted) {
                             for c in (0..8).rev() {
-                                stack.push((l - 1, [2 * b[0] + (c & 1), 2 * b[1] + (c >> 1 & 1), 2 * b[2] + (c >> 2)]));
+                                stack.push((
+                                    l - 1,
+                                    [
+                                        2 * b[0] + (c & 1),
+                                        2 * b[1] + (c >> 1 & 1),
+                                        2 * b[2] + (c >> 2),
+                                    ],
+                                ));
                             }
                             continue;
                         }
@@ -430,13 +460,20 @@ fn code(
                             dom |= u32::from(dir.bit(bit, (map.domain >> shift) & 1 == 1)) << shift;
                         }
                         if dom as usize >= count {
-                            return Err(format!("domain index {dom} outside the lattice of {count}"));
+                            return Err(format!(
+                                "domain index {dom} outside the lattice of {count}"
+                            ));
                         }
                     }
                     leaves.push(Leaf3 {
                         level: l,
                         block: b,
-                        map: Map3 { contrast: qs, offset: qo, isometry: iso, domain: dom },
+                        map: Map3 {
+                            contrast: qs,
+                            offset: qo,
+                            isometry: iso,
+                            domain: dom,
+                        },
                     });
                 }
             }
@@ -488,7 +525,12 @@ impl Default for VolumeSettings {
         VolumeSettings {
             min_size: 4,
             levels: 3,
-            quantiser: Quantiser { contrast_bits: 5, offset_bits: 8, max_contrast: 0.95, slope_bits: 0 },
+            quantiser: Quantiser {
+                contrast_bits: 5,
+                offset_bits: 8,
+                max_contrast: 0.95,
+                slope_bits: 0,
+            },
             candidates: 12,
             // 0.01 of the field range: 0.08 voxel with the default band of 4 voxels.
             partition: Partition3::Tolerance(0.01),
@@ -529,24 +571,27 @@ pub fn encode_field(
     for z in 0..frame {
         for y in 0..frame {
             for x in 0..frame {
-                v[(z * frame + y) * frame + x] = values[(z.min(n - 1) * n + y.min(n - 1)) * n + x.min(n - 1)];
+                v[(z * frame + y) * frame + x] =
+                    values[(z.min(n - 1) * n + y.min(n - 1)) * n + x.min(n - 1)];
             }
         }
     }
     let half = frame / 2;
     let mut h = vec![0.0f32; half * half * half];
-    h.par_chunks_mut(half * half).enumerate().for_each(|(z, slab)| {
-        for y in 0..half {
-            for x in 0..half {
-                let mut acc = 0.0;
-                for c in 0..8 {
-                    let (dx, dy, dz) = (c & 1, c >> 1 & 1, c >> 2);
-                    acc += v[((2 * z + dz) * frame + 2 * y + dy) * frame + 2 * x + dx];
+    h.par_chunks_mut(half * half)
+        .enumerate()
+        .for_each(|(z, slab)| {
+            for y in 0..half {
+                for x in 0..half {
+                    let mut acc = 0.0;
+                    for c in 0..8 {
+                        let (dx, dy, dz) = (c & 1, c >> 1 & 1, c >> 2);
+                        acc += v[((2 * z + dz) * frame + 2 * y + dy) * frame + 2 * x + dx];
+                    }
+                    slab[y * half + x] = acc * 0.125;
                 }
-                slab[y * half + x] = acc * 0.125;
             }
-        }
-    });
+        });
     let fits: Vec<Vec<Fit3>> = (0..s.levels as usize)
         .map(|l| fit_level(&header, &v, &h, l, s.candidates))
         .collect();
@@ -590,7 +635,14 @@ fn partition<'a>(
                     leaf[l][block_index(b, per(l))] = true;
                 } else {
                     for c in 0..8 {
-                        stack.push((l - 1, [2 * b[0] + (c & 1), 2 * b[1] + (c >> 1 & 1), 2 * b[2] + (c >> 2)]));
+                        stack.push((
+                            l - 1,
+                            [
+                                2 * b[0] + (c & 1),
+                                2 * b[1] + (c >> 1 & 1),
+                                2 * b[2] + (c >> 2),
+                            ],
+                        ));
                     }
                 }
             }
@@ -616,7 +668,11 @@ fn partition<'a>(
                 let parent = fits[l][block_index(b, per(l))].sse;
                 let kids: f64 = (0..8)
                     .map(|c| {
-                        let cb = [2 * b[0] + (c & 1), 2 * b[1] + (c >> 1 & 1), 2 * b[2] + (c >> 2)];
+                        let cb = [
+                            2 * b[0] + (c & 1),
+                            2 * b[1] + (c >> 1 & 1),
+                            2 * b[2] + (c >> 2),
+                        ];
                         fits[l - 1][block_index(cb, per(l - 1))].sse
                     })
                     .sum();
@@ -633,14 +689,20 @@ fn partition<'a>(
                 }
             }
             while count + 7 <= budget.max(count) {
-                let Some(Gain(g, l, b)) = heap.pop() else { break };
+                let Some(Gain(g, l, b)) = heap.pop() else {
+                    break;
+                };
                 if g <= 0.0 {
                     break;
                 }
                 leaf[l][block_index(b, per(l))] = false;
                 count += 7;
                 for c in 0..8 {
-                    let cb = [2 * b[0] + (c & 1), 2 * b[1] + (c >> 1 & 1), 2 * b[2] + (c >> 2)];
+                    let cb = [
+                        2 * b[0] + (c & 1),
+                        2 * b[1] + (c >> 1 & 1),
+                        2 * b[2] + (c >> 2),
+                    ];
                     leaf[l - 1][block_index(cb, per(l - 1))] = true;
                     if l - 1 > 0 {
                         heap.push(Gain(gain(l - 1, cb), l - 1, cb));
@@ -686,7 +748,9 @@ fn fit_level(h: &OctreeHeader, v: &[f32], half: &[f32], l: usize, k: usize) -> V
         .into_par_iter()
         .flat_map_iter(|d| {
             let corner = h.domain_corner(l, d as u32).map(|v| v as usize / 2);
-            let get = |p: [usize; 3]| half[((corner[2] + p[2]) * hs + corner[1] + p[1]) * hs + corner[0] + p[0]];
+            let get = |p: [usize; 3]| {
+                half[((corner[2] + p[2]) * hs + corner[1] + p[1]) * hs + corner[0] + p[0]]
+            };
             let base = octant_feature(n, get);
             (0..CUBE_ISOMETRIES).filter_map(move |iso| {
                 let b = base?;
@@ -724,12 +788,20 @@ fn fit_level(h: &OctreeHeader, v: &[f32], half: &[f32], l: usize, k: usize) -> V
             let og = q.offset(0.0, qo) as f64;
             let mut best = Fit3 {
                 sse: r.iter().map(|&x| (x as f64 - og).powi(2)).sum(),
-                map: Map3 { contrast: 0, offset: qo, isometry: 0, domain: 0 },
+                map: Map3 {
+                    contrast: 0,
+                    offset: qo,
+                    isometry: 0,
+                    domain: 0,
+                },
             };
             if rr < 1e-12 {
                 return best;
             }
-            let (Some(tree), Some(fr)) = (&tree, octant_feature(n, |p| r[(p[2] * n + p[1]) * n + p[0]])) else {
+            let (Some(tree), Some(fr)) = (
+                &tree,
+                octant_feature(n, |p| r[(p[2] * n + p[1]) * n + p[0]]),
+            ) else {
                 return best;
             };
             let mut d = vec![0.0f32; n * n * n];
@@ -741,14 +813,19 @@ fn fit_level(h: &OctreeHeader, v: &[f32], half: &[f32], l: usize, k: usize) -> V
                         continue;
                     }
                     tried.push(item);
-                    let (dom, iso) = (item / CUBE_ISOMETRIES as u32, (item % CUBE_ISOMETRIES as u32) as u8);
+                    let (dom, iso) = (
+                        item / CUBE_ISOMETRIES as u32,
+                        (item % CUBE_ISOMETRIES as u32) as u8,
+                    );
                     let corner = h.domain_corner(l, dom).map(|v| v as usize / 2);
                     for z in 0..n {
                         for y in 0..n {
                             for x in 0..n {
                                 let s = cube_isometry_index(iso, [x, y, z], n);
                                 d[(z * n + y) * n + x] =
-                                    half[((corner[2] + s[2]) * hs + corner[1] + s[1]) * hs + corner[0] + s[0]];
+                                    half[((corner[2] + s[2]) * hs + corner[1] + s[1]) * hs
+                                        + corner[0]
+                                        + s[0]];
                             }
                         }
                     }
@@ -777,7 +854,12 @@ fn fit_level(h: &OctreeHeader, v: &[f32], half: &[f32], l: usize, k: usize) -> V
                     if sse < best.sse {
                         best = Fit3 {
                             sse,
-                            map: Map3 { contrast: qs, offset: qo, isometry: iso, domain: dom },
+                            map: Map3 {
+                                contrast: qs,
+                                offset: qo,
+                                isometry: iso,
+                                domain: dom,
+                            },
                         };
                     }
                 }
@@ -811,9 +893,16 @@ mod tests {
             for (i, s) in image.iter().enumerate() {
                 let qv = [i % n, i / n % n, i / (n * n)];
                 let p = [8.5 + qv[0] as f32, 4.5 + qv[1] as f32, 12.5 + qv[2] as f32];
-                let want = [0.0 + 2.0 * s[0] as f32 + 1.0, 16.0 + 2.0 * s[1] as f32 + 1.0, 8.0 + 2.0 * s[2] as f32 + 1.0];
+                let want = [
+                    0.0 + 2.0 * s[0] as f32 + 1.0,
+                    16.0 + 2.0 * s[1] as f32 + 1.0,
+                    8.0 + 2.0 * s[2] as f32 + 1.0,
+                ];
                 let got = cell.phi(p);
-                assert!((0..3).all(|a| (got[a] - want[a]).abs() < 1e-5), "{k} {qv:?}: {got:?} {want:?}");
+                assert!(
+                    (0..3).all(|a| (got[a] - want[a]).abs() < 1e-5),
+                    "{k} {qv:?}: {got:?} {want:?}"
+                );
             }
         }
     }
@@ -834,24 +923,39 @@ mod tests {
     fn stream_round_trip_and_collage_quality() {
         let n = 32;
         let v = field(n);
-        let s = VolumeSettings { partition: Partition3::Tolerance(0.004), ..Default::default() };
+        let s = VolumeSettings {
+            partition: Partition3::Tolerance(0.004),
+            ..Default::default()
+        };
         let (h, stream, op) = encode_field(&v, n, &s).unwrap();
         assert_eq!(decode_stream(&h, &stream).unwrap(), op.leaves());
         // The ranges are split where the field has structure: fewer maps than the finest grid,
         // more than the coarsest.
         let leaves = op.leaves().len();
-        assert!(leaves > 8 && leaves < (32 / 4usize).pow(3), "{leaves} leaves");
+        assert!(
+            leaves > 8 && leaves < (32 / 4usize).pow(3),
+            "{leaves} leaves"
+        );
         assert!(op.leaves().iter().any(|l| l.map.contrast != 0));
         // Discrete decoding reproduces the field (the collage theorem at work).
-        let (got, _) = crate::decode::discrete_volume(&op, [n; 3], crate::DiscreteOptions::fixed(20));
-        let mse = got.iter().zip(&v).map(|(a, b)| ((a - b) as f64).powi(2)).sum::<f64>() / v.len() as f64;
+        let (got, _) =
+            crate::decode::discrete_volume(&op, [n; 3], crate::DiscreteOptions::fixed(20));
+        let mse = got
+            .iter()
+            .zip(&v)
+            .map(|(a, b)| ((a - b) as f64).powi(2))
+            .sum::<f64>()
+            / v.len() as f64;
         let psnr = -10.0 * mse.log10();
         // (A hard field for 32^3: ripples of 12 voxels on a sphere; real distance fields do far
         // better, see the volume tests and bench.)
         assert!(psnr > 30.0, "{psnr} dB");
         // Continuous decoding of voxel centres agrees with the discrete decode on smooth content.
         let pts: Vec<[f32; 3]> = (0..200)
-            .map(|i| [(i * 7 % n) as f32, (i * 13 % n) as f32, (i * 29 % n) as f32].map(|c| (c + 0.5) / n as f32))
+            .map(|i| {
+                [(i * 7 % n) as f32, (i * 13 % n) as f32, (i * 29 % n) as f32]
+                    .map(|c| (c + 0.5) / n as f32)
+            })
             .collect();
         let pv = crate::decode::points(&op, &pts, 30, 0.0);
         let mut diff = 0.0f64;
@@ -860,7 +964,11 @@ mod tests {
             diff += (r.value - got[(idx[2] * n + idx[1]) * n + idx[0]]).abs() as f64;
             assert!(r.error_bound < 1e-3);
         }
-        assert!(diff / 200.0 < 0.02, "mean |point - discrete| {}", diff / 200.0);
+        assert!(
+            diff / 200.0 < 0.02,
+            "mean |point - discrete| {}",
+            diff / 200.0
+        );
     }
 
     #[test]

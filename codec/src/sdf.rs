@@ -120,9 +120,16 @@ impl DistanceField {
 }
 
 /// Voxels within `reach` voxels (box distance) of a triangle's box.
-fn near_voxels(tris: &[[[f64; 3]; 3]], n: usize, origin: [f64; 3], voxel: f64, reach: usize) -> Vec<bool> {
+fn near_voxels(
+    tris: &[[[f64; 3]; 3]],
+    n: usize,
+    origin: [f64; 3],
+    voxel: f64,
+    reach: usize,
+) -> Vec<bool> {
     let mut mark = vec![false; n * n * n];
-    let cell = |v: f64, a: usize| (((v - origin[a]) / voxel - 0.5).floor().max(0.0) as usize).min(n - 1);
+    let cell =
+        |v: f64, a: usize| (((v - origin[a]) / voxel - 0.5).floor().max(0.0) as usize).min(n - 1);
     for t in tris {
         let lo: [usize; 3] = std::array::from_fn(|a| cell(t[0][a].min(t[1][a]).min(t[2][a]), a));
         let hi: [usize; 3] =
@@ -160,11 +167,18 @@ fn parity_votes(tris: &[[[f64; 3]; 3]], n: usize, origin: [f64; 3], voxel: f64) 
 }
 
 /// Parity of the crossings before each voxel along rays parallel to `axis`.
-fn axis_parity(tris: &[[[f64; 3]; 3]], n: usize, origin: [f64; 3], voxel: f64, axis: usize) -> Vec<bool> {
+fn axis_parity(
+    tris: &[[[f64; 3]; 3]],
+    n: usize,
+    origin: [f64; 3],
+    voxel: f64,
+    axis: usize,
+) -> Vec<bool> {
     let (b, c) = ((axis + 1) % 3, (axis + 2) % 3);
     let mut crossings: Vec<Vec<f64>> = vec![Vec::new(); n * n];
     let centre = |i: usize, a: usize| origin[a] + (i as f64 + 0.5) * voxel;
-    let line = |v: f64, a: usize| ((v - origin[a]) / voxel - 0.5).ceil().clamp(0.0, n as f64) as usize;
+    let line =
+        |v: f64, a: usize| ((v - origin[a]) / voxel - 0.5).ceil().clamp(0.0, n as f64) as usize;
     for t in tris {
         let lo_b = line(t[0][b].min(t[1][b]).min(t[2][b]), b);
         let hi_b = line(t[0][b].max(t[1][b]).max(t[2][b]) + 1e-12 * voxel, b);
@@ -203,14 +217,19 @@ fn axis_parity(tris: &[[[f64; 3]; 3]], n: usize, origin: [f64; 3], voxel: f64, a
 /// counting points on shared edges exactly once.
 fn stab(t: &[[f64; 3]; 3], b: usize, c: usize, p: [f64; 2]) -> Option<[f64; 3]> {
     let q = t.map(|v| [v[b], v[c]]);
-    let area = (q[1][0] - q[0][0]) * (q[2][1] - q[0][1]) - (q[1][1] - q[0][1]) * (q[2][0] - q[0][0]);
+    let area =
+        (q[1][0] - q[0][0]) * (q[2][1] - q[0][1]) - (q[1][1] - q[0][1]) * (q[2][0] - q[0][0]);
     if area == 0.0 {
         return None;
     }
     // Edge function of the directed edge u -> v at p, computed from the lexicographically smaller
     // end so that the two triangles sharing an edge see exactly opposite values.
     let edge = |u: [f64; 2], v: [f64; 2]| -> (f64, bool) {
-        let (a, bb, flip) = if (u[0], u[1]) <= (v[0], v[1]) { (u, v, false) } else { (v, u, true) };
+        let (a, bb, flip) = if (u[0], u[1]) <= (v[0], v[1]) {
+            (u, v, false)
+        } else {
+            (v, u, true)
+        };
         let w = (bb[0] - a[0]) * (p[1] - a[1]) - (bb[1] - a[1]) * (p[0] - a[0]);
         let w = if flip { -w } else { w };
         // Top-left rule on the directed edge: exactly one of the two directions owns the edge.
@@ -249,7 +268,8 @@ pub(crate) fn point_triangle_sq(p: [f64; 3], t: &[[f64; 3]; 3]) -> f64 {
         let vc = d1 * d4 - d3 * d2;
         let vb = d5 * d2 - d1 * d6;
         let va = d3 * d6 - d5 * d4;
-        let along = |o: [f64; 3], d: [f64; 3], s: f64| [o[0] + s * d[0], o[1] + s * d[1], o[2] + s * d[2]];
+        let along =
+            |o: [f64; 3], d: [f64; 3], s: f64| [o[0] + s * d[0], o[1] + s * d[1], o[2] + s * d[2]];
         if d3 >= 0.0 && d4 <= d3 {
             b
         } else if vc <= 0.0 && d1 >= 0.0 && d3 <= 0.0 {
@@ -303,7 +323,12 @@ impl Bvh {
             let t = &tris[i as usize];
             std::array::from_fn(|k| (t[0][k] + t[1][k] + t[2][k]) / 3.0)
         };
-        let mut nodes = vec![Node { lo: [0.0; 3], hi: [0.0; 3], first: 0, count: tris.len() as u32 }];
+        let mut nodes = vec![Node {
+            lo: [0.0; 3],
+            hi: [0.0; 3],
+            first: 0,
+            count: tris.len() as u32,
+        }];
         let mut stack = vec![(0usize, 0usize, tris.len())];
         while let Some((node, start, end)) = stack.pop() {
             let (mut lo, mut hi) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
@@ -333,7 +358,12 @@ impl Bvh {
             nodes[node].first = left as u32;
             nodes[node].count = 0;
             for _ in 0..2 {
-                nodes.push(Node { lo: [0.0; 3], hi: [0.0; 3], first: 0, count: 0 });
+                nodes.push(Node {
+                    lo: [0.0; 3],
+                    hi: [0.0; 3],
+                    first: 0,
+                    count: 0,
+                });
             }
             stack.push((left, start, mid));
             stack.push((left + 1, mid, end));
@@ -365,7 +395,10 @@ impl Bvh {
             } else {
                 // Nearer child last, so that it is searched first.
                 let (l, r) = (node.first, node.first + 1);
-                let (dl, dr) = (box_sq(&self.nodes[l as usize]), box_sq(&self.nodes[r as usize]));
+                let (dl, dr) = (
+                    box_sq(&self.nodes[l as usize]),
+                    box_sq(&self.nodes[r as usize]),
+                );
                 if dl < dr {
                     stack.extend([r, l]);
                 } else {
@@ -399,7 +432,11 @@ mod tests {
                 }
             }
         }
-        Mesh { positions, triangles, normals: Vec::new() }
+        Mesh {
+            positions,
+            triangles,
+            normals: Vec::new(),
+        }
     }
 
     #[test]
@@ -465,7 +502,11 @@ mod tests {
             .zip(&f.values)
             .filter(|(a, b)| a.signum() != b.signum())
             .count();
-        assert!(wrong * 1000 < clean.values.len(), "{wrong} of {} flipped", clean.values.len());
+        assert!(
+            wrong * 1000 < clean.values.len(),
+            "{wrong} of {} flipped",
+            clean.values.len()
+        );
         // The knot is genus 1 and thin: a fair share of the band is inside.
         let inside = clean.values.iter().filter(|v| **v < 0.0).count();
         assert!(inside > 500, "{inside} voxels inside");

@@ -9,13 +9,13 @@
 use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
 use serde::{Deserialize, Serialize};
 
+use crate::Error;
 use crate::asset::Asset;
 use crate::decode::{self, DiscreteOptions};
 use crate::isosurface;
 use crate::mesh::Mesh;
 use crate::octree::{OctreeHeader, OctreeOperator, VolumeSettings};
 use crate::sdf::DistanceField;
-use crate::Error;
 
 /// Where a volume's grid lies in world units.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -67,7 +67,9 @@ impl Volume {
     pub fn unit(&self, p: [f64; 3]) -> Option<[f32; 3]> {
         let (lo, hi) = self.bounds();
         let u: [f64; 3] = std::array::from_fn(|a| (p[a] - lo[a]) / (hi[a] - lo[a]));
-        u.iter().all(|v| (0.0..=1.0).contains(v)).then(|| u.map(|v| v as f32))
+        u.iter()
+            .all(|v| (0.0..=1.0).contains(v))
+            .then(|| u.map(|v| v as f32))
     }
 }
 
@@ -198,6 +200,12 @@ pub struct DistanceSample {
     pub iterations: u32,
 }
 
+/// Continuous decoding of a box elsewhere (a GPU): `(lo, hi, dims, iterations, tolerance)` in
+/// unit coordinates and normalised units -> normalised values (x fastest) and their largest
+/// bound, or `None` for the CPU to decode.
+pub type VolumeGridHook<'a> =
+    dyn Fn([f32; 3], [f32; 3], [usize; 3], u32, f32) -> Option<(Vec<f32>, f32)> + Sync + 'a;
+
 /// Largest number of samples one box or mesh request may decode.
 pub const MAX_SAMPLES: usize = 1 << 27;
 
@@ -249,6 +257,22 @@ impl Asset {
         iterations: u32,
         tolerance: f32,
     ) -> Result<(Vec<f32>, f32), Error> {
+        self.distance_grid_with(lo, hi, dims, iterations, tolerance, None)
+    }
+
+    /// [`Asset::distance_grid`] with the box's continuous decoding handed to `hook` (a GPU):
+    /// it gets the box in unit coordinates, the samples, the steps and the normalised
+    /// tolerance, and answers normalised values and their largest bound, or `None` to let the
+    /// CPU decode.
+    pub fn distance_grid_with(
+        &self,
+        lo: [f64; 3],
+        hi: [f64; 3],
+        dims: [usize; 3],
+        iterations: u32,
+        tolerance: f32,
+        hook: Option<&VolumeGridHook>,
+    ) -> Result<(Vec<f32>, f32), Error> {
         let v = self.volume_or_err()?;
         if dims.iter().any(|&d| d < 2) || dims.iter().product::<usize>() > MAX_SAMPLES {
             return Err(Error::Settings(format!(
@@ -260,16 +284,15 @@ impl Asset {
             std::array::from_fn(|a| ((p[a] - glo[a]) / (ghi[a] - glo[a])) as f32)
         };
         let span = self.span_f32();
-        let (values, bound) = decode::volume_window(
-            &v.operator,
-            unit(lo),
-            unit(hi),
-            dims,
-            iterations,
-            tolerance / span,
-        );
+        let (ulo, uhi, t) = (unit(lo), unit(hi), tolerance / span);
+        let (values, bound) = hook
+            .and_then(|h| h(ulo, uhi, dims, iterations, t))
+            .unwrap_or_else(|| decode::volume_window(&v.operator, ulo, uhi, dims, iterations, t));
         let base = self.meta.value_min as f32;
-        Ok((values.into_iter().map(|x| base + x * span).collect(), bound * span))
+        Ok((
+            values.into_iter().map(|x| base + x * span).collect(),
+            bound * span,
+        ))
     }
 
     /// The decoded field on its native grid (discrete decoding), world units.
@@ -293,16 +316,31 @@ impl Asset {
         iterations: u32,
         tolerance: f32,
     ) -> Result<(Mesh, f32), Error> {
+        self.volume_mesh_with(bbox, resolution, iterations, tolerance, None)
+    }
+
+    /// [`Asset::volume_mesh`] with the sampling of the box handed to `hook` (see
+    /// [`Asset::distance_grid_with`]).
+    pub fn volume_mesh_with(
+        &self,
+        bbox: Option<([f64; 3], [f64; 3])>,
+        resolution: usize,
+        iterations: u32,
+        tolerance: f32,
+        hook: Option<&VolumeGridHook>,
+    ) -> Result<(Mesh, f32), Error> {
         let v = self.volume_or_err()?;
         let (lo, hi) = bbox.unwrap_or_else(|| v.bounds());
         if (0..3).any(|a| !(hi[a] > lo[a]) || !lo[a].is_finite() || !hi[a].is_finite()) {
-            return Err(Error::Settings("bbox must have max > min on every axis".into()));
+            return Err(Error::Settings(
+                "bbox must have max > min on every axis".into(),
+            ));
         }
         let longest = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
         let step = longest / (resolution.max(2) - 1) as f64;
         let dims: [usize; 3] =
             std::array::from_fn(|a| (((hi[a] - lo[a]) / step).round() as usize + 1).max(2));
-        let (values, bound) = self.distance_grid(lo, hi, dims, iterations, tolerance)?;
+        let (values, bound) = self.distance_grid_with(lo, hi, dims, iterations, tolerance, hook)?;
         let spacing: [f64; 3] = std::array::from_fn(|a| (hi[a] - lo[a]) / (dims[a] - 1) as f64);
         Ok((isosurface::extract(&values, dims, 0.0, lo, spacing), bound))
     }
@@ -337,7 +375,10 @@ pub fn surface_distance(a: &Mesh, b: &Mesh, samples: usize) -> SurfaceDistance {
             .par_iter()
             .map(|p| (tree.nearest_one::<SquaredEuclidean>(p).distance as f64).sqrt())
             .collect();
-        (d.iter().sum::<f64>() / d.len() as f64, d.iter().cloned().fold(0.0, f64::max))
+        (
+            d.iter().sum::<f64>() / d.len() as f64,
+            d.iter().cloned().fold(0.0, f64::max),
+        )
     };
     let (ma, xa) = one_way(&pa, &pb);
     let (mb, xb) = one_way(&pb, &pa);

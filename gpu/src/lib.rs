@@ -1,10 +1,12 @@
-//! GPU decoding of fractile's 2D operators with wgpu compute, on any adapter (a discrete GPU,
+//! GPU decoding of fractile's operators with wgpu compute, on any adapter (a discrete GPU,
 //! an integrated one, or Mesa's lavapipe on machines without one).
 //!
-//! An asset's operator is flattened once ([`fractile_codec::pieces`]) and uploaded as two
-//! storage buffers ([`GpuOperator`], resident until dropped); each request then dispatches the
-//! kernel of `shaders/decode2d.wgsl` over a list of points, a window's grid, or a Web Mercator
-//! tile's pixels (reprojected on the GPU). The kernel mirrors the CPU's continuous decoder, in
+//! A 2D operator is flattened once ([`fractile_codec::pieces`]) and uploaded as two storage
+//! buffers ([`GpuOperator`], resident until dropped); each request then dispatches the kernel of
+//! `shaders/decode2d.wgsl` over a list of points, a window's grid, or a Web Mercator tile's
+//! pixels (reprojected on the GPU). A 3D octree operator (IFS3D) is uploaded the same way, its
+//! cell-index map and one affine cell per range, for `shaders/decode3d.wgsl` over a list of 3D
+//! points or a box grid (what a mesh region samples). The kernel mirrors the CPU's continuous decoder, in
 //! f32, so answers agree with it to rounding (Mesa and GPUs reorder float additions: compare
 //! with a tolerance, never for equality).
 //!
@@ -13,11 +15,16 @@
 
 use bytemuck::{Pod, Zeroable};
 use fractile_codec::decode::PointValue;
+use fractile_codec::octree::OctreeOperator;
+use fractile_codec::operator::Operator;
 use fractile_codec::pieces::PieceTable;
 use wgpu::util::DeviceExt;
 
-/// The kernel's source.
+/// The 2D kernel's source.
 pub const SHADER: &str = include_str!("../../shaders/decode2d.wgsl");
+
+/// The 3D kernel's source.
+pub const SHADER_3D: &str = include_str!("../../shaders/decode3d.wgsl");
 
 /// Most points in one dispatch (16 bytes of result each: 64 MiB).
 pub const CHUNK: usize = 1 << 22;
@@ -61,6 +68,27 @@ struct Params {
     b: [f32; 2],
     row: u32,
     pad: [u32; 3],
+}
+
+/// Uniforms of a 3D dispatch; the layout of `Params` in `decode3d.wgsl` (96 bytes).
+#[repr(C)]
+#[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
+struct Params3 {
+    count: u32,
+    first: u32,
+    iterations: u32,
+    mode: u32,
+    tolerance: f32,
+    seed: f32,
+    half: f32,
+    side: u32,
+    inv_cell: f32,
+    valid: f32,
+    dims: [u32; 3],
+    row: u32,
+    lo: [f32; 3],
+    step: [f32; 3],
+    pad: [u32; 4],
 }
 
 /// Where a dispatch's points come from.
@@ -115,11 +143,12 @@ pub fn mercator_axes(
     (xs, ys)
 }
 
-/// An operator resident on the device.
+/// An operator resident on the device (2D pieces, or a 3D octree when `volume` is set).
 pub struct GpuOperator {
     lut: wgpu::Buffer,
     pieces: wgpu::Buffer,
     params: Params,
+    volume: Option<Params3>,
     bytes: usize,
 }
 
@@ -135,6 +164,7 @@ pub struct Gpu {
     device: wgpu::Device,
     queue: wgpu::Queue,
     pipeline: wgpu::ComputePipeline,
+    pipeline3: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     info: wgpu::AdapterInfo,
     max_binding: u64,
@@ -173,6 +203,10 @@ impl Gpu {
             label: Some("decode2d"),
             source: wgpu::ShaderSource::Wgsl(SHADER.into()),
         });
+        let module3 = device.create_shader_module(wgpu::ShaderModuleDescriptor {
+            label: Some("decode3d"),
+            source: wgpu::ShaderSource::Wgsl(SHADER_3D.into()),
+        });
         let entry = |binding: u32, ty: wgpu::BufferBindingType| wgpu::BindGroupLayoutEntry {
             binding,
             visibility: wgpu::ShaderStages::COMPUTE,
@@ -207,11 +241,21 @@ impl Gpu {
             compilation_options: Default::default(),
             cache: None,
         });
+        // The 3D kernel binds the same five buffers: one layout for both.
+        let pipeline3 = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+            label: Some("decode3d"),
+            layout: Some(&pipeline_layout),
+            module: &module3,
+            entry_point: Some("main"),
+            compilation_options: Default::default(),
+            cache: None,
+        });
         let max_binding = limits.max_storage_buffer_binding_size;
         Ok(Gpu {
             device,
             queue,
             pipeline,
+            pipeline3,
             layout,
             info,
             max_binding,
@@ -270,8 +314,142 @@ impl Gpu {
                 valid: table.valid,
                 ..Params::default()
             },
+            volume: None,
             bytes,
         })
+    }
+
+    /// Uploads a 3D octree operator (IFS3D).
+    pub fn upload_volume(&self, op: &OctreeOperator) -> Result<GpuOperator, GpuError> {
+        let (lut, cell) = op.lookup();
+        let mut cells: Vec<f32> = Vec::with_capacity(op.cells().len() * 12);
+        for c in op.cells() {
+            cells.extend_from_slice(&[c.c[0], c.c[1], c.c[2], c.contrast]);
+            cells.extend_from_slice(&[c.coef[0], c.coef[1], c.coef[2], c.offset]);
+            cells.extend(c.perm.map(|p| f32::from_bits(p as u32)));
+            cells.push(0.0);
+        }
+        let bytes = lut.len() * 4 + cells.len() * 4;
+        if (lut.len() * 4) as u64 > self.max_binding || (cells.len() * 4) as u64 > self.max_binding
+        {
+            return Err(GpuError::TooLarge(format!(
+                "octree tables of {bytes} bytes exceed a binding of {} bytes",
+                self.max_binding
+            )));
+        }
+        let init = |label, contents: &[u8]| {
+            self.device
+                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                    label: Some(label),
+                    contents,
+                    usage: wgpu::BufferUsages::STORAGE,
+                })
+        };
+        let (lo, hi) = op.invariant_interval();
+        let frame = op.frame()[0];
+        Ok(GpuOperator {
+            lut: init("lut3", bytemuck::cast_slice(lut)),
+            pieces: init("cells3", bytemuck::cast_slice(&cells)),
+            params: Params::default(),
+            volume: Some(Params3 {
+                seed: (lo + hi) * 0.5,
+                half: (hi - lo) * 0.5,
+                side: (frame / cell as f32) as u32,
+                inv_cell: 1.0 / cell as f32,
+                valid: op.valid()[0],
+                ..Params3::default()
+            }),
+            bytes,
+        })
+    }
+
+    /// Continuous decoding of 3D points in unit coordinates (normalised values), like
+    /// `decode::points` on the octree operator.
+    pub fn volume_points(
+        &self,
+        op: &GpuOperator,
+        points: &[[f32; 3]],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Result<Vec<PointValue>, GpuError> {
+        let base = op
+            .volume
+            .ok_or_else(|| GpuError::Device("not a volume operator".into()))?;
+        let mut out = Vec::with_capacity(points.len());
+        for chunk in points.chunks(self.chunk) {
+            let params = Params3 {
+                count: chunk.len() as u32,
+                iterations,
+                tolerance,
+                mode: 0,
+                ..base
+            };
+            out.extend(self.dispatch_with(
+                &self.pipeline3,
+                op,
+                chunk.len(),
+                &|row| bytemuck::bytes_of(&Params3 { row, ..params }).to_vec(),
+                bytemuck::cast_slice(chunk),
+            )?);
+        }
+        Ok(out)
+    }
+
+    /// Continuous decoding of a box `[lo, hi]` of the unit cube at `dims` samples per axis,
+    /// corners included (x fastest), like `decode::volume_window`; the points are made on the
+    /// device.
+    pub fn volume_grid(
+        &self,
+        op: &GpuOperator,
+        lo: [f32; 3],
+        hi: [f32; 3],
+        dims: [u32; 3],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Result<Vec<PointValue>, GpuError> {
+        let base = op
+            .volume
+            .ok_or_else(|| GpuError::Device("not a volume operator".into()))?;
+        let step: [f32; 3] = std::array::from_fn(|a| {
+            if dims[a] < 2 {
+                0.0
+            } else {
+                (hi[a] - lo[a]) / (dims[a] - 1) as f32
+            }
+        });
+        let lo: [f32; 3] = std::array::from_fn(|a| {
+            if dims[a] < 2 {
+                0.5 * (lo[a] + hi[a])
+            } else {
+                lo[a]
+            }
+        });
+        let total = dims.iter().map(|&d| d as usize).product::<usize>();
+        let mut out = Vec::with_capacity(total);
+        let mut first = 0usize;
+        while first < total {
+            let count = (total - first).min(self.chunk);
+            let params = Params3 {
+                count: count as u32,
+                first: first as u32,
+                iterations,
+                tolerance,
+                mode: 1,
+                dims,
+                lo,
+                step,
+                ..base
+            };
+            out.extend(self.dispatch_with(
+                &self.pipeline3,
+                op,
+                count,
+                &|row| bytemuck::bytes_of(&Params3 { row, ..params }).to_vec(),
+                &[0u8; 16],
+            )?);
+            first += count;
+        }
+        Ok(out)
     }
 
     /// Continuous decoding of points in unit coordinates (normalised values), like
@@ -357,21 +535,38 @@ impl Gpu {
     fn dispatch(
         &self,
         op: &GpuOperator,
-        mut params: Params,
+        params: Params,
         points: &[u8],
     ) -> Result<Vec<PointValue>, GpuError> {
-        let count = params.count as usize;
+        self.dispatch_with(
+            &self.pipeline,
+            op,
+            params.count as usize,
+            &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
+            points,
+        )
+    }
+
+    /// One dispatch of `count` points through `pipeline`; `uniform(row)` makes the uniform
+    /// bytes given the points per row of the dispatch grid.
+    fn dispatch_with(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        op: &GpuOperator,
+        count: usize,
+        uniform: &dyn Fn(u32) -> Vec<u8>,
+        points: &[u8],
+    ) -> Result<Vec<PointValue>, GpuError> {
         if count == 0 {
             return Ok(Vec::new());
         }
-        let groups = (params.count).div_ceil(WORKGROUP);
+        let groups = (count as u32).div_ceil(WORKGROUP);
         let gx = groups.min(65_535);
         let gy = groups.div_ceil(gx);
-        params.row = gx * WORKGROUP;
         let dev = &self.device;
         let uniform = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
             label: Some("params"),
-            contents: bytemuck::bytes_of(&params),
+            contents: &uniform(gx * WORKGROUP),
             usage: wgpu::BufferUsages::UNIFORM,
         });
         let input = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
@@ -426,7 +621,7 @@ impl Gpu {
                 label: Some("decode2d"),
                 timestamp_writes: None,
             });
-            pass.set_pipeline(&self.pipeline);
+            pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(gx, gy, 1);
         }

@@ -199,3 +199,49 @@ fn windows_and_reprojected_tiles_agree_with_the_cpu() {
     );
     close("zoom-14 tile", &decode::points(op, &pts, 10, 0.0), &got);
 }
+
+#[test]
+fn volume_points_and_boxes_agree_with_the_cpu() {
+    use fractile_codec::mesh::Mesh;
+    use fractile_codec::volume::{MeshSettings, encode_mesh};
+    let mut gpu = gpu();
+    for (file, grid) in [("mesh/fandisk.off", 48), ("mesh/knot2.off", 40)] {
+        let mesh = Mesh::read(&data(file)).unwrap();
+        let s = MeshSettings {
+            grid,
+            ..MeshSettings::default()
+        };
+        let asset = encode_mesh(&mesh, &s, file).unwrap().asset;
+        let op = &asset.volume.as_ref().unwrap().operator;
+        let dev = gpu.upload_volume(op).unwrap();
+        // Scattered points in the unit cube, one chunk and several.
+        for (count, chunk) in [(5usize, 1 << 22), (20_001, 1 << 22), (50_000, 12_345)] {
+            gpu.set_chunk(chunk);
+            let pts: Vec<[f32; 3]> = scatter(count, 7)
+                .iter()
+                .zip(scatter(count, 11))
+                .map(|(a, b)| [a[0], a[1], b[0]])
+                .collect();
+            for tolerance in [0.0, 1e-3] {
+                let cpu = decode::points(op, &pts, 12, tolerance);
+                let got = gpu.volume_points(&dev, &pts, 12, tolerance).unwrap();
+                close(&format!("{file} n={count} tol={tolerance}"), &cpu, &got);
+            }
+        }
+        // A box at a resolution above the grid, made on the device, chunked.
+        gpu.set_chunk(40_000);
+        let (lo, hi, dims) = ([0.1f32, 0.2, 0.15], [0.8f32, 0.7, 0.9], [61usize, 45, 66]);
+        let (cpu, bound) = decode::volume_window(op, lo, hi, dims, 12, 0.0);
+        let got = gpu
+            .volume_grid(&dev, lo, hi, dims.map(|d| d as u32), 12, 0.0)
+            .unwrap();
+        assert_eq!(got.len(), cpu.len());
+        let worst = cpu
+            .iter()
+            .zip(&got)
+            .map(|(c, g)| (c - g.value).abs())
+            .fold(0.0f32, f32::max);
+        assert!(worst <= 1e-4, "{file} box: worst {worst}");
+        assert!(got.iter().all(|g| g.error_bound <= bound + 1e-6));
+    }
+}

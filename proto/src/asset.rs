@@ -113,7 +113,11 @@ impl AssetMeta {
     /// Size of the source at its own sample type, the denominator-free baseline for ratios.
     /// Volumes are cubes: `width` samples a side (`height` equals it).
     pub fn source_bytes(&self) -> u64 {
-        let depth = if self.kind == AssetKind::Volume { self.width as u64 } else { 1 };
+        let depth = if self.kind == AssetKind::Volume {
+            self.width as u64
+        } else {
+            1
+        };
         self.width as u64
             * self.height as u64
             * depth

@@ -14,8 +14,8 @@ use axum::routing::{get, post};
 use axum::{Json, Router};
 use fractile_codec::geo;
 use fractile_proto::{
-    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, PointResult, PointsRequest,
-    PointsResponse, TileJson,
+    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, PointResult,
+    PointsRequest, PointsResponse, TileJson,
 };
 use serde::Deserialize;
 use tokio::sync::Semaphore;
@@ -688,7 +688,9 @@ async fn point_unit(
 ) -> Result<Response, AppError> {
     let a = state.store.get(&id)?;
     if a.asset.meta.kind == AssetKind::Volume {
-        return volume_point(&state, a, &q).await.map(|r| Json(r).into_response());
+        return volume_point(&state, a, &q)
+            .await
+            .map(|r| Json(r).into_response());
     }
     if q.z.is_some() {
         return Err(AppError::bad_request(
@@ -728,7 +730,10 @@ async fn volume_point(
     };
     let p = [x, y, z];
     if p.iter().any(|v| !v.is_finite()) {
-        return Err(AppError::bad_request("bad_point", "coordinates must be finite"));
+        return Err(AppError::bad_request(
+            "bad_point",
+            "coordinates must be finite",
+        ));
     }
     let (n, tolerance) = iterations_for(state, &a, q.iterations, q.tolerance)?;
     let sample = decode(state, move || a.asset.distances(&[p], n, tolerance))
@@ -1092,12 +1097,23 @@ async fn volume_mesh(
     } else if n.pow(3) > MAX_VOLUME_SAMPLES {
         return Err(AppError::bad_request(
             "too_many_samples",
-            format!("resolution {n} takes {} samples, over {MAX_VOLUME_SAMPLES}", n.pow(3)),
+            format!(
+                "resolution {n} takes {} samples, over {MAX_VOLUME_SAMPLES}",
+                n.pow(3)
+            ),
         ));
     }
     let (iterations, tolerance) = iterations_for(state, &a, q.iterations, q.tolerance)?;
+    let (choice, gpu) = (backend_for(state, q.backend.as_deref())?, state.gpu.clone());
     let out = decode(state, move || {
-        let (m, bound) = a.asset.volume_mesh(bbox, n, iterations, tolerance)?;
+        let on_gpu = |lo, hi, dims: [usize; 3], n, t| {
+            gpu.as_deref()
+                .filter(|g| g.takes(choice, dims.iter().product()))
+                .and_then(|g| g.volume_grid(&a, (lo, hi, dims), n, t))
+        };
+        let (m, bound) = a
+            .asset
+            .volume_mesh_with(bbox, n, iterations, tolerance, Some(&on_gpu))?;
         let (ct, body) = match format.as_str() {
             "obj" => ("text/plain", m.to_obj()),
             "ply" => ("application/octet-stream", m.to_ply()),
@@ -1110,10 +1126,7 @@ async fn volume_mesh(
     Ok((
         [
             (header::CONTENT_TYPE, out.0.to_string()),
-            (
-                "x-error-bound".parse().expect("name"),
-                format!("{}", out.2),
-            ),
+            ("x-error-bound".parse().expect("name"), format!("{}", out.2)),
         ],
         out.1,
     )

@@ -81,6 +81,46 @@ impl GpuBackend {
         }
     }
 
+    /// Continuous decoding of a volume's box (unit coordinates, corners included); `None`
+    /// (logged) when the device fails, for the caller to use the CPU.
+    pub fn volume_grid(
+        &self,
+        a: &StoredAsset,
+        (lo, hi, dims): ([f32; 3], [f32; 3], [usize; 3]),
+        iterations: u32,
+        tolerance: f32,
+    ) -> Option<(Vec<f32>, f32)> {
+        let key = (a.id.clone(), a.hash, usize::MAX);
+        let op = match self.resident.get(&key) {
+            Some(op) => op,
+            None => match self.gpu.upload_volume(&a.asset.volume.as_ref()?.operator) {
+                Ok(op) => {
+                    let op = Arc::new(op);
+                    self.resident.insert(key, op.clone());
+                    op
+                }
+                Err(e) => {
+                    tracing::warn!("GPU upload of {} failed, decoding on the CPU: {e}", a.id);
+                    return None;
+                }
+            },
+        };
+        let dims = dims.map(|d| d as u32);
+        match self
+            .gpu
+            .volume_grid(&op, lo, hi, dims, iterations, tolerance)
+        {
+            Ok(v) => {
+                let bound = v.iter().fold(0.0f32, |m, p| m.max(p.error_bound));
+                Some((v.into_iter().map(|p| p.value).collect(), bound))
+            }
+            Err(e) => {
+                tracing::warn!("GPU decode of {} failed, decoding on the CPU: {e}", a.id);
+                None
+            }
+        }
+    }
+
     /// Continuous decoding of one plane's points; `None` (logged) when the device fails, for
     /// the caller to use the CPU.
     pub fn points(

@@ -206,7 +206,9 @@ fn parse_box3(s: &str) -> Result<([f64; 3], [f64; 3]), String> {
         .map(|x| x.trim().parse::<f64>().map_err(|e| format!("{x:?}: {e}")))
         .collect::<Result<_, _>>()?;
     match v[..] {
-        [x0, y0, z0, x1, y1, z1] if x1 > x0 && y1 > y0 && z1 > z0 => Ok(([x0, y0, z0], [x1, y1, z1])),
+        [x0, y0, z0, x1, y1, z1] if x1 > x0 && y1 > y0 && z1 > z0 => {
+            Ok(([x0, y0, z0], [x1, y1, z1]))
+        }
         _ => Err("expected x0,y0,z0,x1,y1,z1 with max > min on every axis".into()),
     }
 }
@@ -405,7 +407,11 @@ fn encode_volume(a: &EncodeArgs) -> Result<()> {
         // 0.08 voxel RMS collage error: the bench's setting, past the seed's quality bars.
         _ => Partition3::Tolerance((0.08 / (2.0 * a.band)) as f32),
     };
-    let name = a.input.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    let name = a
+        .input
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
     let enc = fractile_codec::volume::encode_mesh(&mesh, &s, &name)?;
     fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
     let file_bytes = std::fs::metadata(&a.input).map(|m| m.len()).unwrap_or(0);
@@ -457,7 +463,10 @@ fn run_mesh(a: MeshArgs) -> Result<()> {
         .map(str::to_ascii_lowercase)
         .unwrap_or_default();
     if !["obj", "ply", "glb"].contains(&ext.as_str()) {
-        bail!("output {} must end in .obj, .ply or .glb", a.output.display());
+        bail!(
+            "output {} must end in .obj, .ply or .glb",
+            a.output.display()
+        );
     }
     let started = Instant::now();
     let (mesh, bound) = asset.volume_mesh(a.bbox, resolution, a.iterations, 0.0)?;
@@ -616,7 +625,10 @@ fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractile_codec::En
 fn run_decode(a: DecodeArgs) -> Result<()> {
     let asset = Asset::read(&a.asset)?;
     if asset.volume.is_some() {
-        bail!("{} is a volume: extract its surface with `fractile mesh`", a.asset.display());
+        bail!(
+            "{} is a volume: extract its surface with `fractile mesh`",
+            a.asset.display()
+        );
     }
     let (sw, sh) = (asset.meta.width as f32, asset.meta.height as f32);
     let window = a.window.unwrap_or([0.0, 0.0, 1.0, 1.0]);
@@ -766,8 +778,15 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
     let asset = Asset::read(path)?;
     let bytes = std::fs::metadata(path).context("asset size")?.len();
     let m = &asset.meta;
-    let ranges: usize = asset.planes.iter().map(|p| p.operator.transforms()).sum::<usize>()
-        + asset.volume.as_ref().map_or(0, |v| v.operator.leaves().len());
+    let ranges: usize = asset
+        .planes
+        .iter()
+        .map(|p| p.operator.transforms())
+        .sum::<usize>()
+        + asset
+            .volume
+            .as_ref()
+            .map_or(0, |v| v.operator.leaves().len());
     let info = json!({
         "kind": format!("{:?}", m.kind), "width": m.width, "height": m.height, "channels": m.channels,
         "colour": format!("{:?}", m.colour), "sample": format!("{:?}", m.sample), "units": m.units,

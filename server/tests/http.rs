@@ -997,6 +997,51 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
         (s, json(&body)["code"].as_str()),
         (StatusCode::BAD_REQUEST, Some("gpu_unavailable"))
     );
+    // A volume's mesh on each backend: the same triangles, vertices within rounding.
+    let mesh_of = |backend: &'static str| {
+        let st = st.clone();
+        async move {
+            let uri = format!(
+                "/v1/assets/fandisk/mesh?format=obj&resolution=48&iterations=12&backend={backend}"
+            );
+            let resp = fractile_server::app(st)
+                .oneshot(Request::get(uri).body(Body::empty()).unwrap())
+                .await
+                .unwrap();
+            assert_eq!(resp.status(), StatusCode::OK);
+            let text = String::from_utf8(
+                resp.into_body()
+                    .collect()
+                    .await
+                    .unwrap()
+                    .to_bytes()
+                    .to_vec(),
+            )
+            .unwrap();
+            text.lines()
+                .filter_map(|l| l.strip_prefix("v "))
+                .map(|l| {
+                    l.split(' ')
+                        .map(|x| x.parse::<f32>().unwrap())
+                        .collect::<Vec<_>>()
+                })
+                .collect::<Vec<_>>()
+        }
+    };
+    let (vc, vg) = (mesh_of("cpu").await, mesh_of("gpu").await);
+    // A sample within rounding of the surface may fall on either side on either device and
+    // change a few triangles: then only the counts can be compared.
+    let (a, b) = (vc.len() as f64, vg.len() as f64);
+    assert!((a - b).abs() <= 0.005 * a, "{a} vs {b} vertices");
+    let worst = if vc.len() != vg.len() {
+        0.0
+    } else {
+        vc.iter()
+            .zip(&vg)
+            .flat_map(|(a, b)| a.iter().zip(b).map(|(x, y)| (x - y).abs()))
+            .fold(0.0f32, f32::max)
+    };
+    assert!(worst < 1e-3, "vertex difference {worst}");
 }
 
 #[tokio::test]
@@ -1043,19 +1088,30 @@ async fn volume_meshes_points_and_refusals() {
     // vertices are dense), within a few voxels of 40.
     let src = fractile_codec::mesh::Mesh::read(&data("mesh/fandisk.off")).unwrap();
     let (lo, hi) = src.bounds();
-    let diag = (0..3).map(|k| ((hi[k] - lo[k]) as f64).powi(2)).sum::<f64>().sqrt();
+    let diag = (0..3)
+        .map(|k| ((hi[k] - lo[k]) as f64).powi(2))
+        .sum::<f64>()
+        .sqrt();
     for v in verts.iter().step_by(301) {
         let near = src
             .positions
             .iter()
-            .map(|p| (0..3).map(|k| (p[k] as f64 - v[k]).powi(2)).sum::<f64>().sqrt())
+            .map(|p| {
+                (0..3)
+                    .map(|k| (p[k] as f64 - v[k]).powi(2))
+                    .sum::<f64>()
+                    .sqrt()
+            })
             .fold(f64::INFINITY, f64::min);
         assert!(near < 0.06 * diag, "{v:?} is {near} from the source");
     }
     // A box of it, as GLB.
     let c: Vec<f64> = (0..3).map(|k| 0.5 * (lo[k] + hi[k]) as f64).collect();
     let bbox = format!("{},{},{},{},{},{}", lo[0], lo[1], lo[2], c[0], c[1], c[2]);
-    let (s, h, b) = get(&format!("/v1/assets/fandisk/mesh?bbox={bbox}&resolution=32")).await;
+    let (s, h, b) = get(&format!(
+        "/v1/assets/fandisk/mesh?bbox={bbox}&resolution=32"
+    ))
+    .await;
     assert_eq!(s, StatusCode::OK);
     assert_eq!(h[header::CONTENT_TYPE], "model/gltf-binary");
     assert_eq!(&b[..4], b"glTF");
@@ -1077,7 +1133,10 @@ async fn volume_meshes_points_and_refusals() {
         ("/v1/assets/fandisk/tilejson.json", "volume_asset"),
         ("/v1/assets/fandisk/mesh?bbox=0,0,1,1", "bad_bbox"),
         ("/v1/assets/fandisk/mesh?resolution=400", "too_many_samples"),
-        ("/v1/assets/fandisk/mesh?resolution=100000", "bad_resolution"),
+        (
+            "/v1/assets/fandisk/mesh?resolution=100000",
+            "bad_resolution",
+        ),
         ("/v1/assets/fandisk/point?x=0&y=0", "bad_point"),
         ("/v1/assets/jacksboro/point?x=0.5&y=0.5&z=1", "bad_point"),
     ] {
