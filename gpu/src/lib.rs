@@ -319,6 +319,44 @@ impl Gpu {
         })
     }
 
+    /// Seconds the device takes to decode a `width x height` window of the whole unit square
+    /// (pixel centres, `iterations` steps), results left on the device: the kernel's time plus
+    /// one submission's overhead, without the readback that [`Gpu::grid`] adds. For the bench.
+    pub fn kernel_seconds(
+        &self,
+        op: &GpuOperator,
+        width: u32,
+        height: u32,
+        iterations: u32,
+    ) -> Result<f64, GpuError> {
+        let total = width as usize * height as usize;
+        let start = std::time::Instant::now();
+        let mut first = 0usize;
+        while first < total {
+            let count = (total - first).min(self.chunk);
+            let params = Params {
+                count: count as u32,
+                first: first as u32,
+                iterations,
+                mode: 1,
+                width,
+                a: [0.0; 2],
+                b: [1.0 / width as f32, 1.0 / height as f32],
+                ..op.params
+            };
+            self.run(
+                &self.pipeline,
+                op,
+                count,
+                &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
+                &[0u8; 16],
+                false,
+            )?;
+            first += count;
+        }
+        Ok(start.elapsed().as_secs_f64())
+    }
+
     /// Uploads a 3D octree operator (IFS3D).
     pub fn upload_volume(&self, op: &OctreeOperator) -> Result<GpuOperator, GpuError> {
         let (lut, cell) = op.lookup();
@@ -557,6 +595,20 @@ impl Gpu {
         uniform: &dyn Fn(u32) -> Vec<u8>,
         points: &[u8],
     ) -> Result<Vec<PointValue>, GpuError> {
+        self.run(pipeline, op, count, uniform, points, true)
+    }
+
+    /// Records, submits and (with `read`) reads back one dispatch. Without `read` it waits for
+    /// the device to finish and returns nothing: what [`Gpu::kernel_seconds`] times.
+    fn run(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        op: &GpuOperator,
+        count: usize,
+        uniform: &dyn Fn(u32) -> Vec<u8>,
+        points: &[u8],
+        read: bool,
+    ) -> Result<Vec<PointValue>, GpuError> {
         if count == 0 {
             return Ok(Vec::new());
         }
@@ -624,6 +676,12 @@ impl Gpu {
             pass.set_pipeline(pipeline);
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(gx, gy, 1);
+        }
+        if !read {
+            self.queue.submit([encoder.finish()]);
+            dev.poll(wgpu::PollType::wait_indefinitely())
+                .map_err(|e| GpuError::Readback(e.to_string()))?;
+            return Ok(Vec::new());
         }
         encoder.copy_buffer_to_buffer(&results, 0, &readback, 0, size);
         self.queue.submit([encoder.finish()]);
