@@ -631,3 +631,45 @@ async fn view_fetches_nearest_first_within_each_tolerance() {
         "{near:?} {far:?}"
     );
 }
+
+#[tokio::test]
+async fn volume_surfaces_and_distances_through_the_client() {
+    use fractile_client::{MeshFormat, VolumeMeshRequest};
+    let c = client();
+    let v = c.asset("fandisk").await.unwrap();
+    assert_eq!(v.kind, AssetKind::Volume);
+    assert_eq!(v.codec, "ifs3d-octree");
+    // The whole surface at two resolutions: more triangles above the encoded grid, and the
+    // bound reported with each.
+    let req = |resolution| VolumeMeshRequest {
+        resolution: Some(resolution),
+        format: MeshFormat::Ply,
+        ..Default::default()
+    };
+    let count = |b: &[u8]| -> usize {
+        let head = String::from_utf8_lossy(&b[..b.len().min(400)]).into_owned();
+        head.lines()
+            .find_map(|l| l.strip_prefix("element face "))
+            .unwrap()
+            .parse()
+            .unwrap()
+    };
+    let coarse = c.volume_mesh("fandisk", &req(48)).await.unwrap();
+    let fine = c.volume_mesh("fandisk", &req(96)).await.unwrap();
+    assert!(count(&fine.body) > 3 * count(&coarse.body));
+    assert!(coarse.error_bound >= 0.0 && coarse.error_bound.is_finite());
+    // Distances: about zero on a vertex of the source, the band far from it, 404 outside.
+    let mesh = fractile_codec::mesh::Mesh::read(&fractile_e2e::data("mesh/fandisk.off")).unwrap();
+    let p = mesh.positions[1234].map(f64::from);
+    let band = v.value_range[1];
+    let d = c.distance("fandisk", p, Some(20)).await.unwrap();
+    assert!(d.distance.unwrap().abs() < 0.3 * band as f32, "{d:?}");
+    let e = c
+        .distance("fandisk", [1e6, 0.0, 0.0], None)
+        .await
+        .unwrap_err();
+    assert_eq!(e.code(), Some("outside"));
+    // 2D requests on a volume are refused with the code that says why.
+    let e = c.point_unit("fandisk", 0.5, 0.5, None).await.unwrap_err();
+    assert_eq!(e.code(), Some("bad_point"));
+}

@@ -17,8 +17,8 @@ use std::time::{Duration, Instant};
 
 pub use error::ClientError;
 pub use fractile_proto::{
-    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, ErrorBody, PointResult, PointsRequest,
-    PointsResponse, TileJson,
+    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, ErrorBody, PointResult,
+    PointsRequest, PointsResponse, TileJson,
 };
 use reqwest::header;
 pub use tile::{Tile, TileAddress, TileEncoding, TileRequest};
@@ -130,6 +130,21 @@ pub struct MeshRequest {
     /// Exactly this many steps.
     pub iterations: Option<u32>,
     /// Per-point stopping tolerance in value units.
+    pub tolerance: Option<f32>,
+    /// File format.
+    pub format: MeshFormat,
+}
+
+/// A mesh of a volume asset (IFS3D): `GET /v1/assets/{id}/mesh` with a 3D box.
+#[derive(Clone, Debug, Default)]
+pub struct VolumeMeshRequest {
+    /// `[x0, y0, z0, x1, y1, z1]` in the mesh's units (`None`: the whole grid).
+    pub bbox: Option<[f64; 6]>,
+    /// Samples along the box's longest side (server default: the encoded grid).
+    pub resolution: Option<u32>,
+    /// Exactly this many steps.
+    pub iterations: Option<u32>,
+    /// Per-sample stopping tolerance, world units.
     pub tolerance: Option<f32>,
     /// File format.
     pub format: MeshFormat,
@@ -396,6 +411,24 @@ impl Client {
             .await
     }
 
+    /// `GET /v1/assets/{id}/point?x=&y=&z=`: the signed distance of a volume asset at a world
+    /// point, with its bound.
+    pub async fn distance(
+        &self,
+        id: &str,
+        p: [f64; 3],
+        iterations: Option<u32>,
+    ) -> Result<DistanceResult, ClientError> {
+        let q = query(&[
+            ("x", Some(p[0].to_string())),
+            ("y", Some(p[1].to_string())),
+            ("z", Some(p[2].to_string())),
+            ("iterations", iterations.map(|n| n.to_string())),
+        ]);
+        self.get_json(&self.asset_path(id, &format!("/point{q}"))?)
+            .await
+    }
+
     /// `POST /v1/assets/{id}/points`: a batch, in JSON or binary.
     pub async fn points(
         &self,
@@ -483,6 +516,35 @@ impl Client {
             ("format", Some(req.format.name().to_string())),
             ("backend", self.backend.clone()),
         ]);
+        self.get_mesh(id, &q).await
+    }
+
+    /// `GET /v1/assets/{id}/mesh` of a volume asset: its surface in a 3D box.
+    pub async fn volume_mesh(
+        &self,
+        id: &str,
+        req: &VolumeMeshRequest,
+    ) -> Result<MeshFile, ClientError> {
+        let q = query(&[
+            (
+                "bbox",
+                req.bbox.map(|b| {
+                    b.iter()
+                        .map(|v| v.to_string())
+                        .collect::<Vec<_>>()
+                        .join(",")
+                }),
+            ),
+            ("resolution", req.resolution.map(|n| n.to_string())),
+            ("iterations", req.iterations.map(|n| n.to_string())),
+            ("tolerance", req.tolerance.map(|t| t.to_string())),
+            ("format", Some(req.format.name().to_string())),
+            ("backend", self.backend.clone()),
+        ]);
+        self.get_mesh(id, &q).await
+    }
+
+    async fn get_mesh(&self, id: &str, q: &str) -> Result<MeshFile, ClientError> {
         let r = self
             .send(
                 self.http

@@ -9,7 +9,8 @@
 //!
 //! `cargo bench -p fractile-codec --bench volume`. Meshes come from `../shared/data/mesh` when it
 //! is there (bunny and dragon are not in the repo), else from `testdata/mesh`.
-//! `FRACTILE_TOL` (voxels) overrides the collage tolerance of every row.
+//! `FRACTILE_TOL` (voxels) overrides the collage tolerance of every row, `FRACTILE_MIN` the
+//! smallest range (with four levels), `FRACTILE_ONLY=bunny.off:64` runs one row.
 
 use std::path::{Path, PathBuf};
 
@@ -42,7 +43,18 @@ fn main() {
         "| mesh | grid | bytes | ratio vs i8 | vs f32 | vs mesh file | encode s (field) | PSNR dB | in band | Chamfer % diag | Hausdorff % diag | maps |"
     );
     println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
+    // FRACTILE_ONLY=name:grid runs one row (tuning).
+    let only = std::env::var("FRACTILE_ONLY").ok();
+    let min_size: Option<u32> = std::env::var("FRACTILE_MIN")
+        .ok()
+        .and_then(|v| v.parse().ok());
     for &(name, grid, tol) in rows {
+        if only
+            .as_ref()
+            .is_some_and(|o| *o != format!("{name}:{grid}"))
+        {
+            continue;
+        }
         let Some(path) = find(name) else {
             println!("| {name} | {grid} | (not found) | | | | | | | | | |");
             continue;
@@ -54,6 +66,10 @@ fn main() {
             ..Default::default()
         };
         let tol = tol_override.unwrap_or(tol);
+        if let Some(m) = min_size {
+            s.codec.min_size = m;
+            s.codec.levels = 4;
+        }
         // Tolerance in voxels -> normalised units (the field spans 2 band voxels).
         s.codec.partition = Partition3::Tolerance((tol / (2.0 * s.band)) as f32);
         let enc = encode_mesh(&mesh, &s, name).expect("encode");
