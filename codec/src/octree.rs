@@ -503,6 +503,8 @@ pub enum Partition3 {
     Tolerance(f32),
     /// Split the range that gains most until there are this many maps (the seed's "quad N").
     Transforms(usize),
+    /// Every range at level `l` (side `min_size << l`): the seed's "const range R".
+    ConstRange(usize),
 }
 
 /// Encoder settings for a volume.
@@ -622,6 +624,10 @@ fn partition<'a>(
     // leaf[l][block] = true where the block is a leaf of the chosen partition.
     let mut leaf: Vec<Vec<bool>> = (0..=top).map(|l| vec![false; per(l).pow(3)]).collect();
     match mode {
+        Partition3::ConstRange(l) => {
+            let l = l.min(top);
+            leaf[l].iter_mut().for_each(|x| *x = true);
+        }
         Partition3::Tolerance(t) => {
             let mut stack: Vec<(usize, [usize; 3])> = Vec::new();
             let p = per(top);

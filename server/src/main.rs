@@ -195,6 +195,10 @@ struct MeshArgs {
     /// Inverse steps of continuous decoding.
     #[arg(long, default_value_t = 16)]
     iterations: u32,
+    /// Where the box is decoded: cpu, gpu (fails without an adapter), or auto (the GPU for a
+    /// million samples or more when a hardware adapter exists, else the CPU).
+    #[arg(long, value_enum, default_value_t = BackendArg::Auto)]
+    backend: BackendArg,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -390,8 +394,8 @@ fn is_mesh(p: &Path) -> bool {
 /// raster flags of range sizes and bits do not apply.
 fn encode_volume(a: &EncodeArgs) -> Result<()> {
     use fractile_codec::octree::Partition3;
-    if a.target_bpp.is_some() || a.const_range.is_some() || a.codec != "quadtree-pifs" {
-        bail!("meshes take --grid, --band and --tolerance (voxels) or --transforms");
+    if a.target_bpp.is_some() || a.codec != "quadtree-pifs" {
+        bail!("meshes take --grid, --band and --tolerance (voxels), --transforms or --const-range");
     }
     let mesh = fractile_codec::mesh::Mesh::read(&a.input)?;
     let mut s = fractile_codec::volume::MeshSettings {
@@ -399,11 +403,18 @@ fn encode_volume(a: &EncodeArgs) -> Result<()> {
         band: a.band,
         ..Default::default()
     };
-    s.codec.partition = match (a.tolerance, a.transforms) {
-        (Some(t), _) if !(t.is_finite() && t > 0.0) => bail!("--tolerance {t} must be positive"),
+    s.codec.partition = match (a.tolerance, a.transforms, a.const_range) {
+        (Some(t), ..) if !(t.is_finite() && t > 0.0) => bail!("--tolerance {t} must be positive"),
         // Voxels -> normalised units: the field spans 2 band voxels.
-        (Some(t), _) => Partition3::Tolerance(t / (2.0 * a.band) as f32),
-        (_, Some(n)) => Partition3::Transforms(n),
+        (Some(t), ..) => Partition3::Tolerance(t / (2.0 * a.band) as f32),
+        (_, Some(n), _) => Partition3::Transforms(n),
+        (.., Some(r)) => {
+            let sizes: Vec<u32> = (0..s.codec.levels).map(|l| s.codec.min_size << l).collect();
+            match sizes.iter().position(|&n| n == r) {
+                Some(l) => Partition3::ConstRange(l),
+                None => bail!("--const-range {r}: the octree's ranges are {sizes:?} voxels"),
+            }
+        }
         // 0.08 voxel RMS collage error: the bench's setting, past the seed's quality bars.
         _ => Partition3::Tolerance((0.08 / (2.0 * a.band)) as f32),
     };
@@ -469,7 +480,34 @@ fn run_mesh(a: MeshArgs) -> Result<()> {
         );
     }
     let started = Instant::now();
-    let (mesh, bound) = asset.volume_mesh(a.bbox, resolution, a.iterations, 0.0)?;
+    let samples = resolution.pow(3);
+    let gpu = match a.backend {
+        BackendArg::Cpu => None,
+        BackendArg::Gpu => Some(fractile_gpu::Gpu::new()?),
+        BackendArg::Auto if samples >= 1 << 20 => match fractile_gpu::Gpu::new() {
+            Ok(g) if !g.is_software() => Some(g),
+            Ok(_) => None,
+            Err(e) => {
+                eprintln!("fractile: no GPU ({e}), decoding on the CPU");
+                None
+            }
+        },
+        BackendArg::Auto => None,
+    };
+    let device = match &gpu {
+        Some(g) => Some((g, g.upload_volume(&volume.operator)?)),
+        None => None,
+    };
+    let on_gpu = |lo, hi, dims: [usize; 3], n, t| {
+        let (g, op) = device.as_ref()?;
+        let v = g
+            .volume_grid(op, lo, hi, dims.map(|d| d as u32), n, t)
+            .ok()?;
+        let bound = v.iter().fold(0.0f32, |m, p| m.max(p.error_bound));
+        Some((v.into_iter().map(|p| p.value).collect(), bound))
+    };
+    let (mesh, bound) =
+        asset.volume_mesh_with(a.bbox, resolution, a.iterations, 0.0, Some(&on_gpu))?;
     let body = match ext.as_str() {
         "obj" => mesh.to_obj(),
         "ply" => mesh.to_ply(),
@@ -479,6 +517,7 @@ fn run_mesh(a: MeshArgs) -> Result<()> {
     let report = json!({
         "output": a.output, "resolution": resolution, "vertices": mesh.positions.len(),
         "triangles": mesh.triangles.len(), "error_bound": bound, "seconds": started.elapsed().as_secs_f64(),
+        "backend": if device.is_some() { "gpu" } else { "cpu" },
     });
     if a.json {
         println!("{report}");

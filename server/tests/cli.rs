@@ -179,3 +179,96 @@ fn bad_input_gives_a_clear_error_and_no_output() {
     assert!(String::from_utf8_lossy(&bad.stderr).contains("powers of two"));
     assert!(!dir.join("y.fra").exists());
 }
+
+#[test]
+fn a_mesh_encodes_to_a_volume_and_back_to_a_closed_mesh() {
+    let dir = tempdir("mesh");
+    let asset = dir.join("knot.fra");
+    let enc = json(
+        &bin()
+            .arg("encode")
+            .arg(data("mesh/knot2.off"))
+            .args(["-o"])
+            .arg(&asset)
+            .args(["--grid", "40", "--json"])
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(enc["codec"], "ifs3d-octree");
+    assert_eq!(enc["grid"], 40);
+    let bytes = std::fs::metadata(&asset).unwrap().len();
+    assert_eq!(enc["bytes"].as_u64().unwrap(), bytes);
+    // The ratio against signed bytes is the grid's bytes over the file's.
+    let ratio = enc["ratio_i8"].as_f64().unwrap();
+    assert!(
+        (ratio - 64000.0 / bytes as f64).abs() < 1e-9 && ratio > 10.0,
+        "{enc}"
+    );
+    // The seed's "const range R": every range 4 voxels, more maps than the adaptive octree.
+    let fixed = json(
+        &bin()
+            .arg("encode")
+            .arg(data("mesh/knot2.off"))
+            .arg("-o")
+            .arg(dir.join("fixed.fra"))
+            .args(["--grid", "40", "--const-range", "4", "--json"])
+            .output()
+            .unwrap(),
+    );
+    // The 40-voxel grid is padded to a frame of 48 (a multiple of the 16-voxel top ranges).
+    assert_eq!(fixed["transforms"], 1728); // (48 / 4)^3
+    assert!(fixed["transforms"].as_u64() > enc["transforms"].as_u64());
+    // Meshes on both backends: the same surface; OBJ with normals.
+    let mut counts = Vec::new();
+    for backend in ["cpu", "gpu"] {
+        let obj = dir.join(format!("knot-{backend}.obj"));
+        let m = json(
+            &bin()
+                .arg("mesh")
+                .arg(&asset)
+                .arg("-o")
+                .arg(&obj)
+                .args(["--resolution", "64", "--json", "--backend", backend])
+                .output()
+                .unwrap(),
+        );
+        assert_eq!(m["backend"], backend);
+        let text = std::fs::read_to_string(&obj).unwrap();
+        let faces = text.lines().filter(|l| l.starts_with("f ")).count();
+        assert_eq!(faces as u64, m["triangles"].as_u64().unwrap());
+        assert!(text.contains("\nvn "));
+        counts.push(faces as f64);
+    }
+    assert!(
+        (counts[0] - counts[1]).abs() <= 0.005 * counts[0],
+        "{counts:?}"
+    );
+    // Errors a user can act on.
+    let out = bin()
+        .arg("mesh")
+        .arg(&asset)
+        .arg("-o")
+        .arg(dir.join("x.stl"))
+        .output()
+        .unwrap();
+    assert!(!out.status.success());
+    assert!(String::from_utf8_lossy(&out.stderr).contains(".obj, .ply or .glb"));
+    let out = bin()
+        .arg("decode")
+        .arg(&asset)
+        .arg("-o")
+        .arg(dir.join("x.png"))
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("fractile mesh"));
+    let out = bin()
+        .arg("encode")
+        .arg(data("mesh/knot2.off"))
+        .arg("-o")
+        .arg(dir.join("y.fra"))
+        .args(["--const-range", "5"])
+        .output()
+        .unwrap();
+    assert!(String::from_utf8_lossy(&out.stderr).contains("ranges are [4, 8, 16]"));
+    let _ = std::fs::remove_dir_all(&dir);
+}
