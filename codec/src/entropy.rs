@@ -213,6 +213,69 @@ impl<'a> Decoder<'a> {
     }
 }
 
+/// One direction of the coder. The stream walks ([`crate::stream`], [`crate::octree`]) are one
+/// function each that codes in either direction, so that encoder and decoder cannot drift apart.
+pub enum Dir<'a, 'b> {
+    /// Writing: the values given are coded and returned.
+    Enc(&'a mut Encoder),
+    /// Reading: the values given are ignored and the decoded ones returned.
+    Dec(&'a mut Decoder<'b>),
+}
+
+impl Dir<'_, '_> {
+    /// Codes one bit.
+    pub fn bit(&mut self, p: &mut Bit, v: bool) -> bool {
+        match self {
+            Dir::Enc(e) => {
+                e.bit(p, v);
+                v
+            }
+            Dir::Dec(d) => d.bit(p),
+        }
+    }
+
+    /// Codes a value through a bit tree.
+    pub fn tree(&mut self, t: &mut BitTree, v: u32) -> u32 {
+        match self {
+            Dir::Enc(e) => {
+                e.tree(t, v);
+                v
+            }
+            Dir::Dec(d) => d.tree(t),
+        }
+    }
+
+    /// Codes a wide index (see [`WideIndex`]).
+    pub fn wide(&mut self, w: &mut WideIndex, v: u32) -> u32 {
+        let nlow = w.low.len() as u32;
+        let mut out = self.tree(&mut w.high, v >> nlow) << nlow;
+        for (i, bit) in w.low.iter_mut().enumerate() {
+            let shift = nlow - 1 - i as u32;
+            out |= u32::from(self.bit(bit, (v >> shift) & 1 == 1)) << shift;
+        }
+        out
+    }
+}
+
+/// An index of up to 32 bits (a domain's): its high bits through a bit tree of at most
+/// `tree_bits`, then one adaptive bit per remaining low bit. A full tree over 2^30 values would
+/// need gigabytes of contexts; the high bits carry what is predictable.
+pub struct WideIndex {
+    high: BitTree,
+    low: Vec<Bit>,
+}
+
+impl WideIndex {
+    /// Models for values in `0..2^bits`.
+    pub fn new(bits: u32, tree_bits: u32) -> Self {
+        let high = bits.min(tree_bits);
+        WideIndex {
+            high: BitTree::new(high),
+            low: vec![Bit::default(); (bits - high) as usize],
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -20,7 +20,7 @@ use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::entropy::{Bit, BitTree, Decoder, Encoder};
+use crate::entropy::{Bit, BitTree, Decoder, Dir, Encoder, WideIndex};
 use crate::operator::{Operator, Step, invariant_interval};
 use crate::transform::Quantiser;
 
@@ -85,7 +85,7 @@ impl OctreeHeader {
             ));
         }
         let top = (self.min_size as u64) << (self.levels - 1);
-        if self.frame == 0 || self.frame > 1024 || self.frame as u64 % top != 0 {
+        if self.frame == 0 || self.frame > 1024 || !(self.frame as u64).is_multiple_of(top) {
             return Err(format!(
                 "frame {} is not a multiple of the largest range side {top} (or over 1024)",
                 self.frame
@@ -341,8 +341,8 @@ struct Models {
     /// Offset index, context: level, constant map or not.
     offset: Vec<[BitTree; 2]>,
     isometry: Vec<BitTree>,
-    /// High bits of the domain index, then one adaptive bit per low bit (see `stream`).
-    domain: Vec<(BitTree, Vec<Bit>)>,
+    /// Domain index.
+    domain: Vec<WideIndex>,
 }
 
 const DOMAIN_TREE_BITS: u32 = 12;
@@ -362,42 +362,8 @@ impl Models {
                 .collect(),
             isometry: (0..levels).map(|_| BitTree::new(6)).collect(),
             domain: (0..levels)
-                .map(|l| {
-                    let bits = bits_for(h.lattice(l).pow(3));
-                    let high = bits.min(DOMAIN_TREE_BITS);
-                    (
-                        BitTree::new(high),
-                        vec![Bit::default(); (bits - high) as usize],
-                    )
-                })
+                .map(|l| WideIndex::new(bits_for(h.lattice(l).pow(3)), DOMAIN_TREE_BITS))
                 .collect(),
-        }
-    }
-}
-
-enum Dir<'a, 'b> {
-    Enc(&'a mut Encoder),
-    Dec(&'a mut Decoder<'b>),
-}
-
-impl Dir<'_, '_> {
-    fn bit(&mut self, p: &mut Bit, v: bool) -> bool {
-        match self {
-            Dir::Enc(e) => {
-                e.bit(p, v);
-                v
-            }
-            Dir::Dec(d) => d.bit(p),
-        }
-    }
-
-    fn tree(&mut self, t: &mut BitTree, v: u32) -> u32 {
-        match self {
-            Dir::Enc(e) => {
-                e.tree(t, v);
-                v
-            }
-            Dir::Dec(d) => d.tree(t),
         }
     }
 }
@@ -452,13 +418,7 @@ fn code(
                         if iso >= CUBE_ISOMETRIES {
                             return Err(format!("isometry {iso} out of range"));
                         }
-                        let (tree, low) = &mut m.domain[l];
-                        let nlow = low.len() as u32;
-                        dom = dir.tree(tree, map.domain >> nlow) << nlow;
-                        for (i, bit) in low.iter_mut().enumerate() {
-                            let shift = nlow - 1 - i as u32;
-                            dom |= u32::from(dir.bit(bit, (map.domain >> shift) & 1 == 1)) << shift;
-                        }
+                        dom = dir.wide(&mut m.domain[l], map.domain);
                         if dom as usize >= count {
                             return Err(format!(
                                 "domain index {dom} outside the lattice of {count}"
@@ -687,9 +647,9 @@ fn partition<'a>(
             let p = per(top);
             let mut heap = BinaryHeap::new();
             let mut count = p * p * p;
-            for i in 0..count {
+            for (i, is_leaf) in leaf[top].iter_mut().enumerate() {
                 let b = [i % p, i / p % p, i / (p * p)];
-                leaf[top][i] = true;
+                *is_leaf = true;
                 if top > 0 {
                     heap.push(Gain(gain(top, b), top, b));
                 }
@@ -975,6 +935,36 @@ mod tests {
             "mean |point - discrete| {}",
             diff / 200.0
         );
+    }
+
+    #[test]
+    fn a_budget_of_maps_is_kept_and_spent_where_it_pays() {
+        let n = 32;
+        let v = field(n);
+        let count = |p| {
+            let s = VolumeSettings {
+                partition: p,
+                ..Default::default()
+            };
+            let (_, _, op) = encode_field(&v, n, &s).unwrap();
+            let (d, _) =
+                crate::decode::discrete_volume(&op, [n; 3], crate::DiscreteOptions::fixed(20));
+            let mse = d
+                .iter()
+                .zip(&v)
+                .map(|(a, b)| ((a - b) as f64).powi(2))
+                .sum::<f64>();
+            (op.leaves().len(), mse)
+        };
+        let (few, mse_few) = count(Partition3::Transforms(120));
+        let (more, mse_more) = count(Partition3::Transforms(400));
+        // 8 top blocks, each split adds 7: the budget is never exceeded, and is used.
+        assert!(few <= 120 && few > 100, "{few}");
+        assert!(more <= 400 && more > 380, "{more}");
+        assert!(mse_more < mse_few, "{mse_more} {mse_few}");
+        // Const range: every range at one size.
+        let (all, _) = count(Partition3::ConstRange(0));
+        assert_eq!(all, (32 / 4usize).pow(3));
     }
 
     #[test]

@@ -48,7 +48,7 @@ impl DistanceField {
     /// The field of `mesh` on an `n^3` grid with distances clamped to `band_voxels` voxels.
     pub fn from_mesh(mesh: &Mesh, n: usize, band_voxels: f64) -> Result<DistanceField, Error> {
         mesh.check().map_err(Error::Input)?;
-        if !(band_voxels >= 1.0 && band_voxels <= 32.0) {
+        if !(1.0..=32.0).contains(&band_voxels) {
             return Err(Error::Settings(format!(
                 "band {band_voxels} voxels is not in 1..=32"
             )));
@@ -62,7 +62,7 @@ impl DistanceField {
         }
         let (lo, hi) = mesh.bounds();
         let extent = (0..3).map(|k| (hi[k] - lo[k]) as f64).fold(0.0, f64::max);
-        if !(extent > 0.0) {
+        if extent.is_nan() || extent <= 0.0 {
             return Err(Error::Input("the mesh has no extent".into()));
         }
         let voxel = extent / (n as f64 - 2.0 * margin);

@@ -8,7 +8,7 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::entropy::{Bit, BitTree, Decoder, Encoder};
+use crate::entropy::{Bit, BitTree, Decoder, Dir, Encoder, WideIndex};
 use crate::operator::{QuadtreeOperator, RangeMap};
 use crate::search::{Fit, lattice};
 use crate::transform::Quantiser;
@@ -130,9 +130,8 @@ struct Models {
     isometry: Vec<BitTree>,
     /// Slope indices of the planar offset term, x and y (context: level, constant map or not).
     slope: Vec<[[BitTree; 2]; 2]>,
-    /// High bits of the domain index (at most [`DOMAIN_TREE_BITS`]), then one adaptive bit per
-    /// remaining low bit: a full tree over 2^30 domains would need gigabytes of contexts.
-    domain: Vec<(BitTree, Vec<Bit>)>,
+    /// Domain index (high bits through a tree of at most [`DOMAIN_TREE_BITS`]).
+    domain: Vec<WideIndex>,
 }
 
 /// Largest bit tree for domain indices.
@@ -166,42 +165,9 @@ impl Models {
             domain: (0..levels)
                 .map(|l| {
                     let (c, r) = h.lattice(l);
-                    let bits = bits_for(c * r);
-                    let high = bits.min(DOMAIN_TREE_BITS);
-                    (
-                        BitTree::new(high),
-                        vec![Bit::default(); (bits - high) as usize],
-                    )
+                    WideIndex::new(bits_for(c * r), DOMAIN_TREE_BITS)
                 })
                 .collect(),
-        }
-    }
-}
-
-/// One direction of the coder.
-enum Dir<'a, 'b> {
-    Enc(&'a mut Encoder),
-    Dec(&'a mut Decoder<'b>),
-}
-
-impl Dir<'_, '_> {
-    fn bit(&mut self, p: &mut Bit, v: bool) -> bool {
-        match self {
-            Dir::Enc(e) => {
-                e.bit(p, v);
-                v
-            }
-            Dir::Dec(d) => d.bit(p),
-        }
-    }
-
-    fn tree(&mut self, t: &mut BitTree, v: u32) -> u32 {
-        match self {
-            Dir::Enc(e) => {
-                e.tree(t, v);
-                v
-            }
-            Dir::Dec(d) => d.tree(t),
         }
     }
 }
@@ -283,13 +249,7 @@ fn code(
                         return Err("a non-constant map at a size with no domains".into());
                     }
                     iso = dir.tree(&mut m.isometry[l], fit.isometry as u32) as u8;
-                    let (tree, low) = &mut m.domain[l];
-                    let nlow = low.len() as u32;
-                    dom = dir.tree(tree, fit.domain >> nlow) << nlow;
-                    for (i, bit) in low.iter_mut().enumerate() {
-                        let shift = nlow - 1 - i as u32;
-                        dom |= u32::from(dir.bit(bit, (fit.domain >> shift) & 1 == 1)) << shift;
-                    }
+                    dom = dir.wide(&mut m.domain[l], fit.domain);
                     if dom as usize >= dc * dr {
                         return Err(format!(
                             "domain index {dom} outside the lattice of {}",

@@ -142,7 +142,7 @@ pub fn encode_mesh(mesh: &Mesh, s: &MeshSettings, source: &str) -> Result<Encode
         .iter()
         .map(|&d| (-field.band + d as f64 * span) as f32)
         .collect();
-    let errors = crate::metrics::compare(&[field.values.clone()], &[world], None, span);
+    let errors = crate::metrics::compare(std::slice::from_ref(&field.values), &[world], None, span);
     let meta = AssetMeta {
         kind: AssetKind::Volume,
         width: n as u32,
@@ -331,7 +331,7 @@ impl Asset {
     ) -> Result<(Mesh, f32), Error> {
         let v = self.volume_or_err()?;
         let (lo, hi) = bbox.unwrap_or_else(|| v.bounds());
-        if (0..3).any(|a| !(hi[a] > lo[a]) || !lo[a].is_finite() || !hi[a].is_finite()) {
+        if (0..3).any(|a| !lo[a].is_finite() || !hi[a].is_finite() || hi[a] <= lo[a]) {
             return Err(Error::Settings(
                 "bbox must have max > min on every axis".into(),
             ));

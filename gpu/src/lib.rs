@@ -281,15 +281,12 @@ impl Gpu {
         self.chunk = points.clamp(1, CHUNK);
     }
 
-    /// Uploads a flattened operator.
-    pub fn upload(&self, table: &PieceTable) -> Result<GpuOperator, GpuError> {
-        let pieces: Vec<f32> = table.pieces.iter().flat_map(|p| p.to_array()).collect();
-        let bytes = table.device_bytes();
-        if (table.lut.len() * 4) as u64 > self.max_binding
-            || (pieces.len() * 4) as u64 > self.max_binding
-        {
+    /// The two storage buffers of an operator: its lookup map and its cells.
+    fn tables(&self, lut: &[u8], cells: &[u8]) -> Result<(wgpu::Buffer, wgpu::Buffer), GpuError> {
+        if lut.len() as u64 > self.max_binding || cells.len() as u64 > self.max_binding {
             return Err(GpuError::TooLarge(format!(
-                "operator tables of {bytes} bytes exceed a binding of {} bytes",
+                "operator tables of {} bytes exceed a binding of {} bytes",
+                lut.len() + cells.len(),
                 self.max_binding
             )));
         }
@@ -301,10 +298,21 @@ impl Gpu {
                     usage: wgpu::BufferUsages::STORAGE,
                 })
         };
+        Ok((init("lut", lut), init("cells", cells)))
+    }
+
+    /// Uploads a flattened operator.
+    pub fn upload(&self, table: &PieceTable) -> Result<GpuOperator, GpuError> {
+        let pieces: Vec<f32> = table.pieces.iter().flat_map(|p| p.to_array()).collect();
+        let bytes = table.device_bytes();
+        let (lut, pieces) = self.tables(
+            bytemuck::cast_slice(&table.lut),
+            bytemuck::cast_slice(&pieces),
+        )?;
         let (lo, hi) = table.interval;
         Ok(GpuOperator {
-            lut: init("lut", bytemuck::cast_slice(&table.lut)),
-            pieces: init("pieces", bytemuck::cast_slice(&pieces)),
+            lut,
+            pieces,
             params: Params {
                 seed: (lo + hi) * 0.5,
                 half: (hi - lo) * 0.5,
@@ -368,26 +376,12 @@ impl Gpu {
             cells.push(0.0);
         }
         let bytes = lut.len() * 4 + cells.len() * 4;
-        if (lut.len() * 4) as u64 > self.max_binding || (cells.len() * 4) as u64 > self.max_binding
-        {
-            return Err(GpuError::TooLarge(format!(
-                "octree tables of {bytes} bytes exceed a binding of {} bytes",
-                self.max_binding
-            )));
-        }
-        let init = |label, contents: &[u8]| {
-            self.device
-                .create_buffer_init(&wgpu::util::BufferInitDescriptor {
-                    label: Some(label),
-                    contents,
-                    usage: wgpu::BufferUsages::STORAGE,
-                })
-        };
+        let (lut, cells) = self.tables(bytemuck::cast_slice(lut), bytemuck::cast_slice(&cells))?;
         let (lo, hi) = op.invariant_interval();
         let frame = op.frame()[0];
         Ok(GpuOperator {
-            lut: init("lut3", bytemuck::cast_slice(lut)),
-            pieces: init("cells3", bytemuck::cast_slice(&cells)),
+            lut,
+            pieces: cells,
             params: Params::default(),
             volume: Some(Params3 {
                 seed: (lo + hi) * 0.5,

@@ -81,6 +81,31 @@ impl GpuBackend {
         }
     }
 
+    /// The resident operator of an asset's plane (`usize::MAX`: its volume), uploaded on first
+    /// use; `None` (logged) when the upload fails.
+    fn resident(
+        &self,
+        a: &StoredAsset,
+        plane: usize,
+        upload: impl FnOnce() -> Result<GpuOperator, fractile_gpu::GpuError>,
+    ) -> Option<Arc<GpuOperator>> {
+        let key = (a.id.clone(), a.hash, plane);
+        if let Some(op) = self.resident.get(&key) {
+            return Some(op);
+        }
+        match upload() {
+            Ok(op) => {
+                let op = Arc::new(op);
+                self.resident.insert(key, op.clone());
+                Some(op)
+            }
+            Err(e) => {
+                tracing::warn!("GPU upload of {} failed, decoding on the CPU: {e}", a.id);
+                None
+            }
+        }
+    }
+
     /// Continuous decoding of a volume's box (unit coordinates, corners included); `None`
     /// (logged) when the device fails, for the caller to use the CPU.
     pub fn volume_grid(
@@ -90,21 +115,8 @@ impl GpuBackend {
         iterations: u32,
         tolerance: f32,
     ) -> Option<(Vec<f32>, f32)> {
-        let key = (a.id.clone(), a.hash, usize::MAX);
-        let op = match self.resident.get(&key) {
-            Some(op) => op,
-            None => match self.gpu.upload_volume(&a.asset.volume.as_ref()?.operator) {
-                Ok(op) => {
-                    let op = Arc::new(op);
-                    self.resident.insert(key, op.clone());
-                    op
-                }
-                Err(e) => {
-                    tracing::warn!("GPU upload of {} failed, decoding on the CPU: {e}", a.id);
-                    return None;
-                }
-            },
-        };
+        let volume = a.asset.volume.as_ref()?;
+        let op = self.resident(a, usize::MAX, || self.gpu.upload_volume(&volume.operator))?;
         let dims = dims.map(|d| d as u32);
         match self
             .gpu
@@ -131,24 +143,8 @@ impl GpuBackend {
         iterations: u32,
         tolerance: f32,
     ) -> Option<Vec<PointValue>> {
-        let key = (a.id.clone(), a.hash, plane);
-        let op = match self.resident.get(&key) {
-            Some(op) => op,
-            None => {
-                let table = a.asset.planes.get(plane)?.operator.pieces();
-                match self.gpu.upload(&table) {
-                    Ok(op) => {
-                        let op = Arc::new(op);
-                        self.resident.insert(key, op.clone());
-                        op
-                    }
-                    Err(e) => {
-                        tracing::warn!("GPU upload of {} failed, decoding on the CPU: {e}", a.id);
-                        return None;
-                    }
-                }
-            }
-        };
+        let plane_op = &a.asset.planes.get(plane)?.operator;
+        let op = self.resident(a, plane, || self.gpu.upload(&plane_op.pieces()))?;
         match self.gpu.points(&op, points, iterations, tolerance) {
             Ok(v) => Some(v),
             Err(e) => {
