@@ -91,6 +91,14 @@ impl OctreeHeader {
                 self.frame
             ));
         }
+        // The cell-index map has (frame / min_size)^3 entries: a hostile header must not make a
+        // reader allocate gigabytes (2^24 entries is 64 MiB: a 1024 frame with 4-voxel ranges).
+        if (self.frame as u64 / self.min_size as u64).pow(3) > 1 << 24 {
+            return Err(format!(
+                "frame {} with ranges of {} needs over 2^24 lookup cells",
+                self.frame, self.min_size
+            ));
+        }
         if !(self.valid > 0.0
             && self.valid <= self.frame as f32
             && self.valid > self.frame as f32 - top as f32)
@@ -980,6 +988,12 @@ mod tests {
         bad = h.clone();
         bad.quantiser.slope_bits = 4;
         assert!(decode_stream(&bad, &stream).is_err());
+        // A tiny file must not declare a lookup map of gigabytes.
+        bad = h.clone();
+        (bad.frame, bad.min_size, bad.levels, bad.valid) = (1024, 2, 6, 1000.0);
+        bad.domain_steps = vec![2; 6];
+        let e = decode_stream(&bad, &stream).unwrap_err();
+        assert!(e.contains("2^24"), "{e}");
         for i in 0..stream.len() {
             let mut s = stream.clone();
             s[i] ^= 0x5a;
