@@ -40,12 +40,14 @@ echo "page status: $STATUS"
 tiles=$(sed -n 's/.*data-tiles="\([0-9]*\)".*/\1/p' <<<"$STATUS")
 terrain=$(sed -n 's/.*data-terrain-tiles="\([0-9]*\)".*/\1/p' <<<"$STATUS")
 image=$(sed -n 's/.*data-image-tiles="\([0-9]*\)".*/\1/p' <<<"$STATUS")
+coast=$(sed -n 's/.*data-coast-points="\([0-9]*\)".*/\1/p' <<<"$STATUS")
 errors=$(sed -n 's/.*data-errors="\([0-9]*\)".*/\1/p' <<<"$STATUS")
 served=$(curl -fs "http://127.0.0.1:$PORT/metrics" | awk '/^fractile_requests_total\{route="\/v1\/assets\/\{id\}\/tiles\/\{z\}\/\{x\}\/\{tile\}",status="200"\}/ {s += $2} END {print s + 0}')
 echo "tiles loaded by the page: ${tiles:-none}; tile requests the server answered: $served"
 check "the page rendered its status" '[ -n "$STATUS" ]'
 check "the terrain map loaded tiles" '[ "${terrain:-0}" -gt 0 ]'
 check "the image map loaded tiles" '[ "${image:-0}" -gt 0 ]'
+check "the coast map drew the curve asset" '[ "${coast:-0}" -gt 0 ]'
 check "the server answered the tile requests" '[ "$served" -gt 0 ]'
 check "no console or map error" '[ "${errors:-1}" -eq 0 ]'
 echo "browser: $pass passed, $fail failed"

@@ -7,7 +7,7 @@
 //! | 0 | 8 | magic `FRACTILE` |
 //! | 8 | 2 | format version (1) |
 //! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
-//! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine, 4 octree PIFS of a volume) |
+//! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine, 4 octree PIFS of a volume, 5 projected IFS of curves) |
 //! | 12 | 4 | metadata length M |
 //! | 16 | M | metadata ([`AssetMeta`], proto's binary encoding) |
 //! | 16+M | 4 | payload length P |
@@ -47,6 +47,8 @@ pub enum Codec {
     Psa = 3,
     /// Octree partitioned IFS of a signed distance volume (IFS3D).
     Octree = 4,
+    /// Projected IFS with details of a set of curves.
+    Curve = 5,
 }
 
 /// How a plane is coded: the header a reader needs and the entropy-coded stream.
@@ -265,6 +267,12 @@ struct VolumePayload {
 }
 
 #[derive(Serialize, Deserialize)]
+struct CurvePayload {
+    header: crate::curve::code::CurveHeader,
+    stream: Vec<u8>,
+}
+
+#[derive(Serialize, Deserialize)]
 struct FisPayload {
     planes: Vec<(FisHeader, Vec<u8>)>,
     mask: Option<Vec<u8>>,
@@ -281,6 +289,8 @@ pub struct Asset {
     pub mask: Option<Mask>,
     /// The coded volume, for volume assets (which have no planes).
     pub volume: Option<crate::volume::Volume>,
+    /// The coded curves, for curve assets (which have no planes).
+    pub curve: Option<crate::curve::Curves>,
 }
 
 fn kind_byte(k: AssetKind) -> u8 {
@@ -372,6 +382,7 @@ impl Asset {
             planes,
             mask,
             volume: None,
+            curve: None,
         };
         asset.check()?;
         Ok(asset)
@@ -406,6 +417,33 @@ impl Asset {
                 operator,
                 placement,
             }),
+            curve: None,
+        };
+        asset.check()?;
+        Ok(asset)
+    }
+
+    /// Builds a curve asset from its coded stream (decoding it, as a reader would).
+    pub fn from_curve_parts(
+        meta: AssetMeta,
+        header: crate::curve::code::CurveHeader,
+        stream: Vec<u8>,
+    ) -> Result<Asset, Error> {
+        let bad = |m: String| Error::Asset(format!("curve: {m}"));
+        if meta.kind != AssetKind::Curve {
+            return Err(bad("metadata is not that of a curve asset".into()));
+        }
+        let set = crate::curve::code::decode(&header, &stream).map_err(bad)?;
+        let asset = Asset {
+            meta,
+            planes: Vec::new(),
+            mask: None,
+            volume: None,
+            curve: Some(crate::curve::Curves {
+                header,
+                stream,
+                set,
+            }),
         };
         asset.check()?;
         Ok(asset)
@@ -413,6 +451,9 @@ impl Asset {
 
     /// The codec of the planes.
     pub fn codec(&self) -> Codec {
+        if self.curve.is_some() {
+            return Codec::Curve;
+        }
         if self.volume.is_some() {
             return Codec::Octree;
         }
@@ -425,6 +466,9 @@ impl Asset {
 
     /// The codec's name as the CLI and the API spell it.
     pub fn codec_name(&self) -> &'static str {
+        if self.curve.is_some() {
+            return "curve-pifs";
+        }
         if self.volume.is_some() {
             return "ifs3d-octree";
         }
@@ -442,12 +486,20 @@ impl Asset {
                 "a volume asset must hold a volume, and only it".into(),
             ));
         }
+        if (m.kind == AssetKind::Curve) != self.curve.is_some() {
+            return Err(Error::Asset(
+                "a curve asset must hold curves, and only it".into(),
+            ));
+        }
         let expected = match m.colour {
-            _ if self.volume.is_some() => 0,
+            _ if self.volume.is_some() || self.curve.is_some() => 0,
             fractile_proto::ColourModel::Grey => 1,
             fractile_proto::ColourModel::YCbCr => 3,
         };
-        if self.planes.len() != expected || (expected > 0 && m.channels as usize != expected) {
+        if self.planes.len() != expected
+            || (expected > 0 && m.channels as usize != expected)
+            || (self.curve.is_some() && m.channels != 2)
+        {
             return Err(Error::Asset(format!(
                 "{} planes and {} channels for colour model {:?}",
                 self.planes.len(),
@@ -507,6 +559,13 @@ impl Asset {
                     placement: v.placement.clone(),
                 })
             }
+            Codec::Curve => {
+                let c = self.curve.as_ref().expect("a curve asset holds curves");
+                fractile_proto::encode(&CurvePayload {
+                    header: c.header.clone(),
+                    stream: c.stream.clone(),
+                })
+            }
             Codec::Psa => fractile_proto::encode(&PsaPayload {
                 planes: self
                     .planes
@@ -553,9 +612,9 @@ impl Asset {
             ));
         }
         let (kind, codec) = (bytes[10], bytes[11]);
-        if !(1..=4).contains(&codec) {
+        if !(1..=5).contains(&codec) {
             return Err(bad(format!(
-                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d, 4 IFS3D)"
+                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d, 4 IFS3D, 5 curves)"
             )));
         }
         let read_len = |at: usize| -> Result<usize, Error> {
@@ -577,7 +636,13 @@ impl Asset {
         if kind_byte(meta.kind) != kind {
             return Err(bad("kind byte and metadata disagree".into()));
         }
-        if meta.width == 0 || meta.height == 0 || meta.width > 1 << 16 || meta.height > 1 << 16 {
+        // Curves count vertices in `width` (one row); grids are at most 2^16 a side.
+        let max_width = if meta.kind == AssetKind::Curve {
+            1 << 26
+        } else {
+            1 << 16
+        };
+        if meta.width == 0 || meta.height == 0 || meta.width > max_width || meta.height > 1 << 16 {
             return Err(bad(format!(
                 "bad size {}x{} in the metadata",
                 meta.width, meta.height
@@ -588,6 +653,11 @@ impl Asset {
                 .transpose()
         };
         let payload = &bytes[p_start..body];
+        if codec == Codec::Curve as u8 {
+            let p: CurvePayload =
+                fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+            return Asset::from_curve_parts(meta, p.header, p.stream);
+        }
         if codec == Codec::Octree as u8 {
             let p: VolumePayload =
                 fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;

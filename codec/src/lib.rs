@@ -8,6 +8,7 @@
 
 pub mod asset;
 pub mod colour;
+pub mod curve;
 pub mod decode;
 pub mod encode;
 pub mod entropy;

@@ -5,10 +5,12 @@
 
 pub mod asset;
 pub mod catalog;
+pub mod curve;
 pub mod points;
 pub mod wire;
 
 pub use asset::*;
 pub use catalog::*;
+pub use curve::*;
 pub use points::*;
 pub use wire::{WireError, decode, encode};

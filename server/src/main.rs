@@ -29,9 +29,12 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
-    /// Encode an image (PNG, JPEG), a height field (GeoTIFF, 16-bit PNG) or a mesh (OFF, OBJ,
-    /// PLY, STL: a signed distance volume, IFS3D) into an asset.
+    /// Encode an image (PNG, JPEG), a height field (GeoTIFF, 16-bit PNG), a mesh (OFF, OBJ,
+    /// PLY, STL: a signed distance volume, IFS3D) or curves (GeoJSON: projected IFS with
+    /// details) into an asset.
     Encode(EncodeArgs),
+    /// Decode a curve asset to GeoJSON at any level (one feature per input ring, in order).
+    Curve(CurveArgs),
     /// Extract the surface of a volume asset as a mesh (OBJ, PLY or GLB by extension), at any
     /// resolution (above the encoded grid, the fractal adds detail) and any box.
     Mesh(MeshArgs),
@@ -82,6 +85,22 @@ enum Command {
     },
 }
 
+#[derive(clap::Args)]
+struct CurveArgs {
+    /// The curve asset.
+    asset: PathBuf,
+    /// Output GeoJSON file.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Level: 0 is the coarsest, the default the input's finest; deeper levels continue the
+    /// details self-similarly.
+    #[arg(long)]
+    level: Option<usize>,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
 #[derive(Clone, Copy, ValueEnum)]
 enum Search {
     /// Every domain and isometry (slow; the reference).
@@ -103,7 +122,8 @@ struct EncodeArgs {
     #[arg(long, group = "rate")]
     target_bpp: Option<f64>,
     /// Split ranges while their RMS collage error exceeds this (source units: grey levels,
-    /// metres; voxels for meshes).
+    /// metres; voxels for meshes). Curves: the largest error of a vertex, degrees of arc for
+    /// GeoJSON (0.009 is about 1 km); 0 (the default) keeps every detail exactly.
     #[arg(long, group = "rate")]
     tolerance: Option<f32>,
     /// Split until this many ranges (the seed's "quad N").
@@ -146,7 +166,8 @@ struct EncodeArgs {
     /// Codec: quadtree-pifs (images and height fields); a fractal interpolation surface for
     /// height fields: fis-bilinear (s per node, Wu and Zhou), fis-rect (s per cell),
     /// fis-rect-global (one s, Drakopoulos and Manousopoulos); or the piecewise self-affine
-    /// model for grey images and height fields: psa2d-rect, psa2d-tri.
+    /// model for grey images and height fields: psa2d-rect, psa2d-tri. GeoJSON input is always
+    /// `curve` (projected IFS with details).
     #[arg(long, default_value = "quadtree-pifs")]
     codec: String,
     /// psa2d: touching or overlapping domains.
@@ -324,6 +345,7 @@ fn main() {
     let result = match cli.command {
         Command::Encode(a) => run_encode(a),
         Command::Mesh(a) => run_mesh(a),
+        Command::Curve(a) => run_curve(a),
         Command::Decode(a) => run_decode(a),
         Command::Info { asset, json } => run_info(&asset, json),
         Command::Compare {
@@ -533,9 +555,117 @@ fn run_mesh(a: MeshArgs) -> Result<()> {
     Ok(())
 }
 
+/// Whether a path names GeoJSON (by extension).
+fn is_geojson(p: &Path) -> bool {
+    p.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["geojson", "json"].contains(&e.to_ascii_lowercase().as_str()))
+}
+
+/// `fractile encode coast.geojson -o coast.fra [--codec curve] [--tolerance T]`.
+fn encode_curve(a: &EncodeArgs) -> Result<()> {
+    if !["curve", "quadtree-pifs"].contains(&a.codec.as_str())
+        || a.target_bpp.is_some()
+        || a.transforms.is_some()
+        || a.const_range.is_some()
+    {
+        bail!("GeoJSON takes --codec curve and --tolerance (degrees of arc; 0 keeps every detail)");
+    }
+    let tolerance = f64::from(a.tolerance.unwrap_or(0.0));
+    if !(tolerance.is_finite() && tolerance >= 0.0) {
+        bail!("--tolerance {tolerance} must be a distance >= 0");
+    }
+    let text = std::fs::read_to_string(&a.input)
+        .with_context(|| format!("reading {}", a.input.display()))?;
+    let lines = fractile_codec::curve::geojson::read(&text).map_err(|e| anyhow::anyhow!(e))?;
+    let settings = fractile_codec::curve::CurveSettings {
+        tolerance,
+        ..Default::default()
+    };
+    let name = a
+        .input
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let enc = fractile_codec::curve::encode_asset(&lines, &settings, &name)?;
+    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
+    let set = &enc.asset.curve.as_ref().expect("a curve asset").set;
+    let m = &enc.asset.meta;
+    let report = json!({
+        "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
+        "polylines": set.rings.len(), "points": enc.points, "bytes": enc.bytes.len(),
+        "ratio_f64": (enc.points * 16) as f64 / enc.bytes.len() as f64,
+        "ratio_f32": (enc.points * 8) as f64 / enc.bytes.len() as f64,
+        "tolerance_degrees": tolerance,
+        "tolerance_m": tolerance * fractile_codec::curve::METRES_PER_DEGREE,
+        "max_vertex_error_m": m.stats.max_error * fractile_codec::curve::METRES_PER_DEGREE,
+        "finest_level": set.finest(), "fit": enc.fit, "seconds": m.stats.seconds,
+    });
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} -> {}: {} polylines, {} points, {} bytes ({:.2}:1 vs float32, {:.2}:1 vs float64), largest vertex error {:.0} m, {} levels, {:.2} s",
+            a.input.display(),
+            a.output.display(),
+            set.rings.len(),
+            enc.points,
+            enc.bytes.len(),
+            report["ratio_f32"].as_f64().unwrap_or(0.0),
+            report["ratio_f64"].as_f64().unwrap_or(0.0),
+            report["max_vertex_error_m"].as_f64().unwrap_or(0.0),
+            set.finest(),
+            m.stats.seconds
+        );
+    }
+    Ok(())
+}
+
+/// `fractile curve coast.fra -o out.geojson [--level N]`.
+fn run_curve(a: CurveArgs) -> Result<()> {
+    let asset = Asset::read(&a.asset)?;
+    let Some(c) = &asset.curve else {
+        bail!(
+            "{} is not a curve asset (it is {:?})",
+            a.asset.display(),
+            asset.meta.kind
+        );
+    };
+    let finest = c.set.finest();
+    let level = a.level.unwrap_or(finest);
+    // Each level doubles the points: refuse what would not fit in memory before decoding.
+    if c.set.points_at(level) > 1 << 26 {
+        bail!("level {level} would have over 2^26 points (the finest is {finest})");
+    }
+    let decoded = c.set.at_level(level);
+    let units = asset.meta.units.clone().unwrap_or_default();
+    let doc = fractile_codec::curve::geojson::write(&decoded, finest, &units);
+    let text = serde_json::to_vec(&doc)?;
+    fractile_codec::asset::write_atomic(&a.output, &text)?;
+    let points: usize = decoded.lines.iter().map(Vec::len).sum();
+    let report = json!({"output": a.output, "level": level, "finest_level": finest,
+        "polylines": decoded.lines.len(), "points": points, "error_bound": decoded.error_bound,
+        "units": units});
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} -> {}: level {level} of {finest}, {} polylines, {points} points, error bound {} {units}",
+            a.asset.display(),
+            a.output.display(),
+            decoded.lines.len(),
+            decoded.error_bound
+        );
+    }
+    Ok(())
+}
+
 fn run_encode(a: EncodeArgs) -> Result<()> {
     if is_mesh(&a.input) {
         return encode_volume(&a);
+    }
+    if is_geojson(&a.input) || a.codec == "curve" {
+        return encode_curve(&a);
     }
     let raster = Raster::open(&a.input)?;
     let enc = if a.codec == "quadtree-pifs" {
@@ -840,6 +970,13 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
         "encode_stats": {"rmse": m.stats.rmse, "psnr": m.stats.psnr, "max_error": m.stats.max_error, "seconds": m.stats.seconds},
     });
     let mut info = info;
+    if let Some(c) = &asset.curve {
+        let h = &c.header;
+        info["curve"] = json!({"polylines": h.rings.len(), "finest_level": c.set.finest(),
+            "tolerance": h.tolerance, "metric": format!("{:?}", h.metric),
+            "level_bounds": h.level_bounds, "subdivision": h.scheme.t, "details": h.scheme.u,
+            "ratio_f64": 2.0 * m.source_bytes() as f64 / bytes as f64});
+    }
     if let Some(v) = &asset.volume {
         let (lo, hi) = v.bounds();
         info["volume"] = json!({"grid": v.size(), "bounds": [lo, hi], "voxel": v.placement.voxel,

@@ -202,6 +202,14 @@ const DEMO_VOLUME: (&str, &str, &[u8]) = (
     include_bytes!("../../testdata/mesh/fandisk.off"),
 );
 
+/// The demo curves: five Natural Earth 1:50m coastlines, coded to about 1 km (0.009°).
+const DEMO_CURVE: (&str, &str, &[u8], f64) = (
+    "coast",
+    "coast5.geojson",
+    include_bytes!("../../testdata/curve/coast5.geojson"),
+    0.009,
+);
+
 /// Encodes the demo assets into `dir` unless they are there already (a progress line each).
 pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
     std::fs::create_dir_all(dir)
@@ -225,6 +233,25 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
             enc.bytes.len(),
             enc.ratio_i8(),
             enc.psnr()
+        );
+    }
+    let (id, name, bytes, tolerance) = DEMO_CURVE;
+    let out = dir.join(format!("{id}.fra"));
+    if !out.exists() {
+        let text = std::str::from_utf8(bytes)
+            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
+        let lines = fractile_codec::curve::geojson::read(text)
+            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
+        let settings = fractile_codec::curve::CurveSettings {
+            tolerance,
+            ..Default::default()
+        };
+        let enc = fractile_codec::curve::encode_asset(&lines, &settings, name)?;
+        fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
+        tracing::info!(
+            "demo curves {id}: {} polylines, {} bytes",
+            lines.len(),
+            enc.bytes.len()
         );
     }
     for (id, name, bytes, rate) in DEMO {

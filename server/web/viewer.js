@@ -14,6 +14,7 @@
   const params = new URLSearchParams(window.location.search);
   const dem = params.get('dem') || 'jacksboro';
   const picture = params.get('image') || 'camera';
+  const coastline = params.get('curve') || 'coast';
   const withIterations = (url, n) => n === 'auto' ? url : url + (url.includes('?') ? '&' : '?') + 'iterations=' + n;
   const demTiles = (n) => [withIterations(`${origin}/v1/assets/${dem}/tiles/{z}/{x}/{y}.png?encoding=terrainrgb`, n)];
   const imageTiles = (n) => [withIterations(`${origin}/v1/assets/${picture}/tiles/{z}/{x}/{y}.png`, n)];
@@ -65,7 +66,51 @@
         }
       });
     }
-    Promise.all([terrain, image].map((m) => new Promise((ok) => m.once('idle', ok)))).then(() => {
+    // The curve asset: one level per zoom step, the input's finest level where a vertex
+    // spacing of ~0.1° (the 1:50m coastlines) is about 4 px (zoom 6), coarser out, finer in
+    // (past the source, the details continue self-similarly).
+    const coast = new maplibregl.Map({
+      container: 'coast',
+      style: {
+        version: 8,
+        sources: { coast: { type: 'geojson', data: { type: 'FeatureCollection', features: [] } } },
+        layers: [
+          { id: 'sea', type: 'background', paint: { 'background-color': '#cfe3f0' } },
+          { id: 'coast', type: 'line', source: 'coast', paint: { 'line-color': '#20252b', 'line-width': 1.2 } },
+        ],
+      },
+      center: [-3, 54],
+      zoom: 4,
+      renderWorldCopies: false,
+    });
+    coast.on('error', (e) => fail(e.error ? e.error.message : 'map error'));
+    let coastFinest = null;
+    let coastShown = null;
+    const coastLevel = () => {
+      const finest = coastFinest === null ? 7 : coastFinest;
+      return Math.max(0, Math.min(finest + 3, finest + Math.round(coast.getZoom() - 6)));
+    };
+    const drawCoast = () => {
+      const level = coastLevel();
+      if (level === coastShown) return;
+      coastShown = level;
+      fetch(`${origin}/v1/assets/${coastline}/curve?level=${level}`).then(json).then((doc) => {
+        coastFinest = doc.fractile.finest_level;
+        coast.getSource('coast').setData(doc);
+        const points = doc.features.reduce((n, f) => n + f.geometry.coordinates.length, 0);
+        status.dataset.coastPoints = String(points);
+        status.dataset.coastLevel = String(level);
+        const bound = doc.fractile.error_bound;
+        document.getElementById('coast-level').textContent =
+          `(level ${level} of ${doc.fractile.finest_level}, ${points} points` +
+          (bound === null ? ')' : `, within ${(bound * 111.195).toFixed(1)} km)`);
+        if (coastLevel() !== level) drawCoast();
+      }).catch((e) => fail(String(e)));
+    };
+    coast.on('load', drawCoast);
+    coast.on('zoomend', drawCoast);
+
+    Promise.all([terrain, image, coast].map((m) => new Promise((ok) => m.once('idle', ok)))).then(() => {
       status.dataset.loaded = 'true';
     });
 

@@ -1,0 +1,867 @@
+//! Curves as projected IFS with details: multiresolution polylines (coastlines) and their
+//! deformation. After Hnaidi, Guérin and Akkouche, "Fractal/wavelet model as a deformation
+//! tool" (RR-LIRIS-2008-002, hal-01537655).
+//!
+//! # Model
+//! A ring (closed polyline) or an open polyline is cut into `K` base *pieces*. A piece has three
+//! control points `(A, C, B)`: its two ends and a middle point. Two maps subdivide it into the
+//! pieces `(A, E0, C)` and `(C, E1, B)`:
+//!
+//! ```text
+//! E_i = t_i · (A, C, B) + d_i          (synthesis, the paper's eq. 6: P_θi = P_θ T_i + dP_θ U_i)
+//! ```
+//!
+//! `t_i` are the barycentric weights of the subdivision matrices `T_i` (each triple sums to 1, so
+//! the model commutes with affine maps of the plane) and `d_i` the piece's two *details*. The
+//! junction `C` is carried over: the scheme is interpolating, so every control point of every
+//! level is a point of the curve. That choice is what makes lossy coding trustworthy: a point's
+//! error is its own quantisation error and never accumulates over levels (see [`code`]).
+//!
+//! Over the five fine points of a piece, synthesis is one 5×5 matrix `R` (the rows of `T_0, T_1`
+//! merged on the shared point `C`, and the two detail rows); analysis is `R⁻¹` (eq. 7), which
+//! [`Scheme::analysis_matrix`] computes and [`Ring::from_fine`] applies level by level.
+//!
+//! Details are self-similar: a piece's children inherit its details through the 2×2 *detail
+//! matrices* `U_i` (`d_child = U_i · d_parent` before anything is added). The encoder codes only
+//! what inheritance does not predict, and a decoder asked for levels deeper than the source
+//! continues the details through `U` (and the shape through `T`): "self-similar detail".
+//! `T` and `U` are fitted by Levenberg-Marquardt in the paper's two steps ([`fit`]).
+//!
+//! # Levels
+//! A ring's own level `l` is its polygon after `l` subdivisions of the base pieces: `K·2^(l+1)`
+//! points. The finest level `L` holds every input vertex (plus points the encoder inserted on
+//! the input's own segments so that the count fits `K·2^(L+1)`; the output drops them). Asset
+//! levels align the rings on their finest level, so that one asset level means one scale.
+
+pub mod code;
+pub mod deform;
+pub mod fit;
+pub mod geojson;
+
+use serde::{Deserialize, Serialize};
+
+/// A point of the plane (x, y), or (longitude, latitude) in degrees.
+pub type Pt = [f64; 2];
+
+/// How distances (the tolerance, the error bounds) are measured.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub enum Metric {
+    /// Euclidean in the curve's own units.
+    Plane,
+    /// Longitude and latitude in degrees; distances in degrees of arc (one degree is 111.195
+    /// km), with longitude differences shrunk by the cosine of the latitude. GeoJSON is
+    /// always this (RFC 7946): a tolerance of 0.009° then means about 1 km everywhere, not 1 km
+    /// at the equator and 330 m at 70°N.
+    Sphere,
+}
+
+/// Metres in one degree of arc on the mean Earth sphere (radius 6,371,008.8 m).
+pub const METRES_PER_DEGREE: f64 = 6_371_008.8 * std::f64::consts::PI / 180.0;
+
+impl Metric {
+    /// How much one unit of x is worth at latitude `y`, relative to a unit of y.
+    pub fn x_scale(self, y: f64) -> f64 {
+        match self {
+            Metric::Plane => 1.0,
+            // Clamped so that points at the poles (Antarctica's outline runs along -90°) keep a
+            // finite quantiser step.
+            Metric::Sphere => y.to_radians().cos().abs().max(1.0 / 64.0),
+        }
+    }
+
+    /// Distance from `p` to the segment `[a, b]`, in the metric's units, measured in the plane
+    /// tangent at `p` (exact for Plane, accurate to well under 0.1% for the short distances the
+    /// bounds care about on the sphere).
+    pub fn point_segment(self, p: Pt, a: Pt, b: Pt) -> f64 {
+        let sx = self.x_scale(p[1]);
+        let (ax, ay) = ((a[0] - p[0]) * sx, a[1] - p[1]);
+        let (bx, by) = ((b[0] - p[0]) * sx, b[1] - p[1]);
+        let (dx, dy) = (bx - ax, by - ay);
+        let len2 = dx * dx + dy * dy;
+        let t = if len2 > 0.0 {
+            (-(ax * dx + ay * dy) / len2).clamp(0.0, 1.0)
+        } else {
+            0.0
+        };
+        ((ax + t * dx).powi(2) + (ay + t * dy).powi(2)).sqrt()
+    }
+
+    /// Distance between two points.
+    pub fn distance(self, a: Pt, b: Pt) -> f64 {
+        self.point_segment(a, b, b)
+    }
+}
+
+/// The subdivision scheme shared by all rings of an asset: the subdivision matrices `T_i` (as
+/// barycentric weights) and the detail matrices `U_i`.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Scheme {
+    /// Weights of the new point of map `i` on the piece's `(A, C, B)`; each triple sums to 1.
+    pub t: [[f64; 3]; 2],
+    /// `u[i][j][k]`: how much of the parent's detail `k` child `i` inherits as its detail `j`.
+    pub u: [[[f64; 2]; 2]; 2],
+}
+
+impl Default for Scheme {
+    /// Quadratic Lagrange interpolation through `(A, C, B)` at the quarter points, and no
+    /// inherited detail: the starting point of the fit and the scheme of `--no-fit` encodes.
+    fn default() -> Self {
+        Scheme {
+            t: [[0.375, 0.75, -0.125], [-0.125, 0.75, 0.375]],
+            u: [[[0.0; 2]; 2]; 2],
+        }
+    }
+}
+
+/// Largest |weight| a subdivision matrix may hold; beyond it the scheme is far from any curve.
+const MAX_WEIGHT: f64 = 4.0;
+/// Largest norm (max row sum) of a detail matrix: inherited details must shrink level by level
+/// so that synthesis beyond the source converges (the curve analogue of |s| < 1).
+pub const MAX_DETAIL_GAIN: f64 = 0.9;
+
+impl Scheme {
+    /// Refuses schemes that are not barycentric, not finite, or whose details do not shrink.
+    pub fn validate(&self) -> Result<(), String> {
+        for (i, t) in self.t.iter().enumerate() {
+            if t.iter().any(|w| !w.is_finite() || w.abs() > MAX_WEIGHT) {
+                return Err(format!(
+                    "subdivision weights {t:?} of map {i} are out of range"
+                ));
+            }
+            if (t.iter().sum::<f64>() - 1.0).abs() > 1e-9 {
+                return Err(format!(
+                    "subdivision weights {t:?} of map {i} do not sum to 1"
+                ));
+            }
+        }
+        for u in &self.u {
+            if u.iter().flatten().any(|w| !w.is_finite())
+                || u.iter()
+                    .any(|r| r[0].abs() + r[1].abs() > MAX_DETAIL_GAIN + 1e-12)
+            {
+                return Err(format!("detail matrix {u:?} does not shrink details"));
+            }
+        }
+        Ok(())
+    }
+
+    /// The prediction of the new point of map `i` from a piece's control points.
+    #[inline]
+    pub fn predict(&self, i: usize, a: Pt, c: Pt, b: Pt) -> Pt {
+        let w = &self.t[i];
+        [
+            w[0] * a[0] + w[1] * c[0] + w[2] * b[0],
+            w[0] * a[1] + w[1] * c[1] + w[2] * b[1],
+        ]
+    }
+
+    /// The details child `i` inherits from its parent's `d`.
+    #[inline]
+    pub fn inherit(&self, i: usize, d: [Pt; 2]) -> [Pt; 2] {
+        let u = &self.u[i];
+        let row = |j: usize| {
+            [
+                u[j][0] * d[0][0] + u[j][1] * d[1][0],
+                u[j][0] * d[0][1] + u[j][1] * d[1][1],
+            ]
+        };
+        [row(0), row(1)]
+    }
+
+    /// The synthesis matrix `R` of one piece: `(A, E0, C, E1, B) = (A, C, B, d0, d1) · R`.
+    pub fn synthesis_matrix(&self) -> nalgebra::SMatrix<f64, 5, 5> {
+        let [t0, t1] = self.t;
+        #[rustfmt::skip]
+        let r = nalgebra::SMatrix::<f64, 5, 5>::from_row_slice(&[
+            // A     E0     C    E1     B
+            1.0, t0[0], 0.0, t1[0], 0.0, // A
+            0.0, t0[1], 1.0, t1[1], 0.0, // C
+            0.0, t0[2], 0.0, t1[2], 1.0, // B
+            0.0, 1.0,   0.0, 0.0,   0.0, // d0
+            0.0, 0.0,   0.0, 1.0,   0.0, // d1
+        ]);
+        r
+    }
+
+    /// The analysis matrix `R⁻¹`: `(A, C, B, d0, d1) = (A, E0, C, E1, B) · R⁻¹`.
+    pub fn analysis_matrix(&self) -> nalgebra::SMatrix<f64, 5, 5> {
+        self.synthesis_matrix()
+            .try_inverse()
+            .expect("R is unit triangular after a permutation, hence invertible")
+    }
+}
+
+/// One ring or open polyline in the model: its base control points and the details of every
+/// level down to the source's.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Ring {
+    /// Closed (a ring: the last point joins the first) or open.
+    pub closed: bool,
+    /// The level-0 polygon: `2K` points for a ring, `2K + 1` for an open polyline.
+    pub base: Vec<Pt>,
+    /// `details[l][p]`: the two details of piece `p` at level `l` (which refine level `l` into
+    /// `l + 1`), inherited part included. `details.len()` is the finest level.
+    pub details: Vec<Vec<[Pt; 2]>>,
+    /// Indices, in the finest polygon, of the points the encoder inserted on input segments
+    /// (ascending). The finest output leaves them out.
+    pub inserted: Vec<u32>,
+}
+
+impl Ring {
+    /// Number of base pieces `K`.
+    pub fn pieces(&self) -> usize {
+        self.base.len() / 2
+    }
+
+    /// The source's level (number of detail levels).
+    pub fn finest(&self) -> usize {
+        self.details.len()
+    }
+
+    /// Points of the polygon at level `l`.
+    pub fn len_at(&self, l: usize) -> usize {
+        (self.pieces() << (l + 1)) + usize::from(!self.closed)
+    }
+
+    /// Analysis (eq. 7): the model of a fine polygon of `K·2^(L+1)` (+1 if open) points.
+    pub fn from_fine(
+        scheme: &Scheme,
+        fine: &[Pt],
+        closed: bool,
+        pieces: usize,
+        inserted: Vec<u32>,
+    ) -> Ring {
+        let mut levels = 0;
+        while (pieces << (levels + 1)) + usize::from(!closed) < fine.len() {
+            levels += 1;
+        }
+        debug_assert_eq!((pieces << (levels + 1)) + usize::from(!closed), fine.len());
+        let rinv = scheme.analysis_matrix();
+        let mut cur = fine.to_vec();
+        let mut details = vec![Vec::new(); levels];
+        for l in (0..levels).rev() {
+            let n = pieces << l; // pieces at level l
+            let mut coarse = Vec::with_capacity(2 * n + 1);
+            let mut d = Vec::with_capacity(n);
+            for p in 0..n {
+                let at = |k: usize| cur[(4 * p + k) % cur.len()];
+                let f = [at(0), at(1), at(2), at(3), at(4)];
+                let mut out = [[0.0; 2]; 5];
+                for (j, o) in out.iter_mut().enumerate() {
+                    for (k, fk) in f.iter().enumerate() {
+                        let w = rinv[(k, j)];
+                        o[0] += fk[0] * w;
+                        o[1] += fk[1] * w;
+                    }
+                }
+                coarse.push(out[0]);
+                coarse.push(out[1]);
+                d.push([out[3], out[4]]);
+            }
+            if !closed {
+                coarse.push(*cur.last().expect("non-empty"));
+            }
+            details[l] = d;
+            cur = coarse;
+        }
+        Ring {
+            closed,
+            base: cur,
+            details,
+            inserted,
+        }
+    }
+
+    /// Synthesis to the ring's level `level` (which may exceed [`Ring::finest`]: details then
+    /// continue through the detail matrices). Inserted points are kept; see [`Ring::output`].
+    pub fn polygon(&self, scheme: &Scheme, level: usize) -> Vec<Pt> {
+        let mut cur = self.base.clone();
+        // The details used one level up: a level past the source inherits from them.
+        let mut prev: Vec<[Pt; 2]> = Vec::new();
+        for l in 0..level {
+            let n = self.pieces() << l;
+            let used: Vec<[Pt; 2]> = match self.details.get(l) {
+                Some(d) => d.clone(),
+                None => (0..n)
+                    .map(|p| {
+                        let parent = prev.get(p / 2).copied().unwrap_or([[0.0; 2]; 2]);
+                        scheme.inherit(p % 2, parent)
+                    })
+                    .collect(),
+            };
+            let mut next = Vec::with_capacity(4 * n + 1);
+            for (p, d) in used.iter().enumerate() {
+                let (a, c, b) = (cur[2 * p], cur[2 * p + 1], cur[(2 * p + 2) % cur.len()]);
+                let e0 = scheme.predict(0, a, c, b);
+                let e1 = scheme.predict(1, a, c, b);
+                next.push(a);
+                next.push([e0[0] + d[0][0], e0[1] + d[0][1]]);
+                next.push(c);
+                next.push([e1[0] + d[1][0], e1[1] + d[1][1]]);
+            }
+            if !self.closed {
+                next.push(*cur.last().expect("non-empty"));
+            }
+            cur = next;
+            prev = used;
+        }
+        cur
+    }
+
+    /// The polygon at level `level` as output: inserted points left out at the finest level
+    /// (where every remaining point is an input vertex), the first point repeated at the end of
+    /// a ring (GeoJSON's closed rings).
+    pub fn output(&self, scheme: &Scheme, level: usize) -> Vec<Pt> {
+        let mut pts = self.polygon(scheme, level);
+        if level == self.finest() && !self.inserted.is_empty() {
+            let mut skip = self.inserted.iter().peekable();
+            let mut i = 0u32;
+            pts.retain(|_| {
+                let drop = skip.peek().is_some_and(|&&s| s == i);
+                if drop {
+                    skip.next();
+                }
+                i += 1;
+                !drop
+            });
+        }
+        if self.closed {
+            pts.push(pts[0]);
+        }
+        pts
+    }
+}
+
+/// Points the encoder needs: the fine polygon of an input polyline, with the number of base
+/// pieces and the indices of inserted points.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Prepared {
+    /// Closed ring or open polyline.
+    pub closed: bool,
+    /// Base pieces `K`.
+    pub pieces: usize,
+    /// `K·2^(L+1)` (+1 open) points: the input vertices in order, with points inserted on the
+    /// input's own segments.
+    pub fine: Vec<Pt>,
+    /// Indices of the inserted points in `fine`, ascending.
+    pub inserted: Vec<u32>,
+}
+
+/// Most levels a ring may have (2^25 points per base piece is far beyond any polyline).
+pub const MAX_LEVELS: usize = 24;
+
+/// Cuts a polyline into base pieces and inserts points on its longest segments until the
+/// count fits `K·2^(L+1)`. Input vertices are never moved or dropped. `points` of a ring need
+/// not repeat the first point at the end (a repeated one is removed).
+pub fn prepare(points: &[Pt], closed: bool) -> Result<Prepared, String> {
+    if let Some(p) = points
+        .iter()
+        .find(|p| !p[0].is_finite() || !p[1].is_finite())
+    {
+        return Err(format!("a vertex is not finite: {p:?}"));
+    }
+    let mut pts = points.to_vec();
+    if closed && pts.len() > 1 && pts.first() == pts.last() {
+        pts.pop();
+    }
+    let min = if closed { 3 } else { 2 };
+    if pts.len() < min {
+        return Err(format!(
+            "a {} needs at least {min} vertices, this one has {}",
+            if closed { "ring" } else { "polyline" },
+            pts.len()
+        ));
+    }
+    // Segments to fill: n for a ring, n - 1 for an open polyline. Pick the levels L and pieces K
+    // with K·2^(L+1) >= segments that cost least: an inserted point costs about one coded
+    // point (~1 byte), a base piece about two coarsely coded points (~8 bytes).
+    let segments = if closed { pts.len() } else { pts.len() - 1 };
+    let mut best = (f64::INFINITY, 0, 1);
+    for levels in 0..=MAX_LEVELS {
+        let per = 2usize << levels;
+        let pieces = segments.div_ceil(per).max(if closed { 2 } else { 1 });
+        let inserted = pieces * per - segments;
+        let cost = inserted as f64 + 8.0 * pieces as f64;
+        if cost < best.0 {
+            best = (cost, levels, pieces);
+        }
+        if per > segments {
+            break;
+        }
+    }
+    let (_, levels, pieces) = best;
+    let extra = pieces * (2 << levels) - segments;
+    // Split the longest segments: each input segment s gets k_s extra points, evenly spaced
+    // on it, chosen greedily by the length of its sub-segments (a heap of segments).
+    let seg_len = |i: usize| {
+        let (a, b) = (pts[i], pts[(i + 1) % pts.len()]);
+        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
+    };
+    let mut splits = vec![0usize; segments];
+    let mut heap: std::collections::BinaryHeap<(OrdF64, usize)> =
+        (0..segments).map(|i| (OrdF64(seg_len(i)), i)).collect();
+    for _ in 0..extra {
+        let (_, i) = heap.pop().expect("segments is non-empty");
+        splits[i] += 1;
+        heap.push((OrdF64(seg_len(i) / (splits[i] + 1) as f64), i));
+    }
+    let mut fine = Vec::with_capacity(pieces * (2 << levels) + 1);
+    let mut inserted = Vec::with_capacity(extra);
+    for (i, &k) in splits.iter().enumerate() {
+        let (a, b) = (pts[i], pts[(i + 1) % pts.len()]);
+        fine.push(a);
+        for j in 1..=k {
+            let t = j as f64 / (k + 1) as f64;
+            inserted.push(fine.len() as u32);
+            fine.push([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
+        }
+    }
+    if !closed {
+        fine.push(*pts.last().expect("non-empty"));
+    }
+    Ok(Prepared {
+        closed,
+        pieces,
+        fine,
+        inserted,
+    })
+}
+
+/// Total order on lengths for the heap (lengths are finite: vertices were checked).
+#[derive(Clone, Copy)]
+struct OrdF64(f64);
+impl PartialEq for OrdF64 {
+    fn eq(&self, o: &Self) -> bool {
+        self.cmp(o).is_eq()
+    }
+}
+impl Eq for OrdF64 {}
+impl PartialOrd for OrdF64 {
+    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
+        Some(self.cmp(o))
+    }
+}
+impl Ord for OrdF64 {
+    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
+        self.0.total_cmp(&o.0)
+    }
+}
+
+/// A set of rings under one scheme: what a curve asset decodes to.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CurveSet {
+    /// The scheme shared by every ring.
+    pub scheme: Scheme,
+    /// The rings, in input order.
+    pub rings: Vec<Ring>,
+    /// How distances are measured.
+    pub metric: Metric,
+    /// Largest error of a vertex of the finest level against the source (0 when lossless).
+    pub tolerance: f64,
+    /// `bounds[n]`: a bound on the Hausdorff distance between asset level `n` and the source,
+    /// for `n` up to the finest asset level.
+    pub level_bounds: Vec<f64>,
+}
+
+/// A decoded set of polylines at one asset level, with its error bound.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CurveLevel {
+    /// The asset level.
+    pub level: usize,
+    /// One polyline per ring, in input order (rings closed by repeating their first point).
+    pub lines: Vec<Vec<Pt>>,
+    /// Whether each line is a closed ring.
+    pub closed: Vec<bool>,
+    /// A bound on the Hausdorff distance to the source, in the metric's units.
+    pub error_bound: f64,
+}
+
+impl CurveSet {
+    /// The finest asset level: every ring at its source level.
+    pub fn finest(&self) -> usize {
+        self.rings.iter().map(Ring::finest).max().unwrap_or(0)
+    }
+
+    /// A ring's own level at asset level `level` (rings align on their finest level; a ring
+    /// coarser than that is drawn as its base polygon).
+    pub fn ring_level(&self, ring: &Ring, level: usize) -> usize {
+        (level + ring.finest()).saturating_sub(self.finest())
+    }
+
+    /// Points that asset level `level` would output (to refuse huge requests before work).
+    pub fn points_at(&self, level: usize) -> u128 {
+        self.rings
+            .iter()
+            .map(|r| {
+                let l = self.ring_level(r, level).min(120) as u32;
+                ((r.pieces() as u128) << (l + 1)) + 2
+            })
+            .sum()
+    }
+
+    /// Decodes every ring at asset level `level`.
+    pub fn at_level(&self, level: usize) -> CurveLevel {
+        let finest = self.finest();
+        let mut lines = Vec::with_capacity(self.rings.len());
+        let mut deviation = 0.0f64;
+        for r in &self.rings {
+            let own = self.ring_level(r, level);
+            lines.push(r.output(&self.scheme, own));
+            if own > r.finest() {
+                deviation = deviation.max(self.continuation_deviation(r, own));
+            }
+        }
+        let error_bound = if level <= finest {
+            self.level_bounds
+                .get(level)
+                .copied()
+                .unwrap_or(f64::INFINITY)
+        } else {
+            self.tolerance + deviation
+        };
+        CurveLevel {
+            level,
+            lines,
+            closed: self.rings.iter().map(|r| r.closed).collect(),
+            error_bound,
+        }
+    }
+
+    /// How far the points a level past the source adds stray from the source-level polygon:
+    /// each lies within its span of that polygon, so this plus the tolerance bounds the
+    /// Hausdorff distance both ways (a span's points project onto its whole segment).
+    fn continuation_deviation(&self, r: &Ring, level: usize) -> f64 {
+        let coarse = r.polygon(&self.scheme, r.finest());
+        let fine = r.polygon(&self.scheme, level);
+        span_deviation(self.metric, &coarse, &fine, r.closed)
+    }
+}
+
+/// Largest distance from a point of `fine` to the segment of `coarse` whose span holds it
+/// (`fine` refines `coarse` by a power of two per segment).
+pub fn span_deviation(metric: Metric, coarse: &[Pt], fine: &[Pt], closed: bool) -> f64 {
+    let segs = coarse.len() - usize::from(!closed);
+    let fsegs = fine.len() - usize::from(!closed);
+    if segs == 0 {
+        return 0.0;
+    }
+    let per = fsegs / segs;
+    let mut worst = 0.0f64;
+    for (j, &p) in fine.iter().enumerate() {
+        let s = (j / per).min(segs - 1);
+        let (a, b) = (coarse[s], coarse[(s + 1) % coarse.len()]);
+        worst = worst.max(metric.point_segment(p, a, b));
+    }
+    worst
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn wiggly(n: usize, closed: bool) -> Vec<Pt> {
+        (0..n)
+            .map(|i| {
+                let t = i as f64 / n as f64 * std::f64::consts::TAU;
+                let r = 10.0 + (7.0 * t).sin() + 0.3 * (31.0 * t).cos();
+                if closed {
+                    [r * t.cos(), r * t.sin()]
+                } else {
+                    [t, r]
+                }
+            })
+            .collect()
+    }
+
+    #[test]
+    fn prepare_keeps_every_vertex_and_only_inserts_on_segments() {
+        for (n, closed) in [
+            (3, true),
+            (5, false),
+            (97, true),
+            (1000, false),
+            (1025, true),
+        ] {
+            let pts = wiggly(n, closed);
+            let p = prepare(&pts, closed).unwrap();
+            let segs = p.fine.len() - usize::from(!closed);
+            assert_eq!(segs % p.pieces, 0);
+            assert!((segs / p.pieces).is_power_of_two() && segs / p.pieces >= 2);
+            let kept: Vec<Pt> = p
+                .fine
+                .iter()
+                .enumerate()
+                .filter(|(i, _)| !p.inserted.contains(&(*i as u32)))
+                .map(|(_, q)| *q)
+                .collect();
+            assert_eq!(kept, pts, "n={n}");
+            for &i in &p.inserted {
+                let i = i as usize;
+                let (a, q) = (p.fine[i - 1], p.fine[i]);
+                let b = p.fine[(i + 1) % p.fine.len()];
+                let cross = (q[0] - a[0]) * (b[1] - a[1]) - (q[1] - a[1]) * (b[0] - a[0]);
+                assert!(cross.abs() < 1e-9, "inserted point off its segment");
+            }
+        }
+    }
+
+    #[test]
+    fn analysis_then_synthesis_is_exact() {
+        let scheme = Scheme {
+            t: [[0.6, 0.5, -0.1], [-0.2, 0.9, 0.3]],
+            u: [[[0.3, -0.2], [0.1, 0.4]], [[-0.5, 0.0], [0.2, 0.2]]],
+        };
+        scheme.validate().unwrap();
+        for closed in [true, false] {
+            let p = prepare(&wiggly(777, closed), closed).unwrap();
+            let ring = Ring::from_fine(&scheme, &p.fine, closed, p.pieces, p.inserted.clone());
+            let back = ring.polygon(&scheme, ring.finest());
+            assert_eq!(back.len(), p.fine.len());
+            for (a, b) in back.iter().zip(&p.fine) {
+                assert!((a[0] - b[0]).abs() < 1e-9 && (a[1] - b[1]).abs() < 1e-9);
+            }
+        }
+    }
+
+    #[test]
+    fn analysis_matrix_inverts_synthesis() {
+        let s = Scheme::default();
+        let id = s.synthesis_matrix() * s.analysis_matrix();
+        assert!(
+            (id - nalgebra::SMatrix::<f64, 5, 5>::identity())
+                .abs()
+                .max()
+                < 1e-12
+        );
+    }
+
+    #[test]
+    fn levels_past_the_source_add_points_near_the_source_polygon() {
+        let scheme = Scheme {
+            u: [[[0.4, 0.0], [0.0, 0.4]]; 2],
+            ..Default::default()
+        };
+        let p = prepare(&wiggly(200, true), true).unwrap();
+        let ring = Ring::from_fine(&scheme, &p.fine, true, p.pieces, p.inserted);
+        let l = ring.finest();
+        let deeper = ring.polygon(&scheme, l + 2);
+        assert_eq!(deeper.len(), ring.len_at(l + 2));
+        let source = ring.polygon(&scheme, l);
+        // Every source point is kept (interpolating), in place.
+        for (i, q) in source.iter().enumerate() {
+            assert_eq!(deeper[4 * i], *q);
+        }
+        let dev = span_deviation(Metric::Plane, &source, &deeper, true);
+        let spacing = Metric::Plane.distance(source[0], source[1]);
+        assert!(
+            dev > 0.0 && dev < 3.0 * spacing,
+            "{dev} vs spacing {spacing}"
+        );
+    }
+}
+
+/// Settings of the curve encoder.
+#[derive(Clone, Debug, PartialEq)]
+pub struct CurveSettings {
+    /// Largest error of a point, in the metric's units; 0 keeps every detail exactly. The
+    /// default is 0: a polyline is the user's data, and loss is something to ask for.
+    pub tolerance: f64,
+    /// How the tolerance is measured ([`Metric::Sphere`] for GeoJSON).
+    pub metric: Metric,
+    /// Fit `T` and `U` (the paper's two steps); otherwise [`Scheme::default`].
+    pub fit: bool,
+}
+
+impl Default for CurveSettings {
+    fn default() -> Self {
+        CurveSettings {
+            tolerance: 0.0,
+            metric: Metric::Sphere,
+            fit: true,
+        }
+    }
+}
+
+/// A coded curve set: what an asset stores and what it decodes to.
+#[derive(Clone, Debug)]
+pub struct Curves {
+    /// Scheme, ring shapes, tolerance, level bounds.
+    pub header: code::CurveHeader,
+    /// The range-coded base points and details.
+    pub stream: Vec<u8>,
+    /// The decoded model.
+    pub set: CurveSet,
+}
+
+/// Encodes polylines: preparation, the fit, closed-loop coding.
+pub fn encode(
+    lines: &[geojson::Polyline],
+    settings: &CurveSettings,
+) -> Result<(Curves, fit::FitReport), crate::Error> {
+    if !(settings.tolerance.is_finite() && settings.tolerance >= 0.0) {
+        return Err(crate::Error::Settings(format!(
+            "tolerance {} must be a finite distance >= 0",
+            settings.tolerance
+        )));
+    }
+    let prepared = lines
+        .iter()
+        .enumerate()
+        .map(|(i, l)| prepare(&l.points, l.closed).map_err(|e| format!("polyline {i}: {e}")))
+        .collect::<Result<Vec<_>, _>>()
+        .map_err(crate::Error::Input)?;
+    let coded = |scheme: &Scheme| {
+        code::encode(scheme, settings.metric, settings.tolerance, &prepared)
+            .map_err(crate::Error::Input)
+    };
+    let mut best = coded(&Scheme::default())?;
+    let mut report = fit::FitReport::default();
+    if settings.fit {
+        // The fitted scheme is kept when it codes smaller: the fit minimises distances to the
+        // curve, the coder pays for residual bits, and the two need not agree (rav1e's way:
+        // decide by measuring the rate).
+        let (scheme, r) = fit::fit(&prepared);
+        report = r;
+        if scheme != Scheme::default() {
+            let fitted = coded(&scheme)?;
+            report.kept = fitted.1.len() < best.1.len();
+            report.bytes_default = best.1.len();
+            report.bytes_fitted = fitted.1.len();
+            if report.kept {
+                best = fitted;
+            }
+        }
+    }
+    let (header, stream, set) = best;
+    Ok((
+        Curves {
+            header,
+            stream,
+            set,
+        },
+        report,
+    ))
+}
+
+/// The Hausdorff distance between two polylines, vertex to polyline both ways, in the metric's
+/// units (for figures and tests). Segments are searched in a latitude band around each vertex
+/// (a difference in y alone bounds the distance from below in both metrics), seeded with the
+/// segment at the same relative position.
+pub fn hausdorff(metric: Metric, a: &[Pt], b: &[Pt]) -> f64 {
+    directed(metric, a, b).max(directed(metric, b, a))
+}
+
+fn directed(metric: Metric, from: &[Pt], to: &[Pt]) -> f64 {
+    if from.is_empty() || to.is_empty() {
+        return f64::INFINITY;
+    }
+    let segs: Vec<(Pt, Pt)> = if to.len() == 1 {
+        vec![(to[0], to[0])]
+    } else {
+        to.windows(2).map(|w| (w[0], w[1])).collect()
+    };
+    let mut order: Vec<usize> = (0..segs.len()).collect();
+    let ymin = |s: &(Pt, Pt)| s.0[1].min(s.1[1]);
+    order.sort_by(|&i, &j| ymin(&segs[i]).total_cmp(&ymin(&segs[j])));
+    let ymins: Vec<f64> = order.iter().map(|&i| ymin(&segs[i])).collect();
+    let extent = segs
+        .iter()
+        .map(|s| (s.0[1] - s.1[1]).abs())
+        .fold(0.0, f64::max);
+    let mut worst = 0.0f64;
+    for (k, &p) in from.iter().enumerate() {
+        let guess = (k * segs.len() / from.len()).min(segs.len() - 1);
+        let mut best = metric.point_segment(p, segs[guess].0, segs[guess].1);
+        let lo = ymins.partition_point(|&y| y < p[1] - best - extent);
+        let hi = ymins.partition_point(|&y| y <= p[1] + best);
+        for &i in &order[lo..hi] {
+            let (s0, s1) = segs[i];
+            if s0[1].max(s1[1]) < p[1] - best {
+                continue;
+            }
+            best = best.min(metric.point_segment(p, s0, s1));
+        }
+        worst = worst.max(best);
+    }
+    worst
+}
+
+/// An encoded curve asset and what the encoder measured.
+pub struct EncodedCurveAsset {
+    /// The asset, as a reader of the file sees it.
+    pub asset: crate::asset::Asset,
+    /// The file's bytes.
+    pub bytes: Vec<u8>,
+    /// The fit's report.
+    pub fit: fit::FitReport,
+    /// Input vertices (GeoJSON positions, ring closures included).
+    pub points: usize,
+}
+
+/// Encodes polylines into an asset file (kind Curve, codec 5). The metadata counts input
+/// positions in `width` (one row, two float32 channels: the ratio baseline), and holds the
+/// largest and RMS vertex error at the finest level.
+pub fn encode_asset(
+    lines: &[geojson::Polyline],
+    settings: &CurveSettings,
+    name: &str,
+) -> Result<EncodedCurveAsset, crate::Error> {
+    let started = std::time::Instant::now();
+    let (curves, report) = encode(lines, settings)?;
+    let points: usize = lines
+        .iter()
+        .map(|l| l.points.len() + usize::from(l.closed))
+        .sum();
+    let finest = curves.set.at_level(curves.set.finest());
+    let (mut max_err, mut sum2) = (0.0f64, 0.0f64);
+    for (l, out) in lines.iter().zip(&finest.lines) {
+        for (a, b) in l.points.iter().zip(out) {
+            let d = settings.metric.distance(*a, *b);
+            max_err = max_err.max(d);
+            sum2 += d * d;
+        }
+    }
+    let ys = lines.iter().flat_map(|l| l.points.iter().map(|p| p[1]));
+    let (lo, hi) = ys.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), y| {
+        (lo.min(y), hi.max(y))
+    });
+    let meta = fractile_proto::AssetMeta {
+        kind: fractile_proto::AssetKind::Curve,
+        width: u32::try_from(points)
+            .ok()
+            .filter(|&n| n <= 1 << 26)
+            .ok_or_else(|| crate::Error::Input(format!("{points} vertices is too many")))?,
+        height: 1,
+        channels: 2,
+        colour: fractile_proto::ColourModel::Grey,
+        sample: fractile_proto::SampleFormat::F32,
+        units: Some(match settings.metric {
+            Metric::Sphere => "degrees".into(),
+            Metric::Plane => "units".into(),
+        }),
+        value_min: lo,
+        value_max: hi,
+        nodata: None,
+        georef: None,
+        encoder: format!(
+            "{name}: curve-pifs, tolerance {}, {} scheme",
+            settings.tolerance,
+            if report.kept { "fitted" } else { "default" }
+        ),
+        stats: fractile_proto::EncodeStats {
+            transforms: curves.set.rings.iter().map(|r| r.pieces() as u64).sum(),
+            rmse: (sum2 / points.max(1) as f64).sqrt(),
+            psnr: 0.0,
+            max_error: max_err,
+            seconds: started.elapsed().as_secs_f64(),
+        },
+    };
+    let asset = crate::asset::Asset::from_curve_parts(meta, curves.header, curves.stream)?;
+    let bytes = asset.to_bytes();
+    Ok(EncodedCurveAsset {
+        asset,
+        bytes,
+        fit: report,
+        points,
+    })
+}
