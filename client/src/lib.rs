@@ -429,6 +429,33 @@ impl Client {
             .await
     }
 
+    /// `GET /v1/assets/{id}/curve?level=N`: a curve asset as a GeoJSON FeatureCollection (one
+    /// Feature per input ring; `fractile.error_bound` is the level's Hausdorff bound). `None`:
+    /// the input's finest level.
+    pub async fn curve(
+        &self,
+        id: &str,
+        level: Option<usize>,
+    ) -> Result<serde_json::Value, ClientError> {
+        let q = query(&[("level", level.map(|n| n.to_string()))]);
+        self.get_json(&self.asset_path(id, &format!("/curve{q}"))?)
+            .await
+    }
+
+    /// `POST /v1/assets/{id}/curve/deform`: the deformed curve as GeoJSON (the stored asset is
+    /// unchanged).
+    pub async fn deform_curve(
+        &self,
+        id: &str,
+        req: &fractile_proto::DeformRequest,
+    ) -> Result<serde_json::Value, ClientError> {
+        let url = self.url(&self.asset_path(id, "/curve/deform")?);
+        let r = self.send(self.http.post(url).json(req)).await?;
+        let bytes = r.bytes().await.map_err(ClientError::Transport)?;
+        serde_json::from_slice(&bytes)
+            .map_err(|e| ClientError::malformed("curve answer", e.to_string()))
+    }
+
     /// `POST /v1/assets/{id}/points`: a batch, in JSON or binary.
     pub async fn points(
         &self,

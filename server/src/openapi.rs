@@ -94,7 +94,14 @@ pub fn document() -> Value {
                     param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (volumes: x0,y0,z0,x1,y1,z1 in the mesh's units; default: the whole asset)"),
                     param("resolution", "query", json!({"type": "integer", "minimum": 2, "maximum": 2048}), "vertices a side (volumes: samples along the box's longest side, at most 512, default the encoded grid)"),
                     iterations, tolerance, backend, param("format", "query", json!({"enum": ["obj", "ply", "glb"]}), "file format")],
-                "responses": {"200": {"description": "mesh file"}, "400": {"$ref": "#/components/responses/Error"}}}}
+                "responses": {"200": {"description": "mesh file"}, "400": {"$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/curve": {"get": {"summary": "A curve asset as GeoJSON at any level: one LineString Feature per input ring, in order; the foreign member `fractile` gives the level, the finest level and the Hausdorff error bound (in `units`)", "parameters": [id,
+                    param("level", "query", json!({"type": "integer", "minimum": 0}), "0 is the coarsest; default the input's finest; deeper levels continue the details self-similarly"),
+                    param("control", "query", json!({"type": "boolean"}), "answer each ring's base control points (what a `control` deformation moves)")],
+                "responses": {"200": {"description": "GeoJSON FeatureCollection", "content": {"application/geo+json": {}}}, "400": {"$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/curve/deform": {"post": {"summary": "Deforms a curve asset (stateless) and answers GeoJSON: move control points (details follow the rotation and scale), scale or rotate the details of the finer levels, or move one point of a level with its neighbours", "parameters": [id],
+                "requestBody": {"required": true, "content": {"application/json": {"schema": {"$ref": "#/components/schemas/DeformRequest"}}}},
+                "responses": {"200": {"description": "GeoJSON FeatureCollection", "content": {"application/geo+json": {}}}, "400": {"$ref": "#/components/responses/Error"}}}}
         },
         "components": {
             "securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}},
@@ -103,6 +110,10 @@ pub fn document() -> Value {
                 "AssetSummary": {"type": "object", "properties": {"id": {"type": "string"}, "kind": {"enum": ["Image", "HeightField", "Volume", "Curve"]}, "width": {"type": "integer"}, "height": {"type": "integer"}, "bounds": {"type": ["array", "null"]}, "value_range": {"type": "array"}, "units": {"type": ["string", "null"]}, "codec": {"type": "string"}, "bytes": {"type": "integer"}, "ratio": {"type": "number"}}},
                 "PointsRequest": {"type": "object", "required": ["points"], "properties": {"points": {"type": "array", "items": {"type": "array", "minItems": 2, "maxItems": 2}}, "iterations": {"type": ["integer", "null"]}, "tolerance": {"type": ["number", "null"]}}},
                 "DistanceResult": {"type": "object", "properties": {"coordinates": {"type": "array", "items": {"type": "number"}, "minItems": 3, "maxItems": 3}, "distance": {"type": ["number", "null"]}, "error_bound": {"type": ["number", "null"]}, "iterations": {"type": "integer"}, "outside": {"type": "boolean"}}},
+                "DeformRequest": {"type": "object", "required": ["deformations"], "properties": {"level": {"type": ["integer", "null"]}, "deformations": {"type": "array", "items": {"oneOf": [
+                    {"type": "object", "required": ["type", "ring", "points"], "properties": {"type": {"const": "control"}, "ring": {"type": "integer"}, "points": {"type": "array", "items": {"type": "array", "minItems": 2, "maxItems": 2}}}},
+                    {"type": "object", "required": ["type", "from_level", "scale"], "properties": {"type": {"const": "details"}, "from_level": {"type": "integer"}, "scale": {"type": "number"}, "rotate_degrees": {"type": "number"}, "ring": {"type": ["integer", "null"]}}},
+                    {"type": "object", "required": ["type", "ring", "level", "index", "to"], "properties": {"type": {"const": "local"}, "ring": {"type": "integer"}, "level": {"type": "integer"}, "index": {"type": "integer"}, "to": {"type": "array", "minItems": 2, "maxItems": 2}, "radius": {"type": "integer"}}}]}}}},
                 "PointResult": {"type": "object", "properties": {"coordinates": {"type": "array"}, "values": {"type": ["array", "null"]}, "error_bound": {"type": ["number", "null"]}, "iterations": {"type": "integer"}, "outside": {"type": "boolean"}}}
             }
         }

@@ -272,3 +272,76 @@ fn a_mesh_encodes_to_a_volume_and_back_to_a_closed_mesh() {
     assert!(String::from_utf8_lossy(&out.stderr).contains("ranges are [4, 8, 16]"));
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn geojson_encodes_to_a_curve_asset_and_back_at_any_level() {
+    let dir = tempdir("curve");
+    let asset = dir.join("coast.fra");
+    let enc = json(
+        &bin()
+            .arg("encode")
+            .arg(data("curve/coast5.geojson"))
+            .arg("-o")
+            .arg(&asset)
+            .args(["--codec", "curve", "--tolerance", "0.009", "--json"])
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(enc["codec"], "curve-pifs");
+    assert_eq!(enc["polylines"], 5);
+    let bytes = std::fs::metadata(&asset).unwrap().len();
+    assert_eq!(enc["bytes"].as_u64().unwrap(), bytes);
+    let points = enc["points"].as_u64().unwrap();
+    assert!((enc["ratio_f32"].as_f64().unwrap() - (8 * points) as f64 / bytes as f64).abs() < 1e-9);
+    assert!(enc["max_vertex_error_m"].as_f64().unwrap() <= 0.009 * 111_195.0 * 1.000_001);
+    // Default level: every input vertex, one feature per ring, in order.
+    let out = dir.join("coast.geojson");
+    let dec = json(
+        &bin()
+            .arg("curve")
+            .arg(&asset)
+            .arg("-o")
+            .arg(&out)
+            .arg("--json")
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(dec["points"].as_u64().unwrap(), points);
+    let back =
+        fractile_codec::curve::geojson::read(&std::fs::read_to_string(&out).unwrap()).unwrap();
+    let src = fractile_codec::curve::geojson::read(
+        &std::fs::read_to_string(data("curve/coast5.geojson")).unwrap(),
+    )
+    .unwrap();
+    assert_eq!(back.len(), src.len());
+    for (a, b) in back.iter().zip(&src) {
+        assert_eq!(a.points.len(), b.points.len());
+        assert_eq!(a.closed, b.closed);
+    }
+    // A coarser and a deeper level.
+    let finest = dec["finest_level"].as_u64().unwrap();
+    for (level, fewer) in [(finest - 2, true), (finest + 1, false)] {
+        let d = json(
+            &bin()
+                .arg("curve")
+                .arg(&asset)
+                .arg("-o")
+                .arg(dir.join("l.geojson"))
+                .args(["--level", &level.to_string(), "--json"])
+                .output()
+                .unwrap(),
+        );
+        assert_eq!(d["points"].as_u64().unwrap() < points, fewer, "{d}");
+    }
+    // Refusals: a huge level, and a curve asked of a raster asset.
+    let huge = bin()
+        .arg("curve")
+        .arg(&asset)
+        .arg("-o")
+        .arg(dir.join("h.geojson"))
+        .args(["--level", "80"])
+        .output()
+        .unwrap();
+    assert!(!huge.status.success());
+    assert!(String::from_utf8_lossy(&huge.stderr).contains("2^26"));
+}

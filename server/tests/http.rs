@@ -54,6 +54,15 @@ fn state() -> Arc<AppState> {
             )
             .unwrap();
             std::fs::write(dir.join("fandisk.fra"), &vol.bytes).unwrap();
+            // Curves: five real coastlines, coded to about 1 km.
+            let text = std::fs::read_to_string(data("curve/coast5.geojson")).unwrap();
+            let lines = fractile_codec::curve::geojson::read(&text).unwrap();
+            let settings = fractile_codec::curve::CurveSettings {
+                tolerance: 0.009,
+                ..Default::default()
+            };
+            let c = fractile_codec::curve::encode_asset(&lines, &settings, "coast5").unwrap();
+            std::fs::write(dir.join("coast.fra"), &c.bytes).unwrap();
             // A broken file must be skipped, not stop the server.
             std::fs::write(dir.join("broken.fra"), b"FRACTILE garbage").unwrap();
             let (store, skipped) = Store::open(&dir).unwrap();
@@ -1147,4 +1156,106 @@ async fn volume_meshes_points_and_refusals() {
     let (s, _, b) = get("/v1/assets/fandisk/point?x=1e9&y=0&z=0").await;
     assert_eq!(s, StatusCode::NOT_FOUND);
     assert_eq!(json(&b)["code"], "outside");
+}
+
+#[tokio::test]
+async fn curves_as_geojson_at_any_level_and_deformed() {
+    let text = std::fs::read_to_string(data("curve/coast5.geojson")).unwrap();
+    let source = fractile_codec::curve::geojson::read(&text).unwrap();
+    let (st, hd, body) = get("/v1/assets/coast/curve").await;
+    assert_eq!(st, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
+    assert_eq!(hd[header::CONTENT_TYPE], "application/geo+json");
+    let doc = json(&body);
+    let features = doc["features"].as_array().unwrap();
+    assert_eq!(features.len(), source.len(), "one feature per input ring");
+    let finest = doc["fractile"]["finest_level"].as_u64().unwrap();
+    let bound = doc["fractile"]["error_bound"].as_f64().unwrap();
+    assert!(bound <= 0.009 + 1e-12, "finest bound {bound}");
+    for (f, l) in features.iter().zip(&source) {
+        let pts = f["geometry"]["coordinates"].as_array().unwrap();
+        // Every input vertex, in order, ring closed, each within the tolerance.
+        assert_eq!(pts.len(), l.points.len() + 1);
+        for (p, q) in pts.iter().zip(&l.points) {
+            let p = [p[0].as_f64().unwrap(), p[1].as_f64().unwrap()];
+            let d = fractile_codec::curve::Metric::Sphere.distance(p, *q);
+            assert!(d <= 0.009 * (1.0 + 1e-9), "{d}");
+        }
+    }
+    // Coarser levels have fewer points and larger bounds; deeper ones more points.
+    let count = |doc: &serde_json::Value| -> usize {
+        doc["features"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|f| f["geometry"]["coordinates"].as_array().unwrap().len())
+            .sum()
+    };
+    let (_, _, coarse) = get(&format!("/v1/assets/coast/curve?level={}", finest - 2)).await;
+    let coarse = json(&coarse);
+    assert!(count(&coarse) < count(&doc) / 3);
+    assert!(coarse["fractile"]["error_bound"].as_f64().unwrap() > bound);
+    let (_, _, deep) = get(&format!("/v1/assets/coast/curve?level={}", finest + 1)).await;
+    assert!(count(&json(&deep)) > count(&doc) * 3 / 2);
+    // Control points, then a global deformation by a translation: the curve moves with them.
+    let (_, _, ctrl) = get("/v1/assets/coast/curve?control=true").await;
+    let ctrl = json(&ctrl);
+    let ring0: Vec<[f64; 2]> = ctrl["features"][0]["geometry"]["coordinates"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|p| [p[0].as_f64().unwrap() + 1.0, p[1].as_f64().unwrap() - 0.5])
+        .collect();
+    let req =
+        serde_json::json!({"deformations": [{"type": "control", "ring": 0, "points": ring0}]});
+    let (st, body) = call(
+        &state(),
+        Request::post("/v1/assets/coast/curve/deform")
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(req.to_string()))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(st, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
+    let moved = json(&body);
+    let a = features[0]["geometry"]["coordinates"].as_array().unwrap();
+    let b = moved["features"][0]["geometry"]["coordinates"]
+        .as_array()
+        .unwrap();
+    assert_eq!(a.len(), b.len());
+    for (p, q) in a.iter().zip(b) {
+        assert!((q[0].as_f64().unwrap() - p[0].as_f64().unwrap() - 1.0).abs() < 1e-9);
+        assert!((q[1].as_f64().unwrap() - p[1].as_f64().unwrap() + 0.5).abs() < 1e-9);
+    }
+    // The stored asset is unchanged (stateless).
+    let (_, _, again) = get("/v1/assets/coast/curve").await;
+    assert_eq!(json(&again), doc);
+    // Refusals: a huge level, a tile of a curve asset, a bad deformation.
+    let (st, _, body) = get("/v1/assets/coast/curve?level=60").await;
+    assert_eq!(
+        (st, json(&body)["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("too_many_points"))
+    );
+    let (st, _, body) = get("/v1/assets/coast/tiles/0/0/0.png").await;
+    assert_eq!(
+        (st, json(&body)["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("curve_asset"))
+    );
+    let (st, _, body) = get("/v1/assets/camera/curve").await;
+    assert_eq!(
+        (st, json(&body)["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("not_curve"))
+    );
+    let bad = serde_json::json!({"deformations": [{"type": "local", "ring": 9, "level": 1, "index": 0, "to": [0, 0]}]});
+    let (st, body) = call(
+        &state(),
+        Request::post("/v1/assets/coast/curve/deform")
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(bad.to_string()))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(
+        (st, json(&body)["code"].as_str()),
+        (StatusCode::BAD_REQUEST, Some("bad_deformation"))
+    );
 }

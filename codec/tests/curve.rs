@@ -1,0 +1,293 @@
+//! The curve codec on real coastlines (testdata/curve/coast5.geojson, Natural Earth 1:50m):
+//! exact reconstruction, the tolerance and level bounds against measured Hausdorff distances,
+//! levels past the source, the file format's refusals, and the three deformations.
+
+use fractile_codec::asset::Asset;
+use fractile_codec::curve::geojson::Polyline;
+use fractile_codec::curve::{self, CurveSettings, Metric, Pt};
+use fractile_proto::Deformation;
+
+fn coast() -> Vec<Polyline> {
+    let path =
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/curve/coast5.geojson");
+    curve::geojson::read(&std::fs::read_to_string(path).unwrap()).unwrap()
+}
+
+fn closed(l: &Polyline) -> Vec<Pt> {
+    let mut p = l.points.clone();
+    if l.closed {
+        p.push(p[0]);
+    }
+    p
+}
+
+fn encode(lines: &[Polyline], tolerance: f64, fit: bool) -> Asset {
+    let s = CurveSettings {
+        tolerance,
+        metric: Metric::Sphere,
+        fit,
+    };
+    let enc = curve::encode_asset(lines, &s, "coast5").unwrap();
+    // What is served is what a reader of the file gets.
+    let read = Asset::from_bytes(&enc.bytes).unwrap();
+    assert_eq!(
+        read.curve.as_ref().unwrap().set,
+        enc.asset.curve.as_ref().unwrap().set
+    );
+    read
+}
+
+#[test]
+fn tolerance_zero_reconstructs_every_input_vertex() {
+    let lines = coast();
+    for fit in [false, true] {
+        let a = encode(&lines, 0.0, fit);
+        let set = &a.curve.as_ref().unwrap().set;
+        let out = set.at_level(set.finest());
+        assert_eq!(out.lines.len(), lines.len());
+        for (l, o) in lines.iter().zip(&out.lines) {
+            let src = closed(l);
+            assert_eq!(o.len(), src.len());
+            for (p, q) in src.iter().zip(o) {
+                assert!(
+                    (p[0] - q[0]).abs() < 1e-9 && (p[1] - q[1]).abs() < 1e-9,
+                    "{p:?} {q:?}"
+                );
+            }
+        }
+    }
+}
+
+#[test]
+fn every_vertex_within_the_tolerance_and_every_level_within_its_bound() {
+    let lines = coast();
+    let tol = 0.009;
+    let a = encode(&lines, tol, true);
+    let c = a.curve.as_ref().unwrap();
+    let set = &c.set;
+    let finest = set.finest();
+    for level in 0..=finest + 2 {
+        let out = set.at_level(level);
+        let mut worst: f64 = 0.0;
+        for (l, o) in lines.iter().zip(&out.lines) {
+            worst = worst.max(curve::hausdorff(Metric::Sphere, &closed(l), o));
+        }
+        assert!(
+            worst <= out.error_bound * (1.0 + 1e-9),
+            "level {level}: Hausdorff {worst} over the bound {}",
+            out.error_bound
+        );
+        if level == finest {
+            assert!(out.error_bound <= tol * (1.0 + 1e-12));
+            for (l, o) in lines.iter().zip(&out.lines) {
+                for (p, q) in closed(l).iter().zip(o) {
+                    assert!(Metric::Sphere.distance(*p, *q) <= tol * (1.0 + 1e-9));
+                }
+            }
+        }
+        if level < finest {
+            // A coarse level is a real simplification: far fewer points, larger error.
+            let pts: usize = out.lines.iter().map(Vec::len).sum();
+            let all: usize = lines.iter().map(|l| l.points.len()).sum();
+            assert!(pts < all);
+            assert!(out.error_bound > tol);
+        }
+    }
+    // Lossy coding pays: at ~1 km the five coastlines code to well under float32's size.
+    let f32_bytes = 8 * a.meta.width as usize;
+    assert!(
+        a.to_bytes().len() * 4 < f32_bytes,
+        "{} bytes",
+        a.to_bytes().len()
+    );
+}
+
+#[test]
+fn levels_past_the_source_keep_its_points_and_add_detail() {
+    let lines = coast();
+    let a = encode(&lines, 0.009, true);
+    let set = &a.curve.as_ref().unwrap().set;
+    let l = set.finest();
+    for ring in &set.rings {
+        let own = set.ring_level(ring, l);
+        let at = ring.polygon(&set.scheme, own);
+        let deeper = ring.polygon(&set.scheme, own + 2);
+        assert_eq!(
+            deeper.len() - usize::from(!ring.closed),
+            4 * (at.len() - usize::from(!ring.closed))
+        );
+        for (i, p) in at.iter().enumerate() {
+            assert_eq!(deeper[4 * i], *p, "interpolating: source-level points stay");
+        }
+    }
+}
+
+#[test]
+fn corrupt_truncated_and_unknown_files_are_refused() {
+    let a = encode(&coast()[..1], 0.01, false);
+    let bytes = a.to_bytes();
+    for cut in [10, bytes.len() / 2, bytes.len() - 1] {
+        assert!(Asset::from_bytes(&bytes[..cut]).is_err());
+    }
+    let mut flipped = bytes.clone();
+    let mid = flipped.len() / 2;
+    flipped[mid] ^= 0x40;
+    assert!(Asset::from_bytes(&flipped).is_err());
+    let mut codec = bytes.clone();
+    codec[11] = 9;
+    let err = Asset::from_bytes(&codec).unwrap_err().to_string();
+    assert!(
+        err.contains("unknown codec 9") || err.contains("checksum"),
+        "{err}"
+    );
+}
+
+#[test]
+fn bad_polylines_get_clear_errors() {
+    let s = CurveSettings::default();
+    let two = [Polyline {
+        points: vec![[0.0, 0.0], [1.0, 1.0]],
+        closed: true,
+    }];
+    let e = curve::encode(&two, &s).unwrap_err().to_string();
+    assert!(e.contains("at least 3"), "{e}");
+    let nan = [Polyline {
+        points: vec![[0.0, 0.0], [f64::NAN, 1.0], [2.0, 0.0]],
+        closed: false,
+    }];
+    assert!(
+        curve::encode(&nan, &s)
+            .unwrap_err()
+            .to_string()
+            .contains("not finite")
+    );
+    let neg = CurveSettings {
+        tolerance: -1.0,
+        ..Default::default()
+    };
+    assert!(curve::encode(&coast(), &neg).is_err());
+}
+
+#[test]
+fn a_similarity_of_the_control_points_moves_the_whole_curve() {
+    let lines = coast();
+    let a = encode(&lines, 0.0, true);
+    let set = &a.curve.as_ref().unwrap().set;
+    // Rotate ring 0's control points by 90° about (0, 50), scale by 1.5, translate.
+    let f = |p: Pt| [-(p[1] - 50.0) * 1.5 + 3.0, p[0] * 1.5 + 50.0 - 2.0];
+    let points: Vec<Pt> = set.rings[0].base.iter().map(|&p| f(p)).collect();
+    let d = curve::deform::apply(set, &[Deformation::Control { ring: 0, points }]).unwrap();
+    let before = set.at_level(set.finest());
+    let after = d.at_level(d.finest());
+    for (p, q) in before.lines[0].iter().zip(&after.lines[0]) {
+        let t = f(*p);
+        assert!(
+            (t[0] - q[0]).abs() < 1e-9 && (t[1] - q[1]).abs() < 1e-9,
+            "{t:?} vs {q:?}"
+        );
+    }
+    assert_eq!(before.lines[1], after.lines[1], "other rings untouched");
+}
+
+#[test]
+fn detail_edits_touch_only_the_finer_levels() {
+    let lines = coast();
+    let a = encode(&lines, 0.0, false);
+    let set = &a.curve.as_ref().unwrap().set;
+    let finest = set.finest();
+    let same = curve::deform::apply(
+        set,
+        &[Deformation::Details {
+            from_level: 0,
+            scale: 1.0,
+            rotate_degrees: 0.0,
+            ring: None,
+        }],
+    )
+    .unwrap();
+    assert_eq!(same.at_level(finest).lines, set.at_level(finest).lines);
+    let smooth = curve::deform::apply(
+        set,
+        &[Deformation::Details {
+            from_level: finest - 1,
+            scale: 0.0,
+            rotate_degrees: 0.0,
+            ring: None,
+        }],
+    )
+    .unwrap();
+    let r = &set.rings[0];
+    let own = set.ring_level(r, finest);
+    let (a0, b0) = (
+        r.polygon(&set.scheme, own),
+        smooth.rings[0].polygon(&smooth.scheme, own),
+    );
+    let mut moved = 0;
+    for i in 0..a0.len() {
+        if i % 2 == 0 {
+            assert_eq!(a0[i], b0[i], "points of coarser levels stay");
+        } else if a0[i] != b0[i] {
+            moved += 1;
+        }
+    }
+    assert!(
+        moved > a0.len() / 4,
+        "the finest details were removed ({moved} moved)"
+    );
+}
+
+#[test]
+fn a_local_edit_moves_the_point_and_its_neighbours_only() {
+    let lines = coast();
+    let a = encode(&lines, 0.0, false);
+    let set = &a.curve.as_ref().unwrap().set;
+    let level = set.finest() - 3;
+    let before = set.at_level(level).lines[0].clone();
+    let to = [before[5][0] + 0.5, before[5][1] + 0.25];
+    let d = curve::deform::apply(
+        set,
+        &[Deformation::Local {
+            ring: 0,
+            level,
+            index: 5,
+            to,
+            radius: 2,
+        }],
+    )
+    .unwrap();
+    let after = d.at_level(level).lines[0].clone();
+    assert!((after[5][0] - to[0]).abs() < 1e-9 && (after[5][1] - to[1]).abs() < 1e-9);
+    for (i, (p, q)) in before.iter().zip(&after).enumerate() {
+        let k = i.abs_diff(5);
+        if k > 2 {
+            assert!(
+                (p[0] - q[0]).abs() < 1e-9 && (p[1] - q[1]).abs() < 1e-9,
+                "point {i} moved"
+            );
+        } else if k > 0 {
+            let w = curve::deform::falloff(k, 2);
+            assert!(((q[0] - p[0]) - 0.5 * w).abs() < 1e-9, "falloff at {k}");
+        }
+    }
+    // The finer levels follow: the finest curve changed near the edit and nowhere far from it.
+    let (fb, fa) = (set.at_level(set.finest()), d.at_level(d.finest()));
+    let changed = fb.lines[0]
+        .iter()
+        .zip(&fa.lines[0])
+        .filter(|(p, q)| (p[0] - q[0]).abs() > 1e-9 || (p[1] - q[1]).abs() > 1e-9)
+        .count();
+    assert!(changed > 0 && changed < fb.lines[0].len() / 2, "{changed}");
+    assert!(
+        curve::deform::apply(
+            set,
+            &[Deformation::Local {
+                ring: 0,
+                level: 99,
+                index: 0,
+                to,
+                radius: 0
+            }]
+        )
+        .is_err()
+    );
+}
