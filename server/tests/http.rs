@@ -104,7 +104,7 @@ async fn catalog_metadata_and_tilejson() {
         .iter()
         .map(|a| a["id"].as_str().unwrap().to_string())
         .collect();
-    assert_eq!(ids, ["camera", "fandisk", "jacksboro"]);
+    assert_eq!(ids, ["camera", "coast", "fandisk", "jacksboro"]);
     let (s, _, b) = get("/v1/assets/jacksboro").await;
     assert_eq!(s, StatusCode::OK);
     let m = json(&b);
