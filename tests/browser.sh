@@ -9,7 +9,9 @@ cd "$(dirname "$0")/.."
 command -v chromium >/dev/null || { echo "chromium is needed (apt-get install chromium)" >&2; exit 1; }
 PORT=${PORT:-18197}
 WORK=$(mktemp -d)
-cargo build --release -p fractile -q
+# The whole workspace, as CI builds it before: one package alone unifies dependency features
+# differently and would rebuild wgpu and the server.
+cargo build --release --workspace -q
 # The viewer is under test here, not the GPU (gpu/ and server/tests cover that): the CPU backend
 # keeps a software Vulkan adapter out of the server process while Chromium runs SwiftShader.
 FRACTILE_BACKEND=cpu FRACTILE_CACHE=$WORK/cache RUST_LOG=warn \

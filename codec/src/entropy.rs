@@ -24,6 +24,15 @@ impl Default for Bit {
     }
 }
 
+impl Bit {
+    /// What coding `bit` would cost now, in bits (for encoders that choose between symbols
+    /// by their rate).
+    pub fn cost(&self, bit: bool) -> f64 {
+        let p0 = f64::from(self.0) / f64::from(PROB_ONE);
+        -(if bit { 1.0 - p0 } else { p0 }).log2()
+    }
+}
+
 /// Codes a value of `bits` bits, most significant first, each bit in the context of the bits
 /// above it (a binary tree of [`Bit`]s), so any distribution over `0..2^bits` is learnt.
 #[derive(Clone, Debug)]
@@ -44,6 +53,18 @@ impl BitTree {
     /// Number of bits of the values it codes.
     pub fn bits(&self) -> u32 {
         self.bits
+    }
+
+    /// What coding `value` would cost now, in bits.
+    pub fn cost(&self, value: u32) -> f64 {
+        let mut node = 1usize;
+        let mut bits = 0.0;
+        for i in (0..self.bits).rev() {
+            let b = (value >> i) & 1 == 1;
+            bits += self.probs[node].cost(b);
+            node = (node << 1) | b as usize;
+        }
+        bits
     }
 }
 

@@ -59,7 +59,7 @@ fn tolerance_zero_reconstructs_every_input_vertex() {
 }
 
 #[test]
-fn every_vertex_within_the_tolerance_and_every_level_within_its_bound() {
+fn every_level_within_its_bound_and_the_finest_within_the_tolerance() {
     let lines = coast();
     let tol = 0.009;
     let a = encode(&lines, tol, true);
@@ -70,7 +70,9 @@ fn every_vertex_within_the_tolerance_and_every_level_within_its_bound() {
         let out = set.at_level(level);
         let mut worst: f64 = 0.0;
         for (l, o) in lines.iter().zip(&out.lines) {
-            worst = worst.max(curve::hausdorff(Metric::Sphere, &closed(l), o));
+            // Sampled every tol/64 along segments: a point may slide along the coast, so the
+            // largest distance need not be at a vertex.
+            worst = worst.max(curve::hausdorff(Metric::Sphere, &closed(l), o, tol / 64.0));
         }
         assert!(
             worst <= out.error_bound * (1.0 + 1e-9),
@@ -78,11 +80,11 @@ fn every_vertex_within_the_tolerance_and_every_level_within_its_bound() {
             out.error_bound
         );
         if level == finest {
-            assert!(out.error_bound <= tol * (1.0 + 1e-12));
+            // Bounds are stored as f32 rounded up: within a few f32 ulps of the tolerance.
+            assert!(out.error_bound <= tol * (1.0 + 1e-6), "{}", out.error_bound);
+            // One output vertex per input vertex, each near the coast (it may slide along it).
             for (l, o) in lines.iter().zip(&out.lines) {
-                for (p, q) in closed(l).iter().zip(o) {
-                    assert!(Metric::Sphere.distance(*p, *q) <= tol * (1.0 + 1e-9));
-                }
+                assert_eq!(o.len(), closed(l).len());
             }
         }
         if level < finest {

@@ -598,14 +598,14 @@ fn encode_curve(a: &EncodeArgs) -> Result<()> {
         "ratio_f32": (enc.points * 8) as f64 / enc.bytes.len() as f64,
         "tolerance_degrees": tolerance,
         "tolerance_m": tolerance * fractile_codec::curve::METRES_PER_DEGREE,
-        "max_vertex_error_m": m.stats.max_error * fractile_codec::curve::METRES_PER_DEGREE,
+        "hausdorff_m": m.stats.max_error * fractile_codec::curve::METRES_PER_DEGREE,
         "finest_level": set.finest(), "fit": enc.fit, "seconds": m.stats.seconds,
     });
     if a.json {
         println!("{report}");
     } else {
         println!(
-            "{} -> {}: {} polylines, {} points, {} bytes ({:.2}:1 vs float32, {:.2}:1 vs float64), largest vertex error {:.0} m, {} levels, {:.2} s",
+            "{} -> {}: {} polylines, {} points, {} bytes ({:.2}:1 vs float32, {:.2}:1 vs float64), Hausdorff distance to the source {:.0} m, {} levels, {:.2} s",
             a.input.display(),
             a.output.display(),
             set.rings.len(),
@@ -613,7 +613,7 @@ fn encode_curve(a: &EncodeArgs) -> Result<()> {
             enc.bytes.len(),
             report["ratio_f32"].as_f64().unwrap_or(0.0),
             report["ratio_f64"].as_f64().unwrap_or(0.0),
-            report["max_vertex_error_m"].as_f64().unwrap_or(0.0),
+            report["hausdorff_m"].as_f64().unwrap_or(0.0),
             set.finest(),
             m.stats.seconds
         );

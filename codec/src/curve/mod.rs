@@ -73,23 +73,27 @@ impl Metric {
     /// tangent at `p` (exact for Plane, accurate to well under 0.1% for the short distances the
     /// bounds care about on the sphere).
     pub fn point_segment(self, p: Pt, a: Pt, b: Pt) -> f64 {
-        let sx = self.x_scale(p[1]);
-        let (ax, ay) = ((a[0] - p[0]) * sx, a[1] - p[1]);
-        let (bx, by) = ((b[0] - p[0]) * sx, b[1] - p[1]);
-        let (dx, dy) = (bx - ax, by - ay);
-        let len2 = dx * dx + dy * dy;
-        let t = if len2 > 0.0 {
-            (-(ax * dx + ay * dy) / len2).clamp(0.0, 1.0)
-        } else {
-            0.0
-        };
-        ((ax + t * dx).powi(2) + (ay + t * dy).powi(2)).sqrt()
+        point_segment_scaled(p, a, b, self.x_scale(p[1]))
     }
 
     /// Distance between two points.
     pub fn distance(self, a: Pt, b: Pt) -> f64 {
         self.point_segment(a, b, b)
     }
+}
+
+/// [`Metric::point_segment`] with the x scale at `p` given (one cosine for many segments).
+pub(crate) fn point_segment_scaled(p: Pt, a: Pt, b: Pt, sx: f64) -> f64 {
+    let (ax, ay) = ((a[0] - p[0]) * sx, a[1] - p[1]);
+    let (bx, by) = ((b[0] - p[0]) * sx, b[1] - p[1]);
+    let (dx, dy) = (bx - ax, by - ay);
+    let len2 = dx * dx + dy * dy;
+    let t = if len2 > 0.0 {
+        (-(ax * dx + ay * dy) / len2).clamp(0.0, 1.0)
+    } else {
+        0.0
+    };
+    ((ax + t * dx).powi(2) + (ay + t * dy).powi(2)).sqrt()
 }
 
 /// The subdivision scheme shared by all rings of an asset: the subdivision matrices `T_i` (as
@@ -743,47 +747,125 @@ pub fn encode(
     ))
 }
 
-/// The Hausdorff distance between two polylines, vertex to polyline both ways, in the metric's
-/// units (for figures and tests). Segments are searched in a latitude band around each vertex
-/// (a difference in y alone bounds the distance from below in both metrics), seeded with the
-/// segment at the same relative position.
-pub fn hausdorff(metric: Metric, a: &[Pt], b: &[Pt]) -> f64 {
-    directed(metric, a, b).max(directed(metric, b, a))
+/// The Hausdorff distance between two polylines, both ways, in the metric's units (for figures
+/// and tests): from every vertex and from points every `spacing` along every segment to the
+/// other polyline (exact to within `spacing / 2`, since distance to a polyline is
+/// 1-Lipschitz; `spacing = 0` measures from vertices only).
+pub fn hausdorff(metric: Metric, a: &[Pt], b: &[Pt], spacing: f64) -> f64 {
+    directed(metric, a, b, spacing).max(directed(metric, b, a, spacing))
 }
 
-fn directed(metric: Metric, from: &[Pt], to: &[Pt]) -> f64 {
+fn directed(metric: Metric, from: &[Pt], to: &[Pt], spacing: f64) -> f64 {
     if from.is_empty() || to.is_empty() {
         return f64::INFINITY;
     }
-    let segs: Vec<(Pt, Pt)> = if to.len() == 1 {
-        vec![(to[0], to[0])]
-    } else {
-        to.windows(2).map(|w| (w[0], w[1])).collect()
-    };
-    let mut order: Vec<usize> = (0..segs.len()).collect();
-    let ymin = |s: &(Pt, Pt)| s.0[1].min(s.1[1]);
-    order.sort_by(|&i, &j| ymin(&segs[i]).total_cmp(&ymin(&segs[j])));
-    let ymins: Vec<f64> = order.iter().map(|&i| ymin(&segs[i])).collect();
-    let extent = segs
-        .iter()
-        .map(|s| (s.0[1] - s.1[1]).abs())
-        .fold(0.0, f64::max);
+    let grid = SegmentGrid::new(to);
     let mut worst = 0.0f64;
     for (k, &p) in from.iter().enumerate() {
-        let guess = (k * segs.len() / from.len()).min(segs.len() - 1);
-        let mut best = metric.point_segment(p, segs[guess].0, segs[guess].1);
-        let lo = ymins.partition_point(|&y| y < p[1] - best - extent);
-        let hi = ymins.partition_point(|&y| y <= p[1] + best);
-        for &i in &order[lo..hi] {
-            let (s0, s1) = segs[i];
-            if s0[1].max(s1[1]) < p[1] - best {
-                continue;
+        worst = worst.max(grid.distance(metric, p));
+        let Some(&q) = from.get(k + 1) else { continue };
+        if spacing > 0.0 {
+            let n = (metric.distance(p, q) / spacing).ceil().min(1e6) as usize;
+            for j in 1..n {
+                let t = j as f64 / n as f64;
+                let s = [p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])];
+                worst = worst.max(grid.distance(metric, s));
             }
-            best = best.min(metric.point_segment(p, s0, s1));
         }
-        worst = worst.max(best);
     }
     worst
+}
+
+/// The segments of a polyline bucketed on a regular grid of lon/lat cells, for nearest-segment
+/// queries. Hand-written: the metric scales x by the cosine at the query point, which the
+/// spatial-index crates' fixed metrics do not express, and a grid is a dozen lines.
+struct SegmentGrid {
+    segs: Vec<(Pt, Pt)>,
+    origin: Pt,
+    cell: f64,
+    size: [i64; 2],
+    cells: Vec<Vec<u32>>,
+}
+
+impl SegmentGrid {
+    fn new(line: &[Pt]) -> Self {
+        let segs: Vec<(Pt, Pt)> = if line.len() == 1 {
+            vec![(line[0], line[0])]
+        } else {
+            line.windows(2).map(|w| (w[0], w[1])).collect()
+        };
+        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
+        let mut total = 0.0;
+        for &(a, b) in &segs {
+            for k in 0..2 {
+                lo[k] = lo[k].min(a[k]).min(b[k]);
+                hi[k] = hi[k].max(a[k]).max(b[k]);
+            }
+            total += (a[0] - b[0]).abs().max((a[1] - b[1]).abs());
+        }
+        // Cells about twice a mean segment, at most ~1M of them.
+        let span = (hi[0] - lo[0]).max(hi[1] - lo[1]).max(1e-12);
+        let cell = (2.0 * total / segs.len() as f64)
+            .max(span / 1024.0)
+            .max(1e-12);
+        let size = [
+            ((hi[0] - lo[0]) / cell) as i64 + 1,
+            ((hi[1] - lo[1]) / cell) as i64 + 1,
+        ];
+        let mut cells = vec![Vec::new(); (size[0] * size[1]) as usize];
+        for (i, &(a, b)) in segs.iter().enumerate() {
+            let c0 = |k: usize| ((a[k].min(b[k]) - lo[k]) / cell) as i64;
+            let c1 = |k: usize| (((a[k].max(b[k]) - lo[k]) / cell) as i64).min(size[k] - 1);
+            for y in c0(1)..=c1(1) {
+                for x in c0(0)..=c1(0) {
+                    cells[(y * size[0] + x) as usize].push(i as u32);
+                }
+            }
+        }
+        SegmentGrid {
+            segs,
+            origin: lo,
+            cell,
+            size,
+            cells,
+        }
+    }
+
+    /// Distance from `p` to the nearest segment: rings of cells outward from `p`'s cell until
+    /// the next ring cannot hold anything nearer (a cell `r` rings away is at least
+    /// `(r - 1)·cell` away in x or in y, and the metric scales x by at most 1).
+    fn distance(&self, metric: Metric, p: Pt) -> f64 {
+        let c = [0, 1].map(|k| ((p[k] - self.origin[k]) / self.cell).floor() as i64);
+        let scale = metric.x_scale(p[1]).min(1.0);
+        let reach = (0..2)
+            .map(|k| (c[k]).abs().max((c[k] - self.size[k] + 1).abs()))
+            .max()
+            .unwrap_or(0);
+        let mut best = f64::INFINITY;
+        for r in 0..=reach {
+            if best <= (r - 1) as f64 * self.cell * scale {
+                break;
+            }
+            for y in (c[1] - r)..=(c[1] + r) {
+                if y < 0 || y >= self.size[1] {
+                    continue;
+                }
+                let edge = y == c[1] - r || y == c[1] + r;
+                let mut x = c[0] - r;
+                while x <= c[0] + r {
+                    if x >= 0 && x < self.size[0] {
+                        for &i in &self.cells[(y * self.size[0] + x) as usize] {
+                            let (a, b) = self.segs[i as usize];
+                            best = best.min(metric.point_segment(p, a, b));
+                        }
+                    }
+                    // Inner rows only visit the ring's two end cells.
+                    x += if edge || r == 0 { 1 } else { 2 * r };
+                }
+            }
+        }
+        best
+    }
 }
 
 /// An encoded curve asset and what the encoder measured.
@@ -800,7 +882,10 @@ pub struct EncodedCurveAsset {
 
 /// Encodes polylines into an asset file (kind Curve, codec 5). The metadata counts input
 /// positions in `width` (one row, two float32 channels: the ratio baseline), and holds the
-/// largest and RMS vertex error at the finest level.
+/// Hausdorff distance to the source at the finest level (`max_error`, measured along segments
+/// every tolerance/8) and the RMS distance from input vertices to the decoded polylines
+/// (`rmse`): a decoded point may slide along the coast, so its distance to its own input
+/// vertex says nothing of the error.
 pub fn encode_asset(
     lines: &[geojson::Polyline],
     settings: &CurveSettings,
@@ -815,11 +900,18 @@ pub fn encode_asset(
     let finest = curves.set.at_level(curves.set.finest());
     let (mut max_err, mut sum2) = (0.0f64, 0.0f64);
     for (l, out) in lines.iter().zip(&finest.lines) {
-        for (a, b) in l.points.iter().zip(out) {
-            let d = settings.metric.distance(*a, *b);
-            max_err = max_err.max(d);
-            sum2 += d * d;
+        let mut src = l.points.clone();
+        if l.closed {
+            src.push(src[0]);
         }
+        let spacing = settings.tolerance / 8.0;
+        max_err = max_err.max(hausdorff(settings.metric, &src, out, spacing));
+        let grid = SegmentGrid::new(out);
+        sum2 += l
+            .points
+            .iter()
+            .map(|&p| grid.distance(settings.metric, p).powi(2))
+            .sum::<f64>();
     }
     let ys = lines.iter().flat_map(|l| l.points.iter().map(|p| p[1]));
     let (lo, hi) = ys.fold((f64::INFINITY, f64::NEG_INFINITY), |(lo, hi), y| {
