@@ -24,6 +24,7 @@ use fractile_proto::{AssetKind, AssetMeta};
 use serde::{Deserialize, Serialize};
 
 use crate::Error;
+use crate::decode;
 use crate::entropy::{Bit, Decoder, Encoder};
 use crate::fis::{FisHeader, FisOperator};
 use crate::operator::{Operator, QuadtreeOperator, RangeMap, Step};
@@ -95,6 +96,53 @@ impl PlaneOperator {
         match self {
             PlaneOperator::Quadtree(q) => q.ranges(),
             PlaneOperator::Fis(_) | PlaneOperator::Psa(_) => &[],
+        }
+    }
+
+    /// [`decode::points`] with the codec resolved once per batch rather than once per inverse
+    /// step: through the enum, `step` is a match that the compiler does not inline into the
+    /// chain loop (measured: 37% of an uncached tile's time in the out-of-line `step`).
+    pub fn points(
+        &self,
+        pts: &[[f32; 2]],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Vec<decode::PointValue> {
+        match self {
+            PlaneOperator::Quadtree(q) => decode::points(q, pts, iterations, tolerance),
+            PlaneOperator::Fis(f) => decode::points(f, pts, iterations, tolerance),
+            PlaneOperator::Psa(f) => decode::points(f, pts, iterations, tolerance),
+        }
+    }
+
+    /// Continuous decoding of the separable grid `(xs[i], ys[j])`, row-major: [`decode::grid`]
+    /// for the quadtree (whose blocks of points step together), [`Self::points`] on the listed
+    /// points for codecs whose cells are not axis-aligned boxes. Same answers either way.
+    pub fn grid(
+        &self,
+        xs: &[f32],
+        ys: &[f32],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Vec<decode::PointValue> {
+        match self {
+            PlaneOperator::Quadtree(q) => decode::grid(q, xs, ys, iterations, tolerance),
+            _ => {
+                let pts: Vec<[f32; 2]> = ys
+                    .iter()
+                    .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
+                    .collect();
+                self.points(&pts, iterations, tolerance)
+            }
+        }
+    }
+
+    /// [`decode::point`] with the codec resolved once (see [`Self::points`]).
+    pub fn point(&self, p: [f32; 2], iterations: u32) -> decode::PointValue {
+        match self {
+            PlaneOperator::Quadtree(q) => decode::point(q, p, iterations),
+            PlaneOperator::Fis(f) => decode::point(f, p, iterations),
+            PlaneOperator::Psa(f) => decode::point(f, p, iterations),
         }
     }
 

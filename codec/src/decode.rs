@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use crate::operator::Operator;
+use crate::operator::{AxisAligned, ISOMETRY_MATRICES, Operator};
 
 /// The value of the attractor at one point, with its a-priori error bound.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -76,29 +76,83 @@ pub fn points<const D: usize, O: Operator<D> + ?Sized>(
     iterations: u32,
     tolerance: f32,
 ) -> Vec<PointValue> {
-    const LANES: usize = 8;
     let valid = op.valid();
+    let mut chains: Vec<Chain<D>> = pts
+        .iter()
+        .map(|p| Chain::start(std::array::from_fn(|d| p[d].clamp(0.0, 1.0) * valid[d])))
+        .collect();
+    run_chains(op, &mut chains, iterations, tolerance);
+    let (seed, half) = seed_of(op);
+    chains.iter().map(|c| c.finish(seed, half)).collect()
+}
+
+/// The seed value (the middle of the invariant interval) and its largest distance from the
+/// attractor (the half-width).
+fn seed_of<const D: usize, O: Operator<D> + ?Sized>(op: &O) -> (f32, f32) {
     let (lo, hi) = op.invariant_interval();
-    let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
-    let mut out = Vec::with_capacity(pts.len());
-    for chunk in pts.chunks(LANES) {
+    ((lo + hi) * 0.5, (hi - lo) * 0.5)
+}
+
+/// One inverse-iteration chain in flight: where it is, and `sum g_k prod_{j<k} s_j`, `prod s`
+/// and the steps taken so far.
+#[derive(Clone, Copy, Debug)]
+struct Chain<const D: usize> {
+    q: [f32; D],
+    acc_g: f32,
+    acc_s: f32,
+    taken: u32,
+}
+
+impl<const D: usize> Chain<D> {
+    fn start(q: [f32; D]) -> Self {
+        Chain {
+            q,
+            acc_g: 0.0,
+            acc_s: 1.0,
+            taken: 0,
+        }
+    }
+
+    fn finish(&self, seed: f32, half: f32) -> PointValue {
+        PointValue {
+            value: self.acc_g + self.acc_s * seed,
+            error_bound: self.acc_s.abs() * half,
+            iterations: self.taken,
+        }
+    }
+}
+
+/// Whether a chain whose contrast product is `s` still needs steps: it is exact once a map
+/// with s = 0 ended it, and good enough once its bound is under the tolerance.
+#[inline(always)]
+fn active(s: f32, half: f32, tolerance: f32) -> bool {
+    s != 0.0 && s.abs() * half > tolerance
+}
+
+/// Runs every chain until it has taken `iterations` steps in all or stopped (see [`points`]),
+/// eight at a time in lockstep.
+fn run_chains<const D: usize, O: Operator<D> + ?Sized>(
+    op: &O,
+    chains: &mut [Chain<D>],
+    iterations: u32,
+    tolerance: f32,
+) {
+    const LANES: usize = 8;
+    let (_, half) = seed_of(op);
+    for batch in chains.chunks_mut(LANES) {
         let mut q = [[0.0f32; D]; LANES];
         let mut acc_g = [0.0f32; LANES];
-        let mut acc_s = [1.0f32; LANES];
-        let mut taken = [0u32; LANES];
-        for (l, p) in chunk.iter().enumerate() {
-            for d in 0..D {
-                q[l][d] = p[d].clamp(0.0, 1.0) * valid[d];
-            }
-        }
         // Padding lanes of the last batch start finished.
-        acc_s[chunk.len()..].iter_mut().for_each(|s| *s = 0.0);
-        let active = |s: f32| s != 0.0 && s.abs() * half > tolerance;
-        for _ in 0..iterations {
+        let mut acc_s = [0.0f32; LANES];
+        let mut taken = [0u32; LANES];
+        for (l, c) in batch.iter().enumerate() {
+            (q[l], acc_g[l], acc_s[l], taken[l]) = (c.q, c.acc_g, c.acc_s, c.taken);
+        }
+        loop {
             let mut any = false;
             for l in 0..LANES {
                 // A finished lane is frozen, so that its answer does not depend on its neighbours.
-                if !active(acc_s[l]) {
+                if taken[l] >= iterations || !active(acc_s[l], half, tolerance) {
                     continue;
                 }
                 let st = op.step(q[l]);
@@ -106,21 +160,225 @@ pub fn points<const D: usize, O: Operator<D> + ?Sized>(
                 acc_g[l] += acc_s[l] * st.offset;
                 acc_s[l] *= st.contrast;
                 q[l] = st.next;
-                any |= active(acc_s[l]);
+                any = true;
             }
             if !any {
                 break;
             }
         }
-        for l in 0..chunk.len() {
-            out.push(PointValue {
-                value: acc_g[l] + acc_s[l] * seed,
-                error_bound: acc_s[l].abs() * half,
-                iterations: taken[l],
-            });
+        for (l, c) in batch.iter_mut().enumerate() {
+            (c.q, c.acc_g, c.acc_s, c.taken) = (q[l], acc_g[l], acc_s[l], taken[l]);
         }
     }
+}
+
+/// Continuous decoding of a separable grid of unit points: point (i, j) is `(xs[i], ys[j])`;
+/// row-major, `ys.len()` rows of `xs.len()`. The answers are bit for bit those of [`points`] on
+/// the same points (a test checks it), found with less work: the pixels of a tile or a region
+/// form such a grid, and the points of the grid that lie in one cell of an [`AxisAligned`]
+/// operator map onto a separable grid again, so a whole block of them steps at once. Blocks
+/// split as their images cross cell boundaries; below [`MIN_BLOCK`] points the chains go on
+/// one by one. The saving grows with zoom: at a tile 30 times finer than the source most points
+/// share their first five steps (measured in the bench).
+pub fn grid<O: AxisAligned + ?Sized>(
+    op: &O,
+    xs: &[f32],
+    ys: &[f32],
+    iterations: u32,
+    tolerance: f32,
+) -> Vec<PointValue> {
+    let (nx, ny) = (xs.len(), ys.len());
+    let valid = op.valid();
+    let (seed, half) = seed_of(op);
+    // Coordinate lists, all in one arena: a block refers to a slice for its columns and one for
+    // its rows; a block that steps appends its images.
+    let mut arena: Vec<f32> = Vec::with_capacity(4 * (nx + ny));
+    arena.extend(xs.iter().map(|x| x.clamp(0.0, 1.0) * valid[0]));
+    arena.extend(ys.iter().map(|y| y.clamp(0.0, 1.0) * valid[1]));
+    let mut acc_g = vec![0.0f32; nx * ny];
+    let mut out = vec![
+        PointValue {
+            value: 0.0,
+            error_bound: 0.0,
+            iterations: 0,
+        };
+        nx * ny
+    ];
+    let mut chains: Vec<(usize, Chain<2>)> = Vec::new();
+    let mut todo = Vec::new();
+    let mut terms: Vec<f32> = Vec::new();
+    if nx > 0 && ny > 0 {
+        todo.push(Block {
+            cols: [0, nx],
+            rows: [0, ny],
+            col_list: 0,
+            row_list: nx,
+            swap: false,
+            acc_s: 1.0,
+            taken: 0,
+        });
+    }
+    while let Some(b) = todo.pop() {
+        let (w, h) = (b.cols[1] - b.cols[0], b.rows[1] - b.rows[0]);
+        let at = |list: usize, k: usize| arena[list + k];
+        // Frame x and y of the block's column k and row k.
+        let (x_list, y_list) = if b.swap {
+            (b.row_list, b.col_list)
+        } else {
+            (b.col_list, b.row_list)
+        };
+        let point = |i: usize, j: usize| {
+            if b.swap {
+                [at(x_list, j), at(y_list, i)]
+            } else {
+                [at(x_list, i), at(y_list, j)]
+            }
+        };
+        if b.taken >= iterations || !active(b.acc_s, half, tolerance) {
+            for j in b.rows[0]..b.rows[1] {
+                for i in b.cols[0]..b.cols[1] {
+                    let k = j * nx + i;
+                    out[k] = Chain {
+                        q: [0.0; 2],
+                        acc_g: acc_g[k],
+                        acc_s: b.acc_s,
+                        taken: b.taken,
+                    }
+                    .finish(seed, half);
+                }
+            }
+            continue;
+        }
+        if w * h < MIN_BLOCK {
+            for j in 0..h {
+                for i in 0..w {
+                    let k = (b.rows[0] + j) * nx + b.cols[0] + i;
+                    let c = Chain {
+                        q: point(i, j),
+                        acc_g: acc_g[k],
+                        acc_s: b.acc_s,
+                        taken: b.taken,
+                    };
+                    chains.push((k, c));
+                }
+            }
+            continue;
+        }
+        // The cell of the block's first point, and the leading columns and rows that stay in it.
+        let p = point(0, 0);
+        let cell = op.axis_cell(op.lattice(0, p[0]), op.lattice(1, p[1]));
+        let inside = |list: usize, n: usize, axis: usize, span: [usize; 2]| {
+            (0..n)
+                .position(|k| !(span[0]..span[1]).contains(&op.lattice(axis, at(list, k))))
+                .unwrap_or(n)
+        };
+        let (cw, ch) = if b.swap {
+            (
+                inside(y_list, w, 1, cell.rows),
+                inside(x_list, h, 0, cell.cols),
+            )
+        } else {
+            (
+                inside(x_list, w, 0, cell.cols),
+                inside(y_list, h, 1, cell.rows),
+            )
+        };
+        debug_assert!(cw > 0 && ch > 0);
+        // The rest of the block waits at the same step: its other columns beside the leading
+        // rows, then every column below them.
+        if cw < w {
+            todo.push(Block {
+                cols: [b.cols[0] + cw, b.cols[1]],
+                rows: [b.rows[0], b.rows[0] + ch],
+                col_list: b.col_list + cw,
+                ..b
+            });
+        }
+        if ch < h {
+            todo.push(Block {
+                rows: [b.rows[0] + ch, b.rows[1]],
+                row_list: b.row_list + ch,
+                ..b
+            });
+        }
+        // One step of the leading block: g at every point (the same expression as `step`),
+        // phi on the coordinate lists.
+        let m = cell.map;
+        // g = (offset + gx x) + gy y, split into a term per column and one per row (the same
+        // operations in the same order as `step`, so the same bits).
+        terms.clear();
+        let (col_terms, row_terms) = if b.swap {
+            terms.extend((0..cw).map(|i| m.gy * at(y_list, i)));
+            terms.extend((0..ch).map(|j| m.offset + m.gx * at(x_list, j)));
+            terms.split_at(cw)
+        } else {
+            terms.extend((0..cw).map(|i| m.offset + m.gx * at(x_list, i)));
+            terms.extend((0..ch).map(|j| m.gy * at(y_list, j)));
+            terms.split_at(cw)
+        };
+        for (j, &rt) in row_terms.iter().enumerate() {
+            let row = (b.rows[0] + j) * nx + b.cols[0];
+            for (g, &ct) in acc_g[row..row + cw].iter_mut().zip(col_terms) {
+                *g += b.acc_s * (ct + rt);
+            }
+        }
+        let [ax, bx, ay, by] = ISOMETRY_MATRICES[m.isometry as usize & 7];
+        let (col_list, row_list) = (arena.len(), arena.len() + cw);
+        // The list that carried frame x carries the new x if phi_x reads x (ax != 0), else the
+        // new y; the other list carries the other coordinate.
+        let cols_carry_x = !b.swap;
+        let cols_to_x = (ax != 0.0) == cols_carry_x;
+        for (list, n, carries_x) in [
+            (b.col_list, cw, cols_carry_x),
+            (b.row_list, ch, !cols_carry_x),
+        ] {
+            let to_x = (ax != 0.0) == carries_x;
+            let (a, c) = match (to_x, carries_x) {
+                (true, true) => (ax, m.cx),
+                (true, false) => (bx, m.cx),
+                (false, true) => (ay, m.cy),
+                (false, false) => (by, m.cy),
+            };
+            for k in 0..n {
+                let t = arena[list + k];
+                arena.push(a * t + c);
+            }
+        }
+        todo.push(Block {
+            cols: [b.cols[0], b.cols[0] + cw],
+            rows: [b.rows[0], b.rows[0] + ch],
+            col_list,
+            row_list,
+            swap: !cols_to_x,
+            acc_s: b.acc_s * m.contrast,
+            taken: b.taken + 1,
+        });
+    }
+    let mut states: Vec<Chain<2>> = chains.iter().map(|&(_, c)| c).collect();
+    run_chains(op, &mut states, iterations, tolerance);
+    for (&(k, _), c) in chains.iter().zip(&states) {
+        out[k] = c.finish(seed, half);
+    }
     out
+}
+
+/// Below this many points a block of [`grid`] is decoded chain by chain: stepping a block costs
+/// a few lookups and list copies on top of the per-point work.
+pub const MIN_BLOCK: usize = 8;
+
+/// A block of a separable grid in flight in [`grid`]: columns and rows of the output, the
+/// arena offsets of their coordinate lists, which list holds frame x, and the shared part of the
+/// chain state (every point of a block has met the same maps).
+#[derive(Clone, Copy, Debug)]
+struct Block {
+    cols: [usize; 2],
+    rows: [usize; 2],
+    col_list: usize,
+    row_list: usize,
+    /// Whether the columns carry frame y (and the rows frame x).
+    swap: bool,
+    acc_s: f32,
+    taken: u32,
 }
 
 /// A decoded grid (normalised values), row-major.

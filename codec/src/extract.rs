@@ -13,7 +13,36 @@ use crate::operator::Operator;
 /// Decodes one plane's point chains elsewhere (a GPU): `(plane, unit points, iterations,
 /// normalised tolerance)`, or `None` to leave them to the CPU.
 pub type ContinuousHook<'a> =
-    dyn Fn(usize, &[[f32; 2]], u32, f32) -> Option<Vec<decode::PointValue>> + Sync + 'a;
+    dyn Fn(usize, Sites<'_>, u32, f32) -> Option<Vec<decode::PointValue>> + Sync + 'a;
+
+/// The unit points a [`ContinuousHook`] is asked for.
+#[derive(Clone, Copy, Debug)]
+pub enum Sites<'a> {
+    /// Points in the order given.
+    List(&'a [[f32; 2]]),
+    /// The separable grid `(xs[i], ys[j])`, row-major.
+    Grid {
+        /// Unit x of each column.
+        xs: &'a [f32],
+        /// Unit y of each row.
+        ys: &'a [f32],
+    },
+}
+
+impl Sites<'_> {
+    /// How many points.
+    pub fn len(&self) -> usize {
+        match self {
+            Sites::List(p) => p.len(),
+            Sites::Grid { xs, ys } => xs.len() * ys.len(),
+        }
+    }
+
+    /// Whether there are none.
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
 
 /// A decoded raster in source units.
 #[derive(Clone, Debug)]
@@ -167,7 +196,7 @@ impl Asset {
         let pv: Vec<_> = self
             .planes
             .iter()
-            .map(|p| decode::point(&p.operator, [u, v], iterations))
+            .map(|p| p.operator.point([u, v], iterations))
             .collect();
         let span = self.span();
         let bounds: Vec<f32> = pv.iter().map(|p| p.error_bound * span).collect();
@@ -204,8 +233,8 @@ impl Asset {
             .iter()
             .enumerate()
             .map(|(k, p)| {
-                continuous(k, pts, iterations, tol)
-                    .unwrap_or_else(|| decode::points(&p.operator, pts, iterations, tol))
+                continuous(k, Sites::List(pts), iterations, tol)
+                    .unwrap_or_else(|| p.operator.points(pts, iterations, tol))
             })
             .collect();
         let span = self.span();
@@ -289,36 +318,44 @@ impl Asset {
         )
     }
 
-    /// Values at many unit points (`None`: outside the asset, answered as NaN), each standing for
-    /// a pixel of `footprint` (unit coordinates). Where a pixel covers more than a source cell the
-    /// asset is decoded discretely at the pixels' own scale and sampled (a filtered answer, no
-    /// aliasing); otherwise each point is decoded continuously with at most `iterations` steps,
+    /// Values on the separable grid of unit points `(xs[i], ys[j])` (row-major; a `None` column
+    /// or row is outside the asset, answered as NaN), each point standing for a pixel of
+    /// `footprint` (unit coordinates): the pixels of a tile, a region or a mesh. Where a pixel
+    /// covers more than a source cell the asset is decoded discretely at the pixels' own scale
+    /// and sampled (a filtered answer, no aliasing); otherwise each point is decoded
+    /// continuously ([`crate::asset::PlaneOperator::grid`]) with at most `iterations` steps,
     /// stopping once its bound is at most `tolerance` (source units; 0: never early). Returns
     /// the channels and the a-priori error bound (source units, largest over the points).
     pub fn sample(
         &self,
-        points: &[Option<[f32; 2]>],
+        xs: &[Option<f32>],
+        ys: &[Option<f32>],
         footprint: [f32; 2],
         iterations: u32,
         tolerance: f32,
     ) -> (Vec<Vec<f32>>, f32) {
-        self.sample_with(points, footprint, iterations, tolerance, &|_, _, _, _| None)
+        self.sample_with(xs, ys, footprint, iterations, tolerance, &|_, _, _, _| None)
     }
 
     /// [`Asset::sample`], with the continuous chains of each plane offered first to
-    /// `continuous(plane, points, iterations, tolerance)` (normalised tolerance), which may
+    /// `continuous(plane, grid, iterations, tolerance)` (normalised tolerance), which may
     /// answer them elsewhere (a GPU) or return `None` to leave them to the CPU.
     pub fn sample_with(
         &self,
-        points: &[Option<[f32; 2]>],
+        xs: &[Option<f32>],
+        ys: &[Option<f32>],
         footprint: [f32; 2],
         iterations: u32,
         tolerance: f32,
         continuous: &ContinuousHook<'_>,
     ) -> (Vec<Vec<f32>>, f32) {
+        // Decode the columns and rows inside the asset, then put them back in place.
+        let cols: Vec<usize> = (0..xs.len()).filter(|&i| xs[i].is_some()).collect();
+        let rows: Vec<usize> = (0..ys.len()).filter(|&j| ys[j].is_some()).collect();
+        let ix: Vec<f32> = cols.iter().map(|&i| xs[i].unwrap_or(0.0)).collect();
+        let iy: Vec<f32> = rows.iter().map(|&j| ys[j].unwrap_or(0.0)).collect();
         let (w, h) = (self.meta.width as f32, self.meta.height as f32);
         let coarse = footprint[0] * w > 1.0 || footprint[1] * h > 1.0;
-        let inside: Vec<[f32; 2]> = points.iter().map(|p| p.unwrap_or([0.0, 0.0])).collect();
         // Largest per-point bound of the continuous path (normalised).
         let mut worst = 0.0f32;
         let planes: Vec<Vec<f32>> = if coarse {
@@ -329,10 +366,12 @@ impl Asset {
                 .map(|p| {
                     let (g, _) =
                         decode::discrete(&p.operator, gw, gh, DiscreteOptions::fixed(iterations));
-                    inside
-                        .iter()
-                        .map(|&[u, v]| {
-                            decode::sample_bilinear(&g, u * gw as f32 - 0.5, v * gh as f32 - 0.5)
+                    iy.iter()
+                        .flat_map(|&v| {
+                            let g = &g;
+                            ix.iter().map(move |&u| {
+                                decode::sample_bilinear(g, u * gw as f32 - 0.5, v * gh as f32 - 0.5)
+                            })
                         })
                         .collect()
                 })
@@ -343,8 +382,8 @@ impl Asset {
                 .iter()
                 .enumerate()
                 .map(|(k, p)| {
-                    continuous(k, &inside, iterations, tol)
-                        .unwrap_or_else(|| decode::points(&p.operator, &inside, iterations, tol))
+                    continuous(k, Sites::Grid { xs: &ix, ys: &iy }, iterations, tol)
+                        .unwrap_or_else(|| p.operator.grid(&ix, &iy, iterations, tol))
                         .into_iter()
                         .map(|r| {
                             worst = worst.max(r.error_bound);
@@ -354,14 +393,19 @@ impl Asset {
                 })
                 .collect()
         };
-        let mut channels = self.to_source(planes, |i| (inside[i][0], inside[i][1]));
-        for ch in &mut channels {
-            for (v, p) in ch.iter_mut().zip(points) {
-                if p.is_none() {
-                    *v = f32::NAN;
+        let inner = self.to_source(planes, |k| (ix[k % ix.len()], iy[k / ix.len()]));
+        let channels = inner
+            .into_iter()
+            .map(|ch| {
+                let mut full = vec![f32::NAN; xs.len() * ys.len()];
+                for (r, &j) in rows.iter().enumerate() {
+                    for (c, &i) in cols.iter().enumerate() {
+                        full[j * xs.len() + i] = ch[r * cols.len() + c];
+                    }
                 }
-            }
-        }
+                full
+            })
+            .collect();
         let bound = if coarse {
             self.bound_after(iterations)
         } else {

@@ -81,12 +81,22 @@ impl Placement {
 
     /// Unit coordinates of (lon, lat); `None` outside the asset.
     pub fn unit(&self, lon: f64, lat: f64) -> Option<[f32; 2]> {
+        Some([self.unit_x(lon)?, self.unit_y(lat)?])
+    }
+
+    /// Unit x of a longitude (u depends on it alone; wrapped for global assets); `None` outside.
+    pub fn unit_x(&self, lon: f64) -> Option<f32> {
         let mut u = (lon - self.west) / self.width_deg;
         if self.global {
             u = u.rem_euclid(1.0);
         }
+        (0.0..=1.0).contains(&u).then_some(u as f32)
+    }
+
+    /// Unit y of a latitude (v depends on it alone); `None` outside.
+    pub fn unit_y(&self, lat: f64) -> Option<f32> {
         let v = (self.north - lat) / self.height_deg;
-        ((0.0..=1.0).contains(&u) && (0.0..=1.0).contains(&v)).then_some([u as f32, v as f32])
+        (0.0..=1.0).contains(&v).then_some(v as f32)
     }
 
     /// Degrees of longitude per unit of u, and of latitude per unit of v.
@@ -124,36 +134,68 @@ pub fn tile_points_with_margin(
     size: usize,
     margin: usize,
 ) -> (Vec<Option<[f32; 2]>>, [f32; 2]) {
+    let g = tile_grid(placement, z, x, y, size, margin);
+    (g.points(), g.footprint)
+}
+
+/// The pixel centres of a tile as a separable grid: pixel (i, j) is `(xs[i], ys[j])`, because
+/// the asset's u depends on longitude alone, which depends on the column alone, and v on the
+/// row alone. Decoders use the structure ([`crate::decode::grid`]).
+#[derive(Clone, Debug, PartialEq)]
+pub struct TileGrid {
+    /// Unit x of each column; `None` outside the asset.
+    pub xs: Vec<Option<f32>>,
+    /// Unit y of each row; `None` outside the asset.
+    pub ys: Vec<Option<f32>>,
+    /// Size of one pixel in unit coordinates (at the tile's centre: Mercator stretches
+    /// latitude away from it).
+    pub footprint: [f32; 2],
+}
+
+impl TileGrid {
+    /// The grid's points, row-major; `None` where its column or its row is outside the asset.
+    pub fn points(&self) -> Vec<Option<[f32; 2]>> {
+        self.ys
+            .iter()
+            .flat_map(|&v| self.xs.iter().map(move |&u| Some([u?, v?])))
+            .collect()
+    }
+}
+
+/// The pixel centres of tile z/x/y on a `(size + 2 margin)` square grid (see
+/// [`tile_points_with_margin`]) as a [`TileGrid`].
+pub fn tile_grid(
+    placement: Option<&Placement>,
+    z: u8,
+    x: u32,
+    y: u32,
+    size: usize,
+    margin: usize,
+) -> TileGrid {
     // Longitude depends on the column only, latitude on the row only: 2 x size evaluations.
     let side = size + 2 * margin;
     let frac = |k: usize| (k as f64 - margin as f64 + 0.5) / size as f64;
-    let pts = match placement {
-        Some(p) => {
-            let lons: Vec<f64> = (0..side)
-                .map(|i| tile_lonlat(z, x, y, frac(i), 0.5).0)
-                .collect();
-            let lats: Vec<f64> = (0..side)
-                .map(|j| tile_lonlat(z, x, y, 0.5, frac(j)).1)
-                .collect();
-            (0..side * side)
-                .map(|k| p.unit(lons[k % side], lats[k / side]))
-                .collect()
-        }
+    let (xs, ys) = match placement {
+        Some(p) => (
+            (0..side)
+                .map(|i| p.unit_x(tile_lonlat(z, x, y, frac(i), 0.5).0))
+                .collect(),
+            (0..side)
+                .map(|j| p.unit_y(tile_lonlat(z, x, y, 0.5, frac(j)).1))
+                .collect(),
+        ),
         None => {
             let n = (1u64 << z) as f64;
-            (0..side * side)
-                .map(|k| {
-                    Some([
-                        ((x as f64 + frac(k % side)) / n) as f32,
-                        ((y as f64 + frac(k / side)) / n) as f32,
-                    ])
-                })
-                .collect()
+            let axis = |t: u32| -> Vec<Option<f32>> {
+                (0..side)
+                    .map(|k| Some(((t as f64 + frac(k)) / n) as f32))
+                    .collect()
+            };
+            (axis(x), axis(y))
         }
     };
     let footprint = match placement {
         Some(p) => {
-            // A pixel's size at the tile's centre (Mercator stretches latitude away from it).
             let [w, s, e, n] = tile_bounds(z, x, y);
             let d = p.degrees_per_unit();
             [
@@ -166,7 +208,7 @@ pub fn tile_points_with_margin(
             [f, f]
         }
     };
-    (pts, footprint)
+    TileGrid { xs, ys, footprint }
 }
 
 #[cfg(test)]

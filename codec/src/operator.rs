@@ -35,6 +35,31 @@ pub trait Operator<const D: usize>: Send + Sync {
     fn invariant_interval(&self) -> (f32, f32);
 }
 
+/// One cell of an [`AxisAligned`] operator: a box of lattice squares and its map, whose phi keeps
+/// the axes (a signed permutation scaled by the expansion), whose s is constant and whose g is
+/// affine.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AxisCell {
+    /// Lattice columns `cols[0]..cols[1]` that the cell covers.
+    pub cols: [usize; 2],
+    /// Lattice rows `rows[0]..rows[1]` that the cell covers.
+    pub rows: [usize; 2],
+    /// The map, exactly as [`Operator::step`] evaluates it in this cell.
+    pub map: AffineCell,
+}
+
+/// A 2D operator whose cells are boxes of a square lattice, found by a separable lookup (the
+/// column from x alone, the row from y alone), each with a map that keeps the axes: the quadtree
+/// IFS. On a separable grid of points (a tile, a region) a whole block of points in one cell then
+/// steps together, since its image is again a separable grid; [`crate::decode::grid`] uses this.
+pub trait AxisAligned: Operator<2> {
+    /// The lattice column (`axis` 0) or row (`axis` 1) of frame coordinate `t`, computed exactly as
+    /// [`Operator::step`] finds a point's cell.
+    fn lattice(&self, axis: usize, t: f32) -> usize;
+    /// The cell that covers lattice square (`col`, `row`).
+    fn axis_cell(&self, col: usize, row: usize) -> AxisCell;
+}
+
 /// The smallest interval I with `hull(g_c + s_c * I) ⊂ I` over all cells, where each cell gives
 /// `(s, g_min, g_max)`, the range of its offset function over the cell; found by iterating that
 /// map from [0, 1] (a constant-offset fractile operator keeps [0, 1] invariant, see
@@ -293,11 +318,35 @@ impl QuadtreeOperator {
     /// Index of the range that holds frame point `p` (clamped into the frame).
     #[inline(always)]
     pub fn range_at(&self, p: [f32; 2]) -> usize {
+        let x = self.lattice(0, p[0]);
+        let y = self.lattice(1, p[1]);
+        self.lut[y * self.lut_cols + x] as usize
+    }
+}
+
+impl AxisAligned for QuadtreeOperator {
+    #[inline(always)]
+    fn lattice(&self, axis: usize, t: f32) -> usize {
         // A multiplication by the reciprocal, not an integer division: this is the hot path of
         // continuous decoding. (`as usize` saturates: NaN and negatives give 0.)
-        let x = ((p[0] * self.inv_cell) as usize).min(self.lut_cols - 1);
-        let y = ((p[1] * self.inv_cell) as usize).min(self.lut_rows - 1);
-        self.lut[y * self.lut_cols + x] as usize
+        let last = if axis == 0 {
+            self.lut_cols
+        } else {
+            self.lut_rows
+        } - 1;
+        ((t * self.inv_cell) as usize).min(last)
+    }
+
+    fn axis_cell(&self, col: usize, row: usize) -> AxisCell {
+        let i = self.lut[row * self.lut_cols + col] as usize;
+        let r = &self.ranges[i];
+        let (c, n) = ((r.x / self.cell) as usize, (r.size / self.cell) as usize);
+        let rw = (r.y / self.cell) as usize;
+        AxisCell {
+            cols: [c, c + n],
+            rows: [rw, rw + n],
+            map: self.cells[i],
+        }
     }
 }
 

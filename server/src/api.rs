@@ -211,23 +211,24 @@ fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppErro
     Ok(b)
 }
 
-/// `Asset::sample` on the chosen backend (runs inside `decode`, on the blocking pool).
+/// `Asset::sample` of a separable grid on the chosen backend (runs inside `decode`, on the
+/// blocking pool).
 fn sample_on(
     gpu: Option<&GpuBackend>,
     choice: Backend,
     a: &StoredAsset,
-    pts: &[Option<[f32; 2]>],
-    footprint: [f32; 2],
+    grid: &geo::TileGrid,
     iterations: u32,
     tolerance: f32,
 ) -> (Vec<Vec<f32>>, f32) {
-    match gpu.filter(|g| g.takes(choice, pts.len())) {
+    let (xs, ys, footprint) = (&grid.xs, &grid.ys, grid.footprint);
+    match gpu.filter(|g| g.takes(choice, xs.len() * ys.len())) {
         Some(g) => a
             .asset
-            .sample_with(pts, footprint, iterations, tolerance, &|k, p, n, t| {
+            .sample_with(xs, ys, footprint, iterations, tolerance, &|k, p, n, t| {
                 g.points(a, k, p, n, t)
             }),
-        None => a.asset.sample(pts, footprint, iterations, tolerance),
+        None => a.asset.sample(xs, ys, footprint, iterations, tolerance),
     }
 }
 
@@ -597,20 +598,13 @@ async fn tile(
         // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile,
         // so that shading is seamless across tiles.
         let margin = usize::from(shade);
-        let (pts, footprint) =
-            geo::tile_points_with_margin(asset.placement.as_ref(), z, x, y, size, margin);
-        if pts.iter().all(Option::is_none) {
+        let grid = geo::tile_grid(asset.placement.as_ref(), z, x, y, size, margin);
+        if grid.xs.iter().all(Option::is_none) || grid.ys.iter().all(Option::is_none) {
             return None;
         }
-        let (mut channels, bound) = sample_on(
-            gpu.as_deref(),
-            choice,
-            &asset,
-            &pts,
-            footprint,
-            iterations,
-            tolerance,
-        );
+        let footprint = grid.footprint;
+        let (mut channels, bound) =
+            sample_on(gpu.as_deref(), choice, &asset, &grid, iterations, tolerance);
         let style = (colormap.is_some() || shade).then(|| {
             let side = size + 2 * margin;
             let shade = shade.then(|| {
@@ -678,10 +672,32 @@ fn parse_rescale(r: &Option<String>, a: &StoredAsset) -> Result<Option<(f32, f32
 
 /// Unit coordinates of a request point: lon/lat for georeferenced assets, unit x/y otherwise.
 fn unit_of(a: &StoredAsset, c: [f64; 2]) -> Option<[f32; 2]> {
-    match &a.placement {
-        Some(p) => p.unit(c[0], c[1]),
-        None => ((0.0..=1.0).contains(&c[0]) && (0.0..=1.0).contains(&c[1]))
-            .then_some([c[0] as f32, c[1] as f32]),
+    Some([unit_axis(a, 0, c[0])?, unit_axis(a, 1, c[1])?])
+}
+
+/// Unit x (`axis` 0, from longitude or x) or unit y (`axis` 1, from latitude or y) of a request
+/// coordinate; `None` outside the asset. Each depends on its own coordinate alone, so the pixels
+/// of a north-up box form a separable grid.
+fn unit_axis(a: &StoredAsset, axis: usize, t: f64) -> Option<f32> {
+    match (&a.placement, axis) {
+        (Some(p), 0) => p.unit_x(t),
+        (Some(p), _) => p.unit_y(t),
+        (None, _) => (0.0..=1.0).contains(&t).then_some(t as f32),
+    }
+}
+
+/// The separable grid of a north-up box's samples: column i at request x `x(i)`, row j at
+/// request y `y(j)`.
+fn box_grid(
+    a: &StoredAsset,
+    (w, x): (usize, impl Fn(usize) -> f64),
+    (h, y): (usize, impl Fn(usize) -> f64),
+    footprint: [f32; 2],
+) -> geo::TileGrid {
+    geo::TileGrid {
+        xs: (0..w).map(|i| unit_axis(a, 0, x(i))).collect(),
+        ys: (0..h).map(|j| unit_axis(a, 1, y(j))).collect(),
+        footprint,
     }
 }
 
@@ -989,22 +1005,25 @@ async fn mesh(
     let (iterations, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
     let geo_ref = a.placement.is_some();
     // Vertex (i, j): i east, j south, corners included.
-    let at = |i: usize, j: usize| {
-        let (fx, fy) = (i as f64 / (n - 1) as f64, j as f64 / (n - 1) as f64);
-        if geo_ref {
-            [x0 + fx * (x1 - x0), y1 - fy * (y1 - y0)]
-        } else {
-            [x0 + fx * (x1 - x0), y0 + fy * (y1 - y0)]
-        }
-    };
-    let pts: Vec<Option<[f32; 2]>> = (0..n * n).map(|k| unit_of(&a, at(k % n, k / n))).collect();
-    if pts.iter().all(Option::is_none) {
+    let frac = |k: usize| k as f64 / (n - 1) as f64;
+    let grid = box_grid(
+        &a,
+        (n, |i| x0 + frac(i) * (x1 - x0)),
+        (n, |j| {
+            if geo_ref {
+                y1 - frac(j) * (y1 - y0)
+            } else {
+                y0 + frac(j) * (y1 - y0)
+            }
+        }),
+        pixel_footprint(&a, [x0, y0, x1, y1], n - 1, n - 1),
+    );
+    if grid.xs.iter().all(Option::is_none) || grid.ys.iter().all(Option::is_none) {
         return Err(AppError::not_found(
             "outside",
             "the box is outside the asset",
         ));
     }
-    let footprint = pixel_footprint(&a, [x0, y0, x1, y1], n - 1, n - 1);
     let (extent_x, extent_y) = if geo_ref {
         let m = geo::metres_per_degree(0.5 * (y0 + y1));
         ((x1 - x0) * m[0], (y1 - y0) * m[1])
@@ -1019,15 +1038,7 @@ async fn mesh(
         state.gpu.clone(),
     );
     let body = decode(&state, move || {
-        let (channels, bound) = sample_on(
-            gpu.as_deref(),
-            choice,
-            &a,
-            &pts,
-            footprint,
-            iterations,
-            tolerance,
-        );
+        let (channels, bound) = sample_on(gpu.as_deref(), choice, &a, &grid, iterations, tolerance);
         let spacing = [
             (extent_x / (n - 1) as f64) as f32,
             (extent_y / (n - 1) as f64) as f32,
@@ -1197,21 +1208,19 @@ async fn region(
     let (w, h) = (q.width, q.height);
     // Pixel centres in the request's coordinates: lon/lat (north up) or unit x/y (y down).
     let geo_ref = a.placement.is_some();
-    let pts: Vec<Option<[f32; 2]>> = (0..w * h)
-        .map(|k| {
-            let (fx, fy) = (
-                ((k % w) as f64 + 0.5) / w as f64,
-                ((k / w) as f64 + 0.5) / h as f64,
-            );
-            let c = if geo_ref {
-                [x0 + fx * (x1 - x0), y1 - fy * (y1 - y0)]
+    let grid = box_grid(
+        &a,
+        (w, |i| x0 + (i as f64 + 0.5) / w as f64 * (x1 - x0)),
+        (h, |j| {
+            let fy = (j as f64 + 0.5) / h as f64;
+            if geo_ref {
+                y1 - fy * (y1 - y0)
             } else {
-                [x0 + fx * (x1 - x0), y0 + fy * (y1 - y0)]
-            };
-            unit_of(&a, c)
-        })
-        .collect();
-    let footprint = pixel_footprint(&a, [x0, y0, x1, y1], w, h);
+                y0 + fy * (y1 - y0)
+            }
+        }),
+        pixel_footprint(&a, [x0, y0, x1, y1], w, h),
+    );
     let f32_out = format == "f32";
     let tif_out = format == "tif";
     // The GeoTIFF's georeference is the requested box (north-up, lon/lat for geographic assets).
@@ -1230,8 +1239,7 @@ async fn region(
         state.gpu.clone(),
     );
     let (ct, body, bound) = decode(&state, move || {
-        let (channels, bound) =
-            sample_on(gpu.as_deref(), choice, &a, &pts, footprint, n, tolerance);
+        let (channels, bound) = sample_on(gpu.as_deref(), choice, &a, &grid, n, tolerance);
         if tif_out {
             let nodata = a.asset.meta.nodata;
             let values: Vec<f32> = match nodata {

@@ -13,6 +13,7 @@ use std::str::FromStr;
 use std::sync::Arc;
 
 use fractile_codec::decode::PointValue;
+use fractile_codec::extract::Sites;
 use fractile_codec::pieces::Flatten;
 use fractile_gpu::{Gpu, GpuOperator};
 
@@ -133,19 +134,31 @@ impl GpuBackend {
         }
     }
 
-    /// Continuous decoding of one plane's points; `None` (logged) when the device fails, for
-    /// the caller to use the CPU.
+    /// Continuous decoding of one plane's points (a list, or a separable grid generated on the
+    /// device); `None` (logged) when the device fails, for the caller to use the CPU.
     pub fn points(
         &self,
         a: &StoredAsset,
         plane: usize,
-        points: &[[f32; 2]],
+        sites: Sites<'_>,
         iterations: u32,
         tolerance: f32,
     ) -> Option<Vec<PointValue>> {
         let plane_op = &a.asset.planes.get(plane)?.operator;
         let op = self.resident(a, plane, || self.gpu.upload(&plane_op.pieces()))?;
-        match self.gpu.points(&op, points, iterations, tolerance) {
+        let answer = match sites {
+            Sites::List(points) => self.gpu.points(&op, points, iterations, tolerance),
+            Sites::Grid { xs, ys } => self.gpu.grid(
+                &op,
+                fractile_gpu::Grid::Separable {
+                    xs: xs.to_vec(),
+                    ys: ys.to_vec(),
+                },
+                iterations,
+                tolerance,
+            ),
+        };
+        match answer {
             Ok(v) => Some(v),
             Err(e) => {
                 tracing::warn!("GPU decode of {} failed, decoding on the CPU: {e}", a.id);
