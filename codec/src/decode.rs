@@ -195,6 +195,24 @@ pub fn grid<O: AxisAligned + ?Sized>(
     let mut arena: Vec<f32> = Vec::with_capacity(4 * (nx + ny));
     arena.extend(xs.iter().map(|x| x.clamp(0.0, 1.0) * valid[0]));
     arena.extend(ys.iter().map(|y| y.clamp(0.0, 1.0) * valid[1]));
+    // Where the grid is about as coarse as the lattice, blocks would hold a point or two and
+    // cost more than they share: decode point by point (the same answers).
+    let squares = |list: &[f32], axis: usize| {
+        1 + list
+            .windows(2)
+            .filter(|w| op.lattice(axis, w[0]) != op.lattice(axis, w[1]))
+            .count()
+    };
+    let per_square =
+        (nx * ny) as f32 / (squares(&arena[..nx], 0) as f32 * squares(&arena[nx..], 1) as f32);
+    if per_square < MIN_BLOCK as f32 {
+        let mut chains: Vec<Chain<2>> = arena[nx..]
+            .iter()
+            .flat_map(|&y| arena[..nx].iter().map(move |&x| Chain::start([x, y])))
+            .collect();
+        run_chains(op, &mut chains, iterations, tolerance);
+        return chains.iter().map(|c| c.finish(seed, half)).collect();
+    }
     let mut acc_g = vec![0.0f32; nx * ny];
     let mut out = vec![
         PointValue {

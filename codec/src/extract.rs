@@ -3,6 +3,8 @@
 //! This is what the CLI and the server call.
 
 use fractile_proto::{ColourModel, SampleFormat};
+use std::sync::Arc;
+
 use rayon::prelude::*;
 
 use crate::asset::Asset;
@@ -14,6 +16,19 @@ use crate::operator::Operator;
 /// normalised tolerance)`, or `None` to leave them to the CPU.
 pub type ContinuousHook<'a> =
     dyn Fn(usize, Sites<'_>, u32, f32) -> Option<Vec<decode::PointValue>> + Sync + 'a;
+
+/// Hands out the discrete decode of every plane at `width x height` with `iterations` steps
+/// (normalised), as [`Asset::discrete_planes`] computes it: a server keeps recent ones, since
+/// every tile of a zoom level coarser than the source samples the same grid.
+pub type DiscreteHook<'a> = dyn Fn(usize, usize, u32) -> Arc<Vec<Grid>> + Sync + 'a;
+
+/// Work that [`Asset::sample_with`] lets its caller do elsewhere or keep.
+pub struct Delegates<'a> {
+    /// Continuous chains (a GPU).
+    pub continuous: &'a ContinuousHook<'a>,
+    /// Discrete decodes for coarse pixels (a cache).
+    pub discrete: &'a DiscreteHook<'a>,
+}
 
 /// The unit points a [`ContinuousHook`] is asked for.
 #[derive(Clone, Copy, Debug)]
@@ -117,7 +132,10 @@ impl Asset {
         let mut out: Vec<Vec<f32>> = match self.meta.colour {
             ColourModel::Grey => planes
                 .into_iter()
-                .map(|p| p.into_iter().map(|v| lo + v * span).collect())
+                .map(|mut p| {
+                    p.iter_mut().for_each(|v| *v = lo + *v * span);
+                    p
+                })
                 .collect(),
             ColourModel::YCbCr => {
                 let peak = self.peak();
@@ -334,12 +352,35 @@ impl Asset {
         iterations: u32,
         tolerance: f32,
     ) -> (Vec<Vec<f32>>, f32) {
-        self.sample_with(xs, ys, footprint, iterations, tolerance, &|_, _, _, _| None)
+        let discrete = |w, h, n| Arc::new(self.discrete_planes(w, h, n));
+        let delegates = Delegates {
+            continuous: &|_, _, _, _| None,
+            discrete: &discrete,
+        };
+        self.sample_with(xs, ys, footprint, iterations, tolerance, &delegates)
+    }
+
+    /// Every plane decoded discretely at `width x height` with exactly `iterations` steps
+    /// (normalised values): what coarse pixels of [`Asset::sample`] are sampled from.
+    pub fn discrete_planes(&self, width: usize, height: usize, iterations: u32) -> Vec<Grid> {
+        self.planes
+            .iter()
+            .map(|p| {
+                decode::discrete(
+                    &p.operator,
+                    width,
+                    height,
+                    DiscreteOptions::fixed(iterations),
+                )
+                .0
+            })
+            .collect()
     }
 
     /// [`Asset::sample`], with the continuous chains of each plane offered first to
-    /// `continuous(plane, grid, iterations, tolerance)` (normalised tolerance), which may
-    /// answer them elsewhere (a GPU) or return `None` to leave them to the CPU.
+    /// `delegates.continuous(plane, grid, iterations, tolerance)` (normalised tolerance), which
+    /// may answer them elsewhere (a GPU) or return `None` to leave them to the CPU, and the
+    /// discrete decodes of coarse pixels taken from `delegates.discrete`.
     pub fn sample_with(
         &self,
         xs: &[Option<f32>],
@@ -347,8 +388,9 @@ impl Asset {
         footprint: [f32; 2],
         iterations: u32,
         tolerance: f32,
-        continuous: &ContinuousHook<'_>,
+        delegates: &Delegates<'_>,
     ) -> (Vec<Vec<f32>>, f32) {
+        let continuous = delegates.continuous;
         // Decode the columns and rows inside the asset, then put them back in place.
         let cols: Vec<usize> = (0..xs.len()).filter(|&i| xs[i].is_some()).collect();
         let rows: Vec<usize> = (0..ys.len()).filter(|&j| ys[j].is_some()).collect();
@@ -359,18 +401,36 @@ impl Asset {
         // Largest per-point bound of the continuous path (normalised).
         let mut worst = 0.0f32;
         let planes: Vec<Vec<f32>> = if coarse {
-            let gw = ((1.0 / footprint[0]).ceil() as usize).clamp(1, self.meta.width as usize);
-            let gh = ((1.0 / footprint[1]).ceil() as usize).clamp(1, self.meta.height as usize);
-            self.planes
+            // A mip level per axis: the source size halved while its cells stay no larger than
+            // a pixel (so cells measure between half a pixel and a pixel). Tiles of one zoom then
+            // share their grid whatever their latitude (Mercator changes the footprint from row
+            // to row), and a pixel averages 2 x 2 bilinear taps spread over its footprint, which
+            // covers every cell under it: filtered, never aliased.
+            let level = |fp: f32, n: u32| {
+                let cells = (fp * n as f32).max(1.0);
+                let halvings = cells.log2().floor().clamp(0.0, 30.0) as u32;
+                (n as usize).div_ceil(1 << halvings).max(1)
+            };
+            let (gw, gh) = (
+                level(footprint[0], self.meta.width),
+                level(footprint[1], self.meta.height),
+            );
+            let grids = (delegates.discrete)(gw, gh, iterations);
+            let (qx, qy) = (
+                0.25 * footprint[0] * gw as f32,
+                0.25 * footprint[1] * gh as f32,
+            );
+            grids
                 .iter()
-                .map(|p| {
-                    let (g, _) =
-                        decode::discrete(&p.operator, gw, gh, DiscreteOptions::fixed(iterations));
+                .map(|g| {
                     iy.iter()
                         .flat_map(|&v| {
-                            let g = &g;
                             ix.iter().map(move |&u| {
-                                decode::sample_bilinear(g, u * gw as f32 - 0.5, v * gh as f32 - 0.5)
+                                let (x, y) = (u * gw as f32 - 0.5, v * gh as f32 - 0.5);
+                                0.25 * (decode::sample_bilinear(g, x - qx, y - qy)
+                                    + decode::sample_bilinear(g, x + qx, y - qy)
+                                    + decode::sample_bilinear(g, x - qx, y + qy)
+                                    + decode::sample_bilinear(g, x + qx, y + qy))
                             })
                         })
                         .collect()
@@ -394,18 +454,23 @@ impl Asset {
                 .collect()
         };
         let inner = self.to_source(planes, |k| (ix[k % ix.len()], iy[k / ix.len()]));
-        let channels = inner
-            .into_iter()
-            .map(|ch| {
-                let mut full = vec![f32::NAN; xs.len() * ys.len()];
-                for (r, &j) in rows.iter().enumerate() {
-                    for (c, &i) in cols.iter().enumerate() {
-                        full[j * xs.len() + i] = ch[r * cols.len() + c];
+        let whole = cols.len() == xs.len() && rows.len() == ys.len();
+        let channels = if whole {
+            inner
+        } else {
+            inner
+                .into_iter()
+                .map(|ch| {
+                    let mut full = vec![f32::NAN; xs.len() * ys.len()];
+                    for (r, &j) in rows.iter().enumerate() {
+                        for (c, &i) in cols.iter().enumerate() {
+                            full[j * xs.len() + i] = ch[r * cols.len() + c];
+                        }
                     }
-                }
-                full
-            })
-            .collect();
+                    full
+                })
+                .collect()
+        };
         let bound = if coarse {
             self.bound_after(iterations)
         } else {

@@ -219,6 +219,9 @@ pub struct QuadtreeOperator {
     lut: Vec<u32>,
     ranges: Vec<RangeMap>,
     cells: Vec<AffineCell>,
+    /// Each range's first lattice column, first row and side in lattice squares (for
+    /// [`AxisAligned::axis_cell`], without divisions or a walk through the wide `RangeMap`).
+    boxes: Vec<[u32; 3]>,
     interval: (f32, f32),
 }
 
@@ -285,6 +288,10 @@ impl QuadtreeOperator {
             (r.contrast, lo, hi)
         }));
         let cells = ranges.iter().map(AffineCell::of).collect();
+        let boxes = ranges
+            .iter()
+            .map(|r| [r.x / cell, r.y / cell, r.size / cell])
+            .collect();
         Ok(QuadtreeOperator {
             frame,
             valid,
@@ -295,6 +302,7 @@ impl QuadtreeOperator {
             lut,
             ranges,
             cells,
+            boxes,
             interval,
         })
     }
@@ -339,9 +347,7 @@ impl AxisAligned for QuadtreeOperator {
 
     fn axis_cell(&self, col: usize, row: usize) -> AxisCell {
         let i = self.lut[row * self.lut_cols + col] as usize;
-        let r = &self.ranges[i];
-        let (c, n) = ((r.x / self.cell) as usize, (r.size / self.cell) as usize);
-        let rw = (r.y / self.cell) as usize;
+        let [c, rw, n] = self.boxes[i].map(|v| v as usize);
         AxisCell {
             cols: [c, c + n],
             rows: [rw, rw + n],

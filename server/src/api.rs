@@ -59,6 +59,10 @@ pub struct AppState {
     pub decoders: Semaphore,
     /// Encoded tiles keyed like their ETag, bounded in bytes.
     pub cache: moka::sync::Cache<String, Arc<Cached>>,
+    /// Discrete decodes of whole assets at the scale of a coarse zoom level, keyed by asset id,
+    /// checksum, grid size and steps, bounded in bytes: every tile of a zoom coarser than the
+    /// source samples the same grid, so it is decoded once (concurrent requests wait for it).
+    pub coarse: CoarseCache,
     /// `Cache-Control` value of tiles.
     pub cache_control: String,
     /// Public base URL for absolute links (TileJSON), e.g. behind a proxy.
@@ -72,6 +76,9 @@ pub struct AppState {
     /// The GPU, when the server has one.
     pub gpu: Option<Arc<GpuBackend>>,
 }
+
+/// Key of [`AppState::coarse`]: asset id, checksum, width, height, iterations.
+pub type CoarseKey = (String, u32, usize, usize, u32);
 
 /// A cached answer.
 pub struct Cached {
@@ -100,6 +107,15 @@ impl AppState {
             cache: moka::sync::Cache::builder()
                 .weigher(|_k: &String, v: &Arc<Cached>| v.body.len().try_into().unwrap_or(u32::MAX))
                 .max_capacity(256 * 1024 * 1024)
+                .build(),
+            coarse: moka::sync::Cache::builder()
+                .weigher(
+                    |_k: &CoarseKey, v: &Arc<Vec<fractile_codec::decode::Grid>>| {
+                        let floats: usize = v.iter().map(|g| g.values.len()).sum();
+                        (floats * 4).try_into().unwrap_or(u32::MAX)
+                    },
+                )
+                .max_capacity(64 * 1024 * 1024)
                 .build(),
             cache_control: "public, max-age=3600".into(),
             public_url,
@@ -211,10 +227,10 @@ fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppErro
     Ok(b)
 }
 
-/// `Asset::sample` of a separable grid on the chosen backend (runs inside `decode`, on the
-/// blocking pool).
+/// `Asset::sample` of a separable grid on the chosen backend, with coarse decodes shared
+/// through `coarse` (runs inside `decode`, on the blocking pool).
 fn sample_on(
-    gpu: Option<&GpuBackend>,
+    (gpu, coarse): (Option<&GpuBackend>, &CoarseCache),
     choice: Backend,
     a: &StoredAsset,
     grid: &geo::TileGrid,
@@ -222,15 +238,23 @@ fn sample_on(
     tolerance: f32,
 ) -> (Vec<Vec<f32>>, f32) {
     let (xs, ys, footprint) = (&grid.xs, &grid.ys, grid.footprint);
-    match gpu.filter(|g| g.takes(choice, xs.len() * ys.len())) {
-        Some(g) => a
-            .asset
-            .sample_with(xs, ys, footprint, iterations, tolerance, &|k, p, n, t| {
-                g.points(a, k, p, n, t)
-            }),
-        None => a.asset.sample(xs, ys, footprint, iterations, tolerance),
-    }
+    let gpu = gpu.filter(|g| g.takes(choice, xs.len() * ys.len()));
+    let continuous =
+        |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
+    let discrete = |w, h, n| {
+        coarse.get_with((a.id.clone(), a.hash, w, h, n), || {
+            Arc::new(a.asset.discrete_planes(w, h, n))
+        })
+    };
+    let delegates = fractile_codec::extract::Delegates {
+        continuous: &continuous,
+        discrete: &discrete,
+    };
+    a.asset
+        .sample_with(xs, ys, footprint, iterations, tolerance, &delegates)
 }
+
+type CoarseCache = moka::sync::Cache<CoarseKey, Arc<Vec<fractile_codec::decode::Grid>>>;
 
 fn summary(state: &AppState, a: &StoredAsset) -> AssetSummary {
     let m = &a.asset.meta;
@@ -594,6 +618,7 @@ async fn tile(
     metrics::counter!("fractile_tile_cache_total", "result" => "miss").increment(1);
     let asset = a.clone();
     let gpu = state.gpu.clone();
+    let coarse = state.coarse.clone();
     let cached = decode(&state, move || {
         // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile,
         // so that shading is seamless across tiles.
@@ -603,8 +628,14 @@ async fn tile(
             return None;
         }
         let footprint = grid.footprint;
-        let (mut channels, bound) =
-            sample_on(gpu.as_deref(), choice, &asset, &grid, iterations, tolerance);
+        let (mut channels, bound) = sample_on(
+            (gpu.as_deref(), &coarse),
+            choice,
+            &asset,
+            &grid,
+            iterations,
+            tolerance,
+        );
         let style = (colormap.is_some() || shade).then(|| {
             let side = size + 2 * margin;
             let shade = shade.then(|| {
@@ -1033,12 +1064,20 @@ async fn mesh(
             (y1 - y0) * a.asset.meta.height as f64,
         )
     };
-    let (choice, gpu) = (
+    let (choice, gpu, coarse) = (
         backend_for(&state, q.backend.as_deref())?,
         state.gpu.clone(),
+        state.coarse.clone(),
     );
     let body = decode(&state, move || {
-        let (channels, bound) = sample_on(gpu.as_deref(), choice, &a, &grid, iterations, tolerance);
+        let (channels, bound) = sample_on(
+            (gpu.as_deref(), &coarse),
+            choice,
+            &a,
+            &grid,
+            iterations,
+            tolerance,
+        );
         let spacing = [
             (extent_x / (n - 1) as f64) as f32,
             (extent_y / (n - 1) as f64) as f32,
@@ -1234,12 +1273,14 @@ async fn region(
             origin: [x0, y1],
             pixel_size: [(x1 - x0) / w as f64, -(y1 - y0) / h as f64],
         });
-    let (choice, gpu) = (
+    let (choice, gpu, coarse) = (
         backend_for(&state, q.backend.as_deref())?,
         state.gpu.clone(),
+        state.coarse.clone(),
     );
     let (ct, body, bound) = decode(&state, move || {
-        let (channels, bound) = sample_on(gpu.as_deref(), choice, &a, &grid, n, tolerance);
+        let (channels, bound) =
+            sample_on((gpu.as_deref(), &coarse), choice, &a, &grid, n, tolerance);
         if tif_out {
             let nodata = a.asset.meta.nodata;
             let values: Vec<f32> = match nodata {

@@ -32,6 +32,18 @@ fn nodata_height(m: &AssetMeta) -> f32 {
     0.0f32.clamp(m.value_min as f32, m.value_max as f32)
 }
 
+/// `x.round() as u32` for `x >= 0` without the libm call that `round` is on baseline x86-64
+/// (3% of an uncached tile's time): truncating `x + 0.5` is the same below 2^23 (where adding
+/// 0.5 is exact from x = 1 up; under 1 only x = 0.5 - 2^-25 differs, a height of -9999.95 m in
+/// terrain-RGB), and from 2^23 up x is already an integer.
+fn round_non_negative(x: f32) -> u32 {
+    if x < 8_388_608.0 {
+        (x + 0.5) as u32
+    } else {
+        x as u32
+    }
+}
+
 /// How visual PNGs of heights are drawn beyond the grey ramp.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Style {
@@ -69,29 +81,31 @@ pub fn encode_raster(
             channels[0].iter().flat_map(|v| v.to_le_bytes()).collect(),
         ),
         TileFormat::Heights(e) => {
-            // A loop into a sized buffer, not `flat_map(..).collect()`: measured 7% of an
-            // uncached tile's time as a flat_map.
-            let mut px: Vec<u8> = Vec::with_capacity(channels[0].len() * 3);
-            for &v in &channels[0] {
-                let v = height(v);
-                px.extend_from_slice(&{
-                    match e {
-                        HeightEncoding::TerrainRgb => {
-                            let c = (((v + 10000.0) * 10.0).round().max(0.0) as u32).min(0xFF_FFFF);
-                            [(c >> 16) as u8, (c >> 8) as u8, c as u8]
-                        }
-                        HeightEncoding::Terrarium => {
-                            let c = (v + 32768.0).clamp(0.0, 65535.996);
-                            let i = c.floor();
-                            [
-                                (i as u32 >> 8) as u8,
-                                (i as u32 & 0xFF) as u8,
-                                ((c - i) * 256.0) as u8,
-                            ]
-                        }
-                        HeightEncoding::Gray16 => [0, 0, 0],
+            // One loop per encoding into a sized buffer (a `flat_map(..).collect()` with the
+            // match inside measured 7-15% of an uncached tile's time).
+            let mut px = vec![0u8; channels[0].len() * 3];
+            let cells = px.chunks_exact_mut(3).zip(&channels[0]);
+            match e {
+                HeightEncoding::TerrainRgb => {
+                    for (p, &v) in cells {
+                        let x = ((height(v) + 10000.0) * 10.0).max(0.0);
+                        let c = round_non_negative(x).min(0xFF_FFFF);
+                        p.copy_from_slice(&[(c >> 16) as u8, (c >> 8) as u8, c as u8]);
                     }
-                });
+                }
+                HeightEncoding::Terrarium => {
+                    for (p, &v) in cells {
+                        let c = (height(v) + 32768.0).clamp(0.0, 65535.996);
+                        // Truncation is floor for c >= 0 (and not a libm call).
+                        let i = c as u32;
+                        p.copy_from_slice(&[
+                            (i >> 8) as u8,
+                            (i & 0xFF) as u8,
+                            ((c - i as f32) * 256.0) as u8,
+                        ]);
+                    }
+                }
+                HeightEncoding::Gray16 => {}
             }
             if e == HeightEncoding::Gray16 {
                 let (lo, span) = (

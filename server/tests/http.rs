@@ -1269,3 +1269,44 @@ async fn curves_as_geojson_at_any_level_and_deformed() {
         (StatusCode::BAD_REQUEST, Some("bad_deformation"))
     );
 }
+
+#[tokio::test]
+async fn coarse_tiles_share_one_discrete_decode_and_answer_as_without_it() {
+    // A fresh state over the shared assets, so that its caches start empty.
+    state();
+    let dir = std::env::temp_dir().join(format!("fractile-http-{}", std::process::id()));
+    let (store, _) = Store::open(&dir).unwrap();
+    let st = Arc::new(AppState::new(store, "http://test".into()));
+    let a = st.store.get("jacksboro").unwrap();
+    let [w, s, e, n] = a.placement.unwrap().bounds();
+    // Zoom 10: a pixel is about 120 m here, coarser than the source, so tiles are filtered.
+    let z = 10u8;
+    let first = geo::lonlat_tile(z, w + 0.01, n - 0.01);
+    let last = geo::lonlat_tile(z, e - 0.01, s + 0.01);
+    assert_ne!(first, last, "the asset spans more than one zoom-10 tile");
+    for (k, (x, y)) in [first, last].into_iter().enumerate() {
+        let req = Request::get(format!(
+            "/v1/assets/jacksboro/tiles/{z}/{x}/{y}.f32?iterations=12"
+        ))
+        .body(Body::empty())
+        .unwrap();
+        let (status, body) = call(&st, req).await;
+        assert_eq!(status, StatusCode::OK);
+        st.coarse.run_pending_tasks();
+        // Both tiles sample the one grid decoded for the first.
+        assert_eq!(st.coarse.entry_count(), 1, "after tile {k}");
+        // And they answer what the codec answers with no cache in between.
+        let grid = geo::tile_grid(a.placement.as_ref(), z, x, y, 256, 0);
+        let served: Vec<f32> = body
+            .chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect();
+        let (direct, _) = a.asset.sample(&grid.xs, &grid.ys, grid.footprint, 12, 0.0);
+        assert_eq!(served.len(), direct[0].len());
+        let same = served
+            .iter()
+            .zip(&direct[0])
+            .all(|(p, q)| p == q || (p.is_nan() && q.is_nan()));
+        assert!(same, "tile {k} differs from the uncached decode");
+    }
+}
