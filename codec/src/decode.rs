@@ -416,8 +416,12 @@ pub struct DiscreteOptions {
     /// Stop when the mean absolute change between two iterates falls under this (normalised;
     /// the seed's criterion is 0.002 of the value range).
     pub min_change: f32,
-    /// Never more than this many iterations; exactly this many when `min_change` is 0.
+    /// Never more than this many iterations; exactly this many when `min_change` and
+    /// `max_error` are 0.
     pub max_iterations: u32,
+    /// Stop once the a-posteriori bound on the distance to the discrete attractor
+    /// ([`DiscreteReport::error_bound`]) is at most this (normalised; 0: never on that account).
+    pub max_error: f32,
 }
 
 impl Default for DiscreteOptions {
@@ -425,6 +429,7 @@ impl Default for DiscreteOptions {
         DiscreteOptions {
             min_change: 0.002,
             max_iterations: 40,
+            max_error: 0.0,
         }
     }
 }
@@ -435,6 +440,17 @@ impl DiscreteOptions {
         DiscreteOptions {
             min_change: 0.0,
             max_iterations: n,
+            max_error: 0.0,
+        }
+    }
+
+    /// At most `n` iterations, fewer once the iterate is provably within `max_error` of the
+    /// discrete attractor.
+    pub fn within(max_error: f32, n: u32) -> Self {
+        DiscreteOptions {
+            min_change: 0.0,
+            max_iterations: n,
+            max_error,
         }
     }
 }
@@ -446,6 +462,12 @@ pub struct DiscreteReport {
     pub iterations: u32,
     /// Mean absolute change of the last iteration (normalised).
     pub last_change: f32,
+    /// A-posteriori bound on the largest distance of the result to the discrete attractor at
+    /// this size (normalised): `s / (1 - s) * max |f_n - f_(n-1)|` over the whole frame, with s
+    /// the largest |contrast| of the discrete operator (averaging and interpolation do not
+    /// expand the sup norm, so that operator contracts by s). Usually far below the a-priori
+    /// `s^n * max |seed - f|`, since the last change reflects the contrasts actually met.
+    pub error_bound: f32,
 }
 
 /// Per output pixel: where the operator reads and how it scales what it reads.
@@ -496,6 +518,7 @@ pub fn discrete<O: Operator<2> + ?Sized>(
             }
         })
         .collect();
+    let contraction = maps.iter().fold(0.0f32, |m, p| m.max(p.contrast.abs()));
     let (lo, hi) = op.invariant_interval();
     let mut f = vec![(lo + hi) * 0.5; fw * fh];
     let mut next = vec![0.0f32; fw * fh];
@@ -504,6 +527,7 @@ pub fn discrete<O: Operator<2> + ?Sized>(
     let mut report = DiscreteReport {
         iterations: 0,
         last_change: f32::INFINITY,
+        error_bound: f32::INFINITY,
     };
     let (step_x, step_y) = (usize::from(dw > 1), if dh > 1 { dw } else { 0 });
     while report.iterations < opts.max_iterations {
@@ -517,30 +541,33 @@ pub fn discrete<O: Operator<2> + ?Sized>(
                 *out = acc * norm;
             }
         });
-        let change: f64 = next
+        let (change, largest) = next
             .par_chunks_mut(fw)
             .zip(maps.par_chunks(fw))
             .enumerate()
             .map(|(y, (row, mrow))| {
-                let mut ch = 0.0f64;
+                let (mut ch, mut mx) = (0.0f64, 0.0f32);
                 for (x, (out, m)) in row.iter_mut().zip(mrow).enumerate() {
                     let i = m.index as usize;
                     let top = boxed[i] + (boxed[i + step_x] - boxed[i]) * m.fx;
                     let bot =
                         boxed[i + step_y] + (boxed[i + step_y + step_x] - boxed[i + step_y]) * m.fx;
                     let v = m.offset + m.contrast * (top + (bot - top) * m.fy);
+                    let d = (v - f[y * fw + x]).abs();
                     if x < width && y < height {
-                        ch += (v - f[y * fw + x]).abs() as f64;
+                        ch += d as f64;
                     }
+                    mx = mx.max(d);
                     *out = v;
                 }
-                ch
+                (ch, mx)
             })
-            .sum();
+            .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1.max(b.1)));
         std::mem::swap(&mut f, &mut next);
         report.iterations += 1;
         report.last_change = (change / (width * height) as f64) as f32;
-        if report.last_change < opts.min_change {
+        report.error_bound = contraction / (1.0 - contraction) * largest;
+        if report.last_change < opts.min_change || report.error_bound <= opts.max_error {
             break;
         }
     }
@@ -684,6 +711,7 @@ pub fn discrete_volume<O: Operator<3> + ?Sized>(
             }
         })
         .collect();
+    let contraction = maps.iter().fold(0.0f32, |m, p| m.max(p.contrast.abs()));
     let (lo, hi) = op.invariant_interval();
     let mut f = vec![(lo + hi) * 0.5; total];
     let mut next = vec![0.0f32; total];
@@ -693,6 +721,7 @@ pub fn discrete_volume<O: Operator<3> + ?Sized>(
     let mut report = DiscreteReport {
         iterations: 0,
         last_change: f32::INFINITY,
+        error_bound: f32::INFINITY,
     };
     let inside = dims[0] * dims[1] * dims[2];
     while report.iterations < opts.max_iterations {
@@ -713,13 +742,13 @@ pub fn discrete_volume<O: Operator<3> + ?Sized>(
                     }
                 }
             });
-        let change: f64 = next
+        let (change, largest) = next
             .par_chunks_mut(fd[0])
             .zip(maps.par_chunks(fd[0]))
             .enumerate()
             .map(|(row, (out, mrow))| {
                 let (y, z) = (row % fd[1], row / fd[1]);
-                let mut ch = 0.0f64;
+                let (mut ch, mut mx) = (0.0f64, 0.0f32);
                 for (x, (o, m)) in out.iter_mut().zip(mrow).enumerate() {
                     let i = m.index as usize;
                     let lerp = |a: f32, b: f32, t: f32| a + (b - a) * t;
@@ -732,18 +761,21 @@ pub fn discrete_volume<O: Operator<3> + ?Sized>(
                         )
                     };
                     let v = m.offset + m.contrast * lerp(plane(i), plane(i + sz), fz);
+                    let d = (v - f[row * fd[0] + x]).abs();
                     if x < dims[0] && y < dims[1] && z < dims[2] {
-                        ch += (v - f[row * fd[0] + x]).abs() as f64;
+                        ch += d as f64;
                     }
+                    mx = mx.max(d);
                     *o = v;
                 }
-                ch
+                (ch, mx)
             })
-            .sum();
+            .reduce(|| (0.0, 0.0), |a, b| (a.0 + b.0, a.1.max(b.1)));
         std::mem::swap(&mut f, &mut next);
         report.iterations += 1;
         report.last_change = (change / inside as f64) as f32;
-        if report.last_change < opts.min_change {
+        report.error_bound = contraction / (1.0 - contraction) * largest;
+        if report.last_change < opts.min_change || report.error_bound <= opts.max_error {
             break;
         }
     }

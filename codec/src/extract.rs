@@ -17,10 +17,11 @@ use crate::operator::Operator;
 pub type ContinuousHook<'a> =
     dyn Fn(usize, Sites<'_>, u32, f32) -> Option<Vec<decode::PointValue>> + Sync + 'a;
 
-/// Hands out the discrete decode of every plane at `width x height` with `iterations` steps
+/// Hands out the discrete decode of every plane at `(width, height, iterations, tolerance)`
 /// (normalised), as [`Asset::discrete_planes`] computes it: a server keeps recent ones, since
 /// every tile of a zoom level coarser than the source samples the same grid.
-pub type DiscreteHook<'a> = dyn Fn(usize, usize, u32) -> Arc<Vec<Grid>> + Sync + 'a;
+pub type DiscreteHook<'a> =
+    dyn Fn(usize, usize, u32, f32) -> Arc<Vec<(Grid, DiscreteReport)>> + Sync + 'a;
 
 /// Work that [`Asset::sample_with`] lets its caller do elsewhere or keep.
 pub struct Delegates<'a> {
@@ -182,6 +183,7 @@ impl Asset {
         let report = DiscreteReport {
             iterations: results.iter().map(|r| r.1.iterations).max().unwrap_or(0),
             last_change: results.iter().map(|r| r.1.last_change).fold(0.0, f32::max),
+            error_bound: results.iter().map(|r| r.1.error_bound).fold(0.0, f32::max),
         };
         let planes = results.into_iter().map(|r| r.0.values).collect();
         let channels = self.to_source(planes, |i| {
@@ -352,7 +354,7 @@ impl Asset {
         iterations: u32,
         tolerance: f32,
     ) -> (Vec<Vec<f32>>, f32) {
-        let discrete = |w, h, n| Arc::new(self.discrete_planes(w, h, n));
+        let discrete = |w, h, n, t| Arc::new(self.discrete_planes(w, h, n, t));
         let delegates = Delegates {
             continuous: &|_, _, _, _| None,
             discrete: &discrete,
@@ -360,20 +362,20 @@ impl Asset {
         self.sample_with(xs, ys, footprint, iterations, tolerance, &delegates)
     }
 
-    /// Every plane decoded discretely at `width x height` with exactly `iterations` steps
-    /// (normalised values): what coarse pixels of [`Asset::sample`] are sampled from.
-    pub fn discrete_planes(&self, width: usize, height: usize, iterations: u32) -> Vec<Grid> {
+    /// Every plane decoded discretely at `width x height` (normalised values) with at most
+    /// `iterations` steps, fewer once each is within `tolerance` (normalised; 0: all of them) of
+    /// its discrete attractor: what coarse pixels of [`Asset::sample`] are sampled from.
+    pub fn discrete_planes(
+        &self,
+        width: usize,
+        height: usize,
+        iterations: u32,
+        tolerance: f32,
+    ) -> Vec<(Grid, DiscreteReport)> {
+        let opts = DiscreteOptions::within(tolerance, iterations);
         self.planes
             .iter()
-            .map(|p| {
-                decode::discrete(
-                    &p.operator,
-                    width,
-                    height,
-                    DiscreteOptions::fixed(iterations),
-                )
-                .0
-            })
+            .map(|p| decode::discrete(&p.operator, width, height, opts))
             .collect()
     }
 
@@ -398,8 +400,11 @@ impl Asset {
         let iy: Vec<f32> = rows.iter().map(|&j| ys[j].unwrap_or(0.0)).collect();
         let (w, h) = (self.meta.width as f32, self.meta.height as f32);
         let coarse = footprint[0] * w > 1.0 || footprint[1] * h > 1.0;
+        let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
         // Largest per-point bound of the continuous path (normalised).
         let mut worst = 0.0f32;
+        // A-posteriori bound of the discrete decodes (normalised).
+        let mut coarse_bound = f32::INFINITY;
         let planes: Vec<Vec<f32>> = if coarse {
             // A mip level per axis: the source size halved while its cells stay no larger than
             // a pixel (so cells measure between half a pixel and a pixel). Tiles of one zoom then
@@ -415,14 +420,15 @@ impl Asset {
                 level(footprint[0], self.meta.width),
                 level(footprint[1], self.meta.height),
             );
-            let grids = (delegates.discrete)(gw, gh, iterations);
+            let grids = (delegates.discrete)(gw, gh, iterations, tol);
+            coarse_bound = grids.iter().map(|(_, r)| r.error_bound).fold(0.0, f32::max);
             let (qx, qy) = (
                 0.25 * footprint[0] * gw as f32,
                 0.25 * footprint[1] * gh as f32,
             );
             grids
                 .iter()
-                .map(|g| {
+                .map(|(g, _)| {
                     iy.iter()
                         .flat_map(|&v| {
                             ix.iter().map(move |&u| {
@@ -437,7 +443,6 @@ impl Asset {
                 })
                 .collect()
         } else {
-            let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
             self.planes
                 .iter()
                 .enumerate()
@@ -472,7 +477,15 @@ impl Asset {
                 .collect()
         };
         let bound = if coarse {
-            self.bound_after(iterations)
+            // Against the discrete attractor at the pixels' scale; the a-priori bound holds
+            // too, so the smaller of the two.
+            let b = coarse_bound * self.span();
+            let b = if self.meta.colour == ColourModel::YCbCr {
+                rgb_bound(b, b, b)
+            } else {
+                b
+            };
+            b.min(self.bound_after(iterations))
         } else {
             let b = worst * self.span();
             if self.meta.colour == ColourModel::YCbCr {

@@ -77,8 +77,8 @@ pub struct AppState {
     pub gpu: Option<Arc<GpuBackend>>,
 }
 
-/// Key of [`AppState::coarse`]: asset id, checksum, width, height, iterations.
-pub type CoarseKey = (String, u32, usize, usize, u32);
+/// Key of [`AppState::coarse`]: asset id, checksum, width, height, iterations, tolerance bits.
+pub type CoarseKey = (String, u32, usize, usize, u32, u32);
 
 /// A cached answer.
 pub struct Cached {
@@ -109,12 +109,10 @@ impl AppState {
                 .max_capacity(256 * 1024 * 1024)
                 .build(),
             coarse: moka::sync::Cache::builder()
-                .weigher(
-                    |_k: &CoarseKey, v: &Arc<Vec<fractile_codec::decode::Grid>>| {
-                        let floats: usize = v.iter().map(|g| g.values.len()).sum();
-                        (floats * 4).try_into().unwrap_or(u32::MAX)
-                    },
-                )
+                .weigher(|_k: &CoarseKey, v: &Arc<Vec<CoarsePlane>>| {
+                    let floats: usize = v.iter().map(|(g, _)| g.values.len()).sum();
+                    (floats * 4).try_into().unwrap_or(u32::MAX)
+                })
                 .max_capacity(64 * 1024 * 1024)
                 .build(),
             cache_control: "public, max-age=3600".into(),
@@ -241,9 +239,9 @@ fn sample_on(
     let gpu = gpu.filter(|g| g.takes(choice, xs.len() * ys.len()));
     let continuous =
         |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
-    let discrete = |w, h, n| {
-        coarse.get_with((a.id.clone(), a.hash, w, h, n), || {
-            Arc::new(a.asset.discrete_planes(w, h, n))
+    let discrete = |w, h, n, t: f32| {
+        coarse.get_with((a.id.clone(), a.hash, w, h, n, t.to_bits()), || {
+            Arc::new(a.asset.discrete_planes(w, h, n, t))
         })
     };
     let delegates = fractile_codec::extract::Delegates {
@@ -254,7 +252,14 @@ fn sample_on(
         .sample_with(xs, ys, footprint, iterations, tolerance, &delegates)
 }
 
-type CoarseCache = moka::sync::Cache<CoarseKey, Arc<Vec<fractile_codec::decode::Grid>>>;
+/// Discrete decodes for coarse tiles (see [`AppState::coarse`]).
+pub type CoarseCache = moka::sync::Cache<CoarseKey, Arc<Vec<CoarsePlane>>>;
+
+/// A plane decoded discretely for coarse tiles, with what the decoder reported.
+pub type CoarsePlane = (
+    fractile_codec::decode::Grid,
+    fractile_codec::decode::DiscreteReport,
+);
 
 fn summary(state: &AppState, a: &StoredAsset) -> AssetSummary {
     let m = &a.asset.meta;
