@@ -411,6 +411,29 @@ async fn regions_and_meshes() {
         .unwrap();
     let text = String::from_utf8(obj.body).unwrap();
     assert_eq!(text.lines().filter(|l| l.starts_with("v ")).count(), 81);
+    // Adaptive: fewer triangles than the regular grid of the same size, a larger bound.
+    let faces = |m: &fractile_client::MeshFile| {
+        String::from_utf8_lossy(&m.body)
+            .lines()
+            .filter(|l| l.starts_with("f "))
+            .count()
+    };
+    let req = |max_error| MeshRequest {
+        bbox: Some(bbox),
+        resolution: Some(129),
+        max_error,
+        format: MeshFormat::Obj,
+        ..Default::default()
+    };
+    let regular = c.mesh("jacksboro", &req(None)).await.unwrap();
+    let adaptive = c.mesh("jacksboro", &req(Some(10.0))).await.unwrap();
+    assert_eq!(faces(&regular), 2 * 128 * 128);
+    assert!(
+        faces(&adaptive) < faces(&regular) / 2,
+        "{}",
+        faces(&adaptive)
+    );
+    assert!((adaptive.error_bound - regular.error_bound - 10.0).abs() < 1e-3);
     let e = c
         .mesh(
             "jacksboro",

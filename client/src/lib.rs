@@ -131,6 +131,9 @@ pub struct MeshRequest {
     pub iterations: Option<u32>,
     /// Per-point stopping tolerance in value units.
     pub tolerance: Option<f32>,
+    /// An adaptive triangulation within this many height units of the decoded grid (`None`:
+    /// the regular grid).
+    pub max_error: Option<f32>,
     /// File format.
     pub format: MeshFormat,
 }
@@ -157,7 +160,8 @@ pub struct MeshFile {
     pub body: Vec<u8>,
     /// Its media type.
     pub content_type: String,
-    /// The server's a-priori error bound on the heights.
+    /// The server's error bound on the heights (decoding, plus `max_error` for adaptive
+    /// meshes).
     pub error_bound: f32,
 }
 
@@ -540,6 +544,7 @@ impl Client {
             ("resolution", req.resolution.map(|n| n.to_string())),
             ("iterations", req.iterations.map(|n| n.to_string())),
             ("tolerance", req.tolerance.map(|t| t.to_string())),
+            ("max_error", req.max_error.map(|e| e.to_string())),
             ("format", Some(req.format.name().to_string())),
             ("backend", self.backend.clone()),
         ]);

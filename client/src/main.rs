@@ -172,6 +172,9 @@ enum Command {
         format: String,
         #[arg(long)]
         iterations: Option<u32>,
+        /// An adaptive triangulation within this many height units of the decoded grid.
+        #[arg(long)]
+        max_error: Option<f32>,
         #[arg(short, long)]
         output: PathBuf,
     },
@@ -608,6 +611,7 @@ async fn main() -> Result<()> {
             resolution,
             format,
             iterations,
+            max_error,
             output,
         } => {
             let format = match format.as_str() {
@@ -621,6 +625,7 @@ async fn main() -> Result<()> {
                 resolution,
                 iterations,
                 tolerance: None,
+                max_error,
                 format,
             };
             let m = client.mesh(&id, &req).await?;

@@ -714,7 +714,10 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
 fn discrete_decoding_stops_at_its_a_posteriori_bound_and_the_bound_holds() {
     for asset in [small_camera_asset(), small_terrain_asset()] {
         let op = &asset.planes[0].operator;
-        let (w, h) = (asset.meta.width as usize / 2, asset.meta.height as usize / 2);
+        let (w, h) = (
+            asset.meta.width as usize / 2,
+            asset.meta.height as usize / 2,
+        );
         let (reference, _) = decode::discrete(op, w, h, DiscreteOptions::fixed(300));
         for tol in [0.02f32, 0.002, 0.0002] {
             let (g, r) = decode::discrete(op, w, h, DiscreteOptions::within(tol, 300));
@@ -741,4 +744,101 @@ fn discrete_decoding_stops_at_its_a_posteriori_bound_and_the_bound_holds() {
             assert!(worst <= r.error_bound + 1e-5, "{n} steps: {worst} > {r:?}");
         }
     }
+}
+
+#[test]
+fn adaptive_terrain_meshes_stay_within_their_error_without_cracks() {
+    use fractile_codec::mesh::Mesh;
+    use std::collections::HashMap;
+    let dem = Raster::open(&data("jacksboro.tif")).unwrap();
+    let n = 129;
+    let src = crop(&dem, 150, 100, n, n);
+    let mut heights = src.channels[0].clone();
+    for max_error in [0.0f32, 2.0, 10.0] {
+        let m = Mesh::adaptive(&heights, n, [0.0, 0.0], [1.0, 1.0], max_error).unwrap();
+        let full = 2 * (n - 1) * (n - 1);
+        eprintln!("{max_error} m: {} of {full} triangles", m.triangles.len());
+        if max_error > 0.0 {
+            assert!(
+                m.triangles.len() < full,
+                "{} triangles at {max_error} m",
+                m.triangles.len()
+            );
+        }
+        // Every height of the grid is within max_error of the surface: interpolate it in the
+        // triangle that holds it (vertex (i, j) sits at x = i, y = -j).
+        let mut covered = vec![false; n * n];
+        let mut area = 0.0f64;
+        for t in &m.triangles {
+            let [a, b, c] = t.map(|v| m.positions[v as usize]);
+            let det = (b[0] - a[0]) * (c[1] - a[1]) - (b[1] - a[1]) * (c[0] - a[0]);
+            assert!(det > 0.0, "counter-clockwise from above");
+            area += det as f64 / 2.0;
+            let (lo_x, hi_x) = (
+                a[0].min(b[0]).min(c[0]) as usize,
+                a[0].max(b[0]).max(c[0]) as usize,
+            );
+            let (lo_y, hi_y) = (
+                (-a[1].max(b[1]).max(c[1])) as usize,
+                (-a[1].min(b[1]).min(c[1])) as usize,
+            );
+            for j in lo_y..=hi_y {
+                for i in lo_x..=hi_x {
+                    let (x, y) = (i as f32, -(j as f32));
+                    let wb = ((x - a[0]) * (c[1] - a[1]) - (y - a[1]) * (c[0] - a[0])) / det;
+                    let wc = ((b[0] - a[0]) * (y - a[1]) - (b[1] - a[1]) * (x - a[0])) / det;
+                    let wa = 1.0 - wb - wc;
+                    if wa < -1e-6 || wb < -1e-6 || wc < -1e-6 {
+                        continue;
+                    }
+                    let z = wa * a[2] + wb * b[2] + wc * c[2];
+                    let h = heights[j * n + i];
+                    assert!(
+                        (z - h).abs() <= max_error + 1e-3,
+                        "({i}, {j}): {z} vs {h} at {max_error}"
+                    );
+                    covered[j * n + i] = true;
+                }
+            }
+        }
+        assert!(
+            covered.iter().all(|&c| c),
+            "every grid point lies in a triangle"
+        );
+        assert!(
+            (area - ((n - 1) * (n - 1)) as f64).abs() < 1e-6,
+            "the triangles tile the square"
+        );
+        // No cracks: an edge inside the square belongs to two triangles, one on its border to one.
+        let mut edges: HashMap<(u32, u32), u32> = HashMap::new();
+        for t in &m.triangles {
+            for k in 0..3 {
+                let (u, v) = (t[k], t[(k + 1) % 3]);
+                *edges.entry((u.min(v), u.max(v))).or_default() += 1;
+            }
+        }
+        let last = (n - 1) as f32;
+        for ((u, v), count) in edges {
+            let (p, q) = (m.positions[u as usize], m.positions[v as usize]);
+            let on_border = (p[0] == q[0] && (p[0] == 0.0 || p[0] == last))
+                || (p[1] == q[1] && (p[1] == 0.0 || p[1] == -last));
+            assert_eq!(count, if on_border { 1 } else { 2 }, "edge {p:?} {q:?}");
+        }
+    }
+    // A nodata hole: no triangle touches it, and no vertex is NaN.
+    for j in 60..64 {
+        for i in 60..64 {
+            heights[j * n + i] = f32::NAN;
+        }
+    }
+    let m = Mesh::adaptive(&heights, n, [0.0, 0.0], [1.0, 1.0], 10.0).unwrap();
+    assert!(m.positions.iter().all(|p| p[2].is_finite()));
+    assert!(m.triangles.iter().all(|t| t.iter().all(|&v| {
+        let p = m.positions[v as usize];
+        let (i, j) = (p[0] as usize, (-p[1]) as usize);
+        !(60..64).contains(&i) || !(60..64).contains(&j)
+    })));
+    assert!(!m.triangles.is_empty());
+    // Sizes other than 2^k + 1 are refused with a reason.
+    assert!(Mesh::adaptive(&heights[..100 * 100], 100, [0.0, 0.0], [1.0, 1.0], 1.0).is_err());
 }

@@ -993,15 +993,21 @@ fn pixel_footprint(a: &StoredAsset, [x0, y0, x1, y1]: [f64; 4], w: usize, h: usi
 struct MeshQuery {
     bbox: Option<String>,
     resolution: Option<usize>,
+    /// Height fields: an adaptive triangulation whose surface stays within this many height
+    /// units of the decoded grid (absent: the regular grid).
+    max_error: Option<f32>,
     iterations: Option<u32>,
     tolerance: Option<f32>,
     backend: Option<String>,
     format: Option<String>,
 }
 
-/// A terrain mesh of a region: a regular grid of `resolution x resolution` vertices. For
-/// georeferenced assets x and y are metres east and north of the box's south-west corner (a
-/// local tangent plane) and z is the height; otherwise x and y are source pixels.
+/// A terrain mesh of a region: a regular grid of `resolution x resolution` vertices, or with
+/// `max_error` an adaptive triangulation (RTIN) of the grid of the next `2^k + 1` vertices a
+/// side whose surface stays within `max_error` of every decoded height. For georeferenced
+/// assets x and y are metres east and north of the box's south-west corner (a local tangent
+/// plane) and z is the height; otherwise x and y are source pixels. `X-Error-Bound` is the
+/// decoding bound, plus `max_error` for adaptive meshes.
 async fn mesh(
     State(state): Shared,
     Path(id): Path<String>,
@@ -1024,6 +1030,18 @@ async fn mesh(
             "resolution must be 2..=2048 vertices a side",
         ));
     }
+    let max_error = q.max_error;
+    if max_error.is_some_and(|e| !(e.is_finite() && e >= 0.0)) {
+        return Err(AppError::bad_request(
+            "bad_max_error",
+            "max_error must be a number >= 0 (height units)",
+        ));
+    }
+    // The network splits squares in halves down to single cells: 2^k + 1 vertices a side.
+    let n = match max_error {
+        Some(_) => (n - 1).next_power_of_two() + 1,
+        None => n,
+    };
     let format = q.format.unwrap_or_else(|| "glb".into());
     if !matches!(format.as_str(), "obj" | "ply" | "glb") {
         return Err(AppError::bad_request(
@@ -1087,16 +1105,20 @@ async fn mesh(
             (extent_x / (n - 1) as f64) as f32,
             (extent_y / (n - 1) as f64) as f32,
         ];
-        let m =
-            fractile_codec::mesh::Mesh::grid(&channels[0], n, n, [0.0, extent_y as f32], spacing);
+        let origin = [0.0, extent_y as f32];
+        let m = match max_error {
+            Some(e) => fractile_codec::mesh::Mesh::adaptive(&channels[0], n, origin, spacing, e)
+                .map_err(|e| AppError::internal(e.to_string()))?,
+            None => fractile_codec::mesh::Mesh::grid(&channels[0], n, n, origin, spacing),
+        };
         let (ct, body) = match format.as_str() {
             "obj" => ("text/plain", m.to_obj()),
             "ply" => ("application/octet-stream", m.to_ply()),
             _ => ("model/gltf-binary", m.to_glb()),
         };
-        (ct, body, bound)
+        Ok((ct, body, bound + max_error.unwrap_or(0.0)))
     })
-    .await?;
+    .await??;
     Ok((
         [
             (header::CONTENT_TYPE, body.0.to_string()),
@@ -1120,6 +1142,12 @@ async fn volume_mesh(
     a: Arc<StoredAsset>,
     q: MeshQuery,
 ) -> Result<Response, AppError> {
+    if q.max_error.is_some() {
+        return Err(AppError::bad_request(
+            "bad_max_error",
+            "max_error (an adaptive triangulation) is for height fields",
+        ));
+    }
     let grid = a.asset.volume.as_ref().map_or(64, |v| v.size());
     let n = q.resolution.unwrap_or(grid);
     if !(2..=512).contains(&n) {

@@ -671,10 +671,46 @@ async fn terrain_meshes_in_three_formats() {
     .await;
     assert_eq!(s, StatusCode::OK);
     assert!(b.starts_with(b"ply\n"));
+    // Adaptive: resolution 60 rounds up to the 65 x 65 grid above; its vertices are some of
+    // that grid's, with fewer triangles, and the bound grows by max_error.
+    let (s, h_grid, _) = get(&format!(
+        "/v1/assets/jacksboro/mesh?bbox={bbox}&resolution=65&format=obj"
+    ))
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let (s, h, b) = get(&format!(
+        "/v1/assets/jacksboro/mesh?bbox={bbox}&resolution=60&max_error=5&format=obj"
+    ))
+    .await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    let adaptive = String::from_utf8(b).unwrap();
+    let vertices = |text: &str| -> Vec<String> {
+        text.lines()
+            .filter(|l| l.starts_with("v "))
+            .map(str::to_string)
+            .collect()
+    };
+    let grid_vertices: std::collections::HashSet<String> = vertices(&obj).into_iter().collect();
+    let adaptive_vertices = vertices(&adaptive);
+    assert!(
+        adaptive_vertices.len() < 65 * 65,
+        "{}",
+        adaptive_vertices.len()
+    );
+    assert!(adaptive_vertices.iter().all(|v| grid_vertices.contains(v)));
+    let faces = adaptive.lines().filter(|l| l.starts_with("f ")).count();
+    assert!(faces < 2 * 64 * 64, "{faces} triangles");
+    let bound = |h: &axum::http::HeaderMap| -> f32 {
+        h["x-error-bound"].to_str().unwrap().parse().unwrap()
+    };
+    assert!((bound(&h) - bound(&h_grid) - 5.0).abs() < 1e-3);
     for (uri, code) in [
         ("/v1/assets/camera/mesh", "not_terrain"),
         ("/v1/assets/jacksboro/mesh?resolution=1", "bad_resolution"),
         ("/v1/assets/jacksboro/mesh?format=stl", "bad_format"),
+        ("/v1/assets/jacksboro/mesh?max_error=-1", "bad_max_error"),
+        ("/v1/assets/jacksboro/mesh?max_error=NaN", "bad_max_error"),
+        ("/v1/assets/fandisk/mesh?max_error=1", "bad_max_error"),
     ] {
         let (s, _, b) = get(uri).await;
         assert_eq!(s, StatusCode::BAD_REQUEST, "{uri}");
