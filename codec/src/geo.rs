@@ -121,20 +121,7 @@ pub fn tile_points(
     y: u32,
     size: usize,
 ) -> (Vec<Option<[f32; 2]>>, [f32; 2]) {
-    tile_points_with_margin(placement, z, x, y, size, 0)
-}
-
-/// As [`tile_points`], on a `(size + 2 margin)` square grid that extends `margin` pixels beyond
-/// the tile on every side (for filters that need neighbours, such as hillshading).
-pub fn tile_points_with_margin(
-    placement: Option<&Placement>,
-    z: u8,
-    x: u32,
-    y: u32,
-    size: usize,
-    margin: usize,
-) -> (Vec<Option<[f32; 2]>>, [f32; 2]) {
-    let g = tile_grid(placement, z, x, y, size, margin);
+    let g = tile_grid(placement, z, x, y, size, 0);
     (g.points(), g.footprint)
 }
 
@@ -162,8 +149,9 @@ impl TileGrid {
     }
 }
 
-/// The pixel centres of tile z/x/y on a `(size + 2 margin)` square grid (see
-/// [`tile_points_with_margin`]) as a [`TileGrid`].
+/// The pixel centres of tile z/x/y (see [`tile_points`]) as a [`TileGrid`], on a
+/// `(size + 2 margin)` square grid that extends `margin` pixels beyond the tile on every side
+/// (for filters that need neighbours, such as hillshading).
 pub fn tile_grid(
     placement: Option<&Placement>,
     z: u8,

@@ -719,28 +719,25 @@ fn discrete_decoding_stops_at_its_a_posteriori_bound_and_the_bound_holds() {
             asset.meta.height as usize / 2,
         );
         let (reference, _) = decode::discrete(op, w, h, DiscreteOptions::fixed(300));
+        let off = |g: &decode::Grid| {
+            g.values
+                .iter()
+                .zip(&reference.values)
+                .map(|(a, b)| (a - b).abs())
+                .fold(0.0f32, f32::max)
+        };
         for tol in [0.02f32, 0.002, 0.0002] {
             let (g, r) = decode::discrete(op, w, h, DiscreteOptions::within(tol, 300));
             assert!(r.error_bound <= tol, "{r:?}");
             assert!(r.iterations < 300, "{r:?}");
-            let worst = g
-                .values
-                .iter()
-                .zip(&reference.values)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0f32, f32::max);
+            let worst = off(&g);
             // The bound is against the attractor: 300 steps reach it to float rounding.
             assert!(worst <= r.error_bound + 1e-5, "{worst} > {r:?}");
         }
         // And after any number of steps, however far from converged.
         for n in 1..12 {
             let (g, r) = decode::discrete(op, w, h, DiscreteOptions::fixed(n));
-            let worst = g
-                .values
-                .iter()
-                .zip(&reference.values)
-                .map(|(a, b)| (a - b).abs())
-                .fold(0.0f32, f32::max);
+            let worst = off(&g);
             assert!(worst <= r.error_bound + 1e-5, "{n} steps: {worst} > {r:?}");
         }
     }
