@@ -33,4 +33,5 @@ echo "|---|---|---|---|---|---|"
 run "cached 256x256 terrain-RGB tile" 1 "$TILE"
 # Zoom 17 has 15,240 distinct tiles over the asset: enough for 10 s without a repeat.
 run "uncached 256x256 terrain-RGB tiles (zoom 17)" 1 -s loadtest/uncached.lua "$BASE"
+ASSET=jacksboro-utm run "uncached tiles, UTM asset (reprojected)" 1 -s loadtest/uncached.lua "$BASE"
 run "points in batches of 1,000 (12 steps)" 1000 -s loadtest/points.lua "$BASE/v1/assets/jacksboro/points"

@@ -8,6 +8,8 @@ local z, x0, y0 = zoom, math.floor(34803 / scale), math.floor(51140 / scale)
 local cols, rows = math.floor(120 / scale), math.floor(127 / scale)
 -- wrk's -t, as run.sh calls it.
 local threads = tonumber(os.getenv("THREADS") or "2")
+-- jacksboro-utm (the same terrain on a UTM grid) covers the same tiles.
+local asset = os.getenv("ASSET") or "jacksboro"
 local next_id = 0
 local counter = 0
 setup = function(thread)
@@ -17,6 +19,6 @@ end
 request = function()
   local k = ((counter * threads + id) * 7919) % (cols * rows)
   counter = counter + 1
-  local path = string.format("/v1/assets/jacksboro/tiles/%d/%d/%d.png?encoding=terrainrgb", z, x0 + k % cols, y0 + math.floor(k / cols))
+  local path = string.format("/v1/assets/%s/tiles/%d/%d/%d.png?encoding=terrainrgb", asset, z, x0 + k % cols, y0 + math.floor(k / cols))
   return wrk.format("GET", path)
 end

@@ -244,6 +244,7 @@ mod tests {
             colour: ColourModel::Grey,
             bounds: Some([-98.0, 33.0, -97.0, 34.0]),
             georeferenced: true,
+            epsg: None,
             value_range: [200.0, 400.0],
             units: Some("m".into()),
             nodata: None,

@@ -137,6 +137,26 @@ impl PlaneOperator {
         }
     }
 
+    /// Continuous decoding of a bilinear [`decode::Patch`] of points, row-major:
+    /// [`decode::patch`] for the quadtree (whose blocks step together), [`Self::points`] on the
+    /// patch's points otherwise.
+    pub fn patch(
+        &self,
+        patch: &decode::Patch,
+        iterations: u32,
+        tolerance: f32,
+    ) -> Vec<decode::PointValue> {
+        match self {
+            PlaneOperator::Quadtree(q) => decode::patch(q, patch, iterations, tolerance),
+            _ => {
+                let pts: Vec<[f32; 2]> = (0..patch.height)
+                    .flat_map(|j| (0..patch.width).map(move |i| patch.at(i, j).map(|t| t as f32)))
+                    .collect();
+                self.points(&pts, iterations, tolerance)
+            }
+        }
+    }
+
     /// [`decode::point`] with the codec resolved once (see [`Self::points`]).
     pub fn point(&self, p: [f32; 2], iterations: u32) -> decode::PointValue {
         match self {

@@ -10,6 +10,7 @@ use rayon::prelude::*;
 use crate::asset::Asset;
 use crate::colour::{rgb_bound, ycbcr_to_rgb};
 use crate::decode::{self, DiscreteOptions, DiscreteReport, Grid, Method};
+use crate::geo::{self, Pixels};
 use crate::operator::Operator;
 
 /// Decodes one plane's point chains elsewhere (a GPU): `(plane, unit points, iterations,
@@ -338,28 +339,22 @@ impl Asset {
         )
     }
 
-    /// Values on the separable grid of unit points `(xs[i], ys[j])` (row-major; a `None` column
-    /// or row is outside the asset, answered as NaN), each point standing for a pixel of
-    /// `footprint` (unit coordinates): the pixels of a tile, a region or a mesh. Where a pixel
-    /// covers more than a source cell the asset is decoded discretely at the pixels' own scale
-    /// and sampled (a filtered answer, no aliasing); otherwise each point is decoded
-    /// continuously ([`crate::asset::PlaneOperator::grid`]) with at most `iterations` steps,
-    /// stopping once its bound is at most `tolerance` (source units; 0: never early). Returns
-    /// the channels and the a-priori error bound (source units, largest over the points).
-    pub fn sample(
-        &self,
-        xs: &[Option<f32>],
-        ys: &[Option<f32>],
-        footprint: [f32; 2],
-        iterations: u32,
-        tolerance: f32,
-    ) -> (Vec<Vec<f32>>, f32) {
+    /// Values at the pixels of a raster (row-major; a pixel outside the asset is answered as
+    /// NaN), each standing for `pixels.footprint` (unit coordinates): a tile, a region or a
+    /// mesh. Where a pixel covers more than a source cell the asset is decoded discretely at the
+    /// pixels' own scale and sampled (a filtered answer, no aliasing); otherwise each point is
+    /// decoded continuously ([`crate::asset::PlaneOperator::grid`] for separable grids,
+    /// [`crate::asset::PlaneOperator::points`] for point lists) with at most `iterations`
+    /// steps, stopping once its bound is at most `tolerance` (source units; 0: never early).
+    /// Returns the channels and the a-priori error bound (source units, largest over the
+    /// points).
+    pub fn sample(&self, pixels: &Pixels, iterations: u32, tolerance: f32) -> (Vec<Vec<f32>>, f32) {
         let discrete = |w, h, n, t| Arc::new(self.discrete_planes(w, h, n, t));
         let delegates = Delegates {
             continuous: &|_, _, _, _| None,
             discrete: &discrete,
         };
-        self.sample_with(xs, ys, footprint, iterations, tolerance, &delegates)
+        self.sample_with(pixels, iterations, tolerance, &delegates)
     }
 
     /// Every plane decoded discretely at `width x height` (normalised values) with at most
@@ -385,19 +380,15 @@ impl Asset {
     /// discrete decodes of coarse pixels taken from `delegates.discrete`.
     pub fn sample_with(
         &self,
-        xs: &[Option<f32>],
-        ys: &[Option<f32>],
-        footprint: [f32; 2],
+        pixels: &Pixels,
         iterations: u32,
         tolerance: f32,
         delegates: &Delegates<'_>,
     ) -> (Vec<Vec<f32>>, f32) {
         let continuous = delegates.continuous;
-        // Decode the columns and rows inside the asset, then put them back in place.
-        let cols: Vec<usize> = (0..xs.len()).filter(|&i| xs[i].is_some()).collect();
-        let rows: Vec<usize> = (0..ys.len()).filter(|&j| ys[j].is_some()).collect();
-        let ix: Vec<f32> = cols.iter().map(|&i| xs[i].unwrap_or(0.0)).collect();
-        let iy: Vec<f32> = rows.iter().map(|&j| ys[j].unwrap_or(0.0)).collect();
+        let footprint = pixels.footprint;
+        // Decode the pixels inside the asset, then put them back in place.
+        let inside = Inside::of(&pixels.sites);
         let (w, h) = (self.meta.width as f32, self.meta.height as f32);
         let coarse = footprint[0] * w > 1.0 || footprint[1] * h > 1.0;
         let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
@@ -429,15 +420,14 @@ impl Asset {
             grids
                 .iter()
                 .map(|(g, _)| {
-                    iy.iter()
-                        .flat_map(|&v| {
-                            ix.iter().map(move |&u| {
-                                let (x, y) = (u * gw as f32 - 0.5, v * gh as f32 - 0.5);
-                                0.25 * (decode::sample_bilinear(g, x - qx, y - qy)
-                                    + decode::sample_bilinear(g, x + qx, y - qy)
-                                    + decode::sample_bilinear(g, x - qx, y + qy)
-                                    + decode::sample_bilinear(g, x + qx, y + qy))
-                            })
+                    (0..inside.len())
+                        .map(|k| {
+                            let (u, v) = inside.at(k);
+                            let (x, y) = (u * gw as f32 - 0.5, v * gh as f32 - 0.5);
+                            0.25 * (decode::sample_bilinear(g, x - qx, y - qy)
+                                + decode::sample_bilinear(g, x + qx, y - qy)
+                                + decode::sample_bilinear(g, x - qx, y + qy)
+                                + decode::sample_bilinear(g, x + qx, y + qy))
                         })
                         .collect()
                 })
@@ -447,8 +437,33 @@ impl Asset {
                 .iter()
                 .enumerate()
                 .map(|(k, p)| {
-                    continuous(k, Sites::Grid { xs: &ix, ys: &iy }, iterations, tol)
-                        .unwrap_or_else(|| p.operator.grid(&ix, &iy, iterations, tol))
+                    let values = match &inside {
+                        Inside::Grid { ix, iy, .. } => {
+                            continuous(k, Sites::Grid { xs: ix, ys: iy }, iterations, tol)
+                                .unwrap_or_else(|| p.operator.grid(ix, iy, iterations, tol))
+                        }
+                        Inside::List {
+                            points,
+                            loose,
+                            patches,
+                            ..
+                        } => continuous(k, Sites::List(points), iterations, tol).unwrap_or_else(
+                            || {
+                                let mut v = p.operator.points(&points[..*loose], iterations, tol);
+                                for (pa, inside) in patches {
+                                    let all = p.operator.patch(&pa.patch, iterations, tol);
+                                    v.extend(
+                                        all.into_iter()
+                                            .zip(inside)
+                                            .filter(|(_, i)| **i)
+                                            .map(|(r, _)| r),
+                                    );
+                                }
+                                v
+                            },
+                        ),
+                    };
+                    values
                         .into_iter()
                         .map(|r| {
                             worst = worst.max(r.error_bound);
@@ -458,24 +473,11 @@ impl Asset {
                 })
                 .collect()
         };
-        let inner = self.to_source(planes, |k| (ix[k % ix.len()], iy[k / ix.len()]));
-        let whole = cols.len() == xs.len() && rows.len() == ys.len();
-        let channels = if whole {
-            inner
-        } else {
-            inner
-                .into_iter()
-                .map(|ch| {
-                    let mut full = vec![f32::NAN; xs.len() * ys.len()];
-                    for (r, &j) in rows.iter().enumerate() {
-                        for (c, &i) in cols.iter().enumerate() {
-                            full[j * xs.len() + i] = ch[r * cols.len() + c];
-                        }
-                    }
-                    full
-                })
-                .collect()
-        };
+        let inner = self.to_source(planes, |k| inside.at(k));
+        let channels = inner
+            .into_iter()
+            .map(|ch| inside.scatter(ch, pixels.len()))
+            .collect();
         let bound = if coarse {
             // Against the discrete attractor at the pixels' scale; the a-priori bound holds
             // too, so the smaller of the two.
@@ -495,5 +497,135 @@ impl Asset {
             }
         };
         (channels, bound)
+    }
+}
+
+/// The pixels of a raster that fall on the asset, as the decoders take them.
+enum Inside {
+    /// The columns `cols` and rows `rows` inside, at unit x `ix` and unit y `iy`.
+    Grid {
+        cols: Vec<usize>,
+        rows: Vec<usize>,
+        ix: Vec<f32>,
+        iy: Vec<f32>,
+        width: usize,
+    },
+    /// The pixels `index` inside, at `points`: first the `loose` ones, decoded point by point,
+    /// then those of each patch, in its order (each patch with which of its points are inside).
+    List {
+        index: Vec<usize>,
+        points: Vec<[f32; 2]>,
+        loose: usize,
+        patches: Vec<(geo::PatchAt, Vec<bool>)>,
+    },
+}
+
+impl Inside {
+    fn of(sites: &geo::Sites) -> Inside {
+        match sites {
+            geo::Sites::Grid { xs, ys } => {
+                let cols: Vec<usize> = (0..xs.len()).filter(|&i| xs[i].is_some()).collect();
+                let rows: Vec<usize> = (0..ys.len()).filter(|&j| ys[j].is_some()).collect();
+                Inside::Grid {
+                    ix: cols.iter().filter_map(|&i| xs[i]).collect(),
+                    iy: rows.iter().filter_map(|&j| ys[j]).collect(),
+                    cols,
+                    rows,
+                    width: xs.len(),
+                }
+            }
+            geo::Sites::List {
+                width,
+                points: all,
+                patches,
+            } => {
+                // Pixels in no patch first (decoded point by point), then each patch's.
+                let mut covered = vec![false; all.len()];
+                for pa in patches {
+                    for j in pa.row..pa.row + pa.patch.height {
+                        let start = j * width + pa.col;
+                        covered[start..start + pa.patch.width].fill(true);
+                    }
+                }
+                let mut index = Vec::with_capacity(all.len());
+                let mut points = Vec::with_capacity(all.len());
+                for (k, p) in all.iter().enumerate() {
+                    if let (false, Some(p)) = (covered[k], p) {
+                        index.push(k);
+                        points.push(*p);
+                    }
+                }
+                let loose = index.len();
+                let patches = patches
+                    .iter()
+                    .map(|pa| {
+                        let mut inside = Vec::with_capacity(pa.patch.width * pa.patch.height);
+                        for j in pa.row..pa.row + pa.patch.height {
+                            let start = j * width + pa.col;
+                            for (k, p) in all[start..start + pa.patch.width].iter().enumerate() {
+                                inside.push(p.is_some());
+                                if let Some(p) = p {
+                                    index.push(start + k);
+                                    points.push(*p);
+                                }
+                            }
+                        }
+                        (pa.clone(), inside)
+                    })
+                    .collect();
+                Inside::List {
+                    index,
+                    points,
+                    loose,
+                    patches,
+                }
+            }
+        }
+    }
+
+    /// How many pixels are inside.
+    fn len(&self) -> usize {
+        match self {
+            Inside::Grid { ix, iy, .. } => ix.len() * iy.len(),
+            Inside::List { points, .. } => points.len(),
+        }
+    }
+
+    /// The unit point of inside pixel k.
+    fn at(&self, k: usize) -> (f32, f32) {
+        match self {
+            Inside::Grid { ix, iy, .. } => (ix[k % ix.len()], iy[k / ix.len()]),
+            Inside::List { points, .. } => (points[k][0], points[k][1]),
+        }
+    }
+
+    /// The values of the inside pixels put back in a raster of `len` pixels (NaN outside).
+    fn scatter(&self, values: Vec<f32>, len: usize) -> Vec<f32> {
+        // In raster order already: every pixel inside, and none taken out of order by a patch.
+        let in_order = match self {
+            Inside::Grid { .. } => true,
+            Inside::List { patches, .. } => patches.is_empty(),
+        };
+        if in_order && values.len() == len {
+            return values;
+        }
+        let mut full = vec![f32::NAN; len];
+        match self {
+            Inside::Grid {
+                cols, rows, width, ..
+            } => {
+                for (r, &j) in rows.iter().enumerate() {
+                    for (c, &i) in cols.iter().enumerate() {
+                        full[j * width + i] = values[r * cols.len() + c];
+                    }
+                }
+            }
+            Inside::List { index, .. } => {
+                for (&k, v) in index.iter().zip(values) {
+                    full[k] = v;
+                }
+            }
+        }
+        full
     }
 }

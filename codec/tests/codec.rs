@@ -133,6 +133,54 @@ proptest! {
         }
     }
 
+    /// Patch decoding answers what a plain chain in f64 answers at each of the patch's points
+    /// (`reference_chain`), and, but for points within f32 rounding of a cell boundary at some
+    /// step, what point decoding answers at the points rounded to f32; over zooms, rotations,
+    /// twists, tolerances and patches that reach outside the unit square (points clamped).
+    #[test]
+    fn patch_decoding_is_point_decoding(u0 in -0.05f32..0.9, v0 in -0.05f32..0.9, zoom in 0u32..7, angle in -0.6f64..0.6, twist in -0.2f64..0.2, nx in 1usize..70, ny in 1usize..70, tol in prop_oneof![Just(0.0f32), 0.0005f32..0.02], n in 0u32..30) {
+        let side = 1.0 / (1u32 << zoom) as f64;
+        let (cos, sin) = (angle.cos(), angle.sin());
+        let (sx, sy) = (side / nx as f64, side / ny as f64);
+        let patch = decode::Patch {
+            origin: [u0 as f64, v0 as f64],
+            a: [sx * cos, sx * sin],
+            b: [-sy * sin, sy * cos],
+            c: [twist * sx * sy, -twist * sx * sy],
+            width: nx,
+            height: ny,
+        };
+        for asset in [small_camera_asset(), small_terrain_asset()] {
+            let op = &asset.planes[0].operator;
+            let fractile_codec::asset::PlaneOperator::Quadtree(q) = op else {
+                panic!("quadtree assets");
+            };
+            let by_patch = op.patch(&patch, n, tol);
+            prop_assert_eq!(by_patch.len(), nx * ny);
+            let mut off = 0;
+            for (k, got) in by_patch.iter().enumerate() {
+                let want = reference_chain(q, patch.at(k % nx, k / nx), n, tol);
+                if (got.value - want.value).abs() > 1e-5
+                    || (got.error_bound - want.error_bound).abs() > 1e-6
+                    || got.iterations != want.iterations
+                {
+                    off += 1;
+                }
+            }
+            prop_assert!(off <= 1, "{} of {} points differ from the f64 chains", off, nx * ny);
+            let pts: Vec<[f32; 2]> = (0..ny)
+                .flat_map(|j| (0..nx).map(move |i| patch.at(i, j).map(|t| t as f32)))
+                .collect();
+            let by_point = decode::points(op, &pts, n, tol);
+            let beyond = by_patch
+                .iter()
+                .zip(&by_point)
+                .filter(|(a, b)| (a.value - b.value).abs() > a.error_bound + b.error_bound + 1e-5)
+                .count();
+            prop_assert!(beyond * 50 <= (nx * ny).max(50), "{} of {} points beyond their bounds", beyond, nx * ny);
+        }
+    }
+
     /// Corrupt files are rejected with an error (never a panic), whatever byte is hit.
     #[test]
     fn corrupt_assets_are_rejected(pos in 0usize..10_000, xor in 1u8..=255, cut in 0usize..10_000) {
@@ -147,6 +195,41 @@ proptest! {
         let crc = crc32fast::hash(&flipped[..body]);
         flipped[body..].copy_from_slice(&crc.to_le_bytes());
         let _ = Asset::from_bytes(&flipped).map(|a| a.decode(17, 9, DiscreteOptions::fixed(3)));
+    }
+}
+
+/// Inverse iteration of one point with f64 positions, cell by cell (the definition the block
+/// decoders must agree with): clamp into the frame, then while steps remain and the bound is
+/// above `tol`, add `prod s * g(p)`, multiply by s and move p by phi.
+fn reference_chain(
+    op: &fractile_codec::operator::QuadtreeOperator,
+    p: [f64; 2],
+    n: u32,
+    tol: f32,
+) -> decode::PointValue {
+    use fractile_codec::operator::{AxisAligned, ISOMETRY_MATRICES};
+    let valid = op.valid();
+    let (lo, hi) = op.invariant_interval();
+    let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
+    let mut q = [0, 1].map(|d| (p[d] * valid[d] as f64).clamp(0.0, valid[d] as f64));
+    let (mut acc_g, mut acc_s, mut taken) = (0.0f64, 1.0f32, 0);
+    while taken < n && acc_s != 0.0 && acc_s.abs() * half > tol {
+        let m = op
+            .axis_cell(op.lattice(0, q[0] as f32), op.lattice(1, q[1] as f32))
+            .map;
+        acc_g += acc_s as f64 * (m.offset as f64 + m.gx as f64 * q[0] + m.gy as f64 * q[1]);
+        acc_s *= m.contrast;
+        let [ax, bx, ay, by] = ISOMETRY_MATRICES[m.isometry as usize & 7].map(f64::from);
+        q = [
+            ax * q[0] + bx * q[1] + m.cx as f64,
+            ay * q[0] + by * q[1] + m.cy as f64,
+        ];
+        taken += 1;
+    }
+    decode::PointValue {
+        value: (acc_g + (acc_s * seed) as f64) as f32,
+        error_bound: acc_s.abs() * half,
+        iterations: taken,
     }
 }
 

@@ -37,6 +37,10 @@ pub struct AssetSummary {
     pub bounds: Option<[f64; 4]>,
     /// Whether requests take lon/lat (true) or unit coordinates (false).
     pub georeferenced: bool,
+    /// The EPSG code of a projected CRS the asset's grid is in (requests still take lon/lat:
+    /// the server reprojects); absent for geographic and non-georeferenced assets.
+    #[serde(default)]
+    pub epsg: Option<u32>,
     /// `[min, max]` of the valid source values.
     pub value_range: [f64; 2],
     /// Units of the values (`m` for DEMs), when known.

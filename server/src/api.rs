@@ -225,18 +225,17 @@ fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppErro
     Ok(b)
 }
 
-/// `Asset::sample` of a separable grid on the chosen backend, with coarse decodes shared
+/// `Asset::sample` of a raster's pixels on the chosen backend, with coarse decodes shared
 /// through `coarse` (runs inside `decode`, on the blocking pool).
 fn sample_on(
     (gpu, coarse): (Option<&GpuBackend>, &CoarseCache),
     choice: Backend,
     a: &StoredAsset,
-    grid: &geo::TileGrid,
+    pixels: &geo::Pixels,
     iterations: u32,
     tolerance: f32,
 ) -> (Vec<Vec<f32>>, f32) {
-    let (xs, ys, footprint) = (&grid.xs, &grid.ys, grid.footprint);
-    let gpu = gpu.filter(|g| g.takes(choice, xs.len() * ys.len()));
+    let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
     let continuous =
         |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
     let discrete = |w, h, n, t: f32| {
@@ -249,7 +248,7 @@ fn sample_on(
         discrete: &discrete,
     };
     a.asset
-        .sample_with(xs, ys, footprint, iterations, tolerance, &delegates)
+        .sample_with(pixels, iterations, tolerance, &delegates)
 }
 
 /// Discrete decodes for coarse tiles (see [`AppState::coarse`]).
@@ -270,8 +269,9 @@ fn summary(state: &AppState, a: &StoredAsset) -> AssetSummary {
         height: m.height,
         channels: m.channels,
         colour: m.colour,
-        bounds: a.placement.map(|p| p.bounds()),
+        bounds: a.placement.as_ref().map(|p| p.bounds()),
         georeferenced: a.placement.is_some(),
+        epsg: a.placement.as_ref().and_then(|p| p.epsg()),
         value_range: [m.value_min, m.value_max],
         units: m.units.clone(),
         nodata: m.nodata,
@@ -375,7 +375,8 @@ fn native_zoom(a: &StoredAsset, tile_size: usize) -> u8 {
     let width = a.asset.meta.width as f64;
     let degrees = a
         .placement
-        .map(|p| p.degrees_per_unit()[0])
+        .as_ref()
+        .map(|p| p.bounds()[2] - p.bounds()[0])
         .unwrap_or(360.0);
     let pixels_world = width * 360.0 / degrees;
     (pixels_world / tile_size as f64)
@@ -396,7 +397,7 @@ async fn tilejson(
         ("png", "")
     };
     let native = native_zoom(&a, 256);
-    let bounds = a.placement.map(|p| {
+    let bounds = a.placement.as_ref().map(|p| {
         let [w, s, e, n] = p.bounds();
         [
             w.max(-180.0),
@@ -628,8 +629,8 @@ async fn tile(
         // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile,
         // so that shading is seamless across tiles.
         let margin = usize::from(shade);
-        let grid = geo::tile_grid(asset.placement.as_ref(), z, x, y, size, margin);
-        if grid.xs.iter().all(Option::is_none) || grid.ys.iter().all(Option::is_none) {
+        let grid = geo::tile_pixels(asset.placement.as_ref(), z, x, y, size, margin);
+        if grid.is_outside() {
             return None;
         }
         let footprint = grid.footprint;
@@ -647,13 +648,12 @@ async fn tile(
                 // Cell size in the heights' units: metres for geographic assets, source pixels
                 // otherwise.
                 let spacing = match &asset.placement {
-                    Some(p) => {
-                        let [_, s, _, n] = geo::tile_bounds(z, x, y);
+                    Some(_) => {
+                        let [w, s, e, n] = geo::tile_bounds(z, x, y);
                         let m = geo::metres_per_degree(0.5 * (s + n));
-                        let d = p.degrees_per_unit();
                         [
-                            (footprint[0] as f64 * d[0] * m[0]) as f32,
-                            (footprint[1] as f64 * d[1] * m[1]) as f32,
+                            ((e - w) / size as f64 * m[0]) as f32,
+                            ((n - s) / size as f64 * m[1]) as f32,
                         ]
                     }
                     None => [
@@ -708,32 +708,40 @@ fn parse_rescale(r: &Option<String>, a: &StoredAsset) -> Result<Option<(f32, f32
 
 /// Unit coordinates of a request point: lon/lat for georeferenced assets, unit x/y otherwise.
 fn unit_of(a: &StoredAsset, c: [f64; 2]) -> Option<[f32; 2]> {
-    Some([unit_axis(a, 0, c[0])?, unit_axis(a, 1, c[1])?])
-}
-
-/// Unit x (`axis` 0, from longitude or x) or unit y (`axis` 1, from latitude or y) of a request
-/// coordinate; `None` outside the asset. Each depends on its own coordinate alone, so the pixels
-/// of a north-up box form a separable grid.
-fn unit_axis(a: &StoredAsset, axis: usize, t: f64) -> Option<f32> {
-    match (&a.placement, axis) {
-        (Some(p), 0) => p.unit_x(t),
-        (Some(p), _) => p.unit_y(t),
-        (None, _) => (0.0..=1.0).contains(&t).then_some(t as f32),
+    match &a.placement {
+        Some(p) => p.unit(c[0], c[1]),
+        None => c
+            .iter()
+            .all(|t| (0.0..=1.0).contains(t))
+            .then_some([c[0] as f32, c[1] as f32]),
     }
 }
 
-/// The separable grid of a north-up box's samples: column i at request x `x(i)`, row j at
-/// request y `y(j)`.
-fn box_grid(
+/// The pixels of a box's samples: column i at request x `x(i)`, row j at request y `y(j)`
+/// (lon/lat for georeferenced assets, a north-up box; unit coordinates otherwise), each
+/// `[dx, dy]` request units wide.
+fn box_pixels(
     a: &StoredAsset,
     (w, x): (usize, impl Fn(usize) -> f64),
     (h, y): (usize, impl Fn(usize) -> f64),
-    footprint: [f32; 2],
-) -> geo::TileGrid {
-    geo::TileGrid {
-        xs: (0..w).map(|i| unit_axis(a, 0, x(i))).collect(),
-        ys: (0..h).map(|j| unit_axis(a, 1, y(j))).collect(),
-        footprint,
+    [dx, dy]: [f64; 2],
+) -> geo::Pixels {
+    let xs: Vec<f64> = (0..w).map(x).collect();
+    let ys: Vec<f64> = (0..h).map(y).collect();
+    match &a.placement {
+        Some(p) => {
+            let centre = |v: &[f64]| 0.5 * (v[0] + v[v.len() - 1]);
+            let footprint = p.footprint(centre(&xs), centre(&ys), dx, dy);
+            p.pixels(&xs, &ys, footprint)
+        }
+        None => {
+            let unit = |t: f64| (0.0..=1.0).contains(&t).then_some(t as f32);
+            geo::Pixels::grid(
+                xs.into_iter().map(unit).collect(),
+                ys.into_iter().map(unit).collect(),
+                [dx as f32, dy as f32],
+            )
+        }
     }
 }
 
@@ -976,17 +984,9 @@ fn parse_bbox(b: &str) -> Result<[f64; 4], AppError> {
     }
 }
 
-/// Size in unit coordinates of one of `w x h` cells over a box given in request coordinates
-/// (lon/lat for georeferenced assets, unit coordinates otherwise).
-fn pixel_footprint(a: &StoredAsset, [x0, y0, x1, y1]: [f64; 4], w: usize, h: usize) -> [f32; 2] {
-    let (du, dv) = match a.placement {
-        Some(p) => {
-            let d = p.degrees_per_unit();
-            ((x1 - x0) / d[0], (y1 - y0) / d[1])
-        }
-        None => (x1 - x0, y1 - y0),
-    };
-    [(du / w.max(1) as f64) as f32, (dv / h.max(1) as f64) as f32]
+/// Size in request units of one of `w x h` cells over a box.
+fn cell_size([x0, y0, x1, y1]: [f64; 4], w: usize, h: usize) -> [f64; 2] {
+    [(x1 - x0) / w.max(1) as f64, (y1 - y0) / h.max(1) as f64]
 }
 
 #[derive(Deserialize)]
@@ -1051,7 +1051,7 @@ async fn mesh(
     }
     let [x0, y0, x1, y1] = match &q.bbox {
         Some(b) => parse_bbox(b)?,
-        None => match a.placement {
+        None => match &a.placement {
             Some(p) => p.bounds(),
             None => [0.0, 0.0, 1.0, 1.0],
         },
@@ -1060,7 +1060,7 @@ async fn mesh(
     let geo_ref = a.placement.is_some();
     // Vertex (i, j): i east, j south, corners included.
     let frac = |k: usize| k as f64 / (n - 1) as f64;
-    let grid = box_grid(
+    let grid = box_pixels(
         &a,
         (n, |i| x0 + frac(i) * (x1 - x0)),
         (n, |j| {
@@ -1070,9 +1070,9 @@ async fn mesh(
                 y0 + frac(j) * (y1 - y0)
             }
         }),
-        pixel_footprint(&a, [x0, y0, x1, y1], n - 1, n - 1),
+        cell_size([x0, y0, x1, y1], n - 1, n - 1),
     );
-    if grid.xs.iter().all(Option::is_none) || grid.ys.iter().all(Option::is_none) {
+    if grid.is_outside() {
         return Err(AppError::not_found(
             "outside",
             "the box is outside the asset",
@@ -1280,7 +1280,7 @@ async fn region(
     let (w, h) = (q.width, q.height);
     // Pixel centres in the request's coordinates: lon/lat (north up) or unit x/y (y down).
     let geo_ref = a.placement.is_some();
-    let grid = box_grid(
+    let grid = box_pixels(
         &a,
         (w, |i| x0 + (i as f64 + 0.5) / w as f64 * (x1 - x0)),
         (h, |j| {
@@ -1291,18 +1291,23 @@ async fn region(
                 y0 + fy * (y1 - y0)
             }
         }),
-        pixel_footprint(&a, [x0, y0, x1, y1], w, h),
+        cell_size([x0, y0, x1, y1], w, h),
     );
     let f32_out = format == "f32";
     let tif_out = format == "tif";
-    // The GeoTIFF's georeference is the requested box (north-up, lon/lat for geographic assets).
+    // The GeoTIFF's georeference is the requested box (north-up, lon/lat for georeferenced
+    // assets).
     let tif_georef = a
         .asset
         .meta
         .georef
         .as_ref()
         .map(|g| fractile_proto::Georef {
-            epsg: g.epsg,
+            // Boxes are lon/lat: the region of a projected asset is in EPSG:4326 too.
+            epsg: match a.placement.as_ref().and_then(|p| p.epsg()) {
+                Some(_) => Some(4326),
+                None => g.epsg,
+            },
             origin: [x0, y1],
             pixel_size: [(x1 - x0) / w as f64, -(y1 - y0) / h as f64],
         });

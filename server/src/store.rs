@@ -144,11 +144,16 @@ impl Store {
 /// Parses an asset file's bytes into a stored asset.
 pub fn load(id: &str, bytes: &[u8]) -> Result<StoredAsset, fractile_codec::Error> {
     let asset = Asset::from_bytes(bytes)?;
-    let placement = asset
-        .meta
-        .georef
-        .as_ref()
-        .and_then(|g| Placement::of(g, asset.meta.width, asset.meta.height));
+    let placement = asset.meta.georef.as_ref().and_then(|g| {
+        match Placement::of(g, asset.meta.width, asset.meta.height) {
+            Ok(p) => Some(p),
+            Err(e) => {
+                // Served still, over the unit square: better than refusing the asset.
+                tracing::warn!("asset {id}: {e}; its tiles cover the unit square instead");
+                None
+            }
+        }
+    });
     Ok(StoredAsset {
         id: id.to_string(),
         asset,
@@ -173,6 +178,14 @@ const DEMO: &[(&str, &str, &[u8], RateMode)] = &[
         "jacksboro",
         "jacksboro.tif",
         include_bytes!("../../testdata/jacksboro.tif"),
+        RateMode::TargetBpp(0.8),
+    ),
+    (
+        // The same terrain on a UTM 16N grid (GDAL's warp): tiles and points go through the
+        // reprojection.
+        "jacksboro-utm",
+        "jacksboro-utm.tif",
+        include_bytes!("../../testdata/jacksboro-utm.tif"),
         RateMode::TargetBpp(0.8),
     ),
     (

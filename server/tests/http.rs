@@ -28,6 +28,8 @@ fn state() -> Arc<AppState> {
             std::fs::create_dir_all(&dir).unwrap();
             for (id, file, bpp) in [
                 ("jacksboro", "jacksboro.tif", 1.6),
+                // The same terrain on a UTM 16N grid (a projected CRS).
+                ("jacksboro-utm", "jacksboro-utm.tif", 1.6),
                 ("camera", "camera.png", 0.48),
             ] {
                 let r = Raster::open(&data(file)).unwrap();
@@ -104,7 +106,10 @@ async fn catalog_metadata_and_tilejson() {
         .iter()
         .map(|a| a["id"].as_str().unwrap().to_string())
         .collect();
-    assert_eq!(ids, ["camera", "coast", "fandisk", "jacksboro"]);
+    assert_eq!(
+        ids,
+        ["camera", "coast", "fandisk", "jacksboro", "jacksboro-utm"]
+    );
     let (s, _, b) = get("/v1/assets/jacksboro").await;
     assert_eq!(s, StatusCode::OK);
     let m = json(&b);
@@ -127,7 +132,7 @@ async fn catalog_metadata_and_tilejson() {
 async fn terrain_rgb_tile_matches_the_source_within_the_encoding_error() {
     let st = state();
     let a = st.store.get("jacksboro").unwrap();
-    let place: Placement = a.placement.unwrap();
+    let place: Placement = a.placement.clone().unwrap();
     let (x, y) = geo::lonlat_tile(12, -84.25, 36.6);
     let (s, h, b) = get(&format!(
         "/v1/assets/jacksboro/tiles/12/{x}/{y}.png?encoding=terrainrgb"
@@ -860,7 +865,7 @@ async fn global_tiles_join_across_the_antimeridian() {
         // +-180 against the source's own jump between its last and first columns, same rows.
         let a = st.store.get("etopo20").unwrap();
         let rmse = a.asset.meta.stats.rmse as f32;
-        let place = a.placement.unwrap();
+        let place = a.placement.clone().unwrap();
         let [_, s, _, n] = geo::tile_bounds(z, 0, y);
         let rows: Vec<usize> = (0..r.height)
             .filter(|&j| {
@@ -1314,7 +1319,7 @@ async fn coarse_tiles_share_one_discrete_decode_and_answer_as_without_it() {
     let (store, _) = Store::open(&dir).unwrap();
     let st = Arc::new(AppState::new(store, "http://test".into()));
     let a = st.store.get("jacksboro").unwrap();
-    let [w, s, e, n] = a.placement.unwrap().bounds();
+    let [w, s, e, n] = a.placement.as_ref().unwrap().bounds();
     // Zoom 10: a pixel is about 120 m here, coarser than the source, so tiles are filtered.
     let z = 10u8;
     let first = geo::lonlat_tile(z, w + 0.01, n - 0.01);
@@ -1332,12 +1337,12 @@ async fn coarse_tiles_share_one_discrete_decode_and_answer_as_without_it() {
         // Both tiles sample the one grid decoded for the first.
         assert_eq!(st.coarse.entry_count(), 1, "after tile {k}");
         // And they answer what the codec answers with no cache in between.
-        let grid = geo::tile_grid(a.placement.as_ref(), z, x, y, 256, 0);
+        let grid = geo::tile_pixels(a.placement.as_ref(), z, x, y, 256, 0);
         let served: Vec<f32> = body
             .chunks_exact(4)
             .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
             .collect();
-        let (direct, _) = a.asset.sample(&grid.xs, &grid.ys, grid.footprint, 12, 0.0);
+        let (direct, _) = a.asset.sample(&grid, 12, 0.0);
         assert_eq!(served.len(), direct[0].len());
         let same = served
             .iter()
@@ -1345,4 +1350,132 @@ async fn coarse_tiles_share_one_discrete_decode_and_answer_as_without_it() {
             .all(|(p, q)| p == q || (p.is_nan() && q.is_nan()));
         assert!(same, "tile {k} differs from the uncached decode");
     }
+}
+
+/// An f32 tile or region as floats.
+fn floats(b: &[u8]) -> Vec<f32> {
+    b.chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect()
+}
+
+/// RMS difference of two rasters where both have data, and how many pixels that is.
+fn rms_where_both(a: &[f32], b: &[f32]) -> (f64, usize) {
+    let d: Vec<f64> = a
+        .iter()
+        .zip(b)
+        .filter(|(p, q)| p.is_finite() && q.is_finite())
+        .map(|(p, q)| (*p as f64 - *q as f64).powi(2))
+        .collect();
+    (
+        (d.iter().sum::<f64>() / d.len().max(1) as f64).sqrt(),
+        d.len(),
+    )
+}
+
+#[tokio::test]
+async fn projected_assets_are_reprojected_to_lon_lat_and_web_mercator() {
+    // jacksboro-utm is jacksboro warped onto a 90 m UTM 16N grid by GDAL (testdata/README.md),
+    // an implementation independent of ours: served in lon/lat and Web Mercator, both assets
+    // must show the same terrain at the same places.
+    let (s, _, b) = get("/v1/assets/jacksboro-utm").await;
+    assert_eq!(s, StatusCode::OK);
+    let info = json(&b);
+    assert_eq!(info["georeferenced"], true);
+    assert_eq!(info["epsg"], 32616);
+    // Its lon/lat box from gdalinfo's corner coordinates (degrees, minutes, seconds).
+    let dms = |d: f64, m: f64, s: f64| d.signum() * (d.abs() + m / 60.0 + s / 3600.0);
+    let expected = [
+        dms(-84.0, 25.0, 23.87),
+        dms(36.0, 26.0, 18.65),
+        dms(-84.0, 4.0, 1.65),
+        dms(36.0, 44.0, 26.48),
+    ];
+    for (k, e) in expected.iter().enumerate() {
+        let got = info["bounds"][k].as_f64().unwrap();
+        assert!((got - e).abs() < 1e-4, "bound {k}: {got} vs {e}");
+    }
+    // The same tile of both assets: heights agree to the encodings' and the warp's errors,
+    // far better than the same tile against itself shifted 8 pixels (about 120 m) east.
+    let z = 13;
+    let (x, y) = geo::lonlat_tile(z, -84.25, 36.6);
+    let tile = |id: &str| format!("/v1/assets/{id}/tiles/{z}/{x}/{y}.f32?iterations=12");
+    let (s1, _, geo_tile) = get(&tile("jacksboro")).await;
+    let (s2, _, utm_tile) = get(&tile("jacksboro-utm")).await;
+    assert_eq!((s1, s2), (StatusCode::OK, StatusCode::OK));
+    let (g, u) = (floats(&geo_tile), floats(&utm_tile));
+    let (rms, n) = rms_where_both(&g, &u);
+    assert!(n > 60_000, "{n} pixels on both");
+    let shifted: Vec<f32> = (0..256 * 256)
+        .map(|k| if k % 256 < 248 { g[k + 8] } else { f32::NAN })
+        .collect();
+    let (control, _) = rms_where_both(&shifted, &u);
+    eprintln!("tile: rms {rms} m, shifted 8 px {control} m");
+    assert!(rms < 12.0 && rms < 0.4 * control, "{rms} m vs {control} m");
+    // Points, in lon/lat like every georeferenced asset.
+    let pts: Vec<[f64; 2]> = (0..100)
+        .map(|k| {
+            [
+                -84.38 + 0.28 * (k % 10) as f64 / 9.0,
+                36.47 + 0.24 * (k / 10) as f64 / 9.0,
+            ]
+        })
+        .collect();
+    let body = serde_json::json!({"points": pts, "iterations": 14}).to_string();
+    let heights = |id: &str| {
+        let req = Request::post(format!("/v1/assets/{id}/points"))
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(body.clone()))
+            .unwrap();
+        async move {
+            let (s, _, b) = send(req).await;
+            assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+            json(&b)["results"]
+                .as_array()
+                .unwrap()
+                .iter()
+                .map(|r| r["values"][0].as_f64().unwrap_or(f64::NAN) as f32)
+                .collect::<Vec<f32>>()
+        }
+    };
+    let (g, u) = (heights("jacksboro").await, heights("jacksboro-utm").await);
+    let (rms, n) = rms_where_both(&g, &u);
+    eprintln!("points: rms {rms} m over {n}");
+    assert!(n == 100 && rms < 15.0, "{rms} m over {n} points");
+    // A region (north-up lon/lat box) and an adaptive mesh of it.
+    let region = |id: &str| {
+        format!("/v1/assets/{id}/region?bbox=-84.3,36.5,-84.2,36.6&width=96&height=96&format=f32")
+    };
+    let (_, _, g) = get(&region("jacksboro")).await;
+    let (s, _, u) = get(&region("jacksboro-utm")).await;
+    assert_eq!(s, StatusCode::OK);
+    let (rms, n) = rms_where_both(&floats(&g), &floats(&u));
+    assert!(n == 96 * 96 && rms < 12.0, "region: {rms} m over {n}");
+    // As a GeoTIFF: in lon/lat (EPSG:4326), the box's georeference, not the asset's UTM.
+    let (s, _, b) = get(
+        "/v1/assets/jacksboro-utm/region?bbox=-84.3,36.5,-84.2,36.6&width=50&height=40&format=tif",
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    let path = std::env::temp_dir().join(format!("fractile-utm-region-{}.tif", std::process::id()));
+    std::fs::write(&path, &b).unwrap();
+    let r = Raster::open(&path).unwrap();
+    let _ = std::fs::remove_file(&path);
+    let g = r.georef.unwrap();
+    assert_eq!(g.epsg, Some(4326));
+    assert!((g.origin[0] + 84.3).abs() < 1e-9 && (g.origin[1] - 36.6).abs() < 1e-9);
+    let (s, h, _) =
+        get("/v1/assets/jacksboro-utm/mesh?bbox=-84.3,36.5,-84.2,36.6&resolution=65&max_error=5")
+            .await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(h.contains_key("x-error-bound"));
+    // Outside the grid but inside its lon/lat box: the rotated frame leaves corners empty.
+    let [w, _, _, n] = expected;
+    let (s, _, _) = get(&format!(
+        "/v1/assets/jacksboro-utm/point/{},{}",
+        w + 0.001,
+        n - 0.001
+    ))
+    .await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
 }
