@@ -539,8 +539,26 @@ pub fn patch<O: AxisAligned + ?Sized>(
             (cell.cols[0]..cell.cols[1]).contains(&op.lattice(0, q[0]))
                 && (cell.rows[0]..cell.rows[1]).contains(&op.lattice(1, q[1]))
         };
-        let run_x = |j: usize, n: usize| (1..n).find(|&k| !in_cell(frame(i0 + k, j))).unwrap_or(n);
-        let ch = (1..bh).find(|&k| !in_cell(frame(i0, j0 + k))).unwrap_or(bh);
+        // Along a row (or a column) a bilinear patch is a straight line, whose rounded points
+        // stay in order, so the points in the (box) cell form one run from the first: its
+        // length is found by bisection.
+        let run = |inside: &dyn Fn(usize) -> bool, n: usize| {
+            if inside(n - 1) {
+                return n;
+            }
+            let (mut lo, mut hi) = (0, n - 1);
+            while hi - lo > 1 {
+                let mid = (lo + hi) / 2;
+                if inside(mid) {
+                    lo = mid;
+                } else {
+                    hi = mid;
+                }
+            }
+            hi
+        };
+        let run_x = |j: usize, n: usize| run(&|k| in_cell(frame(i0 + k, j)), n);
+        let ch = run(&|k| in_cell(frame(i0, j0 + k)), bh);
         let cw = run_x(j0, bw);
         let cw = if ch > 1 { run_x(j0 + ch - 1, cw) } else { cw };
         // The rest waits at the same step: the other columns beside the leading rows, then

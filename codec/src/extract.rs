@@ -157,13 +157,23 @@ impl Asset {
             }
         };
         if let Some(mask) = &self.mask {
+            // Once for every channel; in chunks of 16k points, so that a tile is a few tasks
+            // (a task per few points cost a fifth of a tile's time).
+            let n = out.first().map_or(0, Vec::len);
+            let valid: Vec<bool> = (0..n)
+                .into_par_iter()
+                .with_min_len(1 << 14)
+                .map(|i| {
+                    let (u, v) = points(i);
+                    mask.at(u, v)
+                })
+                .collect();
             for ch in &mut out {
-                ch.par_iter_mut().enumerate().for_each(|(i, v)| {
-                    let (u, v2) = points(i);
-                    if !mask.at(u, v2) {
+                for (v, &ok) in ch.iter_mut().zip(&valid) {
+                    if !ok {
                         *v = f32::NAN;
                     }
-                });
+                }
             }
         }
         out
@@ -450,8 +460,13 @@ impl Asset {
                         } => continuous(k, Sites::List(points), iterations, tol).unwrap_or_else(
                             || {
                                 let mut v = p.operator.points(&points[..*loose], iterations, tol);
+                                v.reserve(points.len() - v.len());
                                 for (pa, inside) in patches {
                                     let all = p.operator.patch(&pa.patch, iterations, tol);
+                                    if inside.iter().all(|&i| i) {
+                                        v.extend_from_slice(&all);
+                                        continue;
+                                    }
                                     v.extend(
                                         all.into_iter()
                                             .zip(inside)
