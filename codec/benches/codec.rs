@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use fractile_codec::decode::{self, DiscreteOptions};
+use fractile_codec::operator::Operator;
 use fractile_codec::{EncodeSettings, Raster, RateMode, SearchMode, encode, metrics};
 
 fn root() -> PathBuf {
@@ -14,6 +15,21 @@ fn root() -> PathBuf {
 }
 
 fn quiet(_: u64, _: u64) {}
+
+/// The median wall time of `reps` runs of `f`, in ms: the machine is shared (wrk, rayon's
+/// spinning workers after an all-core decode), and the median is what a run without such
+/// interference takes.
+fn median_ms(reps: usize, mut f: impl FnMut()) -> f64 {
+    let mut times: Vec<f64> = (0..reps)
+        .map(|_| {
+            let t = Instant::now();
+            f();
+            t.elapsed().as_secs_f64() * 1e3
+        })
+        .collect();
+    times.sort_by(f64::total_cmp);
+    times[times.len() / 2]
+}
 
 /// JPEG (image crate, baseline) at the highest quality whose size is at most `bpp`.
 fn jpeg_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
@@ -166,11 +182,9 @@ fn main() {
         let enc = encode(&camera, &bpp(0.48), &quiet).expect("encode");
         let op = &enc.asset.planes[0].operator;
         let reps = 10;
-        let t = Instant::now();
-        for _ in 0..reps {
+        let disc = median_ms(reps, || {
             std::hint::black_box(decode::discrete(op, 512, 512, DiscreteOptions::default()));
-        }
-        let disc = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        });
         // Continuous: 256 x 256 points x 10 steps on one core (no rayon).
         let pts: Vec<[f32; 2]> = (0..256 * 256)
             .map(|k| {
@@ -180,27 +194,44 @@ fn main() {
                 ]
             })
             .collect();
-        let t = Instant::now();
-        let mut acc = 0.0f32;
-        for _ in 0..reps {
+        let reps = 30;
+        let single = median_ms(reps, || {
+            let mut acc = 0.0f32;
             for p in &pts {
                 acc += op.point(*p, 10).value;
             }
-        }
-        std::hint::black_box(acc);
-        let single = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
-        let t = Instant::now();
-        for _ in 0..reps {
+            std::hint::black_box(acc);
+        });
+        let cont = median_ms(reps, || {
             std::hint::black_box(op.points(&pts, 10, 0.0));
-        }
-        let cont = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        });
+        // The same chains stepped through `Operator::step` (the layout every codec has),
+        // against the quadtree's own layout for the loop that `points` uses.
+        let fractile_codec::asset::PlaneOperator::Quadtree(quadtree) = op else {
+            unreachable!("images are coded as quadtrees")
+        };
+        let valid = op.valid();
+        let stepwise = median_ms(reps, || {
+            let mut chains: Vec<decode::Chain<2>> = pts
+                .iter()
+                .map(|p| decode::Chain {
+                    q: [
+                        decode::to_frame(p[0], valid[0]),
+                        decode::to_frame(p[1], valid[1]),
+                    ],
+                    acc_g: 0.0,
+                    acc_s: 1.0,
+                    taken: 0,
+                })
+                .collect();
+            decode::run_chains_stepwise(quadtree, &mut chains, 10, 0.0);
+            std::hint::black_box(chains);
+        });
         // The same pixel centres as the separable grid they are (how tiles and regions decode).
         let axis: Vec<f32> = (0..256).map(|k| (k as f32 + 0.5) / 256.0).collect();
-        let t = Instant::now();
-        for _ in 0..reps {
+        let cont_grid = median_ms(reps, || {
             std::hint::black_box(op.grid(&axis, &axis, 10, 0.0));
-        }
-        let cont_grid = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+        });
         // Discrete vs continuous at pixel centres: the measured difference of averaging and sampling.
         let (grid, _) = decode::discrete(op, 512, 512, DiscreteOptions::fixed(40));
         let mut diff = 0.0f64;
@@ -239,8 +270,13 @@ fn main() {
             "| continuous 256x256 points x 10 steps, one point at a time (one core) | {single:.2} ms |"
         );
         println!(
-            "| continuous 256x256 points x 10 steps, batched (one core) | {cont:.2} ms ({:.1}x) |",
-            single / cont
+            "| continuous 256x256 points x 10 steps, batched, stepped through `Operator::step` (one core) | {stepwise:.2} ms ({:.1}x) |",
+            single / stepwise
+        );
+        println!(
+            "| continuous 256x256 points x 10 steps, batched, the quadtree's own layout (one core) | {cont:.2} ms ({:.1}x; {:.2}x the stepwise) |",
+            single / cont,
+            stepwise / cont
         );
         println!(
             "| continuous 256x256 points x 10 steps, the pixel centres as a grid (one core) | {cont_grid:.2} ms ({:.1}x) |",
@@ -262,16 +298,12 @@ fn main() {
                 .iter()
                 .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
                 .collect();
-            let t = Instant::now();
-            for _ in 0..reps {
+            let by_point = median_ms(reps, || {
                 std::hint::black_box(op.points(&grid_pts, 30, 0.002));
-            }
-            let by_point = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
-            let t = Instant::now();
-            for _ in 0..reps {
+            });
+            let by_grid = median_ms(reps, || {
                 std::hint::black_box(op.grid(&xs, &ys, 30, 0.002));
-            }
-            let by_grid = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            });
             assert_eq!(
                 op.grid(&xs, &ys, 30, 0.002),
                 op.points(&grid_pts, 30, 0.002)
@@ -296,16 +328,12 @@ fn main() {
             let patch_pts: Vec<[f32; 2]> = (0..256)
                 .flat_map(|j| (0..256).map(move |i| patch.at(i, j).map(|t| t as f32)))
                 .collect();
-            let t = Instant::now();
-            for _ in 0..reps {
+            let by_point = median_ms(reps, || {
                 std::hint::black_box(op.points(&patch_pts, 30, 0.002));
-            }
-            let by_point = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
-            let t = Instant::now();
-            for _ in 0..reps {
+            });
+            let by_patch = median_ms(reps, || {
                 std::hint::black_box(op.patch(&patch, 30, 0.002));
-            }
-            let by_patch = t.elapsed().as_secs_f64() * 1e3 / reps as f64;
+            });
             println!(
                 "| the same turned 2 degrees, as a patch: point by point / patch (one core) | {by_point:.2} / {by_patch:.2} ms ({:.1}x) |",
                 by_point / by_patch

@@ -235,6 +235,13 @@ impl Operator<2> for PlaneOperator {
             PlaneOperator::Psa(f) => f.invariant_interval(),
         }
     }
+    fn run_chains(&self, chains: &mut [crate::decode::Chain<2>], iterations: u32, tolerance: f32) {
+        match self {
+            PlaneOperator::Quadtree(q) => q.run_chains(chains, iterations, tolerance),
+            PlaneOperator::Fis(f) => f.run_chains(chains, iterations, tolerance),
+            PlaneOperator::Psa(f) => f.run_chains(chains, iterations, tolerance),
+        }
+    }
 }
 
 /// A coded plane: how it is coded and the operator decoded from that.

@@ -38,7 +38,7 @@ pub fn point<const D: usize, O: Operator<D> + ?Sized>(
     let valid = op.valid();
     let mut q = [0.0f32; D];
     for d in 0..D {
-        q[d] = p[d].clamp(0.0, 1.0) * valid[d];
+        q[d] = to_frame(p[d], valid[d]);
     }
     let (lo, hi) = op.invariant_interval();
     let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
@@ -79,11 +79,23 @@ pub fn points<const D: usize, O: Operator<D> + ?Sized>(
     let valid = op.valid();
     let mut chains: Vec<Chain<D>> = pts
         .iter()
-        .map(|p| Chain::start(std::array::from_fn(|d| p[d].clamp(0.0, 1.0) * valid[d])))
+        .map(|p| Chain::start(std::array::from_fn(|d| to_frame(p[d], valid[d]))))
         .collect();
     run_chains(op, &mut chains, iterations, tolerance);
     let (seed, half) = seed_of(op);
     chains.iter().map(|c| c.finish(seed, half)).collect()
+}
+
+/// A unit coordinate clamped into `[0, 1]` and scaled to the frame's `valid` extent. NaN is
+/// taken as 0 (an edge of the asset), so that every decoding path and operator layout gives
+/// the same finite answer for it.
+#[inline]
+pub fn to_frame(t: f32, valid: f32) -> f32 {
+    if t.is_nan() {
+        0.0
+    } else {
+        t.clamp(0.0, 1.0) * valid
+    }
 }
 
 /// The seed value (the middle of the invariant interval) and its largest distance from the
@@ -93,14 +105,18 @@ fn seed_of<const D: usize, O: Operator<D> + ?Sized>(op: &O) -> (f32, f32) {
     ((lo + hi) * 0.5, (hi - lo) * 0.5)
 }
 
-/// One inverse-iteration chain in flight: where it is, and `sum g_k prod_{j<k} s_j`, `prod s`
-/// and the steps taken so far.
+/// One inverse-iteration chain in flight: where it is (frame coordinates), and
+/// `sum g_k prod_{j<k} s_j`, `prod s` and the steps taken so far.
 #[derive(Clone, Copy, Debug)]
-struct Chain<const D: usize> {
-    q: [f32; D],
-    acc_g: f32,
-    acc_s: f32,
-    taken: u32,
+pub struct Chain<const D: usize> {
+    /// The current point, in frame coordinates.
+    pub q: [f32; D],
+    /// `sum g_k prod_{j<k} s_j` so far.
+    pub acc_g: f32,
+    /// `prod s_k` so far.
+    pub acc_s: f32,
+    /// Inverse steps taken.
+    pub taken: u32,
 }
 
 impl<const D: usize> Chain<D> {
@@ -123,15 +139,29 @@ impl<const D: usize> Chain<D> {
 }
 
 /// Whether a chain whose contrast product is `s` still needs steps: it is exact once a map
-/// with s = 0 ended it, and good enough once its bound is under the tolerance.
+/// with s = 0 ended it, and good enough once its bound `|s| * half` is under the tolerance.
+/// Every decoding path decides with this one function, so that they agree bit for bit.
 #[inline(always)]
-fn active(s: f32, half: f32, tolerance: f32) -> bool {
+pub fn active(s: f32, half: f32, tolerance: f32) -> bool {
     s != 0.0 && s.abs() * half > tolerance
 }
 
 /// Runs every chain until it has taken `iterations` steps in all or stopped (see [`points`]),
-/// eight at a time in lockstep.
+/// through the operator's own [`Operator::run_chains`].
 fn run_chains<const D: usize, O: Operator<D> + ?Sized>(
+    op: &O,
+    chains: &mut [Chain<D>],
+    iterations: u32,
+    tolerance: f32,
+) {
+    op.run_chains(chains, iterations, tolerance);
+}
+
+/// What [`Operator::run_chains`] does unless a codec lays its maps out better: chains eight at a
+/// time in lockstep, each stepped by [`Operator::step`] until it has taken `iterations` steps in
+/// all or [`active`] says it is done. A finished lane is frozen, so that a chain's answer
+/// depends on its point alone, never on the other chains of its batch.
+pub fn run_chains_stepwise<const D: usize, O: Operator<D> + ?Sized>(
     op: &O,
     chains: &mut [Chain<D>],
     iterations: u32,
@@ -151,7 +181,6 @@ fn run_chains<const D: usize, O: Operator<D> + ?Sized>(
         loop {
             let mut any = false;
             for l in 0..LANES {
-                // A finished lane is frozen, so that its answer does not depend on its neighbours.
                 if taken[l] >= iterations || !active(acc_s[l], half, tolerance) {
                     continue;
                 }
@@ -193,10 +222,12 @@ pub fn grid<O: AxisAligned + ?Sized>(
     // Coordinate lists, all in one arena: a block refers to a slice for its columns and one for
     // its rows; a block that steps appends its images.
     let mut arena: Vec<f32> = Vec::with_capacity(4 * (nx + ny));
-    arena.extend(xs.iter().map(|x| x.clamp(0.0, 1.0) * valid[0]));
-    arena.extend(ys.iter().map(|y| y.clamp(0.0, 1.0) * valid[1]));
-    // Where the grid is about as coarse as the lattice, blocks would hold a point or two and
-    // cost more than they share: decode point by point (the same answers).
+    arena.extend(xs.iter().map(|&x| to_frame(x, valid[0])));
+    arena.extend(ys.iter().map(|&y| to_frame(y, valid[1])));
+    // Where the grid is about as coarse as the lattice, blocks would hold a few points and
+    // cost more than they share: decode point by point (the same answers). The bench puts the
+    // break-even near 32 points per lattice square (a 256-pixel window over 256 source pixels,
+    // 16 a square: 1.0x either way).
     let squares = |list: &[f32], axis: usize| {
         1 + list
             .windows(2)
@@ -205,7 +236,7 @@ pub fn grid<O: AxisAligned + ?Sized>(
     };
     let per_square =
         (nx * ny) as f32 / (squares(&arena[..nx], 0) as f32 * squares(&arena[nx..], 1) as f32);
-    if per_square < MIN_BLOCK as f32 {
+    if per_square < (4 * MIN_BLOCK) as f32 {
         let mut chains: Vec<Chain<2>> = arena[nx..]
             .iter()
             .flat_map(|&y| arena[..nx].iter().map(move |&x| Chain::start([x, y])))

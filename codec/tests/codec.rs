@@ -133,6 +133,44 @@ proptest! {
         }
     }
 
+    /// The quadtree's own layout of its maps for the chain loop (lattice units, isometries
+    /// inline) answers bit for bit what stepping chains through `Operator::step` answers, for
+    /// constant and planar offsets, with and without a tolerance, on the frame's edges and for
+    /// a NaN point.
+    #[test]
+    fn walk_layout_is_stepwise_decoding(seed in 0u32..1000, tol in prop_oneof![Just(0.0f32), 0.0005f32..0.02], n in 0u32..30) {
+        let mut pts: Vec<[f32; 2]> = (0..61).map(|i| {
+            let h = (seed.wrapping_mul(2_654_435_761).wrapping_add(i * 40_503)) as f32;
+            [(h * 1e-3).fract().abs(), (h * 7e-3).fract().abs()]
+        }).collect();
+        pts.extend([[0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.5, -0.5], [f32::NAN, 0.5]]);
+        for asset in [small_camera_asset(), small_terrain_asset()] {
+            let fractile_codec::asset::PlaneOperator::Quadtree(q) = &asset.planes[0].operator else {
+                panic!("quadtree assets");
+            };
+            let fast = decode::points(q, &pts, n, tol);
+            let valid = q.valid();
+            let mut chains: Vec<decode::Chain<2>> = pts.iter().map(|p| decode::Chain {
+                q: [decode::to_frame(p[0], valid[0]), decode::to_frame(p[1], valid[1])],
+                acc_g: 0.0,
+                acc_s: 1.0,
+                taken: 0,
+            }).collect();
+            decode::run_chains_stepwise(q, &mut chains, n, tol);
+            let (lo, hi) = q.invariant_interval();
+            let (seed_value, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
+            for (k, (f, c)) in fast.iter().zip(&chains).enumerate() {
+                let value = c.acc_g + c.acc_s * seed_value;
+                prop_assert!(
+                    f.value.to_bits() == value.to_bits()
+                        && f.error_bound.to_bits() == (c.acc_s.abs() * half).to_bits()
+                        && f.iterations == c.taken,
+                    "point {} {:?}: {:?} vs stepwise {:?}", k, pts[k], f, c
+                );
+            }
+        }
+    }
+
     /// Patch decoding answers what a plain chain in f64 answers at each of the patch's points
     /// (`reference_chain`), and, but for points within f32 rounding of a cell boundary at some
     /// step, what point decoding answers at the points rounded to f32; over zooms, rotations,
