@@ -372,11 +372,7 @@ pub fn encode(
         })
         .collect();
 
-    let mask = raster.valid.as_ref().map(|v| Mask {
-        width: w,
-        height: h,
-        valid: v.clone(),
-    });
+    let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
     let meta = AssetMeta {
         kind: raster.kind,
         width: w as u32,
@@ -787,11 +783,7 @@ fn encode_lattice(
         height: h,
         values: &values,
     };
-    let mask = raster.valid.as_ref().map(|v| Mask {
-        width: w,
-        height: h,
-        valid: v.clone(),
-    });
+    let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
     let meta = AssetMeta {
         kind: raster.kind,
         width: w as u32,

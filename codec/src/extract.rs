@@ -129,6 +129,7 @@ impl Asset {
         &self,
         planes: Vec<Vec<f32>>,
         points: impl Fn(usize) -> (f32, f32) + Sync,
+        footprint: Option<[f32; 4]>,
     ) -> Vec<Vec<f32>> {
         let (lo, span) = (self.meta.value_min as f32, self.span());
         let mut out: Vec<Vec<f32>> = match self.meta.colour {
@@ -156,7 +157,13 @@ impl Asset {
                 rgb
             }
         };
-        if let Some(mask) = &self.mask {
+        // A footprint (a box holding every point) with no nodata cell under it skips the
+        // per-point lookups.
+        let mask = self
+            .mask
+            .as_ref()
+            .filter(|m| !footprint.is_some_and(|f| m.all_valid(f)));
+        if let Some(mask) = mask {
             // Once for every channel; in chunks of 16k points, so that a tile is a few tasks
             // (a task per few points cost a fifth of a tile's time).
             let n = out.first().map_or(0, Vec::len);
@@ -197,12 +204,16 @@ impl Asset {
             error_bound: results.iter().map(|r| r.1.error_bound).fold(0.0, f32::max),
         };
         let planes = results.into_iter().map(|r| r.0.values).collect();
-        let channels = self.to_source(planes, |i| {
-            (
-                ((i % width) as f32 + 0.5) / width as f32,
-                ((i / width) as f32 + 0.5) / height as f32,
-            )
-        });
+        let channels = self.to_source(
+            planes,
+            |i| {
+                (
+                    ((i % width) as f32 + 0.5) / width as f32,
+                    ((i / width) as f32 + 0.5) / height as f32,
+                )
+            },
+            None,
+        );
         (
             Decoded {
                 width,
@@ -231,7 +242,7 @@ impl Asset {
             .collect();
         let span = self.span();
         let bounds: Vec<f32> = pv.iter().map(|p| p.error_bound * span).collect();
-        let values = self.to_source(pv.iter().map(|p| vec![p.value]).collect(), |_| (u, v));
+        let values = self.to_source(pv.iter().map(|p| vec![p.value]).collect(), |_| (u, v), None);
         PointSample {
             values: values.into_iter().map(|c| c[0]).collect(),
             error_bound: if bounds.len() == 3 {
@@ -273,7 +284,7 @@ impl Asset {
             .iter()
             .map(|v| v.iter().map(|p| p.value).collect())
             .collect();
-        let values = self.to_source(planes, |i| (pts[i][0], pts[i][1]));
+        let values = self.to_source(planes, |i| (pts[i][0], pts[i][1]), None);
         (0..pts.len())
             .map(|i| {
                 let b: Vec<f32> = per_plane.iter().map(|v| v[i].error_bound * span).collect();
@@ -300,12 +311,16 @@ impl Asset {
         planes: Vec<Vec<f32>>,
     ) -> Decoded {
         let [u0, v0, u1, v1] = rect;
-        let channels = self.to_source(planes, |i| {
-            (
-                u0 + ((i % width) as f32 + 0.5) / width as f32 * (u1 - u0),
-                v0 + ((i / width) as f32 + 0.5) / height as f32 * (v1 - v0),
-            )
-        });
+        let channels = self.to_source(
+            planes,
+            |i| {
+                (
+                    u0 + ((i % width) as f32 + 0.5) / width as f32 * (u1 - u0),
+                    v0 + ((i / width) as f32 + 0.5) / height as f32 * (v1 - v0),
+                )
+            },
+            None,
+        );
         Decoded {
             width,
             height,
@@ -333,12 +348,16 @@ impl Asset {
             })
             .collect();
         let [u0, v0, u1, v1] = rect;
-        let channels = self.to_source(planes, |i| {
-            (
-                u0 + ((i % width) as f32 + 0.5) / width as f32 * (u1 - u0),
-                v0 + ((i / width) as f32 + 0.5) / height as f32 * (v1 - v0),
-            )
-        });
+        let channels = self.to_source(
+            planes,
+            |i| {
+                (
+                    u0 + ((i % width) as f32 + 0.5) / width as f32 * (u1 - u0),
+                    v0 + ((i / width) as f32 + 0.5) / height as f32 * (v1 - v0),
+                )
+            },
+            None,
+        );
         (
             Decoded {
                 width,
@@ -488,7 +507,7 @@ impl Asset {
                 })
                 .collect()
         };
-        let inner = self.to_source(planes, |k| inside.at(k));
+        let inner = self.to_source(planes, |k| inside.at(k), inside.footprint());
         let channels = inner
             .into_iter()
             .map(|ch| inside.scatter(ch, pixels.len()))
@@ -612,6 +631,23 @@ impl Inside {
             Inside::Grid { ix, iy, .. } => (ix[k % ix.len()], iy[k / ix.len()]),
             Inside::List { points, .. } => (points[k][0], points[k][1]),
         }
+    }
+
+    /// The unit box that holds every inside point (`None` if a coordinate is NaN).
+    fn footprint(&self) -> Option<[f32; 4]> {
+        fn span(mut t: impl Iterator<Item = f32>) -> Option<(f32, f32)> {
+            t.try_fold((f32::INFINITY, f32::NEG_INFINITY), |(lo, hi), v| {
+                (!v.is_nan()).then(|| (lo.min(v), hi.max(v)))
+            })
+        }
+        let ((u0, u1), (v0, v1)) = match self {
+            Inside::Grid { ix, iy, .. } => (span(ix.iter().copied())?, span(iy.iter().copied())?),
+            Inside::List { points, .. } => (
+                span(points.iter().map(|p| p[0]))?,
+                span(points.iter().map(|p| p[1]))?,
+            ),
+        };
+        (u0 <= u1 && v0 <= v1).then_some([u0, v0, u1, v1])
     }
 
     /// The values of the inside pixels put back in a raster of `len` pixels (NaN outside).
