@@ -347,25 +347,7 @@ impl Asset {
                 g.values
             })
             .collect();
-        let [u0, v0, u1, v1] = rect;
-        let channels = self.to_source(
-            planes,
-            |i| {
-                (
-                    u0 + ((i % width) as f32 + 0.5) / width as f32 * (u1 - u0),
-                    v0 + ((i / width) as f32 + 0.5) / height as f32 * (v1 - v0),
-                )
-            },
-            None,
-        );
-        (
-            Decoded {
-                width,
-                height,
-                channels,
-            },
-            chosen,
-        )
+        (self.window_from_planes(rect, width, height, planes), chosen)
     }
 
     /// Values at the pixels of a raster (row-major; a pixel outside the asset is answered as
