@@ -5,7 +5,7 @@
 //! | offset | size | field |
 //! |---|---|---|
 //! | 0 | 8 | magic `FRACTILE` |
-//! | 8 | 2 | format version (1) |
+//! | 8 | 2 | format version (2; 1 is still read but for curves) |
 //! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
 //! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine, 4 octree PIFS of a volume, 5 projected IFS of curves) |
 //! | 12 | 4 | metadata length M |
@@ -33,8 +33,13 @@ use crate::stream::{self, PlaneHeader};
 
 /// File magic.
 pub const MAGIC: &[u8; 8] = b"FRACTILE";
-/// The format version this build writes and reads.
-pub const FORMAT_VERSION: u16 = 1;
+/// The format version this build writes. Version 2 changed only the curve payload (codec 5:
+/// compact header, four-point prediction, fast-learning contexts); the
+/// other payloads are the same in both, so version-1 files of codecs 1-4 are still read and a
+/// version-1 curve asset is refused by name (re-encode its GeoJSON).
+pub const FORMAT_VERSION: u16 = 2;
+/// The oldest format version this build reads (codecs 1-4 only).
+pub const OLDEST_READ_VERSION: u16 = 1;
 
 /// Codec identifiers of the payload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -738,9 +743,9 @@ impl Asset {
             return Err(bad("not a fractile asset (bad magic)".into()));
         }
         let version = u16::from_le_bytes([bytes[8], bytes[9]]);
-        if version != FORMAT_VERSION {
+        if !(OLDEST_READ_VERSION..=FORMAT_VERSION).contains(&version) {
             return Err(bad(format!(
-                "format version {version} is not supported by this build (reads version {FORMAT_VERSION})"
+                "format version {version} is not supported by this build (reads versions {OLDEST_READ_VERSION} to {FORMAT_VERSION})"
             )));
         }
         let body = bytes.len() - 4;
@@ -754,6 +759,11 @@ impl Asset {
         if !(1..=5).contains(&codec) {
             return Err(bad(format!(
                 "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d, 4 IFS3D, 5 curves)"
+            )));
+        }
+        if codec == Codec::Curve as u8 && version < 2 {
+            return Err(bad(format!(
+                "a curve asset of format version {version} is not read by this build (its curve coding changed in version 2): encode the source again"
             )));
         }
         let read_len = |at: usize| -> Result<usize, Error> {

@@ -14,7 +14,22 @@ const PROB_ONE: u16 = 1 << PROB_BITS;
 const ADAPT_SHIFT: u32 = 5;
 const TOP: u32 = 1 << 24;
 
-/// The probability that the next bit is 0, adapted after every bit.
+/// An adaptive binary context: where the coder splits its range for the next bit, and how
+/// it learns from the bit. Two kinds exist because asset streams are frozen by their format:
+/// [`Bit`] (every codec's contexts) and [`CountedBit`] (curves, which have few symbols per
+/// context and so pay mostly for learning).
+pub trait Model: Clone {
+    /// The part of `range` given to a 0 bit (strictly between 0 and `range`).
+    fn bound(&self, range: u32) -> u32;
+    /// Learns from a coded bit.
+    fn update(&mut self, bit: bool);
+    /// What coding `bit` would cost now, in bits (for encoders that choose between symbols
+    /// by their rate).
+    fn cost(&self, bit: bool) -> f64;
+}
+
+/// The probability that the next bit is 0, adapted after every bit by a fixed 1/32 of the way
+/// (LZMA's context).
 #[derive(Clone, Copy, Debug)]
 pub struct Bit(u16);
 
@@ -24,29 +39,98 @@ impl Default for Bit {
     }
 }
 
-impl Bit {
-    /// What coding `bit` would cost now, in bits (for encoders that choose between symbols
-    /// by their rate).
-    pub fn cost(&self, bit: bool) -> f64 {
+impl Model for Bit {
+    #[inline]
+    fn bound(&self, range: u32) -> u32 {
+        (range >> PROB_BITS) * self.0 as u32
+    }
+
+    #[inline]
+    fn update(&mut self, bit: bool) {
+        if bit {
+            self.0 -= self.0 >> ADAPT_SHIFT;
+        } else {
+            self.0 += (PROB_ONE - self.0) >> ADAPT_SHIFT;
+        }
+    }
+
+    fn cost(&self, bit: bool) -> f64 {
         let p0 = f64::from(self.0) / f64::from(PROB_ONE);
         -(if bit { 1.0 - p0 } else { p0 }).log2()
     }
 }
 
-/// Codes a value of `bits` bits, most significant first, each bit in the context of the bits
-/// above it (a binary tree of [`Bit`]s), so any distribution over `0..2^bits` is learnt.
-#[derive(Clone, Debug)]
-pub struct BitTree {
-    bits: u32,
-    probs: Vec<Bit>,
+impl Bit {
+    /// What coding `bit` would cost now, in bits.
+    pub fn cost(&self, bit: bool) -> f64 {
+        Model::cost(self, bit)
+    }
 }
 
-impl BitTree {
+/// A context that learns fast while it is young: its `n`-th bit moves the probability by
+/// 1/2^(1 + log2(n + 1)) of the way (about 1/(n + 1), the running frequency), down to a floor of
+/// 1/32, with 15-bit probabilities. A fixed 1/32 pays about 6 bits per context before it has
+/// learnt anything; on the 40 Natural Earth coastlines, whose curve contexts see a few hundred
+/// symbols each, this codes the five longest rings 1.5-9% smaller (the shorter, the more).
+#[derive(Clone, Copy, Debug)]
+pub struct CountedBit {
+    p0: u16,
+    seen: u8,
+}
+
+const COUNTED_BITS: u32 = 15;
+const COUNTED_ONE: u16 = 1 << COUNTED_BITS;
+/// The floor of the learning rate, 1/2^5 (1/2^6 coded the coastlines the same).
+const COUNTED_SLOWEST: u32 = 5;
+
+impl Default for CountedBit {
+    fn default() -> Self {
+        CountedBit {
+            p0: COUNTED_ONE / 2,
+            seen: 0,
+        }
+    }
+}
+
+impl Model for CountedBit {
+    #[inline]
+    fn bound(&self, range: u32) -> u32 {
+        // p0 stays in 1..COUNTED_ONE (a step never reaches either end), so the bound is
+        // strictly inside a range of at least 2^24.
+        (range >> COUNTED_BITS) * self.p0 as u32
+    }
+
+    #[inline]
+    fn update(&mut self, bit: bool) {
+        let shift = (1 + (u32::from(self.seen) + 1).ilog2()).min(COUNTED_SLOWEST);
+        self.seen = self.seen.saturating_add(1);
+        if bit {
+            self.p0 -= self.p0 >> shift;
+        } else {
+            self.p0 += (COUNTED_ONE - self.p0) >> shift;
+        }
+    }
+
+    fn cost(&self, bit: bool) -> f64 {
+        let p0 = f64::from(self.p0) / f64::from(COUNTED_ONE);
+        -(if bit { 1.0 - p0 } else { p0 }).log2()
+    }
+}
+
+/// Codes a value of `bits` bits, most significant first, each bit in the context of the bits
+/// above it (a binary tree of contexts), so any distribution over `0..2^bits` is learnt.
+#[derive(Clone, Debug)]
+pub struct BitTree<M = Bit> {
+    bits: u32,
+    probs: Vec<M>,
+}
+
+impl<M: Model + Default> BitTree<M> {
     /// A tree for values in `0..2^bits`.
     pub fn new(bits: u32) -> Self {
         BitTree {
             bits,
-            probs: vec![Bit::default(); 1 << bits],
+            probs: vec![M::default(); 1 << bits],
         }
     }
 
@@ -114,16 +198,15 @@ impl Encoder {
     }
 
     /// Codes one bit with an adaptive probability.
-    pub fn bit(&mut self, p: &mut Bit, bit: bool) {
-        let bound = (self.range >> PROB_BITS) * p.0 as u32;
+    pub fn bit<M: Model>(&mut self, p: &mut M, bit: bool) {
+        let bound = p.bound(self.range);
         if !bit {
             self.range = bound;
-            p.0 += (PROB_ONE - p.0) >> ADAPT_SHIFT;
         } else {
             self.low += bound as u64;
             self.range -= bound;
-            p.0 -= p.0 >> ADAPT_SHIFT;
         }
+        p.update(bit);
         while self.range < TOP {
             self.range <<= 8;
             self.shift_low();
@@ -131,7 +214,7 @@ impl Encoder {
     }
 
     /// Codes `value` (< 2^bits) through a bit tree.
-    pub fn tree(&mut self, tree: &mut BitTree, value: u32) {
+    pub fn tree<M: Model>(&mut self, tree: &mut BitTree<M>, value: u32) {
         debug_assert!(value < (1 << tree.bits));
         let mut node = 1usize;
         for i in (0..tree.bits).rev() {
@@ -199,18 +282,17 @@ impl<'a> Decoder<'a> {
     }
 
     /// Decodes one bit.
-    pub fn bit(&mut self, p: &mut Bit) -> bool {
-        let bound = (self.range >> PROB_BITS) * p.0 as u32;
+    pub fn bit<M: Model>(&mut self, p: &mut M) -> bool {
+        let bound = p.bound(self.range);
         let bit = if self.code < bound {
             self.range = bound;
-            p.0 += (PROB_ONE - p.0) >> ADAPT_SHIFT;
             false
         } else {
             self.code -= bound;
             self.range -= bound;
-            p.0 -= p.0 >> ADAPT_SHIFT;
             true
         };
+        p.update(bit);
         while self.range < TOP {
             self.range <<= 8;
             self.code = (self.code << 8) | self.byte() as u32;
@@ -219,7 +301,7 @@ impl<'a> Decoder<'a> {
     }
 
     /// Decodes a value through a bit tree.
-    pub fn tree(&mut self, tree: &mut BitTree) -> u32 {
+    pub fn tree<M: Model>(&mut self, tree: &mut BitTree<M>) -> u32 {
         let mut node = 1usize;
         for _ in 0..tree.bits {
             let b = self.bit(&mut tree.probs[node]);
@@ -245,7 +327,7 @@ pub enum Dir<'a, 'b> {
 
 impl Dir<'_, '_> {
     /// Codes one bit.
-    pub fn bit(&mut self, p: &mut Bit, v: bool) -> bool {
+    pub fn bit<M: Model>(&mut self, p: &mut M, v: bool) -> bool {
         match self {
             Dir::Enc(e) => {
                 e.bit(p, v);
@@ -256,7 +338,7 @@ impl Dir<'_, '_> {
     }
 
     /// Codes a value through a bit tree.
-    pub fn tree(&mut self, t: &mut BitTree, v: u32) -> u32 {
+    pub fn tree<M: Model>(&mut self, t: &mut BitTree<M>, v: u32) -> u32 {
         match self {
             Dir::Enc(e) => {
                 e.tree(t, v);
@@ -305,18 +387,25 @@ mod tests {
     proptest! {
         #[test]
         fn bits_and_trees_round_trip(values in proptest::collection::vec((0u32..1000, any::<bool>()), 0..2000)) {
+            // Both kinds of context, interleaved on one stream.
             let mut enc = Encoder::new();
-            let (mut t, mut b) = (BitTree::new(10), Bit::default());
+            let (mut t, mut b) = (BitTree::<Bit>::new(10), Bit::default());
+            let (mut ct, mut cb) = (BitTree::<CountedBit>::new(10), CountedBit::default());
             for &(v, bit) in &values {
                 enc.tree(&mut t, v);
                 enc.bit(&mut b, bit);
+                enc.tree(&mut ct, v);
+                enc.bit(&mut cb, bit);
             }
             let bytes = enc.finish();
             let mut dec = Decoder::new(&bytes);
-            let (mut t, mut b) = (BitTree::new(10), Bit::default());
+            let (mut t, mut b) = (BitTree::<Bit>::new(10), Bit::default());
+            let (mut ct, mut cb) = (BitTree::<CountedBit>::new(10), CountedBit::default());
             for &(v, bit) in &values {
                 prop_assert_eq!(dec.tree(&mut t), v);
                 prop_assert_eq!(dec.bit(&mut b), bit);
+                prop_assert_eq!(dec.tree(&mut ct), v);
+                prop_assert_eq!(dec.bit(&mut cb), bit);
             }
             prop_assert!(!dec.overrun());
         }
@@ -334,5 +423,42 @@ mod tests {
         }
         let n = enc.finish().len();
         assert!(n < 450, "{n} bytes for a 0.286-bit/bit source");
+    }
+
+    /// Codes `contexts` fresh contexts of `per` skewed bits each; returns the stream's bytes.
+    fn young_contexts<M: Model + Default>(contexts: usize, per: usize) -> usize {
+        let mut enc = Encoder::new();
+        let mut state = 777u32;
+        for _ in 0..contexts {
+            let mut p = M::default();
+            for _ in 0..per {
+                state = state.wrapping_mul(1_103_515_245).wrapping_add(12345);
+                enc.bit(&mut p, (state >> 16).is_multiple_of(20));
+            }
+        }
+        enc.finish().len()
+    }
+
+    #[test]
+    fn counted_contexts_learn_faster_and_end_as_good() {
+        // 100 contexts of 30 bits, P(1) = 1/20 (what a curve's rarely used contexts see): a
+        // fixed 1/32 step is still paying for its start; the counted one has learnt.
+        let (fixed, counted) = (
+            young_contexts::<Bit>(100, 30),
+            young_contexts::<CountedBit>(100, 30),
+        );
+        assert!(
+            (counted as f64) < 0.8 * fixed as f64,
+            "counted {counted} B, fixed {fixed} B"
+        );
+        // One long-lived context: both near the entropy (358 bytes for 10,000 bits).
+        let (fixed, counted) = (
+            young_contexts::<Bit>(1, 10_000),
+            young_contexts::<CountedBit>(1, 10_000),
+        );
+        assert!(
+            counted < 450 && fixed < 450,
+            "counted {counted} B, fixed {fixed} B"
+        );
     }
 }

@@ -2,9 +2,11 @@
 //!
 //! Closed loop: each new point is predicted from the *decoded* coarse points and the decoded
 //! parent details, exactly as the decoder will, and only the difference to the source point is
-//! quantised, so nothing accumulates. Above the finest level the quantiser is a square lattice
-//! of step `√2·tol` in the metric's local frame (longitude steps widened by 1/cos(latitude) on
-//! the sphere): every such point is within `tol` of its source vertex.
+//! quantised, so nothing accumulates. The coder's prediction adds to the model's (`T`, `U`)
+//! the four-point cubic across pieces (the model itself is unchanged: a detail is still the
+//! decoded point less `T`'s prediction). Above the finest level the quantiser is the square
+//! lattice of step `√2·tol` (covering radius `tol`) in the metric's local frame (longitude steps widened by
+//! 1/cos(latitude) on the sphere): every such point is within `tol` of its source vertex.
 //!
 //! The finest level (half the points) is held to what the tolerance promises, the Hausdorff
 //! distance, not to vertex error: its lattice is turned to the chord between the point's
@@ -18,18 +20,19 @@
 //!
 //! Tolerance 0 codes every residual as its exact `f64` (lossless).
 //!
-//! Symbols go through the adaptive binary range coder of [`crate::entropy`], with contexts by
-//! level counted from the finest.
+//! Symbols go through the adaptive binary range coder of [`crate::entropy`], with
+//! fast-learning contexts ([`crate::entropy::CountedBit`]) by level counted from the finest.
 
 use super::{CurveSet, Metric, Prepared, Pt, Ring, Scheme, point_segment_scaled, span_deviation};
-use crate::entropy::{Bit, BitTree, Decoder, Dir, Encoder};
+use crate::entropy::{BitTree, CountedBit as Bit, Decoder, Dir, Encoder, Model};
 use serde::{Deserialize, Serialize};
 
-/// What the stream needs to be read: the scheme and the shape of every ring.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+/// What the stream needs to be read: the scheme and the shape of every ring. Stored in the
+/// compact form of [`compact`] (41 bytes for one ring of 8 levels, against 75 as plain
+/// fixed-width fields: 1.3% of a 2,500-point coastline).
+#[derive(Clone, Debug, PartialEq)]
 pub struct CurveHeader {
     /// The scheme (subdivision and detail matrices); the default one is stored as one byte.
-    #[serde(with = "compact_scheme")]
     pub scheme: Scheme,
     /// How the tolerance is measured.
     pub metric: Metric,
@@ -38,58 +41,220 @@ pub struct CurveHeader {
     /// The rings, in input order.
     pub rings: Vec<RingHeader>,
     /// Bounds on the Hausdorff distance to the source per asset level (see [`CurveSet`]),
-    /// stored as `f32` rounded up (still bounds; half the bytes).
-    #[serde(with = "bounds_f32")]
+    /// as stored (rounded up by [`compact::bound_up`]: still bounds).
     pub level_bounds: Vec<f64>,
 }
 
-/// A small asset's header is a tenth of its size: the default scheme (14 `f64`) is stored as
-/// `None`.
-mod compact_scheme {
-    use super::Scheme;
-    use serde::{Deserialize, Deserializer, Serialize, Serializer};
-
-    pub fn serialize<S: Serializer>(scheme: &Scheme, s: S) -> Result<S::Ok, S::Error> {
-        (*scheme != Scheme::default())
-            .then_some(scheme)
-            .serialize(s)
-    }
-
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Scheme, D::Error> {
-        Ok(Option::<Scheme>::deserialize(d)?.unwrap_or_default())
+impl Serialize for CurveHeader {
+    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
+        s.serialize_bytes(&compact::write(self))
     }
 }
 
-mod bounds_f32 {
-    use serde::{Deserialize, Deserializer, Serialize, Serializer};
+impl<'de> Deserialize<'de> for CurveHeader {
+    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
+        let bytes = Vec::<u8>::deserialize(d)?;
+        compact::read(&bytes).map_err(serde::de::Error::custom)
+    }
+}
 
-    /// The smallest `f32` at or above `b`, as `f64` (what the file will hold).
-    pub fn up(b: f64) -> f64 {
-        let f = b as f32;
-        f64::from(if f64::from(f) < b { f.next_up() } else { f })
+/// The header's bytes. Hand-written rather than bincode's variable-length integers, which
+/// would change every codec's format (they share `fractile_proto`'s fixed-width config):
+/// LEB128 counts, one byte for the scheme when it is the default, and each level bound as a
+/// 16-bit code `k` of `tolerance · 2^(k/256)` (0.27% steps, rounded up; `u16::MAX`: no bound),
+/// or as `f32` rounded up when the tolerance is 0.
+pub mod compact {
+    use super::{CurveHeader, Metric, RingHeader, Scheme};
+
+    fn varint(out: &mut Vec<u8>, mut v: u64) {
+        loop {
+            let byte = (v & 0x7f) as u8;
+            v >>= 7;
+            if v == 0 {
+                out.push(byte);
+                return;
+            }
+            out.push(byte | 0x80);
+        }
     }
 
-    pub fn serialize<S: Serializer>(bounds: &[f64], s: S) -> Result<S::Ok, S::Error> {
-        let up: Vec<f32> = bounds.iter().map(|&b| up(b) as f32).collect();
-        up.serialize(s)
+    /// The smallest stored bound at or above `b` for tolerance `tol`.
+    pub fn bound_up(tol: f64, b: f64) -> f64 {
+        decode_bound(tol, encode_bound(tol, b))
     }
 
-    pub fn deserialize<'de, D: Deserializer<'de>>(d: D) -> Result<Vec<f64>, D::Error> {
-        Ok(Vec::<f32>::deserialize(d)?
-            .into_iter()
-            .map(f64::from)
-            .collect())
+    fn encode_bound(tol: f64, b: f64) -> u32 {
+        if tol == 0.0 {
+            let f = b as f32;
+            let f = if f64::from(f) < b { f.next_up() } else { f };
+            return f.to_bits();
+        }
+        if b.is_nan() || b <= tol {
+            return 0; // bounds are never under the tolerance
+        }
+        let mut k = ((b / tol).log2() * 256.0).ceil().max(0.0);
+        if k >= f64::from(u16::MAX) {
+            return u32::from(u16::MAX);
+        }
+        while decode_bound(tol, k as u32) < b {
+            k += 1.0;
+        }
+        (k as u32).min(u32::from(u16::MAX))
+    }
+
+    fn decode_bound(tol: f64, k: u32) -> f64 {
+        if tol == 0.0 {
+            return f64::from(f32::from_bits(k));
+        }
+        if k >= u32::from(u16::MAX) {
+            return f64::INFINITY;
+        }
+        tol * (f64::from(k) / 256.0).exp2()
+    }
+
+    /// The header's bytes.
+    pub fn write(h: &CurveHeader) -> Vec<u8> {
+        let mut out = Vec::with_capacity(32 + 4 * h.rings.len() + 2 * h.level_bounds.len());
+        if h.scheme == Scheme::default() {
+            out.push(0);
+        } else {
+            out.push(1);
+            for w in h.scheme.t.iter().flatten() {
+                out.extend_from_slice(&w.to_le_bytes());
+            }
+            for w in h.scheme.u.iter().flatten().flatten() {
+                out.extend_from_slice(&w.to_le_bytes());
+            }
+        }
+        out.push(match h.metric {
+            Metric::Plane => 0,
+            Metric::Sphere => 1,
+        });
+        out.extend_from_slice(&h.tolerance.to_le_bytes());
+        varint(&mut out, h.rings.len() as u64);
+        for r in &h.rings {
+            out.push((r.levels << 1) | u8::from(r.closed));
+            varint(&mut out, u64::from(r.pieces));
+            varint(&mut out, u64::from(r.inserted));
+        }
+        varint(&mut out, h.level_bounds.len() as u64);
+        for &b in &h.level_bounds {
+            let k = encode_bound(h.tolerance, b);
+            if h.tolerance == 0.0 {
+                out.extend_from_slice(&k.to_le_bytes());
+            } else {
+                out.extend_from_slice(&(k as u16).to_le_bytes());
+            }
+        }
+        out
+    }
+
+    struct Reader<'a>(&'a [u8]);
+
+    impl Reader<'_> {
+        fn bytes<const N: usize>(&mut self) -> Result<[u8; N], String> {
+            if self.0.len() < N {
+                return Err("the curve header is truncated".into());
+            }
+            let (head, rest) = self.0.split_at(N);
+            self.0 = rest;
+            Ok(head.try_into().expect("N bytes"))
+        }
+
+        fn f64(&mut self) -> Result<f64, String> {
+            Ok(f64::from_le_bytes(self.bytes()?))
+        }
+
+        fn varint(&mut self) -> Result<u64, String> {
+            let mut v = 0u64;
+            for shift in (0..64).step_by(7) {
+                let [byte] = self.bytes()?;
+                v |= u64::from(byte & 0x7f) << shift;
+                if byte & 0x80 == 0 {
+                    return Ok(v);
+                }
+            }
+            Err("a count in the curve header is too long".into())
+        }
+
+        /// A count that cannot exceed the bytes left (each entry takes at least one).
+        fn count(&mut self) -> Result<usize, String> {
+            let n = self.varint()?;
+            if n > self.0.len() as u64 {
+                return Err(format!("the curve header claims {n} entries"));
+            }
+            Ok(n as usize)
+        }
+    }
+
+    /// Reads a header (refusing truncated or trailing bytes; [`CurveHeader::validate`] checks
+    /// the rest).
+    pub fn read(bytes: &[u8]) -> Result<CurveHeader, String> {
+        let mut r = Reader(bytes);
+        let scheme = match r.bytes::<1>()? {
+            [0] => Scheme::default(),
+            [1] => {
+                let mut s = Scheme::default();
+                for w in s.t.iter_mut().flatten() {
+                    *w = r.f64()?;
+                }
+                for w in s.u.iter_mut().flatten().flatten() {
+                    *w = r.f64()?;
+                }
+                s
+            }
+            [b] => return Err(format!("unknown scheme tag {b}")),
+        };
+        let metric = match r.bytes::<1>()? {
+            [0] => Metric::Plane,
+            [1] => Metric::Sphere,
+            [b] => return Err(format!("unknown metric {b}")),
+        };
+        let tolerance = r.f64()?;
+        let n = r.count()?;
+        let mut rings = Vec::with_capacity(n);
+        for _ in 0..n {
+            let [flags] = r.bytes()?;
+            let pieces = u32::try_from(r.varint()?).map_err(|_| "too many pieces")?;
+            let inserted = u32::try_from(r.varint()?).map_err(|_| "too many inserted points")?;
+            rings.push(RingHeader {
+                closed: flags & 1 == 1,
+                pieces,
+                levels: flags >> 1,
+                inserted,
+            });
+        }
+        let n = r.count()?;
+        let mut level_bounds = Vec::with_capacity(n);
+        for _ in 0..n {
+            let k = if tolerance == 0.0 {
+                u32::from_le_bytes(r.bytes()?)
+            } else {
+                u32::from(u16::from_le_bytes(r.bytes()?))
+            };
+            level_bounds.push(decode_bound(tolerance, k));
+        }
+        if !r.0.is_empty() {
+            return Err("trailing bytes after the curve header".into());
+        }
+        Ok(CurveHeader {
+            scheme,
+            metric,
+            tolerance,
+            rings,
+            level_bounds,
+        })
     }
 }
 
 /// The shape of one ring.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[derive(Clone, Debug, PartialEq)]
 pub struct RingHeader {
     /// Closed ring or open polyline.
     pub closed: bool,
     /// Base pieces `K`.
     pub pieces: u32,
-    /// Detail levels `L`.
+    /// Detail levels `L` (at most 127: stored in 7 bits).
     pub levels: u8,
     /// Points inserted on input segments.
     pub inserted: u32,
@@ -138,7 +303,7 @@ impl CurveHeader {
 struct IntModel {
     zero: Bit,
     sign: Bit,
-    class: BitTree,
+    class: BitTree<Bit>,
     mantissa: Vec<[Bit; 2]>,
     low: Bit,
 }
@@ -200,7 +365,7 @@ impl IntModel {
 /// Contexts by level counted from the finest (the last one shared by all coarser levels).
 /// Contexts by the activity of neighbouring points and by the other axis's class were tried
 /// and cost 1-4% on the coastlines (too few symbols per context to learn them).
-const LEVEL_CLASSES: usize = 6;
+const LEVEL_CLASSES: usize = 3;
 
 /// All adaptive contexts of one stream.
 struct Models {
@@ -234,23 +399,77 @@ impl Models {
     }
 }
 
-/// The quantiser: residual → symbols → reconstructed offset, in the metric's local frame.
+/// The quantisation lattice of covering radius `tol`, in rows: today the square lattice of step
+/// `√2·tol` (`stagger` 0). The hexagonal lattice (rows `1.5·tol` apart, points `√3·tol` apart,
+/// odd rows staggered by half a point: 2.60·tol² a point against 2·tol²) coded the coastlines
+/// 2.3% smaller, but at a 500 m tolerance one place of the 40 rings ended 526 m from the source,
+/// not yet understood, so it is kept out; the rows, columns and stagger stay general for it.
+/// Symbols are (row, column); the point is at `((column + shift(row))·col, row·row)`.
+#[derive(Clone, Copy)]
+struct Hex {
+    row: f64,
+    col: f64,
+    stagger: f64,
+}
+
+impl Hex {
+    fn new(tolerance: f64) -> Self {
+        Hex {
+            row: std::f64::consts::SQRT_2 * tolerance,
+            col: std::f64::consts::SQRT_2 * tolerance,
+            stagger: 0.0,
+        }
+    }
+
+    /// Half a point on odd rows (`b & 1` is 1 for negative odd rows too).
+    fn shift(&self, b: i64) -> f64 {
+        if b & 1 == 1 { self.stagger } else { 0.0 }
+    }
+
+    /// The offset along the row of column `a` on row `b`.
+    fn along(&self, b: i64, a: i64) -> f64 {
+        (a as f64 + self.shift(b)) * self.col
+    }
+
+    /// The symbols of the lattice point nearest `(u, v)` (`v` across the rows), where
+    /// `u_of_row(b)` gives `u` in the row's own frame (on the sphere a row's longitude scale is
+    /// its latitude's): the nearest of the three rows around `v`.
+    fn nearest(&self, v: f64, u_of_row: impl Fn(i64) -> f64) -> (i64, i64) {
+        let b0 = (v / self.row).round() as i64;
+        let mut best = (f64::INFINITY, b0, 0);
+        for b in [b0, b0 - 1, b0 + 1] {
+            let u = u_of_row(b);
+            let a = (u / self.col - self.shift(b)).round() as i64;
+            let (du, dv) = (u - self.along(b, a), v - b as f64 * self.row);
+            let d = du * du + dv * dv;
+            if d < best.0 {
+                best = (d, b, a);
+            }
+        }
+        (best.1, best.2)
+    }
+}
+
+/// The quantiser: residual → symbols → reconstructed offset, on the lattice of
+/// covering radius `tol` in the metric's local frame (rows along latitude).
 #[derive(Clone, Copy)]
 struct Quantiser {
     metric: Metric,
-    step: f64,
+    tolerance: f64,
+    hex: Hex,
 }
 
 impl Quantiser {
     fn new(metric: Metric, tolerance: f64) -> Self {
         Quantiser {
             metric,
-            step: tolerance * std::f64::consts::SQRT_2,
+            tolerance,
+            hex: Hex::new(tolerance),
         }
     }
 
     fn lossless(&self) -> bool {
-        self.step == 0.0
+        self.tolerance == 0.0
     }
 
     /// Codes the offset from `pred` to `target` (ignored when decoding); returns the decoded
@@ -265,25 +484,18 @@ impl Quantiser {
         self.code(dir, m, ctx, pred, qb, qa)
     }
 
-    /// The lattice point nearest `target`: y first, then x, whose step depends on the decoded
+    /// The lattice point nearest `target`. A row's longitude step is set by the row's
     /// latitude, which is within the tolerance of the source's (a step from the prediction's
     /// latitude would be wrong by the cosine ratio when the prediction is far, as a ring's
     /// first base point is).
     fn nearest(&self, pred: Pt, target: Pt) -> (i64, i64) {
-        let qb = ((target[1] - pred[1]) / self.step).round() as i64;
-        (qb, self.x_symbol(pred, qb, target[0]))
+        self.hex.nearest(target[1] - pred[1], |b| {
+            (target[0] - pred[0]) * self.metric.x_scale(self.y(pred, b))
+        })
     }
 
     fn y(&self, pred: Pt, qb: i64) -> f64 {
-        pred[1] + qb as f64 * self.step
-    }
-
-    fn x_step(&self, y: f64) -> f64 {
-        self.step / self.metric.x_scale(y)
-    }
-
-    fn x_symbol(&self, pred: Pt, qb: i64, x: f64) -> i64 {
-        ((x - pred[0]) / self.x_step(self.y(pred, qb))).round() as i64
+        pred[1] + qb as f64 * self.hex.row
     }
 
     /// Codes the symbols `(qb, qa)` (ignored when decoding); returns the decoded point.
@@ -305,7 +517,7 @@ impl Quantiser {
             Some(c) => m.detail_x[c].code(dir, qa),
             None => m.base[0].code(dir, qa),
         };
-        [pred[0] + a as f64 * self.x_step(y), y]
+        [pred[0] + self.hex.along(b, a) / self.metric.x_scale(y), y]
     }
 
     /// The cheapest symbols (at the models' current rates) that `admissible` accepts, among
@@ -346,15 +558,16 @@ impl Quantiser {
     }
 }
 
-/// The finest level's lattice: the square lattice of the quantiser turned to the chord between
+/// The finest level's lattice: the lattice of the quantiser turned to the chord between
 /// a point's decoded neighbours, in the metric's plane at the prediction. Along a coast the
-/// cheapest admissible point is then mostly on the normal through the prediction (tangent
-/// symbol zero): one coordinate to pay for instead of two.
+/// cheapest admissible point is then mostly near the normal through the prediction (rows run
+/// along the chord, so a band of the coast's width always holds a whole row): one coordinate
+/// to pay for instead of two.
 struct Chord {
     pred: Pt,
     sx: f64,
     tangent: Pt,
-    step: f64,
+    hex: Hex,
 }
 
 impl Chord {
@@ -371,31 +584,28 @@ impl Chord {
             pred,
             sx,
             tangent,
-            step: q.step,
+            hex: q.hex,
         }
     }
 
     /// The point of normal symbol `qn` and tangent symbol `qt`.
     fn at(&self, qn: i64, qt: i64) -> Pt {
         let [tx, ty] = self.tangent;
-        let (n, t) = (qn as f64 * self.step, qt as f64 * self.step);
+        let (n, t) = (qn as f64 * self.hex.row, self.hex.along(qn, qt));
         [
             self.pred[0] + (t * tx - n * ty) / self.sx,
             self.pred[1] + t * ty + n * tx,
         ]
     }
 
-    /// The symbols of the lattice point nearest `target`.
+    /// The symbols of the lattice point nearest `target` in the lattice's plane.
     fn nearest(&self, target: Pt) -> (i64, i64) {
         let [tx, ty] = self.tangent;
         let (rx, ry) = (
             (target[0] - self.pred[0]) * self.sx,
             target[1] - self.pred[1],
         );
-        (
-            ((ry * tx - rx * ty) / self.step).round() as i64,
-            ((rx * tx + ry * ty) / self.step).round() as i64,
-        )
+        self.hex.nearest(ry * tx - rx * ty, |_| rx * tx + ry * ty)
     }
 }
 
@@ -461,6 +671,21 @@ fn window(fine: &[Pt], closed: bool, lo: isize, hi: isize) -> Vec<Pt> {
         .collect()
 }
 
+/// What the four-point cubic adds to the quadratic prediction of map `i`'s new point from the
+/// piece `(a, c, b)` and `outer`, the neighbouring piece's point before `a` (`i` = 0) or
+/// after `b` (`i` = 1). The cubic (weights -1/16, 9/16, 9/16, -1/16, Dyn-Levin-Gregory)
+/// codes the coastlines 2.3-3% smaller than the quadratic alone; a weight of 1.3 on the
+/// correction did no better.
+fn four_point_correction(i: usize, outer: Pt, a: Pt, c: Pt, b: Pt) -> Pt {
+    let quadratic = Scheme::default().predict(i, a, c, b);
+    let (p0, p1, p2, p3) = if i == 0 {
+        (outer, a, c, b)
+    } else {
+        (a, c, b, outer)
+    };
+    std::array::from_fn(|k| (9.0 * (p1[k] + p2[k]) - p0[k] - p3[k]) / 16.0 - quadratic[k])
+}
+
 /// Walks every ring in a fixed order, coding (encoder, with `sources`) or decoding.
 fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<Ring>, String> {
     let q = Quantiser::new(header.metric, header.tolerance);
@@ -515,7 +740,19 @@ fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<
                 let mut new = [[0.0; 2]; 2];
                 for i in 0..2 {
                     let t = scheme.predict(i, a, c, b);
-                    let pred = [t[0] + inherited[i][0], t[1] + inherited[i][1]];
+                    // The coder predicts across pieces (the model's T sees only its own):
+                    // the four-point cubic through the piece's points and the nearest point
+                    // of the neighbouring piece, where there is one.
+                    let outer = if i == 0 {
+                        (closed || p > 0).then(|| cur[(2 * p + cur.len() - 1) % cur.len()])
+                    } else {
+                        (closed || 2 * p + 3 < cur.len()).then(|| cur[(2 * p + 3) % cur.len()])
+                    };
+                    let cross = outer.map_or([0.0; 2], |o| four_point_correction(i, o, a, c, b));
+                    let pred = [
+                        t[0] + inherited[i][0] + cross[0],
+                        t[1] + inherited[i][1] + cross[1],
+                    ];
                     let at = 4 * p + 1 + 2 * i;
                     let target = source(l + 1, at);
                     let (prev, next) = if i == 0 { (a, c) } else { (c, b) };
@@ -654,7 +891,7 @@ pub fn encode(
         .collect();
     header.level_bounds = level_bounds(scheme, metric, tolerance, &rings, sources, &finest)
         .into_iter()
-        .map(bounds_f32::up)
+        .map(|b| compact::bound_up(tolerance, b))
         .collect();
     let set = CurveSet {
         scheme: scheme.clone(),
@@ -842,6 +1079,78 @@ mod tests {
 
     proptest! {
         #[test]
+        fn the_coarse_lattice_point_nearest_a_target_is_within_the_tolerance(
+            pred in (-170.0..170.0f64, -80.0..80.0f64),
+            off in (-0.5..0.5f64, -0.5..0.5f64),
+            tol in 0.001..0.05f64,
+        ) {
+            for metric in [Metric::Plane, Metric::Sphere] {
+                let q = Quantiser::new(metric, tol);
+                let pred = [pred.0, pred.1];
+                let target = [pred[0] + off.0, pred[1] + off.1];
+                let (b, a) = q.nearest(pred, target);
+                let y = q.y(pred, b);
+                let x = pred[0] + q.hex.along(b, a) / metric.x_scale(y);
+                // In the row's plane (its latitude's longitude scale).
+                let (dx, dy) = ((x - target[0]) * metric.x_scale(y), y - target[1]);
+                prop_assert!((dx * dx + dy * dy).sqrt() <= tol * (1.0 + 1e-9));
+                // And no lattice point of the neighbouring rows and columns is nearer.
+                let d = (dx * dx + dy * dy).sqrt();
+                for (bb, aa) in [(b - 1, a), (b + 1, a), (b, a - 1), (b, a + 1), (b - 1, a - 1), (b + 1, a + 1)] {
+                    let yy = q.y(pred, bb);
+                    let xx = pred[0] + q.hex.along(bb, aa) / metric.x_scale(yy);
+                    let (ex, ey) = ((xx - target[0]) * metric.x_scale(yy), yy - target[1]);
+                    prop_assert!((ex * ex + ey * ey).sqrt() >= d - tol * 1e-3);
+                }
+            }
+        }
+
+        #[test]
+        fn headers_round_trip_with_bounds_rounded_up(
+            custom in any::<bool>(),
+            sphere in any::<bool>(),
+            tol in prop_oneof![Just(0.0), 1e-6..1.0f64],
+            rings in proptest::collection::vec((any::<bool>(), 1u32..100_000, 0u8..=24, 0u32..1000), 1..6),
+            factors in proptest::collection::vec(1.0..1e6f64, 0..30),
+        ) {
+            let mut scheme = Scheme::default();
+            if custom {
+                scheme.t[0] = [0.3, 0.8, -0.1];
+                scheme.u[1][0] = [0.25, -0.5];
+            }
+            let level_bounds: Vec<f64> = factors.iter().map(|f| if tol > 0.0 { tol * f } else { f * 1e-3 }).collect();
+            let h = CurveHeader {
+                scheme,
+                metric: if sphere { Metric::Sphere } else { Metric::Plane },
+                tolerance: tol,
+                rings: rings
+                    .iter()
+                    .map(|&(closed, pieces, levels, inserted)| RingHeader { closed, pieces, levels, inserted })
+                    .collect(),
+                level_bounds: level_bounds.clone(),
+            };
+            let bytes = compact::write(&h);
+            let back = compact::read(&bytes).unwrap();
+            prop_assert_eq!(&back.scheme, &h.scheme);
+            prop_assert_eq!(back.metric, h.metric);
+            prop_assert_eq!(back.tolerance.to_bits(), h.tolerance.to_bits());
+            prop_assert_eq!(&back.rings, &h.rings);
+            prop_assert_eq!(back.level_bounds.len(), level_bounds.len());
+            for (stored, b) in back.level_bounds.iter().zip(&level_bounds) {
+                // Still a bound, and at most one 2^(1/256) step (or one f32 ulp) looser.
+                prop_assert!(*stored >= *b && *stored <= b * 1.003, "{} {}", stored, b);
+            }
+            // Stored bounds are a fixed point: writing them again changes nothing.
+            prop_assert_eq!(compact::write(&back), bytes.clone());
+            for cut in 0..bytes.len() {
+                prop_assert!(compact::read(&bytes[..cut]).is_err());
+            }
+            let mut longer = bytes.clone();
+            longer.push(0);
+            prop_assert!(compact::read(&longer).is_err());
+        }
+
+        #[test]
         fn the_chord_lattice_point_nearest_a_target_is_within_the_tolerance(
             pred in (-170.0..170.0f64, -80.0..80.0f64),
             prev in (-1.0..1.0f64, -1.0..1.0f64),
@@ -860,7 +1169,7 @@ mod tests {
             let target = [pred[0] + off.0, pred[1] + off.1];
             let (qn, qt) = chord.nearest(target);
             let p = chord.at(qn, qt);
-            // In the lattice's plane (the prediction's): half a diagonal of the √2·tol square.
+            // In the lattice's plane (the prediction's): the lattice's covering radius.
             let (dx, dy) = ((p[0] - target[0]) * chord.sx, p[1] - target[1]);
             prop_assert!((dx * dx + dy * dy).sqrt() <= tol * (1.0 + 1e-9));
         }
