@@ -27,9 +27,9 @@ fn source() -> (String, Vec<Polyline>) {
     panic!("no curve data found");
 }
 
-/// Bytes of the coded payload as an asset stores it (header + stream, bincode).
+/// Bytes of the coded payload as an asset stores it (compact header, then the stream).
 fn coded_bytes(c: &curve::Curves) -> usize {
-    fractile_proto::encode(&c.header).len() + c.stream.len()
+    c.payload().len()
 }
 
 fn main() {

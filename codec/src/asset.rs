@@ -5,7 +5,7 @@
 //! | offset | size | field |
 //! |---|---|---|
 //! | 0 | 8 | magic `FRACTILE` |
-//! | 8 | 2 | format version (2; 1 is still read but for curves) |
+//! | 8 | 2 | format version (3; 1 and 2 are still read but for curves) |
 //! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
 //! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine, 4 octree PIFS of a volume, 5 projected IFS of curves) |
 //! | 12 | 4 | metadata length M |
@@ -33,13 +33,16 @@ use crate::stream::{self, PlaneHeader};
 
 /// File magic.
 pub const MAGIC: &[u8; 8] = b"FRACTILE";
-/// The format version this build writes. Version 2 changed only the curve payload (codec 5:
-/// compact header, four-point prediction, fast-learning contexts); the
-/// other payloads are the same in both, so version-1 files of codecs 1-4 are still read and a
-/// version-1 curve asset is refused by name (re-encode its GeoJSON).
-pub const FORMAT_VERSION: u16 = 2;
+/// The format version this build writes. Versions 2 and 3 changed only the curve payload
+/// (codec 5; version 3: hexagonal lattice for details, shared coarse contexts, an `f32`
+/// tolerance and one stored bound, no length fields); the other payloads are the same in all
+/// three, so version-1 and -2 files of codecs 1-4 are still read and an older curve asset is
+/// refused by name (re-encode its GeoJSON).
+pub const FORMAT_VERSION: u16 = 3;
 /// The oldest format version this build reads (codecs 1-4 only).
 pub const OLDEST_READ_VERSION: u16 = 1;
+/// The oldest format version of curve assets this build reads.
+pub const OLDEST_CURVE_VERSION: u16 = 3;
 
 /// Codec identifiers of the payload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -411,12 +414,6 @@ struct VolumePayload {
 }
 
 #[derive(Serialize, Deserialize)]
-struct CurvePayload {
-    header: crate::curve::code::CurveHeader,
-    stream: Vec<u8>,
-}
-
-#[derive(Serialize, Deserialize)]
 struct FisPayload {
     planes: Vec<(FisHeader, Vec<u8>)>,
     mask: Option<Vec<u8>>,
@@ -703,13 +700,11 @@ impl Asset {
                     placement: v.placement.clone(),
                 })
             }
-            Codec::Curve => {
-                let c = self.curve.as_ref().expect("a curve asset holds curves");
-                fractile_proto::encode(&CurvePayload {
-                    header: c.header.clone(),
-                    stream: c.stream.clone(),
-                })
-            }
+            Codec::Curve => self
+                .curve
+                .as_ref()
+                .expect("a curve asset holds curves")
+                .payload(),
             Codec::Psa => fractile_proto::encode(&PsaPayload {
                 planes: self
                     .planes
@@ -761,9 +756,9 @@ impl Asset {
                 "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d, 4 IFS3D, 5 curves)"
             )));
         }
-        if codec == Codec::Curve as u8 && version < 2 {
+        if codec == Codec::Curve as u8 && version < OLDEST_CURVE_VERSION {
             return Err(bad(format!(
-                "a curve asset of format version {version} is not read by this build (its curve coding changed in version 2): encode the source again"
+                "a curve asset of format version {version} is not read by this build (its curve coding changed in version {OLDEST_CURVE_VERSION}): encode the source again"
             )));
         }
         let read_len = |at: usize| -> Result<usize, Error> {
@@ -803,9 +798,10 @@ impl Asset {
         };
         let payload = &bytes[p_start..body];
         if codec == Codec::Curve as u8 {
-            let p: CurvePayload =
-                fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
-            return Asset::from_curve_parts(meta, p.header, p.stream);
+            // The header delimits itself and the stream runs to the payload's end.
+            let (header, stream) = crate::curve::code::compact::read(payload)
+                .map_err(|e| bad(format!("curve: {e}")))?;
+            return Asset::from_curve_parts(meta, header, stream.to_vec());
         }
         if codec == Codec::Octree as u8 {
             let p: VolumePayload =

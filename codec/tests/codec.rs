@@ -354,17 +354,19 @@ fn unknown_versions_and_codecs_are_named_in_the_error() {
 }
 
 #[test]
-fn version_1_files_of_unchanged_codecs_are_still_read() {
-    // Version 2 changed only the curve payload; a quadtree asset written as version 1 reads
-    // back the same.
+fn older_files_of_unchanged_codecs_are_still_read() {
+    // Versions 2 and 3 changed only the curve payload; a quadtree asset written as version 1
+    // or 2 reads back the same.
     let asset = small_camera_asset();
-    let mut bytes = asset.to_bytes();
-    bytes[8] = 1;
-    let body = bytes.len() - 4;
-    let crc = crc32fast::hash(&bytes[..body]).to_le_bytes();
-    bytes[body..].copy_from_slice(&crc);
-    let read = Asset::from_bytes(&bytes).unwrap();
-    assert_eq!(read.to_bytes(), asset.to_bytes());
+    for version in [1u8, 2] {
+        let mut bytes = asset.to_bytes();
+        bytes[8] = version;
+        let body = bytes.len() - 4;
+        let crc = crc32fast::hash(&bytes[..body]).to_le_bytes();
+        bytes[body..].copy_from_slice(&crc);
+        let read = Asset::from_bytes(&bytes).unwrap();
+        assert_eq!(read.to_bytes(), asset.to_bytes());
+    }
 }
 
 #[test]

@@ -145,17 +145,23 @@ fn corrupt_truncated_and_unknown_files_are_refused() {
 }
 
 #[test]
-fn a_version_1_curve_asset_is_refused_by_name() {
-    // Format version 2 changed the curve coding: an older curve file must not decode to
-    // garbage, even with a valid checksum.
-    let mut bytes = encode(&coast()[..1], 0.01, false).to_bytes();
-    assert_eq!(u16::from_le_bytes([bytes[8], bytes[9]]), 2);
-    bytes[8] = 1;
-    let body = bytes.len() - 4;
-    let crc = crc32fast::hash(&bytes[..body]).to_le_bytes();
-    bytes[body..].copy_from_slice(&crc);
-    let err = Asset::from_bytes(&bytes).unwrap_err().to_string();
-    assert!(err.contains("curve asset of format version 1"), "{err}");
+fn older_curve_assets_are_refused_by_name() {
+    // Format versions 2 and 3 changed the curve coding: an older curve file must not decode
+    // to garbage, even with a valid checksum.
+    let current = encode(&coast()[..1], 0.01, false).to_bytes();
+    assert_eq!(u16::from_le_bytes([current[8], current[9]]), 3);
+    for version in [1u8, 2] {
+        let mut bytes = current.clone();
+        bytes[8] = version;
+        let body = bytes.len() - 4;
+        let crc = crc32fast::hash(&bytes[..body]).to_le_bytes();
+        bytes[body..].copy_from_slice(&crc);
+        let err = Asset::from_bytes(&bytes).unwrap_err().to_string();
+        assert!(
+            err.contains(&format!("curve asset of format version {version}")),
+            "{err}"
+        );
+    }
 }
 
 #[test]

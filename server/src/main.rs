@@ -974,7 +974,7 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
         let h = &c.header;
         info["curve"] = json!({"polylines": h.rings.len(), "finest_level": c.set.finest(),
             "tolerance": h.tolerance, "metric": format!("{:?}", h.metric),
-            "level_bounds": h.level_bounds, "subdivision": h.scheme.t, "details": h.scheme.u,
+            "level_bounds": c.set.level_bounds, "subdivision": h.scheme.t, "details": h.scheme.u,
             "ratio_f64": 2.0 * m.source_bytes() as f64 / bytes as f64});
     }
     if let Some(v) = &asset.volume {

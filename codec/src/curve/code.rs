@@ -25,44 +25,33 @@
 
 use super::{CurveSet, Metric, Prepared, Pt, Ring, Scheme, point_segment_scaled, span_deviation};
 use crate::entropy::{BitTree, CountedBit as Bit, Decoder, Dir, Encoder, Model};
-use serde::{Deserialize, Serialize};
 
 /// What the stream needs to be read: the scheme and the shape of every ring. Stored in the
-/// compact form of [`compact`] (41 bytes for one ring of 8 levels, against 75 as plain
-/// fixed-width fields: 1.3% of a 2,500-point coastline).
+/// compact form of [`compact`], right before the stream (12 bytes for one ring, against 75 as
+/// plain fixed-width fields with every level's bound, 2.4% of a 2,500-point coastline's bytes).
 #[derive(Clone, Debug, PartialEq)]
 pub struct CurveHeader {
     /// The scheme (subdivision and detail matrices); the default one is stored as one byte.
     pub scheme: Scheme,
     /// How the tolerance is measured.
     pub metric: Metric,
-    /// Largest error of a point (0: lossless).
+    /// Largest error of a point (0: lossless), an `f32` value (the encoder rounds the
+    /// requested tolerance down to one).
     pub tolerance: f64,
     /// The rings, in input order.
     pub rings: Vec<RingHeader>,
-    /// Bounds on the Hausdorff distance to the source per asset level (see [`CurveSet`]),
-    /// as stored (rounded up by [`compact::bound_up`]: still bounds).
-    pub level_bounds: Vec<f64>,
-}
-
-impl Serialize for CurveHeader {
-    fn serialize<S: serde::Serializer>(&self, s: S) -> Result<S::Ok, S::Error> {
-        s.serialize_bytes(&compact::write(self))
-    }
-}
-
-impl<'de> Deserialize<'de> for CurveHeader {
-    fn deserialize<D: serde::Deserializer<'de>>(d: D) -> Result<Self, D::Error> {
-        let bytes = Vec::<u8>::deserialize(d)?;
-        compact::read(&bytes).map_err(serde::de::Error::custom)
-    }
+    /// A bound on the Hausdorff distance between the finest level and the source, as stored
+    /// (rounded up by [`compact::bound_up`]: still a bound). The coarser levels' bounds follow
+    /// from it and the decoded rings ([`level_bounds`]), so they are not stored.
+    pub finest_bound: f64,
 }
 
 /// The header's bytes. Hand-written rather than bincode's variable-length integers, which
-/// would change every codec's format (they share `fractile_proto`'s fixed-width config):
-/// LEB128 counts, one byte for the scheme when it is the default, and each level bound as a
-/// 16-bit code `k` of `tolerance · 2^(k/256)` (0.27% steps, rounded up; `u16::MAX`: no bound),
-/// or as `f32` rounded up when the tolerance is 0.
+/// would change every codec's format (they share `fractile_proto`'s fixed-width config), and
+/// self-delimiting, so that the stream follows with no length field (the asset's payload length
+/// ends it): LEB128 counts, one byte for the scheme when it is the default, the tolerance as
+/// `f32`, and the finest level's bound as a 16-bit code `k` of `tolerance · 2^(k/256)` (0.27%
+/// steps, rounded up; `u16::MAX`: no bound), or as `f32` rounded up when the tolerance is 0.
 pub mod compact {
     use super::{CurveHeader, Metric, RingHeader, Scheme};
 
@@ -76,6 +65,12 @@ pub mod compact {
             }
             out.push(byte | 0x80);
         }
+    }
+
+    /// The largest `f32` value at or under `t` (a tolerance as stored: never looser than asked).
+    pub fn tolerance_down(t: f64) -> f64 {
+        let f = t as f32;
+        f64::from(if f64::from(f) > t { f.next_down() } else { f })
     }
 
     /// The smallest stored bound at or above `b` for tolerance `tol`.
@@ -112,9 +107,9 @@ pub mod compact {
         tol * (f64::from(k) / 256.0).exp2()
     }
 
-    /// The header's bytes.
+    /// The header's bytes (the tolerance must be an `f32` value, as [`tolerance_down`] makes it).
     pub fn write(h: &CurveHeader) -> Vec<u8> {
-        let mut out = Vec::with_capacity(32 + 4 * h.rings.len() + 2 * h.level_bounds.len());
+        let mut out = Vec::with_capacity(16 + 4 * h.rings.len());
         if h.scheme == Scheme::default() {
             out.push(0);
         } else {
@@ -130,21 +125,18 @@ pub mod compact {
             Metric::Plane => 0,
             Metric::Sphere => 1,
         });
-        out.extend_from_slice(&h.tolerance.to_le_bytes());
+        out.extend_from_slice(&(h.tolerance as f32).to_le_bytes());
         varint(&mut out, h.rings.len() as u64);
         for r in &h.rings {
             out.push((r.levels << 1) | u8::from(r.closed));
             varint(&mut out, u64::from(r.pieces));
             varint(&mut out, u64::from(r.inserted));
         }
-        varint(&mut out, h.level_bounds.len() as u64);
-        for &b in &h.level_bounds {
-            let k = encode_bound(h.tolerance, b);
-            if h.tolerance == 0.0 {
-                out.extend_from_slice(&k.to_le_bytes());
-            } else {
-                out.extend_from_slice(&(k as u16).to_le_bytes());
-            }
+        let k = encode_bound(h.tolerance, h.finest_bound);
+        if h.tolerance == 0.0 {
+            out.extend_from_slice(&k.to_le_bytes());
+        } else {
+            out.extend_from_slice(&(k as u16).to_le_bytes());
         }
         out
     }
@@ -187,9 +179,9 @@ pub mod compact {
         }
     }
 
-    /// Reads a header (refusing truncated or trailing bytes; [`CurveHeader::validate`] checks
-    /// the rest).
-    pub fn read(bytes: &[u8]) -> Result<CurveHeader, String> {
+    /// Reads a header from the front of `bytes` (refusing a truncated one;
+    /// [`CurveHeader::validate`] checks the rest); returns it and the bytes after it.
+    pub fn read(bytes: &[u8]) -> Result<(CurveHeader, &[u8]), String> {
         let mut r = Reader(bytes);
         let scheme = match r.bytes::<1>()? {
             [0] => Scheme::default(),
@@ -210,7 +202,7 @@ pub mod compact {
             [1] => Metric::Sphere,
             [b] => return Err(format!("unknown metric {b}")),
         };
-        let tolerance = r.f64()?;
+        let tolerance = f64::from(f32::from_le_bytes(r.bytes()?));
         let n = r.count()?;
         let mut rings = Vec::with_capacity(n);
         for _ in 0..n {
@@ -224,26 +216,19 @@ pub mod compact {
                 inserted,
             });
         }
-        let n = r.count()?;
-        let mut level_bounds = Vec::with_capacity(n);
-        for _ in 0..n {
-            let k = if tolerance == 0.0 {
-                u32::from_le_bytes(r.bytes()?)
-            } else {
-                u32::from(u16::from_le_bytes(r.bytes()?))
-            };
-            level_bounds.push(decode_bound(tolerance, k));
-        }
-        if !r.0.is_empty() {
-            return Err("trailing bytes after the curve header".into());
-        }
-        Ok(CurveHeader {
+        let k = if tolerance == 0.0 {
+            u32::from_le_bytes(r.bytes()?)
+        } else {
+            u32::from(u16::from_le_bytes(r.bytes()?))
+        };
+        let header = CurveHeader {
             scheme,
             metric,
             tolerance,
             rings,
-            level_bounds,
-        })
+            finest_bound: decode_bound(tolerance, k),
+        };
+        Ok((header, r.0))
     }
 }
 
@@ -290,8 +275,8 @@ impl CurveHeader {
                 "{total} points is more than this build reads ({MAX_POINTS})"
             ));
         }
-        if self.level_bounds.iter().any(|b| b.is_nan() || *b < 0.0) {
-            return Err("bad level bounds".into());
+        if self.finest_bound.is_nan() || self.finest_bound < 0.0 {
+            return Err(format!("bad error bound {}", self.finest_bound));
         }
         Ok(())
     }
@@ -367,10 +352,17 @@ impl IntModel {
 /// and cost 1-4% on the coastlines (too few symbols per context to learn them).
 const LEVEL_CLASSES: usize = 3;
 
+/// The first detail level (from the coarsest, 0) quantised on the hexagonal lattice (see
+/// [`Lattice`]); 1 codes the coastlines 0.1% smaller but leaves a prediction across a
+/// thousand kilometres on it.
+const HEXAGONAL_FROM: usize = 2;
+
 /// All adaptive contexts of one stream.
 struct Models {
-    detail_x: Vec<IntModel>,
-    detail_y: Vec<IntModel>,
+    /// Detail symbols: the finest level's row (across the chord) and column (along it) apart,
+    /// each coarser level class one model for both axes (its residuals are isotropic, and one
+    /// model learns in half the symbols: 0.2-0.6% smaller on the five longest coastlines).
+    detail: Vec<IntModel>,
     base: [IntModel; 2],
     gaps: IntModel,
     raw: Vec<Bit>,
@@ -379,12 +371,24 @@ struct Models {
 impl Models {
     fn new() -> Self {
         Models {
-            detail_x: vec![IntModel::new(); LEVEL_CLASSES],
-            detail_y: vec![IntModel::new(); LEVEL_CLASSES],
+            detail: vec![IntModel::new(); LEVEL_CLASSES + 1],
             base: [IntModel::new(), IntModel::new()],
             gaps: IntModel::new(),
             raw: vec![Bit::default(); 128],
         }
+    }
+
+    /// The model of detail symbols of level class `ctx` on `axis` (0: row, 1: column).
+    fn detail(&self, ctx: usize, axis: usize) -> &IntModel {
+        &self.detail[Self::detail_index(ctx, axis)]
+    }
+
+    fn detail_mut(&mut self, ctx: usize, axis: usize) -> &mut IntModel {
+        &mut self.detail[Self::detail_index(ctx, axis)]
+    }
+
+    fn detail_index(ctx: usize, axis: usize) -> usize {
+        if ctx == 0 { axis } else { ctx + 1 }
     }
 
     /// An exact `f64` (lossless mode), bit by bit with one context per bit position.
@@ -399,25 +403,41 @@ impl Models {
     }
 }
 
-/// The quantisation lattice of covering radius `tol`, in rows: today the square lattice of step
-/// `√2·tol` (`stagger` 0). The hexagonal lattice (rows `1.5·tol` apart, points `√3·tol` apart,
-/// odd rows staggered by half a point: 2.60·tol² a point against 2·tol²) coded the coastlines
-/// 2.3% smaller, but at a 500 m tolerance one place of the 40 rings ended 526 m from the source,
-/// not yet understood, so it is kept out; the rows, columns and stagger stay general for it.
-/// Symbols are (row, column); the point is at `((column + shift(row))·col, row·row)`.
+/// A quantisation lattice of covering radius `tol`, in rows: symbols are (row, column) and the
+/// point is at `((column + shift(row))·col, row·row)` in the lattice's plane.
+///
+/// Detail points use the hexagonal lattice (rows `1.5·tol` apart, points `√3·tol` apart, odd
+/// rows staggered by half a point): 2.60·tol² a point against the square lattice's 2·tol², which
+/// codes the coastlines 2.3% smaller. Base points and the first two detail levels use the square
+/// lattice (step `√2·tol`): their predictions are up to a continent away, and on the sphere each
+/// row's columns are laid out at its own latitude's scale from the prediction's longitude, so
+/// far from the prediction consecutive rows slide against each other. The square lattice's
+/// covering radius does not depend on how its rows are aligned; the hexagonal one's grows to
+/// 1.15·tol with rows aligned (hexagonal everywhere, a 500 m encode of the coastlines put a
+/// first-level point, predicted from base points 2,500 km apart, 524 m from its vertex). From
+/// the third level on, predictions are within half a degree and the slide under 1% of a
+/// column; `encode`'s verification reports any hair over the tolerance in the level bounds.
 #[derive(Clone, Copy)]
-struct Hex {
+struct Lattice {
     row: f64,
     col: f64,
     stagger: f64,
 }
 
-impl Hex {
-    fn new(tolerance: f64) -> Self {
-        Hex {
+impl Lattice {
+    fn square(tolerance: f64) -> Self {
+        Lattice {
             row: std::f64::consts::SQRT_2 * tolerance,
             col: std::f64::consts::SQRT_2 * tolerance,
             stagger: 0.0,
+        }
+    }
+
+    fn hexagonal(tolerance: f64) -> Self {
+        Lattice {
+            row: 1.5 * tolerance,
+            col: 3f64.sqrt() * tolerance,
+            stagger: 0.5,
         }
     }
 
@@ -456,7 +476,8 @@ impl Hex {
 struct Quantiser {
     metric: Metric,
     tolerance: f64,
-    hex: Hex,
+    square: Lattice,
+    hexagonal: Lattice,
 }
 
 impl Quantiser {
@@ -464,7 +485,8 @@ impl Quantiser {
         Quantiser {
             metric,
             tolerance,
-            hex: Hex::new(tolerance),
+            square: Lattice::square(tolerance),
+            hexagonal: Lattice::hexagonal(tolerance),
         }
     }
 
@@ -474,50 +496,55 @@ impl Quantiser {
 
     /// Codes the offset from `pred` to `target` (ignored when decoding); returns the decoded
     /// point. `ctx` is the detail context (`None` for base points).
-    fn point(&self, dir: &mut Dir, m: &mut Models, ctx: Option<usize>, pred: Pt, target: Pt) -> Pt {
+    fn point(
+        &self,
+        dir: &mut Dir,
+        m: &mut Models,
+        ctx: Option<usize>,
+        lattice: &Lattice,
+        pred: Pt,
+        target: Pt,
+    ) -> Pt {
         if self.lossless() {
             let rx = m.raw(dir, 0, target[0] - pred[0]);
             let ry = m.raw(dir, 1, target[1] - pred[1]);
             return [pred[0] + rx, pred[1] + ry];
         }
-        let (qb, qa) = self.nearest(pred, target);
-        self.code(dir, m, ctx, pred, qb, qa)
+        let (qb, qa) = self.nearest(lattice, pred, target);
+        let b = match ctx {
+            Some(c) => m.detail_mut(c, 0).code(dir, qb),
+            None => m.base[1].code(dir, qb),
+        };
+        let a = match ctx {
+            Some(c) => m.detail_mut(c, 1).code(dir, qa),
+            None => m.base[0].code(dir, qa),
+        };
+        self.at(lattice, pred, b, a)
+    }
+
+    /// The lattice of points predicted at level `l` (`None`: base points, predicted from
+    /// the previous base point).
+    fn lattice(&self, l: Option<usize>) -> &Lattice {
+        match l {
+            Some(l) if l >= HEXAGONAL_FROM => &self.hexagonal,
+            _ => &self.square,
+        }
     }
 
     /// The lattice point nearest `target`. A row's longitude step is set by the row's
     /// latitude, which is within the tolerance of the source's (a step from the prediction's
     /// latitude would be wrong by the cosine ratio when the prediction is far, as a ring's
     /// first base point is).
-    fn nearest(&self, pred: Pt, target: Pt) -> (i64, i64) {
-        self.hex.nearest(target[1] - pred[1], |b| {
-            (target[0] - pred[0]) * self.metric.x_scale(self.y(pred, b))
+    fn nearest(&self, lattice: &Lattice, pred: Pt, target: Pt) -> (i64, i64) {
+        lattice.nearest(target[1] - pred[1], |b| {
+            (target[0] - pred[0]) * self.metric.x_scale(pred[1] + b as f64 * lattice.row)
         })
     }
 
-    fn y(&self, pred: Pt, qb: i64) -> f64 {
-        pred[1] + qb as f64 * self.hex.row
-    }
-
-    /// Codes the symbols `(qb, qa)` (ignored when decoding); returns the decoded point.
-    fn code(
-        &self,
-        dir: &mut Dir,
-        m: &mut Models,
-        ctx: Option<usize>,
-        pred: Pt,
-        qb: i64,
-        qa: i64,
-    ) -> Pt {
-        let b = match ctx {
-            Some(c) => m.detail_y[c].code(dir, qb),
-            None => m.base[1].code(dir, qb),
-        };
-        let y = self.y(pred, b);
-        let a = match ctx {
-            Some(c) => m.detail_x[c].code(dir, qa),
-            None => m.base[0].code(dir, qa),
-        };
-        [pred[0] + self.hex.along(b, a) / self.metric.x_scale(y), y]
+    /// The point of symbols `(b, a)` on `lattice` around `pred`.
+    fn at(&self, lattice: &Lattice, pred: Pt, b: i64, a: i64) -> Pt {
+        let y = pred[1] + b as f64 * lattice.row;
+        [pred[0] + lattice.along(b, a) / self.metric.x_scale(y), y]
     }
 
     /// The cheapest symbols (at the models' current rates) that `admissible` accepts, among
@@ -530,7 +557,7 @@ impl Quantiser {
         nearest: (i64, i64),
         admissible: impl Fn(i64, i64) -> bool,
     ) -> (i64, i64) {
-        let (m0, m1) = (&m.detail_y[ctx], &m.detail_x[ctx]);
+        let (m0, m1) = (m.detail(ctx, 0), m.detail(ctx, 1));
         let nearest_cost = m0.cost(nearest.0) + m1.cost(nearest.1);
         // Far predictions are rare and keep the nearest point.
         const MAX_SIDE: i64 = 24;
@@ -567,7 +594,7 @@ struct Chord {
     pred: Pt,
     sx: f64,
     tangent: Pt,
-    hex: Hex,
+    lattice: Lattice,
 }
 
 impl Chord {
@@ -584,14 +611,14 @@ impl Chord {
             pred,
             sx,
             tangent,
-            hex: q.hex,
+            lattice: q.hexagonal,
         }
     }
 
     /// The point of normal symbol `qn` and tangent symbol `qt`.
     fn at(&self, qn: i64, qt: i64) -> Pt {
         let [tx, ty] = self.tangent;
-        let (n, t) = (qn as f64 * self.hex.row, self.hex.along(qn, qt));
+        let (n, t) = (qn as f64 * self.lattice.row, self.lattice.along(qn, qt));
         [
             self.pred[0] + (t * tx - n * ty) / self.sx,
             self.pred[1] + t * ty + n * tx,
@@ -605,7 +632,8 @@ impl Chord {
             (target[0] - self.pred[0]) * self.sx,
             target[1] - self.pred[1],
         );
-        self.hex.nearest(ry * tx - rx * ty, |_| rx * tx + ry * ty)
+        self.lattice
+            .nearest(ry * tx - rx * ty, |_| rx * tx + ry * ty)
     }
 }
 
@@ -717,7 +745,7 @@ fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<
         let base_len = 2 * pieces + usize::from(!closed);
         let mut cur = Vec::with_capacity(base_len);
         for i in 0..base_len {
-            let p = q.point(dir, &mut m, None, last_base, source(0, i));
+            let p = q.point(dir, &mut m, None, q.lattice(None), last_base, source(0, i));
             last_base = p;
             cur.push(p);
         }
@@ -790,11 +818,11 @@ fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<
                             }
                             _ => (0, 0),
                         };
-                        let qn = m.detail_y[ctx].code(dir, qn);
-                        let qt = m.detail_x[ctx].code(dir, qt);
+                        let qn = m.detail_mut(ctx, 0).code(dir, qn);
+                        let qt = m.detail_mut(ctx, 1).code(dir, qt);
                         chord.at(qn, qt)
                     } else {
-                        q.point(dir, &mut m, Some(ctx), pred, target)
+                        q.point(dir, &mut m, Some(ctx), q.lattice(Some(l)), pred, target)
                     };
                     new[i] = e;
                     d[i] = [e[0] - t[0], e[1] - t[1]];
@@ -826,6 +854,7 @@ pub fn encode(
     tolerance: f64,
     sources: &[Prepared],
 ) -> Result<(CurveHeader, Vec<u8>, CurveSet), String> {
+    let tolerance = compact::tolerance_down(tolerance);
     let mut header = CurveHeader {
         scheme: scheme.clone(),
         metric,
@@ -842,7 +871,7 @@ pub fn encode(
                 }
             })
             .collect(),
-        level_bounds: Vec::new(),
+        finest_bound: 0.0,
     };
     header.validate()?;
     // Code, verify the output against the source, hold strict the points around every place
@@ -870,35 +899,32 @@ pub fn encode(
             break (rings, stream);
         }
     };
-    // The finest level's bound per ring: the tolerance where the output was verified; where
-    // it was not (places whose points were all strict already), the largest error of a strict
-    // point, by convexity. A strict point is within `tol` of its vertex in the lattice's plane,
-    // which at the finest level is the prediction's, not the point's own: on the sphere a hair
-    // over `tol` can happen, and is reported.
-    let finest: Vec<f64> = rings
+    // The finest level's bound: the tolerance where the output was verified; where it was not
+    // (places whose points were all strict already), the largest error of a strict point, by
+    // convexity. A strict point is within `tol` of its vertex in the lattice's plane, which at
+    // the finest level is the prediction's, not the point's own: on the sphere a hair over
+    // `tol` can happen, and is reported. Lossless, the largest rounding error of a vertex.
+    let finest = rings
         .iter()
         .zip(sources)
         .zip(&plan.strict)
-        .map(|((r, s), strict)| {
+        .flat_map(|((r, s), strict)| {
             let poly = r.polygon(scheme, r.finest());
-            poly.iter()
+            poly.into_iter()
                 .zip(&s.fine)
                 .zip(strict)
-                .filter(|(_, st)| **st)
-                .map(|((p, f), _)| metric.distance(*f, *p))
-                .fold(tolerance, f64::max)
+                .filter(|(_, st)| **st || tolerance == 0.0)
+                .map(|((p, f), _)| metric.distance(*f, p))
+                .collect::<Vec<_>>()
         })
-        .collect();
-    header.level_bounds = level_bounds(scheme, metric, tolerance, &rings, sources, &finest)
-        .into_iter()
-        .map(|b| compact::bound_up(tolerance, b))
-        .collect();
+        .fold(tolerance, f64::max);
+    header.finest_bound = compact::bound_up(tolerance, finest);
     let set = CurveSet {
+        level_bounds: level_bounds(scheme, metric, header.finest_bound, &rings),
         scheme: scheme.clone(),
         rings,
         metric,
         tolerance,
-        level_bounds: header.level_bounds.clone(),
     };
     Ok((header, stream, set))
 }
@@ -990,39 +1016,34 @@ pub fn decode(header: &CurveHeader, stream: &[u8]) -> Result<CurveSet, String> {
         return Err("the curve stream decodes to non-finite points".into());
     }
     Ok(CurveSet {
+        level_bounds: level_bounds(&header.scheme, header.metric, header.finest_bound, &rings),
         scheme: header.scheme.clone(),
         rings,
         metric: header.metric,
         tolerance: header.tolerance,
-        level_bounds: header.level_bounds.clone(),
     })
 }
 
-/// Per asset level, a bound on the Hausdorff distance between the decoded level and the source:
-/// at the finest, the tolerance (by construction); above it, the larger of the tolerance and
-/// the largest distance from a source point to the decoded segment whose span holds it. Source to decoded: distance to a segment is convex along a
-/// source segment, so its vertices bound it. Decoded to source: the span's source path runs
-/// from within `tol` of one end of the segment to within `tol` of the other, so its projection
-/// covers the segment but for the ends, whose points are within `tol` of the end vertices.
-fn level_bounds(
+/// Per asset level, a bound on the Hausdorff distance between the decoded level and the source,
+/// from the decoded rings and the finest level's bound alone (so a reader computes them and the
+/// header stores one number): the finest level's bound plus the Hausdorff distance between the
+/// level and the finest decoded polygon, which [`span_deviation`] bounds both ways (each finest
+/// point is within it of its span's segment, and the finest path between a segment's ends,
+/// which are its own points, projects onto the whole segment). Triangle inequality: at most the
+/// tolerance looser than measuring against the source, which the reader does not have.
+pub fn level_bounds(
     scheme: &Scheme,
     metric: Metric,
-    tolerance: f64,
+    finest_bound: f64,
     rings: &[Ring],
-    sources: &[Prepared],
-    finest_bounds: &[f64],
 ) -> Vec<f64> {
     let finest = rings.iter().map(Ring::finest).max().unwrap_or(0);
-    let mut bounds = vec![tolerance; finest + 1];
-    for ((r, s), &finest_bound) in rings.iter().zip(sources).zip(finest_bounds) {
-        let own: Vec<f64> = (0..=r.finest())
-            .map(|l| {
-                if l == r.finest() && tolerance > 0.0 {
-                    return finest_bound; // verified by `encode`
-                }
-                let poly = r.polygon(scheme, l);
-                tolerance.max(span_deviation(metric, &poly, &s.fine, r.closed))
-            })
+    let mut bounds = vec![finest_bound; finest + 1];
+    for r in rings {
+        let fine = r.polygon(scheme, r.finest());
+        let own: Vec<f64> = (0..r.finest())
+            .map(|l| finest_bound + span_deviation(metric, &r.polygon(scheme, l), &fine, r.closed))
+            .chain([finest_bound])
             .collect();
         for (n, b) in bounds.iter_mut().enumerate() {
             let l = (n + r.finest()).saturating_sub(finest);
@@ -1082,25 +1103,37 @@ mod tests {
         fn the_coarse_lattice_point_nearest_a_target_is_within_the_tolerance(
             pred in (-170.0..170.0f64, -80.0..80.0f64),
             off in (-0.5..0.5f64, -0.5..0.5f64),
+            far in (-20.0..20.0f64, -5.0..5.0f64),
             tol in 0.001..0.05f64,
         ) {
             for metric in [Metric::Plane, Metric::Sphere] {
                 let q = Quantiser::new(metric, tol);
                 let pred = [pred.0, pred.1];
-                let target = [pred[0] + off.0, pred[1] + off.1];
-                let (b, a) = q.nearest(pred, target);
-                let y = q.y(pred, b);
-                let x = pred[0] + q.hex.along(b, a) / metric.x_scale(y);
-                // In the row's plane (its latitude's longitude scale).
-                let (dx, dy) = ((x - target[0]) * metric.x_scale(y), y - target[1]);
-                prop_assert!((dx * dx + dy * dy).sqrt() <= tol * (1.0 + 1e-9));
-                // And no lattice point of the neighbouring rows and columns is nearer.
-                let d = (dx * dx + dy * dy).sqrt();
-                for (bb, aa) in [(b - 1, a), (b + 1, a), (b, a - 1), (b, a + 1), (b - 1, a - 1), (b + 1, a + 1)] {
-                    let yy = q.y(pred, bb);
-                    let xx = pred[0] + q.hex.along(bb, aa) / metric.x_scale(yy);
-                    let (ex, ey) = ((xx - target[0]) * metric.x_scale(yy), yy - target[1]);
-                    prop_assert!((ex * ex + ey * ey).sqrt() >= d - tol * 1e-3);
+                // Base points may be a continent from their prediction: the square lattice
+                // covers exactly. Detail points are within half a degree: the hexagonal
+                // lattice covers exactly in the plane, and within 1% on the sphere, where rows
+                // laid out at their own latitude's scale slide against each other.
+                let cases = [
+                    (None, [pred[0] + far.0, pred[1] + far.1], 1e-9),
+                    (Some(HEXAGONAL_FROM), [pred[0] + off.0, pred[1] + off.1], if metric == Metric::Plane { 1e-9 } else { 0.01 }),
+                ];
+                for (ctx, target, slack) in cases {
+                    let lattice = q.lattice(ctx);
+                    let (b, a) = q.nearest(lattice, pred, target);
+                    // In the row's plane (its latitude's longitude scale).
+                    let dist = |b: i64, a: i64| {
+                        let p = q.at(lattice, pred, b, a);
+                        let sx = metric.x_scale(p[1]);
+                        ((p[0] - target[0]) * sx).hypot(p[1] - target[1])
+                    };
+                    let d = dist(b, a);
+                    prop_assert!(d <= tol * (1.0 + slack), "{:?}: {} > {}", ctx, d, tol);
+                    // And no lattice point of the neighbouring rows and columns is nearer.
+                    for bb in b - 1..=b + 1 {
+                        for aa in a - 1..=a + 1 {
+                            prop_assert!(dist(bb, aa) >= d - tol * 1e-3);
+                        }
+                    }
                 }
             }
         }
@@ -1111,43 +1144,46 @@ mod tests {
             sphere in any::<bool>(),
             tol in prop_oneof![Just(0.0), 1e-6..1.0f64],
             rings in proptest::collection::vec((any::<bool>(), 1u32..100_000, 0u8..=24, 0u32..1000), 1..6),
-            factors in proptest::collection::vec(1.0..1e6f64, 0..30),
+            factor in 1.0..1e6f64,
+            stream in proptest::collection::vec(any::<u8>(), 0..8),
         ) {
             let mut scheme = Scheme::default();
             if custom {
                 scheme.t[0] = [0.3, 0.8, -0.1];
                 scheme.u[1][0] = [0.25, -0.5];
             }
-            let level_bounds: Vec<f64> = factors.iter().map(|f| if tol > 0.0 { tol * f } else { f * 1e-3 }).collect();
+            let tolerance = compact::tolerance_down(tol);
+            // Never looser than asked, and at most one f32 step (2^-23) tighter.
+            prop_assert!(tolerance <= tol && tolerance >= tol * (1.0 - 2.4e-7));
+            let finest_bound = if tol > 0.0 { tolerance * factor } else { factor * 1e-3 };
             let h = CurveHeader {
                 scheme,
                 metric: if sphere { Metric::Sphere } else { Metric::Plane },
-                tolerance: tol,
+                tolerance,
                 rings: rings
                     .iter()
                     .map(|&(closed, pieces, levels, inserted)| RingHeader { closed, pieces, levels, inserted })
                     .collect(),
-                level_bounds: level_bounds.clone(),
+                finest_bound,
             };
             let bytes = compact::write(&h);
-            let back = compact::read(&bytes).unwrap();
+            let mut payload = bytes.clone();
+            payload.extend_from_slice(&stream);
+            let (back, rest) = compact::read(&payload).unwrap();
+            // The header delimits itself: what follows is the stream, untouched.
+            prop_assert_eq!(rest, &stream[..]);
             prop_assert_eq!(&back.scheme, &h.scheme);
             prop_assert_eq!(back.metric, h.metric);
             prop_assert_eq!(back.tolerance.to_bits(), h.tolerance.to_bits());
             prop_assert_eq!(&back.rings, &h.rings);
-            prop_assert_eq!(back.level_bounds.len(), level_bounds.len());
-            for (stored, b) in back.level_bounds.iter().zip(&level_bounds) {
-                // Still a bound, and at most one 2^(1/256) step (or one f32 ulp) looser.
-                prop_assert!(*stored >= *b && *stored <= b * 1.003, "{} {}", stored, b);
-            }
-            // Stored bounds are a fixed point: writing them again changes nothing.
+            // Still a bound, and at most one 2^(1/256) step (or one f32 ulp) looser.
+            prop_assert!(back.finest_bound >= finest_bound && back.finest_bound <= finest_bound * 1.003,
+                "{} {}", back.finest_bound, finest_bound);
+            // A stored bound is a fixed point: writing it again changes nothing.
             prop_assert_eq!(compact::write(&back), bytes.clone());
             for cut in 0..bytes.len() {
                 prop_assert!(compact::read(&bytes[..cut]).is_err());
             }
-            let mut longer = bytes.clone();
-            longer.push(0);
-            prop_assert!(compact::read(&longer).is_err());
         }
 
         #[test]

@@ -521,7 +521,12 @@ impl CurveSet {
                 .copied()
                 .unwrap_or(f64::INFINITY)
         } else {
-            self.tolerance + deviation
+            // Levels past the source: the finest level's bound plus how far they stray from it.
+            self.level_bounds
+                .get(finest)
+                .copied()
+                .unwrap_or(f64::INFINITY)
+                + deviation
         };
         CurveLevel {
             level,
@@ -689,12 +694,22 @@ impl Default for CurveSettings {
 /// A coded curve set: what an asset stores and what it decodes to.
 #[derive(Clone, Debug)]
 pub struct Curves {
-    /// Scheme, ring shapes, tolerance, level bounds.
+    /// Scheme, ring shapes, tolerance, the finest level's bound.
     pub header: code::CurveHeader,
     /// The range-coded base points and details.
     pub stream: Vec<u8>,
     /// The decoded model.
     pub set: CurveSet,
+}
+
+impl Curves {
+    /// The asset's payload: the compact header, then the stream (no length fields: the header
+    /// delimits itself and the payload's length ends the stream).
+    pub fn payload(&self) -> Vec<u8> {
+        let mut out = code::compact::write(&self.header);
+        out.extend_from_slice(&self.stream);
+        out
+    }
 }
 
 /// Encodes polylines: preparation, the fit, closed-loop coding.
