@@ -4,9 +4,10 @@
 //! parent details, exactly as the decoder will, and only the difference to the source point is
 //! quantised, so nothing accumulates. The coder's prediction adds to the model's (`T`, `U`)
 //! the four-point cubic across pieces (the model itself is unchanged: a detail is still the
-//! decoded point less `T`'s prediction). Above the finest level the quantiser is the square
-//! lattice of step `√2·tol` (covering radius `tol`) in the metric's local frame (longitude steps widened by
-//! 1/cos(latitude) on the sphere): every such point is within `tol` of its source vertex.
+//! decoded point less `T`'s prediction). Above the finest level the quantiser is a lattice of
+//! covering radius `tol` (`Lattice`: hexagonal, or square where predictions are far) in the
+//! metric's local frame (longitude steps widened by 1/cos(latitude) on the sphere): every such
+//! point is within `tol` of its source vertex.
 //!
 //! The finest level (half the points) is held to what the tolerance promises, the Hausdorff
 //! distance, not to vertex error: its lattice is turned to the chord between the point's
