@@ -2,7 +2,9 @@
 //! answered as `{"detail": "...", "code": "..."}` (axum's recommended pattern).
 
 use axum::Json;
-use axum::http::StatusCode;
+use axum::extract::FromRequestParts;
+use axum::http::request::Parts;
+use axum::http::{Method, StatusCode, Uri};
 use axum::response::{IntoResponse, Response};
 
 /// An error answered to an HTTP client.
@@ -50,5 +52,71 @@ impl IntoResponse for AppError {
             code: self.code.into(),
         });
         (self.status, body).into_response()
+    }
+}
+
+/// axum's `Query`, answering a query string that does not parse (`?level=-1`) with an
+/// [`AppError`] (`bad_query`) instead of axum's plain-text rejection, so that every 4xx a client
+/// sees has the same JSON shape.
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Query<T>(pub T);
+
+impl<T, S> FromRequestParts<S> for Query<T>
+where
+    T: serde::de::DeserializeOwned,
+    S: Send + Sync,
+{
+    type Rejection = AppError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
+        match axum::extract::Query::<T>::from_request_parts(parts, state).await {
+            Ok(axum::extract::Query(v)) => Ok(Query(v)),
+            Err(e) => Err(AppError::bad_request("bad_query", e.body_text())),
+        }
+    }
+}
+
+/// axum's `Path`, answering a path segment that does not parse (a zoom of `abc` or `300`) with
+/// an [`AppError`] (`bad_path`, or axum's own status where it is not the client's fault).
+#[derive(Debug, Clone, Copy, Default)]
+pub struct Path<T>(pub T);
+
+impl<T, S> FromRequestParts<S> for Path<T>
+where
+    T: serde::de::DeserializeOwned + Send,
+    S: Send + Sync,
+{
+    type Rejection = AppError;
+
+    async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
+        match axum::extract::Path::<T>::from_request_parts(parts, state).await {
+            Ok(axum::extract::Path(v)) => Ok(Path(v)),
+            Err(e) if e.status().is_client_error() => Err(AppError {
+                status: e.status(),
+                code: "bad_path",
+                detail: e.body_text(),
+            }),
+            Err(e) => Err(AppError::internal(e.body_text())),
+        }
+    }
+}
+
+/// The answer to a path no route serves (the router's fallback).
+pub async fn no_route(method: Method, uri: Uri) -> AppError {
+    AppError::not_found(
+        "no_route",
+        format!(
+            "no route for {method} {} (see /v1/openapi.json)",
+            uri.path()
+        ),
+    )
+}
+
+/// The answer to a method a route does not serve (axum adds the `Allow` header).
+pub async fn method_not_allowed(method: Method, uri: Uri) -> AppError {
+    AppError {
+        status: StatusCode::METHOD_NOT_ALLOWED,
+        code: "method_not_allowed",
+        detail: format!("{} does not answer {method}", uri.path()),
     }
 }

@@ -80,6 +80,8 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
             axum::routing::get(|| async { telemetry::handle().render() }),
         )
         .merge(web::routes())
+        .fallback(error::no_route)
+        .method_not_allowed_fallback(error::method_not_allowed)
         .layer(axum::middleware::from_fn(telemetry::track))
         .layer(
             CorsLayer::new()

@@ -368,6 +368,28 @@ async fn bad_requests_get_precise_errors() {
             StatusCode::BAD_REQUEST,
             "bad_bbox",
         ),
+        // What axum rejects before a handler runs has the same JSON shape.
+        (
+            "/v1/assets/coast/curve?level=-1",
+            StatusCode::BAD_REQUEST,
+            "bad_query",
+        ),
+        (
+            "/v1/assets/camera/tiles/2/0/0.png?iterations=many",
+            StatusCode::BAD_REQUEST,
+            "bad_query",
+        ),
+        (
+            "/v1/assets/camera/tiles/abc/0/0.png",
+            StatusCode::BAD_REQUEST,
+            "bad_path",
+        ),
+        (
+            "/v1/assets/camera/tiles/300/0/0.png",
+            StatusCode::BAD_REQUEST,
+            "bad_path",
+        ),
+        ("/v1/nothing", StatusCode::NOT_FOUND, "no_route"),
     ] {
         let (s, _, b) = get(uri).await;
         assert_eq!(s, status, "{uri}: {}", String::from_utf8_lossy(&b));
@@ -381,6 +403,16 @@ async fn bad_requests_get_precise_errors() {
     let (s, _, b) = send(req).await;
     assert_eq!(s, StatusCode::BAD_REQUEST);
     assert_eq!(json(&b)["code"], "bad_body");
+    // A method a route does not answer: 405 in JSON, with the methods it does answer.
+    let req = Request::delete("/v1/assets").body(Body::empty()).unwrap();
+    let (s, h, b) = send(req).await;
+    assert_eq!(s, StatusCode::METHOD_NOT_ALLOWED);
+    assert_eq!(json(&b)["code"], "method_not_allowed");
+    let allow = h
+        .get(header::ALLOW)
+        .and_then(|v| v.to_str().ok())
+        .unwrap_or("");
+    assert!(allow.contains("GET"), "Allow: {allow:?}");
 }
 
 /// A store of its own (writes must not disturb the shared one), with a token and a small limit.
