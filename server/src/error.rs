@@ -120,3 +120,50 @@ pub async fn method_not_allowed(method: Method, uri: Uri) -> AppError {
         detail: format!("{} does not answer {method}", uri.path()),
     }
 }
+
+/// Middleware: gives an error answered by a layer rather than a handler (the body limit's 413,
+/// the timeout's 503, a wrong content type's 415) the same JSON body as [`AppError`], keeping
+/// its status, headers and text as the detail. Answers that are JSON already pass untouched.
+pub async fn json_errors(resp: Response) -> Response {
+    let status = resp.status();
+    let is_json = resp
+        .headers()
+        .get(axum::http::header::CONTENT_TYPE)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.starts_with("application/json"));
+    if !(status.is_client_error() || status.is_server_error()) || is_json {
+        return resp;
+    }
+    let (mut parts, body) = resp.into_parts();
+    // Layers answer a line of text; more than this is not a rejection text worth keeping.
+    let text = axum::body::to_bytes(body, 16 * 1024)
+        .await
+        .unwrap_or_default();
+    let text = String::from_utf8_lossy(&text).trim().to_string();
+    let detail = if text.is_empty() {
+        status.canonical_reason().unwrap_or("error").to_string()
+    } else {
+        text
+    };
+    let code = match status {
+        StatusCode::PAYLOAD_TOO_LARGE => "too_large",
+        StatusCode::SERVICE_UNAVAILABLE => "unavailable",
+        StatusCode::UNSUPPORTED_MEDIA_TYPE => "bad_media_type",
+        StatusCode::METHOD_NOT_ALLOWED => "method_not_allowed",
+        StatusCode::NOT_FOUND => "no_route",
+        s if s.is_client_error() => "bad_request",
+        _ => "internal",
+    };
+    parts.headers.remove(axum::http::header::CONTENT_TYPE);
+    parts.headers.remove(axum::http::header::CONTENT_LENGTH);
+    let mut out = AppError {
+        status,
+        code,
+        detail,
+    }
+    .into_response();
+    for (name, value) in parts.headers.iter() {
+        out.headers_mut().append(name.clone(), value.clone());
+    }
+    out
+}

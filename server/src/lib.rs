@@ -92,6 +92,7 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
             axum::http::StatusCode::SERVICE_UNAVAILABLE,
             api::REQUEST_TIMEOUT,
         ))
+        .layer(axum::middleware::map_response(error::json_errors))
         .layer(TraceLayer::new_for_http())
 }
 

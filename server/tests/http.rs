@@ -647,6 +647,17 @@ async fn point_batches_in_bincode_answer_the_same_as_json() {
     .await;
     assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE);
     assert_eq!(json(&b)["code"], "too_many_points");
+    // A body past the route's byte limit is refused by a layer before the handler: still JSON.
+    let huge = vec![b' '; 64 * state().limits.max_points + 1];
+    let (s, _, b) = send(
+        Request::post("/v1/assets/camera/points")
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(huge))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE);
+    assert_eq!(json(&b)["code"], "too_large");
     // Garbage in the binary form is a 400, not a panic.
     let junk = Request::post("/v1/assets/camera/points")
         .header(header::CONTENT_TYPE, BINARY_MEDIA_TYPE)
