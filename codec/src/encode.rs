@@ -730,6 +730,10 @@ struct Lattice {
     target_bpp: Option<f64>,
 }
 
+/// How many spacings finer than the first that fits rate control weighs (each costs about eight
+/// encodes; the best has been at most two finer on the test DEMs).
+const FINER_SPACINGS: u32 = 3;
+
 /// The pipeline of the lattice codecs (interpolation surfaces, psa2d): one grey channel,
 /// normalised, nodata filled (and masked), vertices every `spacing` samples, then measured.
 ///
@@ -740,7 +744,11 @@ struct Lattice {
 ///
 /// Rate control: the spacing moves the size in steps (x2.25 from 2 to 3) and the height step
 /// fills in between. The smallest spacing that fits at its own height step is weighed against
-/// the next finer spacing with the finest coarser height step that fits; the better PSNR wins.
+/// finer spacings, each with the finest coarser height step that fits (eighth-octave steps,
+/// found by bisection), while the PSNR keeps rising; the best PSNR wins. Coarse heights on a
+/// fine lattice often beat fine heights on a coarse one: etopo20 at 32:1 scores 36.5 dB at
+/// spacing 3 and its own step, 39.5 dB at spacing 2 with a 240 m step. (Weighing only the next
+/// finer spacing missed that: spacing 4 fits first there.)
 fn encode_lattice(
     raster: &Raster,
     lattice: &Lattice,
@@ -843,20 +851,35 @@ fn encode_lattice(
                     "nothing fits in {bpp} bits per pixel (the coarsest lattice takes more)"
                 )));
             };
-            let mut best = a;
-            if k > 1 && lattice.height_step.is_none() {
-                let base = auto_step(k - 1);
-                for m in 1..=8 {
-                    let finer = make(k - 1, base * f64::from(1u32 << m))?;
-                    if finer.file_size() <= max_bytes {
-                        if errors_of(&finer).psnr > errors_of(&best).psnr {
-                            best = finer;
-                        }
+            let mut best = (errors_of(&a).psnr, a);
+            if lattice.height_step.is_none() {
+                for finer in (k.saturating_sub(FINER_SPACINGS).max(1)..k).rev() {
+                    // Steps base * 2^(m/8): m = 0 did not fit (the spacing is under k), find
+                    // the smallest m that does (sizes fall as the step grows).
+                    let base = auto_step(finer);
+                    let step = |m: u32| base * (f64::from(m) / 8.0).exp2();
+                    let (mut lo, mut hi) = (0u32, 8 * 12);
+                    let mut fit = make(finer, step(hi))?;
+                    if fit.file_size() > max_bytes {
                         break;
                     }
+                    while hi - lo > 1 {
+                        let mid = (lo + hi) / 2;
+                        let a = make(finer, step(mid))?;
+                        if a.file_size() <= max_bytes {
+                            (hi, fit) = (mid, a);
+                        } else {
+                            lo = mid;
+                        }
+                    }
+                    let psnr = errors_of(&fit).psnr;
+                    if psnr <= best.0 {
+                        break;
+                    }
+                    best = (psnr, fit);
                 }
             }
-            best
+            best.1
         }
     };
     Ok(measured(asset, raster, start))

@@ -732,26 +732,35 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
 fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
     use fractile_codec::encode::encode_fis;
     use fractile_codec::fis::FisSettings;
-    let r = Raster::open(&data("topobathy.tif")).unwrap();
-    for bpp in [0.5, 1.0] {
-        let enc = encode_fis(&r, &FisSettings::default(), Some(bpp)).unwrap();
-        assert!(enc.bpp() <= bpp, "{} > {bpp}", enc.bpp());
-        // The next finer spacing would not have fitted: rate control picks the best that does.
-        let k: u32 = enc
-            .asset
-            .meta
-            .encoder
-            .split_whitespace()
-            .find_map(|t| t.strip_prefix("spacing="))
-            .unwrap()
-            .parse()
+    use fractile_codec::fis::Scaling;
+    for (file, bpp, scaling) in [
+        ("topobathy.tif", 0.5, Scaling::PerNode),
+        ("topobathy.tif", 1.0, Scaling::PerNode),
+        ("etopo20.tif", 0.5, Scaling::Global),
+    ] {
+        let r = Raster::open(&data(file)).unwrap();
+        let settings = FisSettings {
+            scaling,
+            ..FisSettings::default()
+        };
+        let enc = encode_fis(&r, &settings, Some(bpp)).unwrap();
+        assert!(enc.bpp() <= bpp, "{file}: {} > {bpp}", enc.bpp());
+        // Never worse than the plain choice, the smallest spacing that fits at its own height
+        // step; on etopo20 a finer spacing with coarser heights is far better (36.5 -> 39.5 dB).
+        let plain = (1..)
+            .map(|k| {
+                let s = FisSettings {
+                    spacing: k,
+                    ..settings.clone()
+                };
+                encode_fis(&r, &s, None).unwrap()
+            })
+            .find(|e| e.bpp() <= bpp)
             .unwrap();
-        if k > 1 {
-            let finer = FisSettings {
-                spacing: k - 1,
-                ..FisSettings::default()
-            };
-            assert!(encode_fis(&r, &finer, None).unwrap().bpp() > bpp);
+        let gain = enc.errors.psnr - plain.errors.psnr;
+        assert!(gain >= 0.0, "{file} at {bpp} bpp: {gain} dB");
+        if file == "etopo20.tif" {
+            assert!(gain > 2.0, "{file} at {bpp} bpp: {gain} dB");
         }
     }
     let camera = Raster::open(&data("camera.png")).unwrap();
