@@ -736,7 +736,7 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
     for (file, bpp, scaling) in [
         ("topobathy.tif", 0.5, Scaling::PerNode),
         ("topobathy.tif", 1.0, Scaling::PerNode),
-        ("etopo20.tif", 0.5, Scaling::Global),
+        ("etopo20.tif", 0.5, Scaling::PerNode),
     ] {
         let r = Raster::open(&data(file)).unwrap();
         let settings = FisSettings {
@@ -746,7 +746,9 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
         let enc = encode_fis(&r, &settings, Some(bpp)).unwrap();
         assert!(enc.bpp() <= bpp, "{file}: {} > {bpp}", enc.bpp());
         // Never worse than the plain choice, the smallest spacing that fits at its own height
-        // step; on etopo20 a finer spacing with coarser heights is far better (36.5 -> 39.5 dB).
+        // step; on etopo20 a finer spacing with coarser heights is far better, and the
+        // collage-fitted scalings, which would sink it to 30 dB there, are shrunk (to 0 at
+        // this rate: bilinear interpolation of the nodes, 39.4 dB; it was 34.6).
         let plain = (1..)
             .map(|k| {
                 let s = FisSettings {
@@ -761,6 +763,7 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
         assert!(gain >= 0.0, "{file} at {bpp} bpp: {gain} dB");
         if file == "etopo20.tif" {
             assert!(gain > 2.0, "{file} at {bpp} bpp: {gain} dB");
+            assert!(enc.errors.psnr > 39.0, "{file}: {} dB", enc.errors.psnr);
         }
     }
     let camera = Raster::open(&data("camera.png")).unwrap();
