@@ -621,7 +621,8 @@ struct Sample {
     d: f32,
 }
 
-/// Fits a surface to a normalised source: node heights by subsampling, s by least squares.
+/// Fits a surface to a normalised source: node heights by subsampling (rounded by
+/// [`round_to_surface`]), s by least squares.
 pub fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Error> {
     header.validate().map_err(Error::Settings)?;
     let [nx, ny] = header.nodes();
@@ -630,6 +631,7 @@ pub fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Error> {
         .flat_map(|j| (0..nx).map(move |i| (i, j)))
         .map(|(i, j)| (source.at(i * k, j * k) / header.height_step).round() as i32)
         .collect();
+    let heights = round_to_surface(source, header, heights);
     // The operator with s = 0 gives B_z and phi; the mapped corners give B_{z_d}.
     let flat = FisParams {
         heights: heights.clone(),
@@ -693,6 +695,71 @@ pub fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Error> {
         heights,
         scalings: s.iter().map(|&v| header.scaling_index(v)).collect(),
     })
+}
+
+/// Rounds each node height up or down, whichever brings the bilinear surface through the nodes
+/// closer to the source over the node's four cells at the least rate (`SSE + mu * bits`, three
+/// sweeps), instead of to the nearest step: a node stays within one height step of its sample
+/// (it is still that sample, quantised), and the surface between nodes gains what the sample's
+/// own rounding threw away. Rate-distortion-optimised quantisation, as video coders round
+/// their coefficients. etopo20 at 32:1: 39.49 -> 40.05 dB (at 16:1 +1.7 dB; topobathy at 64:1
+/// +0.7 dB; jacksboro within 0.15 dB either way).
+fn round_to_surface(source: &Source, header: &FisHeader, mut q: Vec<i32>) -> Vec<i32> {
+    let [nx, ny] = header.nodes();
+    let k = header.spacing as usize;
+    let step = header.height_step;
+    let top = top_index(step) as i32;
+    let (w, h) = (source.width, source.height);
+    // The price of a bit in squared error: the node quantiser's own rate-distortion slope (a
+    // halved step costs a bit a node and saves 3/4 of `step^2 / 12` on each of the ~4k^2/9
+    // sample weights a node carries), times 4 because a node's height enters four MED
+    // residuals, its own and those of the three later nodes it predicts (right, below,
+    // below-right). Its bits are estimated as `2 log2(1 + |residual|)`.
+    let mu = 4.0 * 0.75 * f64::from(step).powi(2) / 12.0 * (k * k) as f64 * 4.0 / 9.0;
+    let local = |q: &[i32], i: usize, j: usize| -> f64 {
+        let mut sse = 0.0f64;
+        let (x0, x1) = ((i * k).saturating_sub(k - 1), (i * k + k - 1).min(w - 1));
+        let (y0, y1) = ((j * k).saturating_sub(k - 1), (j * k + k - 1).min(h - 1));
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                let (ci, cj) = ((x / k).min(nx - 2), (y / k).min(ny - 2));
+                let (u, v) = (
+                    (x - ci * k) as f32 / k as f32,
+                    (y - cj * k) as f32 / k as f32,
+                );
+                let z = |a: usize, b: usize| q[b * nx + a] as f32 * step;
+                let b = z(ci, cj) * (1.0 - u) * (1.0 - v)
+                    + z(ci + 1, cj) * u * (1.0 - v)
+                    + z(ci, cj + 1) * (1.0 - u) * v
+                    + z(ci + 1, cj + 1) * u * v;
+                sse += f64::from(b - source.at(x, y)).powi(2);
+            }
+        }
+        sse
+    };
+    for _ in 0..3 {
+        for j in 0..ny {
+            for i in 0..nx {
+                if i * k >= w || j * k >= h {
+                    continue; // past the source: edge-extended, no samples of its own
+                }
+                let t = source.at(i * k, j * k) / step;
+                let idx = j * nx + i;
+                let mut best = (f64::INFINITY, q[idx]);
+                let pred = predict(&q, nx, i, j);
+                for c in [t.floor() as i32, t.ceil() as i32] {
+                    q[idx] = c.clamp(0, top);
+                    let bits = 2.0 * (1.0 + f64::from((q[idx] - pred).abs())).log2();
+                    let e = local(&q, i, j) + mu * bits;
+                    if e < best.0 {
+                        best = (e, q[idx]);
+                    }
+                }
+                q[idx] = best.1;
+            }
+        }
+    }
+    q
 }
 
 /// Wu and Zhou's local iteration: each node's s, in turn, is the least-squares optimum over the
