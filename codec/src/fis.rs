@@ -888,9 +888,10 @@ mod tests {
                         pv.value,
                         pv.error_bound
                     );
-                    // And the node is the source's sample, to the height quantum.
+                    // And the node is the source's sample, rounded up or down to the height
+                    // quantum (never further than one step).
                     let source = values[(j * 8) * w + i * 8];
-                    assert!((z - source).abs() <= h.height_step * 0.5 + 1e-6);
+                    assert!((z - source).abs() <= h.height_step + 1e-6);
                 }
             }
         }
