@@ -790,11 +790,13 @@ const FINER_SPACINGS: u32 = 4;
 ///
 /// Rate control: the spacing moves the size in steps (x2.25 from 2 to 3) and the height step
 /// fills in between. The smallest spacing that fits at its own height step is weighed against
-/// finer spacings, each with the finest coarser height step that fits (eighth-octave steps,
-/// found by bisection), while the PSNR keeps rising; the best PSNR wins. Coarse heights on a
-/// fine lattice often beat fine heights on a coarse one: etopo20 at 32:1 scores 36.5 dB at
-/// spacing 3 and its own step, 39.5 dB at spacing 2 with a 240 m step. (Weighing only the next
-/// finer spacing missed that: spacing 4 fits first there.)
+/// up to [`FINER_SPACINGS`] finer spacings, each with the finest coarser height step that fits
+/// (eighth-octave steps, found by bisection); the best PSNR wins. Coarse heights on a fine
+/// lattice often beat fine heights on a coarse one: etopo20 at 32:1 scored 36.5 dB at spacing 3
+/// and its own step, 39.5 dB at spacing 2 with a 235 m step (before the heights' rounding).
+/// Weighing only the next finer spacing missed that: spacing 4 fits first there. Under rate
+/// control `build` gets the byte budget, so that a codec with choices of its own (the FIS
+/// scalings' shrink) takes the best one that fits.
 fn encode_lattice(
     raster: &Raster,
     lattice: &Lattice,
