@@ -622,7 +622,7 @@ struct Sample {
 }
 
 /// Fits a surface to a normalised source: node heights by subsampling (rounded by
-/// [`round_to_surface`]), s by least squares.
+/// `round_to_surface`), s by least squares.
 pub fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Error> {
     header.validate().map_err(Error::Settings)?;
     let [nx, ny] = header.nodes();
