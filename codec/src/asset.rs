@@ -33,12 +33,14 @@ use crate::stream::{self, PlaneHeader};
 
 /// File magic.
 pub const MAGIC: &[u8; 8] = b"FRACTILE";
-/// The format version this build writes. Versions 2 and 3 changed only the curve payload
+/// The format version this build writes. Versions 2 to 4 changed only the curve payload
 /// (codec 5; version 3: hexagonal lattice for details, shared coarse contexts, an `f32`
-/// tolerance and one stored bound, no length fields); the other payloads are the same in all
-/// three, so version-1 and -2 files of codecs 1-4 are still read and an older curve asset is
-/// refused by name (re-encode its GeoJSON).
-pub const FORMAT_VERSION: u16 = 3;
+/// tolerance and one stored bound, no length fields; version 4: a ring may carry its
+/// antimeridian crossings, which a version-3 reader would misread as levels); the other
+/// payloads are the same in all four, so version-1 to -3 files of codecs 1-4 are still read,
+/// version-3 curve assets too (they hold no crossings), and an older curve asset is refused by
+/// name (re-encode its GeoJSON).
+pub const FORMAT_VERSION: u16 = 4;
 /// The oldest format version this build reads (codecs 1-4 only).
 pub const OLDEST_READ_VERSION: u16 = 1;
 /// The oldest format version of curve assets this build reads.

@@ -1374,7 +1374,8 @@ pub struct CurveQuery {
     /// Asset level; the finest (the input's) when absent.
     level: Option<usize>,
     /// `true`: each ring's base control points (level 0 of the model, what a `control`
-    /// deformation moves) instead of the curve.
+    /// deformation moves) instead of the curve. They are in the model's frame: along a ring
+    /// that crosses the antimeridian, longitudes are unwrapped (may pass ±180°).
     #[serde(default)]
     control: bool,
 }

@@ -24,7 +24,10 @@
 //! Symbols go through the adaptive binary range coder of [`crate::entropy`], with
 //! fast-learning contexts ([`crate::entropy::CountedBit`]) by level counted from the finest.
 
-use super::{CurveSet, Metric, Prepared, Pt, Ring, Scheme, point_segment_scaled, span_deviation};
+use super::{
+    CurveSet, Metric, Prepared, Pt, Ring, Scheme, SeamCrossing, point_segment_scaled,
+    span_deviation,
+};
 use crate::entropy::{BitTree, CountedBit as Bit, Decoder, Dir, Encoder, Model};
 
 /// What the stream needs to be read: the scheme and the shape of every ring. Stored in the
@@ -54,7 +57,7 @@ pub struct CurveHeader {
 /// `f32`, and the finest level's bound as a 16-bit code `k` of `tolerance · 2^(k/256)` (0.27%
 /// steps, rounded up; `u16::MAX`: no bound), or as `f32` rounded up when the tolerance is 0.
 pub mod compact {
-    use super::{CurveHeader, Metric, RingHeader, Scheme};
+    use super::{CurveHeader, Metric, RingHeader, Scheme, SeamCrossing};
 
     fn varint(out: &mut Vec<u8>, mut v: u64) {
         loop {
@@ -129,9 +132,30 @@ pub mod compact {
         out.extend_from_slice(&(h.tolerance as f32).to_le_bytes());
         varint(&mut out, h.rings.len() as u64);
         for r in &h.rings {
-            out.push((r.levels << 1) | u8::from(r.closed));
+            // Bit 7: a seam follows (levels take at most 5 bits above the closed bit).
+            let seam = u8::from(!r.seam.is_empty()) << 7;
+            out.push(seam | (r.levels << 1) | u8::from(r.closed));
             varint(&mut out, u64::from(r.pieces));
             varint(&mut out, u64::from(r.inserted));
+            if !r.seam.is_empty() {
+                varint(&mut out, r.seam.len() as u64);
+                let mut at = 0;
+                for c in &r.seam {
+                    // The gap to the previous crossing, with two bits for the turn: +1, -1
+                    // (one step between vertices within 180° of each other never turns more),
+                    // or another (a zigzag varint follows).
+                    let gap = u64::from(c.at - at) << 2;
+                    at = c.at;
+                    match c.turns {
+                        1 => varint(&mut out, gap),
+                        -1 => varint(&mut out, gap | 1),
+                        t => {
+                            varint(&mut out, gap | 2);
+                            varint(&mut out, ((t << 1) ^ (t >> 31)) as u32 as u64);
+                        }
+                    }
+                }
+            }
         }
         let k = encode_bound(h.tolerance, h.finest_bound);
         if h.tolerance == 0.0 {
@@ -210,11 +234,35 @@ pub mod compact {
             let [flags] = r.bytes()?;
             let pieces = u32::try_from(r.varint()?).map_err(|_| "too many pieces")?;
             let inserted = u32::try_from(r.varint()?).map_err(|_| "too many inserted points")?;
+            let mut seam = Vec::new();
+            if flags & 0x80 != 0 {
+                let n = r.count()?;
+                let mut at = 0u64;
+                for _ in 0..n {
+                    let v = r.varint()?;
+                    at += v >> 2;
+                    let turns = match v & 3 {
+                        0 => 1,
+                        1 => -1,
+                        2 => {
+                            let z = u32::try_from(r.varint()?)
+                                .map_err(|_| "a seam turn is too large")?;
+                            ((z >> 1) as i32) ^ -((z & 1) as i32)
+                        }
+                        _ => return Err("unknown seam turn code".into()),
+                    };
+                    seam.push(SeamCrossing {
+                        at: u32::try_from(at).map_err(|_| "a seam index is too large")?,
+                        turns,
+                    });
+                }
+            }
             rings.push(RingHeader {
                 closed: flags & 1 == 1,
                 pieces,
-                levels: flags >> 1,
+                levels: (flags >> 1) & 0x3f,
                 inserted,
+                seam,
             });
         }
         let k = if tolerance == 0.0 {
@@ -244,6 +292,8 @@ pub struct RingHeader {
     pub levels: u8,
     /// Points inserted on input segments.
     pub inserted: u32,
+    /// Where the ring crosses the antimeridian ([`SeamCrossing`]; empty for most rings).
+    pub seam: Vec<SeamCrossing>,
 }
 
 /// Most points a curve asset may decode to at its finest level (a tiny hostile header must not
@@ -268,6 +318,14 @@ impl CurveHeader {
             let n = (r.pieces as u64) << (r.levels as u32 + 1);
             if r.inserted as u64 >= n {
                 return Err(format!("ring {i}: more inserted points than points"));
+            }
+            let fine_len = n + u64::from(!r.closed);
+            if r.seam.windows(2).any(|w| w[0].at >= w[1].at)
+                || r.seam
+                    .iter()
+                    .any(|c| c.at as u64 >= fine_len || c.turns == 0 || c.turns.abs() > 1 << 20)
+            {
+                return Err(format!("ring {i}: bad antimeridian crossings"));
             }
             total = total.saturating_add(n);
         }
@@ -842,6 +900,7 @@ fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<
             base,
             details,
             inserted,
+            seam: rh.seam.clone(),
         });
     }
     Ok(rings)
@@ -854,6 +913,7 @@ pub fn encode(
     metric: Metric,
     tolerance: f64,
     sources: &[Prepared],
+    seams: &[Vec<SeamCrossing>],
 ) -> Result<(CurveHeader, Vec<u8>, CurveSet), String> {
     let tolerance = compact::tolerance_down(tolerance);
     let mut header = CurveHeader {
@@ -862,13 +922,15 @@ pub fn encode(
         tolerance,
         rings: sources
             .iter()
-            .map(|s| {
+            .zip(seams.iter().chain(std::iter::repeat(&Vec::new())))
+            .map(|(s, seam)| {
                 let segs = s.fine.len() - usize::from(!s.closed);
                 RingHeader {
                     closed: s.closed,
                     pieces: s.pieces as u32,
                     levels: (segs / s.pieces).ilog2() as u8 - 1,
                     inserted: s.inserted.len() as u32,
+                    seam: seam.clone(),
                 }
             })
             .collect(),
@@ -883,6 +945,29 @@ pub fn encode(
         sources,
         strict: sources.iter().map(|s| vec![false; s.fine.len()]).collect(),
     };
+    // The points that end a segment across the antimeridian stay near their vertices: in the
+    // output that segment is the source's jump around the world, which a point slid along the
+    // coast would tilt.
+    for ((rh, src), strict) in header.rings.iter().zip(sources).zip(plan.strict.iter_mut()) {
+        for c in &rh.seam {
+            let at = c.at as usize;
+            let before = (1..=at)
+                .map(|k| at - k)
+                .find(|&j| src.inserted.binary_search(&(j as u32)).is_err());
+            strict[before.unwrap_or(at)..=at].fill(true);
+        }
+        // A ring whose turns do not sum to zero crosses again where it closes.
+        if rh.closed && rh.seam.iter().map(|c| c.turns).sum::<i32>() != 0 {
+            let n = src.fine.len();
+            let last = (1..n)
+                .map(|k| n - k)
+                .find(|&j| src.inserted.binary_search(&(j as u32)).is_err())
+                .unwrap_or(0);
+            for j in (last..n).chain([0]) {
+                strict[j] = true;
+            }
+        }
+    }
     let (rings, stream) = loop {
         let mut enc = Encoder::new();
         let rings = walk(&mut Dir::Enc(&mut enc), &header, Some(&plan))?;
@@ -1041,9 +1126,10 @@ pub fn level_bounds(
     let finest = rings.iter().map(Ring::finest).max().unwrap_or(0);
     let mut bounds = vec![finest_bound; finest + 1];
     for r in rings {
-        let fine = r.polygon(scheme, r.finest());
+        // In the source's longitudes: a span across the antimeridian is drawn as a jump.
+        let fine = r.framed(scheme, r.finest());
         let own: Vec<f64> = (0..r.finest())
-            .map(|l| finest_bound + span_deviation(metric, &r.polygon(scheme, l), &fine, r.closed))
+            .map(|l| finest_bound + span_deviation(metric, &r.framed(scheme, l), &fine, r.closed))
             .chain([finest_bound])
             .collect();
         for (n, b) in bounds.iter_mut().enumerate() {
@@ -1144,7 +1230,8 @@ mod tests {
             custom in any::<bool>(),
             sphere in any::<bool>(),
             tol in prop_oneof![Just(0.0), 1e-6..1.0f64],
-            rings in proptest::collection::vec((any::<bool>(), 1u32..100_000, 0u8..=24, 0u32..1000), 1..6),
+            rings in proptest::collection::vec((any::<bool>(), 1u32..100_000, 0u8..=24, 0u32..1000,
+                proptest::collection::vec((1u32..5000, -3i32..=3), 0..4)), 1..6),
             factor in 1.0..1e6f64,
             stream in proptest::collection::vec(any::<u8>(), 0..8),
         ) {
@@ -1163,7 +1250,18 @@ mod tests {
                 tolerance,
                 rings: rings
                     .iter()
-                    .map(|&(closed, pieces, levels, inserted)| RingHeader { closed, pieces, levels, inserted })
+                    .map(|(closed, pieces, levels, inserted, seam)| {
+                        // Ascending indices, non-zero turns (what the encoder writes).
+                        let mut at = 0;
+                        let seam = seam
+                            .iter()
+                            .map(|&(gap, t)| {
+                                at += gap;
+                                SeamCrossing { at, turns: if t == 0 { 1 } else { t } }
+                            })
+                            .collect();
+                        RingHeader { closed: *closed, pieces: *pieces, levels: *levels, inserted: *inserted, seam }
+                    })
                     .collect(),
                 finest_bound,
             };

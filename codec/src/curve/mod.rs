@@ -209,6 +209,82 @@ pub struct Ring {
     /// Indices, in the finest polygon, of the points the encoder inserted on input segments
     /// (ascending). The finest output leaves them out.
     pub inserted: Vec<u32>,
+    /// Where the ring crosses the antimeridian (longitude and latitude rings only; empty
+    /// otherwise): the model holds unwrapped longitudes, the output the source's.
+    pub seam: Vec<SeamCrossing>,
+}
+
+/// A ring on the sphere is coded with its longitudes *unwrapped* (each vertex within 180° of
+/// the previous one), so that a coast that crosses the antimeridian (Chukotka, Fiji,
+/// Antarctica) is one continuous curve to the predictor instead of a 360° jump: the jump had
+/// cost Eurasia 0.7% and Antarctica 0.9% of their bytes (and drew the points inserted to fit
+/// the piece count onto a segment around the world). Output longitudes are the source's side
+/// of the antimeridian again: from fine index `at` on, `turns` more whole turns (360°) are
+/// taken off, and the result is clamped to [-180°, 180°].
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct SeamCrossing {
+    /// The first fine index (finest polygon, inserted points included) of the new turn.
+    pub at: u32,
+    /// Turns added there (usually 1 or -1).
+    pub turns: i32,
+}
+
+/// The turns (360° each) to take off the longitude of the point at fine index `f`.
+pub fn turns_at(seam: &[SeamCrossing], f: usize) -> i32 {
+    seam.iter()
+        .take_while(|c| c.at as usize <= f)
+        .map(|c| c.turns)
+        .sum()
+}
+
+/// Longitude back on the source's side of the antimeridian.
+fn rewrap(p: Pt, turns: i32) -> Pt {
+    [(p[0] - 360.0 * f64::from(turns)).clamp(-180.0, 180.0), p[1]]
+}
+
+/// Unwraps the longitudes of a polyline on the sphere: each vertex moved by whole turns to
+/// within 180° of the previous one. A ring that winds around a pole (Antarctica in longitude
+/// and latitude) cannot close in unwrapped longitudes: it becomes the open polyline from its
+/// first vertex around to the same vertex one turn on. Returns the points, whether they are
+/// closed, and the seam as input vertex indices (see [`SeamCrossing`]).
+pub fn unwrap_longitudes(points: &[Pt], closed: bool) -> (Vec<Pt>, bool, Vec<SeamCrossing>) {
+    let mut pts = points.to_vec();
+    if closed && pts.len() > 1 && pts.first() == pts.last() {
+        pts.pop();
+    }
+    let mut seam = Vec::new();
+    let mut turns = 0i32;
+    let mut out: Vec<Pt> = Vec::with_capacity(pts.len() + 1);
+    let turns_to = |prev: f64, lon: f64| ((prev - lon) / 360.0).round() as i32;
+    for (i, p) in pts.iter().enumerate() {
+        if let Some(prev) = out.last() {
+            let t = turns_to(prev[0], p[0]);
+            if t != turns {
+                seam.push(SeamCrossing {
+                    at: i as u32,
+                    turns: t - turns,
+                });
+                turns = t;
+            }
+        }
+        out.push([p[0] + 360.0 * f64::from(turns), p[1]]);
+    }
+    let mut closed = closed;
+    if closed && let (Some(first), Some(last)) = (pts.first(), out.last()) {
+        let t = turns_to(last[0], first[0]);
+        if t != 0 {
+            // Winds around a pole: the closing vertex one turn on ends an open polyline.
+            if t != turns {
+                seam.push(SeamCrossing {
+                    at: out.len() as u32,
+                    turns: t - turns,
+                });
+            }
+            out.push([first[0] + 360.0 * f64::from(t), first[1]]);
+            closed = false;
+        }
+    }
+    (out, closed, seam)
 }
 
 impl Ring {
@@ -273,6 +349,7 @@ impl Ring {
             base: cur,
             details,
             inserted,
+            seam: Vec::new(),
         }
     }
 
@@ -316,7 +393,7 @@ impl Ring {
     /// (where every remaining point is an input vertex), the first point repeated at the end of
     /// a ring (GeoJSON's closed rings).
     pub fn output(&self, scheme: &Scheme, level: usize) -> Vec<Pt> {
-        let mut pts = self.polygon(scheme, level);
+        let mut pts = self.framed(scheme, level);
         if level == self.finest() && !self.inserted.is_empty() {
             let mut skip = self.inserted.iter().peekable();
             let mut i = 0u32;
@@ -331,6 +408,25 @@ impl Ring {
         }
         if self.closed {
             pts.push(pts[0]);
+        }
+        pts
+    }
+
+    /// [`Ring::polygon`] in the source's longitudes (see [`SeamCrossing`]): what the output
+    /// draws, inserted points kept. Error bounds are measured on it.
+    pub fn framed(&self, scheme: &Scheme, level: usize) -> Vec<Pt> {
+        let mut pts = self.polygon(scheme, level);
+        if !self.seam.is_empty() {
+            let finest = self.finest();
+            for (j, p) in pts.iter_mut().enumerate() {
+                // The fine index at or before point j of this level.
+                let f = if level <= finest {
+                    j << (finest - level)
+                } else {
+                    j >> (level - finest).min(usize::BITS as usize - 1)
+                };
+                *p = rewrap(*p, turns_at(&self.seam, f));
+            }
         }
         pts
     }
@@ -429,6 +525,25 @@ pub fn prepare(points: &[Pt], closed: bool) -> Result<Prepared, String> {
         fine,
         inserted,
     })
+}
+
+/// The seam of input vertex indices as fine indices of `p` (inserted points shift them).
+fn seam_to_fine(seam: &[SeamCrossing], p: &Prepared) -> Vec<SeamCrossing> {
+    seam.iter()
+        .map(|c| {
+            // Input vertex i is fine index i plus the inserted points before it.
+            let mut f = c.at as usize;
+            for &k in &p.inserted {
+                if k as usize <= f {
+                    f += 1;
+                }
+            }
+            SeamCrossing {
+                at: f as u32,
+                turns: c.turns,
+            }
+        })
+        .collect()
 }
 
 /// Total order on lengths for the heap (lengths are finite: vertices were checked).
@@ -540,8 +655,8 @@ impl CurveSet {
     /// each lies within its span of that polygon, so this plus the tolerance bounds the
     /// Hausdorff distance both ways (a span's points project onto its whole segment).
     fn continuation_deviation(&self, r: &Ring, level: usize) -> f64 {
-        let coarse = r.polygon(&self.scheme, r.finest());
-        let fine = r.polygon(&self.scheme, level);
+        let coarse = r.framed(&self.scheme, r.finest());
+        let fine = r.framed(&self.scheme, level);
         span_deviation(self.metric, &coarse, &fine, r.closed)
     }
 }
@@ -723,15 +838,35 @@ pub fn encode(
             settings.tolerance
         )));
     }
-    let prepared = lines
+    // Longitudes are unwrapped only when lossy: adding whole turns rounds the last bit of some
+    // coordinates, which lossless coding must not do (it codes the jump instead).
+    let unwrap = settings.metric == Metric::Sphere && settings.tolerance > 0.0;
+    let (prepared, seams): (Vec<Prepared>, Vec<Vec<SeamCrossing>>) = lines
         .iter()
         .enumerate()
-        .map(|(i, l)| prepare(&l.points, l.closed).map_err(|e| format!("polyline {i}: {e}")))
-        .collect::<Result<Vec<_>, _>>()
-        .map_err(crate::Error::Input)?;
+        .map(|(i, l)| {
+            let (points, closed, seam) = if unwrap {
+                unwrap_longitudes(&l.points, l.closed)
+            } else {
+                (l.points.clone(), l.closed, Vec::new())
+            };
+            let p = prepare(&points, closed).map_err(|e| format!("polyline {i}: {e}"))?;
+            let seam = seam_to_fine(&seam, &p);
+            Ok((p, seam))
+        })
+        .collect::<Result<Vec<_>, String>>()
+        .map_err(crate::Error::Input)?
+        .into_iter()
+        .unzip();
     let coded = |scheme: &Scheme| {
-        code::encode(scheme, settings.metric, settings.tolerance, &prepared)
-            .map_err(crate::Error::Input)
+        code::encode(
+            scheme,
+            settings.metric,
+            settings.tolerance,
+            &prepared,
+            &seams,
+        )
+        .map_err(crate::Error::Input)
     };
     let mut best = coded(&Scheme::default())?;
     let mut report = fit::FitReport::default();
