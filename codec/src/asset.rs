@@ -36,10 +36,10 @@ pub const MAGIC: &[u8; 8] = b"FRACTILE";
 /// The format version this build writes. Versions 2 to 4 changed only the curve payload
 /// (codec 5; version 3: hexagonal lattice for details, shared coarse contexts, an `f32`
 /// tolerance and one stored bound, no length fields; version 4: a ring may carry its
-/// antimeridian crossings, which a version-3 reader would misread as levels); the other
-/// payloads are the same in all four, so version-1 to -3 files of codecs 1-4 are still read,
-/// version-3 curve assets too (they hold no crossings), and an older curve asset is refused by
-/// name (re-encode its GeoJSON).
+/// antimeridian crossings and start vertex, which a version-3 reader would misread as levels);
+/// the other payloads are the same in all four, so version-1 to -3 files of codecs 1-4 are
+/// still read, version-3 curve assets too (they hold neither), and an older curve asset is
+/// refused by name (re-encode its GeoJSON).
 pub const FORMAT_VERSION: u16 = 4;
 /// The oldest format version this build reads (codecs 1-4 only).
 pub const OLDEST_READ_VERSION: u16 = 1;

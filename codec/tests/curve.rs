@@ -26,6 +26,7 @@ fn encode(lines: &[Polyline], tolerance: f64, fit: bool) -> Asset {
         tolerance,
         metric: Metric::Sphere,
         fit,
+        ..Default::default()
     };
     let enc = curve::encode_asset(lines, &s, "coast5").unwrap();
     // What is served is what a reader of the file gets.
@@ -367,10 +368,30 @@ fn check_across_the_antimeridian(l: &Polyline, tol: f64) -> usize {
             out.error_bound
         );
     }
-    let out = set.at_level(set.finest()).lines.swap_remove(0);
-    assert_eq!(out.len(), src.len());
+    let mut out = set.at_level(set.finest()).lines.swap_remove(0);
     let h = curve::hausdorff(Metric::Sphere, &src, &out, tol / 4.0);
     assert!(h <= tol * 1.001, "finest: Hausdorff {h} over {tol}");
+    // Closed exactly, from the input's first vertex.
+    assert_eq!(out.first(), out.last());
+    assert!(Metric::Sphere.distance(out[0], src[0]) <= tol * 1.001);
+    let winds = c.header.rings[0].closed != l.closed;
+    if winds {
+        // Around the pole: coded as an open line from a start vertex to the same vertex one
+        // turn on, so the output holds that vertex twice, both within the tolerance of it.
+        assert_eq!(out.len(), src.len() + 1);
+        let start = c.header.rings[0]
+            .start
+            .expect("a winding ring stores its start") as usize;
+        let (a, b) = if start == 0 {
+            (out.len() - 2, out.len() - 1)
+        } else {
+            (start, start + 1)
+        };
+        let hop = Metric::Sphere.distance(out[a], out[b]);
+        assert!(hop <= 2.0 * tol * 1.001, "hop of {hop} at vertex {start}");
+        out.remove(if start == 0 { a } else { b });
+    }
+    assert_eq!(out.len(), src.len());
     for (i, (p, q)) in src.iter().zip(&out).enumerate().skip(1) {
         let jumps = |a: Pt, b: Pt| (a[0] - b[0]).abs() > 180.0;
         assert_eq!(jumps(src[i - 1], *p), jumps(out[i - 1], *q), "vertex {i}");
@@ -414,4 +435,32 @@ fn rings_across_the_antimeridian_code_as_one_curve_and_keep_their_side() {
     // Antarctica at 1 km: better than 7.8:1 against float32 (it was 7.85:1 with the jump).
     let points = ant.points.len() + 1;
     assert!(points as f64 * 8.0 / bytes as f64 > 7.88, "{bytes} bytes");
+}
+
+#[test]
+fn the_start_kept_codes_no_larger_than_the_inputs_own() {
+    // One ring under the default scheme: each candidate start is coded exactly as the asset
+    // will be, so the search can only help; the output still starts at the input's first
+    // vertex and stays within the tolerance.
+    let ant = &antarctica()[0];
+    let tol = 0.009;
+    let bytes = |starts: usize| {
+        let s = CurveSettings {
+            tolerance: tol,
+            fit: false,
+            starts,
+            ..Default::default()
+        };
+        curve::encode(std::slice::from_ref(ant), &s).unwrap().0
+    };
+    let (own, searched) = (bytes(1), bytes(16));
+    assert!(searched.payload().len() <= own.payload().len());
+    let out = searched
+        .set
+        .at_level(searched.set.finest())
+        .lines
+        .swap_remove(0);
+    let src = closed(ant);
+    assert!(Metric::Sphere.distance(out[0], src[0]) <= tol * 1.001);
+    assert!(curve::hausdorff(Metric::Sphere, &src, &out, tol / 4.0) <= tol * 1.001);
 }

@@ -25,7 +25,7 @@
 //! fast-learning contexts ([`crate::entropy::CountedBit`]) by level counted from the finest.
 
 use super::{
-    CurveSet, Metric, Prepared, Pt, Ring, Scheme, SeamCrossing, point_segment_scaled,
+    CurveSet, Frame, Metric, Prepared, Pt, Ring, Scheme, SeamCrossing, point_segment_scaled,
     span_deviation,
 };
 use crate::entropy::{BitTree, CountedBit as Bit, Decoder, Dir, Encoder, Model};
@@ -132,11 +132,16 @@ pub mod compact {
         out.extend_from_slice(&(h.tolerance as f32).to_le_bytes());
         varint(&mut out, h.rings.len() as u64);
         for r in &h.rings {
-            // Bit 7: a seam follows (levels take at most 5 bits above the closed bit).
+            // Bit 7: a seam follows; bit 6: a start (levels take at most 5 bits above the
+            // closed bit).
             let seam = u8::from(!r.seam.is_empty()) << 7;
-            out.push(seam | (r.levels << 1) | u8::from(r.closed));
+            let start = u8::from(r.start.is_some()) << 6;
+            out.push(seam | start | (r.levels << 1) | u8::from(r.closed));
             varint(&mut out, u64::from(r.pieces));
             varint(&mut out, u64::from(r.inserted));
+            if let Some(s) = r.start {
+                varint(&mut out, u64::from(s));
+            }
             if !r.seam.is_empty() {
                 varint(&mut out, r.seam.len() as u64);
                 let mut at = 0;
@@ -234,6 +239,11 @@ pub mod compact {
             let [flags] = r.bytes()?;
             let pieces = u32::try_from(r.varint()?).map_err(|_| "too many pieces")?;
             let inserted = u32::try_from(r.varint()?).map_err(|_| "too many inserted points")?;
+            let start = if flags & 0x40 != 0 {
+                Some(u32::try_from(r.varint()?).map_err(|_| "a start index is too large")?)
+            } else {
+                None
+            };
             let mut seam = Vec::new();
             if flags & 0x80 != 0 {
                 let n = r.count()?;
@@ -260,9 +270,10 @@ pub mod compact {
             rings.push(RingHeader {
                 closed: flags & 1 == 1,
                 pieces,
-                levels: (flags >> 1) & 0x3f,
+                levels: (flags >> 1) & 0x1f,
                 inserted,
                 seam,
+                start,
             });
         }
         let k = if tolerance == 0.0 {
@@ -294,6 +305,8 @@ pub struct RingHeader {
     pub inserted: u32,
     /// Where the ring crosses the antimeridian ([`SeamCrossing`]; empty for most rings).
     pub seam: Vec<SeamCrossing>,
+    /// The input vertex the coded ring starts at ([`Ring::start`]).
+    pub start: Option<u32>,
 }
 
 /// Most points a curve asset may decode to at its finest level (a tiny hostile header must not
@@ -326,6 +339,9 @@ impl CurveHeader {
                     .any(|c| c.at as u64 >= fine_len || c.turns == 0 || c.turns.abs() > 1 << 20)
             {
                 return Err(format!("ring {i}: bad antimeridian crossings"));
+            }
+            if r.start.is_some_and(|s| s as u64 >= fine_len) {
+                return Err(format!("ring {i}: start vertex past its points"));
             }
             total = total.saturating_add(n);
         }
@@ -901,6 +917,7 @@ fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<
             details,
             inserted,
             seam: rh.seam.clone(),
+            start: rh.start,
         });
     }
     Ok(rings)
@@ -913,7 +930,7 @@ pub fn encode(
     metric: Metric,
     tolerance: f64,
     sources: &[Prepared],
-    seams: &[Vec<SeamCrossing>],
+    frames: &[Frame],
 ) -> Result<(CurveHeader, Vec<u8>, CurveSet), String> {
     let tolerance = compact::tolerance_down(tolerance);
     let mut header = CurveHeader {
@@ -922,8 +939,8 @@ pub fn encode(
         tolerance,
         rings: sources
             .iter()
-            .zip(seams.iter().chain(std::iter::repeat(&Vec::new())))
-            .map(|(s, seam)| {
+            .zip(frames.iter().chain(std::iter::repeat(&(Vec::new(), None))))
+            .map(|(s, (seam, start))| {
                 let segs = s.fine.len() - usize::from(!s.closed);
                 RingHeader {
                     closed: s.closed,
@@ -931,6 +948,7 @@ pub fn encode(
                     levels: (segs / s.pieces).ilog2() as u8 - 1,
                     inserted: s.inserted.len() as u32,
                     seam: seam.clone(),
+                    start: *start,
                 }
             })
             .collect(),
@@ -1260,7 +1278,8 @@ mod tests {
                                 SeamCrossing { at, turns: if t == 0 { 1 } else { t } }
                             })
                             .collect();
-                        RingHeader { closed: *closed, pieces: *pieces, levels: *levels, inserted: *inserted, seam }
+                        let start = (pieces % 3 == 0).then_some(*inserted);
+                        RingHeader { closed: *closed, pieces: *pieces, levels: *levels, inserted: *inserted, seam, start }
                     })
                     .collect(),
                 finest_bound,

@@ -144,30 +144,13 @@ fn local(
     };
     let r = ring_mut(set, ring)?;
     let mut poly = r.polygon(&scheme, own);
-    // The output at the finest level leaves inserted points out: map its index.
-    let at = if own == r.finest() {
-        let mut skip = r.inserted.iter().peekable();
-        let mut out = 0;
-        let mut found = None;
-        for i in 0..poly.len() {
-            if skip.peek().is_some_and(|&&s| s as usize == i) {
-                skip.next();
-                continue;
-            }
-            if out == index {
-                found = Some(i);
-                break;
-            }
-            out += 1;
-        }
-        found
-    } else {
-        (index < poly.len()).then_some(index)
-    };
-    let Some(at) = at.or_else(|| (r.closed && index == poly.len()).then_some(0)) else {
+    // The index is the output's (inserted points left out, the input's first vertex first);
+    // `to` is in the output's longitudes, so the move is measured there.
+    let Some(&at) = r.output_map(own).get(index) else {
         return Err(format!("ring {ring} has no point {index} at level {level}"));
     };
-    let delta = [to[0] - poly[at][0], to[1] - poly[at][1]];
+    let framed = r.framed(&scheme, own);
+    let delta = [to[0] - framed[at][0], to[1] - framed[at][1]];
     let n = poly.len() as isize;
     let reach = radius.min(poly.len() / 2);
     for k in -(reach as isize)..=reach as isize {
