@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use fractile_codec::decode::{self, DiscreteOptions};
+use fractile_codec::encode::{DEFAULT_SPEED, SPEEDS};
 use fractile_codec::operator::Operator;
 use fractile_codec::{EncodeSettings, Raster, RateMode, SearchMode, encode, metrics};
 
@@ -175,6 +176,49 @@ fn main() {
             &dem(0.8),
             false,
         );
+    }
+
+    if want("speed") {
+        // The speed presets (`--speed`), each image at each preset, in one run: quality against
+        // encode time, the default's row beside the others.
+        println!("\n## Speed presets\n");
+        println!("| image | rate | speed | domain step, candidates | bpp | PSNR dB | encode s |");
+        println!("|---|---|---|---|---|---|---|");
+        let mut cases: Vec<(&str, &Raster, f64, bool)> = vec![
+            ("camera 512", &camera, 0.2, false),
+            ("camera 512", &camera, 0.48, false),
+        ];
+        let etopo = Path::new(&etopo_path)
+            .exists()
+            .then(|| Raster::open(&etopo_path).expect("etopo20"));
+        if let Some(e) = &etopo {
+            cases.push(("etopo20", e, 0.8, true));
+        }
+        for (name, r, b, height) in cases {
+            for speed in 0..SPEEDS.len() as u8 {
+                let mut s = EncodeSettings {
+                    rate: RateMode::TargetBpp(b),
+                    ..EncodeSettings::at_speed(speed).expect("preset")
+                };
+                if height {
+                    s.quantiser.slope_bits =
+                        EncodeSettings::default_slope_bits(fractile_proto::AssetKind::HeightField);
+                }
+                let enc = encode(r, &s, &quiet).expect("encode");
+                let (step, k) = SPEEDS[speed as usize];
+                println!(
+                    "| {name} | {b} bpp | {speed}{} | {step}, {k} | {:.3} | {:.2} | {:.2} |",
+                    if speed == DEFAULT_SPEED {
+                        " (default)"
+                    } else {
+                        ""
+                    },
+                    enc.bpp(),
+                    enc.errors.psnr,
+                    enc.seconds
+                );
+            }
+        }
     }
 
     if want("decode") {

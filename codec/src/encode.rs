@@ -94,7 +94,37 @@ impl Default for EncodeSettings {
     }
 }
 
+/// Encoder speed presets, as rav1e's `--speed`: 0 is the slowest and best, [`DEFAULT_SPEED`] is
+/// [`EncodeSettings::default`], the last is the fastest. Each preset is `(domain_step,
+/// candidates)`: how densely domains are laid out (a step of 1 range side has 4 times the domains
+/// of the default 2) and how many candidates the nearest-neighbour search scores per range.
+///
+/// Chosen from a sweep of both knobs with the CLI (release, this project's 2-core machine,
+/// README "Speed presets"): per step, the setting with the most PSNR for its encode time on
+/// camera.png at 0.2 and 0.48 bpp and etopo20 at 20:1. Denser lattices than a step of 1 (0.5)
+/// gained under 0.07 dB for 2-3 times the time, so no preset uses them.
+pub const SPEEDS: [(f32, usize); 5] = [(1.0, 128), (1.0, 64), (2.0, 32), (2.0, 16), (2.0, 8)];
+
+/// The preset [`EncodeSettings::default`] uses (the speed the 2 s bar is measured at).
+pub const DEFAULT_SPEED: u8 = 2;
+
 impl EncodeSettings {
+    /// The default settings at speed preset `speed` ([`SPEEDS`]): only the domain lattice and
+    /// the search's candidates change.
+    pub fn at_speed(speed: u8) -> Result<EncodeSettings, Error> {
+        let &(domain_step, candidates) = SPEEDS.get(speed as usize).ok_or_else(|| {
+            Error::Settings(format!(
+                "speed {speed} is not a preset: 0 (slowest, best) to {} (fastest)",
+                SPEEDS.len() - 1
+            ))
+        })?;
+        Ok(EncodeSettings {
+            domain_step,
+            search: SearchMode::Nearest(candidates),
+            ..EncodeSettings::default()
+        })
+    }
+
     fn validate(&self) -> Result<(), Error> {
         let pow2 = |v: u32| v >= 1 && v.is_power_of_two();
         if !pow2(self.min_range)

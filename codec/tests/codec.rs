@@ -989,3 +989,30 @@ fn adaptive_terrain_meshes_stay_within_their_error_without_cracks() {
     // Sizes other than 2^k + 1 are refused with a reason.
     assert!(Mesh::adaptive(&heights[..100 * 100], 100, [0.0, 0.0], [1.0, 1.0], 1.0).is_err());
 }
+
+#[test]
+fn slower_speed_presets_buy_quality_at_the_same_rate() {
+    use fractile_codec::encode::{DEFAULT_SPEED, SPEEDS};
+    let d = EncodeSettings::default();
+    let p = EncodeSettings::at_speed(DEFAULT_SPEED).unwrap();
+    assert_eq!((p.domain_step, p.search), (d.domain_step, d.search));
+    let err = EncodeSettings::at_speed(SPEEDS.len() as u8).unwrap_err();
+    assert!(err.to_string().contains("not a preset"), "{err}");
+
+    let src = crop(&camera(), 128, 128, 192, 192);
+    let psnr = |speed: u8| {
+        let s = EncodeSettings {
+            rate: RateMode::TargetBpp(0.48),
+            ..EncodeSettings::at_speed(speed).unwrap()
+        };
+        let e = encode(&src, &s, &quiet).unwrap();
+        assert!(e.bpp() <= 0.48);
+        e.errors.psnr
+    };
+    let all: Vec<f64> = (0..SPEEDS.len() as u8).map(psnr).collect();
+    eprintln!("PSNR by speed: {all:?}");
+    assert!(
+        all[0] > all[DEFAULT_SPEED as usize] && all[DEFAULT_SPEED as usize] > all[SPEEDS.len() - 1],
+        "{all:?}"
+    );
+}

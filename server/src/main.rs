@@ -141,9 +141,13 @@ struct EncodeArgs {
     /// Largest range side (power of two).
     #[arg(long, default_value_t = EncodeSettings::default().max_range)]
     max_range: u32,
-    /// Domain lattice step, as a fraction of the range side.
-    #[arg(long, default_value_t = EncodeSettings::default().domain_step)]
-    domain_step: f32,
+    /// Encoder speed preset: 0 (slowest, best) to 4 (fastest). Sets the domain lattice and the
+    /// search's candidates (`--domain-step` and `--candidates` override it); 2 is the default.
+    #[arg(long, default_value_t = fractile_codec::encode::DEFAULT_SPEED)]
+    speed: u8,
+    /// Domain lattice step, as a fraction of the range side [default: from --speed, 2].
+    #[arg(long)]
+    domain_step: Option<f32>,
     /// Bits of the contrast index.
     #[arg(long, default_value_t = EncodeSettings::default().quantiser.contrast_bits)]
     contrast_bits: u8,
@@ -160,9 +164,9 @@ struct EncodeArgs {
     /// Domain search.
     #[arg(long, value_enum, default_value_t = Search::Nearest)]
     search: Search,
-    /// Candidates scored per range by the nearest-neighbour search.
-    #[arg(long, default_value_t = 32)]
-    candidates: usize,
+    /// Candidates scored per range by the nearest-neighbour search [default: from --speed, 32].
+    #[arg(long)]
+    candidates: Option<usize>,
     /// Codec: quadtree-pifs (images and height fields); a fractal interpolation surface for
     /// height fields: fis-bilinear (s per node, Wu and Zhou), fis-rect (s per cell),
     /// fis-rect-global (one s, Drakopoulos and Manousopoulos); or the piecewise self-affine
@@ -747,11 +751,16 @@ fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractile_codec::En
         (.., Some(r)) => RateMode::ConstRange(r),
         _ => RateMode::Tolerance(f32::NAN),
     };
+    let preset = EncodeSettings::at_speed(a.speed)?;
+    let candidates = match preset.search {
+        SearchMode::Nearest(k) => a.candidates.unwrap_or(k),
+        _ => a.candidates.unwrap_or(32),
+    };
     let settings = EncodeSettings {
         rate,
         min_range: a.min_range,
         max_range: a.max_range,
-        domain_step: a.domain_step,
+        domain_step: a.domain_step.unwrap_or(preset.domain_step),
         quantiser: Quantiser {
             contrast_bits: a.contrast_bits,
             offset_bits: a.offset_bits,
@@ -763,10 +772,10 @@ fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractile_codec::En
         search: match a.search {
             Search::Full => SearchMode::Full,
             Search::Classified => SearchMode::Classified,
-            Search::Nearest => SearchMode::Nearest(a.candidates.max(1)),
+            Search::Nearest => SearchMode::Nearest(candidates.max(1)),
         },
         rois: a.roi.clone(),
-        ..EncodeSettings::default()
+        ..preset
     };
     // The bar appears only once an encode has run for a second (short encodes stay quiet).
     let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());

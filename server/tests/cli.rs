@@ -178,6 +178,18 @@ fn bad_input_gives_a_clear_error_and_no_output() {
         .unwrap();
     assert!(String::from_utf8_lossy(&bad.stderr).contains("powers of two"));
     assert!(!dir.join("y.fra").exists());
+
+    let fast = bin()
+        .arg("encode")
+        .arg(data("camera.png"))
+        .arg("-o")
+        .arg(dir.join("z.fra"))
+        .args(["--speed", "9"])
+        .output()
+        .unwrap();
+    assert!(!fast.status.success());
+    assert!(String::from_utf8_lossy(&fast.stderr).contains("not a preset"));
+    assert!(!dir.join("z.fra").exists());
 }
 
 #[test]
