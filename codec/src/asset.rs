@@ -463,6 +463,21 @@ impl Asset {
         })
     }
 
+    /// Size in bytes of the file [`Asset::from_parts`] would build from the same parts, without
+    /// decoding the streams or building operators: rate control asks it of every trial
+    /// partition and builds the asset once, for the one it keeps.
+    pub fn quadtree_file_size(
+        meta: &AssetMeta,
+        planes: Vec<(PlaneHeader, Vec<u8>)>,
+        mask: Option<&Mask>,
+    ) -> usize {
+        let payload = fractile_proto::encode(&Payload {
+            planes,
+            mask: mask.map(Mask::encode),
+        });
+        assemble(meta, Codec::QuadtreePifs, &payload).len()
+    }
+
     /// Builds an asset of fractal interpolation surfaces from coded planes (height fields).
     pub fn from_fis_parts(
         meta: AssetMeta,

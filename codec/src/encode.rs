@@ -419,8 +419,8 @@ pub fn encode(
         stats: EncodeStats::default(),
     };
     let pyr_refs: Vec<&Pyramid> = pyramids.iter().collect();
-    let build = |parts: &[Partition], meta: &AssetMeta| -> Result<Asset, Error> {
-        let coded = pyramids
+    let code = |parts: &[Partition]| -> Vec<(PlaneHeader, Vec<u8>)> {
+        pyramids
             .iter()
             .zip(parts)
             .map(|(p, part)| {
@@ -429,8 +429,10 @@ pub fn encode(
                     encode_plane(&p.header, &|l, bx, by| part.decide(p, l, bx, by)),
                 )
             })
-            .collect();
-        Asset::from_parts(meta.clone(), coded, mask.clone())
+            .collect()
+    };
+    let build = |parts: &[Partition], meta: &AssetMeta| -> Result<Asset, Error> {
+        Asset::from_parts(meta.clone(), code(parts), mask.clone())
     };
     let parts: Vec<Partition> = match settings.rate {
         RateMode::ConstRange(_) => pyramids.iter().map(Partition::whole_level).collect(),
@@ -453,8 +455,14 @@ pub fn encode(
                     .map(|((p, l), &wt)| Partition::by_lagrangian(p, lambda, wt, *l))
                     .collect()
             };
+            // The size alone (no stream decoding, no operator). The stats `measured` fills in
+            // later are fixed-width fields, so the final file has exactly this size.
             let size_at = |lambda: f32| -> Result<usize, Error> {
-                Ok(build(&at(lambda), &meta)?.file_size())
+                Ok(Asset::quadtree_file_size(
+                    &meta,
+                    code(&at(lambda)),
+                    mask.as_ref(),
+                ))
             };
             // Smallest lambda (best quality) whose file fits: bisection on log(lambda); the size
             // falls as lambda grows.

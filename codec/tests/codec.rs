@@ -1016,3 +1016,43 @@ fn slower_speed_presets_buy_quality_at_the_same_rate() {
         "{all:?}"
     );
 }
+
+#[test]
+fn rate_control_sizes_are_the_sizes_of_the_files() {
+    use fractile_codec::asset::Coding;
+    // A colour image (three planes) and a DEM with nodata (a mask): rate control sizes trial
+    // partitions without building assets, and that size must be the file's.
+    let dem = Raster::open(&data("jacksboro-utm.tif")).unwrap();
+    assert!(dem.valid.is_some(), "the warped DEM has nodata corners");
+    let colour = crop(
+        &Raster::open(&data("astronaut.png")).unwrap(),
+        100,
+        100,
+        96,
+        64,
+    );
+    for src in [dem, colour] {
+        let e = encode(
+            &src,
+            &EncodeSettings {
+                rate: RateMode::TargetBpp(1.0),
+                ..EncodeSettings::default()
+            },
+            &quiet,
+        )
+        .unwrap();
+        let planes = e
+            .asset
+            .planes
+            .iter()
+            .map(|p| match &p.coding {
+                Coding::Quadtree { header, stream } => (header.clone(), stream.clone()),
+                _ => panic!("a quadtree asset"),
+            })
+            .collect();
+        let size = Asset::quadtree_file_size(&e.asset.meta, planes, e.asset.mask.as_ref());
+        assert_eq!(size, e.bytes.len());
+        assert!(e.bpp() <= 1.0);
+        assert_eq!(e.asset.mask.is_some(), src.valid.is_some());
+    }
+}

@@ -141,8 +141,8 @@ struct EncodeArgs {
     /// Largest range side (power of two).
     #[arg(long, default_value_t = EncodeSettings::default().max_range)]
     max_range: u32,
-    /// Encoder speed preset: 0 (slowest, best) to 4 (fastest). Sets the domain lattice and the
-    /// search's candidates (`--domain-step` and `--candidates` override it); 2 is the default.
+    /// quadtree-pifs: encoder speed preset, 0 (slowest, best) to 4 (fastest). Sets the domain
+    /// lattice and the search's candidates (`--domain-step` and `--candidates` override it).
     #[arg(long, default_value_t = fractile_codec::encode::DEFAULT_SPEED)]
     speed: u8,
     /// Domain lattice step, as a fraction of the range side [default: from --speed, 2].
