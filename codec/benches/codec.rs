@@ -1,5 +1,5 @@
 //! Codec bench: prints a table per test image and setting (bpp, ratio, PSNR, encode s, decode
-//! ms, and JPEG at the same rate beside it), then decoder speeds. Release build:
+//! ms, and JPEG and JPEG 2000 at the same rate beside it), then decoder speeds. Release build:
 //! `cargo bench -p fractile-codec --bench codec`. Uses `testdata/` and, when present,
 //! `../shared/data` (etopo20).
 
@@ -81,6 +81,117 @@ fn jpeg_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
     best
 }
 
+/// JPEG 2000 at the largest size not above `bpp`: OpenJPEG's `opj_compress -I` (the 9/7
+/// irreversible wavelet, the lossy mode the issue's JPEG 2000 figures use) and `opj_decompress`,
+/// when they are on PATH (Debian: `libopenjp2-tools`); `None` otherwise, or for rasters with
+/// nodata. The reference implementation's tools rather than a crate: the pure-Rust JPEG 2000
+/// encoders on crates.io are young (0.x, a few months old), and a baseline has to be the one
+/// the bars were measured with. Height fields are shifted to start at 0 and written as 16-bit
+/// PNG; PSNR's peak is then the value range, as for our own rows.
+fn jpeg2000_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
+    if r.valid.is_some() {
+        return None;
+    }
+    let (w, h) = (r.width as u32, r.height as u32);
+    let dir = std::env::temp_dir().join(format!("fractile-bench-j2k-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).ok()?;
+    let (src, j2k, out) = (dir.join("in.png"), dir.join("out.j2k"), dir.join("out.png"));
+    let (lo, hi) = r.value_range();
+    let (bits, peak, shift) = match r.sample {
+        fractile_proto::SampleFormat::U8 => (8.0, 255.0, 0.0),
+        _ if hi - lo <= 65535.0 => (16.0, hi - lo, lo),
+        _ => return None,
+    };
+    let planes = r.channels.len();
+    let interleaved = (0..r.width * r.height).flat_map(|i| (0..planes).map(move |c| (c, i)));
+    let img: image::DynamicImage = match (bits == 8.0, planes) {
+        (true, 1) => {
+            image::GrayImage::from_raw(w, h, r.channels[0].iter().map(|&v| v as u8).collect())?
+                .into()
+        }
+        (true, 3) => image::RgbImage::from_raw(
+            w,
+            h,
+            interleaved.map(|(c, i)| r.channels[c][i] as u8).collect(),
+        )?
+        .into(),
+        (false, 1) => image::ImageBuffer::<image::Luma<u16>, _>::from_raw(
+            w,
+            h,
+            r.channels[0]
+                .iter()
+                .map(|&v| (v as f64 - shift).round() as u16)
+                .collect(),
+        )?
+        .into(),
+        _ => return None,
+    };
+    img.save(&src).ok()?;
+    // OpenJPEG's -r is raw size over coded size; its rate control lands near, not always under,
+    // the target: tighten until the file fits.
+    let mut ratio = bits * planes as f64 / bpp;
+    let result = (0..8).find_map(|_| {
+        let ok = std::process::Command::new("opj_compress")
+            .args(["-I", "-r", &format!("{ratio:.4}"), "-i"])
+            .arg(&src)
+            .arg("-o")
+            .arg(&j2k)
+            .output()
+            .ok()?
+            .status
+            .success();
+        if !ok {
+            return Some(None);
+        }
+        let got = std::fs::metadata(&j2k).ok()?.len() as f64 * 8.0 / (w * h) as f64;
+        if got > bpp {
+            ratio *= 1.005 * got / bpp;
+            return None;
+        }
+        let ok = std::process::Command::new("opj_decompress")
+            .arg("-i")
+            .arg(&j2k)
+            .arg("-o")
+            .arg(&out)
+            .output()
+            .ok()?
+            .status
+            .success();
+        if !ok {
+            return Some(None);
+        }
+        let dec = image::open(&out).ok()?;
+        let chans: Vec<Vec<f32>> = match planes {
+            1 => vec![
+                dec.to_luma16()
+                    .into_raw()
+                    .into_iter()
+                    .map(|v| {
+                        if bits == 8.0 {
+                            // 8-bit sources come back as 8-bit PNG; to_luma16 scales by 257.
+                            (v / 257) as f32
+                        } else {
+                            (v as f64 + shift) as f32
+                        }
+                    })
+                    .collect(),
+            ],
+            _ => {
+                let d = dec.to_rgb8().into_raw();
+                (0..3)
+                    .map(|c| d.iter().skip(c).step_by(3).map(|&v| v as f32).collect())
+                    .collect()
+            }
+        };
+        Some(Some((
+            got,
+            metrics::compare(&r.channels, &chans, None, peak).psnr,
+        )))
+    });
+    let _ = std::fs::remove_dir_all(&dir);
+    result.flatten()
+}
+
 fn row(name: &str, setting: &str, r: &Raster, s: &EncodeSettings, jpeg_bpp: bool) {
     let enc = encode(r, s, &quiet).expect("encode");
     let t = Instant::now();
@@ -91,8 +202,13 @@ fn row(name: &str, setting: &str, r: &Raster, s: &EncodeSettings, jpeg_bpp: bool
     } else {
         None
     };
+    let j2k = jpeg2000_at(r, enc.bpp());
+    let beside = |f: Option<(f64, f64)>| {
+        f.map(|(b, p)| format!("{p:.2} dB at {b:.3} bpp"))
+            .unwrap_or_else(|| "-".into())
+    };
     println!(
-        "| {name} | {setting} | {} | {:.3} | {:.2}:1 | {:.2} | {:.2} | {:.1} ({} it) | {} |",
+        "| {name} | {setting} | {} | {:.3} | {:.2}:1 | {:.2} | {:.2} | {:.1} ({} it) | {} | {} |",
         enc.bytes.len(),
         enc.bpp(),
         enc.ratio(),
@@ -100,8 +216,8 @@ fn row(name: &str, setting: &str, r: &Raster, s: &EncodeSettings, jpeg_bpp: bool
         enc.seconds,
         dec_ms,
         rep.iterations,
-        jpeg.map(|(b, p)| format!("{p:.2} dB at {b:.3} bpp"))
-            .unwrap_or_else(|| "-".into())
+        beside(jpeg),
+        beside(j2k)
     );
 }
 
@@ -113,9 +229,9 @@ fn main() {
         rayon::current_num_threads()
     );
     println!(
-        "| image | setting | bytes | bpp | ratio | PSNR dB | encode s | decode ms | JPEG same bpp |"
+        "| image | setting | bytes | bpp | ratio | PSNR dB | encode s | decode ms | JPEG same bpp | JPEG 2000 same bpp |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
     let camera = Raster::open(&root().join("testdata/camera.png")).expect("camera");
     let bpp = |b| EncodeSettings {
         rate: RateMode::TargetBpp(b),
@@ -182,7 +298,9 @@ fn main() {
         // The speed presets (`--speed`), each image at each preset, in one run: quality against
         // encode time, the default's row beside the others.
         println!("\n## Speed presets\n");
-        println!("| image | rate | speed | domain step, candidates | bpp | PSNR dB | encode s |");
+        println!(
+            "| image | rate | speed | domain step, candidates, attractor passes | bpp | PSNR dB | encode s |"
+        );
         println!("|---|---|---|---|---|---|---|");
         let mut cases: Vec<(&str, &Raster, f64, bool)> = vec![
             ("camera 512", &camera, 0.2, false),
@@ -205,14 +323,17 @@ fn main() {
                         EncodeSettings::default_slope_bits(fractile_proto::AssetKind::HeightField);
                 }
                 let enc = encode(r, &s, &quiet).expect("encode");
-                let (step, k) = SPEEDS[speed as usize];
+                let p = SPEEDS[speed as usize];
                 println!(
-                    "| {name} | {b} bpp | {speed}{} | {step}, {k} | {:.3} | {:.2} | {:.2} |",
+                    "| {name} | {b} bpp | {speed}{} | {}, {}, {} | {:.3} | {:.2} | {:.2} |",
                     if speed == DEFAULT_SPEED {
                         " (default)"
                     } else {
                         ""
                     },
+                    p.domain_step,
+                    p.candidates,
+                    p.attractor_passes,
                     enc.bpp(),
                     enc.errors.psnr,
                     enc.seconds

@@ -11,8 +11,9 @@ use std::time::Instant;
 use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
 
 use crate::Error;
-use crate::asset::{Asset, Mask};
+use crate::asset::{Asset, Mask, PlaneOperator};
 use crate::colour::rgb_to_ycbcr;
+use crate::decode::{self, DiscreteOptions};
 use crate::fis::{FisHeader, FisSettings};
 use crate::metrics::{Errors, compare};
 use crate::partition::{Limits, Partition, Pyramid, greedy_order, partitions_after};
@@ -68,6 +69,14 @@ pub struct EncodeSettings {
     /// Weight of chroma error against luma error (greedy modes), and the factor on the tolerance
     /// for chroma (tolerance mode) is its inverse square root: chroma gets a lower rate.
     pub chroma_weight: f32,
+    /// Attractor passes after the first encode: search again with domains read from the
+    /// decoded attractor of the latest pass instead of the source, and keep whichever asset
+    /// decodes closest to the source (within the target size, or no larger than the first
+    /// asset in the other rate modes). The collage fit assumes the
+    /// decoder reads domains from the source, but it reads them from its own output; fitting
+    /// against that output removes part of the difference. Each pass costs one more search.
+    /// 0: collage coding only (the seed's encoder).
+    pub attractor_passes: u32,
 }
 
 impl Default for EncodeSettings {
@@ -90,37 +99,69 @@ impl Default for EncodeSettings {
             search: SearchMode::Nearest(32),
             rois: Vec::new(),
             chroma_weight: 0.25,
+            attractor_passes: 0,
         }
     }
 }
 
+/// One encoder speed preset ([`SPEEDS`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct SpeedPreset {
+    /// Domain lattice step as a fraction of the range side: a step of 1 has 4 times the domains
+    /// of the default 2.
+    pub domain_step: f32,
+    /// Candidates the nearest-neighbour search scores per range.
+    pub candidates: usize,
+    /// [`EncodeSettings::attractor_passes`].
+    pub attractor_passes: u32,
+}
+
+const fn preset(domain_step: f32, candidates: usize, attractor_passes: u32) -> SpeedPreset {
+    SpeedPreset {
+        domain_step,
+        candidates,
+        attractor_passes,
+    }
+}
+
 /// Encoder speed presets, as rav1e's `--speed`: 0 is the slowest and best, [`DEFAULT_SPEED`] is
-/// [`EncodeSettings::default`], the last is the fastest. Each preset is `(domain_step,
-/// candidates)`: how densely domains are laid out (a step of 1 range side has 4 times the domains
-/// of the default 2) and how many candidates the nearest-neighbour search scores per range.
+/// [`EncodeSettings::default`], the last is the fastest.
 ///
-/// Chosen from a sweep of both knobs with the CLI (release, this project's 2-core machine,
-/// README "Speed presets"): per step, the setting with the most PSNR for its encode time on
-/// camera.png at 0.2 and 0.48 bpp and etopo20 at 20:1. Denser lattices than a step of 1 (0.5)
-/// gained under 0.07 dB for 2-3 times the time, so no preset uses them.
-pub const SPEEDS: [(f32, usize); 5] = [(1.0, 128), (1.0, 64), (2.0, 32), (2.0, 16), (2.0, 8)];
+/// Chosen from sweeps with the CLI (release, this project's 2-core machine, README "Speed
+/// presets"): per step, the setting with the most PSNR for its encode time on camera.png at 0.2
+/// and 0.48 bpp and etopo20 at 20:1. Denser lattices than a step of 1 (0.5) gained under 0.07 dB
+/// for 2-3 times the time, so no preset uses them. An attractor pass costs about one more
+/// search: at the default lattice one pass (+0.12 to +0.18 dB on camera, 2.2x the time) does
+/// less than speed 1 in about the same time, so only the slowest preset runs them, two (+0.11
+/// to +0.16 dB on camera, +0.03 on etopo20, about 3x the time).
+pub const SPEEDS: [SpeedPreset; 5] = [
+    preset(1.0, 128, 2),
+    preset(1.0, 64, 0),
+    preset(2.0, 32, 0),
+    preset(2.0, 16, 0),
+    preset(2.0, 8, 0),
+];
+
+/// Most attractor passes an encode accepts.
+pub const MAX_ATTRACTOR_PASSES: u32 = 16;
 
 /// The preset [`EncodeSettings::default`] uses (the speed the issue's 2 s bar is measured at).
 pub const DEFAULT_SPEED: u8 = 2;
 
 impl EncodeSettings {
-    /// The default settings at speed preset `speed` ([`SPEEDS`]): only the domain lattice and
-    /// the search's candidates change.
+    /// The default settings at speed preset `speed` ([`SPEEDS`]): only the domain lattice, the
+    /// search's candidates and the attractor passes change.
     pub fn at_speed(speed: u8) -> Result<EncodeSettings, Error> {
-        let &(domain_step, candidates) = SPEEDS.get(speed as usize).ok_or_else(|| {
+        let p = SPEEDS.get(speed as usize).ok_or_else(|| {
             Error::Settings(format!(
                 "speed {speed} is not a preset: 0 (slowest, best) to {} (fastest)",
                 SPEEDS.len() - 1
             ))
         })?;
         Ok(EncodeSettings {
-            domain_step,
-            search: SearchMode::Nearest(candidates),
+            domain_step: p.domain_step,
+            search: SearchMode::Nearest(p.candidates),
+            attractor_passes: p.attractor_passes,
             ..EncodeSettings::default()
         })
     }
@@ -144,6 +185,13 @@ impl EncodeSettings {
             )));
         }
         self.quantiser.validate().map_err(Error::Settings)?;
+        if self.attractor_passes > MAX_ATTRACTOR_PASSES {
+            return Err(Error::Settings(format!(
+                "attractor passes {} must be at most {MAX_ATTRACTOR_PASSES} (each costs a search; \
+                 gains stop after a few)",
+                self.attractor_passes
+            )));
+        }
         match self.rate {
             RateMode::Tolerance(t) if t < 0.0 => {
                 return Err(Error::Settings("tolerance must be >= 0".into()));
@@ -190,7 +238,7 @@ impl EncodeSettings {
     /// A one-line description stored in the asset for provenance.
     pub fn describe(&self) -> String {
         format!(
-            "{:?} ranges={}..{} domain_step={} contrast_bits={} offset_bits={} slope_bits={} max_contrast={} search={:?} rois={}",
+            "{:?} ranges={}..{} domain_step={} contrast_bits={} offset_bits={} slope_bits={} max_contrast={} search={:?} rois={} attractor_passes={}",
             self.rate,
             self.min_range,
             self.max_range,
@@ -200,7 +248,8 @@ impl EncodeSettings {
             self.quantiser.slope_bits,
             self.quantiser.max_contrast,
             self.search,
-            self.rois.len()
+            self.rois.len(),
+            self.attractor_passes
         )
     }
 }
@@ -335,7 +384,9 @@ pub fn encode(
         })
         .collect();
 
-    let total: u64 = headers.iter().map(Pyramid::work).sum();
+    // Every attractor pass searches again, as long as the first search.
+    let total: u64 =
+        headers.iter().map(Pyramid::work).sum::<u64>() * (1 + u64::from(settings.attractor_passes));
     let done = std::sync::atomic::AtomicU64::new(0);
     let tick = |k: u64| {
         let d = done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
@@ -348,7 +399,6 @@ pub fn encode(
         .zip(&headers)
         .map(|(p, h)| Pyramid::build(p, h.clone(), settings.search, &tick))
         .collect();
-    progress(total, total);
 
     // Limits per plane: tolerance (normalised) and smallest size for a block in frame coordinates.
     let base_tol = match settings.rate {
@@ -418,8 +468,11 @@ pub fn encode(
         encoder: settings.describe(),
         stats: EncodeStats::default(),
     };
-    let pyr_refs: Vec<&Pyramid> = pyramids.iter().collect();
-    let code = |parts: &[Partition]| -> Vec<(PlaneHeader, Vec<u8>)> {
+    let target_bytes = match settings.rate {
+        RateMode::TargetBpp(bpp) => Some((bpp * (w * h) as f64 / 8.0).floor() as usize),
+        _ => None,
+    };
+    let code = |pyramids: &[Pyramid], parts: &[Partition]| -> Vec<(PlaneHeader, Vec<u8>)> {
         pyramids
             .iter()
             .zip(parts)
@@ -431,71 +484,132 @@ pub fn encode(
             })
             .collect()
     };
-    let build = |parts: &[Partition], meta: &AssetMeta| -> Result<Asset, Error> {
-        Asset::from_parts(meta.clone(), code(parts), mask.clone())
-    };
-    let parts: Vec<Partition> = match settings.rate {
-        RateMode::ConstRange(_) => pyramids.iter().map(Partition::whole_level).collect(),
-        RateMode::Tolerance(_) => pyramids
-            .iter()
-            .zip(&limits)
-            .map(|(p, l)| Partition::by_tolerance(p, *l))
-            .collect(),
-        RateMode::Transforms(n) => {
-            let (initial, order) = greedy_order(&pyr_refs, &weights, &limits);
-            partitions_after(&pyr_refs, &order, n.saturating_sub(initial).div_ceil(3))
-        }
-        RateMode::TargetBpp(bpp) => {
-            let max_bytes = (bpp * (w * h) as f64 / 8.0).floor() as usize;
-            let at = |lambda: f32| -> Vec<Partition> {
-                pyramids
-                    .iter()
-                    .zip(&limits)
-                    .zip(&weights)
-                    .map(|((p, l), &wt)| Partition::by_lagrangian(p, lambda, wt, *l))
-                    .collect()
-            };
-            // The size alone (no stream decoding, no operator). The stats `measured` fills in
-            // later are fixed-width fields, so the final file has exactly this size.
-            let size_at = |lambda: f32| -> Result<usize, Error> {
-                Ok(Asset::quadtree_file_size(
-                    &meta,
-                    code(&at(lambda)),
-                    mask.as_ref(),
-                ))
-            };
-            // Smallest lambda (best quality) whose file fits: bisection on log(lambda); the size
-            // falls as lambda grows.
-            let (mut lo_l, mut hi_l) = (-30.0f32, 10.0f32);
-            if size_at(lo_l.exp2())? <= max_bytes {
-                hi_l = lo_l;
-            } else {
-                for _ in 0..28 {
-                    let mid = 0.5 * (lo_l + hi_l);
-                    if size_at(mid.exp2())? <= max_bytes {
-                        hi_l = mid
-                    } else {
-                        lo_l = mid
+    // The partition the rate mode asks for, from one set of fits.
+    let choose = |pyramids: &[Pyramid]| -> Result<Vec<Partition>, Error> {
+        let pyr_refs: Vec<&Pyramid> = pyramids.iter().collect();
+        Ok(match settings.rate {
+            RateMode::ConstRange(_) => pyramids.iter().map(Partition::whole_level).collect(),
+            RateMode::Tolerance(_) => pyramids
+                .iter()
+                .zip(&limits)
+                .map(|(p, l)| Partition::by_tolerance(p, *l))
+                .collect(),
+            RateMode::Transforms(n) => {
+                let (initial, order) = greedy_order(&pyr_refs, &weights, &limits);
+                partitions_after(&pyr_refs, &order, n.saturating_sub(initial).div_ceil(3))
+            }
+            RateMode::TargetBpp(_) => {
+                let max_bytes = target_bytes.unwrap_or(usize::MAX);
+                let at = |lambda: f32| -> Vec<Partition> {
+                    pyramids
+                        .iter()
+                        .zip(&limits)
+                        .zip(&weights)
+                        .map(|((p, l), &wt)| Partition::by_lagrangian(p, lambda, wt, *l))
+                        .collect()
+                };
+                // The size alone (no stream decoding, no operator). The stats `measured`
+                // fills in later are fixed-width fields, so the final file has exactly this
+                // size.
+                let size_at = |lambda: f32| -> Result<usize, Error> {
+                    Ok(Asset::quadtree_file_size(
+                        &meta,
+                        code(pyramids, &at(lambda)),
+                        mask.as_ref(),
+                    ))
+                };
+                // Smallest lambda (best quality) whose file fits: bisection on log(lambda);
+                // the size falls as lambda grows.
+                let (mut lo_l, mut hi_l) = (-30.0f32, 10.0f32);
+                if size_at(lo_l.exp2())? <= max_bytes {
+                    hi_l = lo_l;
+                } else {
+                    for _ in 0..28 {
+                        let mid = 0.5 * (lo_l + hi_l);
+                        if size_at(mid.exp2())? <= max_bytes {
+                            hi_l = mid
+                        } else {
+                            lo_l = mid
+                        }
                     }
                 }
+                at(hi_l.exp2())
             }
-            at(hi_l.exp2())
-        }
+        })
     };
-    let asset = build(&parts, &meta)?;
-    Ok(measured(asset, raster, start))
+    let build = |pyramids: &[Pyramid]| -> Result<Asset, Error> {
+        Asset::from_parts(
+            meta.clone(),
+            code(pyramids, &choose(pyramids)?),
+            mask.clone(),
+        )
+    };
+    let mut latest = build(&pyramids)?;
+    if settings.attractor_passes == 0 {
+        progress(total, total);
+        let errors = decoded_errors(&latest, raster);
+        return Ok(measured(latest, start, errors));
+    }
+    // A pass must not buy its quality with bytes the user did not grant: under a target size
+    // any asset within it will do; otherwise it may be no larger than the first.
+    let max_size = target_bytes.unwrap_or(latest.file_size());
+    let mut best_errors = decoded_errors(&latest, raster);
+    let mut best = latest.clone();
+    for _ in 0..settings.attractor_passes {
+        let pyramids: Vec<Pyramid> = planes
+            .iter()
+            .zip(&headers)
+            .zip(&latest.planes)
+            .map(|((p, h), coded)| {
+                let domains = attractor(p, &coded.operator);
+                Pyramid::build_with_domains(p, &domains, h.clone(), settings.search, &tick)
+            })
+            .collect();
+        latest = build(&pyramids)?;
+        let errors = decoded_errors(&latest, raster);
+        // Weighted mean square error over all channels (what PSNR ranks by).
+        if errors.rmse < best_errors.rmse && latest.file_size() <= max_size {
+            best = latest.clone();
+            best_errors = errors;
+        }
+    }
+    progress(total, total);
+    Ok(measured(best, start, best_errors))
 }
 
-/// The encoder's report: the asset decoded at the source size and compared with the source
-/// (valid cells, source units), the figures stored in its metadata, and its bytes.
-fn measured(mut asset: Asset, raster: &Raster, start: Instant) -> Encoded {
+/// The 2x2 means ([`CodingPlane::average2`]) of a plane's decoded attractor over its whole
+/// frame: what the decoder's domains read. Discrete decoding covers the source extent; the
+/// padding beyond it repeats the edge, as the encoder pads the source.
+fn attractor(plane: &CodingPlane, op: &PlaneOperator) -> Vec<f32> {
+    let (gw, gh) = (
+        (plane.valid[0].ceil() as usize).clamp(1, plane.width),
+        (plane.valid[1].ceil() as usize).clamp(1, plane.height),
+    );
+    let (g, _) = decode::discrete(op, gw, gh, DiscreteOptions::default());
+    let mut frame = plane.clone();
+    for y in 0..plane.height {
+        let row = &g.values[y.min(gh - 1) * gw..][..gw];
+        for x in 0..plane.width {
+            frame.values[y * plane.width + x] = row[x.min(gw - 1)];
+        }
+    }
+    frame.average2()
+}
+
+/// The asset decoded at the source size, compared with the source (valid cells, source units).
+fn decoded_errors(asset: &Asset, raster: &Raster) -> Errors {
     let (decoded, _) = asset.decode_native();
-    let errors = compare(
+    compare(
         &raster.channels,
         &decoded.channels,
         raster.valid.as_deref(),
         asset.meta.psnr_peak(),
-    );
+    )
+}
+
+/// The encoder's report: the asset's `errors` ([`decoded_errors`]), the figures stored in its
+/// metadata, and its bytes.
+fn measured(mut asset: Asset, start: Instant, errors: Errors) -> Encoded {
     let transforms: usize = asset.planes.iter().map(|p| p.operator.transforms()).sum();
     let seconds = start.elapsed().as_secs_f64();
     asset.meta.stats = EncodeStats {
@@ -914,15 +1028,6 @@ fn encode_lattice(
         let height_step = ((step / span) as f32).clamp(1e-9, 1.0);
         build(&source, spacing, height_step, &meta, mask.clone(), budget)
     };
-    let errors_of = |a: &Asset| {
-        let (d, _) = a.decode_native();
-        compare(
-            &raster.channels,
-            &d.channels,
-            raster.valid.as_deref(),
-            a.meta.psnr_peak(),
-        )
-    };
     let asset = match lattice.target_bpp {
         None => {
             let k = lattice.spacing.max(1);
@@ -944,7 +1049,7 @@ fn encode_lattice(
                     "nothing fits in {bpp} bits per pixel (the coarsest lattice takes more)"
                 )));
             };
-            let mut best = (errors_of(&a).psnr, a);
+            let mut best = (decoded_errors(&a, raster).psnr, a);
             if lattice.height_step.is_none() {
                 for finer in (k.saturating_sub(FINER_SPACINGS).max(1)..k).rev() {
                     // Steps base * 2^(m/8): m = 0 did not fit (the spacing is under k), find
@@ -967,7 +1072,7 @@ fn encode_lattice(
                     }
                     // No early stop on a lower PSNR: with per-node or per-cell scalings the
                     // best can lie past a worse spacing.
-                    let psnr = errors_of(&fit).psnr;
+                    let psnr = decoded_errors(&fit, raster).psnr;
                     if psnr > best.0 {
                         best = (psnr, fit);
                     }
@@ -976,7 +1081,8 @@ fn encode_lattice(
             best.1
         }
     };
-    Ok(measured(asset, raster, start))
+    let errors = decoded_errors(&asset, raster);
+    Ok(measured(asset, start, errors))
 }
 
 #[cfg(test)]

@@ -39,7 +39,19 @@ impl Pyramid {
         mode: SearchMode,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Pyramid {
-        let avg2 = plane.average2();
+        Self::build_with_domains(plane, &plane.average2(), header, mode, progress)
+    }
+
+    /// As [`Pyramid::build`], with domains read from `avg2` ([`CodingPlane::average2`] of
+    /// another image of the same frame, such as the attractor of an earlier encode) while
+    /// ranges stay the plane's own values.
+    pub fn build_with_domains(
+        plane: &CodingPlane,
+        avg2: &[f32],
+        header: PlaneHeader,
+        mode: SearchMode,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Pyramid {
         let mut fits = Vec::new();
         let mut cols = Vec::new();
         for l in 0..header.levels as usize {
@@ -48,7 +60,7 @@ impl Pyramid {
             cols.push(c);
             let pool = DomainPool::new(
                 plane,
-                &avg2,
+                avg2,
                 n,
                 header.domain_steps[l] as usize,
                 mode,

@@ -142,7 +142,8 @@ struct EncodeArgs {
     #[arg(long, default_value_t = EncodeSettings::default().max_range)]
     max_range: u32,
     /// quadtree-pifs: encoder speed preset, 0 (slowest, best) to 4 (fastest). Sets the domain
-    /// lattice and the search's candidates (`--domain-step` and `--candidates` override it).
+    /// lattice, the search's candidates and the attractor passes (`--domain-step`,
+    /// `--candidates` and `--attractor-passes` override it).
     #[arg(long, default_value_t = fractile_codec::encode::DEFAULT_SPEED)]
     speed: u8,
     /// Domain lattice step, as a fraction of the range side [default: from --speed, 2].
@@ -167,6 +168,11 @@ struct EncodeArgs {
     /// Candidates scored per range by the nearest-neighbour search [default: from --speed, 32].
     #[arg(long)]
     candidates: Option<usize>,
+    /// quadtree-pifs: passes that search again with domains read from the decoded attractor,
+    /// keeping the asset that decodes closest to the source; each costs one more search
+    /// [default: from --speed, 0].
+    #[arg(long)]
+    attractor_passes: Option<u32>,
     /// Codec: quadtree-pifs (images and height fields); a fractal interpolation surface for
     /// height fields: fis-bilinear (s per node, Wu and Zhou), fis-rect (s per cell),
     /// fis-rect-global (one s, Drakopoulos and Manousopoulos); or the piecewise self-affine
@@ -775,6 +781,7 @@ fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractile_codec::En
             Search::Nearest => SearchMode::Nearest(candidates.max(1)),
         },
         rois: a.roi.clone(),
+        attractor_passes: a.attractor_passes.unwrap_or(preset.attractor_passes),
         ..preset
     };
     // The bar appears only once an encode has run for a second (short encodes stay quiet).
