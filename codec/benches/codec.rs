@@ -241,12 +241,23 @@ fn main() {
         rate: RateMode::TargetBpp(b),
         ..EncodeSettings::default()
     };
-    // Height fields as the CLI encodes them by default: with a planar offset term.
+    // Height fields with a planar offset term at the default 6-bit offsets and slopes, and as
+    // the CLI encodes them by default: also weighing 5, 7 and 8 bits and keeping the best.
     let dem = |b| {
         let mut s = bpp(b);
         s.quantiser.slope_bits =
             EncodeSettings::default_slope_bits(fractile_proto::AssetKind::HeightField);
         s
+    };
+    let dem_weighed = |b| {
+        let s = dem(b);
+        EncodeSettings {
+            quantiser_choices: EncodeSettings::default_quantiser_choices(
+                fractile_proto::AssetKind::HeightField,
+                s.quantiser,
+            ),
+            ..s
+        }
     };
     if want("camera") {
         for b in [0.48, 0.20] {
@@ -284,6 +295,13 @@ fn main() {
             &dem(0.8),
             false,
         );
+        row(
+            "jacksboro",
+            "ratio 20:1, planar, weighed quantisers",
+            &j,
+            &dem_weighed(0.8),
+            false,
+        );
     }
     let etopo_path = root().join("testdata/etopo20.tif");
     if want("etopo") && Path::new(&etopo_path).exists() {
@@ -294,6 +312,13 @@ fn main() {
             "ratio 20:1, planar offsets",
             &e,
             &dem(0.8),
+            false,
+        );
+        row(
+            "etopo20",
+            "ratio 20:1, planar, weighed quantisers",
+            &e,
+            &dem_weighed(0.8),
             false,
         );
     }
@@ -322,6 +347,8 @@ fn main() {
                     rate: RateMode::TargetBpp(b),
                     ..EncodeSettings::at_speed(speed).expect("preset")
                 };
+                // One quantiser (no `quantiser_choices`): the presets are compared on the
+                // search, and weighing four quantisers would take four times as long.
                 if height {
                     s.quantiser.slope_bits =
                         EncodeSettings::default_slope_bits(fractile_proto::AssetKind::HeightField);

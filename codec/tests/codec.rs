@@ -1060,6 +1060,19 @@ fn rate_control_sizes_are_the_sizes_of_the_files() {
     }
 }
 
+/// An asset file as a reader gets it, and its decoded errors against the source.
+fn read_back(src: &Raster, bytes: &[u8]) -> (Asset, metrics::Errors) {
+    let read = Asset::from_bytes(bytes).unwrap();
+    let (decoded, _) = read.decode_native();
+    let errors = metrics::compare(
+        &src.channels,
+        &decoded.channels,
+        src.valid.as_deref(),
+        read.meta.psnr_peak(),
+    );
+    (read, errors)
+}
+
 #[test]
 fn attractor_passes_lower_the_decoded_error_at_the_same_rate() {
     // Grey, colour (three planes, chroma at half size) and a DEM with nodata and a frame padded
@@ -1093,14 +1106,7 @@ fn attractor_passes_lower_the_decoded_error_at_the_same_rate() {
         let (plain, refined) = (at(0), at(3));
         assert!(refined.bpp() <= bpp && refined.bytes.len() <= plain.bytes.len() + 16);
         // The reported error is that of the asset as a reader decodes it from its bytes.
-        let read = Asset::from_bytes(&refined.bytes).unwrap();
-        let (decoded, _) = read.decode_native();
-        let errors = metrics::compare(
-            &src.channels,
-            &decoded.channels,
-            src.valid.as_deref(),
-            read.meta.psnr_peak(),
-        );
+        let (read, errors) = read_back(&src, &refined.bytes);
         assert!((errors.psnr - refined.errors.psnr).abs() < 1e-9, "{name}");
         assert!(read.meta.encoder.contains("attractor_passes=3"), "{name}");
         eprintln!(
@@ -1115,4 +1121,78 @@ fn attractor_passes_lower_the_decoded_error_at_the_same_rate() {
     };
     let err = encode(&camera(), &too_many, &quiet).unwrap_err();
     assert!(err.to_string().contains("attractor passes"), "{err}");
+}
+
+#[test]
+fn weighing_quantisers_keeps_the_closest_asset_within_the_target() {
+    // topobathy (a small real DEM with nodata) at a low rate, where 6-bit offsets and slopes
+    // are far from the best step, and jacksboro at a middle rate, where a finer one wins.
+    for (name, bpp) in [("topobathy.tif", 0.4), ("jacksboro.tif", 0.8)] {
+        let src = Raster::open(&data(name)).unwrap();
+        let mut base = EncodeSettings {
+            rate: RateMode::TargetBpp(bpp),
+            ..EncodeSettings::default()
+        };
+        base.quantiser.slope_bits = EncodeSettings::default_slope_bits(src.kind);
+        let choices = EncodeSettings::default_quantiser_choices(src.kind, base.quantiser);
+        assert_eq!(choices.len(), 3, "{name}");
+        // Each quantiser alone, then all weighed in one encode.
+        let alone: Vec<_> = std::iter::once(base.quantiser)
+            .chain(choices.iter().copied())
+            .map(|q| {
+                let s = EncodeSettings {
+                    quantiser: q,
+                    ..base.clone()
+                };
+                (q, encode(&src, &s, &quiet).unwrap().errors.rmse)
+            })
+            .collect();
+        let weighed = encode(
+            &src,
+            &EncodeSettings {
+                quantiser_choices: choices,
+                ..base.clone()
+            },
+            &quiet,
+        )
+        .unwrap();
+        assert!(weighed.bpp() <= bpp, "{name}");
+        let (best_q, best_rmse) = alone
+            .iter()
+            .copied()
+            .min_by(|a, b| a.1.total_cmp(&b.1))
+            .unwrap();
+        eprintln!(
+            "{name} at {bpp} bpp: rmse per quantiser {:?}, kept {}",
+            alone
+                .iter()
+                .map(|(q, e)| (q.offset_bits, *e))
+                .collect::<Vec<_>>(),
+            weighed.errors.rmse
+        );
+        assert_eq!(weighed.errors.rmse, best_rmse, "{name}");
+        // The file says which quantiser it was coded with, and a reader decodes what was
+        // reported.
+        let (read, errors) = read_back(&src, &weighed.bytes);
+        assert_eq!(read.planes[0].header().unwrap().quantiser, best_q, "{name}");
+        assert!((errors.rmse - best_rmse).abs() < 1e-9, "{name}");
+        // Where the default step is not the best, weighing gains something real.
+        assert!(best_q != base.quantiser, "{name}: the default step won");
+        let base_rmse = alone[0].1;
+        assert!(
+            best_rmse < 0.98 * base_rmse,
+            "{name}: {best_rmse} vs {base_rmse}"
+        );
+    }
+    // A bad choice is refused like a bad quantiser.
+    let mut bad = EncodeSettings {
+        rate: RateMode::TargetBpp(0.5),
+        ..EncodeSettings::default()
+    };
+    bad.quantiser_choices = vec![fractile_codec::Quantiser {
+        offset_bits: 40,
+        ..bad.quantiser
+    }];
+    let err = encode(&camera(), &bad, &quiet).unwrap_err();
+    assert!(err.to_string().contains("offset"), "{err}");
 }

@@ -152,11 +152,12 @@ struct EncodeArgs {
     /// Bits of the contrast index.
     #[arg(long, default_value_t = EncodeSettings::default().quantiser.contrast_bits)]
     contrast_bits: u8,
-    /// Bits of the offset index.
-    #[arg(long, default_value_t = EncodeSettings::default().quantiser.offset_bits)]
-    offset_bits: u8,
+    /// Bits of the offset index [default: 6]. Height fields under --target-bpp without this or
+    /// --slope-bits: offsets and slopes are coded at 5, 6, 7 and 8 bits and the best kept.
+    #[arg(long)]
+    offset_bits: Option<u8>,
     /// Bits of each slope of a planar offset term (0: constant offsets, the seed's codec).
-    /// Default: 6 for height fields, 0 for images.
+    /// Default: 6 for height fields (see --offset-bits), 0 for images.
     #[arg(long)]
     slope_bits: Option<u8>,
     /// Largest |contrast| (< 1).
@@ -762,19 +763,27 @@ fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractile_codec::En
         SearchMode::Nearest(k) => a.candidates.unwrap_or(k),
         _ => a.candidates.unwrap_or(32),
     };
+    let quantiser = Quantiser {
+        contrast_bits: a.contrast_bits,
+        offset_bits: a.offset_bits.unwrap_or(preset.quantiser.offset_bits),
+        max_contrast: a.max_contrast,
+        slope_bits: a
+            .slope_bits
+            .unwrap_or(EncodeSettings::default_slope_bits(raster.kind)),
+    };
+    // Bits the user gave are kept as given; otherwise the encoder weighs the kind's choices.
+    let quantiser_choices = if a.offset_bits.is_none() && a.slope_bits.is_none() {
+        EncodeSettings::default_quantiser_choices(raster.kind, quantiser)
+    } else {
+        Vec::new()
+    };
     let settings = EncodeSettings {
         rate,
         min_range: a.min_range,
         max_range: a.max_range,
         domain_step: a.domain_step.unwrap_or(preset.domain_step),
-        quantiser: Quantiser {
-            contrast_bits: a.contrast_bits,
-            offset_bits: a.offset_bits,
-            max_contrast: a.max_contrast,
-            slope_bits: a
-                .slope_bits
-                .unwrap_or(EncodeSettings::default_slope_bits(raster.kind)),
-        },
+        quantiser,
+        quantiser_choices,
         search: match a.search {
             Search::Full => SearchMode::Full,
             Search::Classified => SearchMode::Classified,

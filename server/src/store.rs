@@ -280,7 +280,10 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
             rate: *rate,
             ..EncodeSettings::default()
         };
+        // As `fractile encode` codes them by default.
         settings.quantiser.slope_bits = EncodeSettings::default_slope_bits(raster.kind);
+        settings.quantiser_choices =
+            EncodeSettings::default_quantiser_choices(raster.kind, settings.quantiser);
         let enc = encode(&raster, &settings, &|_, _| {})?;
         fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
         let _ = std::fs::remove_file(&src);
