@@ -348,7 +348,7 @@ fn main() {
                     ..EncodeSettings::at_speed(speed).expect("preset")
                 };
                 // One quantiser (no `quantiser_choices`): the presets are compared on the
-                // search, and weighing four quantisers would take four times as long.
+                // search alone.
                 if height {
                     s.quantiser.slope_bits =
                         EncodeSettings::default_slope_bits(fractile_proto::AssetKind::HeightField);

@@ -77,11 +77,14 @@ pub struct EncodeSettings {
     /// against that output removes part of the difference. Each pass costs one more search.
     /// 0: collage coding only (the seed's encoder).
     pub attractor_passes: u32,
-    /// Further quantisers weighed under a target size ([`RateMode::TargetBpp`]): the encode runs
-    /// once with `quantiser` and once with each of these, and keeps the asset that decodes
-    /// closest to the source (every one fits the target). Empty: `quantiser` alone. Ignored in
-    /// the other rate modes, where a finer quantiser would buy its quality with more bytes.
-    /// Height fields weigh [`EncodeSettings::default_quantiser_choices`].
+    /// Further quantisers weighed under a target size ([`RateMode::TargetBpp`]): one search fits
+    /// every block under `quantiser` and under each of these (the candidate domains do not
+    /// depend on the quantiser), rate control runs for each, and the encoder keeps the asset
+    /// that decodes closest to the source (every one fits the target); attractor passes then
+    /// refine that one. Each must agree with `quantiser` on whether it has slopes. Empty:
+    /// `quantiser` alone. Ignored in the other rate modes, where a finer quantiser would buy
+    /// its quality with more bytes. Height fields weigh
+    /// [`EncodeSettings::default_quantiser_choices`].
     pub quantiser_choices: Vec<Quantiser>,
 }
 
@@ -194,6 +197,14 @@ impl EncodeSettings {
         self.quantiser.validate().map_err(Error::Settings)?;
         for q in &self.quantiser_choices {
             q.validate().map_err(Error::Settings)?;
+            // One search serves every quantiser, and its domain features differ with slopes.
+            if (q.slope_bits > 0) != (self.quantiser.slope_bits > 0) {
+                return Err(Error::Settings(format!(
+                    "quantiser choice {q:?} and the quantiser {:?} must both have slopes or both \
+                     not",
+                    self.quantiser
+                )));
+            }
         }
         if self.attractor_passes > MAX_ATTRACTOR_PASSES {
             return Err(Error::Settings(format!(
@@ -250,10 +261,10 @@ impl EncodeSettings {
     /// default 6 (contrast as given). Which one wins depends on the data and the rate, and by
     /// up to 2.6 dB (CLI, 2026-11-24: topobathy at 0.4 bpp 21.19 dB at 6 bits, 23.80 at 5;
     /// etopo20 at 1.6 bpp 44.78 at 6, 45.61 at 8; jacksboro at 0.8 bpp 40.37 at 6, 40.58 at 7):
-    /// a fixed step cannot follow the rate, so the encoder measures. Four encodes cost four
-    /// times the time, which height fields (coded offline, no encode-time bar) can pay. Images
-    /// weigh none: camera's 2 s bar leaves no room, and their defaults were tuned at the rates
-    /// they are coded at.
+    /// a fixed step cannot follow the rate, so the encoder measures. The search is shared, so
+    /// weighing four costs four rate controls and decodes: etopo20's encode 3.0 -> 4.0 s.
+    /// Images weigh none: camera's 2 s bar leaves little room, and their 6-bit offsets were
+    /// tuned at the rates they are coded at.
     pub fn default_quantiser_choices(kind: AssetKind, quantiser: Quantiser) -> Vec<Quantiser> {
         match kind {
             AssetKind::HeightField => [5u8, 7, 8]
@@ -338,48 +349,6 @@ pub fn encode(
 ) -> Result<Encoded, Error> {
     let start = Instant::now();
     settings.validate()?;
-    let choices = match settings.rate {
-        RateMode::TargetBpp(_) => settings.quantiser_choices.as_slice(),
-        _ => &[],
-    };
-    if choices.is_empty() {
-        return encode_with(raster, settings, progress);
-    }
-    // One encode per quantiser, each reporting a share of one bar.
-    let runs = 1 + choices.len() as u64;
-    let mut best: Option<Encoded> = None;
-    for (i, q) in std::iter::once(settings.quantiser)
-        .chain(choices.iter().copied())
-        .enumerate()
-    {
-        let one = EncodeSettings {
-            quantiser: q,
-            quantiser_choices: Vec::new(),
-            ..settings.clone()
-        };
-        let shared = |done: u64, total: u64| progress(i as u64 * total + done, runs * total);
-        let enc = encode_with(raster, &one, &shared)?;
-        // Every run fits the same target, so the least error wins.
-        if best
-            .as_ref()
-            .is_none_or(|b| enc.errors.rmse < b.errors.rmse)
-        {
-            best = Some(enc);
-        }
-    }
-    let best = best.expect("at least the settings' own quantiser ran");
-    // The asset's description names the quantiser it was coded with (not the choices: the
-    // description's length is part of the size rate control fitted).
-    Ok(measured(best.asset, start, best.errors))
-}
-
-/// [`encode`] with the settings' own quantiser only.
-fn encode_with(
-    raster: &Raster,
-    settings: &EncodeSettings,
-    progress: &(dyn Fn(u64, u64) + Sync),
-) -> Result<Encoded, Error> {
-    let start = Instant::now();
     let (w, h) = (raster.width, raster.height);
     let (lo, hi) = match (raster.kind, raster.sample) {
         (AssetKind::Image, SampleFormat::U8) => (0.0, 255.0),
@@ -446,19 +415,35 @@ fn encode_with(
         .iter()
         .map(|s| coding_plane(s, min_size as usize, supersample))
         .collect();
-    let headers: Vec<PlaneHeader> = planes
-        .iter()
-        .map(|p| PlaneHeader {
-            frame: [p.width as u32, p.height as u32],
-            valid: p.valid,
-            min_size,
-            levels,
-            domain_steps: (0..levels)
-                .map(|l| (((min_size << l) as f32 * settings.domain_step).round() as u32).max(1))
-                .collect(),
-            quantiser: settings.quantiser,
+    // The quantisers weighed: the settings' own, then its choices under a target size.
+    let quantisers: Vec<Quantiser> = std::iter::once(settings.quantiser)
+        .chain(match settings.rate {
+            RateMode::TargetBpp(_) => settings.quantiser_choices.clone(),
+            _ => Vec::new(),
         })
         .collect();
+    // headers_by_quantiser[q][plane]
+    let headers_by_quantiser: Vec<Vec<PlaneHeader>> = quantisers
+        .iter()
+        .map(|&quantiser| {
+            planes
+                .iter()
+                .map(|p| PlaneHeader {
+                    frame: [p.width as u32, p.height as u32],
+                    valid: p.valid,
+                    min_size,
+                    levels,
+                    domain_steps: (0..levels)
+                        .map(|l| {
+                            (((min_size << l) as f32 * settings.domain_step).round() as u32).max(1)
+                        })
+                        .collect(),
+                    quantiser,
+                })
+                .collect()
+        })
+        .collect();
+    let headers = &headers_by_quantiser[0];
 
     // Every attractor pass searches again, as long as the first search.
     let total: u64 =
@@ -470,12 +455,6 @@ fn encode_with(
             progress(d, total);
         }
     };
-    let pyramids: Vec<Pyramid> = planes
-        .iter()
-        .zip(&headers)
-        .map(|(p, h)| Pyramid::build(p, h.clone(), settings.search, &tick))
-        .collect();
-
     // Limits per plane: tolerance (normalised) and smallest size for a block in frame coordinates.
     let base_tol = match settings.rate {
         RateMode::Tolerance(t) if t.is_nan() => 0.02,
@@ -544,6 +523,16 @@ fn encode_with(
         encoder: settings.describe(),
         stats: EncodeStats::default(),
     };
+    // The metadata of an asset coded with quantiser `q`: its description names `q` (and its
+    // length is part of the size rate control fits).
+    let meta_for = |q: Quantiser| AssetMeta {
+        encoder: EncodeSettings {
+            quantiser: q,
+            ..settings.clone()
+        }
+        .describe(),
+        ..meta.clone()
+    };
     let target_bytes = match settings.rate {
         RateMode::TargetBpp(bpp) => Some((bpp * (w * h) as f64 / 8.0).floor() as usize),
         _ => None,
@@ -562,6 +551,7 @@ fn encode_with(
     };
     // The partition the rate mode asks for, from one set of fits.
     let choose = |pyramids: &[Pyramid]| -> Result<Vec<Partition>, Error> {
+        let meta = meta_for(pyramids[0].header.quantiser);
         let pyr_refs: Vec<&Pyramid> = pyramids.iter().collect();
         Ok(match settings.rate {
             RateMode::ConstRange(_) => pyramids.iter().map(Partition::whole_level).collect(),
@@ -615,35 +605,56 @@ fn encode_with(
     };
     let build = |pyramids: &[Pyramid]| -> Result<Asset, Error> {
         Asset::from_parts(
-            meta.clone(),
+            meta_for(pyramids[0].header.quantiser),
             code(pyramids, &choose(pyramids)?),
             mask.clone(),
         )
     };
-    let mut latest = build(&pyramids)?;
+    // One search per plane serves every quantiser, with domains read from `avg2[plane]`; rate
+    // control runs for each. Under a target size every quantiser's asset fits it: the one that
+    // decodes closest to the source wins (the settings' own on a tie).
+    let weigh = |avg2: &[Vec<f32>]| -> Result<(Asset, Errors), Error> {
+        // pyramids_by_quantiser[q][plane]
+        let mut pyramids_by_quantiser: Vec<Vec<Pyramid>> =
+            quantisers.iter().map(|_| Vec::new()).collect();
+        for (i, (p, domains)) in planes.iter().zip(avg2).enumerate() {
+            let each: Vec<PlaneHeader> =
+                headers_by_quantiser.iter().map(|h| h[i].clone()).collect();
+            let built = Pyramid::build_each(p, domains, &each, settings.search, &tick);
+            for (q, pyramid) in built.into_iter().enumerate() {
+                pyramids_by_quantiser[q].push(pyramid);
+            }
+        }
+        let mut weighed: Option<(Asset, Errors)> = None;
+        for pyramids in &pyramids_by_quantiser {
+            let asset = build(pyramids)?;
+            let errors = decoded_errors(&asset, raster);
+            // Weighted mean square error over all channels (what PSNR ranks by).
+            if weighed.as_ref().is_none_or(|(_, e)| errors.rmse < e.rmse) {
+                weighed = Some((asset, errors));
+            }
+        }
+        Ok(weighed.expect("at least the settings' own quantiser"))
+    };
+    let own_domains: Vec<Vec<f32>> = planes.iter().map(CodingPlane::average2).collect();
+    let (mut latest, errors) = weigh(&own_domains)?;
     if settings.attractor_passes == 0 {
         progress(total, total);
-        let errors = decoded_errors(&latest, raster);
         return Ok(measured(latest, start, errors));
     }
     // A pass must not buy its quality with bytes the user did not grant: under a target size
     // any asset within it will do; otherwise it may be no larger than the first.
     let max_size = target_bytes.unwrap_or(latest.file_size());
-    let mut best_errors = decoded_errors(&latest, raster);
+    let mut best_errors = errors;
     let mut best = latest.clone();
     for _ in 0..settings.attractor_passes {
-        let pyramids: Vec<Pyramid> = planes
+        let domains: Vec<Vec<f32>> = planes
             .iter()
-            .zip(&headers)
             .zip(&latest.planes)
-            .map(|((p, h), coded)| {
-                let domains = attractor(p, &coded.operator);
-                Pyramid::build_with_domains(p, &domains, h.clone(), settings.search, &tick)
-            })
+            .map(|(p, coded)| attractor(p, &coded.operator))
             .collect();
-        latest = build(&pyramids)?;
-        let errors = decoded_errors(&latest, raster);
-        // Weighted mean square error over all channels (what PSNR ranks by).
+        let errors;
+        (latest, errors) = weigh(&domains)?;
         if errors.rmse < best_errors.rmse && latest.file_size() <= max_size {
             best = latest.clone();
             best_errors = errors;

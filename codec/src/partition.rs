@@ -14,8 +14,9 @@ use std::collections::BinaryHeap;
 
 use rayon::prelude::*;
 
-use crate::search::{CodingPlane, DomainPool, Fit, SearchMode, fit_range};
+use crate::search::{CodingPlane, DomainPool, Fit, SearchMode, fit_range_each};
 use crate::stream::{Coverage, PlaneHeader, coverage};
+use crate::transform::Quantiser;
 
 /// Fits of every block of every level of one plane.
 pub struct Pyramid {
@@ -52,12 +53,33 @@ impl Pyramid {
         mode: SearchMode,
         progress: &(dyn Fn(u64) + Sync),
     ) -> Pyramid {
-        let mut fits = Vec::new();
-        let mut cols = Vec::new();
+        let mut one = Self::build_each(plane, avg2, &[header], mode, progress);
+        one.pop().expect("one header, one pyramid")
+    }
+
+    /// One pyramid per header, from one search ([`fit_range_each`]): the headers differ only
+    /// in their quantisers, which must agree on whether they have slopes. `progress(1)` is
+    /// called once per block, not once per header.
+    pub fn build_each(
+        plane: &CodingPlane,
+        avg2: &[f32],
+        headers: &[PlaneHeader],
+        mode: SearchMode,
+        progress: &(dyn Fn(u64) + Sync),
+    ) -> Vec<Pyramid> {
+        let header = &headers[0];
+        let quantisers: Vec<Quantiser> = headers.iter().map(|h| h.quantiser).collect();
+        let mut pyramids: Vec<Pyramid> = headers
+            .iter()
+            .map(|h| Pyramid {
+                header: h.clone(),
+                fits: Vec::new(),
+                cols: Vec::new(),
+            })
+            .collect();
         for l in 0..header.levels as usize {
             let n = header.size(l);
             let (c, r) = ((plane.width).div_ceil(n), (plane.height).div_ceil(n));
-            cols.push(c);
             let pool = DomainPool::new(
                 plane,
                 avg2,
@@ -66,20 +88,24 @@ impl Pyramid {
                 mode,
                 header.quantiser.slope_bits > 0,
             );
-            let level: Vec<Option<Fit>> = (0..c * r)
+            let level: Vec<Option<Vec<Fit>>> = (0..c * r)
                 .into_par_iter()
                 .map(|i| {
                     let (bx, by) = (i % c, i / c);
                     (coverage(header.frame, n, bx, by) == Coverage::Inside).then(|| {
-                        let f = fit_range(plane, &pool, bx * n, by * n, &header.quantiser, mode);
+                        let f = fit_range_each(plane, &pool, bx * n, by * n, &quantisers, mode);
                         progress(1);
                         f
                     })
                 })
                 .collect();
-            fits.push(level);
+            for (k, p) in pyramids.iter_mut().enumerate() {
+                p.cols.push(c);
+                p.fits
+                    .push(level.iter().map(|f| f.as_ref().map(|f| f[k])).collect());
+            }
         }
-        Pyramid { header, fits, cols }
+        pyramids
     }
 
     /// Number of inside blocks over all levels (for progress bars).

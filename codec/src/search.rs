@@ -433,6 +433,22 @@ pub fn fit_range(
     q: &Quantiser,
     mode: SearchMode,
 ) -> Fit {
+    fit_range_each(plane, pool, x, y, std::slice::from_ref(q), mode)[0]
+}
+
+/// [`fit_range`] under each quantiser of `qs`, from one search: the candidate domains do not
+/// depend on the quantiser (finding them is most of an encode's time), only their scores do.
+/// The quantisers must agree on whether they have slopes (the pool's features do not).
+pub fn fit_range_each(
+    plane: &CodingPlane,
+    pool: &DomainPool,
+    x: usize,
+    y: usize,
+    qs: &[Quantiser],
+    mode: SearchMode,
+) -> Vec<Fit> {
+    let q = &qs[0];
+    debug_assert!(qs.iter().all(|o| (o.slope_bits > 0) == (q.slope_bits > 0)));
     let n = pool.size;
     let mut values = Vec::with_capacity(n * n);
     let mut weights = Vec::with_capacity(n * n);
@@ -451,19 +467,24 @@ pub fn fit_range(
     if wn == 0.0 {
         // Nothing of the source here (padding, nodata): a constant map at the filled mean.
         let mean = values.iter().sum::<f32>() / values.len() as f32;
-        let offset = q.offset_index(0.0, mean);
-        return Fit {
-            sse: 0.0,
-            weight: 0.0,
-            contrast: 0,
-            offset,
-            isometry: 0,
-            domain: 0,
-            slope: [0; 2],
-            constant_sse: 0.0,
-            constant_offset: offset,
-            constant_slope: [0; 2],
-        };
+        return qs
+            .iter()
+            .map(|q| {
+                let offset = q.offset_index(0.0, mean);
+                Fit {
+                    sse: 0.0,
+                    weight: 0.0,
+                    contrast: 0,
+                    offset,
+                    isometry: 0,
+                    domain: 0,
+                    slope: [0; 2],
+                    constant_sse: 0.0,
+                    constant_offset: offset,
+                    constant_slope: [0; 2],
+                }
+            })
+            .collect();
     }
     // The planar term is fitted on whole blocks only: with partial weights the centred
     // coordinates are no longer orthogonal to the constant and the closed form below fails.
@@ -489,8 +510,8 @@ pub fn fit_range(
         side: n,
     };
     // The constant map is always a candidate, and the only one for flat ranges.
-    let constant = constant_fit(&rb, q);
-    let mut best = constant;
+    let constants: Vec<Fit> = qs.iter().map(|q| constant_fit(&rb, q)).collect();
+    let mut best = constants.clone();
     let var = match rb.plane {
         Some(([sx, sy], sxx)) => rb.srr - rb.sr * rb.sr / rb.n - (sx * sx + sy * sy) / sxx,
         None => rb.srr - rb.sr * rb.sr / rb.n,
@@ -498,12 +519,7 @@ pub fn fit_range(
     if pool.count() == 0 || var <= 1e-10 * rb.n {
         return best;
     }
-    let mut consider = |d: u32, k: u8| {
-        let f = score(&rb, pool, d as usize, k, q);
-        if f.sse < best.sse {
-            best = f;
-        }
-    };
+    let mut consider = |d: u32, k: u8| score(&rb, pool, d as usize, k, qs, &mut best);
     match mode {
         SearchMode::Full => {
             for d in 0..pool.count() as u32 {
@@ -538,9 +554,11 @@ pub fn fit_range(
             }
         }
     }
-    best.constant_sse = constant.sse;
-    best.constant_offset = constant.offset;
-    best.constant_slope = constant.slope;
+    for (b, c) in best.iter_mut().zip(&constants) {
+        b.constant_sse = c.sse;
+        b.constant_offset = c.offset;
+        b.constant_slope = c.slope;
+    }
     best
 }
 
@@ -600,9 +618,11 @@ fn constant_fit(rb: &RangeBlock, q: &Quantiser) -> Fit {
     }
 }
 
-/// Exact least-squares fit of domain `d` under isometry `k`, quantised; trying the quantised
-/// contrast nearest to the optimum and its two neighbours.
-fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> Fit {
+/// Exact least-squares fit of domain `d` under isometry `k`, quantised by each of `qs`
+/// (trying the quantised contrast nearest to the optimum and its two neighbours); each
+/// `best[i]` is replaced where this map, quantised by `qs[i]`, does better. The sums over the
+/// block are computed once for all quantisers.
+fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, qs: &[Quantiser], best: &mut [Fit]) {
     let block = pool.block(d);
     let perm = &pool.perms[k as usize];
     let (sd, sdd, sdr) = match &rb.weights {
@@ -630,23 +650,10 @@ fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> 
     } else {
         0.0
     };
-    let qi = q.contrast_index(s_opt);
-    let l = q.contrast_levels();
-    let mut best = Fit {
-        sse: f32::INFINITY,
-        weight: rb.n,
-        contrast: 0,
-        offset: 0,
-        isometry: k,
-        domain: d as u32,
-        slope: [0; 2],
-        constant_sse: f32::INFINITY,
-        constant_offset: 0,
-        constant_slope: [0; 2],
-    };
-    if let Some(([rx, ry], sxx)) = rb.plane {
-        // Project r and the oriented domain onto the complement of {1, X, Y}; the isometry maps
-        // the domain's planar sums by swapping (transpose) and negating (mirrors).
+    // With a planar term: r and the oriented domain projected onto the complement of
+    // {1, X, Y}; the isometry maps the domain's planar sums by swapping (transpose) and
+    // negating (mirrors).
+    let planar = rb.plane.map(|([rx, ry], sxx)| {
         let [dx0, dy0] = pool.sums_xy[d];
         let (fx, fy) = (
             if k & 1 != 0 { -1.0 } else { 1.0 },
@@ -660,43 +667,63 @@ fn score(rb: &RangeBlock, pool: &DomainPool, d: usize, k: u8, q: &Quantiser) -> 
         let rd = sdr - rb.sr * sd / rb.n - (rx * dx + ry * dy) / sxx;
         let dd = sdd - sd * sd / rb.n - (dx * dx + dy * dy) / sxx;
         let rr = rb.srr - rb.sr * rb.sr / rb.n - (rx * rx + ry * ry) / sxx;
-        let s_opt = if dd > 1e-12 { rd / dd } else { 0.0 };
-        let qi = q.contrast_index(s_opt);
-        for qs in [qi, qi - 1, qi + 1] {
-            if qs == 0 || qs.abs() > l {
-                continue;
+        (rx, ry, sxx, dx, dy, rd, dd, rr)
+    });
+    for (q, best) in qs.iter().zip(best.iter_mut()) {
+        let l = q.contrast_levels();
+        // The best of the three contrasts (by the error as computed), then kept if it beats
+        // the best so far (by the error clamped at 0).
+        let mut local: Option<(f32, Fit)> = None;
+        let mut set = |sse: f32, contrast: i32, offset: u32, slope: [i32; 2]| {
+            if local.is_none_or(|(e, _)| sse < e) {
+                let fit = Fit {
+                    sse: sse.max(0.0),
+                    weight: rb.n,
+                    contrast,
+                    offset,
+                    isometry: k,
+                    domain: d as u32,
+                    slope,
+                    ..*best
+                };
+                local = Some((sse, fit));
             }
-            let s = q.contrast(qs);
-            let resid = (rr - 2.0 * s * rd + s * s * dd).max(0.0);
-            let o = (rb.sr - s * sd) / rb.n;
-            let (oi, si, extra) =
-                quantise_plane(q, rb, s, o, [(rx - s * dx) / sxx, (ry - s * dy) / sxx], sxx);
-            if resid + extra < best.sse {
-                best.sse = resid + extra;
-                best.contrast = qs;
-                best.offset = oi;
-                best.slope = si;
+        };
+        if let Some((rx, ry, sxx, dx, dy, rd, dd, rr)) = planar {
+            let s_opt = if dd > 1e-12 { rd / dd } else { 0.0 };
+            let qi = q.contrast_index(s_opt);
+            for qs in [qi, qi - 1, qi + 1] {
+                if qs == 0 || qs.abs() > l {
+                    continue;
+                }
+                let s = q.contrast(qs);
+                let resid = (rr - 2.0 * s * rd + s * s * dd).max(0.0);
+                let o = (rb.sr - s * sd) / rb.n;
+                let (oi, si, extra) =
+                    quantise_plane(q, rb, s, o, [(rx - s * dx) / sxx, (ry - s * dy) / sxx], sxx);
+                set(resid + extra, qs, oi, si);
+            }
+        } else {
+            let qi = q.contrast_index(s_opt);
+            for qs in [qi, qi - 1, qi + 1] {
+                if qs == 0 || qs.abs() > l {
+                    continue;
+                }
+                let s = q.contrast(qs);
+                let oi = q.offset_index(s, (rb.sr - s * sd) / rb.n);
+                let o = q.offset(s, oi);
+                let sse = rb.srr + s * s * sdd + rb.n * o * o + 2.0 * s * o * sd
+                    - 2.0 * s * sdr
+                    - 2.0 * o * rb.sr;
+                set(sse, qs, oi, [0; 2]);
             }
         }
-        return best;
-    }
-    for qs in [qi, qi - 1, qi + 1] {
-        if qs == 0 || qs.abs() > l {
-            continue;
-        }
-        let s = q.contrast(qs);
-        let oi = q.offset_index(s, (rb.sr - s * sd) / rb.n);
-        let o = q.offset(s, oi);
-        let sse = rb.srr + s * s * sdd + rb.n * o * o + 2.0 * s * o * sd
-            - 2.0 * s * sdr
-            - 2.0 * o * rb.sr;
-        if sse < best.sse {
-            best.sse = sse.max(0.0);
-            best.contrast = qs;
-            best.offset = oi;
+        if let Some((_, fit)) = local
+            && fit.sse < best.sse
+        {
+            *best = fit;
         }
     }
-    best
 }
 
 #[cfg(test)]

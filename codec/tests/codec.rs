@@ -1196,3 +1196,63 @@ fn weighing_quantisers_keeps_the_closest_asset_within_the_target() {
     let err = encode(&camera(), &bad, &quiet).unwrap_err();
     assert!(err.to_string().contains("offset"), "{err}");
 }
+
+#[test]
+fn one_search_fits_every_quantiser_as_its_own_search_would() {
+    use fractile_codec::partition::Pyramid;
+    use fractile_codec::search::CodingPlane;
+    use fractile_codec::stream::PlaneHeader;
+    // Real samples, normalised: a camera crop (constant offsets) and a jacksboro crop with
+    // slopes, each under quantisers of other offset, slope and contrast bits.
+    let dem = Raster::open(&data("jacksboro.tif")).unwrap();
+    let (lo, hi) = dem.value_range();
+    let cases = [
+        (crop(&camera(), 200, 150, 64, 64), 0.0, 255.0, 0u8),
+        (crop(&dem, 100, 100, 64, 64), lo as f32, hi as f32, 6u8),
+    ];
+    for (src, lo, hi, slope_bits) in cases {
+        let plane = CodingPlane {
+            width: 64,
+            height: 64,
+            values: src.channels[0]
+                .iter()
+                .map(|v| (v - lo) / (hi - lo))
+                .collect(),
+            weights: vec![1.0; 64 * 64],
+            valid: [64.0, 64.0],
+        };
+        let base = fractile_codec::Quantiser {
+            slope_bits,
+            ..EncodeSettings::default().quantiser
+        };
+        let headers: Vec<PlaneHeader> = [(6, 4), (5, 4), (8, 3), (7, 5)]
+            .into_iter()
+            .map(|(bits, contrast_bits)| PlaneHeader {
+                frame: [64, 64],
+                valid: [64.0, 64.0],
+                min_size: 4,
+                levels: 3,
+                domain_steps: vec![4, 8, 16],
+                quantiser: fractile_codec::Quantiser {
+                    offset_bits: bits,
+                    slope_bits: if slope_bits > 0 { bits } else { 0 },
+                    contrast_bits,
+                    ..base
+                },
+            })
+            .collect();
+        for mode in [SearchMode::Nearest(8), SearchMode::Full] {
+            let avg2 = plane.average2();
+            let shared = Pyramid::build_each(&plane, &avg2, &headers, mode, &|_| {});
+            let mut differ = 0;
+            for (h, p) in headers.iter().zip(&shared) {
+                let alone = Pyramid::build(&plane, h.clone(), mode, &|_| {});
+                assert_eq!(p.header, *h);
+                assert_eq!(p.fits, alone.fits, "{mode:?} {:?}", h.quantiser);
+                differ += usize::from(p.fits != shared[0].fits);
+            }
+            // The quantisers really do fit differently (else the test would prove nothing).
+            assert_eq!(differ, headers.len() - 1, "{mode:?}");
+        }
+    }
+}
