@@ -80,8 +80,8 @@ pub struct EncodeSettings {
     /// Further quantisers weighed under a target size ([`RateMode::TargetBpp`]): one search fits
     /// every block under `quantiser` and under each of these (the candidate domains do not
     /// depend on the quantiser), rate control runs for each, and the encoder keeps the asset
-    /// that decodes closest to the source (every one fits the target); attractor passes then
-    /// refine that one. Each must agree with `quantiser` on whether it has slopes. Empty:
+    /// that decodes closest to the source (every one fits the target); each attractor pass
+    /// weighs them again on one search. Each must agree with `quantiser` on whether it has slopes. Empty:
     /// `quantiser` alone. Ignored in the other rate modes, where a finer quantiser would buy
     /// its quality with more bytes. Height fields weigh
     /// [`EncodeSettings::default_quantiser_choices`].
