@@ -256,7 +256,7 @@ mod tests {
             encode_rmse: 1.0,
             max_contrast: 0.5,
             seed_bound: 100.0,
-            tilejson: String::new(),
+            tilejson: None,
         }
     }
 

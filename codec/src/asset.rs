@@ -46,6 +46,72 @@ pub const OLDEST_READ_VERSION: u16 = 1;
 /// The oldest format version of curve assets this build reads.
 pub const OLDEST_CURVE_VERSION: u16 = 3;
 
+/// What a reader lets one asset file cost before it allocates anything: sizes the file claims
+/// are checked against these (and against what its bytes can hold) first, so that a small
+/// hostile file cannot make a reader allocate gigabytes or decode for minutes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct AssetLimits {
+    /// Most samples of the source grid (width x height; voxels of a volume; vertices of curves).
+    pub max_pixels: u64,
+    /// Most bytes that decoding the asset may take: its operators and mask, resident while it
+    /// is served, plus one full-resolution discrete decode (what `fractile decode` and a
+    /// server's coarse tiles run), estimated from the headers before anything is decoded.
+    pub max_decode_bytes: u64,
+}
+
+impl Default for AssetLimits {
+    /// 2^28 samples (16384 x 16384) and 3 GiB: every asset of the demo and the benches, and a
+    /// 16384^2 DEM, fit; anything larger is the chunked assets' job.
+    fn default() -> Self {
+        AssetLimits {
+            max_pixels: 1 << 28,
+            max_decode_bytes: 3 << 30,
+        }
+    }
+}
+
+impl AssetLimits {
+    /// Checks the grid a file claims.
+    fn check_pixels(&self, what: &str, pixels: u64) -> Result<(), Error> {
+        if pixels > self.max_pixels {
+            return Err(Error::Asset(format!(
+                "{what} of {pixels} samples is over this reader's limit of {} (max_asset_pixels)",
+                self.max_pixels
+            )));
+        }
+        Ok(())
+    }
+
+    /// Checks the estimated cost of decoding.
+    fn check_cost(&self, bytes: u64) -> Result<(), Error> {
+        if bytes > self.max_decode_bytes {
+            return Err(Error::Asset(format!(
+                "decoding it would take about {} MiB, over this reader's limit of {} MiB (max_decode_mib)",
+                bytes >> 20,
+                self.max_decode_bytes >> 20
+            )));
+        }
+        Ok(())
+    }
+}
+
+/// Checks that a plane's coded extent is the metadata's grid (chroma: half of it; a
+/// supersampled plane: twice): a file may not claim a grid its planes do not code.
+fn check_extent(meta: &AssetMeta, valid: [f32; 2]) -> Result<(), String> {
+    let (w, h) = (meta.width as f32, meta.height as f32);
+    let fits = [0.5f32, 1.0, 2.0]
+        .iter()
+        .any(|&k| (valid[0] - k * w).abs() <= 0.5 * k && (valid[1] - k * h).abs() <= 0.5 * k);
+    if fits {
+        Ok(())
+    } else {
+        Err(format!(
+            "the plane codes an extent of {}x{} where the metadata says {}x{}",
+            valid[0], valid[1], meta.width, meta.height
+        ))
+    }
+}
+
 /// Codec identifiers of the payload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[repr(u8)]
@@ -373,6 +439,13 @@ impl Mask {
     }
 
     fn decode(width: usize, height: usize, bytes: &[u8]) -> Result<Mask, Error> {
+        // A decision per cell: a mask larger than its stream can hold is refused unallocated.
+        if (width as u64) * (height as u64) > crate::entropy::most_decisions(bytes.len()) {
+            return Err(Error::Asset(format!(
+                "a nodata mask of {width}x{height} needs more than its {} bytes",
+                bytes.len()
+            )));
+        }
         let mut valid = vec![false; width * height];
         let mut dec = Decoder::new(bytes);
         let mut ctx = [Bit::default(); 4];
@@ -380,6 +453,9 @@ impl Mask {
             for x in 0..width {
                 let c = context(&valid, width, x, y);
                 valid[y * width + x] = dec.bit(&mut ctx[c]);
+            }
+            if dec.overrun() {
+                break;
             }
         }
         if dec.overrun() {
@@ -742,8 +818,14 @@ impl Asset {
         self.to_bytes().len()
     }
 
-    /// Parses and checks a file's bytes.
+    /// Parses and checks a file's bytes under the default [`AssetLimits`].
     pub fn from_bytes(bytes: &[u8]) -> Result<Asset, Error> {
+        Asset::from_bytes_limited(bytes, &AssetLimits::default())
+    }
+
+    /// Parses and checks a file's bytes; the sizes it claims are checked against `limits` and
+    /// against what its streams can hold before anything is allocated for them.
+    pub fn from_bytes_limited(bytes: &[u8], limits: &AssetLimits) -> Result<Asset, Error> {
         let bad = |m: String| Error::Asset(m);
         if bytes.len() < 24 {
             return Err(bad(format!(
@@ -809,33 +891,83 @@ impl Asset {
                 meta.width, meta.height
             )));
         }
+        let (w, h) = (u64::from(meta.width), u64::from(meta.height));
         let mask = |m: Option<Vec<u8>>| -> Result<Option<Mask>, Error> {
             m.map(|m| Mask::decode(meta.width as usize, meta.height as usize, &m))
                 .transpose()
         };
+        // A mask is a byte per cell and a small summary; a full-resolution discrete decode
+        // holds two f32 grids per plane.
+        let mask_bytes = |m: &Option<Vec<u8>>| m.as_ref().map_or(0, |_| w * h + w * h / 64);
+        let discrete = |planes: usize| 8 * w * h * planes as u64;
         let payload = &bytes[p_start..body];
         if codec == Codec::Curve as u8 {
             // The header delimits itself and the stream runs to the payload's end.
             let (header, stream) = crate::curve::code::compact::read(payload)
                 .map_err(|e| bad(format!("curve: {e}")))?;
+            let points: u64 = header
+                .rings
+                .iter()
+                .map(|r| (u64::from(r.pieces) << (u32::from(r.levels) + 1)).min(1 << 40))
+                .fold(0, u64::saturating_add);
+            limits.check_pixels("a curve set", points)?;
+            // A point at every level (a geometric series: twice the finest) as two f64, its
+            // details and the level's working copies: about 64 bytes per finest point.
+            limits.check_cost(points.saturating_mul(64))?;
             return Asset::from_curve_parts(meta, header, stream.to_vec());
         }
         if codec == Codec::Octree as u8 {
             let p: VolumePayload =
                 fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+            limits.check_pixels("a volume", w * w * w)?;
+            let cells = (u64::from(p.header.frame) / u64::from(p.header.min_size.max(1))).pow(3);
+            limits.check_cost(cells * 4 + 8 * w * w * w)?;
             return Asset::from_volume_parts(meta, p.header, p.stream, p.placement);
         }
+        limits.check_pixels("a grid", w * h)?;
         if codec == Codec::Psa as u8 {
             let p: PsaPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+            for (i, (hd, _)) in p.planes.iter().enumerate() {
+                hd.validate().map_err(|e| bad(format!("plane {i}: {e}")))?;
+            }
+            // Vertex heights and region maps, about 64 bytes a vertex.
+            let vertices: u64 = p
+                .planes
+                .iter()
+                .map(|(hd, _)| hd.vertices().iter().map(|&n| n as u64).product::<u64>())
+                .sum();
+            limits.check_cost(vertices * 64 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
             let mask = mask(p.mask)?;
             return Asset::from_psa_parts(meta, p.planes, mask);
         }
         if codec == Codec::Fis as u8 {
             let p: FisPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+            for (i, (hd, _)) in p.planes.iter().enumerate() {
+                hd.validate().map_err(|e| bad(format!("plane {i}: {e}")))?;
+            }
+            // Node heights, scalings and a piece per cell, about 64 bytes a node.
+            let nodes: u64 = p
+                .planes
+                .iter()
+                .map(|(hd, _)| hd.nodes().iter().map(|&n| n as u64).product::<u64>())
+                .sum();
+            limits.check_cost(nodes * 64 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
             let mask = mask(p.mask)?;
             return Asset::from_fis_parts(meta, p.planes, mask);
         }
         let p: Payload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+        for (i, (header, _)) in p.planes.iter().enumerate() {
+            header
+                .validate()
+                .and_then(|()| check_extent(&meta, header.valid))
+                .map_err(|e| bad(format!("plane {i}: {e}")))?;
+        }
+        let operators: u64 = p
+            .planes
+            .iter()
+            .map(|(hd, stream)| hd.operator_bytes(stream.len()))
+            .sum();
+        limits.check_cost(operators + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
         let mask = mask(p.mask)?;
         Asset::from_parts(meta, p.planes, mask)
     }
@@ -872,6 +1004,19 @@ fn assemble(meta: &AssetMeta, codec: Codec, payload: &[u8]) -> Vec<u8> {
     out
 }
 
+/// What names a temporary file of [`write_atomic`]: `.{name}.tmp-{pid}-{n}`.
+const TEMPORARY: &str = ".tmp-";
+
+/// The process that writes the temporary file named `name`, if `name` is one of
+/// [`write_atomic`]'s (so that a reader of the folder can remove those a crash left behind).
+pub fn temporary_owner(name: &str) -> Option<u32> {
+    let rest = name.strip_prefix('.')?;
+    let (_, tail) = rest.rsplit_once(TEMPORARY)?;
+    let (pid, n) = tail.split_once('-')?;
+    n.parse::<u64>().ok()?;
+    pid.parse().ok()
+}
+
 /// Writes bytes to `path` atomically (temporary file in the same directory, fsync, rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     let err = |e: std::io::Error| Error::Output(format!("{}: {e}", path.display()));
@@ -882,8 +1027,12 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     let name = path
         .file_name()
         .ok_or_else(|| Error::Output(format!("{}: not a file path", path.display())))?;
+    // A name of its own per write (process and a counter): concurrent writers of one path
+    // each rename a whole file, and never write into another's.
+    static WRITES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
+    let n = WRITES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let tmp = dir.join(format!(
-        ".{}.tmp-{}",
+        ".{}{TEMPORARY}{}-{n}",
         name.to_string_lossy(),
         std::process::id()
     ));

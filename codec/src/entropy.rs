@@ -310,10 +310,27 @@ impl<'a> Decoder<'a> {
         (node - (1 << tree.bits)) as u32
     }
 
+    /// Length of the stream being read, in bytes.
+    pub fn stream_len(&self) -> usize {
+        self.data.len()
+    }
+
     /// Whether the decoder read past the end of the stream (beyond the flush bytes).
     pub fn overrun(&self) -> bool {
         self.overrun > 4
     }
+}
+
+/// The fewest bits of stream that one binary decision through a [`Bit`] context can take: its
+/// probability saturates at `(2^11 - 31) / 2^11` (the adaptation step rounds to zero there), so
+/// the likelier symbol costs at least `log2(2048 / 2017)` = 0.0220 bits. Readers use it to refuse,
+/// before allocating anything, a header that claims more symbols than its stream can hold.
+pub const MIN_BITS_PER_DECISION: f64 = 0.0219;
+
+/// The most binary decisions through [`Bit`] contexts that a stream of `bytes` bytes can hold
+/// (with the coder's flush bytes and the reader's tolerated overrun).
+pub fn most_decisions(bytes: usize) -> u64 {
+    (((bytes as f64 + 9.0) * 8.0) / MIN_BITS_PER_DECISION).ceil() as u64
 }
 
 /// One direction of the coder. The stream walks ([`crate::stream`], [`crate::octree`]) are one
@@ -326,6 +343,16 @@ pub enum Dir<'a, 'b> {
 }
 
 impl Dir<'_, '_> {
+    /// Whether a reader ran past the end of its stream ([`Decoder::overrun`]); never for a
+    /// writer. Stream walks test it as they go, so that a short stream claiming a large frame
+    /// stops within a few thousand symbols instead of decoding the whole claim from zeros.
+    pub fn overrun(&self) -> bool {
+        match self {
+            Dir::Enc(_) => false,
+            Dir::Dec(d) => d.overrun(),
+        }
+    }
+
     /// Codes one bit.
     pub fn bit<M: Model>(&mut self, p: &mut M, v: bool) -> bool {
         match self {
@@ -383,6 +410,38 @@ impl WideIndex {
 mod tests {
     use super::*;
     use proptest::prelude::*;
+
+    /// The cheapest stream there is (one context, always its likelier symbol) is still no
+    /// denser than [`MIN_BITS_PER_DECISION`], so [`most_decisions`] never refuses a real stream;
+    /// and a reader of an empty stream reports the overrun within a bounded number of symbols.
+    #[test]
+    fn decisions_cost_at_least_the_floor() {
+        for n in [1usize, 1_000, 100_000, 1_000_000] {
+            let mut enc = Encoder::new();
+            let mut b = Bit::default();
+            for _ in 0..n {
+                enc.bit(&mut b, false);
+            }
+            let bytes = enc.finish();
+            assert!(
+                most_decisions(bytes.len()) >= n as u64,
+                "{n} decisions in {} bytes",
+                bytes.len()
+            );
+            // Saturated: about the floor, within 10% once learning is paid for.
+            if n >= 100_000 {
+                let per = bytes.len() as f64 * 8.0 / n as f64;
+                assert!(per < MIN_BITS_PER_DECISION * 1.1, "{per} bits a decision");
+            }
+        }
+        let mut dec = Decoder::new(&[]);
+        let mut b = Bit::default();
+        let read = (0..100_000).take_while(|_| {
+            dec.bit(&mut b);
+            !dec.overrun()
+        });
+        assert!(read.count() < most_decisions(0) as usize);
+    }
 
     proptest! {
         #[test]

@@ -24,13 +24,27 @@ pub type ContinuousHook<'a> =
 pub type DiscreteHook<'a> =
     dyn Fn(usize, usize, u32, f32) -> Arc<Vec<(Grid, DiscreteReport)>> + Sync + 'a;
 
+/// Asked between bands of work: `true` when whoever wanted the answer has given up (a server's
+/// request that timed out or whose client left), so that the work stops instead of running on.
+pub type CancelHook<'a> = dyn Fn() -> bool + Sync + 'a;
+
 /// Work that [`Asset::sample_with`] lets its caller do elsewhere or keep.
 pub struct Delegates<'a> {
     /// Continuous chains (a GPU).
     pub continuous: &'a ContinuousHook<'a>,
     /// Discrete decodes for coarse pixels (a cache).
     pub discrete: &'a DiscreteHook<'a>,
+    /// Whether to stop (see [`CancelHook`]).
+    pub cancelled: &'a CancelHook<'a>,
 }
+
+/// [`Asset::sample_with`] stopped because its [`CancelHook`] said so.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Cancelled;
+
+/// Points decoded between two questions to a [`CancelHook`]: a few tens of milliseconds of
+/// work on one core, and a 512 x 512 tile in one band (no split, no cost).
+const BAND_POINTS: usize = 1 << 18;
 
 /// The unit points a [`ContinuousHook`] is asked for.
 #[derive(Clone, Copy, Debug)]
@@ -364,8 +378,10 @@ impl Asset {
         let delegates = Delegates {
             continuous: &|_, _, _, _| None,
             discrete: &discrete,
+            cancelled: &|| false,
         };
         self.sample_with(pixels, iterations, tolerance, &delegates)
+            .expect("never cancelled")
     }
 
     /// Every plane decoded discretely at `width x height` (normalised values) with at most
@@ -388,15 +404,26 @@ impl Asset {
     /// [`Asset::sample`], with the continuous chains of each plane offered first to
     /// `delegates.continuous(plane, grid, iterations, tolerance)` (normalised tolerance), which
     /// may answer them elsewhere (a GPU) or return `None` to leave them to the CPU, and the
-    /// discrete decodes of coarse pixels taken from `delegates.discrete`.
+    /// discrete decodes of coarse pixels taken from `delegates.discrete`. Large requests are
+    /// decoded in bands of rows or points, asking `delegates.cancelled` before each: the
+    /// answers are the same (every point is decoded on its own), and a caller that gave up
+    /// gets [`Cancelled`] within a band's time.
     pub fn sample_with(
         &self,
         pixels: &Pixels,
         iterations: u32,
         tolerance: f32,
         delegates: &Delegates<'_>,
-    ) -> (Vec<Vec<f32>>, f32) {
+    ) -> Result<(Vec<Vec<f32>>, f32), Cancelled> {
         let continuous = delegates.continuous;
+        let stop = || {
+            if (delegates.cancelled)() {
+                Err(Cancelled)
+            } else {
+                Ok(())
+            }
+        };
+        stop()?;
         let footprint = pixels.footprint;
         // Decode the pixels inside the asset, then put them back in place.
         let inside = Inside::of(&pixels.sites);
@@ -444,51 +471,67 @@ impl Asset {
                 })
                 .collect()
         } else {
-            self.planes
-                .iter()
-                .enumerate()
-                .map(|(k, p)| {
-                    let values = match &inside {
-                        Inside::Grid { ix, iy, .. } => {
-                            continuous(k, Sites::Grid { xs: ix, ys: iy }, iterations, tol)
-                                .unwrap_or_else(|| p.operator.grid(ix, iy, iterations, tol))
-                        }
-                        Inside::List {
-                            points,
-                            loose,
-                            patches,
-                            ..
-                        } => continuous(k, Sites::List(points), iterations, tol).unwrap_or_else(
-                            || {
-                                let mut v = p.operator.points(&points[..*loose], iterations, tol);
-                                v.reserve(points.len() - v.len());
-                                for (pa, inside) in patches {
-                                    let all = p.operator.patch(&pa.patch, iterations, tol);
-                                    if inside.iter().all(|&i| i) {
-                                        v.extend_from_slice(&all);
-                                        continue;
-                                    }
-                                    v.extend(
-                                        all.into_iter()
-                                            .zip(inside)
-                                            .filter(|(_, i)| **i)
-                                            .map(|(r, _)| r),
-                                    );
+            let mut planes = Vec::with_capacity(self.planes.len());
+            for (k, p) in self.planes.iter().enumerate() {
+                let values = match &inside {
+                    Inside::Grid { ix, iy, .. } => {
+                        match continuous(k, Sites::Grid { xs: ix, ys: iy }, iterations, tol) {
+                            Some(v) => v,
+                            None => {
+                                let rows = (BAND_POINTS / ix.len().max(1)).max(1);
+                                let mut v = Vec::with_capacity(ix.len() * iy.len());
+                                for band in iy.chunks(rows) {
+                                    stop()?;
+                                    v.extend(p.operator.grid(ix, band, iterations, tol));
                                 }
                                 v
-                            },
-                        ),
-                    };
+                            }
+                        }
+                    }
+                    Inside::List {
+                        points,
+                        loose,
+                        patches,
+                        ..
+                    } => match continuous(k, Sites::List(points), iterations, tol) {
+                        Some(v) => v,
+                        None => {
+                            let mut v = Vec::with_capacity(points.len());
+                            for band in points[..*loose].chunks(BAND_POINTS) {
+                                stop()?;
+                                v.extend(p.operator.points(band, iterations, tol));
+                            }
+                            for (pa, inside) in patches {
+                                stop()?;
+                                let all = p.operator.patch(&pa.patch, iterations, tol);
+                                if inside.iter().all(|&i| i) {
+                                    v.extend_from_slice(&all);
+                                    continue;
+                                }
+                                v.extend(
+                                    all.into_iter()
+                                        .zip(inside)
+                                        .filter(|(_, i)| **i)
+                                        .map(|(r, _)| r),
+                                );
+                            }
+                            v
+                        }
+                    },
+                };
+                planes.push(
                     values
                         .into_iter()
                         .map(|r| {
                             worst = worst.max(r.error_bound);
                             r.value
                         })
-                        .collect()
-                })
-                .collect()
+                        .collect(),
+                );
+            }
+            planes
         };
+        stop()?;
         let inner = self.to_source(planes, |k| inside.at(k), inside.footprint());
         let channels = inner
             .into_iter()
@@ -512,7 +555,7 @@ impl Asset {
                 b
             }
         };
-        (channels, bound)
+        Ok((channels, bound))
     }
 }
 

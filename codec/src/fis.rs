@@ -229,6 +229,14 @@ pub(crate) fn get_grid(
     range: std::ops::RangeInclusive<i64>,
     what: &str,
 ) -> Result<Vec<i32>, String> {
+    // A value codes at least one decision: a grid larger than the stream can hold is refused
+    // before it is allocated, and a short stream stops at the row where it ran out.
+    if (nx as u64) * (ny as u64) > crate::entropy::most_decisions(dec.stream_len()) {
+        return Err(format!(
+            "a grid of {nx}x{ny} {what}s needs more than its stream's {} bytes",
+            dec.stream_len()
+        ));
+    }
     let mut c = IntCoder::new();
     let mut values = vec![0i32; nx * ny];
     for j in 0..ny {
@@ -238,6 +246,9 @@ pub(crate) fn get_grid(
                 return Err(format!("{what} {v} out of range"));
             }
             values[j * nx + i] = v as i32;
+        }
+        if dec.overrun() {
+            return Err(format!("the stream ends inside the {what}s"));
         }
     }
     Ok(values)

@@ -31,7 +31,7 @@ pub mod stream;
 pub mod transform;
 pub mod volume;
 
-pub use asset::Asset;
+pub use asset::{Asset, AssetLimits};
 pub use decode::{DiscreteOptions, Method};
 pub use encode::{EncodeSettings, Encoded, RateMode, Roi, encode};
 pub use raster::Raster;

@@ -413,33 +413,51 @@ impl Mesh {
 
     /// Wavefront OBJ text.
     pub fn to_obj(&self) -> Vec<u8> {
-        use std::fmt::Write;
-        let mut s = String::with_capacity(self.positions.len() * 32 + self.triangles.len() * 24);
-        s.push_str("# fractile mesh\n");
+        let mut out = Vec::with_capacity(self.positions.len() * 32 + self.triangles.len() * 24);
+        self.write_obj(&mut out).expect("writing to memory");
+        out
+    }
+
+    /// Writes Wavefront OBJ text as it goes (a server streams large meshes instead of holding
+    /// their text whole).
+    pub fn write_obj(&self, out: &mut (impl std::io::Write + ?Sized)) -> std::io::Result<()> {
+        use std::io::Write;
+        let mut w = std::io::BufWriter::with_capacity(1 << 16, out);
+        writeln!(w, "# fractile mesh")?;
         for p in &self.positions {
-            let _ = writeln!(s, "v {} {} {}", p[0], p[1], p[2]);
+            writeln!(w, "v {} {} {}", p[0], p[1], p[2])?;
         }
         let normals = self.has_normals();
         if normals {
             for n in &self.normals {
-                let _ = writeln!(s, "vn {} {} {}", n[0], n[1], n[2]);
+                writeln!(w, "vn {} {} {}", n[0], n[1], n[2])?;
             }
         }
         for t in &self.triangles {
             let [a, b, c] = t.map(|i| i + 1);
-            let _ = if normals {
-                writeln!(s, "f {a}//{a} {b}//{b} {c}//{c}")
+            if normals {
+                writeln!(w, "f {a}//{a} {b}//{b} {c}//{c}")?;
             } else {
-                writeln!(s, "f {a} {b} {c}")
-            };
+                writeln!(w, "f {a} {b} {c}")?;
+            }
         }
-        s.into_bytes()
+        w.flush()
     }
 
     /// Binary little-endian PLY.
     pub fn to_ply(&self) -> Vec<u8> {
+        let mut out = Vec::with_capacity(self.positions.len() * 24 + self.triangles.len() * 13);
+        self.write_ply(&mut out).expect("writing to memory");
+        out
+    }
+
+    /// Writes binary little-endian PLY as it goes (see [`Mesh::write_obj`]).
+    pub fn write_ply(&self, out: &mut (impl std::io::Write + ?Sized)) -> std::io::Result<()> {
+        use std::io::Write;
         let normals = self.has_normals();
-        let mut out = format!(
+        let mut w = std::io::BufWriter::with_capacity(1 << 16, out);
+        write!(
+            w,
             "ply\nformat binary_little_endian 1.0\ncomment fractile mesh\nelement vertex {}\nproperty float x\nproperty float y\nproperty float z\n{}element face {}\nproperty list uchar uint vertex_indices\nend_header\n",
             self.positions.len(),
             if normals {
@@ -448,23 +466,24 @@ impl Mesh {
                 ""
             },
             self.triangles.len()
-        )
-        .into_bytes();
+        )?;
         for (i, p) in self.positions.iter().enumerate() {
-            p.iter()
-                .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+            for v in p {
+                w.write_all(&v.to_le_bytes())?;
+            }
             if normals {
-                self.normals[i]
-                    .iter()
-                    .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+                for v in &self.normals[i] {
+                    w.write_all(&v.to_le_bytes())?;
+                }
             }
         }
         for t in &self.triangles {
-            out.push(3);
-            t.iter()
-                .for_each(|v| out.extend_from_slice(&v.to_le_bytes()));
+            w.write_all(&[3])?;
+            for v in t {
+                w.write_all(&v.to_le_bytes())?;
+            }
         }
-        out
+        w.flush()
     }
 
     /// glTF 2.0 binary (GLB): one mesh, positions and u32 indices in one buffer.

@@ -433,6 +433,9 @@ fn code(
                             ));
                         }
                     }
+                    if dir.overrun() {
+                        return Err("the transform stream is truncated".into());
+                    }
                     leaves.push(Leaf3 {
                         level: l,
                         block: b,

@@ -230,6 +230,9 @@ pub fn decode_params(header: &PsaHeader, bytes: &[u8]) -> Result<PsaParams, Stri
     let l = header.levels();
     let mut regions = Vec::with_capacity((nx - 1) * (ny - 1));
     for cj in 0..ny - 1 {
+        if dec.overrun() {
+            return Err("the psa2d stream is truncated".into());
+        }
         for ci in 0..nx - 1 {
             if !dec.bit(&mut flag) {
                 regions.push(RegionCode::Patch);

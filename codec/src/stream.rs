@@ -72,6 +72,31 @@ impl PlaneHeader {
         Ok(())
     }
 
+    /// Blocks of the largest range size that the frame touches (each codes at least one leaf).
+    pub fn top_blocks(&self) -> u64 {
+        let n = self.size(self.levels as usize - 1) as u64;
+        u64::from(self.frame[0]).div_ceil(n) * u64::from(self.frame[1]).div_ceil(n)
+    }
+
+    /// Most leaves a stream of `bytes` bytes can code in this frame: no more than the frame's
+    /// smallest blocks, nor than the stream's decisions allow.
+    pub fn most_leaves(&self, bytes: usize) -> u64 {
+        let cells = (u64::from(self.frame[0]) / u64::from(self.min_size))
+            * (u64::from(self.frame[1]) / u64::from(self.min_size));
+        let per_leaf = u64::from(self.quantiser.contrast_bits + self.quantiser.offset_bits).max(1);
+        cells.min(crate::entropy::most_decisions(bytes) / per_leaf)
+    }
+
+    /// Memory the decoding operator of this plane takes at most (its cell lookup and its
+    /// ranges), from the header and the stream's length alone: what a reader checks against
+    /// its budget before decoding.
+    pub fn operator_bytes(&self, stream_bytes: usize) -> u64 {
+        let cells = (u64::from(self.frame[0]) / u64::from(self.min_size))
+            * (u64::from(self.frame[1]) / u64::from(self.min_size));
+        // A u32 per lookup cell; a leaf, its range map and its affine cell, about 128 bytes.
+        cells * 4 + self.most_leaves(stream_bytes) * 128
+    }
+
     /// Range side of level `l`.
     pub fn size(&self, l: usize) -> usize {
         (self.min_size as usize) << l
@@ -257,6 +282,9 @@ fn code(
                         ));
                     }
                 }
+                if dir.overrun() {
+                    return Err("the transform stream is truncated".into());
+                }
                 leaves.push(Leaf {
                     level: l,
                     bx,
@@ -293,7 +321,17 @@ pub fn encode_plane(
 /// Reads a plane's partition and maps.
 pub fn decode_plane(h: &PlaneHeader, bytes: &[u8]) -> Result<Vec<Leaf>, String> {
     h.validate()?;
-    // A stream can hold no more leaves than the frame has smallest blocks.
+    // Every top-level block holds at least one leaf, and a leaf codes its contrast and offset
+    // indices: a frame whose leaves the stream cannot hold is refused before the walk.
+    let decisions = h.top_blocks() * u64::from(h.quantiser.contrast_bits + h.quantiser.offset_bits);
+    if decisions > crate::entropy::most_decisions(bytes.len()) {
+        return Err(format!(
+            "a frame of {}x{} needs more than the {} bytes of its stream",
+            h.frame[0],
+            h.frame[1],
+            bytes.len()
+        ));
+    }
     let mut dec = Decoder::new(bytes);
     let leaves = code(&mut Dir::Dec(&mut dec), h, &|_, _, _| None)?;
     if dec.overrun() {

@@ -64,8 +64,10 @@ pub struct AssetSummary {
     pub max_contrast: f32,
     /// A-priori error bound of the seed (n = 0), value units.
     pub seed_bound: f32,
-    /// Absolute URL of the asset's TileJSON.
-    pub tilejson: String,
+    /// Absolute URL of the asset's TileJSON; only rasters (images and height fields) have
+    /// tiles, so curves and volumes have none.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub tilejson: Option<String>,
 }
 
 impl AssetSummary {

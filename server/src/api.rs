@@ -25,6 +25,7 @@ use crate::backend::{Backend, GpuBackend};
 use crate::encoding::{self, HeightEncoding};
 use crate::error::AppError;
 use crate::store::{Store, StoredAsset};
+use crate::work::{BodyWriter, Cancel, Head, Lanes};
 
 /// Limits on what one request may ask for.
 #[derive(Clone, Debug)]
@@ -56,8 +57,12 @@ pub struct AppState {
     pub store: Store,
     /// Request limits.
     pub limits: Limits,
-    /// Decoding slots: at most this many decodes run at once on the blocking pool.
-    pub decoders: Semaphore,
+    /// Where decoding runs and what it may cost at once (light slots, heavy budget).
+    pub lanes: Lanes,
+    /// Upload bodies in flight, in MiB: bodies wait for room before they are read.
+    pub uploads: Arc<Semaphore>,
+    /// Size of `uploads`, in MiB (twice the largest upload).
+    pub uploads_mib: u32,
     /// Encoded tiles keyed like their ETag, bounded in bytes.
     pub cache: moka::sync::Cache<String, Arc<Cached>>,
     /// Discrete decodes of whole assets at the scale of a coarse zoom level, keyed by asset id,
@@ -77,6 +82,10 @@ pub struct AppState {
     /// The GPU, when the server has one.
     pub gpu: Option<Arc<GpuBackend>>,
 }
+
+/// Default of `max_decode_mib`: what the heavy lane may hold at once, and what one asset may
+/// cost to decode ([`fractile_codec::AssetLimits::max_decode_bytes`]).
+pub const DEFAULT_DECODE_MIB: u32 = 3 * 1024;
 
 /// Key of [`AppState::coarse`]: asset id, checksum, width, height, iterations, tolerance bits.
 pub type CoarseKey = (String, u32, usize, usize, u32, u32);
@@ -104,7 +113,9 @@ impl AppState {
         AppState {
             store,
             limits: Limits::default(),
-            decoders: Semaphore::new(cores),
+            lanes: Lanes::new(cores, DEFAULT_DECODE_MIB),
+            uploads: Arc::new(Semaphore::new(2 * 64)),
+            uploads_mib: 2 * 64,
             cache: moka::sync::Cache::builder()
                 .weigher(|_k: &String, v: &Arc<Cached>| v.body.len().try_into().unwrap_or(u32::MAX))
                 .max_capacity(256 * 1024 * 1024)
@@ -190,22 +201,19 @@ fn planar(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> {
     Ok(a)
 }
 
-/// Runs `f` on the blocking pool once a decoding slot is free.
+/// Runs `f` on the blocking pool in the lane of its estimated `bytes` (see [`crate::work`]).
 async fn decode<T: Send + 'static>(
     state: &AppState,
-    f: impl FnOnce() -> T + Send + 'static,
+    bytes: u64,
+    f: impl FnOnce(&Cancel) -> T + Send + 'static,
 ) -> Result<T, AppError> {
-    let _permit = state
-        .decoders
-        .acquire()
-        .await
-        .map_err(|_| AppError::internal("decoder pool closed"))?;
-    let start = std::time::Instant::now();
-    let out = tokio::task::spawn_blocking(f)
-        .await
-        .map_err(|e| AppError::internal(format!("decoding failed: {e}")));
-    metrics::histogram!("fractile_decode_seconds").record(start.elapsed().as_secs_f64());
-    out
+    state.lanes.run(bytes, f).await
+}
+
+/// Bytes a decode of `pixels` points of `channels` channels holds at its peak: the points
+/// (8), a chain result per channel (12), the values in source units and their encoding (8).
+fn sampling_bytes(pixels: usize, channels: u8) -> u64 {
+    pixels as u64 * (8 + 20 * u64::from(channels.max(1)))
 }
 
 /// The backend of a request: its `backend` parameter, else the server's. Asking for the GPU
@@ -229,13 +237,13 @@ fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppErro
 /// `Asset::sample` of a raster's pixels on the chosen backend, with coarse decodes shared
 /// through `coarse` (runs inside `decode`, on the blocking pool).
 fn sample_on(
-    (gpu, coarse): (Option<&GpuBackend>, &CoarseCache),
+    (gpu, coarse, cancel): (Option<&GpuBackend>, &CoarseCache, &Cancel),
     choice: Backend,
     a: &StoredAsset,
     pixels: &geo::Pixels,
     iterations: u32,
     tolerance: f32,
-) -> (Vec<Vec<f32>>, f32) {
+) -> Result<(Vec<Vec<f32>>, f32), AppError> {
     let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
     let continuous =
         |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
@@ -244,12 +252,19 @@ fn sample_on(
             Arc::new(a.asset.discrete_planes(w, h, n, t))
         })
     };
+    let cancelled = || cancel.is_set();
     let delegates = fractile_codec::extract::Delegates {
         continuous: &continuous,
         discrete: &discrete,
+        cancelled: &cancelled,
     };
     a.asset
         .sample_with(pixels, iterations, tolerance, &delegates)
+        .map_err(|_| AppError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            code: "cancelled",
+            detail: "the request was given up before its decode finished".into(),
+        })
 }
 
 /// Discrete decodes for coarse tiles (see [`AppState::coarse`]).
@@ -284,7 +299,8 @@ fn summary(state: &AppState, a: &StoredAsset) -> AssetSummary {
         encode_rmse: m.stats.rmse,
         max_contrast: a.asset.max_contrast(),
         seed_bound: a.asset.bound_after(0),
-        tilejson: format!("{}/v1/assets/{}/tilejson.json", state.public_url, a.id),
+        tilejson: matches!(m.kind, AssetKind::Image | AssetKind::HeightField)
+            .then(|| format!("{}/v1/assets/{}/tilejson.json", state.public_url, a.id)),
     }
 }
 
@@ -330,20 +346,57 @@ async fn put_asset(
     State(state): Shared,
     Path(id): Path<String>,
     headers: HeaderMap,
-    body: Result<Bytes, axum::extract::rejection::BytesRejection>,
+    body: axum::body::Body,
 ) -> Result<Response, AppError> {
+    // Who and what first: nothing of the body is read before the token and the id are checked
+    // and the declared length fits, so an unauthorised upload costs no memory.
     authorise(&state, &headers)?;
-    let body = body.map_err(|e| AppError {
-        status: e.status(),
-        code: "bad_body",
-        detail: e.body_text(),
-    })?;
     crate::store::validate_id(&id)?;
+    let limit = state.max_upload;
+    let too_large = || AppError {
+        status: StatusCode::PAYLOAD_TOO_LARGE,
+        code: "too_large",
+        detail: format!("an asset upload is at most {} MiB", limit >> 20),
+    };
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > limit as u64) {
+        return Err(too_large());
+    }
+    // Bodies in flight share a budget: an upload waits for room before it is read (its length,
+    // or the largest allowed when it declares none).
+    let mib =
+        (declared.unwrap_or(limit as u64).div_ceil(1 << 20) as u32).clamp(1, state.uploads_mib);
+    let room = state
+        .uploads
+        .clone()
+        .acquire_many_owned(mib)
+        .await
+        .map_err(|_| AppError::internal("the upload budget is closed"))?;
+    let body = axum::body::to_bytes(body, limit).await.map_err(|e| {
+        let over = std::error::Error::source(&e)
+            .is_some_and(|s| s.is::<http_body_util::LengthLimitError>())
+            || e.to_string().contains("length limit");
+        if over {
+            too_large()
+        } else {
+            AppError::bad_request("bad_body", format!("reading the body: {e}"))
+        }
+    })?;
     let existed = state.store.get(&id).is_ok();
     let st = state.clone();
     let id2 = id.clone();
-    // Parsing checks the whole file (checksum, headers, streams) before anything is written.
-    let stored = decode(&state, move || st.store.put(&id2, &body)).await??;
+    // Parsing checks the whole file (checksum, headers, streams) before anything is written;
+    // its cost is bounded by the asset limits, and it runs in the heavy lane when large.
+    let cost = (body.len() as u64).saturating_mul(16);
+    let stored = decode(&state, cost, move |_| {
+        let out = st.store.put(&id2, &body);
+        drop(room);
+        out
+    })
+    .await??;
     let status = if existed {
         StatusCode::OK
     } else {
@@ -626,23 +679,25 @@ async fn tile(
     let asset = a.clone();
     let gpu = state.gpu.clone();
     let coarse = state.coarse.clone();
-    let cached = decode(&state, move || {
+    let side = size + 2 * usize::from(shade);
+    let cost = sampling_bytes(side * side, a.asset.meta.channels);
+    let cached = decode(&state, cost, move |cancel| {
         // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile,
         // so that shading is seamless across tiles.
         let margin = usize::from(shade);
         let grid = geo::tile_pixels(asset.placement.as_ref(), z, x, y, size, margin);
         if grid.is_outside() {
-            return None;
+            return Ok(None);
         }
         let footprint = grid.footprint;
         let (mut channels, bound) = sample_on(
-            (gpu.as_deref(), &coarse),
+            (gpu.as_deref(), &coarse, cancel),
             choice,
             &asset,
             &grid,
             iterations,
             tolerance,
-        );
+        )?;
         let style = (colormap.is_some() || shade).then(|| {
             let side = size + 2 * margin;
             let shade = shade.then(|| {
@@ -675,13 +730,13 @@ async fn tile(
         });
         let (content_type, body) =
             encoding::encode_tile(&asset.asset.meta, &channels, size, format, style);
-        Some(Cached {
+        Ok::<_, AppError>(Some(Cached {
             content_type,
             body: Bytes::from(body),
             error_bound: bound,
-        })
+        }))
     })
-    .await?
+    .await??
     .ok_or_else(|| {
         AppError::not_found("outside", format!("tile {z}/{x}/{y} is outside the asset"))
     })?;
@@ -814,7 +869,7 @@ async fn volume_point(
         ));
     }
     let (n, tolerance) = iterations_for(state, &a, q.iterations, q.tolerance)?;
-    let sample = decode(state, move || a.asset.distances(&[p], n, tolerance))
+    let sample = decode(state, 0, move |_| a.asset.distances(&[p], n, tolerance))
         .await?
         .map_err(|e| AppError::internal(e.to_string()))?
         .remove(0);
@@ -935,7 +990,8 @@ async fn answer_points(
         ));
     }
     let gpu = state.gpu.clone();
-    decode(state, move || {
+    let cost = sampling_bytes(coords.len(), a.asset.meta.channels);
+    decode(state, cost, move |_| {
         let inside: Vec<[f32; 2]> = units.iter().map(|u| u.unwrap_or([0.0, 0.0])).collect();
         let samples = match gpu.as_deref().filter(|g| g.takes(choice, inside.len())) {
             Some(g) => a.asset.points_with(&inside, n, tolerance, &|k, p, n, t| {
@@ -1093,44 +1149,59 @@ async fn mesh(
         state.gpu.clone(),
         state.coarse.clone(),
     );
-    let body = decode(&state, move || {
-        let (channels, bound) = sample_on(
-            (gpu.as_deref(), &coarse),
-            choice,
-            &a,
-            &grid,
-            iterations,
-            tolerance,
-        );
-        let spacing = [
-            (extent_x / (n - 1) as f64) as f32,
-            (extent_y / (n - 1) as f64) as f32,
-        ];
-        let origin = [0.0, extent_y as f32];
-        let m = match max_error {
-            Some(e) => fractile_codec::mesh::Mesh::adaptive(&channels[0], n, origin, spacing, e)
-                .map_err(|e| AppError::internal(e.to_string()))?,
-            None => fractile_codec::mesh::Mesh::grid(&channels[0], n, n, origin, spacing),
-        };
-        let (ct, body) = match format.as_str() {
-            "obj" => ("text/plain", m.to_obj()),
-            "ply" => ("application/octet-stream", m.to_ply()),
-            _ => ("model/gltf-binary", m.to_glb()),
-        };
-        Ok((ct, body, bound + max_error.unwrap_or(0.0)))
-    })
-    .await??;
-    Ok((
-        [
-            (header::CONTENT_TYPE, body.0.to_string()),
-            (
-                "x-error-bound".parse().expect("name"),
-                format!("{}", body.2),
-            ),
-        ],
-        body.1,
+    // Samples, then the mesh (a vertex and two triangles a sample, with normals) and its
+    // writer's buffers: about 96 bytes a vertex.
+    let cost = sampling_bytes(n * n, 1) + (n * n) as u64 * 96;
+    state
+        .lanes
+        .stream(cost, move |cancel| {
+            let (channels, bound) = sample_on(
+                (gpu.as_deref(), &coarse, cancel),
+                choice,
+                &a,
+                &grid,
+                iterations,
+                tolerance,
+            )?;
+            let spacing = [
+                (extent_x / (n - 1) as f64) as f32,
+                (extent_y / (n - 1) as f64) as f32,
+            ];
+            let origin = [0.0, extent_y as f32];
+            let m = match max_error {
+                Some(e) => {
+                    fractile_codec::mesh::Mesh::adaptive(&channels[0], n, origin, spacing, e)
+                        .map_err(|e| AppError::internal(e.to_string()))?
+                }
+                None => fractile_codec::mesh::Mesh::grid(&channels[0], n, n, origin, spacing),
+            };
+            Ok(mesh_body(m, &format, bound + max_error.unwrap_or(0.0)))
+        })
+        .await
+}
+
+/// The head and writer of a mesh answer in `format` (obj, ply or glb): text and PLY are
+/// written as they stream; GLB, whose header holds its length, is built whole (it is the
+/// compact one, about 24 bytes a vertex).
+fn mesh_body(m: fractile_codec::mesh::Mesh, format: &str, error_bound: f32) -> (Head, BodyWriter) {
+    let (content_type, writer): (&'static str, BodyWriter) = match format {
+        "obj" => ("text/plain", Box::new(move |w| m.write_obj(w))),
+        "ply" => (
+            "application/octet-stream",
+            Box::new(move |w| m.write_ply(w)),
+        ),
+        _ => (
+            "model/gltf-binary",
+            Box::new(move |w: &mut dyn std::io::Write| w.write_all(&m.to_glb())),
+        ),
+    };
+    (
+        Head {
+            content_type,
+            error_bound,
+        },
+        writer,
     )
-        .into_response())
 }
 
 /// Largest samples a volume mesh request decodes (256^3).
@@ -1206,32 +1277,32 @@ async fn volume_mesh(
     }
     let (iterations, tolerance) = iterations_for(state, &a, q.iterations, q.tolerance)?;
     let (choice, gpu) = (backend_for(state, q.backend.as_deref())?, state.gpu.clone());
-    let out = decode(state, move || {
-        let on_gpu = |lo, hi, dims: [usize; 3], n, t| {
-            gpu.as_deref()
-                .filter(|g| g.takes(choice, dims.iter().product()))
-                .and_then(|g| g.volume_grid(&a, (lo, hi, dims), n, t))
-        };
-        let (m, bound) = a
-            .asset
-            .volume_mesh_with(bbox, n, iterations, tolerance, Some(&on_gpu))?;
-        let (ct, body) = match format.as_str() {
-            "obj" => ("text/plain", m.to_obj()),
-            "ply" => ("application/octet-stream", m.to_ply()),
-            _ => ("model/gltf-binary", m.to_glb()),
-        };
-        Ok::<_, fractile_codec::Error>((ct, body, bound))
-    })
-    .await?
-    .map_err(|e| AppError::bad_request("bad_request", e.to_string()))?;
-    Ok((
-        [
-            (header::CONTENT_TYPE, out.0.to_string()),
-            ("x-error-bound".parse().expect("name"), format!("{}", out.2)),
-        ],
-        out.1,
-    )
-        .into_response())
+    let samples = match bbox {
+        Some((lo, hi)) => {
+            let longest = (0..3).map(|k| hi[k] - lo[k]).fold(0.0, f64::max);
+            (0..3)
+                .map(|k| ((hi[k] - lo[k]) / longest * (n - 1) as f64).round() + 1.0)
+                .product::<f64>() as u64
+        }
+        None => (n as u64).pow(3),
+    };
+    // A distance a sample, and a surface of up to a few vertices per surface cell.
+    let cost = samples * 16 + (n as u64).pow(2) * 256;
+    state
+        .lanes
+        .stream(cost, move |_| {
+            let on_gpu = |lo, hi, dims: [usize; 3], n, t| {
+                gpu.as_deref()
+                    .filter(|g| g.takes(choice, dims.iter().product()))
+                    .and_then(|g| g.volume_grid(&a, (lo, hi, dims), n, t))
+            };
+            let (m, bound) = a
+                .asset
+                .volume_mesh_with(bbox, n, iterations, tolerance, Some(&on_gpu))
+                .map_err(|e| AppError::bad_request("bad_request", e.to_string()))?;
+            Ok(mesh_body(m, &format, bound))
+        })
+        .await
 }
 
 #[derive(Deserialize)]
@@ -1317,52 +1388,61 @@ async fn region(
         state.gpu.clone(),
         state.coarse.clone(),
     );
-    let (ct, body, bound) = decode(&state, move || {
-        let (channels, bound) =
-            sample_on((gpu.as_deref(), &coarse), choice, &a, &grid, n, tolerance);
-        if tif_out {
-            let nodata = a.asset.meta.nodata;
-            let values: Vec<f32> = match nodata {
-                Some(nd) => channels[0]
-                    .iter()
-                    .map(|&v| if v.is_nan() { nd as f32 } else { v })
-                    .collect(),
-                None => channels[0].clone(),
-            };
-            return fractile_codec::raster::geotiff_f32(w, h, &values, tif_georef.as_ref(), nodata)
-                .map(|b| ("image/tiff", b, bound))
-                .map_err(|e| AppError::internal(e.to_string()));
-        }
-        let (ct, body) = if f32_out {
-            (
-                "application/octet-stream",
-                channels
-                    .iter()
-                    .flat_map(|c| c.iter().flat_map(|v| v.to_le_bytes()))
-                    .collect(),
-            )
-        } else {
-            let fmt = if a.asset.meta.kind == AssetKind::HeightField {
-                encoding::TileFormat::Visual(Some((
-                    a.asset.meta.value_min as f32,
-                    a.asset.meta.value_max as f32,
-                )))
+    let channels = a.asset.meta.channels;
+    // Sampling, then the encoded body (at most 4 bytes a value).
+    let cost = sampling_bytes(w * h, channels) + (w * h) as u64 * 4 * u64::from(channels);
+    state
+        .lanes
+        .stream(cost, move |cancel| {
+            let (channels, bound) = sample_on(
+                (gpu.as_deref(), &coarse, cancel),
+                choice,
+                &a,
+                &grid,
+                n,
+                tolerance,
+            )?;
+            let (content_type, body) = if tif_out {
+                let nodata = a.asset.meta.nodata;
+                let values: Vec<f32> = match nodata {
+                    Some(nd) => channels[0]
+                        .iter()
+                        .map(|&v| if v.is_nan() { nd as f32 } else { v })
+                        .collect(),
+                    None => channels[0].clone(),
+                };
+                let tif =
+                    fractile_codec::raster::geotiff_f32(w, h, &values, tif_georef.as_ref(), nodata)
+                        .map_err(|e| AppError::internal(e.to_string()))?;
+                ("image/tiff", tif)
+            } else if f32_out {
+                (
+                    "application/octet-stream",
+                    channels
+                        .iter()
+                        .flat_map(|c| c.iter().flat_map(|v| v.to_le_bytes()))
+                        .collect(),
+                )
             } else {
-                encoding::TileFormat::Visual(None)
+                let fmt = if a.asset.meta.kind == AssetKind::HeightField {
+                    encoding::TileFormat::Visual(Some((
+                        a.asset.meta.value_min as f32,
+                        a.asset.meta.value_max as f32,
+                    )))
+                } else {
+                    encoding::TileFormat::Visual(None)
+                };
+                encoding::encode_raster(&a.asset.meta, &channels, w, h, fmt, None)
             };
-            encoding::encode_raster(&a.asset.meta, &channels, w, h, fmt, None)
-        };
-        Ok((ct, body, bound))
-    })
-    .await??;
-    Ok((
-        [
-            (header::CONTENT_TYPE, ct.to_string()),
-            ("x-error-bound".parse().expect("name"), format!("{bound}")),
-        ],
-        body,
-    )
-        .into_response())
+            let head = Head {
+                content_type,
+                error_bound: bound,
+            };
+            let writer: BodyWriter =
+                Box::new(move |out: &mut dyn std::io::Write| out.write_all(&body));
+            Ok((head, writer))
+        })
+        .await
 }
 
 /// The default request timeout.
@@ -1423,7 +1503,7 @@ async fn curve(
     let units = a.asset.meta.units.clone().unwrap_or_default();
     let control = q.control;
     let a2 = a.clone();
-    let doc = decode(&state, move || {
+    let doc = decode(&state, 0, move |_| {
         let c = a2.asset.curve.as_ref().expect("checked above");
         if control {
             let lines = c.set.rings.iter().map(|r| r.base.clone()).collect();
@@ -1462,7 +1542,7 @@ async fn curve_deform(
     check_level(set, level)?;
     let units = a.asset.meta.units.clone().unwrap_or_default();
     let a2 = a.clone();
-    let doc = decode(&state, move || {
+    let doc = decode(&state, 0, move |_| {
         let c = a2.asset.curve.as_ref().expect("checked above");
         let deformed = fractile_codec::curve::deform::apply(&c.set, &req.deformations)?;
         let decoded = deformed.at_level(level);

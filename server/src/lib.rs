@@ -10,6 +10,7 @@ pub mod openapi;
 pub mod store;
 pub mod telemetry;
 pub mod web;
+pub mod work;
 
 use std::net::SocketAddr;
 use std::path::PathBuf;
@@ -46,6 +47,12 @@ pub struct FileConfig {
     pub backend: Option<String>,
     /// GPU memory for resident operators, in MiB (default 1024).
     pub gpu_memory_mib: Option<u64>,
+    /// Most samples an asset may claim (width x height; voxels of a volume), default 2^28.
+    pub max_asset_pixels: Option<u64>,
+    /// Memory decoding may take, in MiB (default 3072): the most one asset may cost to decode
+    /// (its operator and a full-resolution decode), and the total of large requests in flight
+    /// (regions, meshes: more wait for room; one larger than this is refused with 413).
+    pub max_decode_mib: Option<u32>,
 }
 
 impl FileConfig {
@@ -112,8 +119,24 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
             d
         }
     };
-    let (store, skipped) =
-        store::Store::open(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+    let decode_mib = opts
+        .file
+        .max_decode_mib
+        .unwrap_or(api::DEFAULT_DECODE_MIB)
+        .max(1);
+    let limits = fractile_codec::AssetLimits {
+        max_pixels: opts
+            .file
+            .max_asset_pixels
+            .unwrap_or(fractile_codec::AssetLimits::default().max_pixels),
+        max_decode_bytes: u64::from(decode_mib) << 20,
+    };
+    let (store, skipped) = tokio::task::spawn_blocking({
+        let dir = dir.clone();
+        move || store::Store::open_with(&dir, limits)
+    })
+    .await?
+    .map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
     for s in &skipped {
         tracing::warn!("skipped broken asset {s}");
     }
@@ -138,8 +161,15 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
         state.cache_control = c.clone();
     }
     if let Some(m) = opts.file.max_upload_mib {
-        state.max_upload = m * 1024 * 1024;
+        state.max_upload = m.max(1) * 1024 * 1024;
     }
+    // Upload bodies in flight: room for two of the largest.
+    state.uploads_mib = (2 * (state.max_upload >> 20)).clamp(1, 1 << 20) as u32;
+    state.uploads = Arc::new(tokio::sync::Semaphore::new(state.uploads_mib as usize));
+    state.lanes = work::Lanes::new(
+        std::thread::available_parallelism().map_or(2, |n| n.get()),
+        decode_mib,
+    );
     if let Some(n) = opts.file.max_iterations {
         state.limits.max_iterations = n.clamp(1, 256);
     }
@@ -169,10 +199,70 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     let listener = tokio::net::TcpListener::bind(opts.bind).await?;
     tracing::info!("listening on http://{}", listener.local_addr()?);
     let app = app(state).layer(tower::limit::ConcurrencyLimitLayer::new(concurrency));
-    axum::serve(listener, app)
-        .with_graceful_shutdown(shutdown())
-        .await?;
+    run(listener, app, shutdown(), HEADER_READ_TIMEOUT).await;
     Ok(())
+}
+
+/// How long a connection may take to send a request's headers (and, new, its first byte)
+/// before it is closed: connections that never finish their headers must not stay open.
+pub const HEADER_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+
+/// Serves `app` on `listener` until `stop` resolves, then lets in-flight requests finish
+/// (for at most [`api::REQUEST_TIMEOUT`]). What `axum::serve` does, plus the header-read
+/// timeout it does not expose: HTTP/1 headers must arrive within `header_timeout`
+/// ([`HEADER_READ_TIMEOUT`] in `serve`), and a connection that sends nothing at all is closed
+/// after it too.
+pub async fn run(
+    listener: tokio::net::TcpListener,
+    app: axum::Router,
+    stop: impl std::future::Future<Output = ()>,
+    header_timeout: std::time::Duration,
+) {
+    use hyper_util::rt::{TokioExecutor, TokioIo, TokioTimer};
+    let mut builder = hyper_util::server::conn::auto::Builder::new(TokioExecutor::new());
+    builder
+        .http1()
+        .timer(TokioTimer::new())
+        .header_read_timeout(header_timeout);
+    builder.http2().timer(TokioTimer::new());
+    let graceful = hyper_util::server::graceful::GracefulShutdown::new();
+    let service = hyper_util::service::TowerToHyperService::new(app);
+    tokio::pin!(stop);
+    loop {
+        let (stream, _) = tokio::select! {
+            accepted = listener.accept() => match accepted {
+                Ok(c) => c,
+                Err(e) => {
+                    // Out of file descriptors, say: wait a little rather than spin.
+                    tracing::warn!("accept: {e}");
+                    tokio::time::sleep(std::time::Duration::from_millis(50)).await;
+                    continue;
+                }
+            },
+            () = &mut stop => break,
+        };
+        let _ = stream.set_nodelay(true);
+        let builder = builder.clone();
+        let service = service.clone();
+        let watcher = graceful.watcher();
+        tokio::spawn(async move {
+            // The protocol is told by the first bytes: a peer that sends none is dropped.
+            let mut first = [0u8; 1];
+            match tokio::time::timeout(header_timeout, stream.peek(&mut first)).await {
+                Ok(Ok(n)) if n > 0 => {}
+                _ => return,
+            }
+            let conn = builder.serve_connection_with_upgrades(TokioIo::new(stream), service);
+            let _ = watcher.watch(conn.into_owned()).await;
+        });
+    }
+    drop(listener);
+    tokio::select! {
+        () = graceful.shutdown() => {}
+        () = tokio::time::sleep(api::REQUEST_TIMEOUT) => {
+            tracing::warn!("in-flight requests still running after {:?}: stopping", api::REQUEST_TIMEOUT);
+        }
+    }
 }
 
 async fn shutdown() {

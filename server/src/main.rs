@@ -221,8 +221,9 @@ struct MeshArgs {
     /// Samples along the box's longest side [default: the encoded grid].
     #[arg(long)]
     resolution: Option<usize>,
-    /// Box `x0,y0,z0,x1,y1,z1` in the mesh's units [default: the whole grid].
-    #[arg(long, value_parser = parse_box3)]
+    /// Box `x0,y0,z0,x1,y1,z1` in the mesh's units [default: the whole grid]; it may start
+    /// with a minus sign (`--bbox -0.5,-0.5,-0.5,0,0,0.2`).
+    #[arg(long, value_parser = parse_box3, allow_hyphen_values = true)]
     bbox: Option<([f64; 3], [f64; 3])>,
     /// Inverse steps of continuous decoding.
     #[arg(long, default_value_t = 16)]
@@ -821,6 +822,13 @@ fn run_decode(a: DecodeArgs) -> Result<()> {
     if asset.volume.is_some() {
         bail!(
             "{} is a volume: extract its surface with `fractile mesh`",
+            a.asset.display()
+        );
+    }
+    if asset.curve.is_some() {
+        bail!(
+            "{} holds curves: decode them to GeoJSON with `fractile curve {} -o out.geojson`",
+            a.asset.display(),
             a.asset.display()
         );
     }

@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, RwLock};
 
 use fractile_codec::geo::Placement;
-use fractile_codec::{Asset, EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{Asset, AssetLimits, EncodeSettings, Raster, RateMode, encode};
 
 use crate::error::AppError;
 
@@ -29,6 +29,11 @@ pub struct StoredAsset {
 pub struct Store {
     dir: PathBuf,
     assets: RwLock<BTreeMap<String, Arc<StoredAsset>>>,
+    /// What one asset may claim and cost (checked on load and on upload).
+    limits: AssetLimits,
+    /// Held while a file is replaced and the catalog updated, so that concurrent writers of
+    /// an id serialise and the file on disk is always the version served.
+    writes: std::sync::Mutex<()>,
 }
 
 /// Checks an asset id: 1-64 characters of letters, digits, `-` and `_`, not starting with `-`
@@ -45,18 +50,47 @@ pub fn validate_id(id: &str) -> Result<(), AppError> {
 }
 
 impl Store {
-    /// Loads every `*.fra` file of `dir`; returns the store and one message per skipped file.
+    /// Loads every `*.fra` file of `dir` under the default [`AssetLimits`]; returns the store
+    /// and one message per skipped file.
     pub fn open(dir: &Path) -> std::io::Result<(Store, Vec<String>)> {
+        Store::open_with(dir, AssetLimits::default())
+    }
+
+    /// Loads every `*.fra` file of `dir`, refusing those over `limits`: temporary files left by
+    /// an interrupted write are removed first, and symbolic links are skipped (the folder's own
+    /// files only). Returns the store and one message per skipped file.
+    pub fn open_with(dir: &Path, limits: AssetLimits) -> std::io::Result<(Store, Vec<String>)> {
         let mut assets = BTreeMap::new();
         let mut skipped = Vec::new();
-        let mut entries: Vec<PathBuf> = std::fs::read_dir(dir)?
-            .filter_map(|e| e.ok().map(|e| e.path()))
-            .collect();
-        entries.sort();
-        for path in entries {
+        let mut entries = Vec::new();
+        for e in std::fs::read_dir(dir)? {
+            let Ok(e) = e else { continue };
+            // `file_type` does not follow links.
+            let Ok(kind) = e.file_type() else { continue };
+            let path = e.path();
+            if let Some(tmp) = stale_temporary(&path) {
+                match std::fs::remove_file(&path) {
+                    Ok(()) => tracing::info!("removed {tmp}, left by an interrupted write"),
+                    Err(err) => tracing::warn!("could not remove {tmp}: {err}"),
+                }
+                continue;
+            }
             if path.extension().and_then(|e| e.to_str()) != Some("fra") {
                 continue;
             }
+            if kind.is_symlink() {
+                skipped.push(format!(
+                    "{}: a symbolic link (only the folder's own files are served)",
+                    path.display()
+                ));
+                continue;
+            }
+            if kind.is_file() {
+                entries.push(path);
+            }
+        }
+        entries.sort();
+        for path in entries {
             let Some(id) = path
                 .file_stem()
                 .and_then(|s| s.to_str())
@@ -70,7 +104,7 @@ impl Store {
             }
             match std::fs::read(&path)
                 .map_err(|e| e.to_string())
-                .and_then(|b| load(&id, &b).map_err(|e| e.to_string()))
+                .and_then(|b| load(&id, &b, &limits).map_err(|e| e.to_string()))
             {
                 Ok(a) => {
                     assets.insert(id, Arc::new(a));
@@ -82,22 +116,31 @@ impl Store {
             Store {
                 dir: dir.to_path_buf(),
                 assets: RwLock::new(assets),
+                limits,
+                writes: std::sync::Mutex::new(()),
             },
             skipped,
         ))
     }
 
-    /// Validates an uploaded asset and stores it (atomically: temporary file, then rename),
-    /// replacing any asset of that id.
+    /// Validates an uploaded asset and stores it (atomically: a temporary file of its own,
+    /// then a rename), replacing any asset of that id. Writers of one id serialise: the file
+    /// and the catalog are updated together, so the last writer's version is both.
     pub fn put(&self, id: &str, bytes: &[u8]) -> Result<Arc<StoredAsset>, AppError> {
         validate_id(id)?;
-        let stored = Arc::new(load(id, bytes).map_err(|e| AppError {
+        let stored = Arc::new(load(id, bytes, &self.limits).map_err(|e| AppError {
             status: axum::http::StatusCode::UNPROCESSABLE_ENTITY,
             code: "bad_asset",
             detail: e.to_string(),
         })?);
-        fractile_codec::asset::write_atomic(&self.dir.join(format!("{id}.fra")), bytes)
-            .map_err(|e| AppError::internal(e.to_string()))?;
+        let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
+        fractile_codec::asset::write_atomic(&self.dir.join(format!("{id}.fra")), bytes).map_err(
+            |e| {
+                // The path and the OS error go to the log, not to the client.
+                tracing::error!("storing asset {id}: {e}");
+                AppError::internal("the asset could not be stored")
+            },
+        )?;
         self.assets
             .write()
             .expect("store lock")
@@ -108,6 +151,7 @@ impl Store {
     /// Removes an asset and its file.
     pub fn delete(&self, id: &str) -> Result<(), AppError> {
         validate_id(id)?;
+        let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
         let removed = self.assets.write().expect("store lock").remove(id);
         if removed.is_none() {
             return Err(AppError::not_found(
@@ -115,8 +159,10 @@ impl Store {
                 format!("no asset {id:?}"),
             ));
         }
-        std::fs::remove_file(self.dir.join(format!("{id}.fra")))
-            .map_err(|e| AppError::internal(e.to_string()))
+        std::fs::remove_file(self.dir.join(format!("{id}.fra"))).map_err(|e| {
+            tracing::error!("deleting asset {id}: {e}");
+            AppError::internal("the asset's file could not be removed")
+        })
     }
 
     /// The asset `id`, or 404.
@@ -141,9 +187,31 @@ impl Store {
     }
 }
 
-/// Parses an asset file's bytes into a stored asset.
-pub fn load(id: &str, bytes: &[u8]) -> Result<StoredAsset, fractile_codec::Error> {
-    let asset = Asset::from_bytes(bytes)?;
+/// Whether `path` is a temporary file of [`fractile_codec::asset::write_atomic`] that no
+/// running writer owns (its process is gone, or it is over an hour old): its name, if so.
+fn stale_temporary(path: &Path) -> Option<String> {
+    let name = path.file_name()?.to_str()?;
+    let owner = fractile_codec::asset::temporary_owner(name)?;
+    // Our own pid counts as alive: another store of this process may be writing (a previous
+    // process of the same pid left files that the age rule removes).
+    let alive = Path::new(&format!("/proc/{owner}")).exists();
+    let old = std::fs::symlink_metadata(path)
+        .and_then(|m| m.modified())
+        .ok()
+        .and_then(|t| t.elapsed().ok())
+        .is_some_and(|age| age > std::time::Duration::from_secs(3600));
+    // Where /proc is missing (not Linux), only age tells.
+    let procfs = Path::new("/proc/self").exists();
+    (old || (procfs && !alive)).then(|| name.to_string())
+}
+
+/// Parses an asset file's bytes into a stored asset, under `limits`.
+pub fn load(
+    id: &str,
+    bytes: &[u8],
+    limits: &AssetLimits,
+) -> Result<StoredAsset, fractile_codec::Error> {
+    let asset = Asset::from_bytes_limited(bytes, limits)?;
     let placement = asset.meta.georef.as_ref().and_then(|g| {
         match Placement::of(g, asset.meta.width, asset.meta.height) {
             Ok(p) => Some(p),

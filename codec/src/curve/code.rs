@@ -832,6 +832,10 @@ fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<
             let mut next = Vec::with_capacity(4 * n + 1);
             let mut d_level = Vec::with_capacity(n);
             for p in 0..n {
+                // A short stream stops where it ran out, not after decoding its claim.
+                if p % 1024 == 0 && dir.overrun() {
+                    return Err(format!("ring {ri}: the curve stream is truncated"));
+                }
                 let (ia, ib) = (2 * p, (2 * p + 2) % cur.len());
                 let (a, c, b) = (cur[ia], cur[2 * p + 1], cur[ib]);
                 let ctx = level_class;

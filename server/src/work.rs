@@ -1,0 +1,291 @@
+//! Where decoding runs, and what it may cost at once.
+//!
+//! Two lanes keep cheap requests responsive while heavy ones run:
+//! - **light** work (a tile, a batch of points, anything estimated under [`LIGHT_BYTES`]) takes
+//!   one of a slot per core and runs on the blocking pool and rayon's global pool;
+//! - **heavy** work (large regions, meshes, uploads being validated) takes its estimated bytes
+//!   from a weighted budget (`max_decode_mib`) and runs on a rayon pool of its own, whose
+//!   threads run at a lower priority (nice 10), so a burst of heavy requests neither starves
+//!   the light lane's threads of their queue nor of the CPU.
+//!
+//! The permits travel with the work, not with the request: a request that timed out releases
+//! its budget only when its work has stopped, which it does at the next band (the work asks
+//! [`Cancel::is_set`], which turns true when the request's future is dropped).
+
+use std::io::Write;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, Ordering};
+use std::time::Duration;
+
+use axum::body::{Body, Bytes};
+use axum::response::Response;
+use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, oneshot};
+
+use crate::error::AppError;
+
+/// Work estimated under this many bytes runs in the light lane.
+pub const LIGHT_BYTES: u64 = 24 << 20;
+
+/// How long a streamed body may wait for its reader to take a chunk before it is abandoned
+/// (a reader that stalls must not hold a heavy budget for ever).
+pub const STALLED_READER: Duration = Duration::from_secs(30);
+
+/// Chunks of a streamed body in flight between the writer and the connection.
+const STREAM_CHUNKS: usize = 4;
+/// Size of a streamed body's chunks.
+const CHUNK_BYTES: usize = 256 << 10;
+
+/// The decoding lanes of a server.
+pub struct Lanes {
+    /// Light slots: one per core.
+    light: Arc<Semaphore>,
+    /// Heavy budget, in MiB.
+    heavy: Arc<Semaphore>,
+    heavy_mib: u32,
+    /// Threads of heavy work.
+    pool: Arc<rayon::ThreadPool>,
+}
+
+impl Lanes {
+    /// Lanes with `cores` light slots and a heavy budget of `heavy_mib` MiB.
+    pub fn new(cores: usize, heavy_mib: u32) -> Lanes {
+        let pool = rayon::ThreadPoolBuilder::new()
+            .num_threads(cores.max(1))
+            .thread_name(|i| format!("fractile-heavy-{i}"))
+            .start_handler(|_| lower_priority())
+            .build()
+            .expect("a rayon pool for heavy decodes");
+        let heavy_mib = heavy_mib.clamp(1, Semaphore::MAX_PERMITS as u32);
+        Lanes {
+            light: Arc::new(Semaphore::new(cores.max(1))),
+            heavy: Arc::new(Semaphore::new(heavy_mib as usize)),
+            heavy_mib,
+            pool: Arc::new(pool),
+        }
+    }
+
+    /// The heavy budget in MiB.
+    pub fn heavy_mib(&self) -> u32 {
+        self.heavy_mib
+    }
+
+    /// Whether a light slot is free now (readiness).
+    pub fn light_free(&self) -> bool {
+        self.light.available_permits() > 0
+    }
+
+    /// Takes the lane that work of `bytes` belongs to (waiting for room), or refuses work
+    /// larger than the whole heavy budget.
+    async fn admit(&self, bytes: u64) -> Result<Admitted, AppError> {
+        if bytes <= LIGHT_BYTES {
+            let permit = self.light.clone().acquire_owned().await.map_err(closed)?;
+            return Ok(Admitted {
+                _permit: permit,
+                pool: None,
+            });
+        }
+        let mib = bytes.div_ceil(1 << 20);
+        if mib > u64::from(self.heavy_mib) {
+            return Err(AppError {
+                status: axum::http::StatusCode::PAYLOAD_TOO_LARGE,
+                code: "too_expensive",
+                detail: format!(
+                    "this request needs about {mib} MiB to decode, over the server's max_decode_mib of {}: ask for fewer pixels",
+                    self.heavy_mib
+                ),
+            });
+        }
+        let permit = self
+            .heavy
+            .clone()
+            .acquire_many_owned(mib as u32)
+            .await
+            .map_err(closed)?;
+        Ok(Admitted {
+            _permit: permit,
+            pool: Some(self.pool.clone()),
+        })
+    }
+
+    /// Runs `f` in the lane of `bytes`, on the blocking pool, with a [`Cancel`] that turns
+    /// true when this future is dropped (the request timed out or its client left).
+    pub async fn run<T: Send + 'static>(
+        &self,
+        bytes: u64,
+        f: impl FnOnce(&Cancel) -> T + Send + 'static,
+    ) -> Result<T, AppError> {
+        let admitted = self.admit(bytes).await?;
+        let guard = CancelOnDrop::default();
+        let cancel = guard.0.clone();
+        let start = std::time::Instant::now();
+        let out = tokio::task::spawn_blocking(move || {
+            let out = admitted.install(|| f(&cancel));
+            drop(admitted);
+            out
+        })
+        .await
+        .map_err(|e| AppError::internal(format!("decoding failed: {e}")));
+        metrics::histogram!("fractile_decode_seconds").record(start.elapsed().as_secs_f64());
+        drop(guard);
+        out
+    }
+
+    /// Runs `f` in the lane of `bytes` and streams what it writes as the response body: `f`
+    /// returns the response's head (content type, error bound) and a writer of the body, which
+    /// runs while the client reads, with the budget held until the last byte is taken, the
+    /// client leaves, or it stalls for [`STALLED_READER`]. Large bodies are never held whole.
+    pub async fn stream<F>(&self, bytes: u64, f: F) -> Result<Response, AppError>
+    where
+        F: FnOnce(&Cancel) -> Result<(Head, BodyWriter), AppError> + Send + 'static,
+    {
+        let admitted = self.admit(bytes).await?;
+        let guard = CancelOnDrop::default();
+        let cancel = guard.0.clone();
+        let (head_tx, head_rx) = oneshot::channel();
+        let (tx, rx) = mpsc::channel::<Result<Bytes, std::io::Error>>(STREAM_CHUNKS);
+        let runtime = tokio::runtime::Handle::current();
+        tokio::task::spawn_blocking(move || {
+            let made = admitted.install(|| f(&cancel));
+            let writer = match made {
+                Ok((head, writer)) => {
+                    if head_tx.send(Ok(head)).is_err() {
+                        return;
+                    }
+                    writer
+                }
+                Err(e) => {
+                    let _ = head_tx.send(Err(e));
+                    return;
+                }
+            };
+            let mut out = ChannelWriter {
+                tx,
+                runtime,
+                buf: Vec::with_capacity(CHUNK_BYTES),
+            };
+            if writer(&mut out).and_then(|()| out.flush()).is_err() {
+                tracing::debug!("a streamed body ended early (its reader left or stalled)");
+            }
+            drop(admitted);
+        });
+        let head = head_rx
+            .await
+            .map_err(|_| AppError::internal("decoding failed"))??;
+        // The guard lives with the body: a client that leaves mid-body cancels the writer.
+        let stream = futures_util::stream::unfold((rx, guard), |(mut rx, guard)| async move {
+            rx.recv().await.map(|chunk| (chunk, (rx, guard)))
+        });
+        let mut response = Response::new(Body::from_stream(stream));
+        let h = response.headers_mut();
+        h.insert(
+            axum::http::header::CONTENT_TYPE,
+            axum::http::HeaderValue::from_static(head.content_type),
+        );
+        if let Ok(v) = axum::http::HeaderValue::from_str(&format!("{}", head.error_bound)) {
+            h.insert("x-error-bound", v);
+        }
+        Ok(response)
+    }
+}
+
+/// The head of a streamed response.
+pub struct Head {
+    /// Its content type.
+    pub content_type: &'static str,
+    /// Its `X-Error-Bound`.
+    pub error_bound: f32,
+}
+
+/// Writes a streamed body.
+pub type BodyWriter = Box<dyn FnOnce(&mut dyn Write) -> std::io::Result<()> + Send>;
+
+fn closed(_: tokio::sync::AcquireError) -> AppError {
+    AppError::internal("the decoding lanes are closed")
+}
+
+/// A lane taken: its permit, and the pool heavy work runs in.
+struct Admitted {
+    _permit: OwnedSemaphorePermit,
+    pool: Option<Arc<rayon::ThreadPool>>,
+}
+
+impl Admitted {
+    fn install<T>(&self, f: impl FnOnce() -> T + Send) -> T
+    where
+        T: Send,
+    {
+        match &self.pool {
+            Some(pool) => pool.install(f),
+            None => f(),
+        }
+    }
+}
+
+/// Whether the request that wanted some work has given up.
+#[derive(Clone, Default)]
+pub struct Cancel(Arc<AtomicBool>);
+
+impl Cancel {
+    /// True once the request's future was dropped.
+    pub fn is_set(&self) -> bool {
+        self.0.load(Ordering::Relaxed)
+    }
+}
+
+/// Sets its [`Cancel`] when dropped.
+#[derive(Default)]
+struct CancelOnDrop(Cancel);
+
+impl Drop for CancelOnDrop {
+    fn drop(&mut self) {
+        (self.0).0.store(true, Ordering::Relaxed);
+    }
+}
+
+/// A `Write` that hands chunks to a response body through a bounded channel.
+struct ChannelWriter {
+    tx: mpsc::Sender<Result<Bytes, std::io::Error>>,
+    runtime: tokio::runtime::Handle,
+    buf: Vec<u8>,
+}
+
+impl ChannelWriter {
+    fn send(&mut self) -> std::io::Result<()> {
+        if self.buf.is_empty() {
+            return Ok(());
+        }
+        let chunk = Bytes::from(std::mem::replace(
+            &mut self.buf,
+            Vec::with_capacity(CHUNK_BYTES),
+        ));
+        let tx = self.tx.clone();
+        self.runtime
+            .block_on(async move { tx.send_timeout(Ok(chunk), STALLED_READER).await })
+            .map_err(|_| std::io::Error::new(std::io::ErrorKind::BrokenPipe, "reader gone"))
+    }
+}
+
+impl Write for ChannelWriter {
+    fn write(&mut self, data: &[u8]) -> std::io::Result<usize> {
+        self.buf.extend_from_slice(data);
+        if self.buf.len() >= CHUNK_BYTES {
+            self.send()?;
+        }
+        Ok(data.len())
+    }
+
+    fn flush(&mut self) -> std::io::Result<()> {
+        self.send()
+    }
+}
+
+/// Lowers the calling thread's scheduling priority (nice 10) where the platform allows it.
+fn lower_priority() {
+    #[cfg(target_os = "linux")]
+    // SAFETY: setpriority on the calling thread's id (Linux treats a tid as a process of one
+    // thread here); it reads nothing from us but integers.
+    unsafe {
+        let tid = libc::syscall(libc::SYS_gettid) as libc::id_t;
+        libc::setpriority(libc::PRIO_PROCESS, tid, 10);
+    }
+}
