@@ -357,4 +357,39 @@ fn geojson_encodes_to_a_curve_asset_and_back_at_any_level() {
         .unwrap();
     assert!(!huge.status.success());
     assert!(String::from_utf8_lossy(&huge.stderr).contains("2^26"));
+    // `decode` of a curve asset says what decodes curves (it panicked in the raster writer).
+    let raster = bin()
+        .arg("decode")
+        .arg(&asset)
+        .arg("-o")
+        .arg(dir.join("c.png"))
+        .output()
+        .unwrap();
+    assert_eq!(raster.status.code(), Some(1));
+    let err = String::from_utf8_lossy(&raster.stderr);
+    assert!(err.contains("fractile curve"), "{err}");
+    assert!(!dir.join("c.png").exists());
+}
+
+/// The crafted files of issue 35 are refused by `info` and `decode` with a message, never an
+/// abort (they made `fractile info` abort on an allocation failure).
+#[test]
+fn crafted_files_are_refused_by_the_command_line() {
+    for name in [
+        "frame-bomb-65536.fra",
+        "frame-bomb-16384.fra",
+        "metadata-bomb-65536.fra",
+    ] {
+        for cmd in [vec!["info"], vec!["decode", "-o", "/dev/null"]] {
+            let out = bin()
+                .arg(cmd[0])
+                .arg(data(&format!("hostile/{name}")))
+                .args(&cmd[1..])
+                .output()
+                .unwrap();
+            assert_eq!(out.status.code(), Some(1), "{name} {cmd:?}");
+            let err = String::from_utf8_lossy(&out.stderr);
+            assert!(err.starts_with("fractile: asset:"), "{name} {cmd:?}: {err}");
+        }
+    }
 }

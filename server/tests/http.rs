@@ -551,7 +551,8 @@ async fn writes_need_the_token_and_respect_the_size_limit() {
         .unwrap();
     let (s, b) = call(&small, big).await;
     assert_eq!(s, StatusCode::PAYLOAD_TOO_LARGE);
-    assert_eq!(json(&b)["code"], "bad_body");
+    // The code the README names for a body over a route's limit.
+    assert_eq!(json(&b)["code"], "too_large");
 }
 
 #[tokio::test]
