@@ -59,7 +59,8 @@ pub struct AppState {
     pub limits: Limits,
     /// Where decoding runs and what it may cost at once (light slots, heavy budget).
     pub lanes: Lanes,
-    /// Upload bodies in flight, in MiB: bodies wait for room before they are read.
+    /// Request bodies in flight (uploads, point batches), in MiB: a body waits for room before
+    /// it is read.
     pub uploads: Arc<Semaphore>,
     /// Size of `uploads`, in MiB (twice the largest upload).
     pub uploads_mib: u32,
@@ -160,13 +161,8 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/assets/{id}/tiles/{z}/{x}/{tile}", get(tile))
         .route("/v1/assets/{id}/point", get(point_unit))
         .route("/v1/assets/{id}/point/{coords}", get(point_lonlat))
-        // A full batch in JSON is about 40 bytes a point: room for the point limit, and more.
-        .route(
-            "/v1/assets/{id}/points",
-            post(points).layer(axum::extract::DefaultBodyLimit::max(
-                64 * state.limits.max_points.max(1),
-            )),
-        )
+        // The batch's body limit is applied as it is read (`read_body`).
+        .route("/v1/assets/{id}/points", post(points))
         .route("/v1/assets/{id}/region", get(region))
         .route("/v1/assets/{id}/mesh", get(mesh))
         .route("/v1/assets/{id}/curve", get(curve))
@@ -342,6 +338,49 @@ fn authorise(state: &AppState, headers: &HeaderMap) -> Result<(), AppError> {
     }
 }
 
+/// Reads a request body of at most `limit` bytes once the bodies-in-flight budget has room for
+/// it (its declared length, or `limit` when it declares none): a body over `limit` is a 413,
+/// refused before a byte is read when its length says so. The permit holds the room until
+/// the caller is done with the bytes.
+async fn read_body(
+    state: &AppState,
+    headers: &HeaderMap,
+    body: axum::body::Body,
+    limit: usize,
+) -> Result<(Bytes, tokio::sync::OwnedSemaphorePermit), AppError> {
+    let too_large = || AppError {
+        status: StatusCode::PAYLOAD_TOO_LARGE,
+        code: "too_large",
+        detail: format!("this request's body is at most {} bytes", limit),
+    };
+    let declared = headers
+        .get(header::CONTENT_LENGTH)
+        .and_then(|v| v.to_str().ok())
+        .and_then(|v| v.parse::<u64>().ok());
+    if declared.is_some_and(|n| n > limit as u64) {
+        return Err(too_large());
+    }
+    let mib =
+        (declared.unwrap_or(limit as u64).div_ceil(1 << 20) as u32).clamp(1, state.uploads_mib);
+    let room = state
+        .uploads
+        .clone()
+        .acquire_many_owned(mib)
+        .await
+        .map_err(|_| AppError::internal("the body budget is closed"))?;
+    let bytes = axum::body::to_bytes(body, limit).await.map_err(|e| {
+        let over = std::error::Error::source(&e)
+            .is_some_and(|s| s.is::<http_body_util::LengthLimitError>())
+            || e.to_string().contains("length limit");
+        if over {
+            too_large()
+        } else {
+            AppError::bad_request("bad_body", format!("reading the body: {e}"))
+        }
+    })?;
+    Ok((bytes, room))
+}
+
 async fn put_asset(
     State(state): Shared,
     Path(id): Path<String>,
@@ -352,39 +391,7 @@ async fn put_asset(
     // and the declared length fits, so an unauthorised upload costs no memory.
     authorise(&state, &headers)?;
     crate::store::validate_id(&id)?;
-    let limit = state.max_upload;
-    let too_large = || AppError {
-        status: StatusCode::PAYLOAD_TOO_LARGE,
-        code: "too_large",
-        detail: format!("an asset upload is at most {} MiB", limit >> 20),
-    };
-    let declared = headers
-        .get(header::CONTENT_LENGTH)
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse::<u64>().ok());
-    if declared.is_some_and(|n| n > limit as u64) {
-        return Err(too_large());
-    }
-    // Bodies in flight share a budget: an upload waits for room before it is read (its length,
-    // or the largest allowed when it declares none).
-    let mib =
-        (declared.unwrap_or(limit as u64).div_ceil(1 << 20) as u32).clamp(1, state.uploads_mib);
-    let room = state
-        .uploads
-        .clone()
-        .acquire_many_owned(mib)
-        .await
-        .map_err(|_| AppError::internal("the upload budget is closed"))?;
-    let body = axum::body::to_bytes(body, limit).await.map_err(|e| {
-        let over = std::error::Error::source(&e)
-            .is_some_and(|s| s.is::<http_body_util::LengthLimitError>())
-            || e.to_string().contains("length limit");
-        if over {
-            too_large()
-        } else {
-            AppError::bad_request("bad_body", format!("reading the body: {e}"))
-        }
-    })?;
+    let (body, room) = read_body(&state, &headers, body, state.max_upload).await?;
     let existed = state.store.get(&id).is_ok();
     let st = state.clone();
     let id2 = id.clone();
@@ -926,9 +933,12 @@ async fn points(
     Path(id): Path<String>,
     Query(q): Query<PointsQuery>,
     headers: HeaderMap,
-    body: Bytes,
+    body: axum::body::Body,
 ) -> Result<Response, AppError> {
     let choice = backend_for(&state, q.backend.as_deref())?;
+    // A full batch in JSON is about 40 bytes a point: room for the point limit, and more.
+    let limit = 64 * state.limits.max_points.max(1);
+    let (body, _room) = read_body(&state, &headers, body, limit).await?;
     let binary = headers
         .get(header::CONTENT_TYPE)
         .and_then(|v| v.to_str().ok())
