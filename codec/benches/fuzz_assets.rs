@@ -5,6 +5,7 @@
 //! per codec: mutants, accepted, refused, slowest read-and-decode.
 //!
 //! `cargo bench -p fractile-codec --bench fuzz_assets -- [cases per codec, default 20000] [seed]`
+//! (`FUZZ_EXTRA=a.fra:b.fra` adds more sources, such as held-out data encoded by the CLI)
 //! (libFuzzer through cargo-fuzz needs a nightly toolchain, which CI has not: this runs the
 //! same kind of search on stable, with a seeded generator so a failure can be replayed.)
 
@@ -61,7 +62,22 @@ fn main() {
         .get(1)
         .and_then(|a| a.parse().ok())
         .unwrap_or(0x9E37_79B9_7F4A_7C15);
-    let sources = sources();
+    // Held-out assets too (files not in the repository, encoded by `fractile encode`):
+    // FUZZ_EXTRA=a.fra:b.fra.
+    let mut sources: Vec<(String, Vec<u8>)> = sources()
+        .into_iter()
+        .map(|(n, b)| (n.to_string(), b))
+        .collect();
+    for path in std::env::var("FUZZ_EXTRA")
+        .unwrap_or_default()
+        .split(':')
+        .filter(|p| !p.is_empty())
+    {
+        let name = std::path::Path::new(path)
+            .file_name()
+            .map_or(path.into(), |n| n.to_string_lossy().into_owned());
+        sources.push((name, std::fs::read(path).expect("a FUZZ_EXTRA file")));
+    }
     println!("fuzzing the asset reader: {cases} mutants per codec, seed {seed}\n");
     println!("| codec | source bytes | mutants | accepted | refused | slowest | mutants/s |");
     println!("|---|---|---|---|---|---|---|");
