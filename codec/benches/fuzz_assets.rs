@@ -10,7 +10,6 @@
 //! same kind of search on stable, with a seeded generator so a failure can be replayed.)
 
 #[path = "../tests/support/hostile.rs"]
-#[allow(dead_code)]
 mod hostile;
 
 use std::time::{Duration, Instant};
