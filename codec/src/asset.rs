@@ -112,6 +112,21 @@ fn check_extent(meta: &AssetMeta, valid: [f32; 2]) -> Result<(), String> {
     }
 }
 
+/// Validates the header of every plane of a lattice codec and counts their nodes (before any
+/// node grid is allocated).
+fn lattice_nodes<H>(
+    planes: &[(H, Vec<u8>)],
+    validate: impl Fn(&H) -> Result<(), String>,
+    nodes: impl Fn(&H) -> [usize; 2],
+) -> Result<u64, Error> {
+    let mut total = 0u64;
+    for (i, (header, _)) in planes.iter().enumerate() {
+        validate(header).map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
+        total += nodes(header).iter().map(|&n| n as u64).product::<u64>();
+    }
+    Ok(total)
+}
+
 /// Codec identifiers of the payload.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 #[repr(u8)]
@@ -927,30 +942,16 @@ impl Asset {
         limits.check_pixels("a grid", w * h)?;
         if codec == Codec::Psa as u8 {
             let p: PsaPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
-            for (i, (hd, _)) in p.planes.iter().enumerate() {
-                hd.validate().map_err(|e| bad(format!("plane {i}: {e}")))?;
-            }
             // Vertex heights and region maps, about 64 bytes a vertex.
-            let vertices: u64 = p
-                .planes
-                .iter()
-                .map(|(hd, _)| hd.vertices().iter().map(|&n| n as u64).product::<u64>())
-                .sum();
+            let vertices = lattice_nodes(&p.planes, PsaHeader::validate, PsaHeader::vertices)?;
             limits.check_cost(vertices * 64 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
             let mask = mask(p.mask)?;
             return Asset::from_psa_parts(meta, p.planes, mask);
         }
         if codec == Codec::Fis as u8 {
             let p: FisPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
-            for (i, (hd, _)) in p.planes.iter().enumerate() {
-                hd.validate().map_err(|e| bad(format!("plane {i}: {e}")))?;
-            }
             // Node heights, scalings and a piece per cell, about 64 bytes a node.
-            let nodes: u64 = p
-                .planes
-                .iter()
-                .map(|(hd, _)| hd.nodes().iter().map(|&n| n as u64).product::<u64>())
-                .sum();
+            let nodes = lattice_nodes(&p.planes, FisHeader::validate, FisHeader::nodes)?;
             limits.check_cost(nodes * 64 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
             let mask = mask(p.mask)?;
             return Asset::from_fis_parts(meta, p.planes, mask);
