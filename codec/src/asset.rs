@@ -5,7 +5,7 @@
 //! | offset | size | field |
 //! |---|---|---|
 //! | 0 | 8 | magic `FRACTILE` |
-//! | 8 | 2 | format version (3; 1 and 2 are still read but for curves) |
+//! | 8 | 2 | format version (4; 1 to 3 are still read, 3 only for curves) |
 //! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
 //! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine, 4 octree PIFS of a volume, 5 projected IFS of curves) |
 //! | 12 | 4 | metadata length M |

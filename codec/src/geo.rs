@@ -113,6 +113,14 @@ pub enum PlacementError {
     OutsideCrs(u32),
 }
 
+/// Whether EPSG `code` is a geographic (lon/lat) CRS, as the CRS definitions say; `None` for a
+/// code they do not hold. (EPSG codes 4000-4999 are mostly geographic but not all: 4087, World
+/// Equidistant Cylindrical, is projected.)
+pub fn epsg_is_geographic(code: u32) -> Option<bool> {
+    let c = u16::try_from(code).ok()?;
+    Proj::from_epsg_code(c).ok().map(|p| p.is_latlong())
+}
+
 /// Samples along each edge of a projected frame when bounding it in lon/lat (projected edges
 /// bend: a UTM zone's edges curve by metres over a degree).
 const EDGE_SAMPLES: usize = 64;
@@ -555,6 +563,18 @@ pub fn tile_pixels(
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    /// The EPSG registry's own kinds (not a number range): 4087 is projected though it lies in
+    /// 4000-4999.
+    #[test]
+    fn geographic_crs_are_told_by_their_definition() {
+        assert_eq!(epsg_is_geographic(4326), Some(true));
+        assert_eq!(epsg_is_geographic(4269), Some(true));
+        assert_eq!(epsg_is_geographic(4087), Some(false));
+        assert_eq!(epsg_is_geographic(32616), Some(false));
+        assert_eq!(epsg_is_geographic(3857), Some(false));
+        assert_eq!(epsg_is_geographic(99999), None);
+    }
 
     #[test]
     fn tile_geometry_matches_the_web_mercator_definition() {

@@ -385,7 +385,10 @@ pub fn geotiff_f32(
         .map_err(err)?;
         if let Some(code) = g.epsg {
             // GeoKeyDirectory v1.1.0: model type, raster type PixelIsArea, the CRS code.
-            let geographic = (4000..5000).contains(&code);
+            // Asked of the CRS definitions; a code they do not hold is taken as projected
+            // unless it is 4326's family by number (4000-4999), as before.
+            let geographic = crate::geo::epsg_is_geographic(code)
+                .unwrap_or_else(|| (4000..5000).contains(&code));
             let (model, key) = if geographic {
                 (2u16, 2048u16)
             } else {

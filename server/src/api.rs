@@ -144,7 +144,7 @@ type Shared = State<Arc<AppState>>;
 pub fn router(state: Arc<AppState>) -> Router {
     Router::new()
         .route("/healthz", get(|| async { "ok" }))
-        .route("/readyz", get(|| async { "ready" }))
+        .route("/readyz", get(ready))
         .route(
             "/v1/openapi.json",
             get(|| async { Json(crate::openapi::document()) }),
@@ -171,6 +171,21 @@ pub fn router(state: Arc<AppState>) -> Router {
             post(curve_deform).layer(axum::extract::DefaultBodyLimit::max(16 * 1024 * 1024)),
         )
         .with_state(state)
+}
+
+/// Readiness: the assets are loaded (the server listens only after loading them) and a light
+/// decode slot is free, so a load balancer sends cheap requests elsewhere while every slot is
+/// busy.
+async fn ready(State(state): Shared) -> Result<&'static str, AppError> {
+    if state.lanes.light_free() {
+        Ok("ready")
+    } else {
+        Err(AppError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            code: "busy",
+            detail: "every decode slot is busy".into(),
+        })
+    }
 }
 
 /// The asset of a request that works on 2D planes (tiles, regions, lon/lat and batch points):

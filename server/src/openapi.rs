@@ -49,7 +49,7 @@ pub fn document() -> Value {
         "info": {"title": "fractile", "version": env!("CARGO_PKG_VERSION"), "description": "Images and terrain stored as fractals, decoded on request at any resolution. Every decoded answer carries an a-priori error bound."},
         "paths": {
             "/healthz": {"get": {"summary": "Liveness", "responses": {"200": {"description": "ok"}}}},
-            "/readyz": {"get": {"summary": "Readiness", "responses": {"200": {"description": "ready"}}}},
+            "/readyz": {"get": {"summary": "Readiness: assets loaded and a decode slot free", "responses": {"200": {"description": "ready"}, "503": {"$ref": "#/components/responses/Error"}}}},
             "/metrics": {"get": {"summary": "Prometheus metrics", "responses": {"200": {"description": "text exposition format"}}}},
             "/v1/openapi.json": {"get": {"summary": "This document", "responses": {"200": {"description": "OpenAPI 3.1"}}}},
             "/v1/assets": {"get": {"summary": "Catalog", "responses": {"200": {"description": "{\"assets\": [AssetSummary]}"}}}},

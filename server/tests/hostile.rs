@@ -343,3 +343,37 @@ async fn connections_that_never_finish_their_headers_are_closed() {
         .unwrap()
         .unwrap();
 }
+
+/// Readiness means a light decode slot is free: busy while every slot decodes, ready after.
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn readiness_follows_the_decode_slots() {
+    let dir = fresh_dir("ready");
+    let (store, _) = Store::open(&dir).unwrap();
+    let mut st = AppState::new(store, "http://test".into());
+    st.lanes = fractile_server::work::Lanes::new(1, 64);
+    let st = Arc::new(st);
+    let ready = || Request::get("/readyz").body(Body::empty()).unwrap();
+    assert_eq!(send(&st, ready()).await.0, StatusCode::OK);
+    let (tx, rx) = std::sync::mpsc::channel::<()>();
+    let st2 = st.clone();
+    let busy = tokio::spawn(async move {
+        st2.lanes
+            .run(0, move |_| {
+                let _ = rx.recv_timeout(Duration::from_secs(10));
+            })
+            .await
+    });
+    // Until the work holds its slot.
+    let mut seen = StatusCode::OK;
+    for _ in 0..100 {
+        seen = send(&st, ready()).await.0;
+        if seen != StatusCode::OK {
+            break;
+        }
+        tokio::time::sleep(Duration::from_millis(10)).await;
+    }
+    assert_eq!(seen, StatusCode::SERVICE_UNAVAILABLE);
+    tx.send(()).unwrap();
+    busy.await.unwrap().unwrap();
+    assert_eq!(send(&st, ready()).await.0, StatusCode::OK);
+}
