@@ -35,35 +35,13 @@ impl TileAddress {
 
     /// `[west, south, east, north]` in degrees.
     pub fn bounds(self) -> [f64; 4] {
-        let n = (1u64 << self.z) as f64;
-        let lon = |x: f64| x / n * 360.0 - 180.0;
-        let lat = |y: f64| {
-            (std::f64::consts::PI * (1.0 - 2.0 * y / n))
-                .sinh()
-                .atan()
-                .to_degrees()
-        };
-        [
-            lon(self.x as f64),
-            lat(self.y as f64 + 1.0),
-            lon(self.x as f64 + 1.0),
-            lat(self.y as f64),
-        ]
+        fractile_proto::tiles::tile_bounds(self.z, self.x, self.y)
     }
 
     /// The tile of zoom `z` that holds a point.
     pub fn containing(z: u8, lon: f64, lat: f64) -> TileAddress {
-        let n = (1u64 << z) as f64;
-        let lat = lat.clamp(-85.051_128_78, 85.051_128_78).to_radians();
-        let x = ((lon + 180.0) / 360.0 * n).floor();
-        let y =
-            ((1.0 - (lat.tan() + 1.0 / lat.cos()).ln() / std::f64::consts::PI) / 2.0 * n).floor();
-        let max = n - 1.0;
-        TileAddress {
-            z,
-            x: x.clamp(0.0, max) as u32,
-            y: y.clamp(0.0, max) as u32,
-        }
+        let (x, y) = fractile_proto::tiles::lonlat_tile(z, lon, lat);
+        TileAddress { z, x, y }
     }
 }
 

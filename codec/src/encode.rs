@@ -865,7 +865,7 @@ fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
 
 /// Encodes a height field as a fractal interpolation surface ([`crate::fis`]).
 /// `target_bpp`, when given, overrides `settings.spacing` (and the automatic height step); see
-/// [`encode_lattice`].
+/// `encode_lattice`.
 pub fn encode_fis(
     raster: &Raster,
     settings: &FisSettings,
@@ -960,7 +960,7 @@ pub fn encode_fis(
 }
 
 /// Encodes a grey image or a height field with the piecewise self-affine model
-/// ([`crate::psa`]); `target_bpp` picks the region size (see [`encode_lattice`]).
+/// ([`crate::psa`]); `target_bpp` picks the region size (see `encode_lattice`).
 pub fn encode_psa(
     raster: &Raster,
     settings: &PsaSettings,

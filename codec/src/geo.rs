@@ -11,38 +11,8 @@ use proj4rs::proj::Proj;
 
 use crate::decode::Patch;
 
-/// Largest Web Mercator latitude (the square world).
-pub const MAX_LATITUDE: f64 = 85.051_128_779_806_59;
-
-/// Longitude and latitude (degrees) of a point of tile (z, x, y) given as fractions (fx, fy) of
-/// the tile (0..1 from the north-west corner).
-pub fn tile_lonlat(z: u8, x: u32, y: u32, fx: f64, fy: f64) -> (f64, f64) {
-    let n = (1u64 << z) as f64;
-    let lon = (x as f64 + fx) / n * 360.0 - 180.0;
-    let lat = (PI * (1.0 - 2.0 * (y as f64 + fy) / n))
-        .sinh()
-        .atan()
-        .to_degrees();
-    (lon, lat)
-}
-
-/// Bounds `[west, south, east, north]` (degrees) of a tile.
-pub fn tile_bounds(z: u8, x: u32, y: u32) -> [f64; 4] {
-    let (w, n) = tile_lonlat(z, x, y, 0.0, 0.0);
-    let (e, s) = tile_lonlat(z, x, y, 1.0, 1.0);
-    [w, s, e, n]
-}
-
-/// The tile (x, y) at zoom z that holds (lon, lat).
-pub fn lonlat_tile(z: u8, lon: f64, lat: f64) -> (u32, u32) {
-    let n = (1u64 << z) as f64;
-    let lat = lat.clamp(-MAX_LATITUDE, MAX_LATITUDE).to_radians();
-    let x = ((lon + 180.0) / 360.0 * n).floor().clamp(0.0, n - 1.0);
-    let y = ((1.0 - (lat.tan() + 1.0 / lat.cos()).ln() / PI) / 2.0 * n)
-        .floor()
-        .clamp(0.0, n - 1.0);
-    (x as u32, y as u32)
-}
+// Tile addresses are the wire's vocabulary: one copy of the Web Mercator formulas, in proto.
+pub use fractile_proto::tiles::{MAX_LATITUDE, lonlat_tile, tile_bounds, tile_lonlat};
 
 /// How an asset's unit square sits on the Earth: its grid's frame in its own CRS, and that CRS.
 /// Requests speak longitude/latitude (WGS84 degrees) whatever the asset's CRS.

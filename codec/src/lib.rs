@@ -2,7 +2,7 @@
 //! iterated function systems, with every decoder written once against one operator form,
 //! `(W f)(p) = g_c(p) + s_c(p) f(phi_c(p))` (see [`operator`]).
 //!
-//! Data flows one way: [`raster`] (input) -> [`encode`] (using [`search`], [`partition`],
+//! Data flows one way: [`raster`] (input) -> [`encode()`] (using [`search`], [`partition`],
 //! [`stream`], [`entropy`]) -> [`asset`] (the file) -> [`operator`] -> [`decode`] and [`extract`]
 //! (output). No HTTP and no async here: the server calls these functions.
 

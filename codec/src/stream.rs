@@ -1,6 +1,6 @@
 //! The transform stream of one plane: quadtree split flags and each range's map, entropy coded.
 //!
-//! Encoding and decoding walk the tree with one function ([`code`]) so that they cannot drift
+//! Encoding and decoding walk the tree with one function (`code`) so that they cannot drift
 //! apart. Order: top-level blocks in raster order, children depth first (TL, TR, BL, BR). Blocks
 //! wholly outside the frame are skipped; blocks partly outside are split without a flag. A leaf
 //! codes its contrast index (context: level), offset index (context: level, constant or not) and,

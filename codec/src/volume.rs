@@ -248,20 +248,8 @@ impl Asset {
 
     /// Signed distances on a box `[lo, hi]` (world units) at `dims` samples per axis, corners
     /// included (x fastest), and the largest error bound. Parts of the box outside the grid read
-    /// the nearest face of the grid.
-    pub fn distance_grid(
-        &self,
-        lo: [f64; 3],
-        hi: [f64; 3],
-        dims: [usize; 3],
-        iterations: u32,
-        tolerance: f32,
-    ) -> Result<(Vec<f32>, f32), Error> {
-        self.distance_grid_with(lo, hi, dims, iterations, tolerance, None)
-    }
-
-    /// [`Asset::distance_grid`] with the box's continuous decoding handed to `hook` (a GPU):
-    /// it gets the box in unit coordinates, the samples, the steps and the normalised
+    /// the nearest face of the grid. The box's continuous decoding is offered to `hook` (a GPU)
+    /// first: it gets the box in unit coordinates, the samples, the steps and the normalised
     /// tolerance, and answers normalised values and their largest bound, or `None` to let the
     /// CPU decode.
     pub fn distance_grid_with(

@@ -104,43 +104,13 @@ pub enum Grid {
         height: u32,
     },
     /// A separable grid: point (i, j) is `(xs[i], ys[j])` in unit coordinates. The pixels of a
-    /// Web Mercator tile over an asset placed in lon/lat are one: see [`mercator_axes`].
+    /// Web Mercator tile over an asset placed in lon/lat are one.
     Separable {
         /// Unit x of each column.
         xs: Vec<f32>,
         /// Unit y of each row.
         ys: Vec<f32>,
     },
-}
-
-/// The unit coordinates of the pixel centres of Web Mercator tile z/x/y (`size` pixels a side)
-/// over an asset placed in lon/lat: `u = u_of_lon[0] + u_of_lon[1] * lon`,
-/// `v = v_of_lat[0] + v_of_lat[1] * lat` (degrees), computed in f64 and rounded once, exactly as
-/// a CPU computing the same pixels does.
-pub fn mercator_axes(
-    (z, x, y): (u8, u32, u32),
-    size: u32,
-    u_of_lon: [f64; 2],
-    v_of_lat: [f64; 2],
-) -> (Vec<f32>, Vec<f32>) {
-    let n = f64::from(1u32 << z.min(30)) * f64::from(size);
-    let xs = (0..size)
-        .map(|i| {
-            let mx = (f64::from(x) * f64::from(size) + f64::from(i) + 0.5) / n;
-            (u_of_lon[0] + u_of_lon[1] * (mx * 360.0 - 180.0)) as f32
-        })
-        .collect();
-    let ys = (0..size)
-        .map(|j| {
-            let my = (f64::from(y) * f64::from(size) + f64::from(j) + 0.5) / n;
-            let lat = (std::f64::consts::PI * (1.0 - 2.0 * my))
-                .sinh()
-                .atan()
-                .to_degrees();
-            (v_of_lat[0] + v_of_lat[1] * lat) as f32
-        })
-        .collect();
-    (xs, ys)
 }
 
 /// An operator resident on the device (2D pieces, or a 3D octree when `volume` is set).

@@ -172,7 +172,7 @@ fn windows_and_reprojected_tiles_agree_with_the_cpu() {
     let ty =
         ((1.0 - (lat_r.tan() + 1.0 / lat_r.cos()).ln() / std::f64::consts::PI) / 2.0 * nz) as u32;
     let size = 256u32;
-    let (xs, ys) = fractile_gpu::mercator_axes((z, tx, ty), size, u_of_lon, v_of_lat);
+    let (xs, ys) = mercator_axes((z, tx, ty), size, u_of_lon, v_of_lat);
     let got = gpu.grid(&dev, Grid::Separable { xs, ys }, 10, 0.0).unwrap();
     // The CPU's own reprojection of the same pixels, in f64.
     let pts: Vec<[f32; 2]> = (0..size * size)
@@ -255,4 +255,34 @@ fn volume_points_and_boxes_agree_with_the_cpu() {
         assert!(worst <= 1e-4, "{file} box: worst {worst}");
         assert!(got.iter().all(|g| g.error_bound <= bound + 1e-6));
     }
+}
+
+/// The unit coordinates of the pixel centres of Web Mercator tile z/x/y (`size` pixels a side)
+/// over an asset placed in lon/lat: `u = u_of_lon[0] + u_of_lon[1] * lon`,
+/// `v = v_of_lat[0] + v_of_lat[1] * lat` (degrees), computed in f64 and rounded once, exactly as
+/// a CPU computing the same pixels does.
+fn mercator_axes(
+    (z, x, y): (u8, u32, u32),
+    size: u32,
+    u_of_lon: [f64; 2],
+    v_of_lat: [f64; 2],
+) -> (Vec<f32>, Vec<f32>) {
+    let n = f64::from(1u32 << z.min(30)) * f64::from(size);
+    let xs = (0..size)
+        .map(|i| {
+            let mx = (f64::from(x) * f64::from(size) + f64::from(i) + 0.5) / n;
+            (u_of_lon[0] + u_of_lon[1] * (mx * 360.0 - 180.0)) as f32
+        })
+        .collect();
+    let ys = (0..size)
+        .map(|j| {
+            let my = (f64::from(y) * f64::from(size) + f64::from(j) + 0.5) / n;
+            let lat = (std::f64::consts::PI * (1.0 - 2.0 * my))
+                .sinh()
+                .atan()
+                .to_degrees();
+            (v_of_lat[0] + v_of_lat[1] * lat) as f32
+        })
+        .collect();
+    (xs, ys)
 }
