@@ -111,6 +111,62 @@ enum Search {
     Nearest,
 }
 
+/// `--codec`: the closed set of codecs `encode` writes (names as the API spells them).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum CodecArg {
+    /// Quadtree partitioned IFS (images and height fields).
+    QuadtreePifs,
+    /// Fractal interpolation surface, s per node (Wu and Zhou).
+    FisBilinear,
+    /// Fractal interpolation surface, s per cell.
+    FisRect,
+    /// Fractal interpolation surface, one s (Drakopoulos and Manousopoulos).
+    FisRectGlobal,
+    /// Piecewise self-affine model, rectangular regions.
+    Psa2dRect,
+    /// Piecewise self-affine model, triangular regions.
+    Psa2dTri,
+    /// Projected IFS with details (GeoJSON curves).
+    Curve,
+}
+
+impl CodecArg {
+    /// The layout of s of a FIS codec.
+    fn fis_scaling(self) -> Option<fractile_codec::fis::Scaling> {
+        use fractile_codec::fis::Scaling;
+        match self {
+            CodecArg::FisBilinear => Some(Scaling::PerNode),
+            CodecArg::FisRect => Some(Scaling::PerCell),
+            CodecArg::FisRectGlobal => Some(Scaling::Global),
+            _ => None,
+        }
+    }
+
+    /// The tiling of a psa2d codec.
+    fn psa_tiling(self) -> Option<Tiling> {
+        match self {
+            CodecArg::Psa2dRect => Some(Tiling::Rectangular),
+            CodecArg::Psa2dTri => Some(Tiling::Triangular),
+            _ => None,
+        }
+    }
+
+    /// The name as the CLI and the API spell it.
+    fn name(self) -> String {
+        self.to_possible_value()
+            .map_or_else(String::new, |v| v.get_name().to_string())
+    }
+}
+
+/// `--domains` of psa2d.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+enum DomainsArg {
+    /// Domains that tile the plane.
+    Touching,
+    /// Domains at every region corner.
+    Overlapping,
+}
+
 #[derive(clap::Args)]
 struct EncodeArgs {
     /// Input raster.
@@ -174,16 +230,13 @@ struct EncodeArgs {
     /// [default: from --speed, 0].
     #[arg(long)]
     attractor_passes: Option<u32>,
-    /// Codec: quadtree-pifs (images and height fields); a fractal interpolation surface for
-    /// height fields: fis-bilinear (s per node, Wu and Zhou), fis-rect (s per cell),
-    /// fis-rect-global (one s, Drakopoulos and Manousopoulos); or the piecewise self-affine
-    /// model for grey images and height fields: psa2d-rect, psa2d-tri. GeoJSON input is always
-    /// `curve` (projected IFS with details).
-    #[arg(long, default_value = "quadtree-pifs")]
-    codec: String,
+    /// Codec: FIS codecs take height fields, psa2d grey images and height fields; GeoJSON input
+    /// is always `curve`.
+    #[arg(long, value_enum, default_value_t = CodecArg::QuadtreePifs)]
+    codec: CodecArg,
     /// psa2d: touching or overlapping domains.
-    #[arg(long, default_value = "overlapping")]
-    domains: String,
+    #[arg(long, value_enum, default_value_t = DomainsArg::Overlapping)]
+    domains: DomainsArg,
     /// psa2d: domain side in regions.
     #[arg(long, default_value_t = fractile_codec::psa::PsaSettings::default().ratio)]
     domain_ratio: u32,
@@ -428,7 +481,7 @@ fn is_mesh(p: &Path) -> bool {
 /// raster flags of range sizes and bits do not apply.
 fn encode_volume(a: &EncodeArgs) -> Result<()> {
     use fractile_codec::octree::Partition3;
-    if a.target_bpp.is_some() || a.codec != "quadtree-pifs" {
+    if a.target_bpp.is_some() || a.codec != CodecArg::QuadtreePifs {
         bail!("meshes take --grid, --band and --tolerance (voxels), --transforms or --const-range");
     }
     let mesh = fractile_codec::mesh::Mesh::read(&a.input)?;
@@ -576,7 +629,7 @@ fn is_geojson(p: &Path) -> bool {
 
 /// `fractile encode coast.geojson -o coast.fra [--codec curve] [--tolerance T]`.
 fn encode_curve(a: &EncodeArgs) -> Result<()> {
-    if !["curve", "quadtree-pifs"].contains(&a.codec.as_str())
+    if ![CodecArg::Curve, CodecArg::QuadtreePifs].contains(&a.codec)
         || a.target_bpp.is_some()
         || a.transforms.is_some()
         || a.const_range.is_some()
@@ -676,23 +729,23 @@ fn run_encode(a: EncodeArgs) -> Result<()> {
     if is_mesh(&a.input) {
         return encode_volume(&a);
     }
-    if is_geojson(&a.input) || a.codec == "curve" {
+    if is_geojson(&a.input) || a.codec == CodecArg::Curve {
         return encode_curve(&a);
     }
     let raster = Raster::open(&a.input)?;
-    let enc = if a.codec == "quadtree-pifs" {
-        encode_quadtree(&a, &raster)?
-    } else if let Some(tiling) = [Tiling::Rectangular, Tiling::Triangular]
-        .into_iter()
-        .find(|&t| fractile_codec::psa::codec_name(t) == a.codec)
-    {
+    let lattice = |a: &EncodeArgs| {
         if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
-            bail!("--codec {} takes --spacing or --target-bpp", a.codec);
+            bail!("--codec {} takes --spacing or --target-bpp", a.codec.name());
         }
-        let domains = match a.domains.as_str() {
-            "touching" => Domains::Touching,
-            "overlapping" => Domains::Overlapping,
-            d => bail!("unknown --domains {d:?}: touching or overlapping"),
+        Ok(())
+    };
+    let enc = if a.codec == CodecArg::QuadtreePifs {
+        encode_quadtree(&a, &raster)?
+    } else if let Some(tiling) = a.codec.psa_tiling() {
+        lattice(&a)?;
+        let domains = match a.domains {
+            DomainsArg::Touching => Domains::Touching,
+            DomainsArg::Overlapping => Domains::Overlapping,
         };
         let settings = PsaSettings {
             tiling,
@@ -705,15 +758,10 @@ fn run_encode(a: EncodeArgs) -> Result<()> {
         };
         fractile_codec::encode::encode_psa(&raster, &settings, a.target_bpp)?
     } else {
-        let Some(scaling) = fractile_codec::fis::scaling_of_codec(&a.codec) else {
-            bail!(
-                "unknown codec {:?}: quadtree-pifs, fis-bilinear, fis-rect, fis-rect-global",
-                a.codec
-            );
+        let Some(scaling) = a.codec.fis_scaling() else {
+            bail!("--codec curve is for GeoJSON input");
         };
-        if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
-            bail!("--codec {} takes --spacing or --target-bpp", a.codec);
-        }
+        lattice(&a)?;
         let settings = FisSettings {
             scaling,
             spacing: a.spacing,
@@ -1060,4 +1108,24 @@ fn run_compare(original: &Path, decoded: &Path, as_json: bool) -> Result<()> {
         );
     }
     Ok(())
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The CLI's codec names are the codec crate's own (what `info` and the API report).
+    #[test]
+    fn codec_names_are_the_codecs_own() {
+        for c in CodecArg::value_variants() {
+            if let Some(s) = c.fis_scaling() {
+                assert_eq!(c.name(), fractile_codec::fis::codec_name(s));
+            }
+            if let Some(t) = c.psa_tiling() {
+                assert_eq!(c.name(), fractile_codec::psa::codec_name(t));
+            }
+        }
+        assert_eq!(CodecArg::QuadtreePifs.name(), "quadtree-pifs");
+        assert_eq!(CodecArg::Curve.name(), "curve");
+    }
 }
