@@ -1,0 +1,98 @@
+//! Asset files written by every earlier format version's own encoder (`testdata/golden/`, made
+//! by the `fractile` binary of the commit before each version change; see its README) are read
+//! by this build: each decodes to the quality its encoder measured when it wrote it, and the
+//! curve assets of versions before 3 are refused by name.
+
+use std::path::PathBuf;
+
+use fractile_codec::{Asset, Raster, metrics};
+use fractile_proto::AssetKind;
+
+fn data(name: &str) -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata")
+        .join(name)
+}
+
+/// The source each golden file was encoded from.
+fn source(name: &str) -> &'static str {
+    match name {
+        n if n.contains("jacksboro-utm") => "jacksboro-utm.tif",
+        n if n.contains("jacksboro") => "jacksboro.tif",
+        n if n.contains("camera") => "camera.png",
+        n if n.contains("fandisk") => "mesh/fandisk.off",
+        _ => "curve/coast5.geojson",
+    }
+}
+
+#[test]
+fn every_format_version_is_read_as_it_was_written() {
+    let mut files: Vec<PathBuf> = std::fs::read_dir(data("golden"))
+        .unwrap()
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|e| e == "fra"))
+        .collect();
+    files.sort();
+    assert_eq!(files.len(), 24, "six codecs a version, versions 1 to 4");
+    let mut versions = std::collections::BTreeSet::new();
+    for path in files {
+        let name = path.file_name().unwrap().to_string_lossy().into_owned();
+        let bytes = std::fs::read(&path).unwrap();
+        // The file really is of the version its name says (written by that encoder).
+        let version = u16::from_le_bytes([bytes[8], bytes[9]]);
+        assert_eq!(format!("v{version}-"), name[..3], "{name}");
+        versions.insert(version);
+        let read = Asset::from_bytes(&bytes);
+        if name.contains("curve") && version < 3 {
+            let err = read.expect_err(&name).to_string();
+            assert!(err.contains("encode the source again"), "{name}: {err}");
+            continue;
+        }
+        let asset = read.unwrap_or_else(|e| panic!("{name}: {e}"));
+        match asset.meta.kind {
+            AssetKind::Image | AssetKind::HeightField => {
+                let src = Raster::open(&data(source(&name))).unwrap();
+                let (decoded, _) = asset.decode_native();
+                let e = metrics::compare(
+                    &src.channels,
+                    &decoded.channels,
+                    src.valid.as_deref(),
+                    asset.meta.psnr_peak(),
+                );
+                let written = asset.meta.stats.psnr;
+                assert!(
+                    (e.psnr - written).abs() < 0.05,
+                    "{name}: decodes to {:.3} dB, written at {written:.3} dB",
+                    e.psnr
+                );
+            }
+            AssetKind::Volume => {
+                let (mesh, _) = asset.volume_mesh(None, 16, 12, 0.0).unwrap();
+                assert!(
+                    mesh.triangles.len() > 200,
+                    "{name}: {}",
+                    mesh.triangles.len()
+                );
+            }
+            AssetKind::Curve => {
+                let text = std::fs::read_to_string(data(source(&name))).unwrap();
+                let lines = fractile_codec::curve::geojson::read(&text).unwrap();
+                let set = &asset.curve.as_ref().unwrap().set;
+                // As a user gets it: GeoJSON of the finest level, one line per input ring with
+                // its points.
+                let doc = fractile_codec::curve::geojson::write(
+                    &set.at_level(set.finest()),
+                    set.finest(),
+                    "degrees",
+                );
+                let back = fractile_codec::curve::geojson::read(&doc.to_string()).unwrap();
+                assert_eq!(back.len(), lines.len(), "{name}");
+                for (got, want) in back.iter().zip(&lines) {
+                    assert_eq!(got.points.len(), want.points.len(), "{name}");
+                    assert_eq!(got.closed, want.closed, "{name}");
+                }
+            }
+        }
+    }
+    assert_eq!(versions.into_iter().collect::<Vec<_>>(), vec![1, 2, 3, 4]);
+}
