@@ -17,11 +17,14 @@ set -uo pipefail
 cd "$(dirname "$0")/.."
 ROOT=$(pwd)
 PORT=${PORT:-18211}
+# A port nothing listens on (a server left by another run must not answer for ours).
+while (exec 3<>"/dev/tcp/127.0.0.1/$PORT") 2>/dev/null; do PORT=$((PORT + 1)); done
 WORK=$(mktemp -d)
 before=$(ls -A)
 
 cleanup() {
-  [ -n "${SERVER_PID:-}" ] && kill "$SERVER_PID" 2>/dev/null && wait "$SERVER_PID" 2>/dev/null
+  # The server runs in a process group of its own (cargo and the server it starts): end both.
+  [ -n "${SERVER_PID:-}" ] && kill -- "-$SERVER_PID" 2>/dev/null && wait "$SERVER_PID" 2>/dev/null
   # What the commands wrote at the top of the repository.
   for f in $(ls -A); do
     grep -qxF "$f" <<<"$before" || rm -rf -- "$f"
@@ -51,7 +54,7 @@ bad() { fail=$((fail + 1)); echo "FAILED: $1"; }
 
 echo "starting the README's server: $serve_cmd"
 export FRACTILE_BIND=127.0.0.1:$PORT FRACTILE_CACHE=$WORK/cache FRACTILE_BACKEND=cpu RUST_LOG=warn
-eval "$serve_cmd" >"$WORK/server.log" 2>&1 &
+setsid bash -c "exec $serve_cmd" >"$WORK/server.log" 2>&1 &
 SERVER_PID=$!
 up=0
 # The command compiles the server package first when it is not built yet (minutes).
@@ -66,6 +69,8 @@ if [ $up = 1 ]; then ok "$serve_cmd answers /healthz"; else
 fi
 
 export FRACTILE_SERVER=http://127.0.0.1:$PORT
+# Errors as a user sees them (anyhow prints a backtrace under RUST_BACKTRACE=1).
+export RUST_BACKTRACE=0
 export CURL_HOME=$WORK
 printf 'fail\nsilent\nshow-error\nmax-time = 300\n' >"$WORK/.curlrc"
 # Input the client's points example reads (lon,lat rows on the jacksboro DEM, one outside).
@@ -98,7 +103,7 @@ run() {
     done
     ok "$line"
   else
-    bad "$line"; tail -5 "$WORK/out"
+    bad "$line"; head -c 4000 "$WORK/out"
   fi
 }
 
@@ -109,6 +114,8 @@ for b in $order; do
   done <"$WORK/commands"
 done
 # The server must have lived through all of it.
-if kill -0 "$SERVER_PID" 2>/dev/null; then ok "the server is still up"; else bad "the server is still up"; fi
+if kill -0 "$SERVER_PID" 2>/dev/null; then ok "the server is still up"; else
+  bad "the server is still up"; echo "its log ends:"; tail -30 "$WORK/server.log"
+fi
 echo "$pass passed, $fail failed, $skip skipped"
 [ "$fail" = 0 ]
