@@ -203,9 +203,12 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     Ok(())
 }
 
-/// How long a connection may take to send a request's headers (and, new, its first byte)
-/// before it is closed: connections that never finish their headers must not stay open.
-pub const HEADER_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(10);
+/// How long a connection may take to send a request's headers (a new connection: its first
+/// byte too) before it is closed, so connections that never finish their headers do not stay
+/// open. hyper's own default; it is also how long an idle keep-alive connection is kept (hyper
+/// times the next request's headers from the end of the last answer), and browsers reuse
+/// their connections within a page load: a shorter timeout closed sockets under them.
+pub const HEADER_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(30);
 
 /// Serves `app` on `listener` until `stop` resolves, then lets in-flight requests finish
 /// (for at most [`api::REQUEST_TIMEOUT`]). What `axum::serve` does, plus the header-read
