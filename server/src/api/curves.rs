@@ -1,0 +1,112 @@
+//! Curve assets as GeoJSON at any level, and their stateless deformations.
+
+use super::*;
+
+/// Query of `GET /v1/assets/{id}/curve`.
+#[derive(Deserialize)]
+pub struct CurveQuery {
+    /// Asset level; the finest (the input's) when absent.
+    level: Option<usize>,
+    /// `true`: each ring's base control points (level 0 of the model, what a `control`
+    /// deformation moves) instead of the curve. They are in the model's frame: along a ring
+    /// that crosses the antimeridian, longitudes are unwrapped (may pass ±180°).
+    #[serde(default)]
+    control: bool,
+}
+
+/// Most points one curve answer may hold (each level doubles them).
+const MAX_CURVE_POINTS: u128 = 1 << 22;
+
+fn curves_of(a: &StoredAsset) -> Result<&fractile_codec::curve::Curves, AppError> {
+    a.asset.curve.as_ref().ok_or_else(|| {
+        AppError::bad_request(
+            "not_curve",
+            format!("{} is not a curve asset ({:?})", a.id, a.asset.meta.kind),
+        )
+    })
+}
+
+fn check_level(set: &fractile_codec::curve::CurveSet, level: usize) -> Result<(), AppError> {
+    if set.points_at(level) > MAX_CURVE_POINTS {
+        return Err(AppError::bad_request(
+            "too_many_points",
+            format!(
+                "level {level} would answer over {MAX_CURVE_POINTS} points (the finest level is {})",
+                set.finest()
+            ),
+        ));
+    }
+    Ok(())
+}
+
+fn geojson_response(doc: serde_json::Value) -> Response {
+    ([(header::CONTENT_TYPE, "application/geo+json")], Json(doc)).into_response()
+}
+
+/// A curve asset as GeoJSON at any level (deeper than the source: self-similar detail), one
+/// LineString Feature per input ring, with the level's Hausdorff error bound.
+pub(super) async fn curve(
+    State(state): Shared,
+    Path(id): Path<String>,
+    Query(q): Query<CurveQuery>,
+) -> Result<Response, AppError> {
+    let a = state.store.get(&id)?;
+    let set = &curves_of(&a)?.set;
+    let level = q.level.unwrap_or_else(|| set.finest());
+    check_level(set, level)?;
+    let units = a.asset.meta.units.clone().unwrap_or_default();
+    let control = q.control;
+    let a2 = a.clone();
+    let doc = decode(&state, 0, move |_| {
+        let c = a2.asset.curve.as_ref().expect("checked above");
+        if control {
+            let lines = c.set.rings.iter().map(|r| r.base.clone()).collect();
+            let closed = c.set.rings.iter().map(|r| r.closed).collect();
+            let level = fractile_codec::curve::CurveLevel {
+                level: 0,
+                lines,
+                closed,
+                error_bound: f64::NAN,
+            };
+            return fractile_codec::curve::geojson::write(&level, c.set.finest(), &units);
+        }
+        let decoded = c.set.at_level(level);
+        fractile_codec::curve::geojson::write(&decoded, c.set.finest(), &units)
+    })
+    .await?;
+    Ok(geojson_response(doc))
+}
+
+/// Deforms a curve asset (stateless: the stored asset is unchanged) and answers GeoJSON.
+pub(super) async fn curve_deform(
+    State(state): Shared,
+    Path(id): Path<String>,
+    body: Result<Json<fractile_proto::DeformRequest>, axum::extract::rejection::JsonRejection>,
+) -> Result<Response, AppError> {
+    let Json(req) = body.map_err(|e| AppError::bad_request("bad_body", e.body_text()))?;
+    let a = state.store.get(&id)?;
+    let set = &curves_of(&a)?.set;
+    if req.deformations.len() > 1024 {
+        return Err(AppError::bad_request(
+            "bad_body",
+            "at most 1024 deformations per request",
+        ));
+    }
+    let level = req.level.unwrap_or_else(|| set.finest());
+    check_level(set, level)?;
+    let units = a.asset.meta.units.clone().unwrap_or_default();
+    let a2 = a.clone();
+    let doc = decode(&state, 0, move |_| {
+        let c = a2.asset.curve.as_ref().expect("checked above");
+        let deformed = fractile_codec::curve::deform::apply(&c.set, &req.deformations)?;
+        let decoded = deformed.at_level(level);
+        Ok::<_, String>(fractile_codec::curve::geojson::write(
+            &decoded,
+            deformed.finest(),
+            &units,
+        ))
+    })
+    .await?
+    .map_err(|e| AppError::bad_request("bad_deformation", e))?;
+    Ok(geojson_response(doc))
+}

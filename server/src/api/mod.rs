@@ -1,0 +1,410 @@
+//! The HTTP API (versioned under /v1): the shared state, the router, and what every resource's
+//! handlers share (lanes, backends, sampling, parameters). Handlers live with their resource
+//! (`assets`, `tiles`, `points`, `regions`, `meshes`, `curves`): each parses and checks a
+//! request, runs decoding in a lane of [`crate::work`] (never on the async workers), and
+//! encodes the answer. The server adds no fractal math: it calls the codec.
+
+mod assets;
+mod curves;
+mod meshes;
+mod points;
+mod regions;
+mod tiles;
+
+use assets::*;
+pub use curves::CurveQuery;
+use curves::*;
+use meshes::*;
+use points::*;
+use regions::*;
+use tiles::*;
+
+use std::hash::{Hash, Hasher};
+use std::sync::Arc;
+use std::time::Duration;
+
+use crate::error::{Path, Query};
+use axum::body::Bytes;
+use axum::extract::State;
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use axum::routing::{get, post};
+use axum::{Json, Router};
+use fractile_codec::geo;
+use fractile_proto::{
+    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, PointResult,
+    PointsRequest, PointsResponse, TileJson,
+};
+use serde::Deserialize;
+use tokio::sync::Semaphore;
+
+use crate::backend::{Backend, GpuBackend};
+use crate::encoding::{self, HeightEncoding};
+use crate::error::AppError;
+use crate::store::{Store, StoredAsset};
+use crate::work::{BodyWriter, Cancel, Head, Lanes};
+
+/// Limits on what one request may ask for.
+#[derive(Clone, Debug)]
+pub struct Limits {
+    /// Most inverse steps or iterations a request may ask for.
+    pub max_iterations: u32,
+    /// Most pixels of a region.
+    pub max_region_pixels: usize,
+    /// Most points of a batch.
+    pub max_points: usize,
+    /// Deepest zoom served.
+    pub max_zoom: u8,
+}
+
+impl Default for Limits {
+    fn default() -> Self {
+        Limits {
+            max_iterations: 64,
+            max_region_pixels: 4096 * 4096,
+            max_points: 100_000,
+            max_zoom: 24,
+        }
+    }
+}
+
+/// Shared state of the handlers.
+pub struct AppState {
+    /// The catalog.
+    pub store: Store,
+    /// Request limits.
+    pub limits: Limits,
+    /// Where decoding runs and what it may cost at once (light slots, heavy budget).
+    pub lanes: Lanes,
+    /// Request bodies in flight (uploads, point batches), in MiB: a body waits for room before
+    /// it is read.
+    pub uploads: Arc<Semaphore>,
+    /// Size of `uploads`, in MiB (twice the largest upload).
+    pub uploads_mib: u32,
+    /// Encoded tiles keyed like their ETag, bounded in bytes.
+    pub cache: moka::sync::Cache<String, Arc<Cached>>,
+    /// Discrete decodes of whole assets at the scale of a coarse zoom level, keyed by asset id,
+    /// checksum, grid size and steps, bounded in bytes: every tile of a zoom coarser than the
+    /// source samples the same grid, so it is decoded once (concurrent requests wait for it).
+    pub coarse: CoarseCache,
+    /// `Cache-Control` value of tiles.
+    pub cache_control: String,
+    /// Public base URL for absolute links (TileJSON), e.g. behind a proxy.
+    pub public_url: String,
+    /// Bearer token that PUT and DELETE need; `None` leaves writes open (demo and local use).
+    pub write_token: Option<String>,
+    /// Largest asset upload in bytes.
+    pub max_upload: usize,
+    /// Where continuous decoding runs unless a request says otherwise.
+    pub backend: Backend,
+    /// The GPU, when the server has one.
+    pub gpu: Option<Arc<GpuBackend>>,
+}
+
+/// Default of `max_decode_mib`: what the heavy lane may hold at once, and what one asset may
+/// cost to decode ([`fractile_codec::AssetLimits::max_decode_bytes`]).
+pub const DEFAULT_DECODE_MIB: u32 = 3 * 1024;
+
+/// Key of [`AppState::coarse`]: asset id, checksum, width, height, iterations, tolerance bits.
+pub type CoarseKey = (String, u32, usize, usize, u32, u32);
+
+/// A cached answer.
+pub struct Cached {
+    content_type: &'static str,
+    body: Bytes,
+    error_bound: f32,
+}
+
+impl Cached {
+    /// Bytes it holds (its weight in the cache).
+    pub fn size(&self) -> usize {
+        self.body.len()
+    }
+}
+
+impl AppState {
+    /// State over a store with default limits, a 256 MiB tile cache and one decoder per core.
+    pub fn new(store: Store, public_url: String) -> AppState {
+        let cores = std::thread::available_parallelism()
+            .map(|n| n.get())
+            .unwrap_or(2);
+        AppState {
+            store,
+            limits: Limits::default(),
+            lanes: Lanes::new(cores, DEFAULT_DECODE_MIB),
+            uploads: Arc::new(Semaphore::new(2 * 64)),
+            uploads_mib: 2 * 64,
+            cache: moka::sync::Cache::builder()
+                .weigher(|_k: &String, v: &Arc<Cached>| v.body.len().try_into().unwrap_or(u32::MAX))
+                .max_capacity(256 * 1024 * 1024)
+                .build(),
+            coarse: moka::sync::Cache::builder()
+                .weigher(|_k: &CoarseKey, v: &Arc<Vec<CoarsePlane>>| {
+                    let floats: usize = v.iter().map(|(g, _)| g.values.len()).sum();
+                    (floats * 4).try_into().unwrap_or(u32::MAX)
+                })
+                .max_capacity(64 * 1024 * 1024)
+                .build(),
+            cache_control: "public, max-age=3600".into(),
+            public_url,
+            write_token: None,
+            max_upload: 64 * 1024 * 1024,
+            backend: Backend::Auto,
+            gpu: None,
+        }
+    }
+}
+
+type Shared = State<Arc<AppState>>;
+
+/// The router of the whole API.
+pub fn router(state: Arc<AppState>) -> Router {
+    Router::new()
+        .route("/healthz", get(|| async { "ok" }))
+        .route("/readyz", get(ready))
+        .route(
+            "/v1/openapi.json",
+            get(|| async { Json(crate::openapi::document()) }),
+        )
+        .route("/v1/assets", get(list_assets))
+        .route(
+            "/v1/assets/{id}",
+            get(asset_info)
+                .put(put_asset)
+                .delete(delete_asset)
+                .layer(axum::extract::DefaultBodyLimit::max(state.max_upload)),
+        )
+        .route("/v1/assets/{id}/tilejson.json", get(tilejson))
+        .route("/v1/assets/{id}/tiles/{z}/{x}/{tile}", get(tile))
+        .route("/v1/assets/{id}/point", get(point_unit))
+        .route("/v1/assets/{id}/point/{coords}", get(point_lonlat))
+        // The batch's body limit is applied as it is read (`read_body`).
+        .route("/v1/assets/{id}/points", post(points))
+        .route("/v1/assets/{id}/region", get(region))
+        .route("/v1/assets/{id}/mesh", get(mesh))
+        .route("/v1/assets/{id}/curve", get(curve))
+        .route(
+            "/v1/assets/{id}/curve/deform",
+            post(curve_deform).layer(axum::extract::DefaultBodyLimit::max(16 * 1024 * 1024)),
+        )
+        .with_state(state)
+}
+
+/// Readiness: the assets are loaded (the server listens only after loading them) and a light
+/// decode slot is free, so a load balancer sends cheap requests elsewhere while every slot is
+/// busy.
+async fn ready(State(state): Shared) -> Result<&'static str, AppError> {
+    if state.lanes.light_free() {
+        Ok("ready")
+    } else {
+        Err(AppError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            code: "busy",
+            detail: "every decode slot is busy".into(),
+        })
+    }
+}
+
+/// The asset of a request that works on 2D planes (tiles, regions, lon/lat and batch points):
+/// a volume is a 400 naming what it does answer instead.
+fn planar(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> {
+    if a.asset.meta.kind == AssetKind::Curve {
+        return Err(AppError::bad_request(
+            "curve_asset",
+            format!(
+                "{} is a curve asset: ask /curve?level=N (GeoJSON) or POST /curve/deform",
+                a.id
+            ),
+        ));
+    }
+    if a.asset.meta.kind == AssetKind::Volume {
+        return Err(AppError::bad_request(
+            "volume_asset",
+            format!(
+                "{} is a volume: ask /mesh?bbox=x0,y0,z0,x1,y1,z1 or /point?x=&y=&z=",
+                a.id
+            ),
+        ));
+    }
+    Ok(a)
+}
+
+/// Runs `f` on the blocking pool in the lane of its estimated `bytes` (see [`crate::work`]).
+async fn decode<T: Send + 'static>(
+    state: &AppState,
+    bytes: u64,
+    f: impl FnOnce(&Cancel) -> T + Send + 'static,
+) -> Result<T, AppError> {
+    state.lanes.run(bytes, f).await
+}
+
+/// Bytes a decode of `pixels` points of `channels` channels holds at its peak: the points
+/// (8), a chain result per channel (12), the values in source units and their encoding (8).
+fn sampling_bytes(pixels: usize, channels: u8) -> u64 {
+    pixels as u64 * (8 + 20 * u64::from(channels.max(1)))
+}
+
+/// The backend of a request: its `backend` parameter, else the server's. Asking for the GPU
+/// of a server without one is an error, not a silent fallback.
+fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppError> {
+    let b = match asked {
+        Some(s) => s
+            .parse::<Backend>()
+            .map_err(|e| AppError::bad_request("bad_backend", e))?,
+        None => state.backend,
+    };
+    if b == Backend::Gpu && state.gpu.is_none() {
+        return Err(AppError::bad_request(
+            "gpu_unavailable",
+            "this server has no GPU adapter: use backend=cpu or auto",
+        ));
+    }
+    Ok(b)
+}
+
+/// `Asset::sample` of a raster's pixels on the chosen backend, with coarse decodes shared
+/// through `coarse` (runs inside `decode`, on the blocking pool).
+fn sample_on(
+    (gpu, coarse, cancel): (Option<&GpuBackend>, &CoarseCache, &Cancel),
+    choice: Backend,
+    a: &StoredAsset,
+    pixels: &geo::Pixels,
+    iterations: u32,
+    tolerance: f32,
+) -> Result<(Vec<Vec<f32>>, f32), AppError> {
+    let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
+    let continuous =
+        |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
+    let discrete = |w, h, n, t: f32| {
+        coarse.get_with((a.id.clone(), a.hash, w, h, n, t.to_bits()), || {
+            Arc::new(a.asset.discrete_planes(w, h, n, t))
+        })
+    };
+    let cancelled = || cancel.is_set();
+    let delegates = fractile_codec::extract::Delegates {
+        continuous: &continuous,
+        discrete: &discrete,
+        cancelled: &cancelled,
+    };
+    a.asset
+        .sample_with(pixels, iterations, tolerance, &delegates)
+        .map_err(|_| AppError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            code: "cancelled",
+            detail: "the request was given up before its decode finished".into(),
+        })
+}
+
+/// Discrete decodes for coarse tiles (see [`AppState::coarse`]).
+pub type CoarseCache = moka::sync::Cache<CoarseKey, Arc<Vec<CoarsePlane>>>;
+
+/// A plane decoded discretely for coarse tiles, with what the decoder reported.
+pub type CoarsePlane = (
+    fractile_codec::decode::Grid,
+    fractile_codec::decode::DiscreteReport,
+);
+
+/// Steps and per-point tolerance of a request. `iterations` alone: exactly that many steps.
+/// `tolerance` (value units): each point stops once its own a-priori bound is under it, within
+/// `iterations` or the limit. Neither: the tolerance is half a quantisation step of the source
+/// (1 for integer samples, 1/65535 of the range for floats).
+fn iterations_for(
+    state: &AppState,
+    a: &StoredAsset,
+    asked: Option<u32>,
+    tolerance: Option<f32>,
+) -> Result<(u32, f32), AppError> {
+    let max = state.limits.max_iterations;
+    let n = match asked {
+        Some(0) => {
+            return Err(AppError::bad_request(
+                "bad_iterations",
+                "iterations must be at least 1",
+            ));
+        }
+        Some(n) if n > max => {
+            return Err(AppError::bad_request(
+                "bad_iterations",
+                format!("iterations {n} over the limit {max}"),
+            ));
+        }
+        Some(n) => n,
+        None => max,
+    };
+    match (asked, tolerance) {
+        (_, Some(t)) if !(t.is_finite() && t > 0.0) => Err(AppError::bad_request(
+            "bad_tolerance",
+            "tolerance must be a positive number (value units)",
+        )),
+        (_, Some(t)) => Ok((n, t)),
+        (Some(n), None) => Ok((n, 0.0)),
+        (None, None) => {
+            let m = &a.asset.meta;
+            let step = match m.sample {
+                fractile_proto::SampleFormat::F32 => (m.value_max - m.value_min) / 65535.0,
+                fractile_proto::SampleFormat::I8 => (m.value_max - m.value_min) / 254.0,
+                _ => 1.0,
+            };
+            Ok((max, 0.5 * step as f32))
+        }
+    }
+}
+
+/// Unit coordinates of a request point: lon/lat for georeferenced assets, unit x/y otherwise.
+fn unit_of(a: &StoredAsset, c: [f64; 2]) -> Option<[f32; 2]> {
+    match &a.placement {
+        Some(p) => p.unit(c[0], c[1]),
+        None => c
+            .iter()
+            .all(|t| (0.0..=1.0).contains(t))
+            .then_some([c[0] as f32, c[1] as f32]),
+    }
+}
+
+/// The pixels of a box's samples: column i at request x `x(i)`, row j at request y `y(j)`
+/// (lon/lat for georeferenced assets, a north-up box; unit coordinates otherwise), each
+/// `[dx, dy]` request units wide.
+fn box_pixels(
+    a: &StoredAsset,
+    (w, x): (usize, impl Fn(usize) -> f64),
+    (h, y): (usize, impl Fn(usize) -> f64),
+    [dx, dy]: [f64; 2],
+) -> geo::Pixels {
+    let xs: Vec<f64> = (0..w).map(x).collect();
+    let ys: Vec<f64> = (0..h).map(y).collect();
+    match &a.placement {
+        Some(p) => {
+            let centre = |v: &[f64]| 0.5 * (v[0] + v[v.len() - 1]);
+            let footprint = p.footprint(centre(&xs), centre(&ys), dx, dy);
+            p.pixels(&xs, &ys, footprint)
+        }
+        None => {
+            let unit = |t: f64| (0.0..=1.0).contains(&t).then_some(t as f32);
+            geo::Pixels::grid(
+                xs.into_iter().map(unit).collect(),
+                ys.into_iter().map(unit).collect(),
+                [dx as f32, dy as f32],
+            )
+        }
+    }
+}
+
+/// `minx,miny,maxx,maxy` with max > min.
+fn parse_bbox(b: &str) -> Result<[f64; 4], AppError> {
+    let v: Vec<f64> = b.split(',').filter_map(|s| s.trim().parse().ok()).collect();
+    match v[..] {
+        [x0, y0, x1, y1] if x1 > x0 && y1 > y0 => Ok([x0, y0, x1, y1]),
+        _ => Err(AppError::bad_request(
+            "bad_bbox",
+            "bbox must be minx,miny,maxx,maxy with max > min",
+        )),
+    }
+}
+
+/// Size in request units of one of `w x h` cells over a box.
+fn cell_size([x0, y0, x1, y1]: [f64; 4], w: usize, h: usize) -> [f64; 2] {
+    [(x1 - x0) / w.max(1) as f64, (y1 - y0) / h.max(1) as f64]
+}
+
+/// The default request timeout.
+pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);

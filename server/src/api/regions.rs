@@ -1,0 +1,143 @@
+//! Regions: a window of an asset at any resolution, as PNG, float32 or GeoTIFF.
+
+use super::*;
+
+#[derive(Deserialize)]
+pub(super) struct RegionQuery {
+    bbox: String,
+    width: usize,
+    height: usize,
+    iterations: Option<u32>,
+    tolerance: Option<f32>,
+    backend: Option<String>,
+    format: Option<String>,
+}
+
+pub(super) async fn region(
+    State(state): Shared,
+    Path(id): Path<String>,
+    Query(q): Query<RegionQuery>,
+) -> Result<Response, AppError> {
+    let a = planar(state.store.get(&id)?)?;
+    let [x0, y0, x1, y1] = parse_bbox(&q.bbox)?;
+    if q.width == 0
+        || q.height == 0
+        || q.width.saturating_mul(q.height) > state.limits.max_region_pixels
+    {
+        return Err(AppError::bad_request(
+            "bad_size",
+            format!(
+                "width x height must be 1..={} pixels",
+                state.limits.max_region_pixels
+            ),
+        ));
+    }
+    let (n, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
+    let format = q.format.as_deref().unwrap_or("png");
+    if format == "tif" && a.asset.meta.kind != AssetKind::HeightField {
+        return Err(AppError::bad_request(
+            "bad_format",
+            "GeoTIFF regions are for height fields (use png)",
+        ));
+    }
+    if !matches!(format, "png" | "f32" | "tif") {
+        return Err(AppError::bad_request(
+            "bad_format",
+            "format must be png, f32 or tif",
+        ));
+    }
+    let (w, h) = (q.width, q.height);
+    // Pixel centres in the request's coordinates: lon/lat (north up) or unit x/y (y down).
+    let geo_ref = a.placement.is_some();
+    let grid = box_pixels(
+        &a,
+        (w, |i| x0 + (i as f64 + 0.5) / w as f64 * (x1 - x0)),
+        (h, |j| {
+            let fy = (j as f64 + 0.5) / h as f64;
+            if geo_ref {
+                y1 - fy * (y1 - y0)
+            } else {
+                y0 + fy * (y1 - y0)
+            }
+        }),
+        cell_size([x0, y0, x1, y1], w, h),
+    );
+    let f32_out = format == "f32";
+    let tif_out = format == "tif";
+    // The GeoTIFF's georeference is the requested box (north-up, lon/lat for georeferenced
+    // assets).
+    let tif_georef = a
+        .asset
+        .meta
+        .georef
+        .as_ref()
+        .map(|g| fractile_proto::Georef {
+            // Boxes are lon/lat: the region of a projected asset is in EPSG:4326 too.
+            epsg: match a.placement.as_ref().and_then(|p| p.epsg()) {
+                Some(_) => Some(4326),
+                None => g.epsg,
+            },
+            origin: [x0, y1],
+            pixel_size: [(x1 - x0) / w as f64, -(y1 - y0) / h as f64],
+        });
+    let (choice, gpu, coarse) = (
+        backend_for(&state, q.backend.as_deref())?,
+        state.gpu.clone(),
+        state.coarse.clone(),
+    );
+    let channels = a.asset.meta.channels;
+    // Sampling, then the encoded body (at most 4 bytes a value).
+    let cost = sampling_bytes(w * h, channels) + (w * h) as u64 * 4 * u64::from(channels);
+    state
+        .lanes
+        .stream(cost, move |cancel| {
+            let (channels, bound) = sample_on(
+                (gpu.as_deref(), &coarse, cancel),
+                choice,
+                &a,
+                &grid,
+                n,
+                tolerance,
+            )?;
+            let (content_type, body) = if tif_out {
+                let nodata = a.asset.meta.nodata;
+                let values: Vec<f32> = match nodata {
+                    Some(nd) => channels[0]
+                        .iter()
+                        .map(|&v| if v.is_nan() { nd as f32 } else { v })
+                        .collect(),
+                    None => channels[0].clone(),
+                };
+                let tif =
+                    fractile_codec::raster::geotiff_f32(w, h, &values, tif_georef.as_ref(), nodata)
+                        .map_err(|e| AppError::internal(e.to_string()))?;
+                ("image/tiff", tif)
+            } else if f32_out {
+                (
+                    "application/octet-stream",
+                    channels
+                        .iter()
+                        .flat_map(|c| c.iter().flat_map(|v| v.to_le_bytes()))
+                        .collect(),
+                )
+            } else {
+                let fmt = if a.asset.meta.kind == AssetKind::HeightField {
+                    encoding::TileFormat::Visual(Some((
+                        a.asset.meta.value_min as f32,
+                        a.asset.meta.value_max as f32,
+                    )))
+                } else {
+                    encoding::TileFormat::Visual(None)
+                };
+                encoding::encode_raster(&a.asset.meta, &channels, w, h, fmt, None)
+            };
+            let head = Head {
+                content_type,
+                error_bound: bound,
+            };
+            let writer: BodyWriter =
+                Box::new(move |out: &mut dyn std::io::Write| out.write_all(&body));
+            Ok((head, writer))
+        })
+        .await
+}

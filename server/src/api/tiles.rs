@@ -1,0 +1,296 @@
+//! TileJSON and tiles: Web Mercator (or unit-square) tiles by continuous extraction, cached by ETag.
+
+use super::*;
+
+/// Zoom at which a tile pixel is about the size of a source cell (deeper zooms decode detail the
+/// source never had: the point of a fractal codec, hence `maxzoom` goes 4 levels further).
+fn native_zoom(a: &StoredAsset, tile_size: usize) -> u8 {
+    let width = a.asset.meta.width as f64;
+    let degrees = a
+        .placement
+        .as_ref()
+        .map(|p| p.bounds()[2] - p.bounds()[0])
+        .unwrap_or(360.0);
+    let pixels_world = width * 360.0 / degrees;
+    (pixels_world / tile_size as f64)
+        .log2()
+        .ceil()
+        .clamp(0.0, 22.0) as u8
+}
+
+pub(super) async fn tilejson(
+    State(state): Shared,
+    Path(id): Path<String>,
+) -> Result<Json<TileJson>, AppError> {
+    let a = planar(state.store.get(&id)?)?;
+    let heights = a.asset.meta.kind == AssetKind::HeightField;
+    let (ext, query) = if heights {
+        ("png", "?encoding=terrarium")
+    } else {
+        ("png", "")
+    };
+    let native = native_zoom(&a, 256);
+    let bounds = a.placement.as_ref().map(|p| {
+        let [w, s, e, n] = p.bounds();
+        [
+            w.max(-180.0),
+            s.max(-geo::MAX_LATITUDE),
+            e.min(180.0),
+            n.min(geo::MAX_LATITUDE),
+        ]
+    });
+    Ok(Json(TileJson {
+        tilejson: "3.0.0".into(),
+        name: a.id.clone(),
+        tiles: vec![format!(
+            "{}/v1/assets/{}/tiles/{{z}}/{{x}}/{{y}}.{ext}{query}",
+            state.public_url, a.id
+        )],
+        minzoom: 0,
+        maxzoom: (native + 4).min(state.limits.max_zoom),
+        bounds: bounds.unwrap_or([-180.0, -geo::MAX_LATITUDE, 180.0, geo::MAX_LATITUDE]),
+        tile_size: 256,
+        encoding: heights.then(|| "terrarium".into()),
+    }))
+}
+
+#[derive(Deserialize)]
+pub(super) struct TileQuery {
+    iterations: Option<u32>,
+    tolerance: Option<f32>,
+    backend: Option<String>,
+    tilesize: Option<usize>,
+    encoding: Option<String>,
+    rescale: Option<String>,
+    colormap: Option<String>,
+    hillshade: Option<bool>,
+}
+
+fn etag(a: &StoredAsset, key: &str) -> String {
+    let mut h = std::hash::DefaultHasher::new();
+    (a.hash, key).hash(&mut h);
+    format!("\"{:016x}\"", h.finish())
+}
+
+fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Response {
+    let mut r = (StatusCode::OK, c.body.clone()).into_response();
+    let h = r.headers_mut();
+    h.insert(
+        header::CONTENT_TYPE,
+        HeaderValue::from_static(c.content_type),
+    );
+    h.insert(header::ETAG, HeaderValue::from_str(tag).expect("hex etag"));
+    if let Ok(v) = HeaderValue::from_str(&state.cache_control) {
+        h.insert(header::CACHE_CONTROL, v);
+    }
+    h.insert(
+        "x-error-bound",
+        HeaderValue::from_str(&format!("{}", c.error_bound)).expect("number"),
+    );
+    r
+}
+
+fn not_modified(headers: &HeaderMap, tag: &str) -> bool {
+    headers
+        .get(header::IF_NONE_MATCH)
+        .and_then(|v| v.to_str().ok())
+        .is_some_and(|v| v.split(',').any(|t| t.trim() == tag))
+}
+
+pub(super) async fn tile(
+    State(state): Shared,
+    Path((id, z, x, tile)): Path<(String, u8, u32, String)>,
+    Query(q): Query<TileQuery>,
+    headers: HeaderMap,
+) -> Result<Response, AppError> {
+    let a = planar(state.store.get(&id)?)?;
+    let (y, ext) = tile
+        .split_once('.')
+        .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.png or {y}.f32"))?;
+    let y: u32 = y
+        .parse()
+        .map_err(|_| AppError::bad_request("bad_tile", format!("bad tile row {y:?}")))?;
+    if z > state.limits.max_zoom || x >= (1u32 << z) || y >= (1u32 << z) {
+        return Err(AppError::not_found(
+            "no_tile",
+            format!("tile {z}/{x}/{y} does not exist"),
+        ));
+    }
+    let size = q.tilesize.unwrap_or(256);
+    if size != 256 && size != 512 {
+        return Err(AppError::bad_request(
+            "bad_tilesize",
+            "tilesize must be 256 or 512",
+        ));
+    }
+    let heights = a.asset.meta.kind == AssetKind::HeightField;
+    let format = match (ext, heights, q.encoding.as_deref()) {
+        ("f32", true, _) => encoding::TileFormat::F32,
+        ("f32", false, _) => {
+            return Err(AppError::bad_request(
+                "bad_format",
+                "f32 tiles are for height fields",
+            ));
+        }
+        ("png", true, Some("terrainrgb")) => {
+            encoding::TileFormat::Heights(HeightEncoding::TerrainRgb)
+        }
+        ("png", true, Some("terrarium")) => {
+            encoding::TileFormat::Heights(HeightEncoding::Terrarium)
+        }
+        ("png", true, Some("gray16")) => encoding::TileFormat::Heights(HeightEncoding::Gray16),
+        ("png", true, None) => encoding::TileFormat::Visual(parse_rescale(&q.rescale, &a)?),
+        ("png", false, None) => encoding::TileFormat::Visual(None),
+        ("png", _, Some(e)) => {
+            return Err(AppError::bad_request(
+                "bad_encoding",
+                format!("unknown encoding {e:?} (terrainrgb, terrarium, gray16)"),
+            ));
+        }
+        (e, ..) => {
+            return Err(AppError::bad_request(
+                "bad_format",
+                format!("unknown tile format {e:?} (png, f32)"),
+            ));
+        }
+    };
+    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
+    let visual_heights = heights && ext == "png" && q.encoding.is_none();
+    let colormap = match q.colormap.as_deref() {
+        None => None,
+        Some(name) if visual_heights => Some(
+            fractile_codec::render::Colormap::parse(name).ok_or_else(|| {
+                AppError::bad_request(
+                    "bad_colormap",
+                    format!("unknown colormap {name:?} (gray, terrain, viridis)"),
+                )
+            })?,
+        ),
+        Some(_) => {
+            return Err(AppError::bad_request(
+                "bad_colormap",
+                "colormap is for visual PNG tiles of height fields",
+            ));
+        }
+    };
+    let shade = q.hillshade.unwrap_or(false);
+    if shade && !visual_heights {
+        return Err(AppError::bad_request(
+            "bad_hillshade",
+            "hillshade is for visual PNG tiles of height fields",
+        ));
+    }
+    // Outside the asset: 404, so that map clients over-zoom the parent instead. Checked on the
+    // tile's bounds first (cheap); a tile that only grazes the asset is decoded.
+    if let Some(p) = &a.placement {
+        let [w, s, e, n] = geo::tile_bounds(z, x, y);
+        let [aw, as_, ae, an] = p.bounds();
+        let global = ae - aw >= 360.0 - 1e-9;
+        if (!global && (e <= aw || w >= ae)) || n <= as_ || s >= an {
+            return Err(AppError::not_found(
+                "outside",
+                format!("tile {z}/{x}/{y} is outside the asset"),
+            ));
+        }
+    }
+    // Checked before the cache, so that a bad parameter is refused even for a cached tile.
+    let choice = backend_for(&state, q.backend.as_deref())?;
+    // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
+    let key = format!(
+        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{:?}&{size}&{:?}&{:?}&{:?}&{shade}",
+        a.hash, q.iterations, q.tolerance, q.encoding, q.rescale, q.colormap
+    );
+    let tag = etag(&a, &key);
+    if not_modified(&headers, &tag) {
+        return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, tag)]).into_response());
+    }
+    if let Some(c) = state.cache.get(&key) {
+        metrics::counter!("fractile_tile_cache_total", "result" => "hit").increment(1);
+        return Ok(cached_response(&state, &tag, &c));
+    }
+    metrics::counter!("fractile_tile_cache_total", "result" => "miss").increment(1);
+    let asset = a.clone();
+    let gpu = state.gpu.clone();
+    let coarse = state.coarse.clone();
+    let side = size + 2 * usize::from(shade);
+    let cost = sampling_bytes(side * side, a.asset.meta.channels);
+    let cached = decode(&state, cost, move |cancel| {
+        // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile,
+        // so that shading is seamless across tiles.
+        let margin = usize::from(shade);
+        let grid = geo::tile_pixels(asset.placement.as_ref(), z, x, y, size, margin);
+        if grid.is_outside() {
+            return Ok(None);
+        }
+        let footprint = grid.footprint;
+        let (mut channels, bound) = sample_on(
+            (gpu.as_deref(), &coarse, cancel),
+            choice,
+            &asset,
+            &grid,
+            iterations,
+            tolerance,
+        )?;
+        let style = (colormap.is_some() || shade).then(|| {
+            let side = size + 2 * margin;
+            let shade = shade.then(|| {
+                // Cell size in the heights' units: metres for geographic assets, source pixels
+                // otherwise.
+                let spacing = match &asset.placement {
+                    Some(_) => {
+                        let [w, s, e, n] = geo::tile_bounds(z, x, y);
+                        let m = geo::metres_per_degree(0.5 * (s + n));
+                        [
+                            ((e - w) / size as f64 * m[0]) as f32,
+                            ((n - s) / size as f64 * m[1]) as f32,
+                        ]
+                    }
+                    None => [
+                        footprint[0] * asset.asset.meta.width as f32,
+                        footprint[1] * asset.asset.meta.height as f32,
+                    ],
+                };
+                fractile_codec::render::hillshade(&channels[0], size, size, spacing, 315.0, 45.0)
+            });
+            if margin > 0 {
+                for ch in &mut channels {
+                    *ch = (0..size * size)
+                        .map(|k| ch[(k / size + margin) * side + k % size + margin])
+                        .collect();
+                }
+            }
+            encoding::Style { colormap, shade }
+        });
+        let (content_type, body) =
+            encoding::encode_tile(&asset.asset.meta, &channels, size, format, style);
+        Ok::<_, AppError>(Some(Cached {
+            content_type,
+            body: Bytes::from(body),
+            error_bound: bound,
+        }))
+    })
+    .await??
+    .ok_or_else(|| {
+        AppError::not_found("outside", format!("tile {z}/{x}/{y} is outside the asset"))
+    })?;
+    let cached = Arc::new(cached);
+    state.cache.insert(key, cached.clone());
+    Ok(cached_response(&state, &tag, &cached))
+}
+
+fn parse_rescale(r: &Option<String>, a: &StoredAsset) -> Result<Option<(f32, f32)>, AppError> {
+    let Some(r) = r else {
+        return Ok(Some((
+            a.asset.meta.value_min as f32,
+            a.asset.meta.value_max as f32,
+        )));
+    };
+    let v: Vec<f32> = r.split(',').filter_map(|s| s.trim().parse().ok()).collect();
+    match v[..] {
+        [lo, hi] if hi > lo => Ok(Some((lo, hi))),
+        _ => Err(AppError::bad_request(
+            "bad_rescale",
+            "rescale must be min,max with max > min",
+        )),
+    }
+}
