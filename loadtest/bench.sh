@@ -8,7 +8,7 @@ cd "$(dirname "$0")/.."
 DURATION=${1:-10}
 CONCURRENCY=${2:-16}
 PORT=${PORT:-18091}
-cargo build --release -p fractile -p fractile-client -q
+cargo build --release -p fractile-cli -p fractile-client -q
 CACHE=$(mktemp -d)
 FRACTILE_CACHE=$CACHE RUST_LOG=warn target/release/fractile serve --bind 127.0.0.1:$PORT &
 PID=$!

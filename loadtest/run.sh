@@ -7,7 +7,7 @@ DURATION=${1:-10s}
 PORT=${PORT:-18090}
 CONNS=16
 command -v wrk >/dev/null || { echo "wrk is needed: apt-get install wrk" >&2; exit 1; }
-cargo build --release -p fractile -q
+cargo build --release -p fractile-cli -q
 CACHE=$(mktemp -d)
 FRACTILE_CACHE=$CACHE RUST_LOG=warn target/release/fractile serve --bind 127.0.0.1:$PORT &
 PID=$!

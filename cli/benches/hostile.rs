@@ -2,7 +2,7 @@
 //! a separate server process on loopback, its memory read from /proc, requests made over raw
 //! TCP (so that this process's own buffers never count). Prints one table row per bar.
 //!
-//! `cargo bench -p fractile --bench hostile -- [seconds of region load, default 20]`
+//! `cargo bench -p fractile-cli --bench hostile -- [seconds of region load, default 20]`
 //!
 //! 1. A folder holding the crafted files of `testdata/hostile/` starts and logs each; uploading
 //!    each answers 422, with the time and the server's peak extra memory.

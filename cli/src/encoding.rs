@@ -1,0 +1,492 @@
+//! `fractile encode`: rasters (quadtree PIFS, FIS, psa2d), meshes (IFS3D) and curves into assets.
+
+use super::*;
+
+#[derive(Clone, Copy, ValueEnum)]
+pub(crate) enum Search {
+    /// Every domain and isometry (slow; the reference).
+    Full,
+    /// Fisher's quadrant-brightness classes.
+    Classified,
+    /// Saupe's nearest-neighbour search on normalised block features.
+    Nearest,
+}
+
+/// `--codec`: the closed set of codecs `encode` writes (names as the API spells them).
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum CodecArg {
+    /// Quadtree partitioned IFS (images and height fields).
+    QuadtreePifs,
+    /// Fractal interpolation surface, s per node (Wu and Zhou).
+    FisBilinear,
+    /// Fractal interpolation surface, s per cell.
+    FisRect,
+    /// Fractal interpolation surface, one s (Drakopoulos and Manousopoulos).
+    FisRectGlobal,
+    /// Piecewise self-affine model, rectangular regions.
+    Psa2dRect,
+    /// Piecewise self-affine model, triangular regions.
+    Psa2dTri,
+    /// Projected IFS with details (GeoJSON curves).
+    Curve,
+}
+
+impl CodecArg {
+    /// The layout of s of a FIS codec.
+    fn fis_scaling(self) -> Option<fractile_codec::fis::Scaling> {
+        use fractile_codec::fis::Scaling;
+        match self {
+            CodecArg::FisBilinear => Some(Scaling::PerNode),
+            CodecArg::FisRect => Some(Scaling::PerCell),
+            CodecArg::FisRectGlobal => Some(Scaling::Global),
+            _ => None,
+        }
+    }
+
+    /// The tiling of a psa2d codec.
+    fn psa_tiling(self) -> Option<Tiling> {
+        match self {
+            CodecArg::Psa2dRect => Some(Tiling::Rectangular),
+            CodecArg::Psa2dTri => Some(Tiling::Triangular),
+            _ => None,
+        }
+    }
+
+    /// The name as the CLI and the API spell it.
+    fn name(self) -> String {
+        self.to_possible_value()
+            .map_or_else(String::new, |v| v.get_name().to_string())
+    }
+}
+
+/// `--domains` of psa2d.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, ValueEnum)]
+pub(crate) enum DomainsArg {
+    /// Domains that tile the plane.
+    Touching,
+    /// Domains at every region corner.
+    Overlapping,
+}
+
+#[derive(clap::Args)]
+pub(crate) struct EncodeArgs {
+    /// Input raster.
+    input: PathBuf,
+    /// Output asset file.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// Largest file size in bits per source pixel (rate control).
+    #[arg(long, group = "rate")]
+    target_bpp: Option<f64>,
+    /// Split ranges while their RMS collage error exceeds this (source units: grey levels,
+    /// metres; voxels for meshes). Curves: the largest error of a vertex, degrees of arc for
+    /// GeoJSON (0.009 is about 1 km); 0 (the default) keeps every detail exactly.
+    #[arg(long, group = "rate")]
+    tolerance: Option<f32>,
+    /// Split until this many ranges (the seed's "quad N").
+    #[arg(long, group = "rate")]
+    transforms: Option<usize>,
+    /// A regular grid of R x R ranges (the seed's "const range R"; 1 = quasi-lossless).
+    #[arg(long, group = "rate")]
+    const_range: Option<u32>,
+    /// Region of interest `x0,y0,x1,y1:tolerance[:min_range]` in source pixels (repeatable).
+    #[arg(long, value_parser = parse_roi)]
+    roi: Vec<Roi>,
+    /// Smallest range side (power of two).
+    #[arg(long, default_value_t = EncodeSettings::default().min_range)]
+    min_range: u32,
+    /// Largest range side (power of two).
+    #[arg(long, default_value_t = EncodeSettings::default().max_range)]
+    max_range: u32,
+    /// quadtree-pifs: encoder speed preset, 0 (slowest, best) to 4 (fastest). Sets the domain
+    /// lattice, the search's candidates and the attractor passes (`--domain-step`,
+    /// `--candidates` and `--attractor-passes` override it).
+    #[arg(long, default_value_t = fractile_codec::encode::DEFAULT_SPEED)]
+    speed: u8,
+    /// Domain lattice step, as a fraction of the range side [default: from --speed, 2].
+    #[arg(long)]
+    domain_step: Option<f32>,
+    /// Bits of the contrast index.
+    #[arg(long, default_value_t = EncodeSettings::default().quantiser.contrast_bits)]
+    contrast_bits: u8,
+    /// Bits of the offset index [default: 6]. Height fields under --target-bpp without this or
+    /// --slope-bits: offsets and slopes are coded at 5, 6, 7 and 8 bits and the best kept.
+    #[arg(long)]
+    offset_bits: Option<u8>,
+    /// Bits of each slope of a planar offset term (0: constant offsets, the seed's codec).
+    /// Default: 6 for height fields (see --offset-bits), 0 for images.
+    #[arg(long)]
+    slope_bits: Option<u8>,
+    /// Largest |contrast| (< 1).
+    #[arg(long, default_value_t = EncodeSettings::default().quantiser.max_contrast)]
+    max_contrast: f32,
+    /// Domain search.
+    #[arg(long, value_enum, default_value_t = Search::Nearest)]
+    search: Search,
+    /// Candidates scored per range by the nearest-neighbour search [default: from --speed, 32].
+    #[arg(long)]
+    candidates: Option<usize>,
+    /// quadtree-pifs: passes that search again with domains read from the decoded attractor,
+    /// keeping the asset that decodes closest to the source; each costs one more search
+    /// [default: from --speed, 0].
+    #[arg(long)]
+    attractor_passes: Option<u32>,
+    /// Codec: FIS codecs take height fields, psa2d grey images and height fields; GeoJSON input
+    /// is always `curve`.
+    #[arg(long, value_enum, default_value_t = CodecArg::QuadtreePifs)]
+    codec: CodecArg,
+    /// psa2d: touching or overlapping domains.
+    #[arg(long, value_enum, default_value_t = DomainsArg::Overlapping)]
+    domains: DomainsArg,
+    /// psa2d: domain side in regions.
+    #[arg(long, default_value_t = fractile_codec::psa::PsaSettings::default().ratio)]
+    domain_ratio: u32,
+    /// psa2d: domain search radius (regions, or domains when touching).
+    #[arg(long, default_value_t = fractile_codec::psa::PsaSettings::default().radius)]
+    radius: u32,
+    /// FIS and psa2d: samples between interpolation points (ignored with --target-bpp, which
+    /// picks it).
+    #[arg(long, default_value_t = FisSettings::default().spacing)]
+    spacing: u32,
+    /// FIS: node height step in source units (default: the source's quantum).
+    #[arg(long)]
+    height_step: Option<f64>,
+    /// Meshes: samples per side of the signed distance grid.
+    #[arg(long, default_value_t = 64)]
+    grid: usize,
+    /// Meshes: half-width of the distance band in voxels (distances are clamped to it).
+    #[arg(long, default_value_t = 4.0)]
+    band: f64,
+    /// FIS: bits of each vertical scaling.
+    #[arg(long, default_value_t = FisSettings::default().scaling_bits)]
+    scaling_bits: u8,
+    /// Print JSON.
+    #[arg(long)]
+    json: bool,
+}
+
+pub(crate) fn parse_roi(s: &str) -> Result<Roi, String> {
+    let mut parts = s.split(':');
+    let rect: Vec<f32> = parts
+        .next()
+        .unwrap_or("")
+        .split(',')
+        .map(|v| v.trim().parse::<f32>().map_err(|e| format!("{v:?}: {e}")))
+        .collect::<Result<_, _>>()?;
+    if rect.len() != 4 {
+        return Err("expected x0,y0,x1,y1:tolerance[:min_range]".into());
+    }
+    let tolerance = parts
+        .next()
+        .ok_or("missing :tolerance")?
+        .parse::<f32>()
+        .map_err(|e| e.to_string())?;
+    let min_range = parts
+        .next()
+        .map(|m| m.parse::<u32>().map_err(|e| e.to_string()))
+        .transpose()?;
+    Ok(Roi {
+        rect: [rect[0], rect[1], rect[2], rect[3]],
+        tolerance,
+        min_range,
+    })
+}
+
+/// Whether a path names a mesh (by extension).
+pub(crate) fn is_mesh(p: &Path) -> bool {
+    p.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["off", "obj", "ply", "stl"].contains(&e.to_ascii_lowercase().as_str()))
+}
+
+/// `fractile encode mesh.off --grid N [--tolerance T | --transforms N]`: IFS3D. The octree's
+/// ranges are 4 to 16 voxels and its quantiser is its own (`octree::VolumeSettings`); the
+/// raster flags of range sizes and bits do not apply.
+pub(crate) fn encode_volume(a: &EncodeArgs) -> Result<()> {
+    use fractile_codec::octree::Partition3;
+    if a.target_bpp.is_some() || a.codec != CodecArg::QuadtreePifs {
+        bail!("meshes take --grid, --band and --tolerance (voxels), --transforms or --const-range");
+    }
+    let mesh = fractile_codec::mesh::Mesh::read(&a.input)?;
+    let mut s = fractile_codec::volume::MeshSettings {
+        grid: a.grid,
+        band: a.band,
+        ..Default::default()
+    };
+    s.codec.partition = match (a.tolerance, a.transforms, a.const_range) {
+        (Some(t), ..) if !(t.is_finite() && t > 0.0) => bail!("--tolerance {t} must be positive"),
+        // Voxels -> normalised units: the field spans 2 band voxels.
+        (Some(t), ..) => Partition3::Tolerance(t / (2.0 * a.band) as f32),
+        (_, Some(n), _) => Partition3::Transforms(n),
+        (.., Some(r)) => {
+            let sizes: Vec<u32> = (0..s.codec.levels).map(|l| s.codec.min_size << l).collect();
+            match sizes.iter().position(|&n| n == r) {
+                Some(l) => Partition3::ConstRange(l),
+                None => bail!("--const-range {r}: the octree's ranges are {sizes:?} voxels"),
+            }
+        }
+        // 0.08 voxel RMS collage error: the bench's setting, past the seed's quality bars.
+        _ => Partition3::Tolerance((0.08 / (2.0 * a.band)) as f32),
+    };
+    let name = a
+        .input
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let enc = fractile_codec::volume::encode_mesh(&mesh, &s, &name)?;
+    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
+    let file_bytes = std::fs::metadata(&a.input).map(|m| m.len()).unwrap_or(0);
+    let report = json!({
+        "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
+        "grid": enc.field.size, "band_voxels": a.band, "voxel": enc.field.voxel,
+        "bytes": enc.bytes.len(), "ratio_i8": enc.ratio_i8(), "ratio_f32": enc.ratio_f32(),
+        "ratio_mesh_file": file_bytes as f64 / enc.bytes.len() as f64,
+        "transforms": enc.asset.meta.stats.transforms, "seconds": enc.seconds,
+        "field_seconds": enc.field_seconds, "psnr": enc.psnr(), "rmse": enc.asset.meta.stats.rmse,
+    });
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} -> {}: ifs3d-octree {}^3, {} bytes, {:.2}:1 against i8 ({:.2}:1 f32, {:.2}:1 the mesh file), {} maps, {:.2} s ({:.2} s distance field), PSNR {:.2} dB",
+            a.input.display(),
+            a.output.display(),
+            enc.field.size,
+            enc.bytes.len(),
+            enc.ratio_i8(),
+            enc.ratio_f32(),
+            file_bytes as f64 / enc.bytes.len() as f64,
+            enc.asset.meta.stats.transforms,
+            enc.seconds,
+            enc.field_seconds,
+            enc.psnr()
+        );
+    }
+    Ok(())
+}
+
+/// Whether a path names GeoJSON (by extension).
+pub(crate) fn is_geojson(p: &Path) -> bool {
+    p.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| ["geojson", "json"].contains(&e.to_ascii_lowercase().as_str()))
+}
+
+/// `fractile encode coast.geojson -o coast.fra [--codec curve] [--tolerance T]`.
+pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
+    if ![CodecArg::Curve, CodecArg::QuadtreePifs].contains(&a.codec)
+        || a.target_bpp.is_some()
+        || a.transforms.is_some()
+        || a.const_range.is_some()
+    {
+        bail!("GeoJSON takes --codec curve and --tolerance (degrees of arc; 0 keeps every detail)");
+    }
+    let tolerance = f64::from(a.tolerance.unwrap_or(0.0));
+    if !(tolerance.is_finite() && tolerance >= 0.0) {
+        bail!("--tolerance {tolerance} must be a distance >= 0");
+    }
+    let text = std::fs::read_to_string(&a.input)
+        .with_context(|| format!("reading {}", a.input.display()))?;
+    let lines = fractile_codec::curve::geojson::read(&text).map_err(|e| anyhow::anyhow!(e))?;
+    let settings = fractile_codec::curve::CurveSettings {
+        tolerance,
+        ..Default::default()
+    };
+    let name = a
+        .input
+        .file_name()
+        .map(|n| n.to_string_lossy().into_owned())
+        .unwrap_or_default();
+    let enc = fractile_codec::curve::encode_asset(&lines, &settings, &name)?;
+    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
+    let set = &enc.asset.curve.as_ref().expect("a curve asset").set;
+    let m = &enc.asset.meta;
+    let report = json!({
+        "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
+        "polylines": set.rings.len(), "points": enc.points, "bytes": enc.bytes.len(),
+        "ratio_f64": (enc.points * 16) as f64 / enc.bytes.len() as f64,
+        "ratio_f32": (enc.points * 8) as f64 / enc.bytes.len() as f64,
+        "tolerance_degrees": tolerance,
+        "tolerance_m": tolerance * fractile_codec::curve::METRES_PER_DEGREE,
+        "hausdorff_m": m.stats.max_error * fractile_codec::curve::METRES_PER_DEGREE,
+        "finest_level": set.finest(), "fit": enc.fit, "seconds": m.stats.seconds,
+    });
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} -> {}: {} polylines, {} points, {} bytes ({:.2}:1 vs float32, {:.2}:1 vs float64), Hausdorff distance to the source {:.0} m, {} levels, {:.2} s",
+            a.input.display(),
+            a.output.display(),
+            set.rings.len(),
+            enc.points,
+            enc.bytes.len(),
+            report["ratio_f32"].as_f64().unwrap_or(0.0),
+            report["ratio_f64"].as_f64().unwrap_or(0.0),
+            report["hausdorff_m"].as_f64().unwrap_or(0.0),
+            set.finest(),
+            m.stats.seconds
+        );
+    }
+    Ok(())
+}
+
+pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
+    if is_mesh(&a.input) {
+        return encode_volume(&a);
+    }
+    if is_geojson(&a.input) || a.codec == CodecArg::Curve {
+        return encode_curve(&a);
+    }
+    let raster = Raster::open(&a.input)?;
+    let lattice = |a: &EncodeArgs| {
+        if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
+            bail!("--codec {} takes --spacing or --target-bpp", a.codec.name());
+        }
+        Ok(())
+    };
+    let enc = if a.codec == CodecArg::QuadtreePifs {
+        encode_quadtree(&a, &raster)?
+    } else if let Some(tiling) = a.codec.psa_tiling() {
+        lattice(&a)?;
+        let domains = match a.domains {
+            DomainsArg::Touching => Domains::Touching,
+            DomainsArg::Overlapping => Domains::Overlapping,
+        };
+        let settings = PsaSettings {
+            tiling,
+            domains,
+            region: a.spacing,
+            ratio: a.domain_ratio,
+            radius: a.radius,
+            max_scaling: a.max_contrast,
+            ..PsaSettings::default()
+        };
+        fractile_codec::encode::encode_psa(&raster, &settings, a.target_bpp)?
+    } else {
+        let Some(scaling) = a.codec.fis_scaling() else {
+            bail!("--codec curve is for GeoJSON input");
+        };
+        lattice(&a)?;
+        let settings = FisSettings {
+            scaling,
+            spacing: a.spacing,
+            height_step: a.height_step,
+            scaling_bits: a.scaling_bits,
+            max_scaling: a.max_contrast,
+        };
+        fractile_codec::encode::encode_fis(&raster, &settings, a.target_bpp)?
+    };
+    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
+    let report = json!({
+        "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
+        "bytes": enc.bytes.len(), "source_bytes": enc.asset.meta.source_bytes(),
+        "ratio": enc.ratio(), "bpp": enc.bpp(), "transforms": enc.transforms,
+        "seconds": enc.seconds, "psnr": enc.errors.psnr, "rmse": enc.errors.rmse,
+        "max_error": enc.errors.max_error,
+    });
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} -> {}: {} {} bytes, {:.2}:1, {:.3} bpp, {} transforms, {:.2} s, PSNR {:.2} dB, RMSE {:.3}",
+            a.input.display(),
+            a.output.display(),
+            enc.asset.codec_name(),
+            enc.bytes.len(),
+            enc.ratio(),
+            enc.bpp(),
+            enc.transforms,
+            enc.seconds,
+            enc.errors.psnr,
+            enc.errors.rmse
+        );
+    }
+    Ok(())
+}
+
+pub(crate) fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractile_codec::Encoded> {
+    let rate = match (a.target_bpp, a.tolerance, a.transforms, a.const_range) {
+        (Some(b), ..) => RateMode::TargetBpp(b),
+        (_, Some(t), ..) => RateMode::Tolerance(t),
+        (_, _, Some(n), _) => RateMode::Transforms(n),
+        (.., Some(r)) => RateMode::ConstRange(r),
+        _ => RateMode::Tolerance(f32::NAN),
+    };
+    let preset = EncodeSettings::at_speed(a.speed)?;
+    let candidates = match preset.search {
+        SearchMode::Nearest(k) => a.candidates.unwrap_or(k),
+        _ => a.candidates.unwrap_or(32),
+    };
+    let quantiser = Quantiser {
+        contrast_bits: a.contrast_bits,
+        offset_bits: a.offset_bits.unwrap_or(preset.quantiser.offset_bits),
+        max_contrast: a.max_contrast,
+        slope_bits: a
+            .slope_bits
+            .unwrap_or(EncodeSettings::default_slope_bits(raster.kind)),
+    };
+    // Bits the user gave are kept as given; otherwise the encoder weighs the kind's choices.
+    let quantiser_choices = if a.offset_bits.is_none() && a.slope_bits.is_none() {
+        EncodeSettings::default_quantiser_choices(raster.kind, quantiser)
+    } else {
+        Vec::new()
+    };
+    let settings = EncodeSettings {
+        rate,
+        min_range: a.min_range,
+        max_range: a.max_range,
+        domain_step: a.domain_step.unwrap_or(preset.domain_step),
+        quantiser,
+        quantiser_choices,
+        search: match a.search {
+            Search::Full => SearchMode::Full,
+            Search::Classified => SearchMode::Classified,
+            Search::Nearest => SearchMode::Nearest(candidates.max(1)),
+        },
+        rois: a.roi.clone(),
+        attractor_passes: a.attractor_passes.unwrap_or(preset.attractor_passes),
+        ..preset
+    };
+    // The bar appears only once an encode has run for a second (short encodes stay quiet).
+    let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
+    bar.set_style(
+        ProgressStyle::with_template("{spinner} fitting blocks {bar:30} {pos}/{len} {elapsed}")
+            .expect("template"),
+    );
+    let started = Instant::now();
+    let shown = std::sync::atomic::AtomicBool::new(false);
+    let progress = |done: u64, total: u64| {
+        bar.set_length(total);
+        bar.set_position(done);
+        if !a.json
+            && started.elapsed().as_secs_f32() > 1.0
+            && !shown.swap(true, std::sync::atomic::Ordering::Relaxed)
+        {
+            bar.set_draw_target(ProgressDrawTarget::stderr());
+        }
+    };
+    let enc = encode(raster, &settings, &progress)?;
+    bar.finish_and_clear();
+    Ok(enc)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The CLI's codec names are the codec crate's own (what `info` and the API report).
+    #[test]
+    fn codec_names_are_the_codecs_own() {
+        for c in CodecArg::value_variants() {
+            if let Some(s) = c.fis_scaling() {
+                assert_eq!(c.name(), fractile_codec::fis::codec_name(s));
+            }
+            if let Some(t) = c.psa_tiling() {
+                assert_eq!(c.name(), fractile_codec::psa::codec_name(t));
+            }
+        }
+        assert_eq!(CodecArg::QuadtreePifs.name(), "quadtree-pifs");
+        assert_eq!(CodecArg::Curve.name(), "curve");
+    }
+}
