@@ -1,4 +1,4 @@
-// Continuous decoding of a flattened 2D operator (codec::pieces), one invocation per point.
+// Continuous decoding of a flattened 2D operator (codec::core::pieces), one invocation per point.
 // Mirrors PieceTable::step and decode::points line by line, in f32:
 //   cell = clamp(floor((p - lut_origin) / lut_cell), 0, size - 1); entry = lut[cell]
 //   piece = entry & 0x7fffffff (+1 on the far half of a split cell, u + v > 1)

@@ -1,4 +1,4 @@
-// Continuous decoding of a 3D octree operator (codec::octree, IFS3D), one invocation per point.
+// Continuous decoding of a 3D octree operator (codec::codecs::ifs3d::octree, IFS3D), one invocation per point.
 // Mirrors OctreeOperator::step and decode::points line by line, in f32:
 //   cell = min(u32(max(p * inv_cell, 0)), side - 1) per axis; c = lut[(z * side + y) * side + x]
 //   phi_a(p) = coef_a * p[perm_a] + c_a, g = offset, s = contrast

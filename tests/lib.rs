@@ -51,11 +51,12 @@ pub fn server() -> String {
         }
         // A volume (IFS3D) of a real mesh, as `fractile encode fandisk.off --grid 48` makes it.
         let mesh = fractile_codec::mesh::Mesh::read(&data("mesh/fandisk.off")).expect("mesh");
-        let s = fractile_codec::volume::MeshSettings {
+        let s = fractile_codec::encode::volume::MeshSettings {
             grid: 48,
             ..Default::default()
         };
-        let vol = fractile_codec::volume::encode_mesh(&mesh, &s, "fandisk.off").expect("encode");
+        let vol =
+            fractile_codec::encode::volume::encode_mesh(&mesh, &s, "fandisk.off").expect("encode");
         std::fs::write(dir.join("fandisk.fra"), &vol.bytes).expect("write");
         let (store, _) = Store::open(&dir).expect("store opens");
         let (tx, rx) = std::sync::mpsc::channel();

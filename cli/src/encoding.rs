@@ -33,8 +33,8 @@ pub(crate) enum CodecArg {
 
 impl CodecArg {
     /// The layout of s of a FIS codec.
-    fn fis_scaling(self) -> Option<fractile_codec::fis::Scaling> {
-        use fractile_codec::fis::Scaling;
+    fn fis_scaling(self) -> Option<fractile_codec::codecs::fis::Scaling> {
+        use fractile_codec::codecs::fis::Scaling;
         match self {
             CodecArg::FisBilinear => Some(Scaling::PerNode),
             CodecArg::FisRect => Some(Scaling::PerCell),
@@ -139,10 +139,10 @@ pub(crate) struct EncodeArgs {
     #[arg(long, value_enum, default_value_t = DomainsArg::Overlapping)]
     domains: DomainsArg,
     /// psa2d: domain side in regions.
-    #[arg(long, default_value_t = fractile_codec::psa::PsaSettings::default().ratio)]
+    #[arg(long, default_value_t = fractile_codec::codecs::psa::PsaSettings::default().ratio)]
     domain_ratio: u32,
     /// psa2d: domain search radius (regions, or domains when touching).
-    #[arg(long, default_value_t = fractile_codec::psa::PsaSettings::default().radius)]
+    #[arg(long, default_value_t = fractile_codec::codecs::psa::PsaSettings::default().radius)]
     radius: u32,
     /// FIS and psa2d: samples between interpolation points (ignored with --target-bpp, which
     /// picks it).
@@ -203,12 +203,12 @@ pub(crate) fn is_mesh(p: &Path) -> bool {
 /// ranges are 4 to 16 voxels and its quantiser is its own (`octree::VolumeSettings`); the
 /// raster flags of range sizes and bits do not apply.
 pub(crate) fn encode_volume(a: &EncodeArgs) -> Result<()> {
-    use fractile_codec::octree::Partition3;
+    use fractile_codec::codecs::ifs3d::octree::Partition3;
     if a.target_bpp.is_some() || a.codec != CodecArg::QuadtreePifs {
         bail!("meshes take --grid, --band and --tolerance (voxels), --transforms or --const-range");
     }
     let mesh = fractile_codec::mesh::Mesh::read(&a.input)?;
-    let mut s = fractile_codec::volume::MeshSettings {
+    let mut s = fractile_codec::encode::volume::MeshSettings {
         grid: a.grid,
         band: a.band,
         ..Default::default()
@@ -233,8 +233,8 @@ pub(crate) fn encode_volume(a: &EncodeArgs) -> Result<()> {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let enc = fractile_codec::volume::encode_mesh(&mesh, &s, &name)?;
-    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
+    let enc = fractile_codec::encode::volume::encode_mesh(&mesh, &s, &name)?;
+    fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
     let file_bytes = std::fs::metadata(&a.input).map(|m| m.len()).unwrap_or(0);
     let report = json!({
         "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
@@ -287,8 +287,9 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
     }
     let text = std::fs::read_to_string(&a.input)
         .with_context(|| format!("reading {}", a.input.display()))?;
-    let lines = fractile_codec::curve::geojson::read(&text).map_err(|e| anyhow::anyhow!(e))?;
-    let settings = fractile_codec::curve::CurveSettings {
+    let lines =
+        fractile_codec::codecs::curve::geojson::read(&text).map_err(|e| anyhow::anyhow!(e))?;
+    let settings = fractile_codec::codecs::curve::CurveSettings {
         tolerance,
         ..Default::default()
     };
@@ -297,8 +298,8 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
-    let enc = fractile_codec::curve::encode_asset(&lines, &settings, &name)?;
-    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
+    let enc = fractile_codec::encode::curve::encode_asset(&lines, &settings, &name)?;
+    fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
     let set = &enc.asset.curve.as_ref().expect("a curve asset").set;
     let m = &enc.asset.meta;
     let report = json!({
@@ -307,8 +308,8 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
         "ratio_f64": (enc.points * 16) as f64 / enc.bytes.len() as f64,
         "ratio_f32": (enc.points * 8) as f64 / enc.bytes.len() as f64,
         "tolerance_degrees": tolerance,
-        "tolerance_m": tolerance * fractile_codec::curve::METRES_PER_DEGREE,
-        "hausdorff_m": m.stats.max_error * fractile_codec::curve::METRES_PER_DEGREE,
+        "tolerance_m": tolerance * fractile_codec::codecs::curve::METRES_PER_DEGREE,
+        "hausdorff_m": m.stats.max_error * fractile_codec::codecs::curve::METRES_PER_DEGREE,
         "finest_level": set.finest(), "fit": enc.fit, "seconds": m.stats.seconds,
     });
     if a.json {
@@ -377,7 +378,7 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         };
         fractile_codec::encode::encode_fis(&raster, &settings, a.target_bpp)?
     };
-    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
+    fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
     let report = json!({
         "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
         "bytes": enc.bytes.len(), "source_bytes": enc.asset.meta.source_bytes(),
@@ -480,10 +481,10 @@ mod tests {
     fn codec_names_are_the_codecs_own() {
         for c in CodecArg::value_variants() {
             if let Some(s) = c.fis_scaling() {
-                assert_eq!(c.name(), fractile_codec::fis::codec_name(s));
+                assert_eq!(c.name(), fractile_codec::codecs::fis::codec_name(s));
             }
             if let Some(t) = c.psa_tiling() {
-                assert_eq!(c.name(), fractile_codec::psa::codec_name(t));
+                assert_eq!(c.name(), fractile_codec::codecs::psa::codec_name(t));
             }
         }
         assert_eq!(CodecArg::QuadtreePifs.name(), "quadtree-pifs");

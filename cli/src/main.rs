@@ -16,12 +16,13 @@ use std::time::Instant;
 
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
-use fractile_codec::fis::FisSettings;
-use fractile_codec::psa::{Domains, PsaSettings, Tiling};
+use fractile_codec::codecs::fis::FisSettings;
+use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
 use fractile_codec::{
     Asset, DiscreteOptions, EncodeSettings, Method, Quantiser, Raster, RateMode, Roi, SearchMode,
-    encode, metrics, raster,
+    encode,
 };
+use fractile_codec::{core::metrics, io::raster};
 use fractile_proto::{AssetKind, SampleFormat};
 use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde_json::json;
@@ -187,7 +188,7 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
         "colour": format!("{:?}", m.colour), "sample": format!("{:?}", m.sample), "units": m.units,
         "value_range": [m.value_min, m.value_max], "nodata": m.nodata,
         "georef": m.georef.as_ref().map(|g| json!({"epsg": g.epsg, "origin": g.origin, "pixel_size": g.pixel_size})),
-        "codec": asset.codec_name(), "format_version": fractile_codec::asset::FORMAT_VERSION,
+        "codec": asset.codec_name(), "format_version": fractile_codec::io::asset::FORMAT_VERSION,
         "bytes": bytes, "source_bytes": m.source_bytes(), "ratio": m.source_bytes() as f64 / bytes as f64,
         "bpp": bytes as f64 * 8.0 / (m.width as f64 * m.height as f64),
         "transforms": ranges, "max_contrast": asset.max_contrast(),

@@ -321,8 +321,9 @@ fn geojson_encodes_to_a_curve_asset_and_back_at_any_level() {
     );
     assert_eq!(dec["points"].as_u64().unwrap(), points);
     let back =
-        fractile_codec::curve::geojson::read(&std::fs::read_to_string(&out).unwrap()).unwrap();
-    let src = fractile_codec::curve::geojson::read(
+        fractile_codec::codecs::curve::geojson::read(&std::fs::read_to_string(&out).unwrap())
+            .unwrap();
+    let src = fractile_codec::codecs::curve::geojson::read(
         &std::fs::read_to_string(data("curve/coast5.geojson")).unwrap(),
     )
     .unwrap();

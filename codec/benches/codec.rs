@@ -6,10 +6,12 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use fractile_codec::decode::{self, DiscreteOptions};
+use fractile_codec::core::decode::{self, DiscreteOptions};
+use fractile_codec::core::metrics;
+use fractile_codec::core::operator;
+use fractile_codec::core::operator::Operator;
 use fractile_codec::encode::{DEFAULT_SPEED, SPEEDS};
-use fractile_codec::operator::Operator;
-use fractile_codec::{EncodeSettings, Raster, RateMode, SearchMode, encode, metrics};
+use fractile_codec::{EncodeSettings, Raster, RateMode, SearchMode, encode};
 
 fn root() -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
@@ -403,14 +405,14 @@ fn main() {
         });
         // The same chains stepped through `Operator::step` (the layout every codec has),
         // against the quadtree's own layout for the loop that `points` uses.
-        let fractile_codec::asset::PlaneOperator::Quadtree(quadtree) = op else {
+        let fractile_codec::io::asset::PlaneOperator::Quadtree(quadtree) = op else {
             unreachable!("images are coded as quadtrees")
         };
         let valid = op.valid();
         let stepwise = median_ms(reps, || {
-            let mut chains: Vec<decode::Chain<2>> = pts
+            let mut chains: Vec<operator::Chain<2>> = pts
                 .iter()
-                .map(|p| decode::Chain {
+                .map(|p| operator::Chain {
                     q: [
                         decode::to_frame(p[0], valid[0]),
                         decode::to_frame(p[1], valid[1]),
@@ -420,7 +422,7 @@ fn main() {
                     taken: 0,
                 })
                 .collect();
-            decode::run_chains_stepwise(quadtree, &mut chains, 10, 0.0);
+            operator::run_chains_stepwise(quadtree, &mut chains, 10, 0.0);
             std::hint::black_box(chains);
         });
         // The same pixel centres as the separable grid they are (how tiles and regions decode).

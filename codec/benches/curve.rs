@@ -6,7 +6,9 @@
 //! Environment: `FRACTILE_TOL=0.0089,0.018` (degrees of arc) to change the tolerances of the
 //! whole set, `FRACTILE_RING_TOL` those of the five longest rings (default 0.0089 and 0.00899).
 
-use fractile_codec::curve::{self, CurveSettings, METRES_PER_DEGREE, Metric, geojson::Polyline};
+use fractile_codec::codecs::curve::{
+    self, CurveSettings, METRES_PER_DEGREE, Metric, geojson::Polyline,
+};
 use std::time::Instant;
 
 /// Hausdorff distances are sampled every 0.0002 degrees (22 m) along segments: exact to 11 m.

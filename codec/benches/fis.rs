@@ -5,9 +5,9 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
+use fractile_codec::codecs::fis::{FisSettings, Scaling, codec_name};
+use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
 use fractile_codec::encode::{encode_fis, encode_psa};
-use fractile_codec::fis::{FisSettings, Scaling, codec_name};
-use fractile_codec::psa::{Domains, PsaSettings, Tiling};
 use fractile_codec::{EncodeSettings, Encoded, Raster, RateMode, encode};
 use rustfft::FftPlanner;
 use rustfft::num_complex::Complex;
@@ -156,7 +156,7 @@ fn main() {
                     };
                     let label = format!(
                         "{} {}",
-                        fractile_codec::psa::codec_name(tiling),
+                        fractile_codec::codecs::psa::codec_name(tiling),
                         format!("{domains:?}").to_lowercase()
                     );
                     match encode_psa(&r, &s, Some(bpp)) {

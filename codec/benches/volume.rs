@@ -14,9 +14,10 @@
 
 use std::path::{Path, PathBuf};
 
+use fractile_codec::codecs::ifs3d::octree::Partition3;
+use fractile_codec::codecs::ifs3d::volume::surface_distance;
+use fractile_codec::encode::volume::{MeshSettings, encode_mesh};
 use fractile_codec::mesh::Mesh;
-use fractile_codec::octree::Partition3;
-use fractile_codec::volume::{MeshSettings, encode_mesh, surface_distance};
 
 fn find(name: &str) -> Option<PathBuf> {
     let root = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");

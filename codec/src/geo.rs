@@ -9,7 +9,7 @@ use std::sync::Arc;
 use fractile_proto::Georef;
 use proj4rs::proj::Proj;
 
-use crate::decode::Patch;
+use crate::core::decode::Patch;
 
 // Tile addresses are the wire's vocabulary: one copy of the Web Mercator formulas, in proto.
 pub use fractile_proto::tiles::{MAX_LATITUDE, lonlat_tile, tile_bounds, tile_lonlat};
@@ -408,7 +408,7 @@ pub struct Pixels {
 pub enum Sites {
     /// Pixel (i, j) at `(xs[i], ys[j])`: the asset's u depends on the column alone and v on the
     /// row alone (geographic assets, non-georeferenced ones). Decoders use the structure
-    /// ([`crate::decode::grid`]). `None`: the column or row is outside the asset.
+    /// ([`crate::core::decode::grid`]). `None`: the column or row is outside the asset.
     Grid {
         /// Unit x of each column.
         xs: Vec<Option<f32>>,

@@ -1,42 +1,37 @@
-//! fractile's codecs: images, height fields (and later volumes and curves) as partitioned
-//! iterated function systems, with every decoder written once against one operator form,
-//! `(W f)(p) = g_c(p) + s_c(p) f(phi_c(p))` (see [`operator`]).
+//! fractile's codecs: images, height fields, volumes and curves as partitioned iterated function
+//! systems, with every decoder written once against one operator form,
+//! `(W f)(p) = g_c(p) + s_c(p) f(phi_c(p))` (see [`core::operator`]).
 //!
-//! Data flows one way: [`raster`] (input) -> [`encode()`] (using [`search`], [`partition`],
-//! [`stream`], [`entropy`]) -> [`asset`] (the file) -> [`operator`] -> [`decode`] and [`extract`]
-//! (output). No HTTP and no async here: the server calls these functions.
+//! Data flows one way, and so do the imports, folder by folder:
+//!
+//! | stage | module | depends on |
+//! |---|---|---|
+//! | input | [`io::raster`] (images, DEMs), [`mesh`] (triangle meshes), [`geo`] | `core` |
+//! | encode | [`mod@encode`] (rasters, meshes, curves: rate control, codec choice) | `codecs`, `io` |
+//! | codecs | [`codecs`] (one folder each) | `core`, `mesh` |
+//! | asset | [`io::asset`] (the container) | `codecs` |
+//! | operator, decode | [`core`] (the operator form, its decoders, entropy coder) | nothing |
+//! | output | [`extract`] (tiles, points, regions, distances), [`render`] | `io`, `codecs`, `core` |
+//!
+//! No module imports one that imports it back (`tests/layout.sh` checks).
+//!
+//! No HTTP and no async here: the server calls these functions.
 
-pub mod asset;
-pub mod colour;
-pub mod curve;
-pub mod decode;
+pub mod codecs;
+pub mod core;
 pub mod encode;
-pub mod entropy;
 pub mod extract;
-pub mod fis;
 pub mod geo;
-pub mod isosurface;
+pub mod io;
 pub mod mesh;
-pub mod metrics;
-pub mod octree;
-pub mod operator;
-pub mod partition;
-pub mod pieces;
-pub mod psa;
-pub mod raster;
 pub mod render;
-pub mod sdf;
-pub mod search;
-pub mod stream;
-pub mod transform;
-pub mod volume;
 
-pub use asset::{Asset, AssetLimits};
-pub use decode::{DiscreteOptions, Method};
+pub use crate::core::decode::{DiscreteOptions, Method};
+pub use crate::core::transform::Quantiser;
+pub use codecs::quadtree::search::SearchMode;
 pub use encode::{EncodeSettings, Encoded, RateMode, Roi, encode};
-pub use raster::Raster;
-pub use search::SearchMode;
-pub use transform::Quantiser;
+pub use io::asset::{Asset, AssetLimits};
+pub use io::raster::Raster;
 
 /// Everything that can go wrong, by whose fault: the input, the settings, an asset file, or
 /// writing the output. Messages name the file and the problem.

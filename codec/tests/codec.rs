@@ -2,9 +2,11 @@
 
 use std::path::PathBuf;
 
-use fractile_codec::decode::{self, DiscreteOptions};
-use fractile_codec::operator::Operator;
-use fractile_codec::{Asset, EncodeSettings, Raster, RateMode, Roi, SearchMode, encode, metrics};
+use fractile_codec::core::decode::{self, DiscreteOptions};
+use fractile_codec::core::metrics;
+use fractile_codec::core::operator;
+use fractile_codec::core::operator::Operator;
+use fractile_codec::{Asset, EncodeSettings, Raster, RateMode, Roi, SearchMode, encode};
 use fractile_proto::AssetKind;
 use proptest::prelude::*;
 
@@ -145,18 +147,18 @@ proptest! {
         }).collect();
         pts.extend([[0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.5, -0.5], [f32::NAN, 0.5]]);
         for asset in [small_camera_asset(), small_terrain_asset()] {
-            let fractile_codec::asset::PlaneOperator::Quadtree(q) = &asset.planes[0].operator else {
+            let fractile_codec::io::asset::PlaneOperator::Quadtree(q) = &asset.planes[0].operator else {
                 panic!("quadtree assets");
             };
             let fast = decode::points(q, &pts, n, tol);
             let valid = q.valid();
-            let mut chains: Vec<decode::Chain<2>> = pts.iter().map(|p| decode::Chain {
+            let mut chains: Vec<operator::Chain<2>> = pts.iter().map(|p| operator::Chain {
                 q: [decode::to_frame(p[0], valid[0]), decode::to_frame(p[1], valid[1])],
                 acc_g: 0.0,
                 acc_s: 1.0,
                 taken: 0,
             }).collect();
-            decode::run_chains_stepwise(q, &mut chains, n, tol);
+            operator::run_chains_stepwise(q, &mut chains, n, tol);
             let (lo, hi) = q.invariant_interval();
             let (seed_value, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
             for (k, (f, c)) in fast.iter().zip(&chains).enumerate() {
@@ -190,7 +192,7 @@ proptest! {
         };
         for asset in [small_camera_asset(), small_terrain_asset()] {
             let op = &asset.planes[0].operator;
-            let fractile_codec::asset::PlaneOperator::Quadtree(q) = op else {
+            let fractile_codec::io::asset::PlaneOperator::Quadtree(q) = op else {
                 panic!("quadtree assets");
             };
             let by_patch = op.patch(&patch, n, tol);
@@ -240,12 +242,12 @@ proptest! {
 /// decoders must agree with): clamp into the frame, then while steps remain and the bound is
 /// above `tol`, add `prod s * g(p)`, multiply by s and move p by phi.
 fn reference_chain(
-    op: &fractile_codec::operator::QuadtreeOperator,
+    op: &fractile_codec::codecs::quadtree::operator::QuadtreeOperator,
     p: [f64; 2],
     n: u32,
     tol: f32,
 ) -> decode::PointValue {
-    use fractile_codec::operator::{AxisAligned, ISOMETRY_MATRICES};
+    use fractile_codec::core::operator::{AxisAligned, ISOMETRY_MATRICES};
     let valid = op.valid();
     let (lo, hi) = op.invariant_interval();
     let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
@@ -663,8 +665,8 @@ fn window_methods_agree_on_smooth_terrain() {
 /// height step), and the fractal detail beats plain bilinear interpolation of the same nodes.
 #[test]
 fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
+    use fractile_codec::codecs::fis::{FisSettings, Scaling};
     use fractile_codec::encode::encode_fis;
-    use fractile_codec::fis::{FisSettings, Scaling};
     let r = Raster::open(&data("jacksboro.tif")).unwrap();
     let (w, h) = (r.width, r.height);
     for scaling in [Scaling::Global, Scaling::PerCell, Scaling::PerNode] {
@@ -676,9 +678,12 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
         let enc = encode_fis(&r, &settings, None).unwrap();
         let back = Asset::from_bytes(&enc.bytes).unwrap();
         assert_eq!(back.to_bytes(), enc.bytes);
-        assert_eq!(back.codec_name(), fractile_codec::fis::codec_name(scaling));
+        assert_eq!(
+            back.codec_name(),
+            fractile_codec::codecs::fis::codec_name(scaling)
+        );
         let step = match &back.planes[0].coding {
-            fractile_codec::asset::Coding::Fis { header, .. } => {
+            fractile_codec::io::asset::Coding::Fis { header, .. } => {
                 header.height_step as f64 * (back.meta.value_max - back.meta.value_min)
             }
             _ => panic!("not an FIS plane"),
@@ -731,9 +736,9 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
 
 #[test]
 fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
+    use fractile_codec::codecs::fis::FisSettings;
+    use fractile_codec::codecs::fis::Scaling;
     use fractile_codec::encode::encode_fis;
-    use fractile_codec::fis::FisSettings;
-    use fractile_codec::fis::Scaling;
     for (file, bpp, scaling) in [
         ("topobathy.tif", 0.5, Scaling::PerNode),
         ("topobathy.tif", 1.0, Scaling::PerNode),
@@ -776,8 +781,8 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
 /// through every vertex, and the domain maps beat the bilinear patches of the same vertices.
 #[test]
 fn piecewise_self_affine_surfaces_interpolate_real_data() {
+    use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
     use fractile_codec::encode::encode_psa;
-    use fractile_codec::psa::{Domains, PsaSettings, Tiling};
     let dem = Raster::open(&data("jacksboro.tif")).unwrap();
     let camera = crop(
         &Raster::open(&data("camera.png")).unwrap(),
@@ -800,11 +805,16 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
         let enc = encode_psa(r, &s, None).unwrap();
         let back = Asset::from_bytes(&enc.bytes).unwrap();
         assert_eq!(back.to_bytes(), enc.bytes);
-        assert_eq!(back.codec_name(), fractile_codec::psa::codec_name(tiling));
+        assert_eq!(
+            back.codec_name(),
+            fractile_codec::codecs::psa::codec_name(tiling)
+        );
         let (w, h) = (r.width, r.height);
         let span = back.meta.value_max - back.meta.value_min;
         let step = match &back.planes[0].coding {
-            fractile_codec::asset::Coding::Psa { header, .. } => header.height_step as f64 * span,
+            fractile_codec::io::asset::Coding::Psa { header, .. } => {
+                header.height_step as f64 * span
+            }
             _ => panic!("not a psa2d plane"),
         };
         let exact = |k: usize, n: usize| {
@@ -835,14 +845,15 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
         let (d, _) = back.decode_native();
         let e = metrics::compare(&r.channels, &d.channels, None, back.meta.psnr_peak());
         assert!((e.psnr - enc.errors.psnr).abs() < 1e-9);
-        let fractile_codec::asset::Coding::Psa { header, stream } = &back.planes[0].coding else {
+        let fractile_codec::io::asset::Coding::Psa { header, stream } = &back.planes[0].coding
+        else {
             panic!("not a psa2d plane")
         };
-        let mut params = fractile_codec::psa::decode_params(header, stream).unwrap();
+        let mut params = fractile_codec::codecs::psa::decode_params(header, stream).unwrap();
         for code in params.regions.iter_mut() {
-            *code = fractile_codec::psa::RegionCode::Patch;
+            *code = fractile_codec::codecs::psa::RegionCode::Patch;
         }
-        let flat = fractile_codec::psa::PsaOperator::new(header, &params).unwrap();
+        let flat = fractile_codec::codecs::psa::PsaOperator::new(header, &params).unwrap();
         let (g, _) = decode::discrete(&flat, w, h, DiscreteOptions::fixed(1));
         let lo = back.meta.value_min;
         let patches: Vec<f32> = g
@@ -1022,7 +1033,7 @@ fn slower_speed_presets_buy_quality_at_the_same_rate() {
 
 #[test]
 fn rate_control_sizes_are_the_sizes_of_the_files() {
-    use fractile_codec::asset::Coding;
+    use fractile_codec::io::asset::Coding;
     // A colour image (three planes) and a DEM with nodata (a mask): rate control sizes trial
     // partitions without building assets, and that size must be the file's.
     let dem = Raster::open(&data("jacksboro-utm.tif")).unwrap();
@@ -1199,9 +1210,9 @@ fn weighing_quantisers_keeps_the_closest_asset_within_the_target() {
 
 #[test]
 fn one_search_fits_every_quantiser_as_its_own_search_would() {
-    use fractile_codec::partition::Pyramid;
-    use fractile_codec::search::CodingPlane;
-    use fractile_codec::stream::PlaneHeader;
+    use fractile_codec::codecs::quadtree::partition::Pyramid;
+    use fractile_codec::codecs::quadtree::search::CodingPlane;
+    use fractile_codec::codecs::quadtree::stream::PlaneHeader;
     // Real samples, normalised: a camera crop (constant offsets) and a jacksboro crop with
     // slopes, each under quantisers of other offset, slope and contrast bits.
     let dem = Raster::open(&data("jacksboro.tif")).unwrap();

@@ -2,9 +2,9 @@
 //! exact reconstruction, the tolerance and level bounds against measured Hausdorff distances,
 //! levels past the source, the file format's refusals, and the three deformations.
 
-use fractile_codec::asset::Asset;
-use fractile_codec::curve::geojson::Polyline;
-use fractile_codec::curve::{self, CurveSettings, Metric, Pt};
+use fractile_codec::codecs::curve::geojson::Polyline;
+use fractile_codec::codecs::curve::{self, CurveSettings, Metric, Pt};
+use fractile_codec::io::asset::Asset;
 use fractile_proto::Deformation;
 
 fn coast() -> Vec<Polyline> {
@@ -28,7 +28,7 @@ fn encode(lines: &[Polyline], tolerance: f64, fit: bool) -> Asset {
         fit,
         ..Default::default()
     };
-    let enc = curve::encode_asset(lines, &s, "coast5").unwrap();
+    let enc = fractile_codec::encode::curve::encode_asset(lines, &s, "coast5").unwrap();
     // What is served is what a reader of the file gets.
     let read = Asset::from_bytes(&enc.bytes).unwrap();
     assert_eq!(

@@ -5,7 +5,8 @@
 
 use std::path::PathBuf;
 
-use fractile_codec::{Asset, Raster, metrics};
+use fractile_codec::core::metrics;
+use fractile_codec::{Asset, Raster};
 use fractile_proto::AssetKind;
 
 fn data(name: &str) -> PathBuf {
@@ -76,16 +77,16 @@ fn every_format_version_is_read_as_it_was_written() {
             }
             AssetKind::Curve => {
                 let text = std::fs::read_to_string(data(source(&name))).unwrap();
-                let lines = fractile_codec::curve::geojson::read(&text).unwrap();
+                let lines = fractile_codec::codecs::curve::geojson::read(&text).unwrap();
                 let set = &asset.curve.as_ref().unwrap().set;
                 // As a user gets it: GeoJSON of the finest level, one line per input ring with
                 // its points.
-                let doc = fractile_codec::curve::geojson::write(
+                let doc = fractile_codec::codecs::curve::geojson::write(
                     &set.at_level(set.finest()),
                     set.finest(),
                     "degrees",
                 );
-                let back = fractile_codec::curve::geojson::read(&doc.to_string()).unwrap();
+                let back = fractile_codec::codecs::curve::geojson::read(&doc.to_string()).unwrap();
                 assert_eq!(back.len(), lines.len(), "{name}");
                 for (got, want) in back.iter().zip(&lines) {
                     assert_eq!(got.points.len(), want.points.len(), "{name}");

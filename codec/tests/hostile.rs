@@ -63,7 +63,7 @@ fn a_flat_large_frame_in_a_few_ranges_is_read() {
     let flat = {
         // Four 2048 ranges, constant maps: split flag 1 then four leaves, coded by the
         // encoder's own stream writer.
-        let header = fractile_codec::stream::PlaneHeader {
+        let header = fractile_codec::codecs::quadtree::stream::PlaneHeader {
             frame: [4096, 4096],
             valid: [4096.0, 4096.0],
             min_size: 4,
@@ -71,7 +71,7 @@ fn a_flat_large_frame_in_a_few_ranges_is_read() {
             domain_steps: (0..11).map(|l| (4u32 << l) * 2).collect(),
             quantiser: fractile_codec::Quantiser::default(),
         };
-        let constant = fractile_codec::search::Fit {
+        let constant = fractile_codec::codecs::quadtree::search::Fit {
             sse: 0.0,
             weight: 0.0,
             contrast: 0,
@@ -83,8 +83,9 @@ fn a_flat_large_frame_in_a_few_ranges_is_read() {
             constant_offset: 9,
             constant_slope: [0; 2],
         };
-        let stream =
-            fractile_codec::stream::encode_plane(&header, &|l, _, _| (l < 10).then_some(constant));
+        let stream = fractile_codec::codecs::quadtree::stream::encode_plane(&header, &|l, _, _| {
+            (l < 10).then_some(constant)
+        });
         let payload = fractile_proto::encode(&(vec![(header, stream)], None::<Vec<u8>>));
         container(
             4,

@@ -6,8 +6,9 @@ use std::path::PathBuf;
 use std::sync::OnceLock;
 
 use fractile_codec::Asset;
+use fractile_codec::codecs::ifs3d::volume::surface_distance;
+use fractile_codec::encode::volume::{EncodedVolume, MeshSettings, encode_mesh};
 use fractile_codec::mesh::Mesh;
-use fractile_codec::volume::{EncodedVolume, MeshSettings, encode_mesh, surface_distance};
 
 fn data(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))

@@ -7,8 +7,8 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use fractile_codec::decode;
-use fractile_codec::pieces::Flatten;
+use fractile_codec::core::decode;
+use fractile_codec::core::pieces::Flatten;
 use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
 use fractile_gpu::{Gpu, Grid};
 use rayon::prelude::*;
@@ -117,11 +117,11 @@ fn main() {
     let local = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata/mesh/fandisk.off");
     let path = if shared.exists() { shared } else { local };
     let mesh = fractile_codec::mesh::Mesh::read(&path).expect("mesh");
-    let s = fractile_codec::volume::MeshSettings {
+    let s = fractile_codec::encode::volume::MeshSettings {
         grid: 128,
         ..Default::default()
     };
-    let vol = fractile_codec::volume::encode_mesh(&mesh, &s, "bench")
+    let vol = fractile_codec::encode::volume::encode_mesh(&mesh, &s, "bench")
         .expect("encode")
         .asset;
     let vop = &vol.volume.as_ref().expect("volume").operator;

@@ -3,11 +3,11 @@
 
 use std::path::PathBuf;
 
-use fractile_codec::decode;
+use fractile_codec::codecs::fis::{FisSettings, Scaling};
+use fractile_codec::codecs::psa::{PsaSettings, Tiling};
+use fractile_codec::core::decode;
+use fractile_codec::core::pieces::Flatten;
 use fractile_codec::encode::{encode_fis, encode_psa};
-use fractile_codec::fis::{FisSettings, Scaling};
-use fractile_codec::pieces::Flatten;
-use fractile_codec::psa::{PsaSettings, Tiling};
 use fractile_codec::{Asset, EncodeSettings, Raster, RateMode, encode};
 use fractile_gpu::{Gpu, Grid};
 
@@ -202,8 +202,8 @@ fn windows_and_reprojected_tiles_agree_with_the_cpu() {
 
 #[test]
 fn volume_points_and_boxes_agree_with_the_cpu() {
+    use fractile_codec::encode::volume::{MeshSettings, encode_mesh};
     use fractile_codec::mesh::Mesh;
-    use fractile_codec::volume::{MeshSettings, encode_mesh};
     let mut gpu = gpu();
     // The bunny is not in the repo (2.6 MB); CI has ../shared beside the clone, and there it
     // runs at the seed's 64^3.

@@ -12,9 +12,9 @@
 use std::str::FromStr;
 use std::sync::Arc;
 
-use fractile_codec::decode::PointValue;
+use fractile_codec::core::decode::PointValue;
+use fractile_codec::core::pieces::Flatten;
 use fractile_codec::extract::Sites;
-use fractile_codec::pieces::Flatten;
 use fractile_gpu::{Gpu, GpuOperator};
 
 use crate::store::StoredAsset;

@@ -134,13 +134,12 @@ impl Store {
             detail: e.to_string(),
         })?);
         let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
-        fractile_codec::asset::write_atomic(&self.dir.join(format!("{id}.fra")), bytes).map_err(
-            |e| {
+        fractile_codec::io::asset::write_atomic(&self.dir.join(format!("{id}.fra")), bytes)
+            .map_err(|e| {
                 // The path and the OS error go to the log, not to the client.
                 tracing::error!("storing asset {id}: {e}");
                 AppError::internal("the asset could not be stored")
-            },
-        )?;
+            })?;
         self.assets
             .write()
             .expect("store lock")
@@ -187,11 +186,11 @@ impl Store {
     }
 }
 
-/// Whether `path` is a temporary file of [`fractile_codec::asset::write_atomic`] that no
+/// Whether `path` is a temporary file of [`fractile_codec::io::asset::write_atomic`] that no
 /// running writer owns (its process is gone, or it is over an hour old): its name, if so.
 fn stale_temporary(path: &Path) -> Option<String> {
     let name = path.file_name()?.to_str()?;
-    let owner = fractile_codec::asset::temporary_owner(name)?;
+    let owner = fractile_codec::io::asset::temporary_owner(name)?;
     // Our own pid counts as alive: another store of this process may be writing (a previous
     // process of the same pid left files that the age rule removes).
     let alive = Path::new(&format!("/proc/{owner}")).exists();
@@ -303,12 +302,12 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
             .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
         let mesh = fractile_codec::mesh::Mesh::parse_off(text)
             .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
-        let enc = fractile_codec::volume::encode_mesh(
+        let enc = fractile_codec::encode::volume::encode_mesh(
             &mesh,
-            &fractile_codec::volume::MeshSettings::default(),
+            &fractile_codec::encode::volume::MeshSettings::default(),
             name,
         )?;
-        fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
+        fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
         tracing::info!(
             "demo volume {id}: {} bytes, {:.2}:1 against i8, PSNR {:.2} dB",
             enc.bytes.len(),
@@ -321,14 +320,14 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
     if !out.exists() {
         let text = std::str::from_utf8(bytes)
             .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
-        let lines = fractile_codec::curve::geojson::read(text)
+        let lines = fractile_codec::codecs::curve::geojson::read(text)
             .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
-        let settings = fractile_codec::curve::CurveSettings {
+        let settings = fractile_codec::codecs::curve::CurveSettings {
             tolerance,
             ..Default::default()
         };
-        let enc = fractile_codec::curve::encode_asset(&lines, &settings, name)?;
-        fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
+        let enc = fractile_codec::encode::curve::encode_asset(&lines, &settings, name)?;
+        fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
         tracing::info!(
             "demo curves {id}: {} polylines, {} bytes",
             lines.len(),
@@ -342,7 +341,7 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
         }
         tracing::info!("encoding demo asset {id} from {name} (first start only)");
         let src = dir.join(format!(".{name}"));
-        fractile_codec::asset::write_atomic(&src, bytes)?;
+        fractile_codec::io::asset::write_atomic(&src, bytes)?;
         let raster = Raster::open(&src)?;
         let mut settings = EncodeSettings {
             rate: *rate,
@@ -353,7 +352,7 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
         settings.quantiser_choices =
             EncodeSettings::default_quantiser_choices(raster.kind, settings.quantiser);
         let enc = encode(&raster, &settings, &|_, _| {})?;
-        fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
+        fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
         let _ = std::fs::remove_file(&src);
         tracing::info!(
             "demo asset {id}: {} bytes, {:.2}:1, PSNR {:.2} dB",

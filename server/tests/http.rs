@@ -46,9 +46,9 @@ fn state() -> Arc<AppState> {
             }
             // A volume (IFS3D) from a real mesh.
             let mesh = fractile_codec::mesh::Mesh::read(&data("mesh/fandisk.off")).unwrap();
-            let vol = fractile_codec::volume::encode_mesh(
+            let vol = fractile_codec::encode::volume::encode_mesh(
                 &mesh,
-                &fractile_codec::volume::MeshSettings {
+                &fractile_codec::encode::volume::MeshSettings {
                     grid: 40,
                     ..Default::default()
                 },
@@ -58,12 +58,13 @@ fn state() -> Arc<AppState> {
             std::fs::write(dir.join("fandisk.fra"), &vol.bytes).unwrap();
             // Curves: five real coastlines, coded to about 1 km.
             let text = std::fs::read_to_string(data("curve/coast5.geojson")).unwrap();
-            let lines = fractile_codec::curve::geojson::read(&text).unwrap();
-            let settings = fractile_codec::curve::CurveSettings {
+            let lines = fractile_codec::codecs::curve::geojson::read(&text).unwrap();
+            let settings = fractile_codec::codecs::curve::CurveSettings {
                 tolerance: 0.009,
                 ..Default::default()
             };
-            let c = fractile_codec::curve::encode_asset(&lines, &settings, "coast5").unwrap();
+            let c =
+                fractile_codec::encode::curve::encode_asset(&lines, &settings, "coast5").unwrap();
             std::fs::write(dir.join("coast.fra"), &c.bytes).unwrap();
             // A broken file must be skipped, not stop the server.
             std::fs::write(dir.join("broken.fra"), b"FRACTILE garbage").unwrap();
@@ -153,12 +154,12 @@ async fn terrain_rgb_tile_matches_the_source_within_the_encoding_error() {
         if fx < 0.0 || fy < 0.0 || fx > (src.width - 1) as f32 || fy > (src.height - 1) as f32 {
             continue;
         }
-        let g = fractile_codec::decode::Grid {
+        let g = fractile_codec::core::decode::Grid {
             width: src.width,
             height: src.height,
             values: src.channels[0].clone(),
         };
-        let truth = fractile_codec::decode::sample_bilinear(&g, fx, fy) as f64;
+        let truth = fractile_codec::core::decode::sample_bilinear(&g, fx, fy) as f64;
         let got = terrain_rgb(img.get_pixel((k % 256) as u32, (k / 256) as u32).0);
         se += (got - truth).powi(2);
         n += 1;
@@ -1246,7 +1247,7 @@ async fn volume_meshes_points_and_refusals() {
 #[tokio::test]
 async fn curves_as_geojson_at_any_level_and_deformed() {
     let text = std::fs::read_to_string(data("curve/coast5.geojson")).unwrap();
-    let source = fractile_codec::curve::geojson::read(&text).unwrap();
+    let source = fractile_codec::codecs::curve::geojson::read(&text).unwrap();
     let (st, hd, body) = get("/v1/assets/coast/curve").await;
     assert_eq!(st, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
     assert_eq!(hd[header::CONTENT_TYPE], "application/geo+json");
@@ -1268,8 +1269,8 @@ async fn curves_as_geojson_at_any_level_and_deformed() {
             .collect();
         let mut src = l.points.clone();
         src.push(src[0]);
-        let h = fractile_codec::curve::hausdorff(
-            fractile_codec::curve::Metric::Sphere,
+        let h = fractile_codec::codecs::curve::hausdorff(
+            fractile_codec::codecs::curve::Metric::Sphere,
             &src,
             &pts,
             0.009 / 16.0,

@@ -7,8 +7,8 @@
 
 use std::path::PathBuf;
 
-use fractile_codec::psa::PsaSettings;
-use fractile_codec::stream::PlaneHeader;
+use fractile_codec::codecs::psa::PsaSettings;
+use fractile_codec::codecs::quadtree::stream::PlaneHeader;
 use fractile_codec::{Asset, EncodeSettings, Quantiser, Raster, RateMode, encode};
 use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
 
@@ -152,7 +152,7 @@ pub fn sources() -> Vec<(&'static str, Vec<u8>)> {
         // A corner with nodata (the warp's edge).
         ("quadtree-nodata", quick(&crop(&utm, 0, 0, 48, 48), 2.0)),
     ];
-    let fis = fractile_codec::fis::FisSettings {
+    let fis = fractile_codec::codecs::fis::FisSettings {
         spacing: 4,
         ..Default::default()
     };
@@ -173,25 +173,25 @@ pub fn sources() -> Vec<(&'static str, Vec<u8>)> {
             .bytes,
     ));
     let mesh = fractile_codec::mesh::Mesh::read(&data("mesh/fandisk.off")).unwrap();
-    let settings = fractile_codec::volume::MeshSettings {
+    let settings = fractile_codec::encode::volume::MeshSettings {
         grid: 16,
         ..Default::default()
     };
     out.push((
         "ifs3d",
-        fractile_codec::volume::encode_mesh(&mesh, &settings, "fandisk")
+        fractile_codec::encode::volume::encode_mesh(&mesh, &settings, "fandisk")
             .unwrap()
             .bytes,
     ));
     let text = std::fs::read_to_string(data("curve/coast5.geojson")).unwrap();
-    let lines = fractile_codec::curve::geojson::read(&text).unwrap();
-    let curve = fractile_codec::curve::CurveSettings {
+    let lines = fractile_codec::codecs::curve::geojson::read(&text).unwrap();
+    let curve = fractile_codec::codecs::curve::CurveSettings {
         tolerance: 0.05,
         ..Default::default()
     };
     out.push((
         "curve",
-        fractile_codec::curve::encode_asset(&lines[..2], &curve, "coast")
+        fractile_codec::encode::curve::encode_asset(&lines[..2], &curve, "coast")
             .unwrap()
             .bytes,
     ));

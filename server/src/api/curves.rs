@@ -17,7 +17,7 @@ pub struct CurveQuery {
 /// Most points one curve answer may hold (each level doubles them).
 const MAX_CURVE_POINTS: u128 = 1 << 22;
 
-fn curves_of(a: &StoredAsset) -> Result<&fractile_codec::curve::Curves, AppError> {
+fn curves_of(a: &StoredAsset) -> Result<&fractile_codec::codecs::curve::Curves, AppError> {
     a.asset.curve.as_ref().ok_or_else(|| {
         AppError::bad_request(
             "not_curve",
@@ -26,7 +26,10 @@ fn curves_of(a: &StoredAsset) -> Result<&fractile_codec::curve::Curves, AppError
     })
 }
 
-fn check_level(set: &fractile_codec::curve::CurveSet, level: usize) -> Result<(), AppError> {
+fn check_level(
+    set: &fractile_codec::codecs::curve::CurveSet,
+    level: usize,
+) -> Result<(), AppError> {
     if set.points_at(level) > MAX_CURVE_POINTS {
         return Err(AppError::bad_request(
             "too_many_points",
@@ -62,16 +65,16 @@ pub(super) async fn curve(
         if control {
             let lines = c.set.rings.iter().map(|r| r.base.clone()).collect();
             let closed = c.set.rings.iter().map(|r| r.closed).collect();
-            let level = fractile_codec::curve::CurveLevel {
+            let level = fractile_codec::codecs::curve::CurveLevel {
                 level: 0,
                 lines,
                 closed,
                 error_bound: f64::NAN,
             };
-            return fractile_codec::curve::geojson::write(&level, c.set.finest(), &units);
+            return fractile_codec::codecs::curve::geojson::write(&level, c.set.finest(), &units);
         }
         let decoded = c.set.at_level(level);
-        fractile_codec::curve::geojson::write(&decoded, c.set.finest(), &units)
+        fractile_codec::codecs::curve::geojson::write(&decoded, c.set.finest(), &units)
     })
     .await?;
     Ok(geojson_response(doc))
@@ -98,9 +101,9 @@ pub(super) async fn curve_deform(
     let a2 = a.clone();
     let doc = decode(&state, 0, move |_| {
         let c = a2.asset.curve.as_ref().expect("checked above");
-        let deformed = fractile_codec::curve::deform::apply(&c.set, &req.deformations)?;
+        let deformed = fractile_codec::codecs::curve::deform::apply(&c.set, &req.deformations)?;
         let decoded = deformed.at_level(level);
-        Ok::<_, String>(fractile_codec::curve::geojson::write(
+        Ok::<_, String>(fractile_codec::codecs::curve::geojson::write(
             &decoded,
             deformed.finest(),
             &units,

@@ -300,8 +300,8 @@ pub type CoarseCache = moka::sync::Cache<CoarseKey, Arc<Vec<CoarsePlane>>>;
 
 /// A plane decoded discretely for coarse tiles, with what the decoder reported.
 pub type CoarsePlane = (
-    fractile_codec::decode::Grid,
-    fractile_codec::decode::DiscreteReport,
+    fractile_codec::core::decode::Grid,
+    fractile_codec::core::decode::DiscreteReport,
 );
 
 /// Steps and per-point tolerance of a request. `iterations` alone: exactly that many steps.

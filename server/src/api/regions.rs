@@ -13,6 +13,14 @@ pub(super) struct RegionQuery {
     format: Option<String>,
 }
 
+/// What a region answers in.
+#[derive(Clone, Copy, PartialEq)]
+enum RegionFormat {
+    Png,
+    F32,
+    Tif,
+}
+
 pub(super) async fn region(
     State(state): Shared,
     Path(id): Path<String>,
@@ -33,19 +41,7 @@ pub(super) async fn region(
         ));
     }
     let (n, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
-    let format = q.format.as_deref().unwrap_or("png");
-    if format == "tif" && a.asset.meta.kind != AssetKind::HeightField {
-        return Err(AppError::bad_request(
-            "bad_format",
-            "GeoTIFF regions are for height fields (use png)",
-        ));
-    }
-    if !matches!(format, "png" | "f32" | "tif") {
-        return Err(AppError::bad_request(
-            "bad_format",
-            "format must be png, f32 or tif",
-        ));
-    }
+    let format = region_format(&a, q.format.as_deref())?;
     let (w, h) = (q.width, q.height);
     // Pixel centres in the request's coordinates: lon/lat (north up) or unit x/y (y down).
     let geo_ref = a.placement.is_some();
@@ -62,24 +58,6 @@ pub(super) async fn region(
         }),
         cell_size([x0, y0, x1, y1], w, h),
     );
-    let f32_out = format == "f32";
-    let tif_out = format == "tif";
-    // The GeoTIFF's georeference is the requested box (north-up, lon/lat for georeferenced
-    // assets).
-    let tif_georef = a
-        .asset
-        .meta
-        .georef
-        .as_ref()
-        .map(|g| fractile_proto::Georef {
-            // Boxes are lon/lat: the region of a projected asset is in EPSG:4326 too.
-            epsg: match a.placement.as_ref().and_then(|p| p.epsg()) {
-                Some(_) => Some(4326),
-                None => g.epsg,
-            },
-            origin: [x0, y1],
-            pixel_size: [(x1 - x0) / w as f64, -(y1 - y0) / h as f64],
-        });
     let (choice, gpu, coarse) = (
         backend_for(&state, q.backend.as_deref())?,
         state.gpu.clone(),
@@ -99,38 +77,8 @@ pub(super) async fn region(
                 n,
                 tolerance,
             )?;
-            let (content_type, body) = if tif_out {
-                let nodata = a.asset.meta.nodata;
-                let values: Vec<f32> = match nodata {
-                    Some(nd) => channels[0]
-                        .iter()
-                        .map(|&v| if v.is_nan() { nd as f32 } else { v })
-                        .collect(),
-                    None => channels[0].clone(),
-                };
-                let tif =
-                    fractile_codec::raster::geotiff_f32(w, h, &values, tif_georef.as_ref(), nodata)
-                        .map_err(|e| AppError::internal(e.to_string()))?;
-                ("image/tiff", tif)
-            } else if f32_out {
-                (
-                    "application/octet-stream",
-                    channels
-                        .iter()
-                        .flat_map(|c| c.iter().flat_map(|v| v.to_le_bytes()))
-                        .collect(),
-                )
-            } else {
-                let fmt = if a.asset.meta.kind == AssetKind::HeightField {
-                    encoding::TileFormat::Visual(Some((
-                        a.asset.meta.value_min as f32,
-                        a.asset.meta.value_max as f32,
-                    )))
-                } else {
-                    encoding::TileFormat::Visual(None)
-                };
-                encoding::encode_raster(&a.asset.meta, &channels, w, h, fmt, None)
-            };
+            let (content_type, body) =
+                encode_region(&a, &channels, (w, h), [x0, y0, x1, y1], format)?;
             let head = Head {
                 content_type,
                 error_bound: bound,
@@ -140,4 +88,79 @@ pub(super) async fn region(
             Ok((head, writer))
         })
         .await
+}
+
+/// `format` (png when absent), if the asset has it.
+fn region_format(a: &StoredAsset, format: Option<&str>) -> Result<RegionFormat, AppError> {
+    match format.unwrap_or("png") {
+        "png" => Ok(RegionFormat::Png),
+        "f32" => Ok(RegionFormat::F32),
+        "tif" if a.asset.meta.kind == AssetKind::HeightField => Ok(RegionFormat::Tif),
+        "tif" => Err(AppError::bad_request(
+            "bad_format",
+            "GeoTIFF regions are for height fields (use png)",
+        )),
+        _ => Err(AppError::bad_request(
+            "bad_format",
+            "format must be png, f32 or tif",
+        )),
+    }
+}
+
+/// The decoded region's body and content type. A GeoTIFF's georeference is the requested box
+/// (north-up; lon/lat for georeferenced assets, projected ones included).
+fn encode_region(
+    a: &StoredAsset,
+    channels: &[Vec<f32>],
+    (w, h): (usize, usize),
+    [x0, y0, x1, y1]: [f64; 4],
+    format: RegionFormat,
+) -> Result<(&'static str, Vec<u8>), AppError> {
+    Ok(match format {
+        RegionFormat::Tif => {
+            let georef = a
+                .asset
+                .meta
+                .georef
+                .as_ref()
+                .map(|g| fractile_proto::Georef {
+                    epsg: match a.placement.as_ref().and_then(|p| p.epsg()) {
+                        Some(_) => Some(4326),
+                        None => g.epsg,
+                    },
+                    origin: [x0, y1],
+                    pixel_size: [(x1 - x0) / w as f64, -(y1 - y0) / h as f64],
+                });
+            let nodata = a.asset.meta.nodata;
+            let values: Vec<f32> = match nodata {
+                Some(nd) => channels[0]
+                    .iter()
+                    .map(|&v| if v.is_nan() { nd as f32 } else { v })
+                    .collect(),
+                None => channels[0].clone(),
+            };
+            let tif =
+                fractile_codec::io::raster::geotiff_f32(w, h, &values, georef.as_ref(), nodata)
+                    .map_err(|e| AppError::internal(e.to_string()))?;
+            ("image/tiff", tif)
+        }
+        RegionFormat::F32 => (
+            "application/octet-stream",
+            channels
+                .iter()
+                .flat_map(|c| c.iter().flat_map(|v| v.to_le_bytes()))
+                .collect(),
+        ),
+        RegionFormat::Png => {
+            let fmt = if a.asset.meta.kind == AssetKind::HeightField {
+                encoding::TileFormat::Visual(Some((
+                    a.asset.meta.value_min as f32,
+                    a.asset.meta.value_max as f32,
+                )))
+            } else {
+                encoding::TileFormat::Visual(None)
+            };
+            encoding::encode_raster(&a.asset.meta, channels, w, h, fmt, None)
+        }
+    })
 }

@@ -97,6 +97,19 @@ fn not_modified(headers: &HeaderMap, tag: &str) -> bool {
         .is_some_and(|v| v.split(',').any(|t| t.trim() == tag))
 }
 
+/// A tile request, checked: which tile, how to decode it and how to encode it.
+struct TileJob {
+    z: u8,
+    x: u32,
+    y: u32,
+    size: usize,
+    format: encoding::TileFormat,
+    colormap: Option<fractile_codec::render::Colormap>,
+    shade: bool,
+    iterations: u32,
+    tolerance: f32,
+}
+
 pub(super) async fn tile(
     State(state): Shared,
     Path((id, z, x, tile)): Path<(String, u8, u32, String)>,
@@ -104,6 +117,48 @@ pub(super) async fn tile(
     headers: HeaderMap,
 ) -> Result<Response, AppError> {
     let a = planar(state.store.get(&id)?)?;
+    let (y, ext) = tile_address(&state, z, x, &tile)?;
+    let job = tile_job(&state, &a, (z, x, y), ext, &q)?;
+    check_inside(&a, z, x, y)?;
+    // Checked before the cache, so that a bad parameter is refused even for a cached tile.
+    let choice = backend_for(&state, q.backend.as_deref())?;
+    // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
+    let key = format!(
+        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{:?}&{}&{:?}&{:?}&{:?}&{}",
+        a.hash, q.iterations, q.tolerance, job.size, q.encoding, q.rescale, q.colormap, job.shade
+    );
+    let tag = etag(&a, &key);
+    if not_modified(&headers, &tag) {
+        return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, tag)]).into_response());
+    }
+    if let Some(c) = state.cache.get(&key) {
+        metrics::counter!("fractile_tile_cache_total", "result" => "hit").increment(1);
+        return Ok(cached_response(&state, &tag, &c));
+    }
+    metrics::counter!("fractile_tile_cache_total", "result" => "miss").increment(1);
+    let (gpu, coarse) = (state.gpu.clone(), state.coarse.clone());
+    let side = job.size + 2 * usize::from(job.shade);
+    let cost = sampling_bytes(side * side, a.asset.meta.channels);
+    let asset = a.clone();
+    let drawn = decode(&state, cost, move |cancel| {
+        draw_tile((gpu.as_deref(), &coarse, cancel), choice, &asset, &job)
+    })
+    .await??
+    .ok_or_else(|| {
+        AppError::not_found("outside", format!("tile {z}/{x}/{y} is outside the asset"))
+    })?;
+    let cached = Arc::new(drawn);
+    state.cache.insert(key, cached.clone());
+    Ok(cached_response(&state, &tag, &cached))
+}
+
+/// The tile row and extension of `{y}.{ext}`, and a 404 for a tile that no zoom level has.
+fn tile_address<'a>(
+    state: &AppState,
+    z: u8,
+    x: u32,
+    tile: &'a str,
+) -> Result<(u32, &'a str), AppError> {
     let (y, ext) = tile
         .split_once('.')
         .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.png or {y}.f32"))?;
@@ -116,6 +171,17 @@ pub(super) async fn tile(
             format!("tile {z}/{x}/{y} does not exist"),
         ));
     }
+    Ok((y, ext))
+}
+
+/// The query checked against the asset: size, format, style, iterations.
+fn tile_job(
+    state: &AppState,
+    a: &StoredAsset,
+    (z, x, y): (u8, u32, u32),
+    ext: &str,
+    q: &TileQuery,
+) -> Result<TileJob, AppError> {
     let size = q.tilesize.unwrap_or(256);
     if size != 256 && size != 512 {
         return Err(AppError::bad_request(
@@ -124,37 +190,8 @@ pub(super) async fn tile(
         ));
     }
     let heights = a.asset.meta.kind == AssetKind::HeightField;
-    let format = match (ext, heights, q.encoding.as_deref()) {
-        ("f32", true, _) => encoding::TileFormat::F32,
-        ("f32", false, _) => {
-            return Err(AppError::bad_request(
-                "bad_format",
-                "f32 tiles are for height fields",
-            ));
-        }
-        ("png", true, Some("terrainrgb")) => {
-            encoding::TileFormat::Heights(HeightEncoding::TerrainRgb)
-        }
-        ("png", true, Some("terrarium")) => {
-            encoding::TileFormat::Heights(HeightEncoding::Terrarium)
-        }
-        ("png", true, Some("gray16")) => encoding::TileFormat::Heights(HeightEncoding::Gray16),
-        ("png", true, None) => encoding::TileFormat::Visual(parse_rescale(&q.rescale, &a)?),
-        ("png", false, None) => encoding::TileFormat::Visual(None),
-        ("png", _, Some(e)) => {
-            return Err(AppError::bad_request(
-                "bad_encoding",
-                format!("unknown encoding {e:?} (terrainrgb, terrarium, gray16)"),
-            ));
-        }
-        (e, ..) => {
-            return Err(AppError::bad_request(
-                "bad_format",
-                format!("unknown tile format {e:?} (png, f32)"),
-            ));
-        }
-    };
-    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
+    let format = tile_format(ext, heights, q, a)?;
+    let (iterations, tolerance) = iterations_for(state, a, q.iterations, q.tolerance)?;
     let visual_heights = heights && ext == "png" && q.encoding.is_none();
     let colormap = match q.colormap.as_deref() {
         None => None,
@@ -180,8 +217,61 @@ pub(super) async fn tile(
             "hillshade is for visual PNG tiles of height fields",
         ));
     }
-    // Outside the asset: 404, so that map clients over-zoom the parent instead. Checked on the
-    // tile's bounds first (cheap); a tile that only grazes the asset is decoded.
+    Ok(TileJob {
+        z,
+        x,
+        y,
+        size,
+        format,
+        colormap,
+        shade,
+        iterations,
+        tolerance,
+    })
+}
+
+/// What the tile's extension and `encoding` ask for, if the asset has it.
+fn tile_format(
+    ext: &str,
+    heights: bool,
+    q: &TileQuery,
+    a: &StoredAsset,
+) -> Result<encoding::TileFormat, AppError> {
+    Ok(match (ext, heights, q.encoding.as_deref()) {
+        ("f32", true, _) => encoding::TileFormat::F32,
+        ("f32", false, _) => {
+            return Err(AppError::bad_request(
+                "bad_format",
+                "f32 tiles are for height fields",
+            ));
+        }
+        ("png", true, Some("terrainrgb")) => {
+            encoding::TileFormat::Heights(HeightEncoding::TerrainRgb)
+        }
+        ("png", true, Some("terrarium")) => {
+            encoding::TileFormat::Heights(HeightEncoding::Terrarium)
+        }
+        ("png", true, Some("gray16")) => encoding::TileFormat::Heights(HeightEncoding::Gray16),
+        ("png", true, None) => encoding::TileFormat::Visual(parse_rescale(&q.rescale, a)?),
+        ("png", false, None) => encoding::TileFormat::Visual(None),
+        ("png", _, Some(e)) => {
+            return Err(AppError::bad_request(
+                "bad_encoding",
+                format!("unknown encoding {e:?} (terrainrgb, terrarium, gray16)"),
+            ));
+        }
+        (e, ..) => {
+            return Err(AppError::bad_request(
+                "bad_format",
+                format!("unknown tile format {e:?} (png, f32)"),
+            ));
+        }
+    })
+}
+
+/// Outside the asset: 404, so that map clients over-zoom the parent instead. Checked on the
+/// tile's bounds (cheap); a tile that only grazes the asset is decoded.
+fn check_inside(a: &StoredAsset, z: u8, x: u32, y: u32) -> Result<(), AppError> {
     if let Some(p) = &a.placement {
         let [w, s, e, n] = geo::tile_bounds(z, x, y);
         let [aw, as_, ae, an] = p.bounds();
@@ -193,89 +283,72 @@ pub(super) async fn tile(
             ));
         }
     }
-    // Checked before the cache, so that a bad parameter is refused even for a cached tile.
-    let choice = backend_for(&state, q.backend.as_deref())?;
-    // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
-    let key = format!(
-        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{:?}&{size}&{:?}&{:?}&{:?}&{shade}",
-        a.hash, q.iterations, q.tolerance, q.encoding, q.rescale, q.colormap
-    );
-    let tag = etag(&a, &key);
-    if not_modified(&headers, &tag) {
-        return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, tag)]).into_response());
+    Ok(())
+}
+
+/// Decodes and encodes one tile (on a decode lane); `None` when no pixel falls on the asset.
+fn draw_tile(
+    delegates: (Option<&GpuBackend>, &CoarseCache, &Cancel),
+    choice: Backend,
+    asset: &StoredAsset,
+    job: &TileJob,
+) -> Result<Option<Cached>, AppError> {
+    let (z, x, y, size) = (job.z, job.x, job.y, job.size);
+    // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile, so
+    // that shading is seamless across tiles.
+    let margin = usize::from(job.shade);
+    let grid = geo::tile_pixels(asset.placement.as_ref(), z, x, y, size, margin);
+    if grid.is_outside() {
+        return Ok(None);
     }
-    if let Some(c) = state.cache.get(&key) {
-        metrics::counter!("fractile_tile_cache_total", "result" => "hit").increment(1);
-        return Ok(cached_response(&state, &tag, &c));
-    }
-    metrics::counter!("fractile_tile_cache_total", "result" => "miss").increment(1);
-    let asset = a.clone();
-    let gpu = state.gpu.clone();
-    let coarse = state.coarse.clone();
-    let side = size + 2 * usize::from(shade);
-    let cost = sampling_bytes(side * side, a.asset.meta.channels);
-    let cached = decode(&state, cost, move |cancel| {
-        // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile,
-        // so that shading is seamless across tiles.
-        let margin = usize::from(shade);
-        let grid = geo::tile_pixels(asset.placement.as_ref(), z, x, y, size, margin);
-        if grid.is_outside() {
-            return Ok(None);
-        }
-        let footprint = grid.footprint;
-        let (mut channels, bound) = sample_on(
-            (gpu.as_deref(), &coarse, cancel),
-            choice,
-            &asset,
-            &grid,
-            iterations,
-            tolerance,
-        )?;
-        let style = (colormap.is_some() || shade).then(|| {
-            let side = size + 2 * margin;
-            let shade = shade.then(|| {
-                // Cell size in the heights' units: metres for geographic assets, source pixels
-                // otherwise.
-                let spacing = match &asset.placement {
-                    Some(_) => {
-                        let [w, s, e, n] = geo::tile_bounds(z, x, y);
-                        let m = geo::metres_per_degree(0.5 * (s + n));
-                        [
-                            ((e - w) / size as f64 * m[0]) as f32,
-                            ((n - s) / size as f64 * m[1]) as f32,
-                        ]
-                    }
-                    None => [
-                        footprint[0] * asset.asset.meta.width as f32,
-                        footprint[1] * asset.asset.meta.height as f32,
-                    ],
-                };
-                fractile_codec::render::hillshade(&channels[0], size, size, spacing, 315.0, 45.0)
-            });
-            if margin > 0 {
-                for ch in &mut channels {
-                    *ch = (0..size * size)
-                        .map(|k| ch[(k / size + margin) * side + k % size + margin])
-                        .collect();
+    let (mut channels, bound) = sample_on(
+        delegates,
+        choice,
+        asset,
+        &grid,
+        job.iterations,
+        job.tolerance,
+    )?;
+    let style = (job.colormap.is_some() || job.shade).then(|| {
+        let side = size + 2 * margin;
+        let shade = job.shade.then(|| {
+            // Cell size in the heights' units: metres for geographic assets, source pixels
+            // otherwise.
+            let spacing = match &asset.placement {
+                Some(_) => {
+                    let [w, s, e, n] = geo::tile_bounds(z, x, y);
+                    let m = geo::metres_per_degree(0.5 * (s + n));
+                    [
+                        ((e - w) / size as f64 * m[0]) as f32,
+                        ((n - s) / size as f64 * m[1]) as f32,
+                    ]
                 }
-            }
-            encoding::Style { colormap, shade }
+                None => [
+                    grid.footprint[0] * asset.asset.meta.width as f32,
+                    grid.footprint[1] * asset.asset.meta.height as f32,
+                ],
+            };
+            fractile_codec::render::hillshade(&channels[0], size, size, spacing, 315.0, 45.0)
         });
-        let (content_type, body) =
-            encoding::encode_tile(&asset.asset.meta, &channels, size, format, style);
-        Ok::<_, AppError>(Some(Cached {
-            content_type,
-            body: Bytes::from(body),
-            error_bound: bound,
-        }))
-    })
-    .await??
-    .ok_or_else(|| {
-        AppError::not_found("outside", format!("tile {z}/{x}/{y} is outside the asset"))
-    })?;
-    let cached = Arc::new(cached);
-    state.cache.insert(key, cached.clone());
-    Ok(cached_response(&state, &tag, &cached))
+        if margin > 0 {
+            for ch in &mut channels {
+                *ch = (0..size * size)
+                    .map(|k| ch[(k / size + margin) * side + k % size + margin])
+                    .collect();
+            }
+        }
+        encoding::Style {
+            colormap: job.colormap,
+            shade,
+        }
+    });
+    let (content_type, body) =
+        encoding::encode_tile(&asset.asset.meta, &channels, size, job.format, style);
+    Ok(Some(Cached {
+        content_type,
+        body: Bytes::from(body),
+        error_bound: bound,
+    }))
 }
 
 fn parse_rescale(r: &Option<String>, a: &StoredAsset) -> Result<Option<(f32, f32)>, AppError> {

@@ -4,7 +4,7 @@
 //! domains twice that side on a lattice, all 48 isometries of the cube, constant contrast and
 //! offset per range (least squares, quantised with the 2D [`Quantiser`]). Ranges whose block is
 //! constant (wholly clamped inside or outside the band) are constant maps found without a search
-//! and coded in a bit or two. The decoders of [`crate::decode`] run it unchanged: [`OctreeOperator`]
+//! and coded in a bit or two. The decoders of [`crate::core::decode`] run it unchanged: [`OctreeOperator`]
 //! is an [`Operator<3>`].
 //!
 //! * [`OctreeOperator`]: the decoding form (a cell-index map at the smallest range size, one
@@ -12,7 +12,7 @@
 //! * [`encode_field`]: the encoder: fits of every block at every size (Saupe's nearest-neighbour
 //!   search on 2x2x2 octant features, the 48 orientations of every domain in one k-d tree),
 //!   then a partition by collage tolerance or by a budget of maps, then the stream.
-//! * `code`: one walk for the stream, shared by encoder and decoder, as in [`crate::stream`].
+//! * `code`: one walk for the stream, shared by encoder and decoder, as in [`crate::codecs::quadtree::stream`].
 
 use std::num::NonZero;
 
@@ -20,9 +20,9 @@ use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
-use crate::entropy::{Bit, BitTree, Decoder, Dir, Encoder, WideIndex};
-use crate::operator::{Operator, Step, invariant_interval};
-use crate::transform::Quantiser;
+use crate::core::entropy::{Bit, BitTree, Decoder, Dir, Encoder, WideIndex};
+use crate::core::operator::{Operator, Step, invariant_interval};
+use crate::core::transform::Quantiser;
 
 /// Number of isometries of the cube (the full octahedral group, reflections included).
 pub const CUBE_ISOMETRIES: u8 = 48;
@@ -916,7 +916,7 @@ mod tests {
         assert!(op.leaves().iter().any(|l| l.map.contrast != 0));
         // Discrete decoding reproduces the field (the collage theorem at work).
         let (got, _) =
-            crate::decode::discrete_volume(&op, [n; 3], crate::DiscreteOptions::fixed(20));
+            crate::core::decode::discrete_volume(&op, [n; 3], crate::DiscreteOptions::fixed(20));
         let mse = got
             .iter()
             .zip(&v)
@@ -934,7 +934,7 @@ mod tests {
                     .map(|c| (c + 0.5) / n as f32)
             })
             .collect();
-        let pv = crate::decode::points(&op, &pts, 30, 0.0);
+        let pv = crate::core::decode::points(&op, &pts, 30, 0.0);
         let mut diff = 0.0f64;
         for (p, r) in pts.iter().zip(&pv) {
             let idx = p.map(|c| (c * n as f32) as usize);
@@ -958,8 +958,11 @@ mod tests {
                 ..Default::default()
             };
             let (_, _, op) = encode_field(&v, n, &s).unwrap();
-            let (d, _) =
-                crate::decode::discrete_volume(&op, [n; 3], crate::DiscreteOptions::fixed(20));
+            let (d, _) = crate::core::decode::discrete_volume(
+                &op,
+                [n; 3],
+                crate::DiscreteOptions::fixed(20),
+            );
             let mse = d
                 .iter()
                 .zip(&v)

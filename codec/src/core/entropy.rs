@@ -333,7 +333,7 @@ pub fn most_decisions(bytes: usize) -> u64 {
     (((bytes as f64 + 9.0) * 8.0) / MIN_BITS_PER_DECISION).ceil() as u64
 }
 
-/// One direction of the coder. The stream walks ([`crate::stream`], [`crate::octree`]) are one
+/// One direction of the coder. The stream walks ([`crate::codecs::quadtree::stream`], [`crate::codecs::ifs3d::octree`]) are one
 /// function each that codes in either direction, so that encoder and decoder cannot drift apart.
 pub enum Dir<'a, 'b> {
     /// Writing: the values given are coded and returned.

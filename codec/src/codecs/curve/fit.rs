@@ -312,7 +312,7 @@ pub fn attractor_rms(scheme: &Scheme, source: &Prepared) -> f64 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::curve::{Pt, prepare};
+    use crate::codecs::curve::{Pt, prepare};
 
     /// A curve that *is* the attractor of a known scheme: step 1 must find weights that fit it
     /// far better than the default's.

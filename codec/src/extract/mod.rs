@@ -1,17 +1,19 @@
-//! Asset-level decoding: the operator decoders of [`crate::decode`] applied to every plane, then
+//! Asset-level decoding: the operator decoders of [`crate::core::decode`] applied to every plane, then
 //! brought back to source terms — value units, RGB from YCbCr, nodata where the source had none.
 //! This is what the CLI and the server call.
+
+pub mod volume;
 
 use fractile_proto::{ColourModel, SampleFormat};
 use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use crate::asset::Asset;
-use crate::colour::{rgb_bound, ycbcr_to_rgb};
-use crate::decode::{self, DiscreteOptions, DiscreteReport, Grid, Method};
+use crate::core::decode::{self, DiscreteOptions, DiscreteReport, Grid, Method};
+use crate::core::operator::Operator;
 use crate::geo::{self, Pixels};
-use crate::operator::Operator;
+use crate::io::asset::Asset;
+use crate::render::colour::{rgb_bound, ycbcr_to_rgb};
 
 /// Decodes one plane's point chains elsewhere (a GPU): `(plane, unit points, iterations,
 /// normalised tolerance)`, or `None` to leave them to the CPU.
@@ -125,7 +127,7 @@ impl Asset {
             .iter()
             .map(|p| p.operator.invariant_interval())
             .chain(self.volume.iter().map(|v| {
-                use crate::operator::Operator;
+                use crate::core::operator::Operator;
                 v.operator.invariant_interval()
             }))
             .map(|(lo, hi)| (hi - lo) / 2.0)
@@ -368,8 +370,8 @@ impl Asset {
     /// NaN), each standing for `pixels.footprint` (unit coordinates): a tile, a region or a
     /// mesh. Where a pixel covers more than a source cell the asset is decoded discretely at the
     /// pixels' own scale and sampled (a filtered answer, no aliasing); otherwise each point is
-    /// decoded continuously ([`crate::asset::PlaneOperator::grid`] for separable grids,
-    /// [`crate::asset::PlaneOperator::points`] for point lists) with at most `iterations`
+    /// decoded continuously ([`crate::io::asset::PlaneOperator::grid`] for separable grids,
+    /// [`crate::io::asset::PlaneOperator::points`] for point lists) with at most `iterations`
     /// steps, stopping once its bound is at most `tolerance` (source units; 0: never early).
     /// Returns the channels and the a-priori error bound (source units, largest over the
     /// points).

@@ -8,10 +8,10 @@
 
 use serde::{Deserialize, Serialize};
 
-use crate::entropy::{Bit, BitTree, Decoder, Dir, Encoder, WideIndex};
-use crate::operator::{QuadtreeOperator, RangeMap};
-use crate::search::{Fit, lattice};
-use crate::transform::Quantiser;
+use crate::codecs::quadtree::operator::{QuadtreeOperator, RangeMap};
+use crate::codecs::quadtree::search::{Fit, lattice};
+use crate::core::entropy::{Bit, BitTree, Decoder, Dir, Encoder, WideIndex};
+use crate::core::transform::Quantiser;
 
 /// Everything a decoder needs besides the stream: stored in the asset for each plane.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -84,7 +84,7 @@ impl PlaneHeader {
         let cells = (u64::from(self.frame[0]) / u64::from(self.min_size))
             * (u64::from(self.frame[1]) / u64::from(self.min_size));
         let per_leaf = u64::from(self.quantiser.contrast_bits + self.quantiser.offset_bits).max(1);
-        cells.min(crate::entropy::most_decisions(bytes) / per_leaf)
+        cells.min(crate::core::entropy::most_decisions(bytes) / per_leaf)
     }
 
     /// Memory the decoding operator of this plane takes at most (its cell lookup and its
@@ -324,7 +324,7 @@ pub fn decode_plane(h: &PlaneHeader, bytes: &[u8]) -> Result<Vec<Leaf>, String> 
     // Every top-level block holds at least one leaf, and a leaf codes its contrast and offset
     // indices: a frame whose leaves the stream cannot hold is refused before the walk.
     let decisions = h.top_blocks() * u64::from(h.quantiser.contrast_bits + h.quantiser.offset_bits);
-    if decisions > crate::entropy::most_decisions(bytes.len()) {
+    if decisions > crate::core::entropy::most_decisions(bytes.len()) {
         return Err(format!(
             "a frame of {}x{} needs more than the {} bytes of its stream",
             h.frame[0],

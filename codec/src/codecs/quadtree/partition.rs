@@ -14,9 +14,9 @@ use std::collections::BinaryHeap;
 
 use rayon::prelude::*;
 
-use crate::search::{CodingPlane, DomainPool, Fit, SearchMode, fit_range_each};
-use crate::stream::{Coverage, PlaneHeader, coverage};
-use crate::transform::Quantiser;
+use crate::codecs::quadtree::search::{CodingPlane, DomainPool, Fit, SearchMode, fit_range_each};
+use crate::codecs::quadtree::stream::{Coverage, PlaneHeader, coverage};
+use crate::core::transform::Quantiser;
 
 /// Fits of every block of every level of one plane.
 pub struct Pyramid {

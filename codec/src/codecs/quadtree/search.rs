@@ -15,7 +15,7 @@ use std::num::NonZero;
 
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 
-use crate::transform::{Quantiser, SQUARE_ISOMETRIES, isometry_index};
+use crate::core::transform::{Quantiser, SQUARE_ISOMETRIES, isometry_index};
 
 /// The grid the encoder fits: normalised values in [0, 1] over a padded frame, with a weight per
 /// sample (1 for source data, 0 for padding and nodata, which then never count in the error).

@@ -24,12 +24,13 @@ use fractile_proto::{AssetKind, AssetMeta};
 use serde::{Deserialize, Serialize};
 
 use crate::Error;
-use crate::decode;
-use crate::entropy::{Bit, Decoder, Encoder};
-use crate::fis::{FisHeader, FisOperator};
-use crate::operator::{Operator, QuadtreeOperator, RangeMap, Step};
-use crate::psa::{PsaHeader, PsaOperator};
-use crate::stream::{self, PlaneHeader};
+use crate::codecs::fis::{FisHeader, FisOperator};
+use crate::codecs::psa::{PsaHeader, PsaOperator};
+use crate::codecs::quadtree::operator::{QuadtreeOperator, RangeMap};
+use crate::codecs::quadtree::stream::{self, PlaneHeader};
+use crate::core::decode;
+use crate::core::entropy::{Bit, Decoder, Encoder};
+use crate::core::operator::{Operator, Step};
 
 /// File magic.
 pub const MAGIC: &[u8; 8] = b"FRACTILE";
@@ -279,8 +280,8 @@ impl PlaneOperator {
     }
 }
 
-impl crate::pieces::Flatten for PlaneOperator {
-    fn pieces(&self) -> crate::pieces::PieceTable {
+impl crate::core::pieces::Flatten for PlaneOperator {
+    fn pieces(&self) -> crate::core::pieces::PieceTable {
         match self {
             PlaneOperator::Quadtree(q) => q.pieces(),
             PlaneOperator::Fis(f) => f.pieces(),
@@ -326,7 +327,12 @@ impl Operator<2> for PlaneOperator {
             PlaneOperator::Psa(f) => f.invariant_interval(),
         }
     }
-    fn run_chains(&self, chains: &mut [crate::decode::Chain<2>], iterations: u32, tolerance: f32) {
+    fn run_chains(
+        &self,
+        chains: &mut [crate::core::operator::Chain<2>],
+        iterations: u32,
+        tolerance: f32,
+    ) {
         match self {
             PlaneOperator::Quadtree(q) => q.run_chains(chains, iterations, tolerance),
             PlaneOperator::Fis(f) => f.run_chains(chains, iterations, tolerance),
@@ -455,7 +461,7 @@ impl Mask {
 
     fn decode(width: usize, height: usize, bytes: &[u8]) -> Result<Mask, Error> {
         // A decision per cell: a mask larger than its stream can hold is refused unallocated.
-        if (width as u64) * (height as u64) > crate::entropy::most_decisions(bytes.len()) {
+        if (width as u64) * (height as u64) > crate::core::entropy::most_decisions(bytes.len()) {
             return Err(Error::Asset(format!(
                 "a nodata mask of {width}x{height} needs more than its {} bytes",
                 bytes.len()
@@ -501,9 +507,9 @@ struct PsaPayload {
 
 #[derive(Serialize, Deserialize)]
 struct VolumePayload {
-    header: crate::octree::OctreeHeader,
+    header: crate::codecs::ifs3d::octree::OctreeHeader,
     stream: Vec<u8>,
-    placement: crate::volume::Placement,
+    placement: crate::codecs::ifs3d::volume::Placement,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -522,9 +528,9 @@ pub struct Asset {
     /// Source validity, for height fields with nodata.
     pub mask: Option<Mask>,
     /// The coded volume, for volume assets (which have no planes).
-    pub volume: Option<crate::volume::Volume>,
+    pub volume: Option<crate::codecs::ifs3d::volume::Volume>,
     /// The coded curves, for curve assets (which have no planes).
-    pub curve: Option<crate::curve::Curves>,
+    pub curve: Option<crate::codecs::curve::Curves>,
 }
 
 fn kind_byte(k: AssetKind) -> u8 {
@@ -584,7 +590,7 @@ impl Asset {
             if header.samples != [meta.width, meta.height] {
                 return Err("sample grid and metadata disagree".into());
             }
-            let params = crate::fis::decode_params(&header, &stream)?;
+            let params = crate::codecs::fis::decode_params(&header, &stream)?;
             let operator = FisOperator::new(&header, &params)?;
             Ok(Plane {
                 coding: Coding::Fis { header, stream },
@@ -603,7 +609,7 @@ impl Asset {
             if header.samples != [meta.width, meta.height] {
                 return Err("sample grid and metadata disagree".into());
             }
-            let params = crate::psa::decode_params(&header, &stream)?;
+            let params = crate::codecs::psa::decode_params(&header, &stream)?;
             let operator = PsaOperator::new(&header, &params)?;
             Ok(Plane {
                 coding: Coding::Psa { header, stream },
@@ -640,9 +646,9 @@ impl Asset {
     /// Builds a volume asset from its coded stream (decoding it, as a reader would).
     pub fn from_volume_parts(
         meta: AssetMeta,
-        header: crate::octree::OctreeHeader,
+        header: crate::codecs::ifs3d::octree::OctreeHeader,
         stream: Vec<u8>,
-        placement: crate::volume::Placement,
+        placement: crate::codecs::ifs3d::volume::Placement,
     ) -> Result<Asset, Error> {
         let bad = |m: String| Error::Asset(format!("volume: {m}"));
         if meta.kind != AssetKind::Volume || meta.channels != 1 || meta.width != meta.height {
@@ -654,13 +660,14 @@ impl Asset {
             return Err(bad("grid size and metadata disagree".into()));
         }
         placement.validate().map_err(bad)?;
-        let leaves = crate::octree::decode_stream(&header, &stream).map_err(bad)?;
-        let operator = crate::octree::OctreeOperator::new(&header, leaves).map_err(bad)?;
+        let leaves = crate::codecs::ifs3d::octree::decode_stream(&header, &stream).map_err(bad)?;
+        let operator =
+            crate::codecs::ifs3d::octree::OctreeOperator::new(&header, leaves).map_err(bad)?;
         let asset = Asset {
             meta,
             planes: Vec::new(),
             mask: None,
-            volume: Some(crate::volume::Volume {
+            volume: Some(crate::codecs::ifs3d::volume::Volume {
                 header,
                 stream,
                 operator,
@@ -675,20 +682,20 @@ impl Asset {
     /// Builds a curve asset from its coded stream (decoding it, as a reader would).
     pub fn from_curve_parts(
         meta: AssetMeta,
-        header: crate::curve::code::CurveHeader,
+        header: crate::codecs::curve::code::CurveHeader,
         stream: Vec<u8>,
     ) -> Result<Asset, Error> {
         let bad = |m: String| Error::Asset(format!("curve: {m}"));
         if meta.kind != AssetKind::Curve {
             return Err(bad("metadata is not that of a curve asset".into()));
         }
-        let set = crate::curve::code::decode(&header, &stream).map_err(bad)?;
+        let set = crate::codecs::curve::code::decode(&header, &stream).map_err(bad)?;
         let asset = Asset {
             meta,
             planes: Vec::new(),
             mask: None,
             volume: None,
-            curve: Some(crate::curve::Curves {
+            curve: Some(crate::codecs::curve::Curves {
                 header,
                 stream,
                 set,
@@ -722,8 +729,8 @@ impl Asset {
             return "ifs3d-octree";
         }
         match self.planes.first().map(|p| &p.coding) {
-            Some(Coding::Fis { header, .. }) => crate::fis::codec_name(header.scaling),
-            Some(Coding::Psa { header, .. }) => crate::psa::codec_name(header.tiling),
+            Some(Coding::Fis { header, .. }) => crate::codecs::fis::codec_name(header.scaling),
+            Some(Coding::Psa { header, .. }) => crate::codecs::psa::codec_name(header.tiling),
             _ => "quadtree-pifs",
         }
     }
@@ -918,7 +925,7 @@ impl Asset {
         let payload = &bytes[p_start..body];
         if codec == Codec::Curve as u8 {
             // The header delimits itself and the stream runs to the payload's end.
-            let (header, stream) = crate::curve::code::compact::read(payload)
+            let (header, stream) = crate::codecs::curve::code::compact::read(payload)
                 .map_err(|e| bad(format!("curve: {e}")))?;
             let points: u64 = header
                 .rings

@@ -21,14 +21,14 @@
 //!
 //! Tolerance 0 codes every residual as its exact `f64` (lossless).
 //!
-//! Symbols go through the adaptive binary range coder of [`crate::entropy`], with
-//! fast-learning contexts ([`crate::entropy::CountedBit`]) by level counted from the finest.
+//! Symbols go through the adaptive binary range coder of [`crate::core::entropy`], with
+//! fast-learning contexts ([`crate::core::entropy::CountedBit`]) by level counted from the finest.
 
 use super::{
     CurveSet, Frame, Metric, Prepared, Pt, Ring, Scheme, SeamCrossing, point_segment_scaled,
     span_deviation,
 };
-use crate::entropy::{BitTree, CountedBit as Bit, Decoder, Dir, Encoder, Model};
+use crate::core::entropy::{BitTree, CountedBit as Bit, Decoder, Dir, Encoder, Model};
 
 /// What the stream needs to be read: the scheme and the shape of every ring. Stored in the
 /// compact form of [`compact`], right before the stream (12 bytes for one ring, against 75 as

@@ -32,9 +32,11 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::Error;
-use crate::entropy::{Bit, Decoder, Encoder};
-use crate::fis::{IntCoder, Source, get_grid, lattice_frame, lattice_locate, put_grid, top_index};
-use crate::operator::{Operator, Step};
+use crate::codecs::fis::{
+    IntCoder, Source, get_grid, lattice_frame, lattice_locate, put_grid, top_index,
+};
+use crate::core::entropy::{Bit, Decoder, Encoder};
+use crate::core::operator::{Operator, Step};
 
 /// How regions are split.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -427,7 +429,7 @@ impl PsaOperator {
                 })
             })
             .collect();
-        op.interval = crate::operator::invariant_interval(bounds.into_iter());
+        op.interval = crate::core::operator::invariant_interval(bounds.into_iter());
         Ok(op)
     }
 
@@ -494,10 +496,10 @@ impl Operator<2> for PsaOperator {
     }
 }
 
-impl crate::pieces::Flatten for PsaOperator {
+impl crate::core::pieces::Flatten for PsaOperator {
     /// One piece per region, or two (split on the diagonal) for triangles.
-    fn pieces(&self) -> crate::pieces::PieceTable {
-        use crate::pieces::{Piece, PieceTable, SPLIT};
+    fn pieces(&self) -> crate::core::pieces::PieceTable {
+        use crate::core::pieces::{Piece, PieceTable, SPLIT};
         let [nx, ny] = self.vertices;
         let d = self.region;
         let span = self.ratio * d;
@@ -709,7 +711,7 @@ pub fn fit(source: &Source, header: &PsaHeader) -> Result<PsaParams, Error> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::decode;
+    use crate::core::decode;
 
     fn header(tiling: Tiling, domains: Domains, w: u32, h: u32) -> PsaHeader {
         PsaHeader {
@@ -795,6 +797,39 @@ mod tests {
                     sse(&b.values)
                 );
             }
+        }
+    }
+
+    #[test]
+    fn flattened_psa2d_decodes_like_its_operator() {
+        for tiling in [Tiling::Rectangular, Tiling::Triangular] {
+            let h = PsaHeader {
+                samples: [41, 33],
+                region: 4,
+                ratio: 2,
+                tiling,
+                domains: Domains::Overlapping,
+                radius: 3,
+                height_step: 1.0 / 1000.0,
+                scaling_bits: 5,
+                max_scaling: 0.9,
+            };
+            let src: Vec<f32> = (0..41 * 33)
+                .map(|i| {
+                    let (x, y) = ((i % 41) as f32, (i / 41) as f32);
+                    0.5 + 0.3 * (x * 0.3).sin() * (y * 0.2).cos()
+                        + 0.1 * ((i * 31) % 7) as f32 / 7.0
+                })
+                .collect();
+            let source = crate::codecs::fis::Source {
+                width: 41,
+                height: 33,
+                values: &src,
+            };
+            let params = fit(&source, &h).unwrap();
+            assert!(params.regions.iter().any(|r| *r != RegionCode::Patch));
+            let op = PsaOperator::new(&h, &params).unwrap();
+            crate::core::pieces::tests::agree(&op, &format!("{tiling:?}"));
         }
     }
 }

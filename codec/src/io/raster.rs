@@ -352,7 +352,7 @@ pub fn write_geotiff_f32(
         Error::Output(m) => Error::Output(format!("{}: {m}", path.display())),
         e => e,
     })?;
-    crate::asset::write_atomic(path, &bytes)
+    crate::io::asset::write_atomic(path, &bytes)
 }
 
 /// A float32 GeoTIFF in memory, with georeference and nodata tags when given.

@@ -13,7 +13,7 @@
 
 use rayon::prelude::*;
 
-use crate::operator::{AxisAligned, ISOMETRY_MATRICES, Operator};
+use crate::core::operator::{AxisAligned, Chain, ISOMETRY_MATRICES, Operator, active};
 
 /// The value of the attractor at one point, with its a-priori error bound.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -105,20 +105,6 @@ fn seed_of<const D: usize, O: Operator<D> + ?Sized>(op: &O) -> (f32, f32) {
     ((lo + hi) * 0.5, (hi - lo) * 0.5)
 }
 
-/// One inverse-iteration chain in flight: where it is (frame coordinates), and
-/// `sum g_k prod_{j<k} s_j`, `prod s` and the steps taken so far.
-#[derive(Clone, Copy, Debug)]
-pub struct Chain<const D: usize> {
-    /// The current point, in frame coordinates.
-    pub q: [f32; D],
-    /// `sum g_k prod_{j<k} s_j` so far.
-    pub acc_g: f32,
-    /// `prod s_k` so far.
-    pub acc_s: f32,
-    /// Inverse steps taken.
-    pub taken: u32,
-}
-
 impl<const D: usize> Chain<D> {
     fn start(q: [f32; D]) -> Self {
         Chain {
@@ -138,14 +124,6 @@ impl<const D: usize> Chain<D> {
     }
 }
 
-/// Whether a chain whose contrast product is `s` still needs steps: it is exact once a map
-/// with s = 0 ended it, and good enough once its bound `|s| * half` is under the tolerance.
-/// Every decoding path decides with this one function, so that they agree bit for bit.
-#[inline(always)]
-pub fn active(s: f32, half: f32, tolerance: f32) -> bool {
-    s != 0.0 && s.abs() * half > tolerance
-}
-
 /// Runs every chain until it has taken `iterations` steps in all or stopped (see [`points`]),
 /// through the operator's own [`Operator::run_chains`].
 fn run_chains<const D: usize, O: Operator<D> + ?Sized>(
@@ -155,50 +133,6 @@ fn run_chains<const D: usize, O: Operator<D> + ?Sized>(
     tolerance: f32,
 ) {
     op.run_chains(chains, iterations, tolerance);
-}
-
-/// What [`Operator::run_chains`] does unless a codec lays its maps out better: chains eight at a
-/// time in lockstep, each stepped by [`Operator::step`] until it has taken `iterations` steps in
-/// all or [`active`] says it is done. A finished lane is frozen, so that a chain's answer
-/// depends on its point alone, never on the other chains of its batch.
-pub fn run_chains_stepwise<const D: usize, O: Operator<D> + ?Sized>(
-    op: &O,
-    chains: &mut [Chain<D>],
-    iterations: u32,
-    tolerance: f32,
-) {
-    const LANES: usize = 8;
-    let (_, half) = seed_of(op);
-    for batch in chains.chunks_mut(LANES) {
-        let mut q = [[0.0f32; D]; LANES];
-        let mut acc_g = [0.0f32; LANES];
-        // Padding lanes of the last batch start finished.
-        let mut acc_s = [0.0f32; LANES];
-        let mut taken = [0u32; LANES];
-        for (l, c) in batch.iter().enumerate() {
-            (q[l], acc_g[l], acc_s[l], taken[l]) = (c.q, c.acc_g, c.acc_s, c.taken);
-        }
-        loop {
-            let mut any = false;
-            for l in 0..LANES {
-                if taken[l] >= iterations || !active(acc_s[l], half, tolerance) {
-                    continue;
-                }
-                let st = op.step(q[l]);
-                taken[l] += 1;
-                acc_g[l] += acc_s[l] * st.offset;
-                acc_s[l] *= st.contrast;
-                q[l] = st.next;
-                any = true;
-            }
-            if !any {
-                break;
-            }
-        }
-        for (l, c) in batch.iter_mut().enumerate() {
-            (c.q, c.acc_g, c.acc_s, c.taken) = (q[l], acc_g[l], acc_s[l], taken[l]);
-        }
-    }
 }
 
 /// Continuous decoding of a separable grid of unit points: point (i, j) is `(xs[i], ys[j])`;
@@ -1178,33 +1112,52 @@ pub fn sample_bilinear(g: &Grid, x: f32, y: f32) -> f32 {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::operator::{QuadtreeOperator, RangeMap};
+    use crate::core::operator::{Step, invariant_interval};
 
-    /// A 2x2-range operator on an 8x8 frame with known maps.
-    fn toy() -> QuadtreeOperator {
-        let mk = |x, y, s: f32, o: f32, iso| RangeMap {
-            x,
-            y,
-            size: 4,
-            domain_x: 0,
-            domain_y: 0,
-            isometry: iso,
-            contrast: s,
-            offset: o,
-            slope: [0.0; 2],
-        };
-        QuadtreeOperator::new(
-            [8, 8],
-            [8.0, 8.0],
-            4,
-            vec![
-                mk(0, 0, 0.5, 0.1, 0),
-                mk(4, 0, -0.5, 0.7, 1),
-                mk(0, 4, 0.25, 0.3, 3),
-                mk(4, 4, 0.0, 0.9, 0),
-            ],
-        )
-        .unwrap()
+    /// Four cells of 4 on an 8x8 frame, each mapping its quadrant onto the whole frame (a flip
+    /// for some), with constant contrast and offset: decoders are tested on the operator form
+    /// alone, without a codec.
+    struct Toy;
+
+    /// (contrast, offset, flip x, flip y) of the cells, row-major.
+    const CELLS: [(f32, f32, bool, bool); 4] = [
+        (0.5, 0.1, false, false),
+        (-0.5, 0.7, true, false),
+        (0.25, 0.3, true, true),
+        (0.0, 0.9, false, false),
+    ];
+
+    impl Operator<2> for Toy {
+        fn frame(&self) -> [f32; 2] {
+            [8.0, 8.0]
+        }
+        fn valid(&self) -> [f32; 2] {
+            [8.0, 8.0]
+        }
+        fn expansion(&self) -> u32 {
+            2
+        }
+        fn step(&self, p: [f32; 2]) -> Step<2> {
+            let p = p.map(|t| t.clamp(0.0, 8.0));
+            let (cx, cy) = (usize::from(p[0] >= 4.0), usize::from(p[1] >= 4.0));
+            let (contrast, offset, fx, fy) = CELLS[cy * 2 + cx];
+            let local = |t: f32, c: usize, flip: bool| {
+                let u = ((t - 4.0 * c as f32) / 4.0).clamp(0.0, 1.0);
+                8.0 * if flip { 1.0 - u } else { u }
+            };
+            Step {
+                offset,
+                contrast,
+                next: [local(p[0], cx, fx), local(p[1], cy, fy)],
+            }
+        }
+        fn invariant_interval(&self) -> (f32, f32) {
+            invariant_interval(CELLS.iter().map(|&(s, o, _, _)| (s, o, o)))
+        }
+    }
+
+    fn toy() -> Toy {
+        Toy
     }
 
     #[test]

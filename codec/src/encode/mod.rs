@@ -6,22 +6,27 @@
 //! const range, or a target rate by bisection) -> entropy code -> decode once to report the real
 //! error.
 
+pub mod curve;
+pub mod volume;
+
 use std::time::Instant;
 
 use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
 
 use crate::Error;
-use crate::asset::{Asset, Mask, PlaneOperator};
-use crate::colour::rgb_to_ycbcr;
-use crate::decode::{self, DiscreteOptions};
-use crate::fis::{FisHeader, FisSettings};
-use crate::metrics::{Errors, compare};
-use crate::partition::{Limits, Partition, Pyramid, greedy_order, partitions_after};
-use crate::psa::{PsaHeader, PsaSettings};
-use crate::raster::Raster;
-use crate::search::{CodingPlane, SearchMode};
-use crate::stream::{PlaneHeader, encode_plane};
-use crate::transform::Quantiser;
+use crate::codecs::fis::{FisHeader, FisSettings};
+use crate::codecs::psa::{PsaHeader, PsaSettings};
+use crate::codecs::quadtree::partition::{
+    Limits, Partition, Pyramid, greedy_order, partitions_after,
+};
+use crate::codecs::quadtree::search::{CodingPlane, SearchMode};
+use crate::codecs::quadtree::stream::{PlaneHeader, encode_plane};
+use crate::core::decode::{self, DiscreteOptions};
+use crate::core::metrics::{Errors, compare};
+use crate::core::transform::Quantiser;
+use crate::io::asset::{Asset, Mask, PlaneOperator};
+use crate::io::raster::Raster;
+use crate::render::colour::rgb_to_ycbcr;
 
 /// What decides how many ranges the encoder spends.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -863,7 +868,7 @@ fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
     }
 }
 
-/// Encodes a height field as a fractal interpolation surface ([`crate::fis`]).
+/// Encodes a height field as a fractal interpolation surface ([`crate::codecs::fis`]).
 /// `target_bpp`, when given, overrides `settings.spacing` (and the automatic height step); see
 /// `encode_lattice`.
 pub fn encode_fis(
@@ -898,11 +903,11 @@ pub fn encode_fis(
                 scaling_bits: settings.scaling_bits,
                 max_scaling: settings.max_scaling,
             };
-            let fitted = crate::fis::fit(source, &header)?;
+            let fitted = crate::codecs::fis::fit(source, &header)?;
             let mut m = meta.clone();
             m.encoder = format!(
                 "{} spacing={spacing} height_step={} scaling_bits={} max_scaling={}",
-                crate::fis::codec_name(settings.scaling),
+                crate::codecs::fis::codec_name(settings.scaling),
                 height_step as f64 * (meta.value_max - meta.value_min),
                 settings.scaling_bits,
                 settings.max_scaling
@@ -922,7 +927,7 @@ pub fn encode_fis(
             let mu = 0.75 * step * step / 12.0 * f64::from(spacing * spacing) * 4.0 / 9.0;
             let mut best: Option<(f64, Asset)> = None;
             for shrink in [1.0f32, 0.75, 0.5, 0.25, 0.0] {
-                let params = crate::fis::FisParams {
+                let params = crate::codecs::fis::FisParams {
                     heights: fitted.heights.clone(),
                     scalings: fitted
                         .scalings
@@ -930,7 +935,7 @@ pub fn encode_fis(
                         .map(|&q| header.scaling_index(shrink * header.scaling_of(q)))
                         .collect(),
                 };
-                let stream = crate::fis::encode_params(&header, &params);
+                let stream = crate::codecs::fis::encode_params(&header, &params);
                 let a =
                     Asset::from_fis_parts(m.clone(), vec![(header.clone(), stream)], mask.clone())?;
                 let (d, _) = a.decode_native();
@@ -960,7 +965,7 @@ pub fn encode_fis(
 }
 
 /// Encodes a grey image or a height field with the piecewise self-affine model
-/// ([`crate::psa`]); `target_bpp` picks the region size (see `encode_lattice`).
+/// ([`crate::codecs::psa`]); `target_bpp` picks the region size (see `encode_lattice`).
 pub fn encode_psa(
     raster: &Raster,
     settings: &PsaSettings,
@@ -989,12 +994,12 @@ pub fn encode_psa(
                 scaling_bits: settings.scaling_bits,
                 max_scaling: settings.max_scaling,
             };
-            let params = crate::psa::fit(source, &header)?;
-            let stream = crate::psa::encode_params(&header, &params);
+            let params = crate::codecs::psa::fit(source, &header)?;
+            let stream = crate::codecs::psa::encode_params(&header, &params);
             let mut m = meta.clone();
             m.encoder = format!(
                 "{} spacing={region} ratio={} domains={:?} radius={} height_step={}",
-                crate::psa::codec_name(settings.tiling),
+                crate::codecs::psa::codec_name(settings.tiling),
                 settings.ratio,
                 settings.domains,
                 settings.radius,
@@ -1040,7 +1045,7 @@ fn encode_lattice(
     raster: &Raster,
     lattice: &Lattice,
     build: impl Fn(
-        &crate::fis::Source,
+        &crate::codecs::fis::Source,
         u32,
         f32,
         &AssetMeta,
@@ -1080,7 +1085,7 @@ fn encode_lattice(
         SampleFormat::F32 => span / 65535.0,
         _ => 1.0,
     };
-    let source = crate::fis::Source {
+    let source = crate::codecs::fis::Source {
         width: w,
         height: h,
         values: &values,
@@ -1103,7 +1108,8 @@ fn encode_lattice(
     };
     let auto_step = |spacing: u32| {
         lattice.height_step.unwrap_or_else(|| {
-            let limit = crate::fis::interpolation_rmse(&source, spacing) as f64 * span / 4.0;
+            let limit =
+                crate::codecs::fis::interpolation_rmse(&source, spacing) as f64 * span / 4.0;
             let mut step = quantum;
             while step * 2.0 <= limit {
                 step *= 2.0;

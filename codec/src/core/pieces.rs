@@ -10,7 +10,7 @@
 //! Local coordinates `(u, v) = clamp((p - origin) * inv_size, 0, 1)`; then
 //! `g = g0 + gu u + gv v + guv u v`, the same for s, and `phi(p) = n0 + nu u + nv v` per axis.
 
-use crate::operator::{Operator, Step};
+use crate::core::operator::{Operator, Step};
 
 /// One piece: a range, a cell or a triangle, with its maps in local coordinates.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -141,13 +141,13 @@ pub fn bilinear(c: [f32; 4]) -> [f32; 4] {
 }
 
 #[cfg(test)]
-mod tests {
+pub(crate) mod tests {
     use super::*;
-    use crate::decode;
-    use crate::fis::{FisHeader, FisOperator, FisParams, Scaling};
-    use crate::psa::{Domains, PsaHeader, PsaOperator, RegionCode, Tiling};
+    use crate::core::decode;
 
-    fn agree<O: Operator<2> + Flatten>(op: &O, what: &str) {
+    /// Asserts that `op` and its flattening decode 4,004 points alike (each codec's tests call
+    /// this on its own operators).
+    pub(crate) fn agree<O: Operator<2> + Flatten>(op: &O, what: &str) {
         let t = op.pieces();
         let pts: Vec<[f32; 2]> = (0..4000)
             .map(|i| {
@@ -167,61 +167,6 @@ mod tests {
                 x.value,
                 y.value
             );
-        }
-    }
-
-    #[test]
-    fn flattened_interpolation_surfaces_decode_like_their_operators() {
-        for scaling in [Scaling::Global, Scaling::PerCell, Scaling::PerNode] {
-            let h = FisHeader {
-                samples: [37, 29],
-                spacing: 4,
-                scaling,
-                height_step: 1.0 / 1000.0,
-                scaling_bits: 6,
-                max_scaling: 0.9,
-            };
-            let [nx, ny] = h.nodes();
-            let p = FisParams {
-                heights: (0..nx * ny).map(|i| (i * 377 % 1000) as i32).collect(),
-                scalings: (0..h.parameters())
-                    .map(|i| (i as i32 * 7 % 61) - 30)
-                    .collect(),
-            };
-            agree(&FisOperator::new(&h, &p).unwrap(), &format!("{scaling:?}"));
-        }
-    }
-
-    #[test]
-    fn flattened_psa2d_decodes_like_its_operator() {
-        for tiling in [Tiling::Rectangular, Tiling::Triangular] {
-            let h = PsaHeader {
-                samples: [41, 33],
-                region: 4,
-                ratio: 2,
-                tiling,
-                domains: Domains::Overlapping,
-                radius: 3,
-                height_step: 1.0 / 1000.0,
-                scaling_bits: 5,
-                max_scaling: 0.9,
-            };
-            let src: Vec<f32> = (0..41 * 33)
-                .map(|i| {
-                    let (x, y) = ((i % 41) as f32, (i / 41) as f32);
-                    0.5 + 0.3 * (x * 0.3).sin() * (y * 0.2).cos()
-                        + 0.1 * ((i * 31) % 7) as f32 / 7.0
-                })
-                .collect();
-            let source = crate::fis::Source {
-                width: 41,
-                height: 33,
-                values: &src,
-            };
-            let params = crate::psa::fit(&source, &h).unwrap();
-            assert!(params.regions.iter().any(|r| *r != RegionCode::Patch));
-            let op = PsaOperator::new(&h, &params).unwrap();
-            agree(&op, &format!("{tiling:?}"));
         }
     }
 }

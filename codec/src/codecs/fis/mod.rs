@@ -34,8 +34,8 @@
 use serde::{Deserialize, Serialize};
 
 use crate::Error;
-use crate::entropy::{Bit, Decoder, Encoder};
-use crate::operator::{Operator, Step};
+use crate::core::entropy::{Bit, Decoder, Encoder};
+use crate::core::operator::{Operator, Step};
 
 /// How the vertical scaling varies over the surface.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
@@ -231,7 +231,7 @@ pub(crate) fn get_grid(
 ) -> Result<Vec<i32>, String> {
     // A value codes at least one decision: a grid larger than the stream can hold is refused
     // before it is allocated, and a short stream stops at the row where it ran out.
-    if (nx as u64) * (ny as u64) > crate::entropy::most_decisions(dec.stream_len()) {
+    if (nx as u64) * (ny as u64) > crate::core::entropy::most_decisions(dec.stream_len()) {
         return Err(format!(
             "a grid of {nx}x{ny} {what}s needs more than its stream's {} bytes",
             dec.stream_len()
@@ -329,7 +329,7 @@ pub struct FisOperator {
     /// same arithmetic. phi expands lengths by the number of cells a side, so a last-bit
     /// difference in u grows that much each step and two formulas would soon follow different
     /// chains (both valid, but not comparable point by point).
-    table: crate::pieces::PieceTable,
+    table: crate::core::pieces::PieceTable,
 }
 
 impl FisOperator {
@@ -356,7 +356,7 @@ impl FisOperator {
                 .map(|&q| header.scaling_of(q))
                 .collect(),
             interval: (0.0, 1.0),
-            table: crate::pieces::PieceTable {
+            table: crate::core::pieces::PieceTable {
                 frame: [0.0; 2],
                 valid: [0.0; 2],
                 lut_origin: [0.0; 2],
@@ -367,8 +367,8 @@ impl FisOperator {
                 interval: (0.0, 1.0),
             },
         };
-        op.interval = crate::operator::invariant_interval(op.cell_bounds().into_iter());
-        op.table = crate::pieces::Flatten::pieces(&op);
+        op.interval = crate::core::operator::invariant_interval(op.cell_bounds().into_iter());
+        op.table = crate::core::pieces::Flatten::pieces(&op);
         Ok(op)
     }
 
@@ -487,10 +487,10 @@ impl Operator<2> for FisOperator {
     }
 }
 
-impl crate::pieces::Flatten for FisOperator {
+impl crate::core::pieces::Flatten for FisOperator {
     /// One piece per cell: g and s bilinear from the corners, phi onto the (mirrored) grid.
-    fn pieces(&self) -> crate::pieces::PieceTable {
-        use crate::pieces::{Piece, PieceTable, bilinear};
+    fn pieces(&self) -> crate::core::pieces::PieceTable {
+        use crate::core::pieces::{Piece, PieceTable, bilinear};
         let [nx, ny] = self.nodes;
         let k = self.spacing;
         let span = [(nx - 1) as f32 * k, (ny - 1) as f32 * k];
@@ -824,7 +824,7 @@ fn local_iteration(samples: &[Sample], n: usize, smax: f32) -> Vec<f32> {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use crate::decode;
+    use crate::core::decode;
 
     fn header(scaling: Scaling, w: u32, h: u32, k: u32) -> FisHeader {
         FisHeader {
@@ -954,5 +954,30 @@ mod tests {
         let (lo, hi) = op.invariant_interval();
         let (g, _) = decode::discrete(&op, 66, 66, decode::DiscreteOptions::fixed(30));
         assert!(g.values.iter().all(|&v| v >= lo - 1e-4 && v <= hi + 1e-4));
+    }
+
+    #[test]
+    fn flattened_interpolation_surfaces_decode_like_their_operators() {
+        for scaling in [Scaling::Global, Scaling::PerCell, Scaling::PerNode] {
+            let h = FisHeader {
+                samples: [37, 29],
+                spacing: 4,
+                scaling,
+                height_step: 1.0 / 1000.0,
+                scaling_bits: 6,
+                max_scaling: 0.9,
+            };
+            let [nx, ny] = h.nodes();
+            let p = FisParams {
+                heights: (0..nx * ny).map(|i| (i * 377 % 1000) as i32).collect(),
+                scalings: (0..h.parameters())
+                    .map(|i| (i as i32 * 7 % 61) - 30)
+                    .collect(),
+            };
+            crate::core::pieces::tests::agree(
+                &FisOperator::new(&h, &p).unwrap(),
+                &format!("{scaling:?}"),
+            );
+        }
     }
 }

@@ -1,0 +1,9 @@
+//! The quadtree partitioned IFS (Jacquin; Fisher): square ranges from a quadtree, each mapped
+//! from a domain of twice its side by one of 8 isometries, with a contrast and an offset (or a
+//! planar offset). The flow: [`partition`] splits the frame and [`search`] finds each range's
+//! map; [`stream`] codes the tree and the maps; [`operator`] states them in the operator form.
+
+pub mod operator;
+pub mod partition;
+pub mod search;
+pub mod stream;

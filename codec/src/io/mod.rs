@@ -1,0 +1,6 @@
+//! Files in and out: input rasters (images, GeoTIFF and PNG DEMs) and the asset container,
+//! which depends on the codecs whose payloads it holds. (Meshes, which the 3D codec itself
+//! works on, are [`crate::mesh`].)
+
+pub mod asset;
+pub mod raster;
