@@ -126,13 +126,13 @@ async fn the_decoding_backend_is_the_clients_to_ask_for() {
     let req = TileRequest::new(t, TileEncoding::F32);
     let cpu = c
         .clone()
-        .with_backend(Some("cpu"))
+        .with_backend(Some(fractile_client::Backend::Cpu))
         .tile("jacksboro", &req)
         .await
         .unwrap();
     let auto = c
         .clone()
-        .with_backend(Some("auto"))
+        .with_backend(Some(fractile_client::Backend::Auto))
         .tile("jacksboro", &req)
         .await
         .unwrap();
@@ -140,7 +140,7 @@ async fn the_decoding_backend_is_the_clients_to_ask_for() {
     // The test server has no GPU: asking for one is refused with the server's reason.
     let e = c
         .clone()
-        .with_backend(Some("gpu"))
+        .with_backend(Some(fractile_client::Backend::Gpu))
         .tile("jacksboro", &req)
         .await
         .unwrap_err();
@@ -152,7 +152,7 @@ async fn the_decoding_backend_is_the_clients_to_ask_for() {
     };
     let e = c
         .clone()
-        .with_backend(Some("gpu"))
+        .with_backend(Some(fractile_client::Backend::Gpu))
         .points("jacksboro", &pts, PointsEncoding::Binary)
         .await
         .unwrap_err();

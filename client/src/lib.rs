@@ -16,6 +16,7 @@ pub mod view;
 use std::time::{Duration, Instant};
 
 pub use error::ClientError;
+pub use fractile_proto::query::{Backend, Choice, MeshFormat, RegionFormat};
 pub use fractile_proto::{
     AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, ErrorBody, PointResult,
     PointsRequest, PointsResponse, TileJson,
@@ -29,7 +30,7 @@ pub struct Client {
     http: reqwest::Client,
     base: String,
     token: Option<String>,
-    backend: Option<String>,
+    backend: Option<Backend>,
 }
 
 /// How a points batch travels: JSON (readable) or proto's binary encoding (about 3x smaller and
@@ -41,28 +42,6 @@ pub enum PointsEncoding {
     Json,
     /// `application/x-bincode`.
     Binary,
-}
-
-/// Format of a region answer.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum RegionFormat {
-    /// A visual PNG (heights as grey over their range).
-    #[default]
-    Png,
-    /// Little-endian float32 values, channel after channel, row-major, NaN for nodata.
-    F32,
-    /// A float32 GeoTIFF georeferenced to the box (height fields).
-    Tif,
-}
-
-impl RegionFormat {
-    fn name(self) -> &'static str {
-        match self {
-            RegionFormat::Png => "png",
-            RegionFormat::F32 => "f32",
-            RegionFormat::Tif => "tif",
-        }
-    }
 }
 
 /// A window of an asset sampled on a `width x height` grid of pixel centres.
@@ -95,29 +74,6 @@ pub struct Region {
     pub values: Option<Vec<Vec<f32>>>,
     /// The server's a-priori error bound (value units).
     pub error_bound: f32,
-}
-
-/// Format of a terrain mesh.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum MeshFormat {
-    /// Binary glTF.
-    #[default]
-    Glb,
-    /// Wavefront OBJ.
-    Obj,
-    /// Binary PLY.
-    Ply,
-}
-
-impl MeshFormat {
-    /// The format's name in the API and its file extension.
-    pub fn name(self) -> &'static str {
-        match self {
-            MeshFormat::Glb => "glb",
-            MeshFormat::Obj => "obj",
-            MeshFormat::Ply => "ply",
-        }
-    }
 }
 
 /// A terrain mesh request: a regular grid of `resolution x resolution` vertices.
@@ -175,16 +131,12 @@ pub struct Uploaded {
 }
 
 /// Appends `?a=b&c=d` for the parameters that are set.
-fn query(params: &[(&str, Option<String>)]) -> String {
-    let set: Vec<String> = params
+/// The parameters that are set, for reqwest's `.query()` (which percent-encodes them).
+fn query(params: &[(&'static str, Option<String>)]) -> Vec<(&'static str, String)> {
+    params
         .iter()
-        .filter_map(|(k, v)| v.as_ref().map(|v| format!("{k}={v}")))
-        .collect();
-    if set.is_empty() {
-        String::new()
-    } else {
-        format!("?{}", set.join("&"))
-    }
+        .filter_map(|(k, v)| v.clone().map(|v| (*k, v)))
+        .collect()
 }
 
 fn bbox(b: [f64; 4]) -> String {
@@ -231,11 +183,11 @@ impl Client {
         self
     }
 
-    /// The same client asking the server to decode on `backend` (`cpu`, `gpu` or `auto`; `None`:
-    /// the server's setting) for every tile, region, mesh and points batch. A clone is cheap, so
-    /// one request can use its own.
-    pub fn with_backend(mut self, backend: Option<&str>) -> Client {
-        self.backend = backend.map(str::to_string);
+    /// The same client asking the server to decode on `backend` (`None`: the server's setting)
+    /// for every tile, region, mesh and points batch. A clone is cheap, so one request can use
+    /// its own.
+    pub fn with_backend(mut self, backend: Option<Backend>) -> Client {
+        self.backend = backend;
         self
     }
 
@@ -272,7 +224,15 @@ impl Client {
     }
 
     async fn get_json<T: serde::de::DeserializeOwned>(&self, path: &str) -> Result<T, ClientError> {
-        let r = self.send(self.http.get(self.url(path))).await?;
+        self.get_json_query(path, &[]).await
+    }
+
+    async fn get_json_query<T: serde::de::DeserializeOwned>(
+        &self,
+        path: &str,
+        q: &[(&'static str, String)],
+    ) -> Result<T, ClientError> {
+        let r = self.send(self.http.get(self.url(path)).query(q)).await?;
         let bytes = r.bytes().await.map_err(ClientError::Transport)?;
         serde_json::from_slice(&bytes).map_err(|e| ClientError::malformed(path, e.to_string()))
     }
@@ -354,22 +314,22 @@ impl Client {
         } else {
             "png"
         };
-        let rest = format!(
-            "/tiles/{z}/{x}/{y}.{ext}{}",
-            query(&[
-                ("encoding", req.encoding.query_name().map(str::to_string)),
-                ("iterations", req.iterations.map(|n| n.to_string())),
-                ("tolerance", req.tolerance.map(|t| t.to_string())),
-                (
-                    "tilesize",
-                    (req.tile_size != 256).then(|| req.tile_size.to_string())
-                ),
-                ("backend", self.backend.clone()),
-            ])
-        );
-        let path = self.asset_path(id, &rest)?;
+        let q = query(&[
+            (
+                "encoding",
+                req.encoding.query_name().map(|e| e.name().to_string()),
+            ),
+            ("iterations", req.iterations.map(|n| n.to_string())),
+            ("tolerance", req.tolerance.map(|t| t.to_string())),
+            (
+                "tilesize",
+                (req.tile_size != 256).then(|| req.tile_size.to_string()),
+            ),
+            ("backend", self.backend.map(|b| b.name().to_string())),
+        ]);
+        let path = self.asset_path(id, &format!("/tiles/{z}/{x}/{y}.{ext}"))?;
         let start = Instant::now();
-        let r = self.send(self.http.get(self.url(&path))).await?;
+        let r = self.send(self.http.get(self.url(&path)).query(&q)).await?;
         let error_bound = error_bound(&r)?;
         let etag = r
             .headers()
@@ -394,7 +354,7 @@ impl Client {
         iterations: Option<u32>,
     ) -> Result<PointResult, ClientError> {
         let q = query(&[("iterations", iterations.map(|n| n.to_string()))]);
-        self.get_json(&self.asset_path(id, &format!("/point/{lon},{lat}{q}"))?)
+        self.get_json_query(&self.asset_path(id, &format!("/point/{lon},{lat}"))?, &q)
             .await
     }
 
@@ -411,7 +371,7 @@ impl Client {
             ("y", Some(y.to_string())),
             ("iterations", iterations.map(|n| n.to_string())),
         ]);
-        self.get_json(&self.asset_path(id, &format!("/point{q}"))?)
+        self.get_json_query(&self.asset_path(id, "/point")?, &q)
             .await
     }
 
@@ -429,7 +389,7 @@ impl Client {
             ("z", Some(p[2].to_string())),
             ("iterations", iterations.map(|n| n.to_string())),
         ]);
-        self.get_json(&self.asset_path(id, &format!("/point{q}"))?)
+        self.get_json_query(&self.asset_path(id, "/point")?, &q)
             .await
     }
 
@@ -442,7 +402,7 @@ impl Client {
         level: Option<usize>,
     ) -> Result<serde_json::Value, ClientError> {
         let q = query(&[("level", level.map(|n| n.to_string()))]);
-        self.get_json(&self.asset_path(id, &format!("/curve{q}"))?)
+        self.get_json_query(&self.asset_path(id, "/curve")?, &q)
             .await
     }
 
@@ -467,11 +427,11 @@ impl Client {
         req: &PointsRequest,
         encoding: PointsEncoding,
     ) -> Result<PointsResponse, ClientError> {
-        let rest = format!("/points{}", query(&[("backend", self.backend.clone())]));
-        let url = self.url(&self.asset_path(id, &rest)?);
+        let q = query(&[("backend", self.backend.map(|b| b.name().to_string()))]);
+        let url = self.url(&self.asset_path(id, "/points")?);
         match encoding {
             PointsEncoding::Json => {
-                let r = self.send(self.http.post(url).json(req)).await?;
+                let r = self.send(self.http.post(url).query(&q).json(req)).await?;
                 let bytes = r.bytes().await.map_err(ClientError::Transport)?;
                 serde_json::from_slice(&bytes)
                     .map_err(|e| ClientError::malformed("points answer", e.to_string()))
@@ -481,6 +441,7 @@ impl Client {
                     .send(
                         self.http
                             .post(url)
+                            .query(&q)
                             .header(header::CONTENT_TYPE, BINARY_MEDIA_TYPE)
                             .header(header::ACCEPT, BINARY_MEDIA_TYPE)
                             .body(fractile_proto::encode(req)),
@@ -502,12 +463,13 @@ impl Client {
             ("iterations", req.iterations.map(|n| n.to_string())),
             ("tolerance", req.tolerance.map(|t| t.to_string())),
             ("format", Some(req.format.name().to_string())),
-            ("backend", self.backend.clone()),
+            ("backend", self.backend.map(|b| b.name().to_string())),
         ]);
         let r = self
             .send(
                 self.http
-                    .get(self.url(&self.asset_path(id, &format!("/region{q}"))?)),
+                    .get(self.url(&self.asset_path(id, "/region")?))
+                    .query(&q),
             )
             .await?;
         let bound = error_bound(&r)?;
@@ -546,7 +508,7 @@ impl Client {
             ("tolerance", req.tolerance.map(|t| t.to_string())),
             ("max_error", req.max_error.map(|e| e.to_string())),
             ("format", Some(req.format.name().to_string())),
-            ("backend", self.backend.clone()),
+            ("backend", self.backend.map(|b| b.name().to_string())),
         ]);
         self.get_mesh(id, &q).await
     }
@@ -571,16 +533,21 @@ impl Client {
             ("iterations", req.iterations.map(|n| n.to_string())),
             ("tolerance", req.tolerance.map(|t| t.to_string())),
             ("format", Some(req.format.name().to_string())),
-            ("backend", self.backend.clone()),
+            ("backend", self.backend.map(|b| b.name().to_string())),
         ]);
         self.get_mesh(id, &q).await
     }
 
-    async fn get_mesh(&self, id: &str, q: &str) -> Result<MeshFile, ClientError> {
+    async fn get_mesh(
+        &self,
+        id: &str,
+        q: &[(&'static str, String)],
+    ) -> Result<MeshFile, ClientError> {
         let r = self
             .send(
                 self.http
-                    .get(self.url(&self.asset_path(id, &format!("/mesh{q}"))?)),
+                    .get(self.url(&self.asset_path(id, "/mesh")?))
+                    .query(q),
             )
             .await?;
         let bound = error_bound(&r)?;

@@ -38,8 +38,8 @@ struct Cli {
     )]
     token: Option<String>,
     /// Ask the server to decode on cpu, gpu or auto (default: the server's setting).
-    #[arg(long, global = true, value_parser = ["cpu", "gpu", "auto"])]
-    backend: Option<String>,
+    #[arg(long, global = true)]
+    backend: Option<fractile_client::Backend>,
     /// Print machine-readable JSON (with --refine: one object per step).
     #[arg(long, global = true)]
     json: bool,
@@ -390,7 +390,7 @@ async fn main() -> Result<()> {
     let cli = Cli::parse();
     let client = Client::new(&cli.server)?
         .with_token(cli.token.clone())
-        .with_backend(cli.backend.as_deref());
+        .with_backend(cli.backend);
     let json = cli.json;
     match cli.command {
         Command::Assets => {

@@ -69,11 +69,12 @@ pub enum TileEncoding {
 
 impl TileEncoding {
     /// The `encoding=` value, if any.
-    pub(crate) fn query_name(self) -> Option<&'static str> {
+    pub(crate) fn query_name(self) -> Option<fractile_proto::query::HeightEncoding> {
+        use fractile_proto::query::HeightEncoding;
         match self {
-            TileEncoding::Terrarium => Some("terrarium"),
-            TileEncoding::TerrainRgb => Some("terrainrgb"),
-            TileEncoding::Gray16 => Some("gray16"),
+            TileEncoding::Terrarium => Some(HeightEncoding::Terrarium),
+            TileEncoding::TerrainRgb => Some(HeightEncoding::TerrainRgb),
+            TileEncoding::Gray16 => Some(HeightEncoding::Gray16),
             TileEncoding::Visual | TileEncoding::F32 => None,
         }
     }

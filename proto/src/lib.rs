@@ -7,6 +7,7 @@ pub mod asset;
 pub mod catalog;
 pub mod curve;
 pub mod points;
+pub mod query;
 pub mod tiles;
 pub mod wire;
 

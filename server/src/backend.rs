@@ -9,7 +9,6 @@
 //! Operators are uploaded on first use and stay resident in an LRU cache bounded in bytes
 //! (`gpu_memory_mib`); an asset replaced by upload has a new hash, hence new entries.
 
-use std::str::FromStr;
 use std::sync::Arc;
 
 use fractile_codec::core::decode::PointValue;
@@ -22,29 +21,8 @@ use crate::store::StoredAsset;
 /// Smallest continuous decode `auto` sends to a hardware GPU: one 256 x 256 tile.
 pub const AUTO_POINTS: usize = 256 * 256;
 
-/// A backend choice.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum Backend {
-    /// Always the CPU.
-    Cpu,
-    /// The GPU for every continuous decode.
-    Gpu,
-    /// The GPU when it pays (see the module docs).
-    #[default]
-    Auto,
-}
-
-impl FromStr for Backend {
-    type Err = String;
-    fn from_str(s: &str) -> Result<Backend, String> {
-        match s {
-            "cpu" => Ok(Backend::Cpu),
-            "gpu" => Ok(Backend::Gpu),
-            "auto" => Ok(Backend::Auto),
-            _ => Err(format!("backend {s:?}: cpu, gpu or auto")),
-        }
-    }
-}
+/// A backend choice: the API's own vocabulary (`cpu`, `gpu`, `auto`), from `fractile-proto`.
+pub use fractile_proto::query::Backend;
 
 /// The server's GPU: the device and its resident operators.
 pub struct GpuBackend {

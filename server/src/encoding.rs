@@ -4,16 +4,8 @@
 use fractile_codec::render::Colormap;
 use fractile_proto::{AssetKind, AssetMeta};
 
-/// How a height tile is packed into a PNG.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub enum HeightEncoding {
-    /// Mapbox/MapLibre terrain-RGB: `h = -10000 + (R * 65536 + G * 256 + B) * 0.1`.
-    TerrainRgb,
-    /// Terrarium: `h = (R * 256 + G + B / 256) - 32768`.
-    Terrarium,
-    /// 16-bit grey of the asset's value range.
-    Gray16,
-}
+/// How a height tile is packed into a PNG: the API's `encoding`, from `fractile-proto`.
+pub use fractile_proto::query::HeightEncoding;
 
 /// What a tile or region answer is.
 #[derive(Clone, Copy, Debug, PartialEq)]

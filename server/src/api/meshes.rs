@@ -1,5 +1,7 @@
 //! Meshes: a terrain grid or adaptive triangulation of a region, or the surface of a volume in a box.
 
+use fractile_proto::query::MeshFormat;
+
 use super::*;
 
 #[derive(Deserialize)]
@@ -55,13 +57,7 @@ pub(super) async fn mesh(
         Some(_) => (n - 1).next_power_of_two() + 1,
         None => n,
     };
-    let format = q.format.unwrap_or_else(|| "glb".into());
-    if !matches!(format.as_str(), "obj" | "ply" | "glb") {
-        return Err(AppError::bad_request(
-            "bad_format",
-            "format must be obj, ply or glb",
-        ));
-    }
+    let format = mesh_format(q.format.as_deref())?;
     let [x0, y0, x1, y1] = match &q.bbox {
         Some(b) => parse_bbox(b)?,
         None => match &a.placement {
@@ -131,22 +127,34 @@ pub(super) async fn mesh(
                 }
                 None => fractile_codec::mesh::Mesh::grid(&channels[0], n, n, origin, spacing),
             };
-            Ok(mesh_body(m, &format, bound + max_error.unwrap_or(0.0)))
+            Ok(mesh_body(m, format, bound + max_error.unwrap_or(0.0)))
         })
         .await
+}
+
+/// `format` (glb when absent).
+fn mesh_format(format: Option<&str>) -> Result<MeshFormat, AppError> {
+    format
+        .map(str::parse)
+        .unwrap_or(Ok(MeshFormat::default()))
+        .map_err(|_: String| AppError::bad_request("bad_format", "format must be obj, ply or glb"))
 }
 
 /// The head and writer of a mesh answer in `format` (obj, ply or glb): text and PLY are
 /// written as they stream; GLB, whose header holds its length, is built whole (it is the
 /// compact one, about 24 bytes a vertex).
-fn mesh_body(m: fractile_codec::mesh::Mesh, format: &str, error_bound: f32) -> (Head, BodyWriter) {
+fn mesh_body(
+    m: fractile_codec::mesh::Mesh,
+    format: MeshFormat,
+    error_bound: f32,
+) -> (Head, BodyWriter) {
     let (content_type, writer): (&'static str, BodyWriter) = match format {
-        "obj" => ("text/plain", Box::new(move |w| m.write_obj(w))),
-        "ply" => (
+        MeshFormat::Obj => ("text/plain", Box::new(move |w| m.write_obj(w))),
+        MeshFormat::Ply => (
             "application/octet-stream",
             Box::new(move |w| m.write_ply(w)),
         ),
-        _ => (
+        MeshFormat::Glb => (
             "model/gltf-binary",
             Box::new(move |w: &mut dyn std::io::Write| w.write_all(&m.to_glb())),
         ),
@@ -184,13 +192,7 @@ async fn volume_mesh(
             "resolution must be 2..=512 samples along the box's longest side",
         ));
     }
-    let format = q.format.unwrap_or_else(|| "glb".into());
-    if !matches!(format.as_str(), "obj" | "ply" | "glb") {
-        return Err(AppError::bad_request(
-            "bad_format",
-            "format must be obj, ply or glb",
-        ));
-    }
+    let format = mesh_format(q.format.as_deref())?;
     let bbox = match &q.bbox {
         None => None,
         Some(b) => {
@@ -256,7 +258,7 @@ async fn volume_mesh(
                 .asset
                 .volume_mesh_with(bbox, n, iterations, tolerance, Some(&on_gpu))
                 .map_err(|e| AppError::bad_request("bad_request", e.to_string()))?;
-            Ok(mesh_body(m, &format, bound))
+            Ok(mesh_body(m, format, bound))
         })
         .await
 }

@@ -1,5 +1,7 @@
 //! Regions: a window of an asset at any resolution, as PNG, float32 or GeoTIFF.
 
+use fractile_proto::query::RegionFormat;
+
 use super::*;
 
 #[derive(Deserialize)]
@@ -11,14 +13,6 @@ pub(super) struct RegionQuery {
     tolerance: Option<f32>,
     backend: Option<String>,
     format: Option<String>,
-}
-
-/// What a region answers in.
-#[derive(Clone, Copy, PartialEq)]
-enum RegionFormat {
-    Png,
-    F32,
-    Tif,
 }
 
 pub(super) async fn region(
@@ -92,15 +86,18 @@ pub(super) async fn region(
 
 /// `format` (png when absent), if the asset has it.
 fn region_format(a: &StoredAsset, format: Option<&str>) -> Result<RegionFormat, AppError> {
-    match format.unwrap_or("png") {
-        "png" => Ok(RegionFormat::Png),
-        "f32" => Ok(RegionFormat::F32),
-        "tif" if a.asset.meta.kind == AssetKind::HeightField => Ok(RegionFormat::Tif),
-        "tif" => Err(AppError::bad_request(
-            "bad_format",
-            "GeoTIFF regions are for height fields (use png)",
-        )),
-        _ => Err(AppError::bad_request(
+    match format
+        .map(str::parse)
+        .unwrap_or(Ok(RegionFormat::default()))
+    {
+        Ok(RegionFormat::Tif) if a.asset.meta.kind != AssetKind::HeightField => {
+            Err(AppError::bad_request(
+                "bad_format",
+                "GeoTIFF regions are for height fields (use png)",
+            ))
+        }
+        Ok(f) => Ok(f),
+        Err(_) => Err(AppError::bad_request(
             "bad_format",
             "format must be png, f32 or tif",
         )),

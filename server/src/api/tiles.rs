@@ -1,5 +1,7 @@
 //! TileJSON and tiles: Web Mercator (or unit-square) tiles by continuous extraction, cached by ETag.
 
+use fractile_proto::query::Colormap;
+
 use super::*;
 
 /// Zoom at which a tile pixel is about the size of a source cell (deeper zooms decode detail the
@@ -195,14 +197,12 @@ fn tile_job(
     let visual_heights = heights && ext == "png" && q.encoding.is_none();
     let colormap = match q.colormap.as_deref() {
         None => None,
-        Some(name) if visual_heights => Some(
-            fractile_codec::render::Colormap::parse(name).ok_or_else(|| {
-                AppError::bad_request(
-                    "bad_colormap",
-                    format!("unknown colormap {name:?} (gray, terrain, viridis)"),
-                )
-            })?,
-        ),
+        Some(name) if visual_heights => Some(ramp(name.parse().map_err(|_| {
+            AppError::bad_request(
+                "bad_colormap",
+                format!("unknown colormap {name:?} (gray, terrain, viridis)"),
+            )
+        })?)),
         Some(_) => {
             return Err(AppError::bad_request(
                 "bad_colormap",
@@ -230,6 +230,15 @@ fn tile_job(
     })
 }
 
+/// The renderer's colour ramp of the API's `colormap`.
+fn ramp(c: Colormap) -> fractile_codec::render::Colormap {
+    match c {
+        Colormap::Gray => fractile_codec::render::Colormap::Gray,
+        Colormap::Terrain => fractile_codec::render::Colormap::Terrain,
+        Colormap::Viridis => fractile_codec::render::Colormap::Viridis,
+    }
+}
+
 /// What the tile's extension and `encoding` ask for, if the asset has it.
 fn tile_format(
     ext: &str,
@@ -245,13 +254,9 @@ fn tile_format(
                 "f32 tiles are for height fields",
             ));
         }
-        ("png", true, Some("terrainrgb")) => {
-            encoding::TileFormat::Heights(HeightEncoding::TerrainRgb)
+        ("png", true, Some(e)) if e.parse::<HeightEncoding>().is_ok() => {
+            encoding::TileFormat::Heights(e.parse().expect("checked"))
         }
-        ("png", true, Some("terrarium")) => {
-            encoding::TileFormat::Heights(HeightEncoding::Terrarium)
-        }
-        ("png", true, Some("gray16")) => encoding::TileFormat::Heights(HeightEncoding::Gray16),
         ("png", true, None) => encoding::TileFormat::Visual(parse_rescale(&q.rescale, a)?),
         ("png", false, None) => encoding::TileFormat::Visual(None),
         ("png", _, Some(e)) => {
