@@ -1,7 +1,9 @@
 //! The OpenAPI 3.1 description of the HTTP API, served at `/v1/openapi.json`. Written by hand
-//! (a derive crate would need annotations on every handler and type for the same result); a test
-//! requests every documented path to keep this document and the router in step.
+//! (a derive crate would need annotations on every handler and type for the same result). Tests
+//! keep it and the router in step both ways: every documented path is requested, and every
+//! route of `api::router` must be documented; closed choices come from `fractile-proto`.
 
+use fractile_proto::query::{Backend, Choice, Colormap, HeightEncoding, MeshFormat, RegionFormat};
 use serde_json::{Value, json};
 
 fn param(name: &str, place: &str, schema: Value, description: &str) -> Value {
@@ -13,6 +15,11 @@ fn error_responses() -> Value {
         "400": {"$ref": "#/components/responses/Error"},
         "404": {"$ref": "#/components/responses/Error"}
     })
+}
+
+/// A closed choice's names, from `fractile-proto` (what the handlers parse and the client writes).
+fn names<C: Choice>() -> Vec<&'static str> {
+    C::ALL.iter().map(|c| c.name()).collect()
 }
 
 /// The document.
@@ -38,7 +45,7 @@ pub fn document() -> Value {
     let backend = param(
         "backend",
         "query",
-        json!({"enum": ["cpu", "gpu", "auto"]}),
+        json!({"enum": names::<Backend>()}),
         "Where continuous decoding runs (default: the server's setting; gpu on a server without an adapter is 400 gpu_unavailable)",
     );
     let mut ok_tile = error_responses();
@@ -73,9 +80,9 @@ pub fn document() -> Value {
                     tolerance.clone(),
                     backend.clone(),
                     param("tilesize", "query", json!({"enum": [256, 512]}), "Tile size"),
-                    param("encoding", "query", json!({"enum": ["terrainrgb", "terrarium", "gray16"]}), "Height packing (MapLibre's formulas)"),
+                    param("encoding", "query", json!({"enum": names::<HeightEncoding>()}), "Height packing (MapLibre's formulas)"),
                     param("rescale", "query", json!({"type": "string"}), "min,max for visual PNGs of heights"),
-                    param("colormap", "query", json!({"enum": ["gray", "terrain", "viridis"]}), "Colour ramp for visual PNGs of heights"),
+                    param("colormap", "query", json!({"enum": names::<Colormap>()}), "Colour ramp for visual PNGs of heights"),
                     param("hillshade", "query", json!({"type": "boolean"}), "Hillshade visual PNGs of heights (sun at 315 degrees, 45 degrees up)")],
                 "responses": ok_tile}},
             "/v1/assets/{id}/point": {"get": {"summary": "Value at a unit point (non-georeferenced assets); for volumes, the signed distance at world point x, y, z (DistanceResult)", "parameters": [id, param("x", "query", json!({"type": "number"}), "0..1 (volumes: world units)"), param("y", "query", json!({"type": "number"}), "0..1 (volumes: world units)"), param("z", "query", json!({"type": "number"}), "volumes only: world units"), iterations.clone(), tolerance.clone()],
@@ -88,13 +95,13 @@ pub fn document() -> Value {
             "/v1/assets/{id}/region": {"get": {"summary": "A window at any resolution", "parameters": [id,
                     param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (lon/lat, or unit coordinates)"),
                     param("width", "query", json!({"type": "integer"}), "pixels"), param("height", "query", json!({"type": "integer"}), "pixels"),
-                    iterations.clone(), tolerance.clone(), backend.clone(), param("format", "query", json!({"enum": ["png", "f32", "tif"]}), "output (tif: float32 GeoTIFF of heights)")],
+                    iterations.clone(), tolerance.clone(), backend.clone(), param("format", "query", json!({"enum": names::<RegionFormat>()}), "output (tif: float32 GeoTIFF of heights)")],
                 "responses": {"200": {"description": "image or float32 samples (streamed)"}, "400": {"$ref": "#/components/responses/Error"}, "413": {"description": "too_expensive: the request needs more memory than the server's max_decode_mib", "$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/mesh": {"get": {"summary": "Terrain mesh of a region (a regular grid, or with max_error an adaptive right-triangulated irregular network), or the surface of a volume in a box (marching over the continuous decode)", "parameters": [id,
                     param("bbox", "query", json!({"type": "string"}), "minx,miny,maxx,maxy (volumes: x0,y0,z0,x1,y1,z1 in the mesh's units; default: the whole asset)"),
                     param("resolution", "query", json!({"type": "integer", "minimum": 2, "maximum": 2048}), "vertices a side (volumes: samples along the box's longest side, at most 512, default the encoded grid)"),
                     param("max_error", "query", json!({"type": "number", "minimum": 0}), "height fields: an adaptive triangulation of the next 2^k + 1 grid whose surface stays within this many height units of every decoded height (added to X-Error-Bound)"),
-                    iterations, tolerance, backend, param("format", "query", json!({"enum": ["obj", "ply", "glb"]}), "file format")],
+                    iterations, tolerance, backend, param("format", "query", json!({"enum": names::<MeshFormat>()}), "file format")],
                 "responses": {"200": {"description": "mesh file (streamed)"}, "400": {"$ref": "#/components/responses/Error"}, "413": {"description": "too_expensive: the request needs more memory than the server's max_decode_mib", "$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/curve": {"get": {"summary": "A curve asset as GeoJSON at any level: one LineString Feature per input ring, in order; the foreign member `fractile` gives the level, the finest level and the Hausdorff error bound (in `units`)", "parameters": [id,
                     param("level", "query", json!({"type": "integer", "minimum": 0}), "0 is the coarsest; default the input's finest; deeper levels continue the details self-similarly"),

@@ -801,6 +801,60 @@ async fn every_documented_path_is_routed() {
     }
 }
 
+/// The other way: every route of the router (read from its source, `api/mod.rs`) is documented,
+/// with every method it answers.
+#[tokio::test]
+async fn every_route_is_documented() {
+    let (_, _, b) = get("/v1/openapi.json").await;
+    let doc = json(&b);
+    let src = std::fs::read_to_string(
+        std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("src/api/mod.rs"),
+    )
+    .unwrap();
+    let router = &src[src.find("pub fn router(").expect("the router")..];
+    let router = &router[..router.find("\n}\n").expect("the router's end")];
+    let mut routes = 0;
+    for part in router.split(".route(").skip(1) {
+        let path = part.split('"').nth(1).expect("a route's path");
+        // The tile route names its last segment {tile} ({y}.{format} in the document).
+        let documented = path.replace("{tile}", "{y}.{format}");
+        let ops = doc["paths"][&documented]
+            .as_object()
+            .unwrap_or_else(|| panic!("route {path} is not documented"));
+        // The methods the route's handler chain names, up to the next route.
+        let chain = part.split(".route(").next().unwrap();
+        for method in ["get", "put", "post", "delete"] {
+            if chain.contains(&format!("{method}(")) || chain.contains(&format!(".{method}(")) {
+                assert!(
+                    ops.contains_key(method),
+                    "{method} {path} is not documented"
+                );
+            }
+        }
+        routes += 1;
+    }
+    assert!(routes >= 14, "{routes} routes found");
+    // Closed choices name what the server parses.
+    let tile = &doc["paths"]["/v1/assets/{id}/tiles/{z}/{x}/{y}.{format}"]["get"]["parameters"];
+    let backend = tile
+        .as_array()
+        .unwrap()
+        .iter()
+        .find(|p| p["name"] == "backend")
+        .unwrap();
+    for name in backend["schema"]["enum"].as_array().unwrap() {
+        let (s, _, _) = get(&format!(
+            "/v1/assets/camera/tiles/0/0/0.png?backend={}",
+            name.as_str().unwrap()
+        ))
+        .await;
+        assert!(
+            s == StatusCode::OK || s == StatusCode::BAD_REQUEST,
+            "{name}: {s}"
+        );
+    }
+}
+
 #[tokio::test]
 async fn visual_tiles_with_colormap_and_hillshade() {
     let (x, y) = geo::lonlat_tile(12, -84.25, 36.6);
