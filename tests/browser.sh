@@ -1,11 +1,11 @@
 #!/usr/bin/env bash
 # End-to-end test of the web viewer: starts a release server on loopback with the demo assets,
-# loads the page in headless Chromium (Debian's `chromium`, software WebGL through SwiftShader),
-# and checks the screenshot (each of the three maps draws more than its background:
-# `browser-pixels`, tests/pixels.rs), that the maps loaded tiles from the server, and that the
-# page logged no error.
-# Bounded: the browser gets 30 s of virtual time and 120 s of wall time; the server is stopped
-# on exit. Prints a closing "N passed, N failed" line.
+# loads the page in headless Chromium (Debian's `chromium`, software WebGL through SwiftShader)
+# through tests/browser.py, which waits until the page says its three maps are idle and the coast
+# is in, and checks the screenshot (each map draws more than its background: `browser-pixels`,
+# tests/pixels.rs), that the maps loaded tiles from the server, and that the page logged no
+# error. Bounded: the page gets 90 s to get there; the server is stopped on exit. Prints a
+# closing "N passed, N failed" line.
 set -euo pipefail
 cd "$(dirname "$0")/.."
 command -v chromium >/dev/null || { echo "chromium is needed (apt-get install chromium)" >&2; exit 1; }
@@ -26,31 +26,17 @@ pass=0; fail=0
 check() { if eval "$2"; then pass=$((pass + 1)); echo "ok: $1"; else fail=$((fail + 1)); echo "FAILED: $1"; fi; }
 
 URL="http://127.0.0.1:$PORT/${PAGE_QUERY:-}"
-load() {
-  timeout 120 chromium --headless=new --no-sandbox --disable-background-networking \
-    --disable-component-update --disable-sync --no-first-run --disable-quic \
-    --user-data-dir="$WORK/profile-$1" --use-angle=swiftshader --enable-unsafe-swiftshader \
-    --window-size=1200,700 --virtual-time-budget=30000 \
-    --screenshot="$WORK/shot-$1.png" --dump-dom "$URL" 2>/dev/null || true
-}
 # The page (server/web/index.html): a 48 px bar, then three 400 px wide maps, each with a label
 # at its top (64 px with two lines) and the attribution at its bottom (40 px). A map that drew
 # nothing is one flat colour: 20% of the terrain and image panels and 0.1% of the coast panel
 # (a 1.2 px line around Great Britain is ~1.3%) must differ from it.
+idle=0
+python3 tests/browser.py "$URL" "$WORK" 90 && idle=1
+DOM=$(cat "$WORK/dom.html" 2>/dev/null || true)
 pixels() {
-  [ -s "$WORK/shot-$1.png" ] &&
-    target/release/browser-pixels "$WORK/shot-$1.png" 48 64 40 terrain:0.2 image:0.2 coast:0.001
+  [ -s "$WORK/shot.png" ] &&
+    target/release/browser-pixels "$WORK/shot.png" 48 64 40 terrain:0.2 image:0.2 coast:0.001
 }
-# Headless Chromium on a busy 2-core machine sometimes takes its screenshot before a map has
-# drawn: one more load, said aloud, before judging.
-DOM=$(load 1)
-SHOT=1
-if ! pixels 1 >/dev/null || ! grep -q 'data-tiles="[1-9]' <<<"$DOM"; then
-  echo "first load: a map drew nothing or no tiles were asked; loading the page once more"
-  pixels 1 || true
-  DOM=$(load 2)
-  SHOT=2
-fi
 STATUS=$(grep -o '<span id="status"[^>]*>[^<]*' <<<"$DOM" || true)
 echo "page status: $STATUS"
 tiles=$(sed -n 's/.*data-tiles="\([0-9]*\)".*/\1/p' <<<"$STATUS")
@@ -61,7 +47,8 @@ errors=$(sed -n 's/.*data-errors="\([0-9]*\)".*/\1/p' <<<"$STATUS")
 served=$(curl -fs "http://127.0.0.1:$PORT/metrics" | awk '/^fractile_requests_total\{route="\/v1\/assets\/\{id\}\/tiles\/\{z\}\/\{x\}\/\{tile\}",status="200"\}/ {s += $2} END {print s + 0}')
 echo "tiles loaded by the page: ${tiles:-none}; tile requests the server answered: $served"
 check "the page rendered its status" '[ -n "$STATUS" ]'
-check "each map draws more than its background (screenshot)" 'pixels $SHOT'
+check "the page reported its three maps idle within 90 s" '[ "$idle" -eq 1 ]'
+check "each map draws more than its background (screenshot)" 'pixels'
 check "the terrain map loaded tiles" '[ "${terrain:-0}" -gt 0 ]'
 check "the image map loaded tiles" '[ "${image:-0}" -gt 0 ]'
 check "the coast map received the curve asset" '[ "${coast:-0}" -gt 0 ]'

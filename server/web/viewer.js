@@ -23,6 +23,62 @@
     if (!r.ok) throw new Error(`${r.url}: HTTP ${r.status}`);
     return r.json();
   };
+  // The curve asset: one level per zoom step, the input's finest level where a vertex
+  // spacing of ~0.1° (the 1:50m coastlines) is about 4 px (zoom 6), coarser out, finer in
+  // (past the source, the details continue self-similarly).
+  // The map is made once the first level has arrived, with the curve in its style: its first
+  // 'idle' then means the curve is drawn, not only that an empty map is. Its request goes out
+  // first, before the other maps' tiles take the browser's connections to the server.
+  const coastZoom = 4;
+  let coastFinest = null;
+  let coastShown = null;
+  const coastLevel = (zoom) => {
+    const finest = coastFinest === null ? 7 : coastFinest;
+    return Math.max(0, Math.min(finest + 3, finest + Math.round(zoom - 6)));
+  };
+  const curveAt = (level) => fetch(`${origin}/v1/assets/${coastline}/curve?level=${level}`).then(json).then((doc) => {
+    coastFinest = doc.fractile.finest_level;
+    coastShown = level;
+    const points = doc.features.reduce((n, f) => n + f.geometry.coordinates.length, 0);
+    status.dataset.coastPoints = String(points);
+    status.dataset.coastLevel = String(level);
+    const bound = doc.fractile.error_bound;
+    document.getElementById('coast-level').textContent =
+      `(level ${level} of ${doc.fractile.finest_level}, ${points} points` +
+      (bound === null ? ')' : `, within ${(bound * 111.195).toFixed(1)} km)`);
+    return doc;
+  });
+  const coastMap = curveAt(coastLevel(coastZoom)).then((doc) => {
+    const coast = new maplibregl.Map({
+      container: 'coast',
+      style: {
+        version: 8,
+        sources: { coast: { type: 'geojson', data: doc } },
+        layers: [
+          { id: 'sea', type: 'background', paint: { 'background-color': '#cfe3f0' } },
+          { id: 'coast', type: 'line', source: 'coast', paint: { 'line-color': '#20252b', 'line-width': 1.2 } },
+        ],
+      },
+      center: [-3, 54],
+      zoom: coastZoom,
+      renderWorldCopies: false,
+    });
+    coast.on('error', (e) => fail(e.error ? e.error.message : 'map error'));
+    const redraw = () => {
+      const level = coastLevel(coast.getZoom());
+      if (level === coastShown) return;
+      coastShown = level;
+      curveAt(level).then((doc) => {
+        coast.getSource('coast').setData(doc);
+        redraw();
+      }).catch((e) => fail(String(e)));
+    };
+    coast.once('load', redraw);
+    coast.on('zoomend', redraw);
+    return coast;
+  });
+  coastMap.catch((e) => fail(String(e)));
+
   // Both assets must exist: a missing one is an error on the page, not an empty map.
   fetch(`${origin}/v1/assets/${picture}`).then(json).catch((e) => fail(String(e)));
   fetch(`${origin}/v1/assets/${dem}`).then(json).then((meta) => {
@@ -66,61 +122,6 @@
         }
       });
     }
-    // The curve asset: one level per zoom step, the input's finest level where a vertex
-    // spacing of ~0.1° (the 1:50m coastlines) is about 4 px (zoom 6), coarser out, finer in
-    // (past the source, the details continue self-similarly).
-    // The map is made once the first level has arrived, with the curve in its style: its first
-    // 'idle' then means the curve is drawn, not only that an empty map is.
-    const coastZoom = 4;
-    let coastFinest = null;
-    let coastShown = null;
-    const coastLevel = (zoom) => {
-      const finest = coastFinest === null ? 7 : coastFinest;
-      return Math.max(0, Math.min(finest + 3, finest + Math.round(zoom - 6)));
-    };
-    const curveAt = (level) => fetch(`${origin}/v1/assets/${coastline}/curve?level=${level}`).then(json).then((doc) => {
-      coastFinest = doc.fractile.finest_level;
-      coastShown = level;
-      const points = doc.features.reduce((n, f) => n + f.geometry.coordinates.length, 0);
-      status.dataset.coastPoints = String(points);
-      status.dataset.coastLevel = String(level);
-      const bound = doc.fractile.error_bound;
-      document.getElementById('coast-level').textContent =
-        `(level ${level} of ${doc.fractile.finest_level}, ${points} points` +
-        (bound === null ? ')' : `, within ${(bound * 111.195).toFixed(1)} km)`);
-      return doc;
-    });
-    const coastMap = curveAt(coastLevel(coastZoom)).then((doc) => {
-      const coast = new maplibregl.Map({
-        container: 'coast',
-        style: {
-          version: 8,
-          sources: { coast: { type: 'geojson', data: doc } },
-          layers: [
-            { id: 'sea', type: 'background', paint: { 'background-color': '#cfe3f0' } },
-            { id: 'coast', type: 'line', source: 'coast', paint: { 'line-color': '#20252b', 'line-width': 1.2 } },
-          ],
-        },
-        center: [-3, 54],
-        zoom: coastZoom,
-        renderWorldCopies: false,
-      });
-      coast.on('error', (e) => fail(e.error ? e.error.message : 'map error'));
-      const redraw = () => {
-        const level = coastLevel(coast.getZoom());
-        if (level === coastShown) return;
-        coastShown = level;
-        curveAt(level).then((doc) => {
-          coast.getSource('coast').setData(doc);
-          redraw();
-        }).catch((e) => fail(String(e)));
-      };
-      coast.once('load', redraw);
-      coast.on('zoomend', redraw);
-      return coast;
-    });
-    coastMap.catch((e) => fail(String(e)));
-
     const maps = [Promise.resolve(terrain), Promise.resolve(image), coastMap];
     Promise.all(maps.map((m) => m.then((map) => new Promise((ok) => map.once('idle', ok))))).then(() => {
       status.dataset.loaded = 'true';
