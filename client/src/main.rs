@@ -97,135 +97,163 @@ enum Command {
     /// Delete an asset.
     Delete { id: String },
     /// Fetch a tile.
-    Tile {
-        id: String,
-        z: u8,
-        x: u32,
-        y: u32,
-        /// Output file.
-        #[arg(short, long)]
-        output: PathBuf,
-        /// png (visual), terrarium, terrainrgb, gray16 or f32 (default: f32 when the output
-        /// ends in .f32, png otherwise).
-        #[arg(long)]
-        encoding: Option<String>,
-        /// 256 or 512.
-        #[arg(long, default_value_t = 256)]
-        tile_size: u32,
-        #[command(flatten)]
-        refine: RefineArgs,
-    },
+    Tile(TileArgs),
     /// The value at one point (lon lat, or x y in unit coordinates with --unit).
-    Point {
-        id: String,
-        #[arg(allow_hyphen_values = true)]
-        lon: f64,
-        #[arg(allow_hyphen_values = true)]
-        lat: f64,
-        /// The coordinates are unit x, y (any asset), not lon, lat.
-        #[arg(long)]
-        unit: bool,
-        #[arg(long)]
-        iterations: Option<u32>,
-    },
+    Point(PointArgs),
     /// Values at the points of a CSV file (two columns: lon,lat or x,y; a header is skipped).
-    Points {
-        id: String,
-        file: PathBuf,
-        /// Write a CSV of the answers here (default: standard output).
-        #[arg(short, long)]
-        output: Option<PathBuf>,
-        /// Send the batch in the binary encoding.
-        #[arg(long)]
-        binary: bool,
-        #[command(flatten)]
-        refine: RefineArgs,
-    },
+    Points(PointsArgs),
     /// A window sampled on a grid.
-    Region {
-        id: String,
-        /// minx,miny,maxx,maxy (lon/lat, or unit coordinates).
-        #[arg(long, allow_hyphen_values = true)]
-        bbox: String,
-        #[arg(long, default_value_t = 512)]
-        width: u32,
-        #[arg(long, default_value_t = 512)]
-        height: u32,
-        /// png, f32 or tif.
-        #[arg(long, default_value = "png")]
-        format: String,
-        #[arg(short, long)]
-        output: PathBuf,
-        #[command(flatten)]
-        refine: RefineArgs,
-    },
+    Region(RegionArgs),
     /// A terrain mesh.
-    Mesh {
-        id: String,
-        #[arg(long, allow_hyphen_values = true)]
-        bbox: Option<String>,
-        /// Vertices a side.
-        #[arg(long)]
-        resolution: Option<u32>,
-        /// glb, obj or ply.
-        #[arg(long, default_value = "glb")]
-        format: String,
-        #[arg(long)]
-        iterations: Option<u32>,
-        /// An adaptive triangulation within this many height units of the decoded grid.
-        #[arg(long)]
-        max_error: Option<f32>,
-        #[arg(short, long)]
-        output: PathBuf,
-    },
+    Mesh(MeshArgs),
     /// View-dependent fetch: tiles of a region chosen by distance from a camera, nearest first.
-    View {
-        id: String,
-        /// lon,lat,height (metres above sea level).
-        #[arg(long, allow_hyphen_values = true)]
-        camera: String,
-        /// west,south,east,north (default: the asset's bounds).
-        #[arg(long, allow_hyphen_values = true)]
-        bbox: Option<String>,
-        /// Allowed screen-space error in pixels.
-        #[arg(long, default_value_t = 1.0)]
-        pixel_error: f64,
-        /// Most tiles.
-        #[arg(long, default_value_t = 256)]
-        max_tiles: usize,
-        /// Requests in flight.
-        #[arg(long, default_value_t = 8)]
-        concurrency: usize,
-        /// png, terrarium, terrainrgb, gray16 or f32.
-        #[arg(long, default_value = "terrarium")]
-        encoding: String,
-        /// Only print the plan.
-        #[arg(long)]
-        plan_only: bool,
-        /// Write the tiles under this folder as Z/X/Y.ext.
-        #[arg(short, long)]
-        output: Option<PathBuf>,
-    },
+    View(ViewArgs),
     /// Load test: each kind for --duration at --concurrency; prints a table per kind.
-    Bench {
-        #[arg(long, default_value = "jacksboro")]
-        asset: String,
-        #[arg(long, default_value_t = 16)]
-        concurrency: usize,
-        /// Seconds per kind.
-        #[arg(long, default_value_t = 10.0)]
-        duration: f64,
-        /// Kinds, in order: tiles-cold, tiles-warm, points, regions.
-        #[arg(
-            long,
-            value_delimiter = ',',
-            default_value = "tiles-cold,tiles-warm,points,regions"
-        )]
-        kinds: Vec<String>,
-        /// Points per batch.
-        #[arg(long, default_value_t = 1000)]
-        batch: usize,
-    },
+    Bench(BenchArgs),
+}
+
+/// Arguments of `tile`.
+#[derive(Args)]
+struct TileArgs {
+    id: String,
+    z: u8,
+    x: u32,
+    y: u32,
+    /// Output file.
+    #[arg(short, long)]
+    output: PathBuf,
+    /// png (visual), terrarium, terrainrgb, gray16 or f32 (default: f32 when the output
+    /// ends in .f32, png otherwise).
+    #[arg(long)]
+    encoding: Option<String>,
+    /// 256 or 512.
+    #[arg(long, default_value_t = 256)]
+    tile_size: u32,
+    #[command(flatten)]
+    refine: RefineArgs,
+}
+
+/// Arguments of `point`.
+#[derive(Args)]
+struct PointArgs {
+    id: String,
+    #[arg(allow_hyphen_values = true)]
+    lon: f64,
+    #[arg(allow_hyphen_values = true)]
+    lat: f64,
+    /// The coordinates are unit x, y (any asset), not lon, lat.
+    #[arg(long)]
+    unit: bool,
+    #[arg(long)]
+    iterations: Option<u32>,
+}
+
+/// Arguments of `points`.
+#[derive(Args)]
+struct PointsArgs {
+    id: String,
+    file: PathBuf,
+    /// Write a CSV of the answers here (default: standard output).
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+    /// Send the batch in the binary encoding.
+    #[arg(long)]
+    binary: bool,
+    #[command(flatten)]
+    refine: RefineArgs,
+}
+
+/// Arguments of `region`.
+#[derive(Args)]
+struct RegionArgs {
+    id: String,
+    /// minx,miny,maxx,maxy (lon/lat, or unit coordinates).
+    #[arg(long, allow_hyphen_values = true)]
+    bbox: String,
+    #[arg(long, default_value_t = 512)]
+    width: u32,
+    #[arg(long, default_value_t = 512)]
+    height: u32,
+    /// png, f32 or tif.
+    #[arg(long, default_value = "png")]
+    format: RegionFormat,
+    #[arg(short, long)]
+    output: PathBuf,
+    #[command(flatten)]
+    refine: RefineArgs,
+}
+
+/// Arguments of `mesh`.
+#[derive(Args)]
+struct MeshArgs {
+    id: String,
+    #[arg(long, allow_hyphen_values = true)]
+    bbox: Option<String>,
+    /// Vertices a side.
+    #[arg(long)]
+    resolution: Option<u32>,
+    /// glb, obj or ply.
+    #[arg(long, default_value = "glb")]
+    format: MeshFormat,
+    #[arg(long)]
+    iterations: Option<u32>,
+    /// An adaptive triangulation within this many height units of the decoded grid.
+    #[arg(long)]
+    max_error: Option<f32>,
+    #[arg(short, long)]
+    output: PathBuf,
+}
+
+/// Arguments of `view`.
+#[derive(Args)]
+struct ViewArgs {
+    id: String,
+    /// lon,lat,height (metres above sea level).
+    #[arg(long, allow_hyphen_values = true)]
+    camera: String,
+    /// west,south,east,north (default: the asset's bounds).
+    #[arg(long, allow_hyphen_values = true)]
+    bbox: Option<String>,
+    /// Allowed screen-space error in pixels.
+    #[arg(long, default_value_t = 1.0)]
+    pixel_error: f64,
+    /// Most tiles.
+    #[arg(long, default_value_t = 256)]
+    max_tiles: usize,
+    /// Requests in flight.
+    #[arg(long, default_value_t = 8)]
+    concurrency: usize,
+    /// png, terrarium, terrainrgb, gray16 or f32.
+    #[arg(long, default_value = "terrarium")]
+    encoding: String,
+    /// Only print the plan.
+    #[arg(long)]
+    plan_only: bool,
+    /// Write the tiles under this folder as Z/X/Y.ext.
+    #[arg(short, long)]
+    output: Option<PathBuf>,
+}
+
+/// Arguments of `bench`.
+#[derive(Args)]
+struct BenchArgs {
+    #[arg(long, default_value = "jacksboro")]
+    asset: String,
+    #[arg(long, default_value_t = 16)]
+    concurrency: usize,
+    /// Seconds per kind.
+    #[arg(long, default_value_t = 10.0)]
+    duration: f64,
+    /// Kinds, in order: tiles-cold, tiles-warm, points, regions.
+    #[arg(
+        long,
+        value_delimiter = ',',
+        default_value = "tiles-cold,tiles-warm,points,regions"
+    )]
+    kinds: Vec<String>,
+    /// Points per batch.
+    #[arg(long, default_value_t = 1000)]
+    batch: usize,
 }
 
 fn parse_numbers<const N: usize>(s: &str, what: &str) -> Result<[f64; N]> {
@@ -435,335 +463,356 @@ async fn main() -> Result<()> {
                 println!("deleted {id}");
             }
         }
-        Command::Tile {
-            id,
-            z,
-            x,
-            y,
-            output,
-            encoding: enc,
-            tile_size,
-            refine,
-        } => {
-            let req = TileRequest {
-                iterations: refine.iterations,
-                tile_size,
-                ..TileRequest::new(TileAddress { z, x, y }, {
-                    let by_name = output.extension().is_some_and(|e| e == "f32");
-                    let name = enc.unwrap_or_else(|| if by_name { "f32" } else { "png" }.into());
-                    encoding(&name)?
-                })
-            };
-            if refine.refine {
-                let mut steps = StepFiles::new(&output, json);
-                let r = client
-                    .refine_tile(&id, &req, &refine.options(), |s| {
-                        steps.step(s, &s.answer.body)
-                    })
-                    .await?;
-                let last = &r.steps.last().expect("at least one step").answer.body;
-                steps.finish(last, r.stop)?;
-            } else {
-                let t = client.tile(&id, &req).await?;
-                write(&output, &t.body)?;
-                if json {
-                    println!(
-                        "{}",
-                        json!({"tile": t.address.to_string(), "bytes": t.body.len(), "error_bound": t.error_bound, "ms": t.elapsed.as_secs_f64() * 1e3})
-                    );
-                } else {
-                    println!(
-                        "{} -> {} ({} bytes, error bound {})",
-                        t.address,
-                        output.display(),
-                        t.body.len(),
-                        t.error_bound
-                    );
-                }
-            }
+        Command::Tile(a) => tile(&client, json, a).await?,
+        Command::Point(a) => point(&client, json, a).await?,
+        Command::Points(a) => points(&client, json, a).await?,
+        Command::Region(a) => region(&client, json, a).await?,
+        Command::Mesh(a) => mesh(&client, json, a).await?,
+        Command::View(a) => view(&client, json, a).await?,
+        Command::Bench(a) => run_bench(&client, json, a).await?,
+    }
+    Ok(())
+}
+
+/// `tile`: fetches a tile (refined step by step with --refine).
+async fn tile(client: &Client, json: bool, a: TileArgs) -> Result<()> {
+    let TileArgs {
+        id,
+        z,
+        x,
+        y,
+        output,
+        encoding: enc,
+        tile_size,
+        refine,
+    } = a;
+    let req = TileRequest {
+        iterations: refine.iterations,
+        tile_size,
+        ..TileRequest::new(TileAddress { z, x, y }, {
+            let by_name = output.extension().is_some_and(|e| e == "f32");
+            let name = enc.unwrap_or_else(|| if by_name { "f32" } else { "png" }.into());
+            encoding(&name)?
+        })
+    };
+    if refine.refine {
+        let mut steps = StepFiles::new(&output, json);
+        let r = client
+            .refine_tile(&id, &req, &refine.options(), |s| {
+                steps.step(s, &s.answer.body)
+            })
+            .await?;
+        let last = &r.steps.last().expect("at least one step").answer.body;
+        steps.finish(last, r.stop)?;
+    } else {
+        let t = client.tile(&id, &req).await?;
+        write(&output, &t.body)?;
+        if json {
+            println!(
+                "{}",
+                json!({"tile": t.address.to_string(), "bytes": t.body.len(), "error_bound": t.error_bound, "ms": t.elapsed.as_secs_f64() * 1e3})
+            );
+        } else {
+            println!(
+                "{} -> {} ({} bytes, error bound {})",
+                t.address,
+                output.display(),
+                t.body.len(),
+                t.error_bound
+            );
         }
-        Command::Point {
-            id,
+    }
+    Ok(())
+}
+
+/// `point`: prints the value at one point.
+async fn point(client: &Client, json: bool, a: PointArgs) -> Result<()> {
+    let PointArgs {
+        id,
+        lon,
+        lat,
+        unit,
+        iterations,
+    } = a;
+    let p = if unit {
+        client.point_unit(&id, lon, lat, iterations).await?
+    } else {
+        client.point_lonlat(&id, lon, lat, iterations).await?
+    };
+    if json {
+        println!("{}", serde_json::to_string(&p)?);
+    } else {
+        let values: Vec<String> = p
+            .values
+            .iter()
+            .flatten()
+            .map(|v| v.map_or("nodata".into(), |v| v.to_string()))
+            .collect();
+        println!(
+            "{} at {},{} (error bound {}, {} steps)",
+            values.join(" "),
             lon,
             lat,
-            unit,
-            iterations,
-        } => {
-            let p = if unit {
-                client.point_unit(&id, lon, lat, iterations).await?
-            } else {
-                client.point_lonlat(&id, lon, lat, iterations).await?
-            };
-            if json {
-                println!("{}", serde_json::to_string(&p)?);
-            } else {
-                let values: Vec<String> = p
-                    .values
-                    .iter()
-                    .flatten()
-                    .map(|v| v.map_or("nodata".into(), |v| v.to_string()))
-                    .collect();
-                println!(
-                    "{} at {},{} (error bound {}, {} steps)",
-                    values.join(" "),
-                    lon,
-                    lat,
-                    p.error_bound.unwrap_or(f32::NAN),
-                    p.iterations
-                );
-            }
-        }
-        Command::Points {
-            id,
-            file,
-            output,
-            binary,
-            refine,
-        } => {
-            let points = read_points(&file)?;
-            let enc = if binary {
-                PointsEncoding::Binary
-            } else {
-                PointsEncoding::Json
-            };
-            let resp = if refine.refine {
-                print_head(json);
-                let r = client
-                    .refine_points(&id, &points, enc, &refine.options(), |s| {
-                        print_step(json, s);
-                    })
-                    .await?;
-                print_stop(json, r.stop);
-                r.steps
-                    .into_iter()
-                    .last()
-                    .expect("at least one step")
-                    .answer
-            } else {
-                let req = PointsRequest {
-                    points,
-                    iterations: refine.iterations,
-                    tolerance: None,
-                };
-                client.points(&id, &req, enc).await?
-            };
-            let csv = points_csv(&resp);
-            match output {
-                Some(path) => write(&path, csv.as_bytes())?,
-                None if json && !refine.refine => println!("{}", serde_json::to_string(&resp)?),
-                None => print!("{csv}"),
-            }
-        }
-        Command::Region {
-            id,
-            bbox,
-            width,
-            height,
-            format,
-            output,
-            refine,
-        } => {
-            let format = match format.as_str() {
-                "png" => RegionFormat::Png,
-                "f32" => RegionFormat::F32,
-                "tif" => RegionFormat::Tif,
-                f => bail!("unknown format {f:?} (png, f32, tif)"),
-            };
-            let req = RegionRequest {
-                bbox: parse_numbers(&bbox, "bbox")?,
+            p.error_bound.unwrap_or(f32::NAN),
+            p.iterations
+        );
+    }
+    Ok(())
+}
+
+/// `points`: values at the points of a CSV file.
+async fn points(client: &Client, json: bool, a: PointsArgs) -> Result<()> {
+    let PointsArgs {
+        id,
+        file,
+        output,
+        binary,
+        refine,
+    } = a;
+    let points = read_points(&file)?;
+    let enc = if binary {
+        PointsEncoding::Binary
+    } else {
+        PointsEncoding::Json
+    };
+    let resp = if refine.refine {
+        print_head(json);
+        let r = client
+            .refine_points(&id, &points, enc, &refine.options(), |s| {
+                print_step(json, s);
+            })
+            .await?;
+        print_stop(json, r.stop);
+        r.steps
+            .into_iter()
+            .last()
+            .expect("at least one step")
+            .answer
+    } else {
+        let req = PointsRequest {
+            points,
+            iterations: refine.iterations,
+            tolerance: None,
+        };
+        client.points(&id, &req, enc).await?
+    };
+    let csv = points_csv(&resp);
+    match output {
+        Some(path) => write(&path, csv.as_bytes())?,
+        None if json && !refine.refine => println!("{}", serde_json::to_string(&resp)?),
+        None => print!("{csv}"),
+    }
+    Ok(())
+}
+
+/// `region`: fetches a region.
+async fn region(client: &Client, json: bool, a: RegionArgs) -> Result<()> {
+    let RegionArgs {
+        id,
+        bbox,
+        width,
+        height,
+        format,
+        output,
+        refine,
+    } = a;
+    let req = RegionRequest {
+        bbox: parse_numbers(&bbox, "bbox")?,
+        width,
+        height,
+        iterations: refine.iterations,
+        tolerance: None,
+        format,
+    };
+    if refine.refine {
+        let mut steps = StepFiles::new(&output, json);
+        let r = client
+            .refine_region(&id, &req, &refine.options(), |s| {
+                steps.step(s, &s.answer.body)
+            })
+            .await?;
+        let last = &r.steps.last().expect("at least one step").answer.body;
+        steps.finish(last, r.stop)?;
+    } else {
+        let r = client.region(&id, &req).await?;
+        write(&output, &r.body)?;
+        if json {
+            println!(
+                "{}",
+                json!({"bytes": r.body.len(), "error_bound": r.error_bound})
+            );
+        } else {
+            println!(
+                "{}x{} -> {} (error bound {})",
                 width,
                 height,
-                iterations: refine.iterations,
-                tolerance: None,
-                format,
-            };
-            if refine.refine {
-                let mut steps = StepFiles::new(&output, json);
-                let r = client
-                    .refine_region(&id, &req, &refine.options(), |s| {
-                        steps.step(s, &s.answer.body)
-                    })
-                    .await?;
-                let last = &r.steps.last().expect("at least one step").answer.body;
-                steps.finish(last, r.stop)?;
-            } else {
-                let r = client.region(&id, &req).await?;
-                write(&output, &r.body)?;
-                if json {
-                    println!(
-                        "{}",
-                        json!({"bytes": r.body.len(), "error_bound": r.error_bound})
-                    );
-                } else {
-                    println!(
-                        "{}x{} -> {} (error bound {})",
-                        width,
-                        height,
-                        output.display(),
-                        r.error_bound
-                    );
-                }
-            }
+                output.display(),
+                r.error_bound
+            );
         }
-        Command::Mesh {
-            id,
-            bbox,
-            resolution,
-            format,
-            iterations,
-            max_error,
-            output,
-        } => {
-            let format = match format.as_str() {
-                "glb" => MeshFormat::Glb,
-                "obj" => MeshFormat::Obj,
-                "ply" => MeshFormat::Ply,
-                f => bail!("unknown format {f:?} (glb, obj, ply)"),
-            };
-            let req = MeshRequest {
-                bbox: bbox.map(|b| parse_numbers(&b, "bbox")).transpose()?,
-                resolution,
-                iterations,
-                tolerance: None,
-                max_error,
-                format,
-            };
-            let m = client.mesh(&id, &req).await?;
-            write(&output, &m.body)?;
-            if json {
-                println!(
-                    "{}",
-                    json!({"bytes": m.body.len(), "content_type": m.content_type, "error_bound": m.error_bound})
-                );
-            } else {
-                println!(
-                    "{} -> {} ({} bytes, error bound {})",
-                    m.content_type,
-                    output.display(),
-                    m.body.len(),
-                    m.error_bound
-                );
-            }
+    }
+    Ok(())
+}
+
+/// `mesh`: fetches a terrain mesh.
+async fn mesh(client: &Client, json: bool, a: MeshArgs) -> Result<()> {
+    let MeshArgs {
+        id,
+        bbox,
+        resolution,
+        format,
+        iterations,
+        max_error,
+        output,
+    } = a;
+    let req = MeshRequest {
+        bbox: bbox.map(|b| parse_numbers(&b, "bbox")).transpose()?,
+        resolution,
+        iterations,
+        tolerance: None,
+        max_error,
+        format,
+    };
+    let m = client.mesh(&id, &req).await?;
+    write(&output, &m.body)?;
+    if json {
+        println!(
+            "{}",
+            json!({"bytes": m.body.len(), "content_type": m.content_type, "error_bound": m.error_bound})
+        );
+    } else {
+        println!(
+            "{} -> {} ({} bytes, error bound {})",
+            m.content_type,
+            output.display(),
+            m.body.len(),
+            m.error_bound
+        );
+    }
+    Ok(())
+}
+
+/// `view`: plans and fetches the tiles a camera sees.
+async fn view(client: &Client, json: bool, a: ViewArgs) -> Result<()> {
+    let ViewArgs {
+        id,
+        camera,
+        bbox,
+        pixel_error,
+        max_tiles,
+        concurrency,
+        encoding: enc,
+        plan_only,
+        output,
+    } = a;
+    let [lon, lat, h] = parse_numbers(&camera, "camera")?;
+    let asset = client.asset(&id).await?;
+    let tj = client.tilejson(&id).await?;
+    let region = match bbox {
+        Some(b) => parse_numbers(&b, "bbox")?,
+        None => tj.bounds,
+    };
+    let cam = Camera {
+        pixel_error,
+        ..Camera::new(lon, lat, h)
+    };
+    let limits = PlanLimits {
+        min_zoom: tj.minzoom,
+        max_zoom: tj.maxzoom,
+        max_tiles,
+        ..Default::default()
+    };
+    let plan = fractile_client::view::plan(&cam, region, &asset, limits)?;
+    let enc = encoding(&enc)?;
+    if !json {
+        println!(
+            "| tile | distance m | tolerance | iterations | error bound | ms |\n|---|---|---|---|---|---|"
+        );
+    }
+    let row = |p: &fractile_client::view::PlannedTile, bound: Option<f32>, ms: Option<f64>| {
+        if json {
+            println!(
+                "{}",
+                json!({"tile": p.address.to_string(), "distance": p.distance, "tolerance": p.tolerance, "iterations": p.iterations, "error_bound": bound, "ms": ms})
+            );
+        } else {
+            let b = bound.map_or("-".into(), |b| format!("{b:.3}"));
+            let ms = ms.map_or("-".into(), |m| format!("{m:.1}"));
+            println!(
+                "| {} | {:.0} | {:.3} | {} | {b} | {ms} |",
+                p.address, p.distance, p.tolerance, p.iterations
+            );
         }
-        Command::View {
-            id,
-            camera,
-            bbox,
-            pixel_error,
-            max_tiles,
-            concurrency,
-            encoding: enc,
-            plan_only,
-            output,
-        } => {
-            let [lon, lat, h] = parse_numbers(&camera, "camera")?;
-            let asset = client.asset(&id).await?;
-            let tj = client.tilejson(&id).await?;
-            let region = match bbox {
-                Some(b) => parse_numbers(&b, "bbox")?,
-                None => tj.bounds,
-            };
-            let cam = Camera {
-                pixel_error,
-                ..Camera::new(lon, lat, h)
-            };
-            let limits = PlanLimits {
-                min_zoom: tj.minzoom,
-                max_zoom: tj.maxzoom,
-                max_tiles,
-                ..Default::default()
-            };
-            let plan = fractile_client::view::plan(&cam, region, &asset, limits)?;
-            let enc = encoding(&enc)?;
-            if !json {
-                println!(
-                    "| tile | distance m | tolerance | iterations | error bound | ms |\n|---|---|---|---|---|---|"
-                );
+    };
+    if plan_only {
+        plan.iter().for_each(|p| row(p, None, None));
+        return Ok(());
+    }
+    let ext = if enc == TileEncoding::F32 {
+        "f32"
+    } else {
+        "png"
+    };
+    let mut failures = 0;
+    let results = client
+        .fetch_view(&id, &plan, enc, concurrency, |p, r| match r {
+            Ok(t) => row(p, Some(t.error_bound), Some(t.elapsed.as_secs_f64() * 1e3)),
+            Err(e) => {
+                failures += 1;
+                eprintln!("{}: {e}", p.address);
             }
-            let row = |p: &fractile_client::view::PlannedTile,
-                       bound: Option<f32>,
-                       ms: Option<f64>| {
-                if json {
-                    println!(
-                        "{}",
-                        json!({"tile": p.address.to_string(), "distance": p.distance, "tolerance": p.tolerance, "iterations": p.iterations, "error_bound": bound, "ms": ms})
-                    );
-                } else {
-                    let b = bound.map_or("-".into(), |b| format!("{b:.3}"));
-                    let ms = ms.map_or("-".into(), |m| format!("{m:.1}"));
-                    println!(
-                        "| {} | {:.0} | {:.3} | {} | {b} | {ms} |",
-                        p.address, p.distance, p.tolerance, p.iterations
-                    );
-                }
-            };
-            if plan_only {
-                plan.iter().for_each(|p| row(p, None, None));
-                return Ok(());
-            }
-            let ext = if enc == TileEncoding::F32 {
-                "f32"
-            } else {
-                "png"
-            };
-            let mut failures = 0;
-            let results = client
-                .fetch_view(&id, &plan, enc, concurrency, |p, r| match r {
-                    Ok(t) => row(p, Some(t.error_bound), Some(t.elapsed.as_secs_f64() * 1e3)),
-                    Err(e) => {
-                        failures += 1;
-                        eprintln!("{}: {e}", p.address);
-                    }
-                })
-                .await;
-            if let Some(dir) = output {
-                for t in results.iter().flatten() {
-                    let a = t.address;
-                    let folder = dir.join(a.z.to_string()).join(a.x.to_string());
-                    std::fs::create_dir_all(&folder)
-                        .with_context(|| format!("creating {}", folder.display()))?;
-                    write(&folder.join(format!("{}.{ext}", a.y)), &t.body)?;
-                }
-            }
-            if failures > 0 {
-                bail!("{failures} of {} tiles failed", plan.len());
-            }
+        })
+        .await;
+    if let Some(dir) = output {
+        for t in results.iter().flatten() {
+            let a = t.address;
+            let folder = dir.join(a.z.to_string()).join(a.x.to_string());
+            std::fs::create_dir_all(&folder)
+                .with_context(|| format!("creating {}", folder.display()))?;
+            write(&folder.join(format!("{}.{ext}", a.y)), &t.body)?;
         }
-        Command::Bench {
-            asset,
-            concurrency,
-            duration,
-            kinds,
-            batch,
-        } => {
-            let kinds = kinds
-                .iter()
-                .map(|k| bench::Kind::parse(k).with_context(|| format!("unknown kind {k:?}")))
-                .collect::<Result<Vec<_>>>()?;
-            if !(duration > 0.0 && duration <= 3600.0) {
-                bail!("duration must be in (0, 3600] seconds");
-            }
-            let options = bench::BenchOptions {
-                asset,
-                concurrency,
-                duration: Duration::from_secs_f64(duration),
-                kinds,
-                batch,
-                ..Default::default()
-            };
-            let reports = bench::run(&client, &options).await?;
-            if json {
-                println!("{}", serde_json::to_string_pretty(&reports)?);
-            } else {
-                print!("{}", bench::table(&reports, concurrency));
-                for r in reports.iter().filter(|r| r.errors > 0) {
-                    eprintln!(
-                        "{:?}: first error: {}",
-                        r.kind,
-                        r.first_error.as_deref().unwrap_or("?")
-                    );
-                }
-            }
+    }
+    if failures > 0 {
+        bail!("{failures} of {} tiles failed", plan.len());
+    }
+    Ok(())
+}
+
+/// `bench`: runs the load generator.
+async fn run_bench(client: &Client, json: bool, a: BenchArgs) -> Result<()> {
+    let BenchArgs {
+        asset,
+        concurrency,
+        duration,
+        kinds,
+        batch,
+    } = a;
+    let kinds = kinds
+        .iter()
+        .map(|k| bench::Kind::parse(k).with_context(|| format!("unknown kind {k:?}")))
+        .collect::<Result<Vec<_>>>()?;
+    if !(duration > 0.0 && duration <= 3600.0) {
+        bail!("duration must be in (0, 3600] seconds");
+    }
+    let options = bench::BenchOptions {
+        asset,
+        concurrency,
+        duration: Duration::from_secs_f64(duration),
+        kinds,
+        batch,
+        ..Default::default()
+    };
+    let reports = bench::run(&client, &options).await?;
+    if json {
+        println!("{}", serde_json::to_string_pretty(&reports)?);
+    } else {
+        print!("{}", bench::table(&reports, concurrency));
+        for r in reports.iter().filter(|r| r.errors > 0) {
+            eprintln!(
+                "{:?}: first error: {}",
+                r.kind,
+                r.first_error.as_deref().unwrap_or("?")
+            );
         }
     }
     Ok(())
