@@ -802,7 +802,7 @@ async fn run_bench(client: &Client, json: bool, a: BenchArgs) -> Result<()> {
         batch,
         ..Default::default()
     };
-    let reports = bench::run(&client, &options).await?;
+    let reports = bench::run(client, &options).await?;
     if json {
         println!("{}", serde_json::to_string_pretty(&reports)?);
     } else {

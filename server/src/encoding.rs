@@ -65,125 +65,142 @@ pub fn encode_raster(
     f: TileFormat,
     style: Option<Style>,
 ) -> (&'static str, Vec<u8>) {
-    let fill = nodata_height(m);
-    let height = |v: f32| if v.is_finite() { v } else { fill };
     match f {
         TileFormat::F32 => (
             "application/octet-stream",
             channels[0].iter().flat_map(|v| v.to_le_bytes()).collect(),
         ),
-        TileFormat::Heights(e) => {
-            // One loop per encoding into a sized buffer (a `flat_map(..).collect()` with the
-            // match inside measured 7-15% of an uncached tile's time).
-            let mut px = vec![0u8; channels[0].len() * 3];
-            let cells = px.chunks_exact_mut(3).zip(&channels[0]);
-            match e {
-                HeightEncoding::TerrainRgb => {
-                    for (p, &v) in cells {
-                        let x = ((height(v) + 10000.0) * 10.0).max(0.0);
-                        let c = round_non_negative(x).min(0xFF_FFFF);
-                        p.copy_from_slice(&[(c >> 16) as u8, (c >> 8) as u8, c as u8]);
-                    }
-                }
-                HeightEncoding::Terrarium => {
-                    for (p, &v) in cells {
-                        let c = (height(v) + 32768.0).clamp(0.0, 65535.996);
-                        // Truncation is floor for c >= 0 (and not a libm call).
-                        let i = c as u32;
-                        p.copy_from_slice(&[
-                            (i >> 8) as u8,
-                            (i & 0xFF) as u8,
-                            ((c - i as f32) * 256.0) as u8,
-                        ]);
-                    }
-                }
-                HeightEncoding::Gray16 => {}
+        TileFormat::Heights(e) => encode_heights(m, &channels[0], w, h, e),
+        TileFormat::Visual(rescale) => encode_visual(m, channels, w, h, rescale, style),
+    }
+}
+
+/// Heights packed for a `raster-dem` source (nodata as the asset's fill height).
+fn encode_heights(
+    m: &AssetMeta,
+    heights: &[f32],
+    w: usize,
+    h: usize,
+    e: HeightEncoding,
+) -> (&'static str, Vec<u8>) {
+    let fill = nodata_height(m);
+    let height = |v: f32| if v.is_finite() { v } else { fill };
+    // One loop per encoding into a sized buffer (a `flat_map(..).collect()` with the
+    // match inside measured 7-15% of an uncached tile's time).
+    let mut px = vec![0u8; heights.len() * 3];
+    let cells = px.chunks_exact_mut(3).zip(heights);
+    match e {
+        HeightEncoding::TerrainRgb => {
+            for (p, &v) in cells {
+                let x = ((height(v) + 10000.0) * 10.0).max(0.0);
+                let c = round_non_negative(x).min(0xFF_FFFF);
+                p.copy_from_slice(&[(c >> 16) as u8, (c >> 8) as u8, c as u8]);
             }
-            if e == HeightEncoding::Gray16 {
-                let (lo, span) = (
-                    m.value_min as f32,
-                    (m.value_max - m.value_min).max(f64::MIN_POSITIVE) as f32,
-                );
-                let g: Vec<u16> = channels[0]
-                    .iter()
-                    .map(|&v| {
-                        (((height(v) - lo) / span) * 65535.0)
-                            .round()
-                            .clamp(0.0, 65535.0) as u16
-                    })
-                    .collect();
-                return (
-                    "image/png",
-                    png(
-                        w,
-                        h,
-                        image::ExtendedColorType::L16,
-                        // image's encoders take 16-bit samples in native byte order (PNG stores them
-                        // big-endian; the encoder swaps).
-                        &g.iter().flat_map(|v| v.to_ne_bytes()).collect::<Vec<_>>(),
-                    ),
-                );
-            }
-            ("image/png", png(w, h, image::ExtendedColorType::Rgb8, &px))
         }
-        TileFormat::Visual(rescale) => {
-            let style = style.unwrap_or_default();
-            // Nodata (and pixels outside the asset) are transparent, so a map shows what lies
-            // beneath instead of black.
-            let holes: Option<Vec<bool>> = channels[0]
-                .iter()
-                .any(|v| v.is_nan())
-                .then(|| channels[0].iter().map(|v| v.is_nan()).collect());
-            let q = |v: f32| -> u8 {
-                let v = match rescale {
-                    Some((lo, hi)) if m.kind == AssetKind::HeightField => {
-                        (v - lo) / (hi - lo) * 255.0
-                    }
-                    _ => v,
+        HeightEncoding::Terrarium => {
+            for (p, &v) in cells {
+                let c = (height(v) + 32768.0).clamp(0.0, 65535.996);
+                // Truncation is floor for c >= 0 (and not a libm call).
+                let i = c as u32;
+                p.copy_from_slice(&[
+                    (i >> 8) as u8,
+                    (i & 0xFF) as u8,
+                    ((c - i as f32) * 256.0) as u8,
+                ]);
+            }
+        }
+        HeightEncoding::Gray16 => {}
+    }
+    if e == HeightEncoding::Gray16 {
+        let (lo, span) = (
+            m.value_min as f32,
+            (m.value_max - m.value_min).max(f64::MIN_POSITIVE) as f32,
+        );
+        let g: Vec<u16> = heights
+            .iter()
+            .map(|&v| {
+                (((height(v) - lo) / span) * 65535.0)
+                    .round()
+                    .clamp(0.0, 65535.0) as u16
+            })
+            .collect();
+        return (
+            "image/png",
+            png(
+                w,
+                h,
+                image::ExtendedColorType::L16,
+                // image's encoders take 16-bit samples in native byte order (PNG stores them
+                // big-endian; the encoder swaps).
+                &g.iter().flat_map(|v| v.to_ne_bytes()).collect::<Vec<_>>(),
+            ),
+        );
+    }
+    ("image/png", png(w, h, image::ExtendedColorType::Rgb8, &px))
+}
+
+/// A picture: grey, RGB, or heights through a colour ramp and hillshading; nodata transparent.
+fn encode_visual(
+    m: &AssetMeta,
+    channels: &[Vec<f32>],
+    w: usize,
+    h: usize,
+    rescale: Option<(f32, f32)>,
+    style: Option<Style>,
+) -> (&'static str, Vec<u8>) {
+    let style = style.unwrap_or_default();
+    // Nodata (and pixels outside the asset) are transparent, so a map shows what lies
+    // beneath instead of black.
+    let holes: Option<Vec<bool>> = channels[0]
+        .iter()
+        .any(|v| v.is_nan())
+        .then(|| channels[0].iter().map(|v| v.is_nan()).collect());
+    let q = |v: f32| -> u8 {
+        let v = match rescale {
+            Some((lo, hi)) if m.kind == AssetKind::HeightField => (v - lo) / (hi - lo) * 255.0,
+            _ => v,
+        };
+        if v.is_finite() {
+            v.round().clamp(0.0, 255.0) as u8
+        } else {
+            0
+        }
+    };
+    if channels.len() == 3 {
+        let px: Vec<u8> = (0..w * h)
+            .flat_map(|i| [q(channels[0][i]), q(channels[1][i]), q(channels[2][i])])
+            .collect();
+        (
+            "image/png",
+            png_with_holes(w, h, image::ExtendedColorType::Rgb8, &px, holes.as_deref()),
+        )
+    } else if style.colormap.is_some() || style.shade.is_some() {
+        let ramp = style.colormap.unwrap_or(Colormap::Gray);
+        let px: Vec<u8> = channels[0]
+            .iter()
+            .enumerate()
+            .flat_map(|(i, &v)| {
+                let t = q(v) as f32 / 255.0;
+                let c = match (style.colormap, &style.shade) {
+                    // Hillshade alone: grey shading.
+                    (None, Some(s)) => [255.0 * s[i]; 3],
+                    // A ramp, darkened by the shading (a quarter of ambient light).
+                    (_, Some(s)) => ramp.rgb(t).map(|c| c * (0.25 + 0.75 * s[i])),
+                    (_, None) => ramp.rgb(t),
                 };
-                if v.is_finite() {
-                    v.round().clamp(0.0, 255.0) as u8
-                } else {
-                    0
-                }
-            };
-            if channels.len() == 3 {
-                let px: Vec<u8> = (0..w * h)
-                    .flat_map(|i| [q(channels[0][i]), q(channels[1][i]), q(channels[2][i])])
-                    .collect();
-                (
-                    "image/png",
-                    png_with_holes(w, h, image::ExtendedColorType::Rgb8, &px, holes.as_deref()),
-                )
-            } else if style.colormap.is_some() || style.shade.is_some() {
-                let ramp = style.colormap.unwrap_or(Colormap::Gray);
-                let px: Vec<u8> = channels[0]
-                    .iter()
-                    .enumerate()
-                    .flat_map(|(i, &v)| {
-                        let t = q(v) as f32 / 255.0;
-                        let c = match (style.colormap, &style.shade) {
-                            // Hillshade alone: grey shading.
-                            (None, Some(s)) => [255.0 * s[i]; 3],
-                            // A ramp, darkened by the shading (a quarter of ambient light).
-                            (_, Some(s)) => ramp.rgb(t).map(|c| c * (0.25 + 0.75 * s[i])),
-                            (_, None) => ramp.rgb(t),
-                        };
-                        c.map(|v| v.round().clamp(0.0, 255.0) as u8)
-                    })
-                    .collect();
-                (
-                    "image/png",
-                    png_with_holes(w, h, image::ExtendedColorType::Rgb8, &px, holes.as_deref()),
-                )
-            } else {
-                let px: Vec<u8> = channels[0].iter().map(|&v| q(v)).collect();
-                (
-                    "image/png",
-                    png_with_holes(w, h, image::ExtendedColorType::L8, &px, holes.as_deref()),
-                )
-            }
-        }
+                c.map(|v| v.round().clamp(0.0, 255.0) as u8)
+            })
+            .collect();
+        (
+            "image/png",
+            png_with_holes(w, h, image::ExtendedColorType::Rgb8, &px, holes.as_deref()),
+        )
+    } else {
+        let px: Vec<u8> = channels[0].iter().map(|&v| q(v)).collect();
+        (
+            "image/png",
+            png_with_holes(w, h, image::ExtendedColorType::L8, &px, holes.as_deref()),
+        )
     }
 }
 
