@@ -355,6 +355,261 @@ pub fn encode(
     let start = Instant::now();
     settings.validate()?;
     let (w, h) = (raster.width, raster.height);
+    let (lo, hi, colour, sources) = source_planes(raster);
+    let span = (hi - lo) as f32;
+
+    // Frame geometry shared by every plane.
+    let (min_size, levels, supersample, narrow) = frame_levels(settings, w, h);
+    let planes: Vec<CodingPlane> = sources
+        .iter()
+        .map(|s| coding_plane(s, min_size as usize, supersample))
+        .collect();
+    // headers_by_quantiser[q][plane]
+    let headers_by_quantiser = plane_headers(settings, &planes, min_size, levels);
+    let headers = &headers_by_quantiser[0];
+
+    // Every attractor pass searches again, as long as the first search.
+    let total: u64 =
+        headers.iter().map(Pyramid::work).sum::<u64>() * (1 + u64::from(settings.attractor_passes));
+    let done = std::sync::atomic::AtomicU64::new(0);
+    let tick = |k: u64| {
+        let d = done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
+        if d.is_multiple_of(256) || d == total {
+            progress(d, total);
+        }
+    };
+    // Limits per plane: tolerance (normalised) and smallest size for a block in frame coordinates.
+    let limit_fns = plane_limits(settings, &planes, w, span, narrow);
+    let limits: Vec<Limits> = limit_fns.iter().map(|f| f.as_ref() as Limits).collect();
+    // Chroma planes are a quarter of the pixels: weighed by their share and the setting.
+    let weights: Vec<f32> = (0..planes.len())
+        .map(|i| {
+            if i == 0 {
+                1.0
+            } else {
+                4.0 * settings.chroma_weight
+            }
+        })
+        .collect();
+
+    let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
+    let meta = source_meta(raster, settings, (lo, hi), colour);
+    // The metadata of an asset coded with quantiser `q`: its description names `q` (and its
+    // length is part of the size rate control fits).
+    let meta_for = |q: Quantiser| AssetMeta {
+        encoder: EncodeSettings {
+            quantiser: q,
+            ..settings.clone()
+        }
+        .describe(),
+        ..meta.clone()
+    };
+    let target_bytes = match settings.rate {
+        RateMode::TargetBpp(bpp) => Some((bpp * (w * h) as f64 / 8.0).floor() as usize),
+        _ => None,
+    };
+    // The partition the rate mode asks for, from one set of fits.
+    let choose = |pyramids: &[Pyramid]| -> Result<Vec<Partition>, Error> {
+        let meta = meta_for(pyramids[0].header.quantiser);
+        // The size alone (no stream decoding, no operator). The stats `measured` fills in
+        // later are fixed-width fields, so the final file has exactly this size.
+        let file_size = |parts: &[Partition]| {
+            Asset::quadtree_file_size(&meta, code_planes(pyramids, parts), mask.as_ref())
+        };
+        let max_bytes = target_bytes.unwrap_or(usize::MAX);
+        partitions_for(
+            settings,
+            pyramids,
+            (&limits, &weights),
+            max_bytes,
+            &file_size,
+        )
+    };
+    let build = |pyramids: &[Pyramid]| -> Result<Asset, Error> {
+        Asset::from_parts(
+            meta_for(pyramids[0].header.quantiser),
+            code_planes(pyramids, &choose(pyramids)?),
+            mask.clone(),
+        )
+    };
+    // One search per plane serves every quantiser, with domains read from `avg2[plane]`; rate
+    // control runs for each. Under a target size every quantiser's asset fits it: the one that
+    // decodes closest to the source wins (the settings' own on a tie).
+    let weigh = |avg2: &[Vec<f32>]| -> Result<(Asset, Errors), Error> {
+        let pyramids_by_quantiser =
+            search_planes(&planes, avg2, &headers_by_quantiser, settings.search, &tick);
+        let mut weighed: Option<(Asset, Errors)> = None;
+        for pyramids in &pyramids_by_quantiser {
+            let asset = build(pyramids)?;
+            let errors = decoded_errors(&asset, raster);
+            // Weighted mean square error over all channels (what PSNR ranks by).
+            if weighed.as_ref().is_none_or(|(_, e)| errors.rmse < e.rmse) {
+                weighed = Some((asset, errors));
+            }
+        }
+        Ok(weighed.expect("at least the settings' own quantiser"))
+    };
+    let own_domains: Vec<Vec<f32>> = planes.iter().map(CodingPlane::average2).collect();
+    let (latest, errors) = weigh(&own_domains)?;
+    if settings.attractor_passes == 0 {
+        progress(total, total);
+        return Ok(measured(latest, start, errors));
+    }
+    // A pass must not buy its quality with bytes the user did not grant: under a target size
+    // any asset within it will do; otherwise it may be no larger than the first.
+    let max_size = target_bytes.unwrap_or(latest.file_size());
+    let passes = settings.attractor_passes;
+    let (best, best_errors) =
+        attractor_passes(&planes, (latest, errors), passes, max_size, &weigh)?;
+    progress(total, total);
+    Ok(measured(best, start, best_errors))
+}
+
+/// One search with the given domains per plane, under every quantiser: the asset that decodes
+/// closest to the source, and its errors.
+type Weigh<'a> = dyn Fn(&[Vec<f32>]) -> Result<(Asset, Errors), Error> + 'a;
+
+/// Searches `passes` more times with domains read from the latest asset's decoded attractor
+/// instead of the source, and keeps the asset that decodes closest to the source within
+/// `max_size` bytes (the first on a tie).
+fn attractor_passes(
+    planes: &[CodingPlane],
+    first: (Asset, Errors),
+    passes: u32,
+    max_size: usize,
+    weigh: &Weigh,
+) -> Result<(Asset, Errors), Error> {
+    let (mut latest, mut best_errors) = first;
+    let mut best = latest.clone();
+    for _ in 0..passes {
+        let domains: Vec<Vec<f32>> = planes
+            .iter()
+            .zip(&latest.planes)
+            .map(|(p, coded)| attractor(p, &coded.operator))
+            .collect();
+        let errors;
+        (latest, errors) = weigh(&domains)?;
+        if errors.rmse < best_errors.rmse && latest.file_size() <= max_size {
+            best = latest.clone();
+            best_errors = errors;
+        }
+    }
+    Ok((best, best_errors))
+}
+
+/// The plane headers of every quantiser weighed (`[quantiser][plane]`): the settings' own,
+/// then its choices under a target size.
+fn plane_headers(
+    settings: &EncodeSettings,
+    planes: &[CodingPlane],
+    min_size: u32,
+    levels: u32,
+) -> Vec<Vec<PlaneHeader>> {
+    let quantisers: Vec<Quantiser> = std::iter::once(settings.quantiser)
+        .chain(match settings.rate {
+            RateMode::TargetBpp(_) => settings.quantiser_choices.clone(),
+            _ => Vec::new(),
+        })
+        .collect();
+    quantisers
+        .iter()
+        .map(|&quantiser| {
+            planes
+                .iter()
+                .map(|p| PlaneHeader {
+                    frame: [p.width as u32, p.height as u32],
+                    valid: p.valid,
+                    min_size,
+                    levels,
+                    domain_steps: (0..levels)
+                        .map(|l| {
+                            (((min_size << l) as f32 * settings.domain_step).round() as u32).max(1)
+                        })
+                        .collect(),
+                    quantiser,
+                })
+                .collect()
+        })
+        .collect()
+}
+
+/// The partitions the rate mode asks for, from one set of fits (`[plane]`), with each plane's
+/// limits and weight; under a target size, the best whose file (`file_size`) fits `max_bytes`.
+fn partitions_for(
+    settings: &EncodeSettings,
+    pyramids: &[Pyramid],
+    (limits, weights): (&[Limits], &[f32]),
+    max_bytes: usize,
+    file_size: &dyn Fn(&[Partition]) -> usize,
+) -> Result<Vec<Partition>, Error> {
+    let pyr_refs: Vec<&Pyramid> = pyramids.iter().collect();
+    Ok(match settings.rate {
+        RateMode::ConstRange(_) => pyramids.iter().map(Partition::whole_level).collect(),
+        RateMode::Tolerance(_) => pyramids
+            .iter()
+            .zip(limits)
+            .map(|(p, l)| Partition::by_tolerance(p, *l))
+            .collect(),
+        RateMode::Transforms(n) => {
+            let (initial, order) = greedy_order(&pyr_refs, weights, limits);
+            partitions_after(&pyr_refs, &order, n.saturating_sub(initial).div_ceil(3))
+        }
+        RateMode::TargetBpp(_) => {
+            let at = |lambda: f32| -> Vec<Partition> {
+                pyramids
+                    .iter()
+                    .zip(limits)
+                    .zip(weights)
+                    .map(|((p, l), &wt)| Partition::by_lagrangian(p, lambda, wt, *l))
+                    .collect()
+            };
+            at(smallest_lambda(
+                |lambda| Ok(file_size(&at(lambda))),
+                max_bytes,
+            )?)
+        }
+    })
+}
+
+/// Each plane's header and coded stream under its partition.
+fn code_planes(pyramids: &[Pyramid], parts: &[Partition]) -> Vec<(PlaneHeader, Vec<u8>)> {
+    pyramids
+        .iter()
+        .zip(parts)
+        .map(|(p, part)| {
+            (
+                p.header.clone(),
+                encode_plane(&p.header, &|l, bx, by| part.decide(p, l, bx, by)),
+            )
+        })
+        .collect()
+}
+
+/// One search per plane, fitted under every quantiser's header (`[quantiser][plane]`), with
+/// domains read from `avg2[plane]`.
+fn search_planes(
+    planes: &[CodingPlane],
+    avg2: &[Vec<f32>],
+    headers_by_quantiser: &[Vec<PlaneHeader>],
+    search: SearchMode,
+    tick: &(dyn Fn(u64) + Sync),
+) -> Vec<Vec<Pyramid>> {
+    let mut pyramids_by_quantiser: Vec<Vec<Pyramid>> =
+        headers_by_quantiser.iter().map(|_| Vec::new()).collect();
+    for (i, (p, domains)) in planes.iter().zip(avg2).enumerate() {
+        let each: Vec<PlaneHeader> = headers_by_quantiser.iter().map(|h| h[i].clone()).collect();
+        let built = Pyramid::build_each(p, domains, &each, search, tick);
+        for (q, pyramid) in built.into_iter().enumerate() {
+            pyramids_by_quantiser[q].push(pyramid);
+        }
+    }
+    pyramids_by_quantiser
+}
+
+/// The raster's planes normalised to [0, 1] over its value range (luma and half-resolution
+/// chroma for colour), with the range and the colour model.
+fn source_planes(raster: &Raster) -> (f64, f64, ColourModel, Vec<SourcePlane>) {
+    let (w, h) = (raster.width, raster.height);
     let (lo, hi) = match (raster.kind, raster.sample) {
         (AssetKind::Image, SampleFormat::U8) => (0.0, 255.0),
         (AssetKind::Image, SampleFormat::U16) => (0.0, 65535.0),
@@ -392,8 +647,12 @@ pub fn encode(
             vec![full, half(&cb), half(&cr)]
         }
     };
+    (lo, hi, colour, sources)
+}
 
-    // Frame geometry shared by every plane.
+/// The smallest range, the number of range sizes, whether to supersample (quasi-lossless), and
+/// the largest power of two that fits half the raster's short side.
+fn frame_levels(settings: &EncodeSettings, w: usize, h: usize) -> (u32, u32, bool, u32) {
     let roi_min = settings
         .rois
         .iter()
@@ -416,62 +675,28 @@ pub fn encode(
             )
         }
     };
-    let planes: Vec<CodingPlane> = sources
-        .iter()
-        .map(|s| coding_plane(s, min_size as usize, supersample))
-        .collect();
-    // The quantisers weighed: the settings' own, then its choices under a target size.
-    let quantisers: Vec<Quantiser> = std::iter::once(settings.quantiser)
-        .chain(match settings.rate {
-            RateMode::TargetBpp(_) => settings.quantiser_choices.clone(),
-            _ => Vec::new(),
-        })
-        .collect();
-    // headers_by_quantiser[q][plane]
-    let headers_by_quantiser: Vec<Vec<PlaneHeader>> = quantisers
-        .iter()
-        .map(|&quantiser| {
-            planes
-                .iter()
-                .map(|p| PlaneHeader {
-                    frame: [p.width as u32, p.height as u32],
-                    valid: p.valid,
-                    min_size,
-                    levels,
-                    domain_steps: (0..levels)
-                        .map(|l| {
-                            (((min_size << l) as f32 * settings.domain_step).round() as u32).max(1)
-                        })
-                        .collect(),
-                    quantiser,
-                })
-                .collect()
-        })
-        .collect();
-    let headers = &headers_by_quantiser[0];
+    (min_size, levels, supersample, narrow)
+}
 
-    // Every attractor pass searches again, as long as the first search.
-    let total: u64 =
-        headers.iter().map(Pyramid::work).sum::<u64>() * (1 + u64::from(settings.attractor_passes));
-    let done = std::sync::atomic::AtomicU64::new(0);
-    let tick = |k: u64| {
-        let d = done.fetch_add(k, std::sync::atomic::Ordering::Relaxed) + k;
-        if d.is_multiple_of(256) || d == total {
-            progress(d, total);
-        }
-    };
-    // Limits per plane: tolerance (normalised) and smallest size for a block in frame coordinates.
+/// Per plane, the tolerance (normalised) and smallest range for a block at (x, y) of side n in
+/// frame coordinates: the plane's own, tightened inside regions of interest.
+fn plane_limits(
+    settings: &EncodeSettings,
+    planes: &[CodingPlane],
+    w: usize,
+    span: f32,
+    narrow: u32,
+) -> Vec<BoxedLimits> {
     let base_tol = match settings.rate {
         RateMode::Tolerance(t) if t.is_nan() => 0.02,
         RateMode::Tolerance(t) => t / span,
         _ => 1.0,
     };
     let chroma_tol = 1.0 / settings.chroma_weight.max(1e-3).sqrt();
-    let limit_fns: Vec<BoxedLimits> = sources
+    planes
         .iter()
-        .zip(&planes)
         .enumerate()
-        .map(|(i, (_, p))| {
+        .map(|(i, p)| {
             // Frame samples per source pixel.
             let k = p.valid[0] / w as f32;
             let plane_tol = base_tol * if i > 0 { chroma_tol } else { 1.0 };
@@ -500,20 +725,18 @@ pub fn encode(
             });
             f
         })
-        .collect();
-    let limits: Vec<Limits> = limit_fns.iter().map(|f| f.as_ref() as Limits).collect();
-    let weights: Vec<f32> = (0..planes.len())
-        .map(|i| {
-            if i == 0 {
-                1.0
-            } else {
-                4.0 * settings.chroma_weight
-            }
-        })
-        .collect();
+        .collect()
+}
 
-    let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
-    let meta = AssetMeta {
+/// The asset's metadata, before the encoder's measurements.
+fn source_meta(
+    raster: &Raster,
+    settings: &EncodeSettings,
+    (lo, hi): (f64, f64),
+    colour: ColourModel,
+) -> AssetMeta {
+    let (w, h) = (raster.width, raster.height);
+    AssetMeta {
         kind: raster.kind,
         width: w as u32,
         height: h as u32,
@@ -527,146 +750,29 @@ pub fn encode(
         georef: raster.georef.clone(),
         encoder: settings.describe(),
         stats: EncodeStats::default(),
-    };
-    // The metadata of an asset coded with quantiser `q`: its description names `q` (and its
-    // length is part of the size rate control fits).
-    let meta_for = |q: Quantiser| AssetMeta {
-        encoder: EncodeSettings {
-            quantiser: q,
-            ..settings.clone()
-        }
-        .describe(),
-        ..meta.clone()
-    };
-    let target_bytes = match settings.rate {
-        RateMode::TargetBpp(bpp) => Some((bpp * (w * h) as f64 / 8.0).floor() as usize),
-        _ => None,
-    };
-    let code = |pyramids: &[Pyramid], parts: &[Partition]| -> Vec<(PlaneHeader, Vec<u8>)> {
-        pyramids
-            .iter()
-            .zip(parts)
-            .map(|(p, part)| {
-                (
-                    p.header.clone(),
-                    encode_plane(&p.header, &|l, bx, by| part.decide(p, l, bx, by)),
-                )
-            })
-            .collect()
-    };
-    // The partition the rate mode asks for, from one set of fits.
-    let choose = |pyramids: &[Pyramid]| -> Result<Vec<Partition>, Error> {
-        let meta = meta_for(pyramids[0].header.quantiser);
-        let pyr_refs: Vec<&Pyramid> = pyramids.iter().collect();
-        Ok(match settings.rate {
-            RateMode::ConstRange(_) => pyramids.iter().map(Partition::whole_level).collect(),
-            RateMode::Tolerance(_) => pyramids
-                .iter()
-                .zip(&limits)
-                .map(|(p, l)| Partition::by_tolerance(p, *l))
-                .collect(),
-            RateMode::Transforms(n) => {
-                let (initial, order) = greedy_order(&pyr_refs, &weights, &limits);
-                partitions_after(&pyr_refs, &order, n.saturating_sub(initial).div_ceil(3))
-            }
-            RateMode::TargetBpp(_) => {
-                let max_bytes = target_bytes.unwrap_or(usize::MAX);
-                let at = |lambda: f32| -> Vec<Partition> {
-                    pyramids
-                        .iter()
-                        .zip(&limits)
-                        .zip(&weights)
-                        .map(|((p, l), &wt)| Partition::by_lagrangian(p, lambda, wt, *l))
-                        .collect()
-                };
-                // The size alone (no stream decoding, no operator). The stats `measured`
-                // fills in later are fixed-width fields, so the final file has exactly this
-                // size.
-                let size_at = |lambda: f32| -> Result<usize, Error> {
-                    Ok(Asset::quadtree_file_size(
-                        &meta,
-                        code(pyramids, &at(lambda)),
-                        mask.as_ref(),
-                    ))
-                };
-                // Smallest lambda (best quality) whose file fits: bisection on log(lambda);
-                // the size falls as lambda grows.
-                let (mut lo_l, mut hi_l) = (-30.0f32, 10.0f32);
-                if size_at(lo_l.exp2())? <= max_bytes {
-                    hi_l = lo_l;
-                } else {
-                    for _ in 0..28 {
-                        let mid = 0.5 * (lo_l + hi_l);
-                        if size_at(mid.exp2())? <= max_bytes {
-                            hi_l = mid
-                        } else {
-                            lo_l = mid
-                        }
-                    }
-                }
-                at(hi_l.exp2())
-            }
-        })
-    };
-    let build = |pyramids: &[Pyramid]| -> Result<Asset, Error> {
-        Asset::from_parts(
-            meta_for(pyramids[0].header.quantiser),
-            code(pyramids, &choose(pyramids)?),
-            mask.clone(),
-        )
-    };
-    // One search per plane serves every quantiser, with domains read from `avg2[plane]`; rate
-    // control runs for each. Under a target size every quantiser's asset fits it: the one that
-    // decodes closest to the source wins (the settings' own on a tie).
-    let weigh = |avg2: &[Vec<f32>]| -> Result<(Asset, Errors), Error> {
-        // pyramids_by_quantiser[q][plane]
-        let mut pyramids_by_quantiser: Vec<Vec<Pyramid>> =
-            quantisers.iter().map(|_| Vec::new()).collect();
-        for (i, (p, domains)) in planes.iter().zip(avg2).enumerate() {
-            let each: Vec<PlaneHeader> =
-                headers_by_quantiser.iter().map(|h| h[i].clone()).collect();
-            let built = Pyramid::build_each(p, domains, &each, settings.search, &tick);
-            for (q, pyramid) in built.into_iter().enumerate() {
-                pyramids_by_quantiser[q].push(pyramid);
-            }
-        }
-        let mut weighed: Option<(Asset, Errors)> = None;
-        for pyramids in &pyramids_by_quantiser {
-            let asset = build(pyramids)?;
-            let errors = decoded_errors(&asset, raster);
-            // Weighted mean square error over all channels (what PSNR ranks by).
-            if weighed.as_ref().is_none_or(|(_, e)| errors.rmse < e.rmse) {
-                weighed = Some((asset, errors));
-            }
-        }
-        Ok(weighed.expect("at least the settings' own quantiser"))
-    };
-    let own_domains: Vec<Vec<f32>> = planes.iter().map(CodingPlane::average2).collect();
-    let (mut latest, errors) = weigh(&own_domains)?;
-    if settings.attractor_passes == 0 {
-        progress(total, total);
-        return Ok(measured(latest, start, errors));
     }
-    // A pass must not buy its quality with bytes the user did not grant: under a target size
-    // any asset within it will do; otherwise it may be no larger than the first.
-    let max_size = target_bytes.unwrap_or(latest.file_size());
-    let mut best_errors = errors;
-    let mut best = latest.clone();
-    for _ in 0..settings.attractor_passes {
-        let domains: Vec<Vec<f32>> = planes
-            .iter()
-            .zip(&latest.planes)
-            .map(|(p, coded)| attractor(p, &coded.operator))
-            .collect();
-        let errors;
-        (latest, errors) = weigh(&domains)?;
-        if errors.rmse < best_errors.rmse && latest.file_size() <= max_size {
-            best = latest.clone();
-            best_errors = errors;
+}
+
+/// The smallest lambda (best quality) whose file fits `max_bytes`: bisection on log(lambda);
+/// the size falls as lambda grows.
+fn smallest_lambda(
+    size_at: impl Fn(f32) -> Result<usize, Error>,
+    max_bytes: usize,
+) -> Result<f32, Error> {
+    let (mut lo_l, mut hi_l) = (-30.0f32, 10.0f32);
+    if size_at(lo_l.exp2())? <= max_bytes {
+        hi_l = lo_l;
+    } else {
+        for _ in 0..28 {
+            let mid = 0.5 * (lo_l + hi_l);
+            if size_at(mid.exp2())? <= max_bytes {
+                hi_l = mid
+            } else {
+                lo_l = mid
+            }
         }
     }
-    progress(total, total);
-    Ok(measured(best, start, best_errors))
+    Ok(hi_l.exp2())
 }
 
 /// The 2x2 means ([`CodingPlane::average2`]) of a plane's decoded attractor over its whole
