@@ -417,7 +417,6 @@ impl Asset {
         tolerance: f32,
         delegates: &Delegates<'_>,
     ) -> Result<(Vec<Vec<f32>>, f32), Cancelled> {
-        let continuous = delegates.continuous;
         let stop = || {
             if (delegates.cancelled)() {
                 Err(Cancelled)
@@ -437,90 +436,13 @@ impl Asset {
         // A-posteriori bound of the discrete decodes (normalised).
         let mut coarse_bound = f32::INFINITY;
         let planes: Vec<Vec<f32>> = if coarse {
-            // A mip level per axis: the source size halved while its cells stay no larger than
-            // a pixel (so cells measure between half a pixel and a pixel). Tiles of one zoom then
-            // share their grid whatever their latitude (Mercator changes the footprint from row
-            // to row), and a pixel averages 2 x 2 bilinear taps spread over its footprint, which
-            // covers every cell under it: filtered, never aliased.
-            let level = |fp: f32, n: u32| {
-                let cells = (fp * n as f32).max(1.0);
-                let halvings = cells.log2().floor().clamp(0.0, 30.0) as u32;
-                (n as usize).div_ceil(1 << halvings).max(1)
-            };
-            let (gw, gh) = (
-                level(footprint[0], self.meta.width),
-                level(footprint[1], self.meta.height),
-            );
-            let grids = (delegates.discrete)(gw, gh, iterations, tol);
-            coarse_bound = grids.iter().map(|(_, r)| r.error_bound).fold(0.0, f32::max);
-            let (qx, qy) = (
-                0.25 * footprint[0] * gw as f32,
-                0.25 * footprint[1] * gh as f32,
-            );
-            grids
-                .iter()
-                .map(|(g, _)| {
-                    (0..inside.len())
-                        .map(|k| {
-                            let (u, v) = inside.at(k);
-                            let (x, y) = (u * gw as f32 - 0.5, v * gh as f32 - 0.5);
-                            0.25 * (decode::sample_bilinear(g, x - qx, y - qy)
-                                + decode::sample_bilinear(g, x + qx, y - qy)
-                                + decode::sample_bilinear(g, x - qx, y + qy)
-                                + decode::sample_bilinear(g, x + qx, y + qy))
-                        })
-                        .collect()
-                })
-                .collect()
+            let (planes, bound) = self.filtered(&inside, footprint, delegates, iterations, tol);
+            coarse_bound = bound;
+            planes
         } else {
             let mut planes = Vec::with_capacity(self.planes.len());
-            for (k, p) in self.planes.iter().enumerate() {
-                let values = match &inside {
-                    Inside::Grid { ix, iy, .. } => {
-                        match continuous(k, Sites::Grid { xs: ix, ys: iy }, iterations, tol) {
-                            Some(v) => v,
-                            None => {
-                                let rows = (BAND_POINTS / ix.len().max(1)).max(1);
-                                let mut v = Vec::with_capacity(ix.len() * iy.len());
-                                for band in iy.chunks(rows) {
-                                    stop()?;
-                                    v.extend(p.operator.grid(ix, band, iterations, tol));
-                                }
-                                v
-                            }
-                        }
-                    }
-                    Inside::List {
-                        points,
-                        loose,
-                        patches,
-                        ..
-                    } => match continuous(k, Sites::List(points), iterations, tol) {
-                        Some(v) => v,
-                        None => {
-                            let mut v = Vec::with_capacity(points.len());
-                            for band in points[..*loose].chunks(BAND_POINTS) {
-                                stop()?;
-                                v.extend(p.operator.points(band, iterations, tol));
-                            }
-                            for (pa, inside) in patches {
-                                stop()?;
-                                let all = p.operator.patch(&pa.patch, iterations, tol);
-                                if inside.iter().all(|&i| i) {
-                                    v.extend_from_slice(&all);
-                                    continue;
-                                }
-                                v.extend(
-                                    all.into_iter()
-                                        .zip(inside)
-                                        .filter(|(_, i)| **i)
-                                        .map(|(r, _)| r),
-                                );
-                            }
-                            v
-                        }
-                    },
-                };
+            for k in 0..self.planes.len() {
+                let values = self.continuous_plane(k, &inside, (iterations, tol), delegates)?;
                 planes.push(
                     values
                         .into_iter()
@@ -558,6 +480,119 @@ impl Asset {
             }
         };
         Ok((channels, bound))
+    }
+
+    /// Pixels coarser than the source, filtered: a mip level per axis, the source size halved
+    /// while its cells stay no larger than a pixel (so cells measure between half a pixel and a
+    /// pixel). Tiles of one zoom then share their grid whatever their latitude (Mercator
+    /// changes the footprint from row to row), and a pixel averages 2 x 2 bilinear taps spread
+    /// over its footprint, which covers every cell under it: filtered, never aliased. Returns
+    /// the planes and the discrete decodes' a-posteriori bound (normalised).
+    fn filtered(
+        &self,
+        inside: &Inside,
+        footprint: [f32; 2],
+        delegates: &Delegates<'_>,
+        iterations: u32,
+        tol: f32,
+    ) -> (Vec<Vec<f32>>, f32) {
+        let level = |fp: f32, n: u32| {
+            let cells = (fp * n as f32).max(1.0);
+            let halvings = cells.log2().floor().clamp(0.0, 30.0) as u32;
+            (n as usize).div_ceil(1 << halvings).max(1)
+        };
+        let (gw, gh) = (
+            level(footprint[0], self.meta.width),
+            level(footprint[1], self.meta.height),
+        );
+        let grids = (delegates.discrete)(gw, gh, iterations, tol);
+        let bound = grids.iter().map(|(_, r)| r.error_bound).fold(0.0, f32::max);
+        let (qx, qy) = (
+            0.25 * footprint[0] * gw as f32,
+            0.25 * footprint[1] * gh as f32,
+        );
+        let planes = grids
+            .iter()
+            .map(|(g, _)| {
+                (0..inside.len())
+                    .map(|k| {
+                        let (u, v) = inside.at(k);
+                        let (x, y) = (u * gw as f32 - 0.5, v * gh as f32 - 0.5);
+                        0.25 * (decode::sample_bilinear(g, x - qx, y - qy)
+                            + decode::sample_bilinear(g, x + qx, y - qy)
+                            + decode::sample_bilinear(g, x - qx, y + qy)
+                            + decode::sample_bilinear(g, x + qx, y + qy))
+                    })
+                    .collect()
+            })
+            .collect();
+        (planes, bound)
+    }
+
+    /// Plane `k` at the pixels inside the asset by continuous decoding: offered to
+    /// `delegates.continuous` first, else on the CPU in bands, asking `delegates.cancelled`
+    /// before each.
+    fn continuous_plane(
+        &self,
+        k: usize,
+        inside: &Inside,
+        (iterations, tol): (u32, f32),
+        delegates: &Delegates<'_>,
+    ) -> Result<Vec<decode::PointValue>, Cancelled> {
+        let stop = || {
+            if (delegates.cancelled)() {
+                Err(Cancelled)
+            } else {
+                Ok(())
+            }
+        };
+        let p = &self.planes[k];
+        Ok(match inside {
+            Inside::Grid { ix, iy, .. } => {
+                match (delegates.continuous)(k, Sites::Grid { xs: ix, ys: iy }, iterations, tol) {
+                    Some(v) => v,
+                    None => {
+                        let rows = (BAND_POINTS / ix.len().max(1)).max(1);
+                        let mut v = Vec::with_capacity(ix.len() * iy.len());
+                        for band in iy.chunks(rows) {
+                            stop()?;
+                            v.extend(p.operator.grid(ix, band, iterations, tol));
+                        }
+                        v
+                    }
+                }
+            }
+            Inside::List {
+                points,
+                loose,
+                patches,
+                ..
+            } => match (delegates.continuous)(k, Sites::List(points), iterations, tol) {
+                Some(v) => v,
+                None => {
+                    let mut v = Vec::with_capacity(points.len());
+                    for band in points[..*loose].chunks(BAND_POINTS) {
+                        stop()?;
+                        v.extend(p.operator.points(band, iterations, tol));
+                    }
+                    for (pa, inside) in patches {
+                        stop()?;
+                        let all = p.operator.patch(&pa.patch, iterations, tol);
+                        if inside.iter().all(|&i| i) {
+                            v.extend_from_slice(&all);
+                            continue;
+                        }
+                        v.extend(
+                            all.into_iter()
+                                .zip(inside)
+                                .filter(|(_, i)| **i)
+                                .map(|(r, _)| r),
+                        );
+                    }
+                    v
+                }
+            },
+        })
     }
 }
 

@@ -845,9 +845,9 @@ impl Asset {
         Asset::from_bytes_limited(bytes, &AssetLimits::default())
     }
 
-    /// Parses and checks a file's bytes; the sizes it claims are checked against `limits` and
-    /// against what its streams can hold before anything is allocated for them.
-    pub fn from_bytes_limited(bytes: &[u8], limits: &AssetLimits) -> Result<Asset, Error> {
+    /// The container's frame: magic, version, checksum, codec, metadata (checked against the
+    /// kind byte and the size limits of a grid) and the codec's payload.
+    fn container(bytes: &[u8]) -> Result<(u8, AssetMeta, &[u8]), Error> {
         let bad = |m: String| Error::Asset(m);
         if bytes.len() < 24 {
             return Err(bad(format!(
@@ -913,6 +913,14 @@ impl Asset {
                 meta.width, meta.height
             )));
         }
+        Ok((codec, meta, &bytes[p_start..body]))
+    }
+
+    /// Parses and checks a file's bytes; the sizes it claims are checked against `limits` and
+    /// against what its streams can hold before anything is allocated for them.
+    pub fn from_bytes_limited(bytes: &[u8], limits: &AssetLimits) -> Result<Asset, Error> {
+        let bad = |m: String| Error::Asset(m);
+        let (codec, meta, payload) = Asset::container(bytes)?;
         let (w, h) = (u64::from(meta.width), u64::from(meta.height));
         let mask = |m: Option<Vec<u8>>| -> Result<Option<Mask>, Error> {
             m.map(|m| Mask::decode(meta.width as usize, meta.height as usize, &m))
@@ -922,7 +930,6 @@ impl Asset {
         // holds two f32 grids per plane.
         let mask_bytes = |m: &Option<Vec<u8>>| m.as_ref().map_or(0, |_| w * h + w * h / 64);
         let discrete = |planes: usize| 8 * w * h * planes as u64;
-        let payload = &bytes[p_start..body];
         if codec == Codec::Curve as u8 {
             // The header delimits itself and the stream runs to the payload's end.
             let (header, stream) = crate::codecs::curve::code::compact::read(payload)
