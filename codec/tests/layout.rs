@@ -151,8 +151,9 @@ const LONG_FUNCTIONS: &[(&str, &str, &str)] = &[
     (
         "codec/src/core/decode.rs",
         "grid",
-        "continuous decoding's hot loop: one block work-list with the state it carries; split, the \
-         blocks' state crosses function boundaries on every step (measured in the codec bench)",
+        "continuous decoding's hot loop: one block work-list and the state it carries, in one \
+         place so that its bit-for-bit agreement with point decoding (a property test) can be \
+         read in one function",
     ),
     (
         "codec/src/core/decode.rs",
@@ -169,52 +170,6 @@ const LONG_FUNCTIONS: &[(&str, &str, &str)] = &[
         "walk",
         "one walk of the stream shared by encoder and decoder (as the quadtree's): split, the two \
          directions could drift apart",
-    ),
-    // Not split yet: issue 28 is open on these (listed so that no new one slips in).
-    (
-        "codec/src/encode/mod.rs",
-        "encode",
-        "not split yet (issue 28)",
-    ),
-    (
-        "codec/src/encode/mod.rs",
-        "encode_lattice",
-        "not split yet (issue 28)",
-    ),
-    (
-        "codec/src/extract/mod.rs",
-        "sample_with",
-        "not split yet (issue 28)",
-    ),
-    (
-        "codec/src/io/asset.rs",
-        "from_bytes_limited",
-        "not split yet (issue 28)",
-    ),
-    (
-        "codec/src/codecs/quadtree/search.rs",
-        "fit_range_each",
-        "not split yet (issue 28)",
-    ),
-    (
-        "codec/src/codecs/ifs3d/octree.rs",
-        "fit_level",
-        "not split yet (issue 28)",
-    ),
-    (
-        "codec/src/codecs/ifs3d/isosurface.rs",
-        "extract",
-        "not split yet (issue 28)",
-    ),
-    (
-        "server/src/encoding.rs",
-        "encode_raster",
-        "not split yet (issue 28)",
-    ),
-    (
-        "client/src/main.rs",
-        "main",
-        "not split yet (issue 28): one arm per command",
     ),
 ];
 

@@ -393,7 +393,7 @@ pub fn encode(
         .collect();
 
     let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
-    let meta = source_meta(raster, settings, (lo, hi), colour);
+    let meta = source_meta(raster, settings.describe(), (lo, hi), colour);
     // The metadata of an asset coded with quantiser `q`: its description names `q` (and its
     // length is part of the size rate control fits).
     let meta_for = |q: Quantiser| AssetMeta {
@@ -606,18 +606,24 @@ fn search_planes(
     pyramids_by_quantiser
 }
 
-/// The raster's planes normalised to [0, 1] over its value range (luma and half-resolution
-/// chroma for colour), with the range and the colour model.
-fn source_planes(raster: &Raster) -> (f64, f64, ColourModel, Vec<SourcePlane>) {
-    let (w, h) = (raster.width, raster.height);
-    let (lo, hi) = match (raster.kind, raster.sample) {
+/// The value range coded as [0, 1]: the sample type's for images, the data's for height fields
+/// (widened to 1 unit when flat).
+fn coding_range(raster: &Raster) -> (f64, f64) {
+    match (raster.kind, raster.sample) {
         (AssetKind::Image, SampleFormat::U8) => (0.0, 255.0),
         (AssetKind::Image, SampleFormat::U16) => (0.0, 65535.0),
         _ => {
             let (lo, hi) = raster.value_range();
             (lo, if hi > lo { hi } else { lo + 1.0 })
         }
-    };
+    }
+}
+
+/// The raster's planes normalised to [0, 1] over its value range (luma and half-resolution
+/// chroma for colour), with the range and the colour model.
+fn source_planes(raster: &Raster) -> (f64, f64, ColourModel, Vec<SourcePlane>) {
+    let (w, h) = (raster.width, raster.height);
+    let (lo, hi) = coding_range(raster);
     let span = (hi - lo) as f32;
     let valid = raster.valid.clone().unwrap_or_else(|| vec![true; w * h]);
     let norm = |v: &[f32]| -> Vec<f32> {
@@ -731,7 +737,7 @@ fn plane_limits(
 /// The asset's metadata, before the encoder's measurements.
 fn source_meta(
     raster: &Raster,
-    settings: &EncodeSettings,
+    encoder: String,
     (lo, hi): (f64, f64),
     colour: ColourModel,
 ) -> AssetMeta {
@@ -748,7 +754,7 @@ fn source_meta(
         value_max: hi,
         nodata: raster.nodata,
         georef: raster.georef.clone(),
-        encoder: settings.describe(),
+        encoder,
         stats: EncodeStats::default(),
     }
 }
@@ -1172,14 +1178,7 @@ fn encode_lattice(
             "a {w}x{h} grid is too small for a vertex lattice (2x2 at least)"
         )));
     }
-    let (lo, hi) = match (raster.kind, raster.sample) {
-        (AssetKind::Image, SampleFormat::U8) => (0.0, 255.0),
-        (AssetKind::Image, SampleFormat::U16) => (0.0, 65535.0),
-        _ => {
-            let (lo, hi) = raster.value_range();
-            (lo, if hi > lo { hi } else { lo + 1.0 })
-        }
-    };
+    let (lo, hi) = coding_range(raster);
     let span = hi - lo;
     let mut values: Vec<f32> = raster.channels[0]
         .iter()
@@ -1197,21 +1196,7 @@ fn encode_lattice(
         values: &values,
     };
     let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
-    let meta = AssetMeta {
-        kind: raster.kind,
-        width: w as u32,
-        height: h as u32,
-        channels: 1,
-        colour: ColourModel::Grey,
-        sample: raster.sample,
-        units: raster.units.clone(),
-        value_min: lo,
-        value_max: hi,
-        nodata: raster.nodata,
-        georef: raster.georef.clone(),
-        encoder: String::new(),
-        stats: EncodeStats::default(),
-    };
+    let meta = source_meta(raster, String::new(), (lo, hi), ColourModel::Grey);
     let auto_step = |spacing: u32| {
         lattice.height_step.unwrap_or_else(|| {
             let limit =

@@ -39,6 +39,30 @@ fn orientations() -> [bool; 6] {
     })
 }
 
+/// The field's gradient at sample `g` by central differences (one-sided at the grid's faces;
+/// zero along an axis where a neighbour is not finite).
+fn gradient(values: &[f32], dims: [usize; 3], spacing: [f64; 3], g: usize) -> [f64; 3] {
+    let [nx, ny, _] = dims;
+    let index = |i: usize, j: usize, k: usize| (k * ny + j) * nx + i;
+    let c = [g % nx, g / nx % ny, g / (nx * ny)];
+    std::array::from_fn(|a| {
+        let (lo, hi) = (c[a].saturating_sub(1), (c[a] + 1).min(dims[a] - 1));
+        let mut cl = c;
+        let mut ch = c;
+        cl[a] = lo;
+        ch[a] = hi;
+        let (vl, vh) = (
+            values[index(cl[0], cl[1], cl[2])],
+            values[index(ch[0], ch[1], ch[2])],
+        );
+        if hi > lo && vl.is_finite() && vh.is_finite() {
+            (vh - vl) as f64 / ((hi - lo) as f64 * spacing[a])
+        } else {
+            0.0
+        }
+    })
+}
+
 /// The surface `value = iso` of a grid of `dims` samples (x fastest), sample (i, j, k) at
 /// `origin + (i, j, k) * spacing`. Samples that are NaN count as outside.
 pub fn extract(
@@ -58,27 +82,6 @@ pub fn extract(
         let v = values[g];
         if v.is_nan() { f32::INFINITY } else { v - iso }
     };
-    let gradient = |g: usize| -> [f64; 3] {
-        let (i, j, k) = (g % nx, g / nx % ny, g / (nx * ny));
-        let c = [i, j, k];
-        let n = [nx, ny, nz];
-        std::array::from_fn(|a| {
-            let (lo, hi) = (c[a].saturating_sub(1), (c[a] + 1).min(n[a] - 1));
-            let mut cl = c;
-            let mut ch = c;
-            cl[a] = lo;
-            ch[a] = hi;
-            let (vl, vh) = (
-                values[index(cl[0], cl[1], cl[2])],
-                values[index(ch[0], ch[1], ch[2])],
-            );
-            if hi > lo && vl.is_finite() && vh.is_finite() {
-                (vh - vl) as f64 / ((hi - lo) as f64 * spacing[a])
-            } else {
-                0.0
-            }
-        })
-    };
     let position = |g: usize| -> [f64; 3] {
         let c = [g % nx, g / nx % ny, g / (nx * ny)];
         std::array::from_fn(|a| origin[a] + c[a] as f64 * spacing[a])
@@ -94,7 +97,10 @@ pub fn extract(
                 0.5
             };
             let (pa, pb) = (position(key.0), position(key.1));
-            let (ga, gb) = (gradient(key.0), gradient(key.1));
+            let (ga, gb) = (
+                gradient(values, dims, spacing, key.0),
+                gradient(values, dims, spacing, key.1),
+            );
             let p: [f64; 3] = std::array::from_fn(|d| pa[d] + t * (pb[d] - pa[d]));
             let g: [f64; 3] = std::array::from_fn(|d| ga[d] + t * (gb[d] - ga[d]));
             let len = (g[0] * g[0] + g[1] * g[1] + g[2] * g[2]).sqrt();

@@ -712,16 +712,13 @@ fn octant_feature(n: usize, get: impl Fn([usize; 3]) -> f32) -> Option<[f32; 8]>
     (norm > 1e-6 * (n * n * n) as f32).then(|| f.map(|v| v / norm))
 }
 
-/// Fits every block of level `l`.
-fn fit_level(h: &OctreeHeader, v: &[f32], half: &[f32], l: usize, k: usize) -> Vec<Fit3> {
-    let f = h.frame as usize;
-    let hs = f / 2;
+/// Every domain of level `l` with structure, in its 48 orientations: its octant feature
+/// (range octant o reads domain octant iso(o)) and `domain * 48 + isometry`.
+fn domain_pool(h: &OctreeHeader, half: &[f32], l: usize) -> Vec<([f32; 8], u32)> {
+    let hs = h.frame as usize / 2;
     let n = h.size(l);
-    let per = f / n;
-    let q = h.quantiser;
     let c = h.lattice(l);
-    // The pool: every domain with structure, in its 48 orientations.
-    let pool: Vec<([f32; 8], u32)> = (0..c * c * c)
+    (0..c * c * c)
         .into_par_iter()
         .flat_map_iter(|d| {
             let corner = h.domain_corner(l, d as u32).map(|v| v as usize / 2);
@@ -739,7 +736,79 @@ fn fit_level(h: &OctreeHeader, v: &[f32], half: &[f32], l: usize, k: usize) -> V
                 Some((g, d as u32 * CUBE_ISOMETRIES as u32 + iso as u32))
             })
         })
-        .collect();
+        .collect()
+}
+
+/// The least-squares map from domain `item` (`domain * 48 + isometry`) of level `l` onto the
+/// range `r` (mean `mean_r`), quantised; `None` for a flat domain or a zero contrast. `d` is
+/// scratch space of the range's size.
+fn domain_fit(
+    h: &OctreeHeader,
+    half: &[f32],
+    l: usize,
+    item: u32,
+    (r, mean_r): (&[f32], f64),
+    d: &mut [f32],
+) -> Option<Fit3> {
+    let hs = h.frame as usize / 2;
+    let n = h.size(l);
+    let q = h.quantiser;
+    let count = r.len() as f64;
+    let (dom, iso) = (
+        item / CUBE_ISOMETRIES as u32,
+        (item % CUBE_ISOMETRIES as u32) as u8,
+    );
+    let corner = h.domain_corner(l, dom).map(|v| v as usize / 2);
+    for z in 0..n {
+        for y in 0..n {
+            for x in 0..n {
+                let s = cube_isometry_index(iso, [x, y, z], n);
+                d[(z * n + y) * n + x] =
+                    half[((corner[2] + s[2]) * hs + corner[1] + s[1]) * hs + corner[0] + s[0]];
+            }
+        }
+    }
+    let mean_d = d.iter().map(|&x| x as f64).sum::<f64>() / count;
+    let (mut dd, mut dr) = (0.0f64, 0.0f64);
+    for (&x, &y) in d.iter().zip(r) {
+        let xd = x as f64 - mean_d;
+        dd += xd * xd;
+        dr += xd * (y as f64 - mean_r);
+    }
+    if dd < 1e-12 {
+        return None;
+    }
+    let qs = q.contrast_index((dr / dd) as f32);
+    if qs == 0 {
+        return None;
+    }
+    let s = q.contrast(qs);
+    let qo = q.offset_index(s, (mean_r - s as f64 * mean_d) as f32);
+    let o = q.offset(s, qo);
+    let sse: f64 = d
+        .iter()
+        .zip(r)
+        .map(|(&x, &y)| ((s * x + o - y) as f64).powi(2))
+        .sum();
+    Some(Fit3 {
+        sse,
+        map: Map3 {
+            contrast: qs,
+            offset: qo,
+            isometry: iso,
+            domain: dom,
+        },
+    })
+}
+
+/// Fits every block of level `l`.
+fn fit_level(h: &OctreeHeader, v: &[f32], half: &[f32], l: usize, k: usize) -> Vec<Fit3> {
+    let f = h.frame as usize;
+    let n = h.size(l);
+    let per = f / n;
+    let q = h.quantiser;
+    // The pool: every domain with structure, in its 48 orientations.
+    let pool = domain_pool(h, half, l);
     let tree = (!pool.is_empty()).then(|| {
         let pts: Vec<[f32; 8]> = pool.iter().map(|p| p.0).collect();
         ImmutableKdTree::<f32, 8>::new_from_slice(&pts)
@@ -790,54 +859,10 @@ fn fit_level(h: &OctreeHeader, v: &[f32], half: &[f32], l: usize, k: usize) -> V
                         continue;
                     }
                     tried.push(item);
-                    let (dom, iso) = (
-                        item / CUBE_ISOMETRIES as u32,
-                        (item % CUBE_ISOMETRIES as u32) as u8,
-                    );
-                    let corner = h.domain_corner(l, dom).map(|v| v as usize / 2);
-                    for z in 0..n {
-                        for y in 0..n {
-                            for x in 0..n {
-                                let s = cube_isometry_index(iso, [x, y, z], n);
-                                d[(z * n + y) * n + x] =
-                                    half[((corner[2] + s[2]) * hs + corner[1] + s[1]) * hs
-                                        + corner[0]
-                                        + s[0]];
-                            }
-                        }
-                    }
-                    let mean_d = d.iter().map(|&x| x as f64).sum::<f64>() / count;
-                    let (mut dd, mut dr) = (0.0f64, 0.0f64);
-                    for (&x, &y) in d.iter().zip(&r) {
-                        let xd = x as f64 - mean_d;
-                        dd += xd * xd;
-                        dr += xd * (y as f64 - mean_r);
-                    }
-                    if dd < 1e-12 {
-                        continue;
-                    }
-                    let qs = q.contrast_index((dr / dd) as f32);
-                    if qs == 0 {
-                        continue;
-                    }
-                    let s = q.contrast(qs);
-                    let qo = q.offset_index(s, (mean_r - s as f64 * mean_d) as f32);
-                    let o = q.offset(s, qo);
-                    let sse: f64 = d
-                        .iter()
-                        .zip(&r)
-                        .map(|(&x, &y)| ((s * x + o - y) as f64).powi(2))
-                        .sum();
-                    if sse < best.sse {
-                        best = Fit3 {
-                            sse,
-                            map: Map3 {
-                                contrast: qs,
-                                offset: qo,
-                                isometry: iso,
-                                domain: dom,
-                            },
-                        };
+                    if let Some(fit) = domain_fit(h, half, l, item, (&r, mean_r), &mut d)
+                        && fit.sse < best.sse
+                    {
+                        best = fit;
                     }
                 }
             }

@@ -450,64 +450,29 @@ pub fn fit_range_each(
     let q = &qs[0];
     debug_assert!(qs.iter().all(|o| (o.slope_bits > 0) == (q.slope_bits > 0)));
     let n = pool.size;
-    let mut values = Vec::with_capacity(n * n);
-    let mut weights = Vec::with_capacity(n * n);
-    for j in 0..n {
-        let row = (y + j) * plane.width + x;
-        values.extend_from_slice(&plane.values[row..row + n]);
-        weights.extend_from_slice(&plane.weights[row..row + n]);
-    }
-    let all_one = weights.iter().all(|&w| w == 1.0);
-    let (mut wn, mut sr, mut srr) = (0.0f32, 0.0f32, 0.0f32);
-    for (&v, &w) in values.iter().zip(&weights) {
-        wn += w;
-        sr += w * v;
-        srr += w * v * v;
-    }
-    if wn == 0.0 {
+    let rb = match range_block(plane, x, y, n, q.slope_bits > 0) {
+        Ok(rb) => rb,
         // Nothing of the source here (padding, nodata): a constant map at the filled mean.
-        let mean = values.iter().sum::<f32>() / values.len() as f32;
-        return qs
-            .iter()
-            .map(|q| {
-                let offset = q.offset_index(0.0, mean);
-                Fit {
-                    sse: 0.0,
-                    weight: 0.0,
-                    contrast: 0,
-                    offset,
-                    isometry: 0,
-                    domain: 0,
-                    slope: [0; 2],
-                    constant_sse: 0.0,
-                    constant_offset: offset,
-                    constant_slope: [0; 2],
-                }
-            })
-            .collect();
-    }
-    // The planar term is fitted on whole blocks only: with partial weights the centred
-    // coordinates are no longer orthogonal to the constant and the closed form below fails.
-    let plane = (q.slope_bits > 0 && all_one && n > 1).then(|| {
-        let c = (n as f32 - 1.0) * 0.5;
-        let (mut sx, mut sy) = (0.0f32, 0.0f32);
-        for j in 0..n {
-            for i in 0..n {
-                sx += values[j * n + i] * (i as f32 - c);
-                sy += values[j * n + i] * (j as f32 - c);
-            }
+        Err(mean) => {
+            return qs
+                .iter()
+                .map(|q| {
+                    let offset = q.offset_index(0.0, mean);
+                    Fit {
+                        sse: 0.0,
+                        weight: 0.0,
+                        contrast: 0,
+                        offset,
+                        isometry: 0,
+                        domain: 0,
+                        slope: [0; 2],
+                        constant_sse: 0.0,
+                        constant_offset: offset,
+                        constant_slope: [0; 2],
+                    }
+                })
+                .collect();
         }
-        let sxx = n as f32 * (n * (n * n - 1)) as f32 / 12.0;
-        ([sx, sy], sxx)
-    });
-    let rb = RangeBlock {
-        values,
-        weights: (!all_one).then_some(weights),
-        n: wn,
-        sr,
-        srr,
-        plane,
-        side: n,
     };
     // The constant map is always a candidate, and the only one for flat ranges.
     let constants: Vec<Fit> = qs.iter().map(|q| constant_fit(&rb, q)).collect();
@@ -560,6 +525,58 @@ pub fn fit_range_each(
         b.constant_slope = c.slope;
     }
     best
+}
+
+/// The range block of side `n` at (`x`, `y`): its values, weights and sums, and with `slopes`
+/// its planar term. `Err(mean)` when no sample of the source is in it (padding, nodata).
+#[inline]
+fn range_block(
+    plane: &CodingPlane,
+    x: usize,
+    y: usize,
+    n: usize,
+    slopes: bool,
+) -> Result<RangeBlock, f32> {
+    let mut values = Vec::with_capacity(n * n);
+    let mut weights = Vec::with_capacity(n * n);
+    for j in 0..n {
+        let row = (y + j) * plane.width + x;
+        values.extend_from_slice(&plane.values[row..row + n]);
+        weights.extend_from_slice(&plane.weights[row..row + n]);
+    }
+    let all_one = weights.iter().all(|&w| w == 1.0);
+    let (mut wn, mut sr, mut srr) = (0.0f32, 0.0f32, 0.0f32);
+    for (&v, &w) in values.iter().zip(&weights) {
+        wn += w;
+        sr += w * v;
+        srr += w * v * v;
+    }
+    if wn == 0.0 {
+        return Err(values.iter().sum::<f32>() / values.len() as f32);
+    }
+    // The planar term is fitted on whole blocks only: with partial weights the centred
+    // coordinates are no longer orthogonal to the constant and the closed form below fails.
+    let planar = (slopes && all_one && n > 1).then(|| {
+        let c = (n as f32 - 1.0) * 0.5;
+        let (mut sx, mut sy) = (0.0f32, 0.0f32);
+        for j in 0..n {
+            for i in 0..n {
+                sx += values[j * n + i] * (i as f32 - c);
+                sy += values[j * n + i] * (j as f32 - c);
+            }
+        }
+        let sxx = n as f32 * (n * (n * n - 1)) as f32 / 12.0;
+        ([sx, sy], sxx)
+    });
+    Ok(RangeBlock {
+        values,
+        weights: (!all_one).then_some(weights),
+        n: wn,
+        sr,
+        srr,
+        plane: planar,
+        side: n,
+    })
 }
 
 /// Quantised planar part of a fit with contrast `s`: (offset index, slope indices, the squared
