@@ -263,11 +263,10 @@ impl EncodeSettings {
 
     /// Quantisers weighed beside `quantiser` by default ([`EncodeSettings::quantiser_choices`]),
     /// by kind of data. Height fields: offsets and slopes both at 5, 7 and 8 bits beside the
-    /// default 6 (contrast as given). Which one wins depends on the data and the rate, and by
-    /// up to 2.6 dB (CLI, 2026-11-24: topobathy at 0.4 bpp 21.19 dB at 6 bits, 23.80 at 5;
-    /// etopo20 at 1.6 bpp 44.78 at 6, 45.61 at 8; jacksboro at 0.8 bpp 40.37 at 6, 40.58 at 7):
-    /// a fixed step cannot follow the rate, so the encoder measures. The search is shared, so
-    /// weighing four costs four rate controls and decodes: etopo20's encode 3.0 -> 4.0 s.
+    /// default 6 (contrast as given). Which one wins depends on the data and the rate, by up to
+    /// 2.6 dB (docs/benchmarks.md has the figures): a fixed step cannot follow the rate, so the
+    /// encoder measures. The search is shared, so weighing four costs four rate controls and
+    /// decodes, about a third more encode time on etopo20.
     /// Images weigh none: camera's 2 s bar leaves little room, and their 6-bit offsets were
     /// tuned at the rates they are coded at.
     pub fn default_quantiser_choices(kind: AssetKind, quantiser: Quantiser) -> Vec<Quantiser> {
