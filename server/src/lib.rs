@@ -43,6 +43,11 @@ pub struct FileConfig {
     pub max_concurrent_requests: Option<usize>,
     /// Tile cache size in MiB.
     pub tile_cache_mib: Option<u64>,
+    /// Coarse-decode cache size in MiB (default 64): the whole-asset discrete decodes that
+    /// tiles coarser than the source sample, one grid per asset and zoom. Size it to hold the
+    /// coarse zooms of the largest assets (about 5 bytes a source pixel and plane), or
+    /// their grids are decoded again and again.
+    pub coarse_cache_mib: Option<u64>,
     /// Where continuous decoding runs: `cpu`, `gpu` or `auto` (default; see `backend`).
     pub backend: Option<String>,
     /// GPU memory for resident operators, in MiB (default 1024).
@@ -178,6 +183,9 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
             .weigher(|_k: &String, v: &Arc<api::Cached>| v.size().try_into().unwrap_or(u32::MAX))
             .max_capacity(m * 1024 * 1024)
             .build();
+    }
+    if let Some(m) = opts.file.coarse_cache_mib {
+        state.coarse = api::coarse_cache(m);
     }
     state.backend = match &opts.file.backend {
         Some(b) => b.parse().map_err(|e: String| anyhow::anyhow!(e))?,

@@ -70,7 +70,7 @@ pub fn document() -> Value {
             },
             "/v1/assets/{id}/tilejson.json": {"get": {"summary": "TileJSON 3.0.0 for MapLibre (raster or raster-dem source)", "parameters": [id], "responses": {"200": {"description": "TileJSON"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/tiles/{z}/{x}/{y}.{format}": {"get": {
-                "summary": "A WebMercatorQuad tile (georeferenced assets) or a tile of the unit square (others), decoded by continuous extraction; filtered at zooms coarser than the source. 404 outside the asset.",
+                "summary": "A WebMercatorQuad tile (georeferenced assets) or a tile of the unit square (others), decoded by continuous extraction; filtered at zooms coarser than the source. 404 wholly outside the asset; a tile that overlaps it in any part is 200 (nodata where it is not).",
                 "parameters": [id,
                     param("z", "path", json!({"type": "integer", "minimum": 0, "maximum": 24}), "Zoom"),
                     param("x", "path", json!({"type": "integer"}), "Column"),

@@ -925,6 +925,74 @@ async fn visual_tiles_are_transparent_outside_the_data() {
     assert_eq!(transparent + opaque, 256 * 256);
 }
 
+/// A tile that overlaps a small asset but where no pixel centre falls on it (jacksboro, a
+/// fraction of a pixel at zooms 0 to 2) is a tile of nodata, not a 404: map clients then draw
+/// those zooms. Tiles wholly outside stay 404.
+#[tokio::test]
+async fn tiles_overlapping_the_asset_in_any_part_answer_200() {
+    for z in 0..=2u8 {
+        let (x, y) = geo::lonlat_tile(z, -84.25, 36.6);
+        let (s, _, b) = get(&format!("/v1/assets/jacksboro/tiles/{z}/{x}/{y}.png")).await;
+        assert_eq!(
+            s,
+            StatusCode::OK,
+            "zoom {z}: {}",
+            String::from_utf8_lossy(&b)
+        );
+        let img = image::load_from_memory(&b).unwrap().to_rgba8();
+        assert_eq!(img.dimensions(), (256, 256));
+        let opaque = img.pixels().filter(|p| p.0[3] != 0).count();
+        // At most the pixels whose centre lies on the asset (a handful at zoom 2).
+        assert!(opaque <= 4, "zoom {z}: {opaque} opaque pixels");
+        let (s, _, _) = get(&format!(
+            "/v1/assets/jacksboro/tiles/{z}/{x}/{y}.png?encoding=terrainrgb"
+        ))
+        .await;
+        assert_eq!(s, StatusCode::OK, "zoom {z} terrain-RGB");
+    }
+    // The tile across the world from it still has no part of it.
+    let (x, y) = geo::lonlat_tile(2, 100.0, -40.0);
+    let (s, _, b) = get(&format!("/v1/assets/jacksboro/tiles/2/{x}/{y}.png")).await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    assert_eq!(json(&b)["code"], "outside");
+}
+
+/// Tiles of one coarse zoom share one discrete decode: the second tile that needs it is a hit
+/// of the coarse cache (counted in /metrics), not a second decode.
+#[tokio::test]
+async fn coarse_tiles_share_their_decode_and_count_it() {
+    state();
+    // A state of its own over the same assets, so that its coarse cache starts empty.
+    let dir = std::env::temp_dir().join(format!("fractile-http-{}", std::process::id()));
+    let (store, _) = Store::open(&dir).unwrap();
+    let st = Arc::new(AppState::new(store, "http://test".into()));
+    let count = |text: &str, result: &str| -> f64 {
+        let name = format!("fractile_coarse_cache_total{{result=\"{result}\"}} ");
+        text.lines()
+            .find_map(|l| l.strip_prefix(&name))
+            .map_or(0.0, |v| v.trim().parse().unwrap())
+    };
+    let before = String::from_utf8(get("/metrics").await.2).unwrap();
+    let (x, y) = geo::lonlat_tile(9, -84.25, 36.6);
+    // Two answers from one grid: the rescale changes the tile (and its cache key), not the grid.
+    for rescale in ["", "&rescale=0,2000"] {
+        let uri = format!("/v1/assets/jacksboro/tiles/9/{x}/{y}.png?iterations=7{rescale}");
+        let (s, _) = call(&st, Request::get(uri).body(Body::empty()).unwrap()).await;
+        assert_eq!(s, StatusCode::OK);
+    }
+    st.coarse.run_pending_tasks();
+    assert_eq!(st.coarse.entry_count(), 1, "one grid for the zoom");
+    let after = String::from_utf8(get("/metrics").await.2).unwrap();
+    assert!(
+        count(&after, "miss") >= count(&before, "miss") + 1.0,
+        "{after}"
+    );
+    assert!(
+        count(&after, "hit") >= count(&before, "hit") + 1.0,
+        "{after}"
+    );
+}
+
 #[tokio::test]
 async fn global_tiles_join_across_the_antimeridian() {
     // etopo20 spans all longitudes from -180: tile x = 0 and x = 2^z - 1 meet at +-180.
@@ -1012,12 +1080,13 @@ fn config_files_parse_and_reject_typos() {
     let good = dir.join("fractile.toml");
     std::fs::write(
         &good,
-        "bind = \"127.0.0.1:9999\"\nmax_iterations = 20\ncache_control = \"public, max-age=60\"\n",
+        "bind = \"127.0.0.1:9999\"\nmax_iterations = 20\ncache_control = \"public, max-age=60\"\ncoarse_cache_mib = 256\n",
     )
     .unwrap();
     let c = fractile_server::FileConfig::load(&good).unwrap();
     assert_eq!(c.bind.unwrap().port(), 9999);
     assert_eq!(c.max_iterations, Some(20));
+    assert_eq!(c.coarse_cache_mib, Some(256));
     let bad = dir.join("typo.toml");
     std::fs::write(&bad, "max_iteration = 20\n").unwrap();
     let e = fractile_server::FileConfig::load(&bad)

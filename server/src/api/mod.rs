@@ -105,6 +105,20 @@ pub struct AppState {
 /// cost to decode ([`fractile_codec::AssetLimits::max_decode_bytes`]).
 pub const DEFAULT_DECODE_MIB: u32 = 3 * 1024;
 
+/// Default of `coarse_cache_mib`.
+pub const DEFAULT_COARSE_CACHE_MIB: u64 = 64;
+
+/// A coarse-decode cache of `mib` MiB, weighed by the bytes of its grids.
+pub fn coarse_cache(mib: u64) -> CoarseCache {
+    moka::sync::Cache::builder()
+        .weigher(|_k: &CoarseKey, v: &Arc<Vec<CoarsePlane>>| {
+            let floats: usize = v.iter().map(|(g, _)| g.values.len()).sum();
+            (floats * 4).try_into().unwrap_or(u32::MAX)
+        })
+        .max_capacity(mib.saturating_mul(1024 * 1024))
+        .build()
+}
+
 /// Key of [`AppState::coarse`]: asset id, checksum, width, height, iterations, tolerance bits.
 pub type CoarseKey = (String, u32, usize, usize, u32, u32);
 
@@ -138,13 +152,7 @@ impl AppState {
                 .weigher(|_k: &String, v: &Arc<Cached>| v.body.len().try_into().unwrap_or(u32::MAX))
                 .max_capacity(256 * 1024 * 1024)
                 .build(),
-            coarse: moka::sync::Cache::builder()
-                .weigher(|_k: &CoarseKey, v: &Arc<Vec<CoarsePlane>>| {
-                    let floats: usize = v.iter().map(|(g, _)| g.values.len()).sum();
-                    (floats * 4).try_into().unwrap_or(u32::MAX)
-                })
-                .max_capacity(64 * 1024 * 1024)
-                .build(),
+            coarse: coarse_cache(DEFAULT_COARSE_CACHE_MIB),
             cache_control: "public, max-age=3600".into(),
             public_url,
             write_token: None,
@@ -276,9 +284,14 @@ fn sample_on(
     let continuous =
         |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
     let discrete = |w, h, n, t: f32| {
-        coarse.get_with((a.id.clone(), a.hash, w, h, n, t.to_bits()), || {
+        let decoded = std::sync::atomic::AtomicBool::new(false);
+        let grids = coarse.get_with((a.id.clone(), a.hash, w, h, n, t.to_bits()), || {
+            decoded.store(true, std::sync::atomic::Ordering::Relaxed);
             Arc::new(a.asset.discrete_planes(w, h, n, t))
-        })
+        });
+        let result = if decoded.into_inner() { "miss" } else { "hit" };
+        metrics::counter!("fractile_coarse_cache_total", "result" => result).increment(1);
+        grids
     };
     let cancelled = || cancel.is_set();
     let delegates = fractile_codec::extract::Delegates {

@@ -145,10 +145,7 @@ pub(super) async fn tile(
     let drawn = decode(&state, cost, move |cancel| {
         draw_tile((gpu.as_deref(), &coarse, cancel), choice, &asset, &job)
     })
-    .await??
-    .ok_or_else(|| {
-        AppError::not_found("outside", format!("tile {z}/{x}/{y} is outside the asset"))
-    })?;
+    .await??;
     let cached = Arc::new(drawn);
     state.cache.insert(key, cached.clone());
     Ok(cached_response(&state, &tag, &cached))
@@ -274,8 +271,8 @@ fn tile_format(
     })
 }
 
-/// Outside the asset: 404, so that map clients over-zoom the parent instead. Checked on the
-/// tile's bounds (cheap); a tile that only grazes the asset is decoded.
+/// Wholly outside the asset: 404, so that map clients over-zoom the parent instead. Checked on
+/// the tile's bounds; a tile that overlaps the asset in any part is answered (200).
 fn check_inside(a: &StoredAsset, z: u8, x: u32, y: u32) -> Result<(), AppError> {
     if let Some(p) = &a.placement {
         let [w, s, e, n] = geo::tile_bounds(z, x, y);
@@ -291,29 +288,35 @@ fn check_inside(a: &StoredAsset, z: u8, x: u32, y: u32) -> Result<(), AppError> 
     Ok(())
 }
 
-/// Decodes and encodes one tile (on a decode lane); `None` when no pixel falls on the asset.
+/// Decodes and encodes one tile (on a decode lane). Pixels off the asset are nodata
+/// (transparent in visual tiles).
 fn draw_tile(
     delegates: (Option<&GpuBackend>, &CoarseCache, &Cancel),
     choice: Backend,
     asset: &StoredAsset,
     job: &TileJob,
-) -> Result<Option<Cached>, AppError> {
+) -> Result<Cached, AppError> {
     let (z, x, y, size) = (job.z, job.x, job.y, job.size);
     // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile, so
     // that shading is seamless across tiles.
     let margin = usize::from(job.shade);
     let grid = geo::tile_pixels(asset.placement.as_ref(), z, x, y, size, margin);
-    if grid.is_outside() {
-        return Ok(None);
-    }
-    let (mut channels, bound) = sample_on(
-        delegates,
-        choice,
-        asset,
-        &grid,
-        job.iterations,
-        job.tolerance,
-    )?;
+    let (mut channels, bound) = if grid.is_outside() {
+        // The tile overlaps the asset's bounds, but no pixel centre falls on it (a small asset
+        // at a coarse zoom): a tile of nodata, not a 404, so that map clients draw the zoom
+        // instead of over-zooming a parent that does not exist either.
+        let planes = usize::from(asset.asset.meta.channels.max(1));
+        (vec![vec![f32::NAN; grid.len()]; planes], 0.0)
+    } else {
+        sample_on(
+            delegates,
+            choice,
+            asset,
+            &grid,
+            job.iterations,
+            job.tolerance,
+        )?
+    };
     let style = (job.colormap.is_some() || job.shade).then(|| {
         let side = size + 2 * margin;
         let shade = job.shade.then(|| {
@@ -349,11 +352,11 @@ fn draw_tile(
     });
     let (content_type, body) =
         encoding::encode_tile(&asset.asset.meta, &channels, size, job.format, style);
-    Ok(Some(Cached {
+    Ok(Cached {
         content_type,
         body: Bytes::from(body),
         error_bound: bound,
-    }))
+    })
 }
 
 fn parse_rescale(r: &Option<String>, a: &StoredAsset) -> Result<Option<(f32, f32)>, AppError> {
