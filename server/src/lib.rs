@@ -44,7 +44,8 @@ pub struct FileConfig {
     /// Tile cache size in MiB.
     pub tile_cache_mib: Option<u64>,
     /// Coarse-decode cache size in MiB (default 64): the whole-asset discrete decodes that
-    /// tiles coarser than the source sample, one grid per asset and zoom. Size it to hold the
+    /// tiles coarser than the source sample, a grid per asset, zoom and band of latitude (see
+    /// `Asset::sample_with`). Size it to hold the
     /// coarse zooms of the largest assets (about 5 bytes a source pixel and plane), or
     /// their grids are decoded again and again.
     pub coarse_cache_mib: Option<u64>,

@@ -484,10 +484,13 @@ impl Asset {
 
     /// Pixels coarser than the source, filtered: a mip level per axis, the source size halved
     /// while its cells stay no larger than a pixel (so cells measure between half a pixel and a
-    /// pixel). Tiles of one zoom then share their grid whatever their latitude (Mercator
-    /// changes the footprint from row to row), and a pixel averages 2 x 2 bilinear taps spread
-    /// over its footprint, which covers every cell under it: filtered, never aliased. Returns
-    /// the planes and the discrete decodes' a-posteriori bound (normalised).
+    /// pixel), and a pixel averages 2 x 2 bilinear taps spread over its footprint, which covers
+    /// every cell under it: filtered, never aliased. Tiles of one zoom share their grid within
+    /// each band of latitude where Mercator keeps a pixel's height within one power of two;
+    /// an asset spanning many latitudes has a few grids per zoom (one per band), each decoded
+    /// once. One grid for the whole zoom would alias at one end of the band or blur at the
+    /// other (by cos(latitude): 11x at 85 degrees). Returns the planes and the discrete
+    /// decodes' a-posteriori bound (normalised).
     fn filtered(
         &self,
         inside: &Inside,
