@@ -816,8 +816,14 @@ async fn every_route_is_documented() {
     let mut routes = 0;
     for part in router.split(".route(").skip(1) {
         let path = part.split('"').nth(1).expect("a route's path");
-        // The tile route names its last segment {tile} ({y}.{format} in the document).
-        let documented = path.replace("{tile}", "{y}.{format}");
+        // Tile routes name their last segment {tile}: {y}.{format} in the document, or
+        // {y}.terrain for Cesium terrain.
+        let last = if path.contains("/terrain/") {
+            "{y}.terrain"
+        } else {
+            "{y}.{format}"
+        };
+        let documented = path.replace("{tile}", last);
         let ops = doc["paths"][&documented]
             .as_object()
             .unwrap_or_else(|| panic!("route {path} is not documented"));
@@ -833,7 +839,7 @@ async fn every_route_is_documented() {
         }
         routes += 1;
     }
-    assert!(routes >= 14, "{routes} routes found");
+    assert!(routes >= 16, "{routes} routes found");
     // Closed choices name what the server parses.
     let tile = &doc["paths"]["/v1/assets/{id}/tiles/{z}/{x}/{y}.{format}"]["get"]["parameters"];
     let backend = tile

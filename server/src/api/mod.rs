@@ -1,6 +1,6 @@
 //! The HTTP API (versioned under /v1): the shared state, the router, and what every resource's
 //! handlers share (lanes, backends, sampling, parameters). Handlers live with their resource
-//! (`assets`, `tiles`, `points`, `regions`, `meshes`, `curves`): each parses and checks a
+//! (`assets`, `tiles`, `terrain`, `points`, `regions`, `meshes`, `curves`): each parses and checks a
 //! request, runs decoding in a lane of [`crate::work`] (never on the async workers), and
 //! encodes the answer. The server adds no fractal math: it calls the codec.
 
@@ -9,6 +9,7 @@ mod curves;
 mod meshes;
 mod points;
 mod regions;
+mod terrain;
 mod tiles;
 
 use assets::*;
@@ -17,6 +18,7 @@ use curves::*;
 use meshes::*;
 use points::*;
 use regions::*;
+use terrain::*;
 use tiles::*;
 
 use std::hash::{Hash, Hasher};
@@ -184,6 +186,8 @@ pub fn router(state: Arc<AppState>) -> Router {
         )
         .route("/v1/assets/{id}/tilejson.json", get(tilejson))
         .route("/v1/assets/{id}/tiles/{z}/{x}/{tile}", get(tile))
+        .route("/v1/assets/{id}/layer.json", get(layer))
+        .route("/v1/assets/{id}/terrain/{z}/{x}/{tile}", get(terrain_tile))
         .route("/v1/assets/{id}/point", get(point_unit))
         .route("/v1/assets/{id}/point/{coords}", get(point_lonlat))
         // The batch's body limit is applied as it is read (`read_body`).

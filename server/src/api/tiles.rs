@@ -68,13 +68,13 @@ pub(super) struct TileQuery {
     hillshade: Option<bool>,
 }
 
-fn etag(a: &StoredAsset, key: &str) -> String {
+pub(super) fn etag(a: &StoredAsset, key: &str) -> String {
     let mut h = std::hash::DefaultHasher::new();
     (a.hash, key).hash(&mut h);
     format!("\"{:016x}\"", h.finish())
 }
 
-fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Response {
+pub(super) fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Response {
     let mut r = (StatusCode::OK, c.body.clone()).into_response();
     let h = r.headers_mut();
     h.insert(
@@ -92,7 +92,7 @@ fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Response {
     r
 }
 
-fn not_modified(headers: &HeaderMap, tag: &str) -> bool {
+pub(super) fn not_modified(headers: &HeaderMap, tag: &str) -> bool {
     headers
         .get(header::IF_NONE_MATCH)
         .and_then(|v| v.to_str().ok())

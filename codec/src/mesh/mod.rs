@@ -11,6 +11,8 @@ use std::path::Path;
 
 use crate::Error;
 
+pub mod quantized;
+
 /// Vertices and triangles.
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct Mesh {

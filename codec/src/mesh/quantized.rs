@@ -1,0 +1,284 @@
+//! Cesium's terrain format, quantized-mesh-1.0: a terrain mesh over one tile of the geographic
+//! tiling scheme, as CesiumJS streams it (the format's specification is Cesium's
+//! `quantized-mesh` repository).
+//!
+//! A tile is a header (the tile's centre, its height range, a bounding sphere and a horizon
+//! occlusion point, all in WGS84 Earth-centred coordinates), the vertices (u, v across the tile
+//! and the height across its range, each 0..=32767, zig-zag delta coded), the triangles
+//! (high-water-mark coded indices) and the vertices on each of the four edges (for the skirts
+//! Cesium hangs there). Written here: no maintained Rust crate writes the format, and it is a
+//! few dozen lines over the mesh we already build.
+
+use crate::mesh::Mesh;
+
+/// WGS84 semi-major axis, metres.
+const A: f64 = 6_378_137.0;
+/// WGS84 semi-minor axis, metres.
+const B: f64 = 6_356_752.314_245_179;
+/// Largest quantized coordinate.
+const Q: f64 = 32767.0;
+
+/// A tile's mesh in grid units, ready to write: vertex `(x, y, h)` at column `x` (west to east,
+/// 0..n-1) and row `-y` (north to south) of an `n x n` grid spanning `bounds`.
+pub struct TerrainTile<'a> {
+    /// Vertices and triangles: positions `(column, -row, height in metres)`, as
+    /// [`Mesh::adaptive`] and [`Mesh::grid`] make them with origin (0, 0) and spacing (1, 1).
+    pub mesh: &'a Mesh,
+    /// Samples a side of the grid the mesh was made on.
+    pub n: usize,
+    /// West, south, east, north, degrees.
+    pub bounds: [f64; 4],
+}
+
+/// Earth-centred, Earth-fixed coordinates of a WGS84 point (degrees, metres above the
+/// ellipsoid).
+pub fn ecef(lon: f64, lat: f64, h: f64) -> [f64; 3] {
+    let (l, p) = (lon.to_radians(), lat.to_radians());
+    let e2 = 1.0 - (B * B) / (A * A);
+    let n = A / (1.0 - e2 * p.sin().powi(2)).sqrt();
+    [
+        (n + h) * p.cos() * l.cos(),
+        (n + h) * p.cos() * l.sin(),
+        (n * (1.0 - e2) + h) * p.sin(),
+    ]
+}
+
+fn sub(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
+    [a[0] - b[0], a[1] - b[1], a[2] - b[2]]
+}
+
+fn dot(a: [f64; 3], b: [f64; 3]) -> f64 {
+    a[0] * b[0] + a[1] * b[1] + a[2] * b[2]
+}
+
+fn norm(a: [f64; 3]) -> f64 {
+    dot(a, a).sqrt()
+}
+
+/// The horizon occlusion point: a point in the ellipsoid's scaled space (coordinates divided
+/// by its radii, where the ellipsoid is the unit sphere), along the direction of `towards`,
+/// such that when it is below a viewer's horizon so is every one of `points`. For each point,
+/// the distance along that direction at which the tangent cone from the unit sphere through
+/// the point meets it; the largest of these.
+fn horizon_occlusion_point(points: &[[f64; 3]], towards: [f64; 3]) -> [f64; 3] {
+    let scaled = |p: [f64; 3]| [p[0] / A, p[1] / A, p[2] / B];
+    let d = scaled(towards);
+    let len = norm(d);
+    if len == 0.0 {
+        return [0.0; 3];
+    }
+    let d = d.map(|v| v / len);
+    let mut magnitude = 0.0f64;
+    for &p in points {
+        let s = scaled(p);
+        let m = norm(s).max(1.0);
+        let dir = s.map(|v| v / norm(s).max(f64::MIN_POSITIVE));
+        let cos_alpha = dot(dir, d).clamp(-1.0, 1.0);
+        let sin_alpha = (1.0 - cos_alpha * cos_alpha).max(0.0).sqrt();
+        let cos_beta = 1.0 / m;
+        let sin_beta = (m * m - 1.0).max(0.0).sqrt() * cos_beta;
+        let denominator = cos_alpha * cos_beta - sin_alpha * sin_beta;
+        // A point a quarter of the globe away has no finite occlusion point: Cesium then
+        // tests the bounding sphere alone, which this infinite magnitude leaves to it.
+        magnitude = magnitude.max(if denominator > 0.0 {
+            1.0 / denominator
+        } else {
+            f64::INFINITY
+        });
+    }
+    if magnitude.is_finite() {
+        d.map(|v| v * magnitude)
+    } else {
+        [0.0; 3]
+    }
+}
+
+/// `v`'s zig-zag code: small magnitudes of either sign become small unsigned numbers.
+fn zigzag(v: i32) -> u16 {
+    ((v << 1) ^ (v >> 31)) as u16
+}
+
+fn put_u32(out: &mut Vec<u8>, v: u32) {
+    out.extend_from_slice(&v.to_le_bytes());
+}
+
+fn put_f64s(out: &mut Vec<u8>, v: &[f64]) {
+    for x in v {
+        out.extend_from_slice(&x.to_le_bytes());
+    }
+}
+
+/// Writes an index list as 16-bit or 32-bit little-endian integers.
+fn put_indices(out: &mut Vec<u8>, wide: bool, indices: impl IntoIterator<Item = u32>) {
+    for i in indices {
+        if wide {
+            out.extend_from_slice(&i.to_le_bytes());
+        } else {
+            out.extend_from_slice(&(i as u16).to_le_bytes());
+        }
+    }
+}
+
+impl TerrainTile<'_> {
+    /// The tile in quantized-mesh-1.0, without extensions. Vertices are renumbered in the
+    /// order triangles first use them (what high-water-mark coding needs); unused ones are
+    /// dropped. An empty mesh (a tile of nodata) is a valid tile with no triangles.
+    pub fn encode(&self) -> Vec<u8> {
+        let m = self.mesh;
+        let mut order: Vec<u32> = Vec::with_capacity(m.positions.len());
+        let mut renumber = vec![u32::MAX; m.positions.len()];
+        let mut indices = Vec::with_capacity(m.triangles.len() * 3);
+        for t in &m.triangles {
+            for &v in t {
+                if renumber[v as usize] == u32::MAX {
+                    renumber[v as usize] = order.len() as u32;
+                    order.push(v);
+                }
+                indices.push(renumber[v as usize]);
+            }
+        }
+        let [w, s, e, n] = self.bounds;
+        let last = (self.n.max(2) - 1) as f64;
+        let (mut lo, mut hi) = (f64::INFINITY, f64::NEG_INFINITY);
+        for &v in &order {
+            let h = f64::from(m.positions[v as usize][2]);
+            lo = lo.min(h);
+            hi = hi.max(h);
+        }
+        if order.is_empty() {
+            (lo, hi) = (0.0, 0.0);
+        }
+        // Grid position and height of each vertex, quantized.
+        let quantized: Vec<[u16; 3]> = order
+            .iter()
+            .map(|&v| {
+                let p = m.positions[v as usize];
+                let (col, row) = (f64::from(p[0]), -f64::from(p[1]));
+                let height = if hi > lo {
+                    (f64::from(p[2]) - lo) / (hi - lo)
+                } else {
+                    0.0
+                };
+                [col / last, 1.0 - row / last, height]
+                    .map(|t| (t.clamp(0.0, 1.0) * Q).round() as u16)
+            })
+            .collect();
+        let world: Vec<[f64; 3]> = quantized
+            .iter()
+            .map(|q| {
+                let t = q.map(|c| f64::from(c) / Q);
+                ecef(
+                    w + t[0] * (e - w),
+                    s + t[1] * (n - s),
+                    lo + t[2] * (hi - lo),
+                )
+            })
+            .collect();
+        let centre = ecef(0.5 * (w + e), 0.5 * (s + n), 0.5 * (lo + hi));
+        // The bounding sphere: the middle of the vertices' box, and the farthest vertex.
+        let (mut bmin, mut bmax) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+        for p in &world {
+            for a in 0..3 {
+                bmin[a] = bmin[a].min(p[a]);
+                bmax[a] = bmax[a].max(p[a]);
+            }
+        }
+        let sphere = if world.is_empty() {
+            centre
+        } else {
+            std::array::from_fn(|a| 0.5 * (bmin[a] + bmax[a]))
+        };
+        let radius = world
+            .iter()
+            .map(|p| norm(sub(*p, sphere)))
+            .fold(0.0, f64::max);
+        let horizon = horizon_occlusion_point(&world, sphere);
+
+        let mut out = Vec::with_capacity(88 + 4 + 6 * order.len() + 6 * indices.len() + 64);
+        put_f64s(&mut out, &centre);
+        out.extend_from_slice(&(lo as f32).to_le_bytes());
+        out.extend_from_slice(&(hi as f32).to_le_bytes());
+        put_f64s(&mut out, &sphere);
+        put_f64s(&mut out, &[radius]);
+        put_f64s(&mut out, &horizon);
+        put_u32(&mut out, order.len() as u32);
+        for axis in 0..3 {
+            let mut previous = 0i32;
+            for q in &quantized {
+                let value = i32::from(q[axis]);
+                out.extend_from_slice(&zigzag(value - previous).to_le_bytes());
+                previous = value;
+            }
+        }
+        // Over 65,536 vertices the indices are 32-bit, aligned to 4 bytes (16-bit ones are
+        // aligned already: the header and vertex data have an even length).
+        let wide = order.len() > 65_536;
+        if wide {
+            while !out.len().is_multiple_of(4) {
+                out.push(0);
+            }
+        }
+        put_u32(&mut out, (indices.len() / 3) as u32);
+        let mut highest = 0u32;
+        let coded: Vec<u32> = indices
+            .iter()
+            .map(|&i| {
+                let code = highest - i;
+                if code == 0 {
+                    highest += 1;
+                }
+                code
+            })
+            .collect();
+        put_indices(&mut out, wide, coded);
+        // The edges: west, south, east, north.
+        for on_edge in [
+            |q: &[u16; 3]| q[0] == 0,
+            |q: &[u16; 3]| q[1] == 0,
+            |q: &[u16; 3]| q[0] == Q as u16,
+            |q: &[u16; 3]| q[1] == Q as u16,
+        ] {
+            let edge: Vec<u32> = (0..quantized.len() as u32)
+                .filter(|&k| on_edge(&quantized[k as usize]))
+                .collect();
+            put_u32(&mut out, edge.len() as u32);
+            put_indices(&mut out, wide, edge);
+        }
+        out
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn ecef_of_known_points() {
+        let p = ecef(0.0, 0.0, 0.0);
+        assert!((p[0] - A).abs() < 1e-6 && p[1].abs() < 1e-6 && p[2].abs() < 1e-6);
+        let pole = ecef(0.0, 90.0, 0.0);
+        assert!((pole[2] - B).abs() < 1e-6, "{pole:?}");
+    }
+
+    #[test]
+    fn zigzag_codes_small_deltas_small() {
+        assert_eq!([0, -1, 1, -2, 2].map(zigzag), [0, 1, 2, 3, 4]);
+    }
+
+    #[test]
+    fn the_occlusion_point_hides_its_vertices() {
+        // A viewer on the far side of the globe sees none of them; the point must then be
+        // below the horizon too: outside the unit sphere in scaled space, towards the points.
+        let pts: Vec<[f64; 3]> = [(10.0, 45.0, 0.0), (10.5, 45.5, 3000.0)]
+            .iter()
+            .map(|&(lo, la, h)| ecef(lo, la, h))
+            .collect();
+        let h = horizon_occlusion_point(&pts, ecef(10.25, 45.25, 1500.0));
+        assert!(norm(h) > 1.0, "{h:?}");
+        // And it lies along the direction of the tile.
+        let d = ecef(10.25, 45.25, 0.0);
+        let scaled = [d[0] / A, d[1] / A, d[2] / B];
+        let cos = dot(h, scaled) / (norm(h) * norm(scaled));
+        assert!(cos > 0.999_999, "{cos}");
+    }
+}

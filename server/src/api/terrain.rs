@@ -1,0 +1,199 @@
+//! Cesium terrain: `layer.json` and quantized-mesh-1.0 tiles of a georeferenced height field, in
+//! the geographic tiling scheme CesiumJS uses by default (EPSG:4326, TMS rows from the south,
+//! two root tiles). Each tile is an adaptive mesh (right-triangulated irregular network) of a
+//! 65 x 65 grid of decoded heights, within the level's geometric error of them.
+
+use super::*;
+
+/// Vertices a side of a terrain tile's grid (Cesium's own heightmap tiles use 65).
+const GRID: usize = 65;
+
+/// Cesium's geometric error of level 0 for the geographic scheme: the ellipsoid's largest
+/// circumference over the 65-sample root tiles, two across, a quarter of it (CesiumJS's
+/// `TerrainProvider.getEstimatedLevelZeroGeometricErrorForAHeightmap`: 6378137 x 2 pi x 0.25 /
+/// (65 x 2)). Level z halves it z times. Meshing within this error makes Cesium's level of detail
+/// choose the tiles it would for its own terrain.
+const LEVEL_ZERO_ERROR: f64 = 6_378_137.0 * std::f64::consts::TAU * 0.25 / (65.0 * 2.0);
+
+/// Degrees a side of a tile of level `z`.
+fn tile_degrees(z: u8) -> f64 {
+    180.0 / f64::from(1u32 << z)
+}
+
+/// West, south, east, north of tile (`z`, `x`, `y`), TMS rows counted from the south.
+fn tile_bounds(z: u8, x: u32, y: u32) -> [f64; 4] {
+    let d = tile_degrees(z);
+    let (w, s) = (-180.0 + f64::from(x) * d, -90.0 + f64::from(y) * d);
+    [w, s, w + d, s + d]
+}
+
+/// The asset as Cesium terrain: a georeferenced height field.
+fn terrain_asset(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> {
+    if a.asset.meta.kind != AssetKind::HeightField || a.placement.is_none() {
+        return Err(AppError::bad_request(
+            "not_terrain",
+            format!(
+                "{} is not a georeferenced height field: Cesium terrain is for DEMs",
+                a.id
+            ),
+        ));
+    }
+    Ok(a)
+}
+
+/// The asset's bounds in lon/lat, clipped to the globe.
+fn asset_bounds(a: &StoredAsset) -> [f64; 4] {
+    let [w, s, e, n] = a.placement.as_ref().expect("checked").bounds();
+    [w.max(-180.0), s.max(-90.0), e.min(180.0), n.min(90.0)]
+}
+
+/// Deepest level: where a tile's 64 cells are as fine as the source's, then 4 levels further
+/// (detail past the source, as the raster tiles' `maxzoom`).
+fn max_level(state: &AppState, a: &StoredAsset) -> u8 {
+    let [w, _, e, _] = asset_bounds(a);
+    let pixel = (e - w).max(1e-12) / f64::from(a.asset.meta.width.max(1));
+    let native = (180.0 / ((GRID - 1) as f64 * pixel))
+        .log2()
+        .ceil()
+        .clamp(0.0, 22.0) as u8;
+    (native + 4).min(state.limits.max_zoom)
+}
+
+/// Tile columns and rows of level `z` that overlap the asset (inclusive ranges).
+fn tile_range(bounds: [f64; 4], z: u8) -> ([u32; 2], [u32; 2]) {
+    let d = tile_degrees(z);
+    let [w, s, e, n] = bounds;
+    let last_x = (1u32 << (z + 1)) - 1;
+    let last_y = (1u32 << z) - 1;
+    let col = |lon: f64| (((lon + 180.0) / d).floor().max(0.0) as u32).min(last_x);
+    let row = |lat: f64| (((lat + 90.0) / d).floor().max(0.0) as u32).min(last_y);
+    // An east or north edge on a tile boundary belongs to the tile before it.
+    let tiny = d * 1e-9;
+    ([col(w), col(e - tiny)], [row(s), row(n - tiny)])
+}
+
+/// `GET /v1/assets/{id}/layer.json`: the terrain layer Cesium's `CesiumTerrainProvider` reads.
+pub(super) async fn layer(
+    State(state): Shared,
+    Path(id): Path<String>,
+) -> Result<Json<serde_json::Value>, AppError> {
+    let a = terrain_asset(state.store.get(&id)?)?;
+    let bounds = asset_bounds(&a);
+    let max = max_level(&state, &a);
+    let available: Vec<serde_json::Value> = (0..=max)
+        .map(|z| {
+            let ([x0, x1], [y0, y1]) = tile_range(bounds, z);
+            serde_json::json!([{"startX": x0, "startY": y0, "endX": x1, "endY": y1}])
+        })
+        .collect();
+    Ok(Json(serde_json::json!({
+        "tilejson": "2.1.0",
+        "name": a.id,
+        "version": "1.0.0",
+        "format": "quantized-mesh-1.0",
+        "scheme": "tms",
+        "projection": "EPSG:4326",
+        // Relative to this document, as Cesium resolves it.
+        "tiles": ["terrain/{z}/{x}/{y}.terrain"],
+        "minzoom": 0,
+        "maxzoom": max,
+        "bounds": bounds,
+        "available": available,
+    })))
+}
+
+/// Query of a terrain tile.
+#[derive(Deserialize)]
+pub(super) struct TerrainQuery {
+    iterations: Option<u32>,
+    tolerance: Option<f32>,
+    backend: Option<String>,
+}
+
+/// `GET /v1/assets/{id}/terrain/{z}/{x}/{y}.terrain`: one quantized-mesh tile, with the
+/// decode's bound plus the mesh's error in `X-Error-Bound`.
+pub(super) async fn terrain_tile(
+    State(state): Shared,
+    Path((id, z, x, tile)): Path<(String, u8, u32, String)>,
+    Query(q): Query<TerrainQuery>,
+    headers: HeaderMap,
+) -> Result<Response, AppError> {
+    let a = terrain_asset(state.store.get(&id)?)?;
+    let y: u32 = tile
+        .strip_suffix(".terrain")
+        .and_then(|y| y.parse().ok())
+        .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.terrain"))?;
+    if z > max_level(&state, &a) || x >= (2u32 << z) || y >= (1u32 << z) {
+        return Err(AppError::not_found(
+            "no_tile",
+            format!("terrain tile {z}/{x}/{y} does not exist"),
+        ));
+    }
+    let [w, s, e, n] = tile_bounds(z, x, y);
+    let [aw, as_, ae, an] = asset_bounds(&a);
+    if e <= aw || w >= ae || n <= as_ || s >= an {
+        return Err(AppError::not_found(
+            "outside",
+            format!("terrain tile {z}/{x}/{y} is outside the asset"),
+        ));
+    }
+    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
+    let choice = backend_for(&state, q.backend.as_deref())?;
+    let key = format!(
+        "{id}@{:08x}/terrain/{z}/{x}/{y}?{:?}&{:?}",
+        a.hash, q.iterations, q.tolerance
+    );
+    let tag = etag(&a, &key);
+    if not_modified(&headers, &tag) {
+        return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, tag)]).into_response());
+    }
+    if let Some(c) = state.cache.get(&key) {
+        return Ok(cached_response(&state, &tag, &c));
+    }
+    // Vertex (i, j): i east, j south, the tile's edges included, so that neighbours share
+    // their edge vertices' positions and therefore their decoded heights (no cracks).
+    let frac = |k: usize| k as f64 / (GRID - 1) as f64;
+    let grid = box_pixels(
+        &a,
+        (GRID, |i| w + frac(i) * (e - w)),
+        (GRID, |j| n - frac(j) * (n - s)),
+        cell_size([w, s, e, n], GRID - 1, GRID - 1),
+    );
+    let max_error = (LEVEL_ZERO_ERROR / f64::from(1u32 << z)) as f32;
+    let (gpu, coarse) = (state.gpu.clone(), state.coarse.clone());
+    let asset = a.clone();
+    let cost = sampling_bytes(GRID * GRID, 1) + (GRID * GRID) as u64 * 64;
+    let drawn = decode(&state, cost, move |cancel| {
+        let (heights, bound) = if grid.is_outside() {
+            (vec![f32::NAN; GRID * GRID], 0.0)
+        } else {
+            let (channels, bound) = sample_on(
+                (gpu.as_deref(), &coarse, cancel),
+                choice,
+                &asset,
+                &grid,
+                iterations,
+                tolerance,
+            )?;
+            (channels.into_iter().next().unwrap_or_default(), bound)
+        };
+        let mesh =
+            fractile_codec::mesh::Mesh::adaptive(&heights, GRID, [0.0, 0.0], [1.0, 1.0], max_error)
+                .map_err(|e| AppError::internal(e.to_string()))?;
+        let body = fractile_codec::mesh::quantized::TerrainTile {
+            mesh: &mesh,
+            n: GRID,
+            bounds: [w, s, e, n],
+        }
+        .encode();
+        Ok::<_, AppError>(Cached {
+            content_type: "application/vnd.quantized-mesh",
+            body: Bytes::from(body),
+            error_bound: bound + max_error,
+        })
+    })
+    .await??;
+    let cached = Arc::new(drawn);
+    state.cache.insert(key, cached.clone());
+    Ok(cached_response(&state, &tag, &cached))
+}

@@ -1,0 +1,244 @@
+//! Cesium terrain (quantized-mesh-1.0), read back by a decoder we did not write: the Python
+//! package quantized-mesh-tile, installed (pinned) into a virtual environment under `target/`
+//! the first time (PyPI, as CI's other tools).
+
+use std::path::{Path, PathBuf};
+use std::sync::{Arc, OnceLock};
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode, header};
+use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_server::api::AppState;
+use fractile_server::store::Store;
+use http_body_util::BodyExt;
+use serde_json::Value;
+use tower::ServiceExt;
+
+fn root() -> PathBuf {
+    PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+fn state() -> Arc<AppState> {
+    static STATE: OnceLock<Arc<AppState>> = OnceLock::new();
+    STATE
+        .get_or_init(|| {
+            let dir = std::env::temp_dir().join(format!("fractile-terrain-{}", std::process::id()));
+            std::fs::create_dir_all(&dir).unwrap();
+            for (id, file, bpp) in [
+                ("jacksboro", "jacksboro.tif", 1.6),
+                ("camera", "camera.png", 0.48),
+            ] {
+                let r = Raster::open(&root().join("testdata").join(file)).unwrap();
+                let mut s = EncodeSettings {
+                    rate: RateMode::TargetBpp(bpp),
+                    ..EncodeSettings::default()
+                };
+                s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+                let enc = encode(&r, &s, &|_, _| {}).unwrap();
+                std::fs::write(dir.join(format!("{id}.fra")), &enc.bytes).unwrap();
+            }
+            let (store, _) = Store::open(&dir).unwrap();
+            Arc::new(AppState::new(store, "http://test".into()))
+        })
+        .clone()
+}
+
+async fn send(req: Request<Body>) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
+    let r = fractile_server::app(state()).oneshot(req).await.unwrap();
+    let (parts, body) = r.into_parts();
+    let bytes = body.collect().await.unwrap().to_bytes().to_vec();
+    (parts.status, parts.headers, bytes)
+}
+
+async fn get(uri: &str) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
+    send(Request::get(uri).body(Body::empty()).unwrap()).await
+}
+
+/// The Python of a virtual environment holding quantized-mesh-tile 0.7.0.
+fn reader_python() -> PathBuf {
+    let venv = root().join("target/test-tools/quantized-mesh");
+    let python = venv.join("bin/python");
+    let ready = |p: &Path| {
+        std::process::Command::new(p)
+            .args(["-c", "import quantized_mesh_tile"])
+            .output()
+            .is_ok_and(|o| o.status.success())
+    };
+    if !ready(&python) {
+        let ok = std::process::Command::new("python3")
+            .args(["-m", "venv"])
+            .arg(&venv)
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(ok, "python3 -m venv {} failed", venv.display());
+        let ok = std::process::Command::new(venv.join("bin/pip"))
+            .args(["install", "-q", "quantized-mesh-tile==0.7.0"])
+            .status()
+            .is_ok_and(|s| s.success());
+        assert!(
+            ok,
+            "pip install quantized-mesh-tile==0.7.0 failed (needs PyPI)"
+        );
+    }
+    python
+}
+
+/// Tile (x, y) of level `z` of the geographic TMS scheme that holds (lon, lat), and its bounds.
+fn tile_at(z: u8, lon: f64, lat: f64) -> (u32, u32, [f64; 4]) {
+    let d = 180.0 / f64::from(1u32 << z);
+    let (x, y) = (((lon + 180.0) / d) as u32, ((lat + 90.0) / d) as u32);
+    let (w, s) = (-180.0 + f64::from(x) * d, -90.0 + f64::from(y) * d);
+    (x, y, [w, s, w + d, s + d])
+}
+
+/// Decoded heights at lon/lat points, through the points endpoint.
+async fn decoded(points: &[[f64; 2]]) -> Vec<Option<f64>> {
+    let req = serde_json::json!({ "points": points });
+    let (s, _, b) = send(
+        Request::post("/v1/assets/jacksboro/points")
+            .header(header::CONTENT_TYPE, "application/json")
+            .body(Body::from(req.to_string()))
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    let v: Value = serde_json::from_slice(&b).unwrap();
+    v["results"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|r| r["values"].get(0).and_then(Value::as_f64))
+        .collect()
+}
+
+#[tokio::test]
+async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_heights() {
+    let (s, _, b) = get("/v1/assets/jacksboro/layer.json").await;
+    assert_eq!(s, StatusCode::OK);
+    let layer: Value = serde_json::from_slice(&b).unwrap();
+    assert_eq!(layer["format"], "quantized-mesh-1.0");
+    assert_eq!(layer["scheme"], "tms");
+    let z = 12u8;
+    let (x, y, bounds) = tile_at(z, -84.25, 36.6);
+    let range = &layer["available"][usize::from(z)][0];
+    for (key, v) in [("startX", x), ("endX", x), ("startY", y), ("endY", y)] {
+        let r = range[key].as_u64().unwrap() as u32;
+        assert!(
+            if key.starts_with("start") {
+                r <= v
+            } else {
+                r >= v
+            },
+            "{key} {range}"
+        );
+    }
+
+    let (s, h, body) = get(&format!("/v1/assets/jacksboro/terrain/{z}/{x}/{y}.terrain")).await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
+    assert_eq!(h[header::CONTENT_TYPE], "application/vnd.quantized-mesh");
+    let bound: f64 = h["x-error-bound"].to_str().unwrap().parse().unwrap();
+    let file = std::env::temp_dir().join(format!(
+        "fractile-{}-{z}-{x}-{y}.terrain",
+        std::process::id()
+    ));
+    std::fs::write(&file, &body).unwrap();
+    let out = std::process::Command::new(reader_python())
+        .arg(root().join("tests/tools/read_quantized_mesh.py"))
+        .arg(&file)
+        .args(bounds.map(|v| v.to_string()))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let tile: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let vertices: Vec<[f64; 3]> = serde_json::from_value(tile["vertices"].clone()).unwrap();
+    let triangles: Vec<[usize; 3]> = serde_json::from_value(tile["triangles"].clone()).unwrap();
+    assert!(
+        vertices.len() > 100 && triangles.len() > 100,
+        "{} {}",
+        vertices.len(),
+        triangles.len()
+    );
+    let (lo, hi) = (
+        tile["header"]["minimumHeight"].as_f64().unwrap(),
+        tile["header"]["maximumHeight"].as_f64().unwrap(),
+    );
+    // Heights travel as 15-bit steps of the tile's range.
+    let step = (hi - lo) / 32767.0;
+
+    // Every vertex is a decoded height at its own position (within the quantisation).
+    let at: Vec<[f64; 2]> = vertices.iter().map(|v| [v[0], v[1]]).collect();
+    for (v, d) in vertices.iter().zip(decoded(&at).await) {
+        let d = d.expect("a vertex on the asset");
+        assert!((v[2] - d).abs() <= step + 0.05, "{v:?}: decoded {d}");
+    }
+    // Between vertices the mesh stays within the stated bound of the decoded heights on the
+    // tile's 65 x 65 grid: interpolate each grid point in the triangle that holds it.
+    let n = 65usize;
+    let grid: Vec<[f64; 2]> = (0..n * n)
+        .map(|k| {
+            let (i, j) = ((k % n) as f64 / 64.0, (k / n) as f64 / 64.0);
+            [
+                bounds[0] + i * (bounds[2] - bounds[0]),
+                bounds[1] + j * (bounds[3] - bounds[1]),
+            ]
+        })
+        .collect();
+    let heights = decoded(&grid).await;
+    let mut checked = 0;
+    for (p, d) in grid.iter().zip(heights) {
+        let Some(d) = d else { continue };
+        let mesh = triangles.iter().find_map(|t| {
+            let [a, b, c] = t.map(|k| vertices[k]);
+            let det = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1]);
+            let l1 = ((b[1] - c[1]) * (p[0] - c[0]) + (c[0] - b[0]) * (p[1] - c[1])) / det;
+            let l2 = ((c[1] - a[1]) * (p[0] - c[0]) + (a[0] - c[0]) * (p[1] - c[1])) / det;
+            let l3 = 1.0 - l1 - l2;
+            let eps = -1e-9;
+            (l1 >= eps && l2 >= eps && l3 >= eps).then(|| l1 * a[2] + l2 * b[2] + l3 * c[2])
+        });
+        let mesh = mesh.expect("every grid point of a tile inside the asset is in a triangle");
+        assert!(
+            (mesh - d).abs() <= bound + step + 0.05,
+            "{p:?}: mesh {mesh}, decoded {d}, bound {bound}"
+        );
+        checked += 1;
+    }
+    assert!(checked > 1000, "{checked}");
+    // Every edge vertex lies on its edge.
+    let edges: Vec<Vec<usize>> = serde_json::from_value(tile["edges"].clone()).unwrap();
+    let on = [
+        (0, bounds[0]),
+        (1, bounds[1]),
+        (0, bounds[2]),
+        (1, bounds[3]),
+    ];
+    for (edge, (axis, value)) in edges.iter().zip(on) {
+        assert!(!edge.is_empty());
+        for &k in edge {
+            assert!(
+                (vertices[k][axis] - value).abs() < 1e-9,
+                "{:?} not on {value}",
+                vertices[k]
+            );
+        }
+    }
+}
+
+#[tokio::test]
+async fn terrain_refuses_what_is_not_terrain() {
+    let (s, _, b) = get("/v1/assets/camera/layer.json").await;
+    assert_eq!(s, StatusCode::BAD_REQUEST);
+    let v: Value = serde_json::from_slice(&b).unwrap();
+    assert_eq!(v["code"], "not_terrain");
+    let (x, y, _) = tile_at(10, 100.0, -40.0);
+    let (s, _, b) = get(&format!("/v1/assets/jacksboro/terrain/10/{x}/{y}.terrain")).await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    let v: Value = serde_json::from_slice(&b).unwrap();
+    assert_eq!(v["code"], "outside");
+    let (s, _, _) = get("/v1/assets/jacksboro/terrain/1/9/0.terrain").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+}
