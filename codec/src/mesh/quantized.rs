@@ -119,6 +119,44 @@ fn put_indices(out: &mut Vec<u8>, wide: bool, indices: impl IntoIterator<Item = 
     }
 }
 
+/// The bounding sphere (the middle of the vertices' box, and the farthest vertex) and the
+/// horizon occlusion point of a tile's vertices (Earth-centred); `centre` when it has none.
+fn bounding(world: &[[f64; 3]], centre: [f64; 3]) -> ([f64; 3], f64, [f64; 3]) {
+    let (mut bmin, mut bmax) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
+    for p in world {
+        for a in 0..3 {
+            bmin[a] = bmin[a].min(p[a]);
+            bmax[a] = bmax[a].max(p[a]);
+        }
+    }
+    let sphere = if world.is_empty() {
+        centre
+    } else {
+        std::array::from_fn(|a| 0.5 * (bmin[a] + bmax[a]))
+    };
+    let radius = world
+        .iter()
+        .map(|p| norm(sub(*p, sphere)))
+        .fold(0.0, f64::max);
+    (sphere, radius, horizon_occlusion_point(world, sphere))
+}
+
+/// The vertices on the west, south, east and north edges, each list with its count.
+fn put_edges(out: &mut Vec<u8>, wide: bool, quantized: &[[u16; 3]]) {
+    for on_edge in [
+        |q: &[u16; 3]| q[0] == 0,
+        |q: &[u16; 3]| q[1] == 0,
+        |q: &[u16; 3]| q[0] == Q as u16,
+        |q: &[u16; 3]| q[1] == Q as u16,
+    ] {
+        let edge: Vec<u32> = (0..quantized.len() as u32)
+            .filter(|&k| on_edge(&quantized[k as usize]))
+            .collect();
+        put_u32(out, edge.len() as u32);
+        put_indices(out, wide, edge);
+    }
+}
+
 impl TerrainTile<'_> {
     /// The tile in quantized-mesh-1.0, without extensions. Vertices are renumbered in the
     /// order triangles first use them (what high-water-mark coding needs); unused ones are
@@ -175,25 +213,7 @@ impl TerrainTile<'_> {
             })
             .collect();
         let centre = ecef(0.5 * (w + e), 0.5 * (s + n), 0.5 * (lo + hi));
-        // The bounding sphere: the middle of the vertices' box, and the farthest vertex.
-        let (mut bmin, mut bmax) = ([f64::INFINITY; 3], [f64::NEG_INFINITY; 3]);
-        for p in &world {
-            for a in 0..3 {
-                bmin[a] = bmin[a].min(p[a]);
-                bmax[a] = bmax[a].max(p[a]);
-            }
-        }
-        let sphere = if world.is_empty() {
-            centre
-        } else {
-            std::array::from_fn(|a| 0.5 * (bmin[a] + bmax[a]))
-        };
-        let radius = world
-            .iter()
-            .map(|p| norm(sub(*p, sphere)))
-            .fold(0.0, f64::max);
-        let horizon = horizon_occlusion_point(&world, sphere);
-
+        let (sphere, radius, horizon) = bounding(&world, centre);
         let mut out = Vec::with_capacity(88 + 4 + 6 * order.len() + 6 * indices.len() + 64);
         put_f64s(&mut out, &centre);
         out.extend_from_slice(&(lo as f32).to_le_bytes());
@@ -231,19 +251,7 @@ impl TerrainTile<'_> {
             })
             .collect();
         put_indices(&mut out, wide, coded);
-        // The edges: west, south, east, north.
-        for on_edge in [
-            |q: &[u16; 3]| q[0] == 0,
-            |q: &[u16; 3]| q[1] == 0,
-            |q: &[u16; 3]| q[0] == Q as u16,
-            |q: &[u16; 3]| q[1] == Q as u16,
-        ] {
-            let edge: Vec<u32> = (0..quantized.len() as u32)
-                .filter(|&k| on_edge(&quantized[k as usize]))
-                .collect();
-            put_u32(&mut out, edge.len() as u32);
-            put_indices(&mut out, wide, edge);
-        }
+        put_edges(&mut out, wide, &quantized);
         out
     }
 }
