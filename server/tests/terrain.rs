@@ -228,6 +228,46 @@ async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_hei
     }
 }
 
+/// Browsers and Cesium accept gzip: the tile then goes gzipped (a variant with its own ETag),
+/// and inflates to the same bytes as the plain one.
+#[tokio::test]
+async fn terrain_tiles_go_gzipped_to_clients_that_accept_it() {
+    let (x, y, _) = tile_at(11, -84.25, 36.6);
+    let uri = format!("/v1/assets/jacksboro/terrain/11/{x}/{y}.terrain");
+    let (s, plain_h, plain) = get(&uri).await;
+    assert_eq!(s, StatusCode::OK);
+    assert!(plain_h.get(header::CONTENT_ENCODING).is_none());
+    let (s, h, gz) = send(
+        Request::get(&uri)
+            .header(header::ACCEPT_ENCODING, "gzip, deflate, br")
+            .body(Body::empty())
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(h[header::CONTENT_ENCODING], "gzip");
+    assert_eq!(h[header::VARY], "accept-encoding");
+    assert_ne!(h[header::ETAG], plain_h[header::ETAG]);
+    let mut inflated = Vec::new();
+    std::io::Read::read_to_end(&mut flate2::read::GzDecoder::new(&gz[..]), &mut inflated).unwrap();
+    assert_eq!(inflated, plain);
+    assert!(
+        gz.len() * 10 < plain.len() * 7,
+        "{} of {}",
+        gz.len(),
+        plain.len()
+    );
+    // q=0 refuses it.
+    let (_, h, _) = send(
+        Request::get(&uri)
+            .header(header::ACCEPT_ENCODING, "gzip;q=0")
+            .body(Body::empty())
+            .unwrap(),
+    )
+    .await;
+    assert!(h.get(header::CONTENT_ENCODING).is_none());
+}
+
 #[tokio::test]
 async fn terrain_refuses_what_is_not_terrain() {
     let (s, _, b) = get("/v1/assets/camera/layer.json").await;

@@ -127,6 +127,8 @@ pub type CoarseKey = (String, u32, usize, usize, u32, u32);
 /// A cached answer.
 pub struct Cached {
     content_type: &'static str,
+    /// `Content-Encoding` of the body (`gzip` for Cesium terrain to clients that accept it).
+    content_encoding: Option<&'static str>,
     body: Bytes,
     error_bound: f32,
 }

@@ -139,8 +139,11 @@ pub(super) async fn terrain_tile(
     }
     let (iterations, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
     let choice = backend_for(&state, q.backend.as_deref())?;
+    // quantized-mesh is made to be gzipped (about half the bytes): to clients that accept it,
+    // as browsers and Cesium do, the tile goes gzipped, as a variant of its own (key and ETag).
+    let gzip = accepts_gzip(&headers);
     let key = format!(
-        "{id}@{:08x}/terrain/{z}/{x}/{y}?{:?}&{:?}",
+        "{id}@{:08x}/terrain/{z}/{x}/{y}?{:?}&{:?}&{gzip}",
         a.hash, q.iterations, q.tolerance
     );
     let tag = etag(&a, &key);
@@ -186,8 +189,10 @@ pub(super) async fn terrain_tile(
             bounds: [w, s, e, n],
         }
         .encode();
+        let body = if gzip { gzipped(&body)? } else { body };
         Ok::<_, AppError>(Cached {
             content_type: "application/vnd.quantized-mesh",
+            content_encoding: gzip.then_some("gzip"),
             body: Bytes::from(body),
             error_bound: bound + max_error,
         })
@@ -196,4 +201,29 @@ pub(super) async fn terrain_tile(
     let cached = Arc::new(drawn);
     state.cache.insert(key, cached.clone());
     Ok(cached_response(&state, &tag, &cached))
+}
+
+/// Whether `Accept-Encoding` allows gzip (with a non-zero weight).
+fn accepts_gzip(headers: &HeaderMap) -> bool {
+    headers
+        .get_all(header::ACCEPT_ENCODING)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .flat_map(|v| v.split(','))
+        .any(|item| {
+            let mut parts = item.split(';').map(str::trim);
+            let coding = parts.next().unwrap_or("");
+            let refused =
+                parts.any(|p| p.replace(' ', "") == "q=0" || p.replace(' ', "") == "q=0.0");
+            (coding.eq_ignore_ascii_case("gzip") || coding == "*") && !refused
+        })
+}
+
+/// `bytes` gzipped (flate2, level 6).
+fn gzipped(bytes: &[u8]) -> Result<Vec<u8>, AppError> {
+    use std::io::Write;
+    let mut z = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    z.write_all(bytes)
+        .and_then(|()| z.finish())
+        .map_err(|e| AppError::internal(e.to_string()))
 }

@@ -82,6 +82,10 @@ pub(super) fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Respon
         HeaderValue::from_static(c.content_type),
     );
     h.insert(header::ETAG, HeaderValue::from_str(tag).expect("hex etag"));
+    if let Some(e) = c.content_encoding {
+        h.insert(header::CONTENT_ENCODING, HeaderValue::from_static(e));
+        h.insert(header::VARY, HeaderValue::from_static("accept-encoding"));
+    }
     if let Ok(v) = HeaderValue::from_str(&state.cache_control) {
         h.insert(header::CACHE_CONTROL, v);
     }
@@ -354,6 +358,7 @@ fn draw_tile(
         encoding::encode_tile(&asset.asset.meta, &channels, size, job.format, style);
     Ok(Cached {
         content_type,
+        content_encoding: None,
         body: Bytes::from(body),
         error_bound: bound,
     })
