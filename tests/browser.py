@@ -6,8 +6,8 @@ Waiting on the page's own state, in wall time, is what makes the check determini
 --virtual-time-budget lets virtual time race ahead while MapLibre's workers parse tiles on a
 busy machine, and the screenshot then catches a map before it drew.
 
-Usage: browser.py URL OUT_DIR [SECONDS]. Waits until #status says data-loaded="true" and the
-coast has points (at most SECONDS, default 90), lets one more second of frames run, then
+Usage: browser.py URL OUT_DIR [SECONDS]. Waits until #status says data-loaded="true", the
+coast has points and the globe is ready or absent (at most SECONDS, default 90), lets one more second of frames run, then
 writes OUT_DIR/shot.png (1200 x 700) and OUT_DIR/dom.html. Exits 1 if the page never got
 there (both files are still written, showing how far it got).
 """
@@ -87,7 +87,8 @@ try:
     call("Page.navigate", {"url": url}, session)
     ready = (
         "(() => { const s = document.getElementById('status');"
-        " return !!s && s.dataset.loaded === 'true' && Number(s.dataset.coastPoints) > 0; })()"
+        " return !!s && s.dataset.loaded === 'true' && Number(s.dataset.coastPoints) > 0"
+        " && (s.dataset.globe === 'ready' || s.dataset.globe === 'absent'); })()"
     )
     while time.monotonic() < deadline:
         if evaluate(session, ready):

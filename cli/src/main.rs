@@ -83,6 +83,9 @@ enum Command {
         /// on a hardware adapter); requests may override it with `backend=`.
         #[arg(long, env = "FRACTILE_BACKEND")]
         backend: Option<String>,
+        /// A folder with CesiumJS's build (tools/fetch-cesium.sh): the viewer adds a globe.
+        #[arg(long, env = "FRACTILE_CESIUM")]
+        cesium: Option<PathBuf>,
     },
     /// Compare a decoded raster with its original: PSNR, RMSE, MAE, max error.
     Compare {
@@ -126,7 +129,15 @@ fn main() {
             public_url,
             write_token,
             backend,
-        } => run_serve(assets, bind, config, public_url, write_token, backend),
+            cesium,
+        } => run_serve(
+            assets,
+            bind,
+            config,
+            public_url,
+            write_token,
+            (backend, cesium),
+        ),
     };
     if let Err(e) = result {
         eprintln!("fractile: {e:#}");
@@ -140,7 +151,7 @@ fn run_serve(
     config: Option<PathBuf>,
     public_url: Option<String>,
     write_token: Option<String>,
-    backend: Option<String>,
+    (backend, cesium): (Option<String>, Option<PathBuf>),
 ) -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -154,6 +165,9 @@ fn run_serve(
     };
     if backend.is_some() {
         file.backend = backend;
+    }
+    if cesium.is_some() {
+        file.cesium_dir = cesium;
     }
     let opts = fractile_server::ServeOptions {
         assets: assets.or(file.assets.take()),

@@ -49,6 +49,10 @@ pub struct FileConfig {
     /// coarse zooms of the largest assets (about 5 bytes a source pixel and plane), or
     /// their grids are decoded again and again.
     pub coarse_cache_mib: Option<u64>,
+    /// A folder holding CesiumJS's build (`Build/Cesium` of the npm package `cesium`;
+    /// `tools/fetch-cesium.sh` puts one in `target/cesium`), served at `/vendor/cesium/` so that
+    /// the viewer shows the DEM on a globe through `layer.json`. Not compiled in: it is 14 MB.
+    pub cesium_dir: Option<PathBuf>,
     /// Where continuous decoding runs: `cpu`, `gpu` or `auto` (default; see `backend`).
     pub backend: Option<String>,
     /// GPU memory for resident operators, in MiB (default 1024).
@@ -87,7 +91,16 @@ pub struct ServeOptions {
 /// The full application: API routes and middleware.
 pub fn app(state: Arc<api::AppState>) -> axum::Router {
     telemetry::handle();
-    api::router(state)
+    // CesiumJS, when a folder of it is configured (ServeDir refuses paths out of it).
+    let cesium = state.cesium_dir.clone();
+    let router = api::router(state);
+    let router = match cesium {
+        Some(dir) => {
+            router.nest_service("/vendor/cesium", tower_http::services::ServeDir::new(dir))
+        }
+        None => router,
+    };
+    router
         .route(
             "/metrics",
             axum::routing::get(|| async { telemetry::handle().render() }),
@@ -185,6 +198,7 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
             .max_capacity(m * 1024 * 1024)
             .build();
     }
+    state.cesium_dir = opts.file.cesium_dir.clone();
     if let Some(m) = opts.file.coarse_cache_mib {
         state.coarse = api::coarse_cache(m);
     }

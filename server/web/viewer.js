@@ -79,6 +79,64 @@
   });
   coastMap.catch((e) => fail(String(e)));
 
+  // The globe: CesiumJS, when the server has a build of it (`fractile serve --cesium DIR`), on
+  // our Cesium terrain (layer.json and quantized-mesh tiles), coloured by contour lines since
+  // there is no imagery. #status says 'absent', 'loading' or 'ready' (every tile in view
+  // loaded), and how many terrain tiles Cesium took.
+  const note = (text) => { document.getElementById('globe-note').textContent = text; };
+  const startGlobe = async () => {
+    status.dataset.globe = 'loading';
+    const terrain = await Cesium.CesiumTerrainProvider.fromUrl(`${origin}/v1/assets/${dem}/`);
+    const widget = new Cesium.CesiumWidget('globe', {
+      terrainProvider: terrain,
+      baseLayer: false,
+      skyBox: false,
+      skyAtmosphere: false,
+      // Kept after each frame, so that a screenshot (the browser test's) shows what was drawn.
+      contextOptions: { webgl: { preserveDrawingBuffer: true } },
+    });
+    const globe = widget.scene.globe;
+    globe.baseColor = Cesium.Color.fromCssColorString('#a9c08f');
+    globe.material = Cesium.Material.fromType('ElevationContour', {
+      width: 2.0,
+      spacing: 60.0,
+      color: Cesium.Color.fromCssColorString('#6b4423'),
+    });
+    widget.camera.setView({
+      destination: Cesium.Cartesian3.fromDegrees(-84.25, 36.40, 9000),
+      orientation: { heading: 0, pitch: Cesium.Math.toRadians(-35), roll: 0 },
+    });
+    terrain.errorEvent.addEventListener((e) => fail(`terrain: ${e.message}`));
+    let asked = 0;
+    globe.tileLoadProgressEvent.addEventListener((queued) => {
+      asked = Math.max(asked, queued);
+      status.dataset.globeTiles = String(Number(status.dataset.globeTiles) + (queued > 0 ? 1 : 0));
+    });
+    widget.scene.postRender.addEventListener(() => {
+      if (globe.tilesLoaded && asked > 0 && status.dataset.globe !== 'ready') {
+        status.dataset.globe = 'ready';
+        note('(loaded)');
+      }
+    });
+  };
+  fetch(`${origin}/vendor/cesium/Cesium.js`, { method: 'HEAD' }).then((r) => {
+    if (!r.ok) {
+      status.dataset.globe = 'absent';
+      note('needs CesiumJS on the server: tools/fetch-cesium.sh, then fractile serve --cesium target/cesium/Cesium');
+      return;
+    }
+    window.CESIUM_BASE_URL = `${origin}/vendor/cesium/`;
+    const css = document.createElement('link');
+    css.rel = 'stylesheet';
+    css.href = `${origin}/vendor/cesium/Widgets/widgets.css`;
+    document.head.appendChild(css);
+    const script = document.createElement('script');
+    script.src = `${origin}/vendor/cesium/Cesium.js`;
+    script.onload = () => startGlobe().catch((e) => fail(`globe: ${e}`));
+    script.onerror = () => fail('CesiumJS did not load');
+    document.head.appendChild(script);
+  }).catch((e) => fail(String(e)));
+
   // Both assets must exist: a missing one is an error on the page, not an empty map.
   fetch(`${origin}/v1/assets/${picture}`).then(json).catch((e) => fail(String(e)));
   fetch(`${origin}/v1/assets/${dem}`).then(json).then((meta) => {

@@ -78,19 +78,16 @@ fn horizon_occlusion_point(points: &[[f64; 3]], towards: [f64; 3]) -> [f64; 3] {
         let cos_beta = 1.0 / m;
         let sin_beta = (m * m - 1.0).max(0.0).sqrt() * cos_beta;
         let denominator = cos_alpha * cos_beta - sin_alpha * sin_beta;
-        // A point a quarter of the globe away has no finite occlusion point: Cesium then
-        // tests the bounding sphere alone, which this infinite magnitude leaves to it.
+        // A point a quarter of the globe away or more has no finite occlusion point: a point
+        // a thousand radii out along the tile's direction is hidden only from right behind
+        // the globe (the format has no way to say "none").
         magnitude = magnitude.max(if denominator > 0.0 {
-            1.0 / denominator
+            (1.0 / denominator).min(1000.0)
         } else {
-            f64::INFINITY
+            1000.0
         });
     }
-    if magnitude.is_finite() {
-        d.map(|v| v * magnitude)
-    } else {
-        [0.0; 3]
-    }
+    d.map(|v| v * magnitude)
 }
 
 /// `v`'s zig-zag code: small magnitudes of either sign become small unsigned numbers.

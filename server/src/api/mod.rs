@@ -101,6 +101,8 @@ pub struct AppState {
     pub backend: Backend,
     /// The GPU, when the server has one.
     pub gpu: Option<Arc<GpuBackend>>,
+    /// CesiumJS's build, served at `/vendor/cesium/` when set (`cesium_dir`).
+    pub cesium_dir: Option<std::path::PathBuf>,
 }
 
 /// Default of `max_decode_mib`: what the heavy lane may hold at once, and what one asset may
@@ -163,6 +165,7 @@ impl AppState {
             max_upload: 64 * 1024 * 1024,
             backend: Backend::Auto,
             gpu: None,
+            cesium_dir: None,
         }
     }
 }

@@ -1,7 +1,9 @@
 //! Cesium terrain: `layer.json` and quantized-mesh-1.0 tiles of a georeferenced height field, in
 //! the geographic tiling scheme CesiumJS uses by default (EPSG:4326, TMS rows from the south,
 //! two root tiles). Each tile is an adaptive mesh (right-triangulated irregular network) of a
-//! 65 x 65 grid of decoded heights, within the level's geometric error of them.
+//! 65 x 65 grid of decoded heights, within the level's geometric error of them. Terrain has no
+//! holes: off the asset and at nodata the surface is the ellipsoid (height 0), and both root
+//! tiles exist whatever the asset covers, since Cesium draws nothing until they are in.
 
 use super::*;
 
@@ -14,6 +16,10 @@ const GRID: usize = 65;
 /// (65 x 2)). Level z halves it z times. Meshing within this error makes Cesium's level of detail
 /// choose the tiles it would for its own terrain.
 const LEVEL_ZERO_ERROR: f64 = 6_378_137.0 * std::f64::consts::TAU * 0.25 / (65.0 * 2.0);
+
+/// First level whose tiles are adaptive meshes (see `terrain_tile`): the sagitta of a tile,
+/// 6378137 m x (pi / 2^z)^2 / 8, is within half of `LEVEL_ZERO_ERROR` / 2^z from 2^z >= 204.
+const ADAPTIVE_FROM: u8 = 8;
 
 /// Degrees a side of a tile of level `z`.
 fn tile_degrees(z: u8) -> f64 {
@@ -82,7 +88,12 @@ pub(super) async fn layer(
     let max = max_level(&state, &a);
     let available: Vec<serde_json::Value> = (0..=max)
         .map(|z| {
-            let ([x0, x1], [y0, y1]) = tile_range(bounds, z);
+            // Both root tiles, always (see `terrain_tile`).
+            let ([x0, x1], [y0, y1]) = if z == 0 {
+                ([0, 1], [0, 0])
+            } else {
+                tile_range(bounds, z)
+            };
             serde_json::json!([{"startX": x0, "startY": y0, "endX": x1, "endY": y1}])
         })
         .collect();
@@ -131,7 +142,8 @@ pub(super) async fn terrain_tile(
     }
     let [w, s, e, n] = tile_bounds(z, x, y);
     let [aw, as_, ae, an] = asset_bounds(&a);
-    if e <= aw || w >= ae || n <= as_ || s >= an {
+    // Cesium draws nothing until both root tiles are in: they always exist (flat outside).
+    if z > 0 && (e <= aw || w >= ae || n <= as_ || s >= an) {
         return Err(AppError::not_found(
             "outside",
             format!("terrain tile {z}/{x}/{y} is outside the asset"),
@@ -180,9 +192,21 @@ pub(super) async fn terrain_tile(
             )?;
             (channels.into_iter().next().unwrap_or_default(), bound)
         };
-        let mesh =
+        // Terrain has no holes: off the asset (and at nodata) the surface is the ellipsoid.
+        let heights: Vec<f32> = heights
+            .into_iter()
+            .map(|h| if h.is_finite() { h } else { 0.0 })
+            .collect();
+        // A flat triangle between far vertices falls below the curved surface by its sagitta
+        // (span^2 / 8R): the adaptive mesh measures heights only, so it is used from the level
+        // where a whole tile's sagitta is within half the level's error; coarser levels are
+        // the regular grid, as Cesium's own heightmap tiles.
+        let mesh = if z >= ADAPTIVE_FROM {
             fractile_codec::mesh::Mesh::adaptive(&heights, GRID, [0.0, 0.0], [1.0, 1.0], max_error)
-                .map_err(|e| AppError::internal(e.to_string()))?;
+                .map_err(|e| AppError::internal(e.to_string()))?
+        } else {
+            fractile_codec::mesh::Mesh::grid(&heights, GRID, GRID, [0.0, 0.0], [1.0, 1.0])
+        };
         let body = fractile_codec::mesh::quantized::TerrainTile {
             mesh: &mesh,
             n: GRID,
