@@ -26,6 +26,7 @@ fn state() -> Arc<AppState> {
             std::fs::create_dir_all(&dir).unwrap();
             for (id, file, bpp) in [
                 ("jacksboro", "jacksboro.tif", 1.6),
+                ("etopo20", "etopo20.tif", 0.8),
                 ("camera", "camera.png", 0.48),
             ] {
                 let r = Raster::open(&root().join("testdata").join(file)).unwrap();
@@ -37,7 +38,8 @@ fn state() -> Arc<AppState> {
                 let enc = encode(&r, &s, &|_, _| {}).unwrap();
                 std::fs::write(dir.join(format!("{id}.fra")), &enc.bytes).unwrap();
             }
-            let (store, _) = Store::open(&dir).unwrap();
+            let (store, skipped) = Store::open(&dir).unwrap();
+            assert!(skipped.is_empty(), "{skipped:?}");
             Arc::new(AppState::new(store, "http://test".into()))
         })
         .clone()
@@ -91,11 +93,11 @@ fn tile_at(z: u8, lon: f64, lat: f64) -> (u32, u32, [f64; 4]) {
     (x, y, [w, s, w + d, s + d])
 }
 
-/// Decoded heights at lon/lat points, through the points endpoint.
-async fn decoded(points: &[[f64; 2]]) -> Vec<Option<f64>> {
+/// Decoded heights at lon/lat points, through the points endpoint, with each one's bound.
+async fn decoded(id: &str, points: &[[f64; 2]]) -> Vec<Option<(f64, f64)>> {
     let req = serde_json::json!({ "points": points });
     let (s, _, b) = send(
-        Request::post("/v1/assets/jacksboro/points")
+        Request::post(format!("/v1/assets/{id}/points"))
             .header(header::CONTENT_TYPE, "application/json")
             .body(Body::from(req.to_string()))
             .unwrap(),
@@ -107,19 +109,22 @@ async fn decoded(points: &[[f64; 2]]) -> Vec<Option<f64>> {
         .as_array()
         .unwrap()
         .iter()
-        .map(|r| r["values"].get(0).and_then(Value::as_f64))
+        .map(|r| {
+            let v = r["values"].get(0).and_then(Value::as_f64)?;
+            Some((v, r["error_bound"].as_f64().unwrap_or(0.0)))
+        })
         .collect()
 }
 
-#[tokio::test]
-async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_heights() {
-    let (s, _, b) = get("/v1/assets/jacksboro/layer.json").await;
-    assert_eq!(s, StatusCode::OK);
+/// Reads tile (`z`, the one holding `lon`, `lat`) of asset `id` with the independent decoder and
+/// checks it against the asset's decoded heights.
+async fn check_tile(id: &str, z: u8, lon: f64, lat: f64) {
+    let (s, _, b) = get(&format!("/v1/assets/{id}/layer.json")).await;
+    assert_eq!(s, StatusCode::OK, "{id}: {}", String::from_utf8_lossy(&b));
     let layer: Value = serde_json::from_slice(&b).unwrap();
     assert_eq!(layer["format"], "quantized-mesh-1.0");
     assert_eq!(layer["scheme"], "tms");
-    let z = 12u8;
-    let (x, y, bounds) = tile_at(z, -84.25, 36.6);
+    let (x, y, bounds) = tile_at(z, lon, lat);
     let range = &layer["available"][usize::from(z)][0];
     for (key, v) in [("startX", x), ("endX", x), ("startY", y), ("endY", y)] {
         let r = range[key].as_u64().unwrap() as u32;
@@ -133,7 +138,7 @@ async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_hei
         );
     }
 
-    let (s, h, body) = get(&format!("/v1/assets/jacksboro/terrain/{z}/{x}/{y}.terrain")).await;
+    let (s, h, body) = get(&format!("/v1/assets/{id}/terrain/{z}/{x}/{y}.terrain")).await;
     assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
     assert_eq!(h[header::CONTENT_TYPE], "application/vnd.quantized-mesh");
     let bound: f64 = h["x-error-bound"].to_str().unwrap().parse().unwrap();
@@ -170,11 +175,35 @@ async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_hei
     let step = (hi - lo) / 32767.0;
 
     // Every vertex is a decoded height at its own position (within the quantisation).
-    let at: Vec<[f64; 2]> = vertices.iter().map(|v| [v[0], v[1]]).collect();
-    // Off the asset, the ellipsoid (height 0).
-    for (v, d) in vertices.iter().zip(decoded(&at).await) {
-        let d = d.unwrap_or(0.0);
-        assert!((v[2] - d).abs() <= step + 0.05, "{v:?}: decoded {d}");
+    // Vertices sit on the tile's 65 x 65 grid; the format stores their positions in steps of
+    // 1/32767 of the tile, so the decoder's positions are snapped back to the grid (they are
+    // within half a step of it) before the asset is decoded there.
+    let snap = |t: f64, lo: f64, hi: f64| {
+        let k = ((t - lo) / (hi - lo) * 64.0).round();
+        assert!(
+            ((t - lo) / (hi - lo) * 64.0 - k).abs() < 0.01,
+            "{t} off the grid"
+        );
+        lo + k / 64.0 * (hi - lo)
+    };
+    let at: Vec<[f64; 2]> = vertices
+        .iter()
+        .map(|v| {
+            [
+                snap(v[0], bounds[0], bounds[2]),
+                snap(v[1], bounds[1], bounds[3]),
+            ]
+        })
+        .collect();
+    // Off the asset, the ellipsoid (height 0). The tile's decode and this one each stop within
+    // their own bound of the attractor (chains from slightly different frame coordinates), so
+    // they may differ by twice the bound.
+    for (v, d) in vertices.iter().zip(decoded(id, &at).await) {
+        let (d, b) = d.unwrap_or((0.0, 0.0));
+        assert!(
+            (v[2] - d).abs() <= step + 2.0 * b + 0.05,
+            "{id} {v:?}: decoded {d} +- {b}"
+        );
     }
     // Between vertices the mesh stays within the stated bound of the decoded heights on the
     // tile's 65 x 65 grid: interpolate each grid point in the triangle that holds it.
@@ -188,10 +217,10 @@ async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_hei
             ]
         })
         .collect();
-    let heights = decoded(&grid).await;
+    let heights = decoded(id, &grid).await;
     let mut checked = 0;
     for (p, d) in grid.iter().zip(heights) {
-        let Some(d) = d else { continue };
+        let Some((d, b)) = d else { continue };
         let mesh = triangles.iter().find_map(|t| {
             let [a, b, c] = t.map(|k| vertices[k]);
             let det = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1]);
@@ -203,12 +232,12 @@ async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_hei
         });
         let mesh = mesh.expect("every grid point of a tile inside the asset is in a triangle");
         assert!(
-            (mesh - d).abs() <= bound + step + 0.05,
+            (mesh - d).abs() <= bound + b + step + 0.05,
             "{p:?}: mesh {mesh}, decoded {d}, bound {bound}"
         );
         checked += 1;
     }
-    assert!(checked > 1000, "{checked}");
+    assert!(checked > 1000, "{id}: {checked}");
     // Every edge vertex lies on its edge.
     let edges: Vec<Vec<usize>> = serde_json::from_value(tile["edges"].clone()).unwrap();
     let on = [
@@ -227,6 +256,18 @@ async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_hei
             );
         }
     }
+}
+
+#[tokio::test]
+async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_heights() {
+    // jacksboro at level 12 (adaptive meshes); etopo20, a global DEM of 20' cells, at level 4
+    // (a regular grid of 0.18-degree cells: the Alps), level 8 (adaptive, its deepest, in the Andes) and at
+    // the antimeridian. Levels whose cells are coarser than the source's (etopo20 at level 3)
+    // are filtered, as raster tiles are, so their vertices are not point decodes.
+    check_tile("jacksboro", 12, -84.25, 36.6).await;
+    check_tile("etopo20", 4, 10.0, 46.0).await;
+    check_tile("etopo20", 8, -70.0, -33.0).await;
+    check_tile("etopo20", 5, 179.9, -20.0).await;
 }
 
 /// Browsers and Cesium accept gzip: the tile then goes gzipped (a variant with its own ETag),
