@@ -288,7 +288,7 @@ async fn terrain_tiles_go_gzipped_to_clients_that_accept_it() {
     .await;
     assert_eq!(s, StatusCode::OK);
     assert_eq!(h[header::CONTENT_ENCODING], "gzip");
-    assert_eq!(h[header::VARY], "accept-encoding");
+    assert_eq!(h[header::VARY], "accept, accept-encoding");
     assert_ne!(h[header::ETAG], plain_h[header::ETAG]);
     let mut inflated = Vec::new();
     std::io::Read::read_to_end(&mut flate2::read::GzDecoder::new(&gz[..]), &mut inflated).unwrap();
@@ -308,6 +308,73 @@ async fn terrain_tiles_go_gzipped_to_clients_that_accept_it() {
     )
     .await;
     assert!(h.get(header::CONTENT_ENCODING).is_none());
+}
+
+/// Cesium asks for vertex normals in its Accept header (for lighting): the tile then carries
+/// the octvertexnormals extension, which the independent decoder reads, with normals that lean
+/// with the relief and point up on the whole.
+#[tokio::test]
+async fn terrain_tiles_carry_vertex_normals_when_asked() {
+    let (s, _, b) = get("/v1/assets/jacksboro/layer.json").await;
+    assert_eq!(s, StatusCode::OK);
+    let layer: Value = serde_json::from_slice(&b).unwrap();
+    assert_eq!(layer["extensions"][0], "octvertexnormals");
+    let (x, y, bounds) = tile_at(12, -84.25, 36.6);
+    let (s, h, body) = send(
+        Request::get(format!("/v1/assets/jacksboro/terrain/12/{x}/{y}.terrain"))
+            .header(
+                header::ACCEPT,
+                "application/vnd.quantized-mesh;extensions=octvertexnormals,application/octet-stream;q=0.9",
+            )
+            .body(Body::empty())
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(
+        h[header::CONTENT_TYPE],
+        "application/vnd.quantized-mesh;extensions=octvertexnormals"
+    );
+    let file =
+        std::env::temp_dir().join(format!("fractile-{}-normals.terrain", std::process::id()));
+    std::fs::write(&file, &body).unwrap();
+    let script = "import sys, json\nfrom quantized_mesh_tile.terrain import TerrainTile\n\
+                  from quantized_mesh_tile.utils import octDecode\n\
+                  w, s, e, n = map(float, sys.argv[2:6])\n\
+                  t = TerrainTile(west=w, south=s, east=e, north=n)\n\
+                  t.fromFile(sys.argv[1], hasLighting=True)\n\
+                  print(json.dumps({'normals': [list(v) for v in t.vLight], 'vertices': t.getVerticesCoordinates()}))\n";
+    let out = std::process::Command::new(reader_python())
+        .args(["-c", script])
+        .arg(&file)
+        .args(bounds.map(|v| v.to_string()))
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let v: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let normals: Vec<[f64; 3]> = serde_json::from_value(v["normals"].clone()).unwrap();
+    let vertices: Vec<[f64; 3]> = serde_json::from_value(v["vertices"].clone()).unwrap();
+    assert_eq!(normals.len(), vertices.len());
+    let (mut sum_up, mut tilted) = (0.0, 0);
+    for (nv, p) in normals.iter().zip(&vertices) {
+        let (lat, lon) = (p[1].to_radians(), p[0].to_radians());
+        let up = [lat.cos() * lon.cos(), lat.cos() * lon.sin(), lat.sin()];
+        let cos = nv[0] * up[0] + nv[1] * up[1] + nv[2] * up[2];
+        assert!(cos > 0.2, "a normal {nv:?} far from up at {p:?}");
+        sum_up += cos;
+        tilted += usize::from(cos < 0.995);
+    }
+    assert!(
+        sum_up / normals.len() as f64 > 0.9,
+        "{}",
+        sum_up / normals.len() as f64
+    );
+    // jacksboro is hilly: many normals lean more than 6 degrees.
+    assert!(tilted * 10 > normals.len(), "{tilted} of {}", normals.len());
 }
 
 #[tokio::test]

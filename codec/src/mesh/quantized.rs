@@ -28,6 +28,59 @@ pub struct TerrainTile<'a> {
     pub n: usize,
     /// West, south, east, north, degrees.
     pub bounds: [f64; 4],
+    /// Unit normals (Earth-centred) of the grid's `n x n` points, row-major from the north
+    /// ([`grid_normals`]): written as the `octvertexnormals` extension when present.
+    pub normals: Option<&'a [[f64; 3]]>,
+}
+
+/// Unit normals, Earth-centred, of an `n x n` grid of heights (metres; row 0 north, column 0
+/// west) over `bounds` (degrees): from the slopes by central differences (one-sided at the
+/// edges) in the local east-north-up frame, turned to Earth-centred axes. Non-finite heights
+/// count as 0.
+pub fn grid_normals(heights: &[f32], n: usize, bounds: [f64; 4]) -> Vec<[f64; 3]> {
+    let [w, s, e, no] = bounds;
+    let last = (n.max(2) - 1) as f64;
+    let h = |i: usize, j: usize| {
+        let v = heights[j * n + i];
+        if v.is_finite() { f64::from(v) } else { 0.0 }
+    };
+    let mut out = Vec::with_capacity(n * n);
+    for j in 0..n {
+        let lat = no - j as f64 / last * (no - s);
+        let (p, c) = (lat.to_radians().sin(), lat.to_radians().cos());
+        // Metres per degree along the parallel and the meridian (spherical, enough for slopes).
+        let metres = A * std::f64::consts::PI / 180.0;
+        let dx = (e - w) / last * metres * c.max(1e-6);
+        let dy = (no - s) / last * metres;
+        for i in 0..n {
+            let lon = w + i as f64 / last * (e - w);
+            let (i0, i1) = (i.saturating_sub(1), (i + 1).min(n - 1));
+            let (j0, j1) = (j.saturating_sub(1), (j + 1).min(n - 1));
+            let dhdx = (h(i1, j) - h(i0, j)) / (dx * (i1 - i0).max(1) as f64);
+            // Rows run southwards: north is towards j0.
+            let dhdy = (h(i, j0) - h(i, j1)) / (dy * (j1 - j0).max(1) as f64);
+            let (ee, nn, uu) = (-dhdx, -dhdy, 1.0);
+            let (sl, cl) = (lon.to_radians().sin(), lon.to_radians().cos());
+            let east = [-sl, cl, 0.0];
+            let north = [-p * cl, -p * sl, c];
+            let up = [c * cl, c * sl, p];
+            let v: [f64; 3] = std::array::from_fn(|a| ee * east[a] + nn * north[a] + uu * up[a]);
+            let len = norm(v);
+            out.push(v.map(|x| x / len));
+        }
+    }
+    out
+}
+
+/// A unit vector in two bytes: the octahedron projection, as Cesium decodes it.
+fn oct_encode(v: [f64; 3]) -> [u8; 2] {
+    let l1 = v[0].abs() + v[1].abs() + v[2].abs();
+    let (mut x, mut y) = (v[0] / l1, v[1] / l1);
+    if v[2] < 0.0 {
+        let sign = |t: f64| if t < 0.0 { -1.0 } else { 1.0 };
+        (x, y) = ((1.0 - y.abs()) * sign(x), (1.0 - x.abs()) * sign(y));
+    }
+    [x, y].map(|t| ((t.clamp(-1.0, 1.0) * 0.5 + 0.5) * 255.0).round() as u8)
 }
 
 /// Earth-centred, Earth-fixed coordinates of a WGS84 point (degrees, metres above the
@@ -249,6 +302,17 @@ impl TerrainTile<'_> {
             .collect();
         put_indices(&mut out, wide, coded);
         put_edges(&mut out, wide, &quantized);
+        if let Some(normals) = self.normals {
+            // Extension 1, octvertexnormals: two bytes a vertex, in vertex order.
+            out.push(1);
+            put_u32(&mut out, (2 * order.len()) as u32);
+            for &v in &order {
+                let p = m.positions[v as usize];
+                let (col, row) = (p[0].round() as usize, (-p[1]).round() as usize);
+                let k = (row * self.n + col).min(normals.len().saturating_sub(1));
+                out.extend_from_slice(&oct_encode(normals[k]));
+            }
+        }
         out
     }
 }
@@ -263,6 +327,51 @@ mod tests {
         assert!((p[0] - A).abs() < 1e-6 && p[1].abs() < 1e-6 && p[2].abs() < 1e-6);
         let pole = ecef(0.0, 90.0, 0.0);
         assert!((pole[2] - B).abs() < 1e-6, "{pole:?}");
+    }
+
+    #[test]
+    fn oct_encoding_round_trips_within_a_degree() {
+        for v in [
+            [0.0, 0.0, 1.0],
+            [0.6, -0.8, 0.0],
+            [0.267, 0.534, -0.802],
+            [-1.0, 0.0, 0.0],
+        ] {
+            let v: [f64; 3] = v.map(|x| x / norm(v));
+            let [a, b] = oct_encode(v).map(|t| f64::from(t) / 255.0 * 2.0 - 1.0);
+            let mut d = [a, b, 1.0 - a.abs() - b.abs()];
+            if d[2] < 0.0 {
+                let sign = |t: f64| if t < 0.0 { -1.0 } else { 1.0 };
+                d = [(1.0 - b.abs()) * sign(a), (1.0 - a.abs()) * sign(b), d[2]];
+            }
+            let cos = dot(d, v) / norm(d);
+            assert!(cos > 0.9998, "{v:?}: {cos}");
+        }
+    }
+
+    #[test]
+    fn a_flat_grid_has_the_ellipsoid_up_as_its_normals() {
+        let n = 5;
+        let normals = grid_normals(&vec![100.0; n * n], n, [10.0, 40.0, 11.0, 41.0]);
+        let up = |lon: f64, lat: f64| {
+            let (p, l) = (lat.to_radians(), lon.to_radians());
+            [p.cos() * l.cos(), p.cos() * l.sin(), p.sin()]
+        };
+        assert!(dot(normals[0], up(10.0, 41.0)) > 0.999_999);
+        assert!(dot(normals[n * n - 1], up(11.0, 40.0)) > 0.999_999);
+        // A slope rising eastwards tilts the normal westwards.
+        let ramp: Vec<f32> = (0..n * n).map(|k| (k % n) as f32 * 1000.0).collect();
+        let tilted = grid_normals(&ramp, n, [10.0, 40.0, 11.0, 41.0]);
+        let east = [
+            -(10.5f64.to_radians().sin()),
+            10.5f64.to_radians().cos(),
+            0.0,
+        ];
+        assert!(
+            dot(tilted[2 * n + 2], east) < -0.01,
+            "{:?}",
+            tilted[2 * n + 2]
+        );
     }
 
     #[test]

@@ -110,6 +110,7 @@ pub(super) async fn layer(
         "maxzoom": max,
         "bounds": bounds,
         "available": available,
+        "extensions": ["octvertexnormals"],
     })))
 }
 
@@ -154,16 +155,31 @@ pub(super) async fn terrain_tile(
     // quantized-mesh is made to be gzipped (about half the bytes): to clients that accept it,
     // as browsers and Cesium do, the tile goes gzipped, as a variant of its own (key and ETag).
     let gzip = accepts_gzip(&headers);
+    // Vertex normals (for Cesium's lighting) when the client asks for them, as Cesium does in
+    // its Accept header.
+    let normals = headers
+        .get_all(header::ACCEPT)
+        .iter()
+        .filter_map(|v| v.to_str().ok())
+        .any(|v| v.contains("octvertexnormals"));
     let key = format!(
-        "{id}@{:08x}/terrain/{z}/{x}/{y}?{:?}&{:?}&{gzip}",
+        "{id}@{:08x}/terrain/{z}/{x}/{y}?{:?}&{:?}&{gzip}&{normals}",
         a.hash, q.iterations, q.tolerance
     );
     let tag = etag(&a, &key);
     if not_modified(&headers, &tag) {
         return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, tag)]).into_response());
     }
+    // The answer depends on Accept (normals) and Accept-Encoding (gzip).
+    let vary = |mut r: Response| {
+        r.headers_mut().insert(
+            header::VARY,
+            HeaderValue::from_static("accept, accept-encoding"),
+        );
+        r
+    };
     if let Some(c) = state.cache.get(&key) {
-        return Ok(cached_response(&state, &tag, &c));
+        return Ok(vary(cached_response(&state, &tag, &c)));
     }
     // Vertex (i, j): i east, j south, the tile's edges included, so that neighbours share
     // their edge vertices' positions and therefore their decoded heights (no cracks).
@@ -207,15 +223,22 @@ pub(super) async fn terrain_tile(
         } else {
             fractile_codec::mesh::Mesh::grid(&heights, GRID, GRID, [0.0, 0.0], [1.0, 1.0])
         };
+        let grid_normals = normals
+            .then(|| fractile_codec::mesh::quantized::grid_normals(&heights, GRID, [w, s, e, n]));
         let body = fractile_codec::mesh::quantized::TerrainTile {
             mesh: &mesh,
             n: GRID,
             bounds: [w, s, e, n],
+            normals: grid_normals.as_deref(),
         }
         .encode();
         let body = if gzip { gzipped(&body)? } else { body };
         Ok::<_, AppError>(Cached {
-            content_type: "application/vnd.quantized-mesh",
+            content_type: if normals {
+                "application/vnd.quantized-mesh;extensions=octvertexnormals"
+            } else {
+                "application/vnd.quantized-mesh"
+            },
             content_encoding: gzip.then_some("gzip"),
             body: Bytes::from(body),
             error_bound: bound + max_error,
@@ -224,7 +247,7 @@ pub(super) async fn terrain_tile(
     .await??;
     let cached = Arc::new(drawn);
     state.cache.insert(key, cached.clone());
-    Ok(cached_response(&state, &tag, &cached))
+    Ok(vary(cached_response(&state, &tag, &cached)))
 }
 
 /// Whether `Accept-Encoding` allows gzip (with a non-zero weight).

@@ -84,7 +84,6 @@ pub(super) fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Respon
     h.insert(header::ETAG, HeaderValue::from_str(tag).expect("hex etag"));
     if let Some(e) = c.content_encoding {
         h.insert(header::CONTENT_ENCODING, HeaderValue::from_static(e));
-        h.insert(header::VARY, HeaderValue::from_static("accept-encoding"));
     }
     if let Ok(v) = HeaderValue::from_str(&state.cache_control) {
         h.insert(header::CACHE_CONTROL, v);
