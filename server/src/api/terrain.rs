@@ -190,7 +190,6 @@ pub(super) async fn terrain_tile(
         (GRID, |j| n - frac(j) * (n - s)),
         cell_size([w, s, e, n], GRID - 1, GRID - 1),
     );
-    let max_error = (LEVEL_ZERO_ERROR / f64::from(1u32 << z)) as f32;
     let (gpu, coarse) = (state.gpu.clone(), state.coarse.clone());
     let asset = a.clone();
     let cost = sampling_bytes(GRID * GRID, 1) + (GRID * GRID) as u64 * 64;
@@ -208,46 +207,58 @@ pub(super) async fn terrain_tile(
             )?;
             (channels.into_iter().next().unwrap_or_default(), bound)
         };
-        // Terrain has no holes: off the asset (and at nodata) the surface is the ellipsoid.
-        let heights: Vec<f32> = heights
-            .into_iter()
-            .map(|h| if h.is_finite() { h } else { 0.0 })
-            .collect();
-        // A flat triangle between far vertices falls below the curved surface by its sagitta
-        // (span^2 / 8R): the adaptive mesh measures heights only, so it is used from the level
-        // where a whole tile's sagitta is within half the level's error; coarser levels are
-        // the regular grid, as Cesium's own heightmap tiles.
-        let mesh = if z >= ADAPTIVE_FROM {
-            fractile_codec::mesh::Mesh::adaptive(&heights, GRID, [0.0, 0.0], [1.0, 1.0], max_error)
-                .map_err(|e| AppError::internal(e.to_string()))?
-        } else {
-            fractile_codec::mesh::Mesh::grid(&heights, GRID, GRID, [0.0, 0.0], [1.0, 1.0])
-        };
-        let grid_normals = normals
-            .then(|| fractile_codec::mesh::quantized::grid_normals(&heights, GRID, [w, s, e, n]));
-        let body = fractile_codec::mesh::quantized::TerrainTile {
-            mesh: &mesh,
-            n: GRID,
-            bounds: [w, s, e, n],
-            normals: grid_normals.as_deref(),
-        }
-        .encode();
-        let body = if gzip { gzipped(&body)? } else { body };
-        Ok::<_, AppError>(Cached {
-            content_type: if normals {
-                "application/vnd.quantized-mesh;extensions=octvertexnormals"
-            } else {
-                "application/vnd.quantized-mesh"
-            },
-            content_encoding: gzip.then_some("gzip"),
-            body: Bytes::from(body),
-            error_bound: bound + max_error,
-        })
+        mesh_tile(heights, (z, [w, s, e, n]), (normals, gzip), bound)
     })
     .await??;
     let cached = Arc::new(drawn);
     state.cache.insert(key, cached.clone());
     Ok(vary(cached_response(&state, &tag, &cached)))
+}
+
+/// The quantized-mesh tile of a grid of decoded heights (NaN off the asset) over `bounds` at
+/// level `z`, with normals and gzipped as asked; `bound` is the decode's.
+fn mesh_tile(
+    heights: Vec<f32>,
+    (z, [w, s, e, n]): (u8, [f64; 4]),
+    (normals, gzip): (bool, bool),
+    bound: f32,
+) -> Result<Cached, AppError> {
+    let max_error = (LEVEL_ZERO_ERROR / f64::from(1u32 << z)) as f32;
+    // Terrain has no holes: off the asset (and at nodata) the surface is the ellipsoid.
+    let heights: Vec<f32> = heights
+        .into_iter()
+        .map(|h| if h.is_finite() { h } else { 0.0 })
+        .collect();
+    // A flat triangle between far vertices falls below the curved surface by its sagitta
+    // (span^2 / 8R): the adaptive mesh measures heights only, so it is used from the level
+    // where a whole tile's sagitta is within half the level's error; coarser levels are
+    // the regular grid, as Cesium's own heightmap tiles.
+    let mesh = if z >= ADAPTIVE_FROM {
+        fractile_codec::mesh::Mesh::adaptive(&heights, GRID, [0.0, 0.0], [1.0, 1.0], max_error)
+            .map_err(|e| AppError::internal(e.to_string()))?
+    } else {
+        fractile_codec::mesh::Mesh::grid(&heights, GRID, GRID, [0.0, 0.0], [1.0, 1.0])
+    };
+    let grid_normals = normals
+        .then(|| fractile_codec::mesh::quantized::grid_normals(&heights, GRID, [w, s, e, n]));
+    let body = fractile_codec::mesh::quantized::TerrainTile {
+        mesh: &mesh,
+        n: GRID,
+        bounds: [w, s, e, n],
+        normals: grid_normals.as_deref(),
+    }
+    .encode();
+    let body = if gzip { gzipped(&body)? } else { body };
+    Ok::<_, AppError>(Cached {
+        content_type: if normals {
+            "application/vnd.quantized-mesh;extensions=octvertexnormals"
+        } else {
+            "application/vnd.quantized-mesh"
+        },
+        content_encoding: gzip.then_some("gzip"),
+        body: Bytes::from(body),
+        error_bound: bound + max_error,
+    })
 }
 
 /// Whether `Accept-Encoding` allows gzip (with a non-zero weight).
