@@ -6,6 +6,9 @@
 //! - tiles, cold: a pyramid walk, zoom 0 down to the TileJSON's `maxzoom`, row by row over the
 //!   asset's bounds, every tile asked once, so each is a cache miss on a freshly started server;
 //! - tiles, warm: the tiles the cold walk fetched, again (cache hits);
+//! - terrain, cold: the same walk over Cesium terrain (quantized-mesh) tiles, level by level
+//!   through `layer.json`'s available tiles, to the level as wide as the raster walk's deepest
+//!   zoom, asked for as CesiumJS asks (normals, gzip);
 //! - points: batches of random points in the asset's bounds, binary encoding, default steps;
 //! - regions: random boxes of an eighth of the asset a side, sampled on a float32 grid.
 
@@ -18,6 +21,7 @@ use rand::{Rng, SeedableRng};
 use crate::tile::{TileAddress, TileEncoding, TileRequest};
 use crate::{
     AssetKind, Client, ClientError, PointsEncoding, PointsRequest, RegionFormat, RegionRequest,
+    TileRange,
 };
 
 /// A request kind of the load test.
@@ -28,6 +32,8 @@ pub enum Kind {
     TilesCold,
     /// Tiles asked before.
     TilesWarm,
+    /// Cesium terrain tiles never asked before (height fields).
+    TerrainCold,
     /// Point batches.
     Points,
     /// Float32 regions.
@@ -35,19 +41,21 @@ pub enum Kind {
 }
 
 impl Kind {
-    /// Every kind, in the order they run.
-    pub const ALL: [Kind; 4] = [
+    /// Every kind, in the order they run (terrain only for georeferenced height fields).
+    pub const ALL: [Kind; 5] = [
         Kind::TilesCold,
         Kind::TilesWarm,
+        Kind::TerrainCold,
         Kind::Points,
         Kind::Regions,
     ];
 
-    /// Parses `tiles-cold`, `tiles-warm`, `points`, `regions`.
+    /// Parses `tiles-cold`, `tiles-warm`, `terrain-cold`, `points`, `regions`.
     pub fn parse(s: &str) -> Option<Kind> {
         Some(match s {
             "tiles-cold" => Kind::TilesCold,
             "tiles-warm" => Kind::TilesWarm,
+            "terrain-cold" => Kind::TerrainCold,
             "points" => Kind::Points,
             "regions" => Kind::Regions,
             _ => return None,
@@ -58,6 +66,7 @@ impl Kind {
         match self {
             Kind::TilesCold => "tiles, cold",
             Kind::TilesWarm => "tiles, warm",
+            Kind::TerrainCold => "terrain, cold",
             Kind::Points => "point batches",
             Kind::Regions => "regions",
         }
@@ -65,7 +74,7 @@ impl Kind {
 
     fn unit(self) -> &'static str {
         match self {
-            Kind::TilesCold | Kind::TilesWarm => "tiles",
+            Kind::TilesCold | Kind::TilesWarm | Kind::TerrainCold => "tiles",
             Kind::Points => "points",
             Kind::Regions => "pixels",
         }
@@ -144,6 +153,21 @@ pub fn pyramid(bounds: [f64; 4], max_zoom: u8, cap: usize) -> Vec<TileAddress> {
                     return out;
                 }
                 out.push(TileAddress { z, x, y });
+            }
+        }
+    }
+    out
+}
+
+/// Every tile of a terrain layer's `available` ranges, level by level, rows then columns.
+pub fn terrain_walk(available: &[Vec<TileRange>]) -> Vec<(u8, u32, u32)> {
+    let mut out = Vec::new();
+    for (z, ranges) in available.iter().enumerate() {
+        for r in ranges {
+            for y in r.start_y..=r.end_y {
+                for x in r.start_x..=r.end_x {
+                    out.push((z as u8, x, y));
+                }
             }
         }
     }
@@ -262,68 +286,32 @@ pub async fn run(client: &Client, options: &BenchOptions) -> Result<Vec<KindRepo
                 })
                 .await
             }
-            Kind::Points => {
-                let (batch, seed) = (options.batch, options.seed);
+            Kind::TerrainCold => {
+                // Cesium terrain exists for georeferenced height fields only.
+                if !(heights && asset.bounds.is_some()) {
+                    continue;
+                }
+                // Down to the level whose tiles are as wide as the raster walk's deepest
+                // (geographic level z spans what Web Mercator zoom z + 1 does), so that the
+                // two walks compare the same zooms.
+                let layer = client.layer_json(&options.asset).await?;
+                let levels = usize::from(tj.maxzoom).min(layer.available.len());
+                let walk = Arc::new(terrain_walk(&layer.available[..levels]));
                 drive(options.concurrency, options.duration, move |i| {
-                    let (client, id) = (client.clone(), id.clone());
-                    let mut rng = rand::rngs::SmallRng::seed_from_u64(
-                        seed ^ (i as u64).wrapping_mul(0x9E37_79B9),
-                    );
-                    let points: Vec<[f64; 2]> = (0..batch)
-                        .map(|_| {
-                            [
-                                rng.random_range(bounds[0]..bounds[2]),
-                                rng.random_range(bounds[1]..bounds[3]),
-                            ]
-                        })
-                        .collect();
+                    let (client, id, walk) = (client.clone(), id.clone(), walk.clone());
                     async move {
-                        let req = PointsRequest {
-                            points,
-                            iterations: None,
-                            tolerance: None,
-                        };
+                        let t = *walk.get(i)?;
                         let start = Instant::now();
-                        Some(
-                            match client.points(&id, &req, PointsEncoding::Binary).await {
-                                Ok(r) => Ok((r.results.len(), start.elapsed())),
-                                Err(e) => Err(e.to_string()),
-                            },
-                        )
-                    }
-                })
-                .await
-            }
-            Kind::Regions => {
-                let (side, seed) = (options.region_side, options.seed);
-                drive(options.concurrency, options.duration, move |i| {
-                    let (client, id) = (client.clone(), id.clone());
-                    let mut rng = rand::rngs::SmallRng::seed_from_u64(
-                        seed ^ (i as u64).wrapping_mul(0x85EB_CA6B),
-                    );
-                    let (dw, dh) = ((bounds[2] - bounds[0]) / 8.0, (bounds[3] - bounds[1]) / 8.0);
-                    let (x0, y0) = (
-                        rng.random_range(bounds[0]..bounds[2] - dw),
-                        rng.random_range(bounds[1]..bounds[3] - dh),
-                    );
-                    async move {
-                        let req = RegionRequest {
-                            bbox: [x0, y0, x0 + dw, y0 + dh],
-                            width: side,
-                            height: side,
-                            iterations: None,
-                            tolerance: None,
-                            format: RegionFormat::F32,
-                        };
-                        let start = Instant::now();
-                        Some(match client.region(&id, &req).await {
-                            Ok(_) => Ok(((side * side) as usize, start.elapsed())),
+                        Some(match client.terrain_tile_body(&id, t).await {
+                            Ok(_) => Ok((1, start.elapsed())),
                             Err(e) => Err(e.to_string()),
                         })
                     }
                 })
                 .await
             }
+            Kind::Points => points(client, id, options, bounds).await,
+            Kind::Regions => regions(client, id, options, bounds).await,
         };
         if kind == Kind::TilesCold {
             cold_done = outcomes
@@ -335,6 +323,80 @@ pub async fn run(client: &Client, options: &BenchOptions) -> Result<Vec<KindRepo
         reports.push(report(kind, outcomes, seconds));
     }
     Ok(reports)
+}
+
+/// Random point batches for `options.duration`.
+async fn points(
+    client: Client,
+    id: String,
+    options: &BenchOptions,
+    bounds: [f64; 4],
+) -> (Vec<Outcome>, f64) {
+    let (batch, seed) = (options.batch, options.seed);
+    drive(options.concurrency, options.duration, move |i| {
+        let (client, id) = (client.clone(), id.clone());
+        let mut rng =
+            rand::rngs::SmallRng::seed_from_u64(seed ^ (i as u64).wrapping_mul(0x9E37_79B9));
+        let points: Vec<[f64; 2]> = (0..batch)
+            .map(|_| {
+                [
+                    rng.random_range(bounds[0]..bounds[2]),
+                    rng.random_range(bounds[1]..bounds[3]),
+                ]
+            })
+            .collect();
+        async move {
+            let req = PointsRequest {
+                points,
+                iterations: None,
+                tolerance: None,
+            };
+            let start = Instant::now();
+            Some(
+                match client.points(&id, &req, PointsEncoding::Binary).await {
+                    Ok(r) => Ok((r.results.len(), start.elapsed())),
+                    Err(e) => Err(e.to_string()),
+                },
+            )
+        }
+    })
+    .await
+}
+
+/// Random float32 regions for `options.duration`.
+async fn regions(
+    client: Client,
+    id: String,
+    options: &BenchOptions,
+    bounds: [f64; 4],
+) -> (Vec<Outcome>, f64) {
+    let (side, seed) = (options.region_side, options.seed);
+    drive(options.concurrency, options.duration, move |i| {
+        let (client, id) = (client.clone(), id.clone());
+        let mut rng =
+            rand::rngs::SmallRng::seed_from_u64(seed ^ (i as u64).wrapping_mul(0x85EB_CA6B));
+        let (dw, dh) = ((bounds[2] - bounds[0]) / 8.0, (bounds[3] - bounds[1]) / 8.0);
+        let (x0, y0) = (
+            rng.random_range(bounds[0]..bounds[2] - dw),
+            rng.random_range(bounds[1]..bounds[3] - dh),
+        );
+        async move {
+            let req = RegionRequest {
+                bbox: [x0, y0, x0 + dw, y0 + dh],
+                width: side,
+                height: side,
+                iterations: None,
+                tolerance: None,
+                format: RegionFormat::F32,
+            };
+            let start = Instant::now();
+            Some(match client.region(&id, &req).await {
+                Ok(_) => Ok(((side * side) as usize, start.elapsed())),
+                Err(e) => Err(e.to_string()),
+            })
+        }
+    })
+    .await
 }
 
 /// The reports as a Markdown table.
@@ -361,6 +423,42 @@ pub fn table(reports: &[KindReport], concurrency: usize) -> String {
 #[cfg(test)]
 mod tests {
     use super::*;
+
+    #[test]
+    fn terrain_walks_every_available_tile_once_level_by_level() {
+        // The ranges of a small DEM's layer.json (both root tiles, then one area).
+        let b = [-84.41, 36.45, -84.08, 36.73];
+        let available: Vec<Vec<TileRange>> = (0..12u8)
+            .map(|z| {
+                let ([start_x, end_x], [start_y, end_y]) = if z == 0 {
+                    ([0, 1], [0, 0])
+                } else {
+                    fractile_proto::tiles::geographic_range(b, z)
+                };
+                vec![TileRange {
+                    start_x,
+                    start_y,
+                    end_x,
+                    end_y,
+                }]
+            })
+            .collect();
+        let w = terrain_walk(&available);
+        assert_eq!(&w[..2], &[(0, 0, 0), (0, 1, 0)]);
+        let mut seen = std::collections::HashSet::new();
+        for (pair, t) in w.windows(2).zip(&w) {
+            assert!(pair[0].0 <= pair[1].0);
+            assert!(seen.insert(*t), "{t:?} twice");
+        }
+        for &(z, x, y) in &w[2..] {
+            let [tw, ts, te, tn] = fractile_proto::tiles::geographic_bounds(z, x, y);
+            assert!(
+                tw < b[2] && te > b[0] && ts < b[3] && tn > b[1],
+                "{z}/{x}/{y}"
+            );
+        }
+        assert_eq!(w.last().unwrap().0, 11);
+    }
 
     #[test]
     fn pyramid_walks_zoom_by_zoom_over_the_bounds() {

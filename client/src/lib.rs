@@ -18,8 +18,8 @@ use std::time::{Duration, Instant};
 pub use error::ClientError;
 pub use fractile_proto::query::{Backend, Choice, MeshFormat, RegionFormat};
 pub use fractile_proto::{
-    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, ErrorBody, PointResult,
-    PointsRequest, PointsResponse, TileJson,
+    AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, ErrorBody, LayerJson,
+    PointResult, PointsRequest, PointsResponse, TileJson, TileRange,
 };
 use reqwest::header;
 pub use tile::{Tile, TileAddress, TileEncoding, TileRequest};
@@ -256,6 +256,46 @@ impl Client {
     /// `GET /v1/assets/{id}/tilejson.json`.
     pub async fn tilejson(&self, id: &str) -> Result<TileJson, ClientError> {
         self.get_json(&self.asset_path(id, "/tilejson.json")?).await
+    }
+
+    /// `GET /v1/assets/{id}/layer.json`: the Cesium terrain layer of a georeferenced DEM.
+    pub async fn layer_json(&self, id: &str) -> Result<LayerJson, ClientError> {
+        self.get_json(&self.asset_path(id, "/layer.json")?).await
+    }
+
+    /// `GET /v1/assets/{id}/terrain/{z}/{x}/{y}.terrain` asked for as CesiumJS asks (vertex
+    /// normals, gzip), its body left as sent: what the load generator times.
+    pub(crate) async fn terrain_tile_body(
+        &self,
+        id: &str,
+        (z, x, y): (u8, u32, u32),
+    ) -> Result<TileBody, ClientError> {
+        let path = self.asset_path(id, &format!("/terrain/{z}/{x}/{y}.terrain"))?;
+        let q = query(&[("backend", self.backend.map(|b| b.name().to_string()))]);
+        let start = Instant::now();
+        let req = self
+            .http
+            .get(self.url(&path))
+            .query(&q)
+            .header(
+                header::ACCEPT,
+                "application/vnd.quantized-mesh;extensions=octvertexnormals,application/octet-stream;q=0.9",
+            )
+            .header(header::ACCEPT_ENCODING, "gzip");
+        let r = self.send(req).await?;
+        let error_bound = error_bound(&r)?;
+        let etag = r
+            .headers()
+            .get(header::ETAG)
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_string);
+        let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
+        Ok(TileBody {
+            body,
+            error_bound,
+            etag,
+            elapsed: start.elapsed(),
+        })
     }
 
     /// `PUT /v1/assets/{id}`: stores an asset file (made by `fractile encode`).

@@ -244,11 +244,12 @@ struct BenchArgs {
     /// Seconds per kind.
     #[arg(long, default_value_t = 10.0)]
     duration: f64,
-    /// Kinds, in order: tiles-cold, tiles-warm, points, regions.
+    /// Kinds, in order: tiles-cold, tiles-warm, terrain-cold (Cesium terrain; skipped for
+    /// assets that are not georeferenced height fields), points, regions.
     #[arg(
         long,
         value_delimiter = ',',
-        default_value = "tiles-cold,tiles-warm,points,regions"
+        default_value = "tiles-cold,tiles-warm,terrain-cold,points,regions"
     )]
     kinds: Vec<String>,
     /// Points per batch.

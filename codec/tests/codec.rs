@@ -1267,3 +1267,86 @@ fn one_search_fits_every_quantiser_as_its_own_search_would() {
         }
     }
 }
+
+/// The height of a mesh along its edge `x = at` (grid units) at `y`, by its edge vertices: the
+/// polyline a neighbour sees across that edge.
+fn edge_polyline(mesh: &fractile_codec::mesh::Mesh, at: f32, y: f32) -> f32 {
+    let mut on: Vec<[f32; 3]> = mesh
+        .positions
+        .iter()
+        .copied()
+        .filter(|p| p[0] == at)
+        .collect();
+    on.sort_by(|a, b| b[1].total_cmp(&a[1]));
+    let k = on.iter().position(|p| p[1] <= y).unwrap();
+    if on[k][1] == y {
+        return on[k][2];
+    }
+    let (a, b) = (on[k - 1], on[k]);
+    a[2] + (b[2] - a[2]) * (a[1] - y) / (a[1] - b[1])
+}
+
+#[test]
+fn adaptive_terrain_tiles_meet_without_cracks_and_keep_their_bound() {
+    // Two 65 x 65 tiles of jacksboro side by side, sharing a column of heights, as two
+    // neighbouring Cesium terrain tiles decode them.
+    use fractile_codec::mesh::Mesh;
+    let r = Raster::open(&data("jacksboro.tif")).unwrap();
+    let n = 65;
+    let tile = |x0: usize| -> Vec<f32> {
+        (0..n * n)
+            .map(|k| r.channels[0][(100 + k / n) * r.width + x0 + k % n])
+            .collect()
+    };
+    let (west, east) = (tile(100), tile(164));
+    // About the error of Cesium level 12, where the server meshes jacksboro.
+    let max_error = 16.0f32;
+    // The largest gap between the two tiles' edges, at each height of the shared column.
+    let gap = |a: &Mesh, b: &Mesh| {
+        (0..n)
+            .map(|j| {
+                let y = -(j as f32);
+                (edge_polyline(a, 64.0, y) - edge_polyline(b, 0.0, y)).abs()
+            })
+            .fold(0.0f32, f32::max)
+    };
+    let plain =
+        [&west, &east].map(|h| Mesh::adaptive(h, n, [0.0; 2], [1.0; 2], max_error).unwrap());
+    let stitched =
+        [&west, &east].map(|h| Mesh::adaptive_tile(h, n, [0.0; 2], [1.0; 2], max_error).unwrap());
+    // Each tile meshed on its own leaves cracks along the edge (up to the error bound); the
+    // stitched tiles draw the same polyline there, to f32 rounding.
+    assert!(
+        gap(&plain[0], &plain[1]) > 1.0,
+        "{}",
+        gap(&plain[0], &plain[1])
+    );
+    assert!(
+        gap(&stitched[0], &stitched[1]) < 1e-3,
+        "{}",
+        gap(&stitched[0], &stitched[1])
+    );
+    // And the stitched meshes stay within the bound of every height, as adaptive as the
+    // plain ones (within 10% of their vertices; a quarter of the grid's here).
+    for ((mesh, heights), plain) in stitched.iter().zip([&west, &east]).zip(&plain) {
+        let (count, alone) = (mesh.positions.len(), plain.positions.len());
+        assert!(
+            count * 10 <= alone * 11 && count < n * n / 3,
+            "{count} vs {alone}"
+        );
+        for t in &mesh.triangles {
+            let [a, b, c] = t.map(|v| mesh.positions[v as usize]);
+            let det = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1]);
+            for (k, h) in heights.iter().enumerate() {
+                let (x, y) = ((k % n) as f32, -((k / n) as f32));
+                let l1 = ((b[1] - c[1]) * (x - c[0]) + (c[0] - b[0]) * (y - c[1])) / det;
+                let l2 = ((c[1] - a[1]) * (x - c[0]) + (a[0] - c[0]) * (y - c[1])) / det;
+                let l3 = 1.0 - l1 - l2;
+                if l1 >= -1e-6 && l2 >= -1e-6 && l3 >= -1e-6 {
+                    let z = l1 * a[2] + l2 * b[2] + l3 * c[2];
+                    assert!((z - h).abs() <= max_error + 1e-3, "({x}, {y}): {z} vs {h}");
+                }
+            }
+        }
+    }
+}

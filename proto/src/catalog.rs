@@ -115,6 +115,50 @@ pub struct TileJson {
     pub encoding: Option<String>,
 }
 
+/// A Cesium terrain `layer.json` (the fields the server writes): what `CesiumTerrainProvider`
+/// reads before it asks for quantized-mesh tiles.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct LayerJson {
+    /// Always `2.1.0`, as Cesium's own layers.
+    pub tilejson: String,
+    /// The asset id.
+    pub name: String,
+    /// The layer's version, `1.0.0`.
+    pub version: String,
+    /// Always `quantized-mesh-1.0`.
+    pub format: String,
+    /// Always `tms` (rows from the south).
+    pub scheme: String,
+    /// Always `EPSG:4326`: Cesium's geographic tiling, two root tiles.
+    pub projection: String,
+    /// Tile URL templates with `{z}`, `{x}`, `{y}`, relative to the layer.
+    pub tiles: Vec<String>,
+    /// Shallowest level.
+    pub minzoom: u8,
+    /// Deepest level.
+    pub maxzoom: u8,
+    /// `[west, south, east, north]` in degrees.
+    pub bounds: [f64; 4],
+    /// Per level, the tiles that exist.
+    pub available: Vec<Vec<TileRange>>,
+    /// Extensions the tiles can carry when asked (`octvertexnormals`).
+    pub extensions: Vec<String>,
+}
+
+/// Tiles `startX..=endX` by `startY..=endY` of one level of a [`LayerJson`].
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+#[serde(rename_all = "camelCase")]
+pub struct TileRange {
+    /// First column.
+    pub start_x: u32,
+    /// First row (from the south).
+    pub start_y: u32,
+    /// Last column.
+    pub end_x: u32,
+    /// Last row.
+    pub end_y: u32,
+}
+
 /// The body of every error answer: `{"detail": "...", "code": "..."}`.
 #[derive(Clone, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct ErrorBody {

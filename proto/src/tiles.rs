@@ -38,6 +38,32 @@ pub fn lonlat_tile(z: u8, lon: f64, lat: f64) -> (u32, u32) {
     (x as u32, y as u32)
 }
 
+/// Cesium's geographic tiling (EPSG:4326, TMS rows from the south, two root tiles): degrees a
+/// side of a tile of level `z`.
+pub fn geographic_degrees(z: u8) -> f64 {
+    180.0 / f64::from(1u32 << z)
+}
+
+/// Bounds `[west, south, east, north]` (degrees) of geographic tile (`z`, `x`, `y`).
+pub fn geographic_bounds(z: u8, x: u32, y: u32) -> [f64; 4] {
+    let d = geographic_degrees(z);
+    let (w, s) = (-180.0 + f64::from(x) * d, -90.0 + f64::from(y) * d);
+    [w, s, w + d, s + d]
+}
+
+/// Geographic tile columns and rows of level `z` that overlap `bounds` (inclusive ranges); an
+/// east or north edge on a tile boundary belongs to the tile before it.
+pub fn geographic_range(bounds: [f64; 4], z: u8) -> ([u32; 2], [u32; 2]) {
+    let d = geographic_degrees(z);
+    let [w, s, e, n] = bounds;
+    let last_x = (1u32 << (z + 1)) - 1;
+    let last_y = (1u32 << z) - 1;
+    let col = |lon: f64| (((lon + 180.0) / d).floor().max(0.0) as u32).min(last_x);
+    let row = |lat: f64| (((lat + 90.0) / d).floor().max(0.0) as u32).min(last_y);
+    let tiny = d * 1e-9;
+    ([col(w), col(e - tiny)], [row(s), row(n - tiny)])
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -91,17 +91,68 @@ impl Mesh {
         spacing: [f32; 2],
         max_error: f32,
     ) -> Result<Mesh, Error> {
-        if n < 2 || !(n - 1).is_power_of_two() || heights.len() != n * n {
-            return Err(Error::Input(format!(
-                "an adaptive mesh needs 2^k + 1 heights a side, got {n} ({} heights)",
-                heights.len()
-            )));
+        check_rtin(heights, n, max_error)?;
+        Ok(Self::rtin(heights, n, (origin, spacing), max_error, &[]))
+    }
+
+    /// [`Mesh::adaptive`] for meshes that tile the plane with their neighbours (terrain tiles):
+    /// each edge's vertices depend on that edge's heights alone, so two tiles that decode the
+    /// same heights along their shared edge draw the same polyline there, without cracks or
+    /// T-junction gaps.
+    ///
+    /// Each edge is simplified first on its own (split at its middle, recursively, while a
+    /// height leaves the chord by more than `max_error`); those vertices are forced into the
+    /// network, and the edge's other heights are replaced by the chords' before the network is
+    /// built. Where the interior asks for an extra edge vertex, that vertex then lies on the
+    /// chord, which is where the neighbour's mesh passes. The surface stays within `max_error`
+    /// of every height (edges through the chords, the interior through the network).
+    pub fn adaptive_tile(
+        heights: &[f32],
+        n: usize,
+        origin: [f32; 2],
+        spacing: [f32; 2],
+        max_error: f32,
+    ) -> Result<Mesh, Error> {
+        check_rtin(heights, n, max_error)?;
+        let mut stitched = heights.to_vec();
+        let mut forced = Vec::new();
+        let last = n - 1;
+        // West, east (north to south), north, south (west to east): each shared edge is walked
+        // in the same direction by both tiles, so both compute the same chords bit for bit.
+        let at = |edge: usize, k: usize| match edge {
+            0 => k * n,
+            1 => k * n + last,
+            2 => k,
+            _ => last * n + k,
+        };
+        for edge in 0..4 {
+            let samples: Vec<f32> = (0..n).map(|k| heights[at(edge, k)]).collect();
+            let (kept, chords) = edge_chords(&samples, max_error);
+            for k in 0..n {
+                stitched[at(edge, k)] = chords[k];
+                if kept[k] {
+                    forced.push(at(edge, k));
+                }
+            }
         }
-        if !(max_error.is_finite() && max_error >= 0.0) {
-            return Err(Error::Input(format!(
-                "max_error must be a finite number >= 0, got {max_error}"
-            )));
-        }
+        Ok(Self::rtin(
+            &stitched,
+            n,
+            (origin, spacing),
+            max_error,
+            &forced,
+        ))
+    }
+
+    /// The network of [`Mesh::adaptive`] over checked inputs, with the grid points `forced`
+    /// always vertices.
+    fn rtin(
+        heights: &[f32],
+        n: usize,
+        (origin, spacing): ([f32; 2], [f32; 2]),
+        max_error: f32,
+        forced: &[usize],
+    ) -> Mesh {
         let tile = n - 1;
         // Each splittable triangle's error, kept at the middle of its long edge, where the
         // triangle beyond that edge keeps its own too: the two split together (no cracks), and
@@ -121,6 +172,9 @@ impl Mesh {
             errors[mid] = errors[mid].max(rtin_error(heights, n, t));
             stack.push([cx, cy, ax, ay, mx, my]);
             stack.push([bx, by, cx, cy, mx, my]);
+        }
+        for &g in forced {
+            errors[g] = f32::INFINITY;
         }
         // Then each parent takes its children's errors, finest level first, so that both
         // triangles on each side of an edge are in before the parents above them.
@@ -169,7 +223,7 @@ impl Mesh {
             }
             mesh.triangles.push(tri);
         }
-        Ok(mesh)
+        mesh
     }
 
     /// Reads a triangle mesh from an OFF, OBJ, PLY or STL file (chosen by extension). Polygons
@@ -601,6 +655,53 @@ pub(crate) fn cross(a: [f64; 3], b: [f64; 3]) -> [f64; 3] {
 
 pub(crate) fn norm(a: [f64; 3]) -> f64 {
     dot(a, a).sqrt()
+}
+
+/// The inputs of an adaptive mesh: `2^k + 1` heights a side and a finite `max_error >= 0`.
+fn check_rtin(heights: &[f32], n: usize, max_error: f32) -> Result<(), Error> {
+    if n < 2 || !(n - 1).is_power_of_two() || heights.len() != n * n {
+        return Err(Error::Input(format!(
+            "an adaptive mesh needs 2^k + 1 heights a side, got {n} ({} heights)",
+            heights.len()
+        )));
+    }
+    if !(max_error.is_finite() && max_error >= 0.0) {
+        return Err(Error::Input(format!(
+            "max_error must be a finite number >= 0, got {max_error}"
+        )));
+    }
+    Ok(())
+}
+
+/// The vertices an edge of `samples` keeps on its own (split at the middle while a sample
+/// leaves the chord by more than `max_error`; the ends always) and the edge's heights with every
+/// other sample moved onto its chord. Nodata leaves every chord over it, so it splits down to
+/// single cells.
+fn edge_chords(samples: &[f32], max_error: f32) -> (Vec<bool>, Vec<f32>) {
+    let last = samples.len() - 1;
+    let mut kept = vec![false; samples.len()];
+    let mut chords = samples.to_vec();
+    (kept[0], kept[last]) = (true, true);
+    let mut stack = vec![(0, last)];
+    while let Some((a, b)) = stack.pop() {
+        let (ha, hb) = (f64::from(samples[a]), f64::from(samples[b]));
+        let chord = |k: usize| (ha * (b - k) as f64 + hb * (k - a) as f64) / (b - a) as f64;
+        // NaN (nodata) is off every chord.
+        let off = (a + 1..b).any(|k| {
+            let d = (f64::from(samples[k]) - chord(k)).abs();
+            d.is_nan() || d > f64::from(max_error)
+        });
+        if off {
+            let m = (a + b) / 2;
+            kept[m] = true;
+            stack.extend([(a, m), (m, b)]);
+        } else {
+            for (k, c) in chords.iter_mut().enumerate().take(b).skip(a + 1) {
+                *c = chord(k) as f32;
+            }
+        }
+    }
+    (kept, chords)
 }
 
 /// Corners `[ax, ay, bx, by, cx, cy]` (a, b: the long edge; c: the right angle) of triangle

@@ -174,6 +174,8 @@ type Shared = State<Arc<AppState>>;
 
 /// The router of the whole API.
 pub fn router(state: Arc<AppState>) -> Router {
+    // Read the build's id now rather than on the first tile request.
+    tiles::build_id();
     Router::new()
         .route("/healthz", get(|| async { "ok" }))
         .route("/readyz", get(ready))

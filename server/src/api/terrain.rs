@@ -5,6 +5,9 @@
 //! holes: off the asset and at nodata the surface is the ellipsoid (height 0), and both root
 //! tiles exist whatever the asset covers, since Cesium draws nothing until they are in.
 
+use fractile_proto::tiles::{geographic_bounds, geographic_range};
+use fractile_proto::{LayerJson, TileRange};
+
 use super::*;
 
 /// Vertices a side of a terrain tile's grid (Cesium's own heightmap tiles use 65).
@@ -20,18 +23,6 @@ const LEVEL_ZERO_ERROR: f64 = 6_378_137.0 * std::f64::consts::TAU * 0.25 / (65.0
 /// First level whose tiles are adaptive meshes (see `terrain_tile`): the sagitta of a tile,
 /// 6378137 m x (pi / 2^z)^2 / 8, is within half of `LEVEL_ZERO_ERROR` / 2^z from 2^z >= 204.
 const ADAPTIVE_FROM: u8 = 8;
-
-/// Degrees a side of a tile of level `z`.
-fn tile_degrees(z: u8) -> f64 {
-    180.0 / f64::from(1u32 << z)
-}
-
-/// West, south, east, north of tile (`z`, `x`, `y`), TMS rows counted from the south.
-fn tile_bounds(z: u8, x: u32, y: u32) -> [f64; 4] {
-    let d = tile_degrees(z);
-    let (w, s) = (-180.0 + f64::from(x) * d, -90.0 + f64::from(y) * d);
-    [w, s, w + d, s + d]
-}
 
 /// The asset as Cesium terrain: a georeferenced height field.
 fn terrain_asset(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> {
@@ -65,53 +56,45 @@ fn max_level(state: &AppState, a: &StoredAsset) -> u8 {
     (native + 4).min(state.limits.max_zoom)
 }
 
-/// Tile columns and rows of level `z` that overlap the asset (inclusive ranges).
-fn tile_range(bounds: [f64; 4], z: u8) -> ([u32; 2], [u32; 2]) {
-    let d = tile_degrees(z);
-    let [w, s, e, n] = bounds;
-    let last_x = (1u32 << (z + 1)) - 1;
-    let last_y = (1u32 << z) - 1;
-    let col = |lon: f64| (((lon + 180.0) / d).floor().max(0.0) as u32).min(last_x);
-    let row = |lat: f64| (((lat + 90.0) / d).floor().max(0.0) as u32).min(last_y);
-    // An east or north edge on a tile boundary belongs to the tile before it.
-    let tiny = d * 1e-9;
-    ([col(w), col(e - tiny)], [row(s), row(n - tiny)])
-}
-
 /// `GET /v1/assets/{id}/layer.json`: the terrain layer Cesium's `CesiumTerrainProvider` reads.
 pub(super) async fn layer(
     State(state): Shared,
     Path(id): Path<String>,
-) -> Result<Json<serde_json::Value>, AppError> {
+) -> Result<Json<LayerJson>, AppError> {
     let a = terrain_asset(state.store.get(&id)?)?;
     let bounds = asset_bounds(&a);
     let max = max_level(&state, &a);
-    let available: Vec<serde_json::Value> = (0..=max)
+    let available = (0..=max)
         .map(|z| {
             // Both root tiles, always (see `terrain_tile`).
-            let ([x0, x1], [y0, y1]) = if z == 0 {
+            let ([start_x, end_x], [start_y, end_y]) = if z == 0 {
                 ([0, 1], [0, 0])
             } else {
-                tile_range(bounds, z)
+                geographic_range(bounds, z)
             };
-            serde_json::json!([{"startX": x0, "startY": y0, "endX": x1, "endY": y1}])
+            vec![TileRange {
+                start_x,
+                start_y,
+                end_x,
+                end_y,
+            }]
         })
         .collect();
-    Ok(Json(serde_json::json!({
-        "tilejson": "2.1.0",
-        "name": a.id,
-        "version": "1.0.0",
-        "format": "quantized-mesh-1.0",
-        "scheme": "tms",
-        "projection": "EPSG:4326",
+    Ok(Json(LayerJson {
+        tilejson: "2.1.0".into(),
+        name: a.id.clone(),
+        version: "1.0.0".into(),
+        format: "quantized-mesh-1.0".into(),
+        scheme: "tms".into(),
+        projection: "EPSG:4326".into(),
         // Relative to this document, as Cesium resolves it.
-        "tiles": ["terrain/{z}/{x}/{y}.terrain"],
-        "minzoom": 0,
-        "maxzoom": max,
-        "bounds": bounds,
-        "available": available,
-        "extensions": ["octvertexnormals"],
-    })))
+        tiles: vec!["terrain/{z}/{x}/{y}.terrain".into()],
+        minzoom: 0,
+        maxzoom: max,
+        bounds,
+        available,
+        extensions: vec!["octvertexnormals".into()],
+    }))
 }
 
 /// Query of a terrain tile.
@@ -141,7 +124,7 @@ pub(super) async fn terrain_tile(
             format!("terrain tile {z}/{x}/{y} does not exist"),
         ));
     }
-    let [w, s, e, n] = tile_bounds(z, x, y);
+    let [w, s, e, n] = geographic_bounds(z, x, y);
     let [aw, as_, ae, an] = asset_bounds(&a);
     // Cesium draws nothing until both root tiles are in: they always exist (flat outside).
     if z > 0 && (e <= aw || w >= ae || n <= as_ || s >= an) {
@@ -233,8 +216,10 @@ fn mesh_tile(
     // (span^2 / 8R): the adaptive mesh measures heights only, so it is used from the level
     // where a whole tile's sagitta is within half the level's error; coarser levels are
     // the regular grid, as Cesium's own heightmap tiles.
+    // Adaptive tiles are stitched: each edge is meshed from its own heights, so neighbours
+    // meet on the same polyline (no cracks).
     let mesh = if z >= ADAPTIVE_FROM {
-        fractile_codec::mesh::Mesh::adaptive(&heights, GRID, [0.0, 0.0], [1.0, 1.0], max_error)
+        fractile_codec::mesh::Mesh::adaptive_tile(&heights, GRID, [0.0, 0.0], [1.0, 1.0], max_error)
             .map_err(|e| AppError::internal(e.to_string()))?
     } else {
         fractile_codec::mesh::Mesh::grid(&heights, GRID, GRID, [0.0, 0.0], [1.0, 1.0])

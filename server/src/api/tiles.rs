@@ -68,10 +68,29 @@ pub(super) struct TileQuery {
     hillshade: Option<bool>,
 }
 
+/// A tile's ETag: the asset's version, the request's key and the build that drew it. A new
+/// server build may draw the same tile differently (as when terrain edges were stitched), so
+/// a client must not keep an old tile on a 304; replicas running the same binary still agree.
 pub(super) fn etag(a: &StoredAsset, key: &str) -> String {
     let mut h = std::hash::DefaultHasher::new();
-    (a.hash, key).hash(&mut h);
+    (a.hash, key, build_id()).hash(&mut h);
     format!("\"{:016x}\"", h.finish())
+}
+
+/// A hash of this server's executable, read once (about 30 ms for 30 MB at startup, see
+/// [`super::router`]); the package version where the executable cannot be read. Hashing the
+/// binary itself needs no build script and cannot be forgotten the way a hand-bumped
+/// revision number can.
+pub(super) fn build_id() -> u64 {
+    static ID: std::sync::OnceLock<u64> = std::sync::OnceLock::new();
+    *ID.get_or_init(|| {
+        let mut h = std::hash::DefaultHasher::new();
+        match std::env::current_exe().and_then(std::fs::read) {
+            Ok(bytes) => bytes.hash(&mut h),
+            Err(_) => env!("CARGO_PKG_VERSION").hash(&mut h),
+        }
+        h.finish()
+    })
 }
 
 pub(super) fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Response {
