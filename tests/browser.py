@@ -8,8 +8,10 @@ busy machine, and the screenshot then catches a map before it drew.
 
 Usage: browser.py URL OUT_DIR [SECONDS]. Waits until #status says data-loaded="true", the
 coast has points and the globe is ready or absent (at most SECONDS, default 90), lets one more second of frames run, then
-writes OUT_DIR/shot.png (1200 x 700) and OUT_DIR/dom.html. Exits 1 if the page never got
-there (both files are still written, showing how far it got).
+writes OUT_DIR/shot.png (1200 x 700), OUT_DIR/dom.html and OUT_DIR/console.txt: what the page
+logged as errors, as Chromium saw them (uncaught exceptions, console.error), one per line, so
+that the check does not rest on the page's own error counter. Exits 1 if the page never got
+there (the files are still written, showing how far it got).
 """
 
 import base64
@@ -48,6 +50,20 @@ writer = os.fdopen(to_chrome_w, "wb", buffering=0)
 reader = os.fdopen(from_chrome_r, "rb", buffering=0)
 pending = b""
 next_id = 0
+# JavaScript errors the page raised or logged, from the DevTools events.
+logged = []
+
+
+def note_event(event):
+    method, params = event.get("method"), event.get("params", {})
+    if method == "Runtime.exceptionThrown":
+        d = params.get("exceptionDetails", {})
+        text = d.get("exception", {}).get("description") or d.get("text", "exception")
+        logged.append("exception: " + text.splitlines()[0])
+    elif method == "Runtime.consoleAPICalled" and params.get("type") in ("error", "assert"):
+        args = params.get("args", [])
+        text = " ".join(str(a.get("value", a.get("description", ""))) for a in args)
+        logged.append("console." + params["type"] + ": " + text.splitlines()[0] if text else "")
 
 
 def call(method, params=None, session=None):
@@ -66,6 +82,8 @@ def call(method, params=None, session=None):
             pending += chunk
         raw, pending = pending.split(b"\0", 1)
         answer = json.loads(raw)
+        if "method" in answer:
+            note_event(answer)
         if answer.get("id") == next_id:
             if "error" in answer:
                 raise RuntimeError(f"{method}: {answer['error']}")
@@ -84,6 +102,7 @@ try:
     call("Emulation.setDeviceMetricsOverride",
          {"width": 1200, "height": 700, "deviceScaleFactor": 1, "mobile": False}, session)
     call("Page.enable", {}, session)
+    call("Runtime.enable", {}, session)
     call("Page.navigate", {"url": url}, session)
     ready = (
         "(() => { const s = document.getElementById('status');"
@@ -102,6 +121,8 @@ try:
         f.write(base64.b64decode(shot))
     with open(os.path.join(out, "dom.html"), "w") as f:
         f.write(evaluate(session, "document.documentElement.outerHTML") or "")
+    with open(os.path.join(out, "console.txt"), "w") as f:
+        f.writelines(line + "\n" for line in logged)
     try:
         call("Browser.close")
     except RuntimeError:

@@ -59,6 +59,8 @@ terrain_tiles=$(curl -fs "http://127.0.0.1:$PORT/metrics" | awk '/^fractile_requ
 echo "globe: ${globe:-none}; Cesium terrain tiles the server answered: $terrain_tiles"
 check "the globe loaded Cesium terrain from the server" '[ "$globe" = ready ] && [ "$terrain_tiles" -gt 0 ]'
 check "the server answered the tile requests" '[ "$served" -gt 0 ]'
-check "no console or map error" '[ "${errors:-1}" -eq 0 ]'
+check "no map error (the page's counter)" '[ "${errors:-1}" -eq 0 ]'
+if [ -s "$WORK/console.txt" ]; then sed 's/^/  logged: /' "$WORK/console.txt"; fi
+check "no error logged (exceptions, console.error, as Chromium saw them)" '[ -f "$WORK/console.txt" ] && [ ! -s "$WORK/console.txt" ]'
 echo "browser: $pass passed, $fail failed"
 [ "$fail" -eq 0 ]

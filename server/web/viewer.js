@@ -86,7 +86,10 @@
   const note = (text) => { document.getElementById('globe-note').textContent = text; };
   const startGlobe = async () => {
     status.dataset.globe = 'loading';
-    const terrain = await Cesium.CesiumTerrainProvider.fromUrl(`${origin}/v1/assets/${dem}/`);
+    // Vertex normals (our tiles' octvertexnormals extension) for the sun's shading.
+    const terrain = await Cesium.CesiumTerrainProvider.fromUrl(`${origin}/v1/assets/${dem}/`, {
+      requestVertexNormals: true,
+    });
     const widget = new Cesium.CesiumWidget('globe', {
       terrainProvider: terrain,
       baseLayer: false,
@@ -96,6 +99,12 @@
       contextOptions: { webgl: { preserveDrawingBuffer: true } },
     });
     const globe = widget.scene.globe;
+    // Shaded by our tiles' vertex normals under the sun of a fixed summer morning over the DEM
+    // (low, from the east-north-east, so the relief shows), not of the clock's time: the view
+    // looks the same whenever it is opened (at night it would be black).
+    globe.enableLighting = true;
+    widget.clock.shouldAnimate = false;
+    widget.clock.currentTime = Cesium.JulianDate.fromIso8601('2026-06-21T13:00:00Z');
     globe.baseColor = Cesium.Color.fromCssColorString('#a9c08f');
     globe.material = Cesium.Material.fromType('ElevationContour', {
       width: 2.0,
