@@ -76,7 +76,7 @@ async fn tiles_in_every_encoding_agree() {
     let f32 = get(TileEncoding::F32).await;
     assert_eq!((f32.size, f32.values.len()), (256, 256 * 256));
     let [lo, hi] = dem.value_range;
-    let b = f32.error_bound as f64;
+    let b = f32.convergence_bound as f64;
     assert!(
         f32.values
             .iter()
@@ -247,8 +247,8 @@ async fn points_in_json_and_binary_agree_with_single_points() {
         assert!((a.coordinates[0] - b.coordinates[0]).abs() < 1e-9);
         assert!((a.coordinates[1] - b.coordinates[1]).abs() < 1e-9);
         assert_eq!(
-            (&a.values, a.error_bound, a.iterations, a.outside),
-            (&b.values, b.error_bound, b.iterations, b.outside)
+            (&a.values, a.convergence_bound, a.iterations, a.outside),
+            (&b.values, b.convergence_bound, b.iterations, b.outside)
         );
     }
     assert_eq!(json.results.len(), 51);
@@ -261,14 +261,17 @@ async fn points_in_json_and_binary_agree_with_single_points() {
     assert_eq!(one.values, json.results[7].values);
     // Each point stops once its own bound is under the default tolerance, within the 20 asked.
     assert_eq!(
-        (one.error_bound, one.iterations),
-        (json.results[7].error_bound, json.results[7].iterations)
+        (one.convergence_bound, one.iterations),
+        (
+            json.results[7].convergence_bound,
+            json.results[7].iterations
+        )
     );
     assert!(one.iterations <= 20);
     let [lo, hi] = dem.value_range;
     for r in &json.results[..50] {
         let v = r.values.as_ref().unwrap()[0].unwrap() as f64;
-        let b = r.error_bound.unwrap() as f64;
+        let b = r.convergence_bound.unwrap() as f64;
         assert!(
             v >= lo - b - 1.0 && v <= hi + b + 1.0,
             "{v} outside [{lo}, {hi}] +- {b}"
@@ -343,7 +346,7 @@ async fn regions_and_meshes() {
     for (k, &(i, j)) in probe.iter().enumerate() {
         let pv = p.results[k].values.as_ref().unwrap()[0].unwrap();
         let rv = v[j * 64 + i];
-        let tol = r.error_bound + p.results[k].error_bound.unwrap() + 1e-3;
+        let tol = r.convergence_bound + p.results[k].convergence_bound.unwrap() + 1e-3;
         assert!(
             (pv - rv).abs() <= tol,
             "pixel {i},{j}: region {rv} point {pv} tol {tol}"
@@ -433,7 +436,7 @@ async fn regions_and_meshes() {
         "{}",
         faces(&adaptive)
     );
-    assert!((adaptive.error_bound - regular.error_bound - 10.0).abs() < 1e-3);
+    assert!((adaptive.convergence_bound - regular.convergence_bound - 10.0).abs() < 1e-3);
     let e = c
         .mesh(
             "jacksboro",
@@ -504,15 +507,15 @@ async fn tile_refinement_converges_within_its_bound() {
     assert!(r.steps.len() >= 3, "{} steps", r.steps.len());
     for w in r.steps.windows(2) {
         assert!(
-            w[1].error_bound < w[0].error_bound,
+            w[1].convergence_bound < w[0].convergence_bound,
             "bound did not fall: {} -> {}",
-            w[0].error_bound,
-            w[1].error_bound
+            w[0].convergence_bound,
+            w[1].convergence_bound
         );
         assert_eq!(w[1].iterations, w[0].iterations + 1);
     }
     let last = r.steps.last().unwrap();
-    assert!(last.error_bound <= 0.5);
+    assert!(last.convergence_bound <= 0.5);
     let reference = c
         .tile(
             "jacksboro",
@@ -530,7 +533,7 @@ async fn tile_refinement_converges_within_its_bound() {
         .zip(&reference.values)
         .map(|(a, b)| (a - b).abs())
         .fold(0.0f32, f32::max);
-    let allowed = last.error_bound + reference.error_bound + 1e-3;
+    let allowed = last.convergence_bound + reference.convergence_bound + 1e-3;
     assert!(
         worst <= allowed,
         "last step off the reference by {worst} > {allowed}"
@@ -572,7 +575,7 @@ async fn points_refinement_stops_on_the_seed_criterion() {
         assert!(s.mean_change.unwrap() > 0.002 * range);
     }
     for w in r.steps.windows(2) {
-        assert!(w[1].error_bound < w[0].error_bound);
+        assert!(w[1].convergence_bound < w[0].convergence_bound);
     }
     // A region refines too, and a schedule is honoured.
     let options = RefineOptions {
@@ -632,10 +635,10 @@ async fn view_fetches_nearest_first_within_each_tolerance() {
             Ok(t) => {
                 ok += 1;
                 assert!(
-                    t.error_bound <= p.tolerance * 1.0001,
+                    t.convergence_bound <= p.tolerance * 1.0001,
                     "{}: bound {} over tolerance {} ({} steps, s {} seed {})",
                     p.address,
-                    t.error_bound,
+                    t.convergence_bound,
                     p.tolerance,
                     p.iterations,
                     dem.max_contrast,
@@ -680,7 +683,7 @@ async fn volume_surfaces_and_distances_through_the_client() {
     let coarse = c.volume_mesh("fandisk", &req(48)).await.unwrap();
     let fine = c.volume_mesh("fandisk", &req(96)).await.unwrap();
     assert!(count(&fine.body) > 3 * count(&coarse.body));
-    assert!(coarse.error_bound >= 0.0 && coarse.error_bound.is_finite());
+    assert!(coarse.convergence_bound >= 0.0 && coarse.convergence_bound.is_finite());
     // Distances: about zero on a vertex of the source, the band far from it, 404 outside.
     let mesh = fractile_codec::mesh::Mesh::read(&fractile_e2e::data("mesh/fandisk.off")).unwrap();
     let p = mesh.positions[1234].map(f64::from);

@@ -72,8 +72,11 @@ pub struct Region {
     pub body: Vec<u8>,
     /// Per channel, `width * height` values, for [`RegionFormat::F32`] answers.
     pub values: Option<Vec<Vec<f32>>>,
-    /// The server's a-priori error bound (value units).
-    pub error_bound: f32,
+    /// The server's convergence bound (`X-Convergence-Bound`, value units).
+    pub convergence_bound: f32,
+    /// The server's bound against the source (`X-Error-Bound`, value units; `None` for assets
+    /// without a source-error map).
+    pub error_bound: Option<f32>,
 }
 
 /// A terrain mesh request: a regular grid of `resolution x resolution` vertices.
@@ -116,9 +119,11 @@ pub struct MeshFile {
     pub body: Vec<u8>,
     /// Its media type.
     pub content_type: String,
-    /// The server's error bound on the heights (decoding, plus `max_error` for adaptive
-    /// meshes).
-    pub error_bound: f32,
+    /// The server's bound on the heights against the attractor (decoding, plus `max_error`
+    /// for adaptive meshes).
+    pub convergence_bound: f32,
+    /// The same against the source (`None` for assets without a source-error map).
+    pub error_bound: Option<f32>,
 }
 
 /// Result of an upload.
@@ -144,12 +149,18 @@ fn bbox(b: [f64; 4]) -> String {
 }
 
 /// The `X-Error-Bound` header of an answer.
-fn error_bound(r: &reqwest::Response) -> Result<f32, ClientError> {
-    r.headers()
-        .get("x-error-bound")
-        .and_then(|v| v.to_str().ok())
-        .and_then(|v| v.parse().ok())
-        .ok_or_else(|| ClientError::malformed("answer", "no X-Error-Bound header"))
+/// `X-Convergence-Bound` (required) and `X-Error-Bound` (present for assets with a
+/// source-error map).
+fn bounds(r: &reqwest::Response) -> Result<(f32, Option<f32>), ClientError> {
+    let number = |name: &str| {
+        r.headers()
+            .get(name)
+            .and_then(|v| v.to_str().ok())
+            .and_then(|v| v.parse().ok())
+    };
+    let convergence = number("x-convergence-bound")
+        .ok_or_else(|| ClientError::malformed("answer", "no X-Convergence-Bound header"))?;
+    Ok((convergence, number("x-error-bound")))
 }
 
 impl Client {
@@ -283,7 +294,7 @@ impl Client {
             )
             .header(header::ACCEPT_ENCODING, "gzip");
         let r = self.send(req).await?;
-        let error_bound = error_bound(&r)?;
+        let bounds = bounds(&r)?;
         let etag = r
             .headers()
             .get(header::ETAG)
@@ -292,7 +303,7 @@ impl Client {
         let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
         Ok(TileBody {
             body,
-            error_bound,
+            bounds,
             etag,
             elapsed: start.elapsed(),
         })
@@ -338,7 +349,7 @@ impl Client {
             }
             _ => None,
         };
-        Tile::decode(req, raw.body, raw.error_bound, raw.etag, raw.elapsed, range)
+        Tile::decode(req, raw.body, raw.bounds, raw.etag, raw.elapsed, range)
     }
 
     /// A tile's body as sent, undecoded: what the load generator times, so that the client's
@@ -370,7 +381,7 @@ impl Client {
         let path = self.asset_path(id, &format!("/tiles/{z}/{x}/{y}.{ext}"))?;
         let start = Instant::now();
         let r = self.send(self.http.get(self.url(&path)).query(&q)).await?;
-        let error_bound = error_bound(&r)?;
+        let bounds = bounds(&r)?;
         let etag = r
             .headers()
             .get(header::ETAG)
@@ -379,7 +390,7 @@ impl Client {
         let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
         Ok(TileBody {
             body,
-            error_bound,
+            bounds,
             etag,
             elapsed: start.elapsed(),
         })
@@ -512,7 +523,7 @@ impl Client {
                     .query(&q),
             )
             .await?;
-        let bound = error_bound(&r)?;
+        let (convergence_bound, error_bound) = bounds(&r)?;
         let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
         let values = if req.format == RegionFormat::F32 {
             let n = req.width as usize * req.height as usize;
@@ -535,7 +546,8 @@ impl Client {
             height: req.height,
             body,
             values,
-            error_bound: bound,
+            convergence_bound,
+            error_bound,
         })
     }
 
@@ -590,7 +602,7 @@ impl Client {
                     .query(q),
             )
             .await?;
-        let bound = error_bound(&r)?;
+        let (convergence_bound, error_bound) = bounds(&r)?;
         let content_type = r
             .headers()
             .get(header::CONTENT_TYPE)
@@ -601,7 +613,8 @@ impl Client {
         Ok(MeshFile {
             body,
             content_type,
-            error_bound: bound,
+            convergence_bound,
+            error_bound,
         })
     }
 }
@@ -743,7 +756,8 @@ impl Client {
 /// A tile as it came off the wire.
 pub(crate) struct TileBody {
     pub(crate) body: Vec<u8>,
-    pub(crate) error_bound: f32,
+    /// `X-Convergence-Bound` and `X-Error-Bound`.
+    pub(crate) bounds: (f32, Option<f32>),
     pub(crate) etag: Option<String>,
     pub(crate) elapsed: Duration,
 }

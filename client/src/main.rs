@@ -53,7 +53,9 @@ struct RefineArgs {
     /// Ask for 1, 2, 3, ... iterations until the answer settles; write every step.
     #[arg(long)]
     refine: bool,
-    /// With --refine: stop once the error bound is at most this (value units).
+    /// With --refine: stop once the convergence bound (the distance to the fractal's
+    /// attractor, which more iterations shrink) is at most this, value units. The error bound
+    /// against the source does not shrink with iterations, so refinement never stops on it.
     #[arg(long)]
     tolerance: Option<f32>,
     /// With --refine: stop once the mean change is at most this fraction of the value range.
@@ -326,6 +328,15 @@ impl<'a> StepFiles<'a> {
     }
 }
 
+/// "convergence bound C, error bound E" (or "error bound unknown" for an asset without a
+/// source-error map).
+fn bound_words(convergence: f32, error: Option<f32>) -> String {
+    match error {
+        Some(e) => format!("convergence bound {convergence}, error bound {e}"),
+        None => format!("convergence bound {convergence}, error bound unknown"),
+    }
+}
+
 /// Prints one refinement step as it arrives: a table row, or one JSON object per line (the
 /// last carries why it is the last in `stop`; the others have `stop: null`).
 fn print_step<T>(json: bool, s: &Step<T>) {
@@ -333,28 +344,30 @@ fn print_step<T>(json: bool, s: &Step<T>) {
     if json {
         println!(
             "{}",
-            json!({"step": s.step, "iterations": s.iterations, "error_bound": s.error_bound,
+            json!({"step": s.step, "iterations": s.iterations, "convergence_bound": s.convergence_bound,
                    "mean_change": s.mean_change, "ms": ms, "stop": s.stop})
         );
     } else {
         let change = s.mean_change.map_or("-".to_string(), |c| format!("{c:.4}"));
         println!(
             "| {} | {} | {:.4} | {change} | {ms:.1} |",
-            s.step, s.iterations, s.error_bound
+            s.step, s.iterations, s.convergence_bound
         );
     }
 }
 
 fn print_head(json: bool) {
     if !json {
-        println!("| step | iterations | error bound | mean change | ms |\n|---|---|---|---|---|");
+        println!(
+            "| step | iterations | convergence bound | mean change | ms |\n|---|---|---|---|---|"
+        );
     }
 }
 
 fn print_stop(json: bool, stop: Stop) {
     if !json {
         let why = match stop {
-            Stop::Bound => "the error bound reached the tolerance",
+            Stop::Bound => "the convergence bound reached the tolerance",
             Stop::Converged => "the answer stopped changing",
             Stop::Budget => "the time budget ran out",
             Stop::Schedule => "the schedule ended",
@@ -511,15 +524,15 @@ async fn tile(client: &Client, json: bool, a: TileArgs) -> Result<()> {
         if json {
             println!(
                 "{}",
-                json!({"tile": t.address.to_string(), "bytes": t.body.len(), "error_bound": t.error_bound, "ms": t.elapsed.as_secs_f64() * 1e3})
+                json!({"tile": t.address.to_string(), "bytes": t.body.len(), "convergence_bound": t.convergence_bound, "error_bound": t.error_bound, "ms": t.elapsed.as_secs_f64() * 1e3})
             );
         } else {
             println!(
-                "{} -> {} ({} bytes, error bound {})",
+                "{} -> {} ({} bytes, {})",
                 t.address,
                 output.display(),
                 t.body.len(),
-                t.error_bound
+                bound_words(t.convergence_bound, t.error_bound)
             );
         }
     }
@@ -550,11 +563,11 @@ async fn point(client: &Client, json: bool, a: PointArgs) -> Result<()> {
             .map(|v| v.map_or("nodata".into(), |v| v.to_string()))
             .collect();
         println!(
-            "{} at {},{} (error bound {}, {} steps)",
+            "{} at {},{} ({}, {} steps)",
             values.join(" "),
             lon,
             lat,
-            p.error_bound.unwrap_or(f32::NAN),
+            bound_words(p.convergence_bound.unwrap_or(f32::NAN), p.error_bound),
             p.iterations
         );
     }
@@ -640,15 +653,15 @@ async fn region(client: &Client, json: bool, a: RegionArgs) -> Result<()> {
         if json {
             println!(
                 "{}",
-                json!({"bytes": r.body.len(), "error_bound": r.error_bound})
+                json!({"bytes": r.body.len(), "convergence_bound": r.convergence_bound, "error_bound": r.error_bound})
             );
         } else {
             println!(
-                "{}x{} -> {} (error bound {})",
+                "{}x{} -> {} ({})",
                 width,
                 height,
                 output.display(),
-                r.error_bound
+                bound_words(r.convergence_bound, r.error_bound)
             );
         }
     }
@@ -679,15 +692,15 @@ async fn mesh(client: &Client, json: bool, a: MeshArgs) -> Result<()> {
     if json {
         println!(
             "{}",
-            json!({"bytes": m.body.len(), "content_type": m.content_type, "error_bound": m.error_bound})
+            json!({"bytes": m.body.len(), "content_type": m.content_type, "convergence_bound": m.convergence_bound, "error_bound": m.error_bound})
         );
     } else {
         println!(
-            "{} -> {} ({} bytes, error bound {})",
+            "{} -> {} ({} bytes, {})",
             m.content_type,
             output.display(),
             m.body.len(),
-            m.error_bound
+            bound_words(m.convergence_bound, m.error_bound)
         );
     }
     Ok(())
@@ -727,14 +740,14 @@ async fn view(client: &Client, json: bool, a: ViewArgs) -> Result<()> {
     let enc = encoding(&enc)?;
     if !json {
         println!(
-            "| tile | distance m | tolerance | iterations | error bound | ms |\n|---|---|---|---|---|---|"
+            "| tile | distance m | tolerance | iterations | convergence bound | ms |\n|---|---|---|---|---|---|"
         );
     }
     let row = |p: &fractile_client::view::PlannedTile, bound: Option<f32>, ms: Option<f64>| {
         if json {
             println!(
                 "{}",
-                json!({"tile": p.address.to_string(), "distance": p.distance, "tolerance": p.tolerance, "iterations": p.iterations, "error_bound": bound, "ms": ms})
+                json!({"tile": p.address.to_string(), "distance": p.distance, "tolerance": p.tolerance, "iterations": p.iterations, "convergence_bound": bound, "ms": ms})
             );
         } else {
             let b = bound.map_or("-".into(), |b| format!("{b:.3}"));
@@ -757,7 +770,11 @@ async fn view(client: &Client, json: bool, a: ViewArgs) -> Result<()> {
     let mut failures = 0;
     let results = client
         .fetch_view(&id, &plan, enc, concurrency, |p, r| match r {
-            Ok(t) => row(p, Some(t.error_bound), Some(t.elapsed.as_secs_f64() * 1e3)),
+            Ok(t) => row(
+                p,
+                Some(t.convergence_bound),
+                Some(t.elapsed.as_secs_f64() * 1e3),
+            ),
             Err(e) => {
                 failures += 1;
                 eprintln!("{}: {e}", p.address);

@@ -61,8 +61,9 @@ pub struct Step<T> {
     pub step: usize,
     /// Iterations asked for.
     pub iterations: u32,
-    /// The server's a-priori error bound (value units).
-    pub error_bound: f32,
+    /// The server's convergence bound (value units): how far the answer is from the
+    /// fractal's attractor, which more iterations shrink (unlike the error against the source).
+    pub convergence_bound: f32,
     /// Mean absolute change against the previous step (value units); `None` on the first.
     pub mean_change: Option<f32>,
     /// Time this request took.
@@ -87,16 +88,16 @@ pub struct Refined<T> {
 pub trait Answer {
     /// The values to compare between steps (NaN where there is none).
     fn values(&self) -> Vec<f32>;
-    /// The server's error bound.
-    fn error_bound(&self) -> f32;
+    /// The server's convergence bound (what more iterations shrink).
+    fn convergence_bound(&self) -> f32;
 }
 
 impl Answer for Tile {
     fn values(&self) -> Vec<f32> {
         self.values.clone()
     }
-    fn error_bound(&self) -> f32 {
-        self.error_bound
+    fn convergence_bound(&self) -> f32 {
+        self.convergence_bound
     }
 }
 
@@ -104,8 +105,8 @@ impl Answer for Region {
     fn values(&self) -> Vec<f32> {
         self.values.iter().flatten().flatten().copied().collect()
     }
-    fn error_bound(&self) -> f32 {
-        self.error_bound
+    fn convergence_bound(&self) -> f32 {
+        self.convergence_bound
     }
 }
 
@@ -119,10 +120,10 @@ impl Answer for PointsResponse {
             })
             .collect()
     }
-    fn error_bound(&self) -> f32 {
+    fn convergence_bound(&self) -> f32 {
         self.results
             .iter()
-            .filter_map(|r| r.error_bound)
+            .filter_map(|r| r.convergence_bound)
             .fold(0.0, f32::max)
     }
 }
@@ -169,8 +170,8 @@ where
         let elapsed = t.elapsed();
         let values = answer.values();
         let change = previous.as_deref().and_then(|p| mean_change(p, &values));
-        let error_bound = answer.error_bound();
-        let stop = if options.tolerance.is_some_and(|t| error_bound <= t) {
+        let convergence_bound = answer.convergence_bound();
+        let stop = if options.tolerance.is_some_and(|t| convergence_bound <= t) {
             Some(Stop::Bound)
         } else if change.is_some_and(|c| c <= options.change * range) {
             Some(Stop::Converged)
@@ -188,7 +189,7 @@ where
         let step = Step {
             step: k + 1,
             iterations: n,
-            error_bound,
+            convergence_bound,
             mean_change: change,
             elapsed,
             stop,
@@ -215,7 +216,7 @@ mod tests {
         fn values(&self) -> Vec<f32> {
             vec![self.0, f32::NAN]
         }
-        fn error_bound(&self) -> f32 {
+        fn convergence_bound(&self) -> f32 {
             self.1
         }
     }

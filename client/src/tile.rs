@@ -139,8 +139,12 @@ pub struct Tile {
     pub values: Vec<f32>,
     /// Values per pixel (1 for heights, 1 to 4 for visual tiles).
     pub channels: u32,
-    /// The server's a-priori error bound, value units.
-    pub error_bound: f32,
+    /// The server's convergence bound (`X-Convergence-Bound`), value units: how far the
+    /// tile is from the fractal's attractor; what refinement stops on.
+    pub convergence_bound: f32,
+    /// The server's bound against the source data (`X-Error-Bound`), value units; `None`
+    /// for assets encoded before format version 5.
+    pub error_bound: Option<f32>,
     /// The ETag, for conditional requests.
     pub etag: Option<String>,
     /// Time from request to the last byte.
@@ -152,7 +156,7 @@ impl Tile {
     pub(crate) fn decode(
         req: &TileRequest,
         body: Vec<u8>,
-        error_bound: f32,
+        (convergence_bound, error_bound): (f32, Option<f32>),
         etag: Option<String>,
         elapsed: Duration,
         range: Option<[f64; 2]>,
@@ -170,6 +174,7 @@ impl Tile {
             body,
             values,
             channels,
+            convergence_bound,
             error_bound,
             etag,
             elapsed,

@@ -44,7 +44,7 @@ fn refining_a_tile_writes_every_step_and_one_json_object_each() {
     assert!(steps.len() >= 2, "{steps:?}");
     let bounds: Vec<f64> = steps
         .iter()
-        .map(|s| s["error_bound"].as_f64().unwrap())
+        .map(|s| s["convergence_bound"].as_f64().unwrap())
         .collect();
     assert!(bounds.windows(2).all(|w| w[1] <= w[0]), "{bounds:?}");
     let its: Vec<u64> = steps

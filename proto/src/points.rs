@@ -26,8 +26,14 @@ pub struct PointResult {
     pub coordinates: [f64; 2],
     /// One value per channel; `None` where the source had no data or outside the asset.
     pub values: Option<Vec<Option<f32>>>,
-    /// Bound on the error against the attractor, in value units; `None` outside the asset.
+    /// Bound on |value - source| in value units: the asset's measured error against its
+    /// source where the point lies plus `convergence_bound`. Between source cells the source
+    /// is the bilinear interpolation of its cell centres. `None` outside the asset and for
+    /// assets encoded before format version 5 (they hold no source-error map).
     pub error_bound: Option<f32>,
+    /// Bound on the distance to the fractal's own attractor (how far the iterations are from
+    /// converged), in value units: what progressive refinement stops on. `None` outside.
+    pub convergence_bound: Option<f32>,
     /// Inverse steps taken.
     pub iterations: u32,
     /// Whether the point lies outside the asset. (Always written: the binary encoding has no

@@ -49,7 +49,7 @@ pub fn document() -> Value {
         "Where continuous decoding runs (default: the server's setting; gpu on a server without an adapter is 400 gpu_unavailable)",
     );
     let mut ok_tile = error_responses();
-    ok_tile["200"] = json!({"description": "The tile", "headers": {"X-Error-Bound": {"schema": {"type": "number"}, "description": "A-priori bound on the error, value units"}, "ETag": {"schema": {"type": "string"}}}, "content": {"image/png": {}, "application/octet-stream": {}}});
+    ok_tile["200"] = json!({"description": "The tile", "headers": {"X-Error-Bound": {"schema": {"type": "number"}, "description": "Bound on |value - source| (the asset's measured source error over the tile plus X-Convergence-Bound), value units; absent for assets encoded before format version 5"}, "X-Convergence-Bound": {"schema": {"type": "number"}, "description": "Bound on the distance to the fractal's attractor (what more iterations shrink), value units"}, "ETag": {"schema": {"type": "string"}}}, "content": {"image/png": {}, "application/octet-stream": {}}});
     ok_tile["304"] = json!({"description": "Not modified (If-None-Match)"});
     json!({
         "openapi": "3.1.0",
@@ -87,13 +87,13 @@ pub fn document() -> Value {
                 "responses": ok_tile}},
             "/v1/assets/{id}/layer.json": {"get": {"summary": "Cesium terrain layer (quantized-mesh-1.0, geographic TMS scheme, EPSG:4326) of a georeferenced height field: tile URLs relative to this document, the levels and the tiles available at each", "parameters": [id], "responses": {"200": {"description": "layer.json"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/terrain/{z}/{x}/{y}.terrain": {"get": {
-                "summary": "A quantized-mesh-1.0 tile (Cesium terrain; TMS rows from the south, two root tiles): an adaptive mesh of a 65 x 65 grid of decoded heights within the level's geometric error (Cesium's, 77,067 m at level 0, halved each level); X-Error-Bound is the decode's bound plus that error. 404 wholly outside the asset.",
+                "summary": "A quantized-mesh-1.0 tile (Cesium terrain; TMS rows from the south, two root tiles): an adaptive mesh of a 65 x 65 grid of decoded heights within the level's geometric error (Cesium's, 77,067 m at level 0, halved each level); X-Convergence-Bound is the decode's bound plus that error, X-Error-Bound adds the source error. 404 wholly outside the asset.",
                 "parameters": [id,
                     param("z", "path", json!({"type": "integer", "minimum": 0}), "Level"),
                     param("x", "path", json!({"type": "integer"}), "Column (from 180 degrees west)"),
                     param("y", "path", json!({"type": "integer"}), "Row (from the south)"),
                     iterations.clone(), tolerance.clone(), backend.clone()],
-                "responses": {"200": {"description": "The tile", "headers": {"X-Error-Bound": {"schema": {"type": "number"}}, "ETag": {"schema": {"type": "string"}}}, "content": {"application/vnd.quantized-mesh": {}}}, "304": {"description": "Not modified (If-None-Match)"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
+                "responses": {"200": {"description": "The tile", "headers": {"X-Error-Bound": {"schema": {"type": "number"}}, "X-Convergence-Bound": {"schema": {"type": "number"}}, "ETag": {"schema": {"type": "string"}}}, "content": {"application/vnd.quantized-mesh": {}}}, "304": {"description": "Not modified (If-None-Match)"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/point": {"get": {"summary": "Value at a unit point (non-georeferenced assets); for volumes, the signed distance at world point x, y, z (DistanceResult)", "parameters": [id, param("x", "query", json!({"type": "number"}), "0..1 (volumes: world units)"), param("y", "query", json!({"type": "number"}), "0..1 (volumes: world units)"), param("z", "query", json!({"type": "number"}), "volumes only: world units"), iterations.clone(), tolerance.clone()],
                 "responses": {"200": {"content": {"application/json": {"schema": {"oneOf": [{"$ref": "#/components/schemas/PointResult"}, {"$ref": "#/components/schemas/DistanceResult"}]}}}, "description": "value"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/point/{coords}": {"get": {"summary": "Value at lon,lat", "parameters": [id, param("coords", "path", json!({"type": "string"}), "lon,lat"), iterations.clone(), tolerance.clone()],
@@ -131,7 +131,7 @@ pub fn document() -> Value {
                     {"type": "object", "required": ["type", "ring", "points"], "properties": {"type": {"const": "control"}, "ring": {"type": "integer"}, "points": {"type": "array", "items": {"type": "array", "minItems": 2, "maxItems": 2}}}},
                     {"type": "object", "required": ["type", "from_level", "scale"], "properties": {"type": {"const": "details"}, "from_level": {"type": "integer"}, "scale": {"type": "number"}, "rotate_degrees": {"type": "number"}, "ring": {"type": ["integer", "null"]}}},
                     {"type": "object", "required": ["type", "ring", "level", "index", "to"], "properties": {"type": {"const": "local"}, "ring": {"type": "integer"}, "level": {"type": "integer"}, "index": {"type": "integer"}, "to": {"type": "array", "minItems": 2, "maxItems": 2}, "radius": {"type": "integer"}}}]}}}},
-                "PointResult": {"type": "object", "properties": {"coordinates": {"type": "array"}, "values": {"type": ["array", "null"]}, "error_bound": {"type": ["number", "null"]}, "iterations": {"type": "integer"}, "outside": {"type": "boolean"}}}
+                "PointResult": {"type": "object", "properties": {"coordinates": {"type": "array"}, "values": {"type": ["array", "null"]}, "error_bound": {"type": ["number", "null"], "description": "Bound on |value - source|: the asset's measured source error where the point lies (between cells, against the source's bilinear interpolation) plus convergence_bound; null outside and for assets encoded before format version 5"}, "convergence_bound": {"type": ["number", "null"], "description": "Bound on the distance to the fractal's attractor: what progressive refinement stops on"}, "iterations": {"type": "integer"}, "outside": {"type": "boolean"}}}
             }
         }
     })

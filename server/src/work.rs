@@ -181,9 +181,7 @@ impl Lanes {
             axum::http::header::CONTENT_TYPE,
             axum::http::HeaderValue::from_static(head.content_type),
         );
-        if let Ok(v) = axum::http::HeaderValue::from_str(&format!("{}", head.error_bound)) {
-            h.insert("x-error-bound", v);
-        }
+        head.bounds.write(h);
         Ok(response)
     }
 }
@@ -192,8 +190,45 @@ impl Lanes {
 pub struct Head {
     /// Its content type.
     pub content_type: &'static str,
-    /// Its `X-Error-Bound`.
-    pub error_bound: f32,
+    /// Its bounds (`X-Convergence-Bound`, `X-Error-Bound`).
+    pub bounds: Bounds,
+}
+
+/// The bounds an answer carries in its headers.
+#[derive(Clone, Copy, Debug)]
+pub struct Bounds {
+    /// Against the fractal's attractor (the iterations' convergence, plus a mesh's own error
+    /// where there is one): `X-Convergence-Bound`, what progressive refinement stops on.
+    pub attractor: f32,
+    /// The asset's measured error against its source over the answer (`None` for assets
+    /// without a source-error map): `X-Error-Bound` is `attractor` plus this.
+    pub source: Option<f32>,
+}
+
+impl Bounds {
+    /// Both bounds plus `extra` (a mesh's error against the decoded heights).
+    pub fn plus(self, extra: f32) -> Bounds {
+        Bounds {
+            attractor: self.attractor + extra,
+            ..self
+        }
+    }
+
+    /// The bound against the source, where the asset has a map.
+    pub fn error_bound(&self) -> Option<f32> {
+        self.source.map(|s| s + self.attractor)
+    }
+
+    /// Writes `X-Convergence-Bound` and, where known, `X-Error-Bound`.
+    pub fn write(&self, h: &mut axum::http::HeaderMap) {
+        let number = |v: f32| axum::http::HeaderValue::from_str(&v.to_string()).ok();
+        if let Some(v) = number(self.attractor) {
+            h.insert("x-convergence-bound", v);
+        }
+        if let Some(v) = self.error_bound().and_then(number) {
+            h.insert("x-error-bound", v);
+        }
+    }
 }
 
 /// Writes a streamed body.

@@ -218,7 +218,9 @@ async fn points_at_source_pixel_centres_are_as_good_as_the_encoding() {
     assert!(
         (p["values"][0].as_f64().unwrap() - results[5]["values"][0].as_f64().unwrap()).abs() < 1e-3
     );
-    assert!(p["error_bound"].as_f64().unwrap() >= 0.0);
+    // Against the source: the measured source error there plus convergence.
+    assert!(p["error_bound"].as_f64().unwrap() >= p["convergence_bound"].as_f64().unwrap());
+    assert!(p["convergence_bound"].as_f64().unwrap() >= 0.0);
 }
 
 #[tokio::test]
@@ -1278,7 +1280,16 @@ async fn volume_meshes_points_and_refusals() {
     // The whole surface as OBJ: closed (every edge in two triangles), with its bound.
     let (s, h, b) = get("/v1/assets/fandisk/mesh?format=obj&resolution=40").await;
     assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
-    assert!(h["x-error-bound"].to_str().unwrap().parse::<f32>().unwrap() >= 0.0);
+    // A volume holds no source-error map: its bound is against the attractor only.
+    assert!(
+        h["x-convergence-bound"]
+            .to_str()
+            .unwrap()
+            .parse::<f32>()
+            .unwrap()
+            >= 0.0
+    );
+    assert!(!h.contains_key("x-error-bound"));
     let text = String::from_utf8(b).unwrap();
     let verts: Vec<[f64; 3]> = text
         .lines()
@@ -1652,4 +1663,46 @@ async fn projected_assets_are_reprojected_to_lon_lat_and_web_mercator() {
     ))
     .await;
     assert_eq!(s, StatusCode::NOT_FOUND);
+}
+
+/// An asset of format version 4 (before source-error maps) still serves: its answers carry a
+/// convergence bound and say nothing about the source (`error_bound: null`, no
+/// `X-Error-Bound`), while a version-5 asset's do.
+#[tokio::test]
+async fn assets_without_a_source_error_map_answer_no_error_bound() {
+    let (st, new) = writable(Some("old-assets"), 1 << 20);
+    let old = std::fs::read(data("golden/v4-quadtree-jacksboro-utm.fra")).unwrap();
+    let req = |uri: &str, bytes: &[u8]| {
+        Request::put(uri)
+            .header(header::AUTHORIZATION, "Bearer old-assets")
+            .body(Body::from(bytes.to_vec()))
+            .unwrap()
+    };
+    let (s, b) = call(&st, req("/v1/assets/old", &old)).await;
+    assert_eq!(s, StatusCode::CREATED, "{}", String::from_utf8_lossy(&b));
+    let get = |uri: &str| Request::get(uri).body(Body::empty()).unwrap();
+    let (s, b) = call(&st, get("/v1/assets/old/point/-84.25,36.6")).await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    let p = json(&b);
+    assert!(p["error_bound"].is_null(), "{p}");
+    assert!(p["convergence_bound"].as_f64().unwrap() >= 0.0, "{p}");
+    let resp = fractile_server::app(st.clone())
+        .oneshot(get(
+            "/v1/assets/old/tiles/12/1089/1599.png?encoding=terrainrgb",
+        ))
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::OK);
+    assert!(resp.headers().contains_key("x-convergence-bound"));
+    assert!(!resp.headers().contains_key("x-error-bound"));
+    // A version-5 asset (topobathy, encoded by this build) has a map.
+    let (s, _) = call(&st, req("/v1/assets/topo", &new)).await;
+    assert_eq!(s, StatusCode::CREATED);
+    let (s, b) = call(&st, get("/v1/assets/topo/point/-125.5,49.5")).await;
+    assert_eq!(s, StatusCode::OK);
+    let p = json(&b);
+    assert!(
+        p["error_bound"].as_f64().unwrap() >= p["convergence_bound"].as_f64().unwrap(),
+        "{p}"
+    );
 }

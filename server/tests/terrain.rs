@@ -111,7 +111,7 @@ async fn decoded(id: &str, points: &[[f64; 2]]) -> Vec<Option<(f64, f64)>> {
         .iter()
         .map(|r| {
             let v = r["values"].get(0).and_then(Value::as_f64)?;
-            Some((v, r["error_bound"].as_f64().unwrap_or(0.0)))
+            Some((v, r["convergence_bound"].as_f64().unwrap_or(0.0)))
         })
         .collect()
 }
@@ -171,7 +171,7 @@ async fn check_tile(id: &str, z: u8, lon: f64, lat: f64) -> ReadTile {
     let (s, h, body) = get(&format!("/v1/assets/{id}/terrain/{z}/{x}/{y}.terrain")).await;
     assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
     assert_eq!(h[header::CONTENT_TYPE], "application/vnd.quantized-mesh");
-    let bound: f64 = h["x-error-bound"].to_str().unwrap().parse().unwrap();
+    let bound: f64 = h["x-convergence-bound"].to_str().unwrap().parse().unwrap();
     let file = std::env::temp_dir().join(format!(
         "fractile-{}-{z}-{x}-{y}.terrain",
         std::process::id()

@@ -208,7 +208,12 @@
       fetch(`${origin}/v1/assets/${dem}/point/${lng},${lat}`).then((r) => r.json()).then((p) => {
         const out = document.getElementById('point');
         if (p.values && p.values[0] !== null) {
-          out.textContent = `${lng.toFixed(4)}, ${lat.toFixed(4)}: ${p.values[0].toFixed(1)} ${meta.units || ''} ± ${p.error_bound.toFixed(2)} (${p.iterations} steps)`;
+          // The bound against the source data where the asset has one (format 5), else only
+          // how far the iterations are from the fractal's own limit.
+          const bound = p.error_bound !== null
+            ? `± ${p.error_bound.toFixed(1)} of the source`
+            : `± ${p.convergence_bound.toFixed(2)} of the fractal (no source bound in this asset)`;
+          out.textContent = `${lng.toFixed(4)}, ${lat.toFixed(4)}: ${p.values[0].toFixed(1)} ${meta.units || ''} ${bound} (${p.iterations} steps)`;
         } else {
           out.textContent = p.detail || 'no data here';
         }

@@ -3,6 +3,7 @@
 
 pub mod decode;
 pub mod entropy;
+pub mod fidelity;
 pub mod metrics;
 pub mod operator;
 pub mod pieces;

@@ -7,6 +7,7 @@
 //! error.
 
 pub mod curve;
+pub mod fidelity;
 pub mod volume;
 
 use std::time::Instant;
@@ -164,6 +165,15 @@ pub const MAX_ATTRACTOR_PASSES: u32 = 16;
 pub const DEFAULT_SPEED: u8 = 2;
 
 impl EncodeSettings {
+    /// The file size a [`RateMode::TargetBpp`] grants `cells` source cells (`None` in the
+    /// other rate modes).
+    pub fn target_bytes(&self, cells: usize) -> Option<usize> {
+        match self.rate {
+            RateMode::TargetBpp(bpp) => Some((bpp * cells as f64 / 8.0).floor() as usize),
+            _ => None,
+        }
+    }
+
     /// The default settings at speed preset `speed` ([`SPEEDS`]): only the domain lattice, the
     /// search's candidates and the attractor passes change.
     pub fn at_speed(speed: u8) -> Result<EncodeSettings, Error> {
@@ -403,10 +413,8 @@ pub fn encode(
         .describe(),
         ..meta.clone()
     };
-    let target_bytes = match settings.rate {
-        RateMode::TargetBpp(bpp) => Some((bpp * (w * h) as f64 / 8.0).floor() as usize),
-        _ => None,
-    };
+    // What rate control fits: the target less the source-error map's share.
+    let target_bytes = settings.target_bytes(w * h).map(without_map);
     // The partition the rate mode asks for, from one set of fits.
     let choose = |pyramids: &[Pyramid]| -> Result<Vec<Partition>, Error> {
         let meta = meta_for(pyramids[0].header.quantiser);
@@ -441,8 +449,10 @@ pub fn encode(
         for pyramids in &pyramids_by_quantiser {
             let asset = build(pyramids)?;
             let errors = decoded_errors(&asset, raster);
-            // Weighted mean square error over all channels (what PSNR ranks by).
-            if weighed.as_ref().is_none_or(|(_, e)| errors.rmse < e.rmse) {
+            let better = weighed
+                .as_ref()
+                .is_none_or(|(best, e)| preferred((&asset, &errors), (best, e), target_bytes));
+            if better {
                 weighed = Some((asset, errors));
             }
         }
@@ -452,7 +462,7 @@ pub fn encode(
     let (latest, errors) = weigh(&own_domains)?;
     if settings.attractor_passes == 0 {
         progress(total, total);
-        return Ok(measured(latest, start, errors));
+        return Ok(measured(latest, start, errors, raster));
     }
     // A pass must not buy its quality with bytes the user did not grant: under a target size
     // any asset within it will do; otherwise it may be no larger than the first.
@@ -461,7 +471,7 @@ pub fn encode(
     let (best, best_errors) =
         attractor_passes(&planes, (latest, errors), passes, max_size, &weigh)?;
     progress(total, total);
-    Ok(measured(best, start, best_errors))
+    Ok(measured(best, start, best_errors, raster))
 }
 
 /// One search with the given domains per plane, under every quantiser: the asset that decodes
@@ -812,8 +822,31 @@ fn decoded_errors(asset: &Asset, raster: &Raster) -> Errors {
 
 /// The encoder's report: the asset's `errors` ([`decoded_errors`]), the figures stored in its
 /// metadata, and its bytes.
-fn measured(mut asset: Asset, start: Instant, errors: Errors) -> Encoded {
+/// Whether `candidate` beats `best` under a target size: an asset within the target beats one
+/// over it (rate control returns its smallest where nothing fits); then the smaller mean square
+/// error (what PSNR ranks by), or between two over the target, the smaller file.
+fn preferred(candidate: (&Asset, &Errors), best: (&Asset, &Errors), target: Option<usize>) -> bool {
+    let fits = |a: &Asset| target.is_none_or(|t| a.file_size() <= t);
+    match (fits(candidate.0), fits(best.0)) {
+        (true, false) => true,
+        (false, true) => false,
+        (true, true) => candidate.1.rmse < best.1.rmse,
+        (false, false) => candidate.0.file_size() < best.0.file_size(),
+    }
+}
+
+/// Of a target of `bytes`, what the operator may take: the rest is the source-error map's
+/// (whose budget, a share of the operator's size, then fits in it).
+fn without_map(bytes: usize) -> usize {
+    (bytes as f64 / (1.0 + crate::core::fidelity::SHARE)).floor() as usize
+        - crate::core::fidelity::reserve(0).min(bytes / 64)
+}
+
+fn measured(mut asset: Asset, start: Instant, errors: Errors, source: &Raster) -> Encoded {
     let transforms: usize = asset.planes.iter().map(|p| p.operator.transforms()).sum();
+    // Its share of the operator's bytes (set aside under a target size, see `encode`).
+    let budget = crate::core::fidelity::reserve(asset.file_size());
+    asset.source_error = Some(fidelity::measure(&asset, source, budget));
     let seconds = start.elapsed().as_secs_f64();
     asset.meta.stats = EncodeStats {
         transforms: transforms as u64,
@@ -1217,7 +1250,8 @@ fn encode_lattice(
             make(k, auto_step(k), None)?
         }
         Some(bpp) => {
-            let max_bytes = (bpp * (w * h) as f64 / 8.0).floor() as usize;
+            // The source-error map comes on top of what is fitted here.
+            let max_bytes = without_map((bpp * (w * h) as f64 / 8.0).floor() as usize);
             let largest = (w.max(h) - 1).clamp(1, 4096) as u32;
             let mut found = None;
             for k in 1..=largest {
@@ -1265,7 +1299,7 @@ fn encode_lattice(
         }
     };
     let errors = decoded_errors(&asset, raster);
-    Ok(measured(asset, start, errors))
+    Ok(measured(asset, start, errors, raster))
 }
 
 #[cfg(test)]

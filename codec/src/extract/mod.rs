@@ -93,8 +93,13 @@ pub struct Decoded {
 pub struct PointSample {
     /// One value per source channel (NaN on nodata).
     pub values: Vec<f32>,
-    /// Bound on the error against the attractor, in source units (largest over channels).
+    /// Bound on the error against the attractor, in source units (largest over channels):
+    /// how far the iterations are from converged.
     pub error_bound: f32,
+    /// The asset's measured error against its source where the point lies (its
+    /// source-error map; `None` for assets without one): added to `error_bound`, it bounds
+    /// the distance to the data that was encoded.
+    pub source_error: Option<f32>,
     /// Inverse steps taken (largest over channels).
     pub iterations: u32,
 }
@@ -266,6 +271,7 @@ impl Asset {
             } else {
                 bounds[0]
             },
+            source_error: self.source_error.as_ref().map(|m| m.at(u, v)),
             iterations: pv.iter().map(|p| p.iterations).max().unwrap_or(0),
         }
     }
@@ -311,6 +317,10 @@ impl Asset {
                     } else {
                         b[0]
                     },
+                    source_error: self
+                        .source_error
+                        .as_ref()
+                        .map(|m| m.at(pts[i][0], pts[i][1])),
                     iterations: per_plane.iter().map(|v| v[i].iterations).max().unwrap_or(0),
                 }
             })
@@ -384,6 +394,45 @@ impl Asset {
         };
         self.sample_with(pixels, iterations, tolerance, &delegates)
             .expect("never cancelled")
+    }
+
+    /// The asset's measured error against its source over the pixels (the largest of its
+    /// source-error map over their extent, each pixel's footprint included); `None` for assets
+    /// without a map and for pixels wholly outside. For pixels coarser than the source (a
+    /// filtered answer) this is the largest point error under them, which bounds the filtered
+    /// answer against the source filtered the same way.
+    pub fn source_error_over(&self, pixels: &Pixels) -> Option<f32> {
+        let map = self.source_error.as_ref()?;
+        let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
+        let mut take = |p: [f32; 2]| {
+            for k in 0..2 {
+                lo[k] = lo[k].min(p[k]);
+                hi[k] = hi[k].max(p[k]);
+            }
+        };
+        match &pixels.sites {
+            crate::geo::Sites::Grid { xs, ys } => {
+                // A grid's extent: its extreme columns and rows (once there is one of each).
+                if ys.iter().any(Option::is_some) {
+                    let y = ys.iter().flatten().copied();
+                    let (y0, y1) = y.fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), v| {
+                        (a.min(v), b.max(v))
+                    });
+                    for &x in xs.iter().flatten() {
+                        take([x, y0]);
+                        take([x, y1]);
+                    }
+                }
+            }
+            crate::geo::Sites::List { points, .. } => {
+                points.iter().flatten().for_each(|&p| take(p))
+            }
+        }
+        if lo[0] > hi[0] {
+            return None;
+        }
+        let [fx, fy] = pixels.footprint.map(|f| f / 2.0);
+        Some(map.over([lo[0] - fx, lo[1] - fy, hi[0] + fx, hi[1] + fy]))
     }
 
     /// Every plane decoded discretely at `width x height` (normalised values) with at most

@@ -5,14 +5,16 @@
 //! | offset | size | field |
 //! |---|---|---|
 //! | 0 | 8 | magic `FRACTILE` |
-//! | 8 | 2 | format version (4; 1 to 3 are still read, 3 only for curves) |
+//! | 8 | 2 | format version (5; 1 to 4 are still read, 3 on only for curves) |
 //! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
 //! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine, 4 octree PIFS of a volume, 5 projected IFS of curves) |
 //! | 12 | 4 | metadata length M |
 //! | 16 | M | metadata ([`AssetMeta`], proto's binary encoding) |
 //! | 16+M | 4 | payload length P |
 //! | 20+M | P | payload (codec-specific) |
-//! | 20+M+P | 4 | CRC-32 (IEEE) of every byte before it |
+//! | 20+M+P | 4 | source-error map length S (version 5 on; 0: none) |
+//! | 24+M+P | S | source-error map ([`SourceError`]) |
+//! | end-4 | 4 | CRC-32 (IEEE) of every byte before it |
 //!
 //! Reading checks all of it before any decoding: a truncated, corrupt or newer file is an
 //! [`Error::Asset`] naming what is wrong, never a panic.
@@ -30,6 +32,7 @@ use crate::codecs::quadtree::operator::{QuadtreeOperator, RangeMap};
 use crate::codecs::quadtree::stream::{self, PlaneHeader};
 use crate::core::decode;
 use crate::core::entropy::{Bit, Decoder, Encoder};
+use crate::core::fidelity::SourceError;
 use crate::core::operator::{Operator, Step};
 
 /// File magic.
@@ -41,7 +44,7 @@ pub const MAGIC: &[u8; 8] = b"FRACTILE";
 /// the other payloads are the same in all four, so version-1 to -3 files of codecs 1-4 are
 /// still read, version-3 curve assets too (they hold neither), and an older curve asset is
 /// refused by name (re-encode its GeoJSON).
-pub const FORMAT_VERSION: u16 = 4;
+pub const FORMAT_VERSION: u16 = 5;
 /// The oldest format version this build reads (codecs 1-4 only).
 pub const OLDEST_READ_VERSION: u16 = 1;
 /// The oldest format version of curve assets this build reads.
@@ -531,6 +534,9 @@ pub struct Asset {
     pub volume: Option<crate::codecs::ifs3d::volume::Volume>,
     /// The coded curves, for curve assets (which have no planes).
     pub curve: Option<crate::codecs::curve::Curves>,
+    /// Each block's measured error against the source (format version 5 on; `None` in older
+    /// files and for volumes and curves): what answers' `error_bound` adds to convergence.
+    pub source_error: Option<SourceError>,
 }
 
 fn kind_byte(k: AssetKind) -> u8 {
@@ -572,7 +578,7 @@ impl Asset {
             planes,
             mask: mask.map(Mask::encode),
         });
-        assemble(meta, Codec::QuadtreePifs, &payload).len()
+        assemble(meta, Codec::QuadtreePifs, &payload, &[]).len()
     }
 
     /// Builds an asset of fractal interpolation surfaces from coded planes (height fields).
@@ -638,6 +644,7 @@ impl Asset {
             mask,
             volume: None,
             curve: None,
+            source_error: None,
         };
         asset.check()?;
         Ok(asset)
@@ -674,6 +681,7 @@ impl Asset {
                 placement,
             }),
             curve: None,
+            source_error: None,
         };
         asset.check()?;
         Ok(asset)
@@ -700,6 +708,7 @@ impl Asset {
                 stream,
                 set,
             }),
+            source_error: None,
         };
         asset.check()?;
         Ok(asset)
@@ -832,7 +841,12 @@ impl Asset {
                 mask,
             }),
         };
-        assemble(&self.meta, self.codec(), &payload)
+        let section = self
+            .source_error
+            .as_ref()
+            .map(SourceError::encode)
+            .unwrap_or_default();
+        assemble(&self.meta, self.codec(), &payload, &section)
     }
 
     /// Size of the file in bytes.
@@ -847,7 +861,7 @@ impl Asset {
 
     /// The container's frame: magic, version, checksum, codec, metadata (checked against the
     /// kind byte and the size limits of a grid) and the codec's payload.
-    fn container(bytes: &[u8]) -> Result<(u8, AssetMeta, &[u8]), Error> {
+    fn container(bytes: &[u8]) -> Result<Container<'_>, Error> {
         let bad = |m: String| Error::Asset(m);
         if bytes.len() < 24 {
             return Err(bad(format!(
@@ -894,9 +908,22 @@ impl Asset {
             .ok_or_else(|| bad("truncated metadata".into()))?;
         let p_len = read_len(16 + m_len)?;
         let p_start = 20 + m_len;
-        if p_start + p_len != body {
+        let p_end = p_start
+            .checked_add(p_len)
+            .filter(|&e| e <= body)
+            .ok_or_else(|| bad("payload length does not match the file size".into()))?;
+        // Version 5 on: the source-error map after the payload.
+        let section = if version >= 5 {
+            let s_len = read_len(p_end)?;
+            bytes
+                .get(p_end + 4..p_end + 4 + s_len)
+                .filter(|_| p_end + 4 + s_len == body)
+                .ok_or_else(|| bad("source-error map length does not match the file size".into()))?
+        } else if p_end == body {
+            &[][..]
+        } else {
             return Err(bad("payload length does not match the file size".into()));
-        }
+        };
         let meta: AssetMeta = fractile_proto::decode(meta_bytes).map_err(|e| bad(e.to_string()))?;
         if kind_byte(meta.kind) != kind {
             return Err(bad("kind byte and metadata disagree".into()));
@@ -913,14 +940,37 @@ impl Asset {
                 meta.width, meta.height
             )));
         }
-        Ok((codec, meta, &bytes[p_start..body]))
+        Ok((codec, meta, &bytes[p_start..p_end], section))
     }
 
     /// Parses and checks a file's bytes; the sizes it claims are checked against `limits` and
     /// against what its streams can hold before anything is allocated for them.
     pub fn from_bytes_limited(bytes: &[u8], limits: &AssetLimits) -> Result<Asset, Error> {
+        let (codec, meta, payload, section) = Asset::container(bytes)?;
+        let (w, h) = (meta.width as usize, meta.height as usize);
+        let span = (meta.value_max - meta.value_min) as f32;
+        let mut asset = Asset::from_payload(codec, meta, payload, limits)?;
+        if !section.is_empty() {
+            if asset.planes.is_empty() {
+                return Err(Error::Asset(
+                    "a source-error map in an asset without planes".into(),
+                ));
+            }
+            let map = SourceError::decode(section, w, h, span)
+                .map_err(|e| Error::Asset(format!("source-error map: {e}")))?;
+            asset.source_error = Some(map);
+        }
+        Ok(asset)
+    }
+
+    /// The asset of a codec's payload, its sizes checked against `limits`.
+    fn from_payload(
+        codec: u8,
+        meta: AssetMeta,
+        payload: &[u8],
+        limits: &AssetLimits,
+    ) -> Result<Asset, Error> {
         let bad = |m: String| Error::Asset(m);
-        let (codec, meta, payload) = Asset::container(bytes)?;
         let (w, h) = (u64::from(meta.width), u64::from(meta.height));
         let mask = |m: Option<Vec<u8>>| -> Result<Option<Mask>, Error> {
             m.map(|m| Mask::decode(meta.width as usize, meta.height as usize, &m))
@@ -1003,9 +1053,12 @@ impl Asset {
     }
 }
 
-fn assemble(meta: &AssetMeta, codec: Codec, payload: &[u8]) -> Vec<u8> {
+/// A file's frame, read: codec byte, metadata, payload and source-error map bytes.
+type Container<'a> = (u8, AssetMeta, &'a [u8], &'a [u8]);
+
+fn assemble(meta: &AssetMeta, codec: Codec, payload: &[u8], section: &[u8]) -> Vec<u8> {
     let meta_bytes = fractile_proto::encode(meta);
-    let mut out = Vec::with_capacity(24 + meta_bytes.len() + payload.len());
+    let mut out = Vec::with_capacity(28 + meta_bytes.len() + payload.len() + section.len());
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
     out.push(kind_byte(meta.kind));
@@ -1014,6 +1067,8 @@ fn assemble(meta: &AssetMeta, codec: Codec, payload: &[u8]) -> Vec<u8> {
     out.extend_from_slice(&meta_bytes);
     out.extend_from_slice(&(payload.len() as u32).to_le_bytes());
     out.extend_from_slice(payload);
+    out.extend_from_slice(&(section.len() as u32).to_le_bytes());
+    out.extend_from_slice(section);
     let crc = crc32fast::hash(&out);
     out.extend_from_slice(&crc.to_le_bytes());
     out

@@ -127,7 +127,7 @@ pub(super) async fn mesh(
                 }
                 None => fractile_codec::mesh::Mesh::grid(&channels[0], n, n, origin, spacing),
             };
-            Ok(mesh_body(m, format, bound + max_error.unwrap_or(0.0)))
+            Ok(mesh_body(m, format, bound.plus(max_error.unwrap_or(0.0))))
         })
         .await
 }
@@ -146,7 +146,7 @@ fn mesh_format(format: Option<&str>) -> Result<MeshFormat, AppError> {
 fn mesh_body(
     m: fractile_codec::mesh::Mesh,
     format: MeshFormat,
-    error_bound: f32,
+    bounds: Bounds,
 ) -> (Head, BodyWriter) {
     let (content_type, writer): (&'static str, BodyWriter) = match format {
         MeshFormat::Obj => ("text/plain", Box::new(move |w| m.write_obj(w))),
@@ -162,7 +162,7 @@ fn mesh_body(
     (
         Head {
             content_type,
-            error_bound,
+            bounds,
         },
         writer,
     )
@@ -258,7 +258,12 @@ async fn volume_mesh(
                 .asset
                 .volume_mesh_with(bbox, n, iterations, tolerance, Some(&on_gpu))
                 .map_err(|e| AppError::bad_request("bad_request", e.to_string()))?;
-            Ok(mesh_body(m, format, bound))
+            // Volumes hold no source-error map.
+            let bounds = Bounds {
+                attractor: bound,
+                source: None,
+            };
+            Ok(mesh_body(m, format, bounds))
         })
         .await
 }

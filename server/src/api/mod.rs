@@ -44,7 +44,7 @@ use crate::backend::{Backend, GpuBackend};
 use crate::encoding::{self, HeightEncoding};
 use crate::error::AppError;
 use crate::store::{Store, StoredAsset};
-use crate::work::{BodyWriter, Cancel, Head, Lanes};
+use crate::work::{BodyWriter, Bounds, Cancel, Head, Lanes};
 
 /// Limits on what one request may ask for.
 #[derive(Clone, Debug)]
@@ -132,7 +132,7 @@ pub struct Cached {
     /// `Content-Encoding` of the body (`gzip` for Cesium terrain to clients that accept it).
     content_encoding: Option<&'static str>,
     body: Bytes,
-    error_bound: f32,
+    bounds: Bounds,
 }
 
 impl Cached {
@@ -290,7 +290,7 @@ fn sample_on(
     pixels: &geo::Pixels,
     iterations: u32,
     tolerance: f32,
-) -> Result<(Vec<Vec<f32>>, f32), AppError> {
+) -> Result<(Vec<Vec<f32>>, Bounds), AppError> {
     let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
     let continuous =
         |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
@@ -310,13 +310,16 @@ fn sample_on(
         discrete: &discrete,
         cancelled: &cancelled,
     };
-    a.asset
+    let (channels, attractor) = a
+        .asset
         .sample_with(pixels, iterations, tolerance, &delegates)
         .map_err(|_| AppError {
             status: StatusCode::SERVICE_UNAVAILABLE,
             code: "cancelled",
             detail: "the request was given up before its decode finished".into(),
-        })
+        })?;
+    let source = a.asset.source_error_over(pixels);
+    Ok((channels, Bounds { attractor, source }))
 }
 
 /// Discrete decodes for coarse tiles (see [`AppState::coarse`]).

@@ -216,7 +216,8 @@ async fn answer_points(
                             .map(|v| v.is_finite().then_some(*v))
                             .collect(),
                     ),
-                    error_bound: Some(s.error_bound),
+                    error_bound: s.source_error.map(|e| e + s.error_bound),
+                    convergence_bound: Some(s.error_bound),
                     iterations: s.iterations,
                     outside: false,
                 },
@@ -224,6 +225,7 @@ async fn answer_points(
                     coordinates: c,
                     values: None,
                     error_bound: None,
+                    convergence_bound: None,
                     iterations: 0,
                     outside: true,
                 },

@@ -75,7 +75,7 @@ pub(super) async fn region(
                 encode_region(&a, &channels, (w, h), [x0, y0, x1, y1], format)?;
             let head = Head {
                 content_type,
-                error_bound: bound,
+                bounds: bound,
             };
             let writer: BodyWriter =
                 Box::new(move |out: &mut dyn std::io::Write| out.write_all(&body));

@@ -178,7 +178,15 @@ pub(super) async fn terrain_tile(
     let cost = sampling_bytes(GRID * GRID, 1) + (GRID * GRID) as u64 * 64;
     let drawn = decode(&state, cost, move |cancel| {
         let (heights, bound) = if grid.is_outside() {
-            (vec![f32::NAN; GRID * GRID], 0.0)
+            (
+                vec![f32::NAN; GRID * GRID],
+                // Nothing of the source in it: no error against it (where the asset
+                // measured its error at all).
+                Bounds {
+                    attractor: 0.0,
+                    source: asset.asset.source_error.as_ref().map(|_| 0.0),
+                },
+            )
         } else {
             let (channels, bound) = sample_on(
                 (gpu.as_deref(), &coarse, cancel),
@@ -204,7 +212,7 @@ fn mesh_tile(
     heights: Vec<f32>,
     (z, [w, s, e, n]): (u8, [f64; 4]),
     (normals, gzip): (bool, bool),
-    bound: f32,
+    bound: Bounds,
 ) -> Result<Cached, AppError> {
     let max_error = (LEVEL_ZERO_ERROR / f64::from(1u32 << z)) as f32;
     // Terrain has no holes: off the asset (and at nodata) the surface is the ellipsoid.
@@ -242,7 +250,7 @@ fn mesh_tile(
         },
         content_encoding: gzip.then_some("gzip"),
         body: Bytes::from(body),
-        error_bound: bound + max_error,
+        bounds: bound.plus(max_error),
     })
 }
 

@@ -107,10 +107,7 @@ pub(super) fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Respon
     if let Ok(v) = HeaderValue::from_str(&state.cache_control) {
         h.insert(header::CACHE_CONTROL, v);
     }
-    h.insert(
-        "x-error-bound",
-        HeaderValue::from_str(&format!("{}", c.error_bound)).expect("number"),
-    );
+    c.bounds.write(h);
     r
 }
 
@@ -328,7 +325,11 @@ fn draw_tile(
         // at a coarse zoom): a tile of nodata, not a 404, so that map clients draw the zoom
         // instead of over-zooming a parent that does not exist either.
         let planes = usize::from(asset.asset.meta.channels.max(1));
-        (vec![vec![f32::NAN; grid.len()]; planes], 0.0)
+        let bounds = Bounds {
+            attractor: 0.0,
+            source: asset.asset.source_error.as_ref().map(|_| 0.0),
+        };
+        (vec![vec![f32::NAN; grid.len()]; planes], bounds)
     } else {
         sample_on(
             delegates,
@@ -378,7 +379,7 @@ fn draw_tile(
         content_type,
         content_encoding: None,
         body: Bytes::from(body),
-        error_bound: bound,
+        bounds: bound,
     })
 }
 
