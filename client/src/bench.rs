@@ -428,21 +428,7 @@ mod tests {
     fn terrain_walks_every_available_tile_once_level_by_level() {
         // The ranges of a small DEM's layer.json (both root tiles, then one area).
         let b = [-84.41, 36.45, -84.08, 36.73];
-        let available: Vec<Vec<TileRange>> = (0..12u8)
-            .map(|z| {
-                let ([start_x, end_x], [start_y, end_y]) = if z == 0 {
-                    ([0, 1], [0, 0])
-                } else {
-                    fractile_proto::tiles::geographic_range(b, z)
-                };
-                vec![TileRange {
-                    start_x,
-                    start_y,
-                    end_x,
-                    end_y,
-                }]
-            })
-            .collect();
+        let available = fractile_proto::tiles::geographic_available(b, 11);
         let w = terrain_walk(&available);
         assert_eq!(&w[..2], &[(0, 0, 0), (0, 1, 0)]);
         let mut seen = std::collections::HashSet::new();

@@ -294,19 +294,7 @@ impl Client {
             )
             .header(header::ACCEPT_ENCODING, "gzip");
         let r = self.send(req).await?;
-        let bounds = bounds(&r)?;
-        let etag = r
-            .headers()
-            .get(header::ETAG)
-            .and_then(|v| v.to_str().ok())
-            .map(str::to_string);
-        let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
-        Ok(TileBody {
-            body,
-            bounds,
-            etag,
-            elapsed: start.elapsed(),
-        })
+        TileBody::read(r, start).await
     }
 
     /// `PUT /v1/assets/{id}`: stores an asset file (made by `fractile encode`).
@@ -381,19 +369,7 @@ impl Client {
         let path = self.asset_path(id, &format!("/tiles/{z}/{x}/{y}.{ext}"))?;
         let start = Instant::now();
         let r = self.send(self.http.get(self.url(&path)).query(&q)).await?;
-        let bounds = bounds(&r)?;
-        let etag = r
-            .headers()
-            .get(header::ETAG)
-            .and_then(|v| v.to_str().ok())
-            .map(str::to_string);
-        let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
-        Ok(TileBody {
-            body,
-            bounds,
-            etag,
-            elapsed: start.elapsed(),
-        })
+        TileBody::read(r, start).await
     }
 
     /// `GET /v1/assets/{id}/point/{lon},{lat}` (georeferenced assets).
@@ -760,4 +736,23 @@ pub(crate) struct TileBody {
     pub(crate) bounds: (f32, Option<f32>),
     pub(crate) etag: Option<String>,
     pub(crate) elapsed: Duration,
+}
+
+impl TileBody {
+    /// A tile answer's body, bounds and ETag, its time counted from `start`.
+    async fn read(r: reqwest::Response, start: Instant) -> Result<TileBody, ClientError> {
+        let bounds = bounds(&r)?;
+        let etag = r
+            .headers()
+            .get(header::ETAG)
+            .and_then(|v| v.to_str().ok())
+            .map(str::to_string);
+        let body = r.bytes().await.map_err(ClientError::Transport)?.to_vec();
+        Ok(TileBody {
+            body,
+            bounds,
+            etag,
+            elapsed: start.elapsed(),
+        })
+    }
 }

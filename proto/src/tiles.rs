@@ -64,6 +64,26 @@ pub fn geographic_range(bounds: [f64; 4], z: u8) -> ([u32; 2], [u32; 2]) {
     ([col(w), col(e - tiny)], [row(s), row(n - tiny)])
 }
 
+/// A terrain layer's available tiles over `bounds`, levels 0 to `max`: both root tiles at level
+/// 0 (Cesium draws nothing until both are in), then the tiles that overlap `bounds`.
+pub fn geographic_available(bounds: [f64; 4], max: u8) -> Vec<Vec<crate::TileRange>> {
+    (0..=max)
+        .map(|z| {
+            let ([start_x, end_x], [start_y, end_y]) = if z == 0 {
+                ([0, 1], [0, 0])
+            } else {
+                geographic_range(bounds, z)
+            };
+            vec![crate::TileRange {
+                start_x,
+                start_y,
+                end_x,
+                end_y,
+            }]
+        })
+        .collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

@@ -5,8 +5,8 @@
 //! holes: off the asset and at nodata the surface is the ellipsoid (height 0), and both root
 //! tiles exist whatever the asset covers, since Cesium draws nothing until they are in.
 
-use fractile_proto::tiles::{geographic_bounds, geographic_range};
-use fractile_proto::{LayerJson, TileRange};
+use fractile_proto::LayerJson;
+use fractile_proto::tiles::{geographic_available, geographic_bounds};
 
 use super::*;
 
@@ -64,22 +64,7 @@ pub(super) async fn layer(
     let a = terrain_asset(state.store.get(&id)?)?;
     let bounds = asset_bounds(&a);
     let max = max_level(&state, &a);
-    let available = (0..=max)
-        .map(|z| {
-            // Both root tiles, always (see `terrain_tile`).
-            let ([start_x, end_x], [start_y, end_y]) = if z == 0 {
-                ([0, 1], [0, 0])
-            } else {
-                geographic_range(bounds, z)
-            };
-            vec![TileRange {
-                start_x,
-                start_y,
-                end_x,
-                end_y,
-            }]
-        })
-        .collect();
+    let available = geographic_available(bounds, max);
     Ok(Json(LayerJson {
         tilejson: "2.1.0".into(),
         name: a.id.clone(),
