@@ -29,6 +29,9 @@ pub(crate) enum CodecArg {
     Psa2dTri,
     /// Projected IFS with details (GeoJSON curves).
     Curve,
+    /// Projected IFS with details on a grid: fitted subdivision plus details (height fields and
+    /// grey images; --max-error or --target-bpp).
+    Projected,
 }
 
 impl CodecArg {
@@ -78,6 +81,10 @@ pub(crate) struct EncodeArgs {
     /// Largest file size in bits per source pixel (rate control).
     #[arg(long, group = "rate")]
     target_bpp: Option<f64>,
+    /// projected: the largest |decoded - source| at any valid cell, in source units (metres,
+    /// grey levels); 0 is lossless for integer samples.
+    #[arg(long, group = "rate")]
+    max_error: Option<f64>,
     /// Split ranges while their RMS collage error exceeds this (source units: grey levels,
     /// metres; voxels for meshes). Curves: the largest error of a vertex, degrees of arc for
     /// GeoJSON (0.009 is about 1 km); 0 (the default) keeps every detail exactly.
@@ -342,12 +349,28 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     let raster = Raster::open(&a.input)?;
     let lattice = |a: &EncodeArgs| {
         if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
-            bail!("--codec {} takes --spacing or --target-bpp", a.codec.name());
+            bail!(
+                "--codec {} takes --spacing, --max-error or --target-bpp",
+                a.codec.name()
+            );
         }
         Ok(())
     };
+    if a.max_error.is_some() && a.codec != CodecArg::Projected {
+        bail!("--max-error is for --codec projected");
+    }
     let enc = if a.codec == CodecArg::QuadtreePifs {
         encode_quadtree(&a, &raster)?
+    } else if a.codec == CodecArg::Projected {
+        lattice(&a)?;
+        let settings = fractile_codec::codecs::projected::ProjectedSettings {
+            max_error: a.max_error,
+            ..Default::default()
+        };
+        if a.max_error.is_none() && a.target_bpp.is_none() {
+            bail!("--codec projected takes --max-error E (source units) or --target-bpp B");
+        }
+        fractile_codec::encode::projected::encode_projected(&raster, &settings, a.target_bpp)?
     } else if let Some(tiling) = a.codec.psa_tiling() {
         lattice(&a)?;
         let domains = match a.domains {
@@ -385,12 +408,13 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         "ratio": enc.ratio(), "bpp": enc.bpp(), "transforms": enc.transforms,
         "seconds": enc.seconds, "psnr": enc.errors.psnr, "rmse": enc.errors.rmse,
         "max_error": enc.errors.max_error,
+        "max_error_bound": a.max_error,
     });
     if a.json {
         println!("{report}");
     } else {
         println!(
-            "{} -> {}: {} {} bytes, {:.2}:1, {:.3} bpp, {} transforms, {:.2} s, PSNR {:.2} dB, RMSE {:.3}",
+            "{} -> {}: {} {} bytes, {:.2}:1, {:.3} bpp, {} transforms, {:.2} s, PSNR {:.2} dB, RMSE {:.3}, max error {:.3}",
             a.input.display(),
             a.output.display(),
             enc.asset.codec_name(),
@@ -400,7 +424,8 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
             enc.transforms,
             enc.seconds,
             enc.errors.psnr,
-            enc.errors.rmse
+            enc.errors.rmse,
+            enc.errors.max_error
         );
     }
     Ok(())
@@ -489,5 +514,9 @@ mod tests {
         }
         assert_eq!(CodecArg::QuadtreePifs.name(), "quadtree-pifs");
         assert_eq!(CodecArg::Curve.name(), "curve");
+        assert_eq!(
+            CodecArg::Projected.name(),
+            fractile_codec::codecs::projected::CODEC_NAME
+        );
     }
 }

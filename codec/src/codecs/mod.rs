@@ -9,9 +9,11 @@
 //! | projected IFS with details on surfaces (codecs 3, 4) | height fields | [`psa`] |
 //! | IFS3D on signed distance fields (octree) | volumes (meshes) | [`ifs3d`] |
 //! | projected IFS with details on curves (codec 5) | curves | [`curve`] |
+//! | projected IFS with details on grids (codec 6) | height fields, grey images | [`projected`] |
 
 pub mod curve;
 pub mod fis;
 pub mod ifs3d;
+pub mod projected;
 pub mod psa;
 pub mod quadtree;

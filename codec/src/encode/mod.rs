@@ -8,6 +8,7 @@
 
 pub mod curve;
 pub mod fidelity;
+pub mod projected;
 pub mod volume;
 
 use std::time::Instant;

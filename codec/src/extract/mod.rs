@@ -217,7 +217,7 @@ impl Asset {
         let results: Vec<(Grid, DiscreteReport)> = self
             .planes
             .iter()
-            .map(|p| decode::discrete(&p.operator, width, height, opts))
+            .map(|p| self.discrete(&p.operator, width, height, opts))
             .collect();
         let report = DiscreteReport {
             iterations: results.iter().map(|r| r.1.iterations).max().unwrap_or(0),
@@ -243,6 +243,34 @@ impl Asset {
             },
             report,
         )
+    }
+
+    /// A plane's discrete decode at `width` x `height`. An operator that knows its attractor at
+    /// the source's own sample centres ([`crate::io::asset::PlaneOperator::samples`]) answers
+    /// that size without iterating.
+    fn discrete(
+        &self,
+        op: &crate::io::asset::PlaneOperator,
+        width: usize,
+        height: usize,
+        opts: DiscreteOptions,
+    ) -> (Grid, DiscreteReport) {
+        let native = [self.meta.width as usize, self.meta.height as usize];
+        match op.samples() {
+            Some(z) if [width, height] == native => (
+                Grid {
+                    width,
+                    height,
+                    values: z.to_vec(),
+                },
+                DiscreteReport {
+                    iterations: 0,
+                    last_change: 0.0,
+                    error_bound: 0.0,
+                },
+            ),
+            _ => decode::discrete(op, width, height, opts),
+        }
     }
 
     /// Discrete decoding at the source's own size.
@@ -448,7 +476,7 @@ impl Asset {
         let opts = DiscreteOptions::within(tolerance, iterations);
         self.planes
             .iter()
-            .map(|p| decode::discrete(&p.operator, width, height, opts))
+            .map(|p| self.discrete(&p.operator, width, height, opts))
             .collect()
     }
 

@@ -27,6 +27,7 @@ use serde::{Deserialize, Serialize};
 
 use crate::Error;
 use crate::codecs::fis::{FisHeader, FisOperator};
+use crate::codecs::projected::{ProjectedHeader, ProjectedOperator};
 use crate::codecs::psa::{PsaHeader, PsaOperator};
 use crate::codecs::quadtree::operator::{QuadtreeOperator, RangeMap};
 use crate::codecs::quadtree::stream::{self, PlaneHeader};
@@ -145,6 +146,8 @@ pub enum Codec {
     Octree = 4,
     /// Projected IFS with details of a set of curves.
     Curve = 5,
+    /// Projected IFS with details on a grid (height fields, grey images).
+    Projected = 6,
 }
 
 /// How a plane is coded: the header a reader needs and the entropy-coded stream.
@@ -171,6 +174,13 @@ pub enum Coding {
         /// The parameter stream.
         stream: Vec<u8>,
     },
+    /// Projected IFS with details: control grid, fitted masks and details.
+    Projected {
+        /// Grid, levels, quantiser, roughness.
+        header: ProjectedHeader,
+        /// The detail stream.
+        stream: Vec<u8>,
+    },
 }
 
 /// The decoding operator of a plane, whichever codec made it. Decoders see only
@@ -183,6 +193,8 @@ pub enum PlaneOperator {
     Fis(FisOperator),
     /// A piecewise self-affine surface.
     Psa(PsaOperator),
+    /// A projected IFS with details, continued past its finest level.
+    Projected(ProjectedOperator),
 }
 
 impl PlaneOperator {
@@ -190,7 +202,7 @@ impl PlaneOperator {
     pub fn ranges(&self) -> &[RangeMap] {
         match self {
             PlaneOperator::Quadtree(q) => q.ranges(),
-            PlaneOperator::Fis(_) | PlaneOperator::Psa(_) => &[],
+            PlaneOperator::Fis(_) | PlaneOperator::Psa(_) | PlaneOperator::Projected(_) => &[],
         }
     }
 
@@ -207,6 +219,7 @@ impl PlaneOperator {
             PlaneOperator::Quadtree(q) => decode::points(q, pts, iterations, tolerance),
             PlaneOperator::Fis(f) => decode::points(f, pts, iterations, tolerance),
             PlaneOperator::Psa(f) => decode::points(f, pts, iterations, tolerance),
+            PlaneOperator::Projected(f) => decode::points(f, pts, iterations, tolerance),
         }
     }
 
@@ -258,6 +271,17 @@ impl PlaneOperator {
             PlaneOperator::Quadtree(q) => decode::point(q, p, iterations),
             PlaneOperator::Fis(f) => decode::point(f, p, iterations),
             PlaneOperator::Psa(f) => decode::point(f, p, iterations),
+            PlaneOperator::Projected(f) => decode::point(f, p, iterations),
+        }
+    }
+
+    /// The attractor's values at the source's own sample centres where the codec knows them
+    /// without iterating (the projected codec's decoded samples, which its continuation passes
+    /// through), normalised and row-major.
+    pub fn samples(&self) -> Option<&[f32]> {
+        match self {
+            PlaneOperator::Projected(f) => Some(f.samples()),
+            _ => None,
         }
     }
 
@@ -270,6 +294,7 @@ impl PlaneOperator {
                 .fold(0.0f32, |m, r| m.max(r.contrast.abs())),
             PlaneOperator::Fis(f) => f.max_scaling(),
             PlaneOperator::Psa(f) => f.max_scaling(),
+            PlaneOperator::Projected(f) => f.roughness(),
         }
     }
 
@@ -279,6 +304,7 @@ impl PlaneOperator {
             PlaneOperator::Quadtree(q) => q.ranges().len(),
             PlaneOperator::Fis(f) => f.cells(),
             PlaneOperator::Psa(f) => f.regions(),
+            PlaneOperator::Projected(f) => f.cells(),
         }
     }
 }
@@ -289,6 +315,7 @@ impl crate::core::pieces::Flatten for PlaneOperator {
             PlaneOperator::Quadtree(q) => q.pieces(),
             PlaneOperator::Fis(f) => f.pieces(),
             PlaneOperator::Psa(f) => f.pieces(),
+            PlaneOperator::Projected(f) => f.pieces(),
         }
     }
 }
@@ -299,6 +326,7 @@ impl Operator<2> for PlaneOperator {
             PlaneOperator::Quadtree(q) => q.frame(),
             PlaneOperator::Fis(f) => f.frame(),
             PlaneOperator::Psa(f) => f.frame(),
+            PlaneOperator::Projected(f) => f.frame(),
         }
     }
     fn valid(&self) -> [f32; 2] {
@@ -306,6 +334,7 @@ impl Operator<2> for PlaneOperator {
             PlaneOperator::Quadtree(q) => q.valid(),
             PlaneOperator::Fis(f) => f.valid(),
             PlaneOperator::Psa(f) => f.valid(),
+            PlaneOperator::Projected(f) => f.valid(),
         }
     }
     fn expansion(&self) -> u32 {
@@ -313,6 +342,7 @@ impl Operator<2> for PlaneOperator {
             PlaneOperator::Quadtree(q) => q.expansion(),
             PlaneOperator::Fis(f) => f.expansion(),
             PlaneOperator::Psa(f) => f.expansion(),
+            PlaneOperator::Projected(f) => f.expansion(),
         }
     }
     #[inline]
@@ -321,6 +351,7 @@ impl Operator<2> for PlaneOperator {
             PlaneOperator::Quadtree(q) => q.step(p),
             PlaneOperator::Fis(f) => f.step(p),
             PlaneOperator::Psa(f) => f.step(p),
+            PlaneOperator::Projected(f) => f.step(p),
         }
     }
     fn invariant_interval(&self) -> (f32, f32) {
@@ -328,6 +359,7 @@ impl Operator<2> for PlaneOperator {
             PlaneOperator::Quadtree(q) => q.invariant_interval(),
             PlaneOperator::Fis(f) => f.invariant_interval(),
             PlaneOperator::Psa(f) => f.invariant_interval(),
+            PlaneOperator::Projected(f) => f.invariant_interval(),
         }
     }
     fn run_chains(
@@ -340,6 +372,7 @@ impl Operator<2> for PlaneOperator {
             PlaneOperator::Quadtree(q) => q.run_chains(chains, iterations, tolerance),
             PlaneOperator::Fis(f) => f.run_chains(chains, iterations, tolerance),
             PlaneOperator::Psa(f) => f.run_chains(chains, iterations, tolerance),
+            PlaneOperator::Projected(f) => f.run_chains(chains, iterations, tolerance),
         }
     }
 }
@@ -358,7 +391,7 @@ impl Plane {
     pub fn header(&self) -> Option<&PlaneHeader> {
         match &self.coding {
             Coding::Quadtree { header, .. } => Some(header),
-            Coding::Fis { .. } | Coding::Psa { .. } => None,
+            Coding::Fis { .. } | Coding::Psa { .. } | Coding::Projected { .. } => None,
         }
     }
 }
@@ -509,6 +542,12 @@ struct PsaPayload {
 }
 
 #[derive(Serialize, Deserialize)]
+struct ProjectedPayload {
+    planes: Vec<(ProjectedHeader, Vec<u8>)>,
+    mask: Option<Vec<u8>>,
+}
+
+#[derive(Serialize, Deserialize)]
 struct VolumePayload {
     header: crate::codecs::ifs3d::octree::OctreeHeader,
     stream: Vec<u8>,
@@ -624,6 +663,25 @@ impl Asset {
         })
     }
 
+    /// Builds a projected asset from coded planes (one grey plane), decoding each stream.
+    pub fn from_projected_parts(
+        meta: AssetMeta,
+        planes: Vec<(ProjectedHeader, Vec<u8>)>,
+        mask: Option<Mask>,
+    ) -> Result<Asset, Error> {
+        Asset::assemble(meta, planes, mask, |meta, header, stream| {
+            if header.samples != [meta.width, meta.height] {
+                return Err("sample grid and metadata disagree".into());
+            }
+            let grid = crate::codecs::projected::decode_grid(&header, &stream)?;
+            let operator = ProjectedOperator::new(&header, &grid)?;
+            Ok(Plane {
+                coding: Coding::Projected { header, stream },
+                operator: PlaneOperator::Projected(operator),
+            })
+        })
+    }
+
     /// Decodes every coded plane with `plane` (errors name the plane) and checks the whole.
     fn assemble<H>(
         meta: AssetMeta,
@@ -725,6 +783,7 @@ impl Asset {
         match self.planes.first().map(|p| &p.coding) {
             Some(Coding::Fis { .. }) => Codec::Fis,
             Some(Coding::Psa { .. }) => Codec::Psa,
+            Some(Coding::Projected { .. }) => Codec::Projected,
             _ => Codec::QuadtreePifs,
         }
     }
@@ -740,6 +799,7 @@ impl Asset {
         match self.planes.first().map(|p| &p.coding) {
             Some(Coding::Fis { header, .. }) => crate::codecs::fis::codec_name(header.scaling),
             Some(Coding::Psa { header, .. }) => crate::codecs::psa::codec_name(header.tiling),
+            Some(Coding::Projected { .. }) => crate::codecs::projected::CODEC_NAME,
             _ => "quadtree-pifs",
         }
     }
@@ -840,6 +900,19 @@ impl Asset {
                     .collect(),
                 mask,
             }),
+            Codec::Projected => fractile_proto::encode(&ProjectedPayload {
+                planes: self
+                    .planes
+                    .iter()
+                    .filter_map(|p| match &p.coding {
+                        Coding::Projected { header, stream } => {
+                            Some((header.clone(), stream.clone()))
+                        }
+                        _ => None,
+                    })
+                    .collect(),
+                mask,
+            }),
         };
         let section = self
             .source_error
@@ -886,9 +959,9 @@ impl Asset {
             ));
         }
         let (kind, codec) = (bytes[10], bytes[11]);
-        if !(1..=5).contains(&codec) {
+        if !(1..=6).contains(&codec) {
             return Err(bad(format!(
-                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d, 4 IFS3D, 5 curves)"
+                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d, 4 IFS3D, 5 curves, 6 projected)"
             )));
         }
         if codec == Codec::Curve as u8 && version < OLDEST_CURVE_VERSION {
@@ -1011,6 +1084,18 @@ impl Asset {
             limits.check_cost(vertices * 64 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
             let mask = mask(p.mask)?;
             return Asset::from_psa_parts(meta, p.planes, mask);
+        }
+        if codec == Codec::Projected as u8 {
+            let p: ProjectedPayload =
+                fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
+            // The decoded grid as f64 while decoding, then the samples as f32 and g at five
+            // half-lattice points a cell: about 32 bytes a sample.
+            let cells = lattice_nodes(&p.planes, ProjectedHeader::validate, |h| {
+                [h.samples[0] as usize, h.samples[1] as usize]
+            })?;
+            limits.check_cost(cells * 32 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
+            let mask = mask(p.mask)?;
+            return Asset::from_projected_parts(meta, p.planes, mask);
         }
         if codec == Codec::Fis as u8 {
             let p: FisPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;

@@ -1,0 +1,482 @@
+//! The multiresolution of the projected codec: an interpolating subdivision of the sample grid
+//! whose masks are fitted to the data level by level, and the details that correct each level's
+//! prediction, quantised in closed loop and range coded.
+//!
+//! Level 0 holds the samples on multiples of `2^levels` in both axes. Each refinement halves the
+//! spacing S in three passes, each with its own fitted mask (the subdivision matrix of the
+//! projected IFS, one per level and pass):
+//!
+//! 0. points between two level samples along a row (x an odd multiple of S/2, y a multiple of
+//!    S), predicted by the four-point mask `m12 + a (m12 - m03)` over the row (m12 the mean of
+//!    the two nearest, m03 of the two next; a = 1/16 is Dubuc-Deslauriers);
+//! 1. the same along a column;
+//! 2. face centres, by the column mask over pass 0's points plus `b` times the difference of the
+//!    row mask over pass 1's points and the column mask (a fitted blend of both directions).
+//!
+//! The encoder fits a and b by least squares on the *decoded* coarser points (closed loop), so
+//! that the decoder predicts exactly what the encoder did. A detail is `round(residual / step)`;
+//! the decoded value is `prediction + detail * step`, so every decoded sample is within half a
+//! step of its source (max-error mode), whatever the levels above did. When the source lies on
+//! a quantum (integers), predictions are rounded to it and the step is an odd multiple of it,
+//! as in JPEG-LS's near-lossless mode: a bound of `delta` quanta costs a step of `2 delta + 1`.
+//!
+//! Every pass walks the grid the same way in the encoder and the decoder through
+//! [`walk`], which asks a [`Details`] for each sample's decoded value: the encoder quantises
+//! and codes, the decoder reads. One walk, so the two cannot drift apart.
+
+use crate::codecs::fis::IntCoder;
+use crate::core::entropy::{Decoder, Encoder};
+
+/// Contexts of the detail coder per pass: local relief over the step (8 buckets) times the
+/// magnitudes of the pass's details already coded west and north (5 buckets).
+const RELIEF_BUCKETS: usize = 8;
+const NEIGHBOUR_BUCKETS: usize = 5;
+const CONTEXTS: usize = RELIEF_BUCKETS * NEIGHBOUR_BUCKETS;
+/// Where the coarsest grid's contexts start (after the three passes').
+const LEVEL0: usize = 3 * CONTEXTS;
+/// Fixed-point denominator of the fitted mask weights.
+pub const WEIGHT_ONE: f64 = 1024.0;
+/// Largest |weight| index (weights in [-2, 2]).
+const WEIGHT_LIMIT: i32 = 2048;
+
+/// What a walk needs to know about the grid and the quantiser.
+#[derive(Clone, Copy, Debug)]
+pub struct Layout {
+    /// Samples along x and y.
+    pub size: [usize; 2],
+    /// Refinement levels (level 0 spacing `2^levels`).
+    pub levels: u32,
+    /// Quantiser step of the finest level, source units.
+    pub step: f64,
+    /// Step growth per level towards the coarse ones (`step_j = step * growth^(levels - j)`);
+    /// 1 in max-error mode.
+    pub growth: f64,
+    /// Quantum the source lies on (predictions are rounded to it), or 0 for continuous data.
+    pub quantum: f64,
+    /// The order of each level's passes.
+    pub order: Order,
+}
+
+impl Layout {
+    /// The step of refinement level `j` (`j = levels` is the coarsest grid's own coding).
+    fn step_at(&self, j: u32) -> f64 {
+        let k = self.levels.saturating_sub(j);
+        if self.growth == 1.0 {
+            return self.step;
+        }
+        let s = self.step * self.growth.powi(k as i32);
+        if self.quantum > 0.0 {
+            // Odd multiples of the quantum keep decoded values on it.
+            let q = ((s / self.quantum - 1.0) / 2.0).round().max(0.0);
+            (2.0 * q + 1.0) * self.quantum
+        } else {
+            s
+        }
+    }
+
+    fn snap(&self, v: f64) -> f64 {
+        if self.quantum > 0.0 {
+            (v / self.quantum).round() * self.quantum
+        } else {
+            v
+        }
+    }
+}
+
+/// One sample to decode: where it is, its prediction and coding context.
+pub struct Sample {
+    /// Row-major index.
+    pub index: usize,
+    /// The prediction (snapped to the quantum).
+    pub prediction: f64,
+    /// Quantiser step here.
+    pub step: f64,
+    /// Coding context.
+    pub context: usize,
+}
+
+/// The two sides of the walk: the encoder quantises the source and codes the detail, the decoder
+/// reads the detail; both return the decoded value.
+pub trait Details {
+    /// The decoded value of `s`.
+    fn sample(&mut self, s: &Sample) -> f64;
+    /// The mask weights of a pass: the encoder codes those it fitted on what the walk has
+    /// decoded so far, the decoder reads them.
+    fn weights(&mut self, fitted: Option<[i32; FEATURES]>) -> [i32; FEATURES];
+}
+
+/// Features of a pass's prediction. Each is the mean of a group of samples (offsets in units
+/// of half the coarser spacing) less the mean of the nearest samples (group 0, whose mean is
+/// the plain prediction). The fitted masks weigh them, so a pass can lean on the direction
+/// the terrain runs in. Two orders of the passes ([`Order`]); an empty group is a feature
+/// that is always 0.
+pub const FEATURES: usize = 3;
+type Groups = [&'static [[i64; 2]]; FEATURES + 1];
+const GROUPS: [[Groups; 3]; 2] = [
+    // Separable: rows, then columns, then faces.
+    [
+        [
+            &[[-1, 0], [1, 0]],
+            &[[-3, 0], [3, 0]],
+            &[[-1, -2], [1, -2], [-1, 2], [1, 2]],
+            &[],
+        ],
+        [
+            &[[0, -1], [0, 1]],
+            &[[0, -3], [0, 3]],
+            &[[-2, -1], [-2, 1], [2, -1], [2, 1]],
+            &[[-1, -1], [1, -1], [-1, 1], [1, 1]],
+        ],
+        [
+            &[[-1, 0], [1, 0], [0, -1], [0, 1]],
+            &[[-1, 0], [1, 0]],
+            &[[-1, -1], [1, -1], [-1, 1], [1, 1]],
+            &[[-3, 0], [3, 0], [0, -3], [0, 3]],
+        ],
+    ],
+    // Quincunx: faces from the coarser corners, then rows and columns from four neighbours.
+    [
+        [
+            &[[-1, -1], [1, -1], [-1, 1], [1, 1]],
+            &[[-1, -1], [1, 1]],
+            &[[-3, -1], [3, -1], [-3, 1], [3, 1]],
+            &[[-1, -3], [1, -3], [-1, 3], [1, 3]],
+        ],
+        [
+            &[[-1, 0], [1, 0], [0, -1], [0, 1]],
+            &[[-1, 0], [1, 0]],
+            &[[-3, 0], [3, 0]],
+            &[[0, -3], [0, 3]],
+        ],
+        [
+            &[[0, -1], [0, 1], [-1, 0], [1, 0]],
+            &[[0, -1], [0, 1]],
+            &[[0, -3], [0, 3]],
+            &[[-3, 0], [3, 0]],
+        ],
+    ],
+];
+
+/// The order of a level's three passes.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+pub enum Order {
+    /// Points between two coarser samples along rows, then along columns (each from its own
+    /// axis), then face centres from their four edge neighbours: suits grids whose rows and
+    /// columns differ (a global grid's rows near the poles).
+    Separable,
+    /// Face centres from the four coarser corners, then rows and columns from four neighbours
+    /// each (two coarser, two faces).
+    Quincunx,
+}
+
+/// Relief bucket of a spread over a step.
+fn relief(spread: f64, step: f64) -> usize {
+    let a = spread / step;
+    if a < 0.5 {
+        0
+    } else {
+        ((a / 0.5).log2() as usize + 1).min(RELIEF_BUCKETS - 1)
+    }
+}
+
+/// Points of pass `pass` at spacing `s` (the coarser grid's), in walk order.
+fn pass_points(
+    size: [usize; 2],
+    s: usize,
+    order: Order,
+    pass: usize,
+) -> impl Iterator<Item = (usize, usize)> {
+    let half = s / 2;
+    let (x0, y0) = match (order, pass) {
+        (Order::Separable, 0) | (Order::Quincunx, 1) => (half, 0),
+        (Order::Separable, 1) | (Order::Quincunx, 2) => (0, half),
+        _ => (half, half),
+    };
+    (y0..size[1])
+        .step_by(s)
+        .flat_map(move |y| (x0..size[0]).step_by(s).map(move |x| (x, y)))
+}
+
+/// The mean of the samples at `offsets` (times `half`) from (x, y) that lie in the grid, with
+/// their count, min and max.
+fn ring(
+    g: &[f64],
+    size: [usize; 2],
+    x: usize,
+    y: usize,
+    half: usize,
+    offsets: &[[i64; 2]],
+) -> (f64, usize, f64, f64) {
+    let (mut sum, mut n, mut lo, mut hi) = (0.0, 0, f64::INFINITY, f64::NEG_INFINITY);
+    for [dx, dy] in offsets {
+        let (px, py) = (x as i64 + dx * half as i64, y as i64 + dy * half as i64);
+        if px < 0 || py < 0 || px >= size[0] as i64 || py >= size[1] as i64 {
+            continue;
+        }
+        let v = g[py as usize * size[0] + px as usize];
+        sum += v;
+        n += 1;
+        lo = lo.min(v);
+        hi = hi.max(v);
+    }
+    (if n > 0 { sum / n as f64 } else { 0.0 }, n, lo, hi)
+}
+
+/// The prediction of `(x, y)` in pass `pass` with weights `w`: the mean of the nearest samples
+/// plus the weighted features (a feature whose group leaves the grid counts 0: no say). Also
+/// the features (for fitting) and the nearest samples' spread (for the context).
+fn predict(
+    g: &[f64],
+    size: [usize; 2],
+    x: usize,
+    y: usize,
+    half: usize,
+    groups: &Groups,
+    w: [f64; FEATURES],
+) -> (f64, [f64; FEATURES], f64) {
+    let (m, _, lo, hi) = ring(g, size, x, y, half, groups[0]);
+    let mut f = [0.0; FEATURES];
+    let mut pred = m;
+    for k in 0..FEATURES {
+        let (mean, n, ..) = ring(g, size, x, y, half, groups[k + 1]);
+        if n > 0 && n == groups[k + 1].len() {
+            f[k] = mean - m;
+            pred += w[k] * f[k];
+        }
+    }
+    (pred, f, hi - lo)
+}
+
+/// Least-squares weights (as fixed-point indices) of a pass from its points' features and
+/// targets (the source less the plain mean): normal equations with a whisker of ridge, so that a
+/// feature that never varies gets weight 0.
+pub fn fit_weights(rows: &[(f64, [f64; FEATURES])]) -> [i32; FEATURES] {
+    const K: usize = FEATURES;
+    let mut a = [[0.0f64; K + 1]; K];
+    for (y, f) in rows {
+        for i in 0..K {
+            for j in 0..K {
+                a[i][j] += f[i] * f[j];
+            }
+            a[i][K] += f[i] * y;
+        }
+    }
+    let scale = (0..K).map(|i| a[i][i]).fold(0.0, f64::max);
+    for (i, row) in a.iter_mut().enumerate() {
+        row[i] += 1e-9 * scale + 1e-300;
+    }
+    // Gauss-Jordan with partial pivoting on a 3 x 3 system.
+    for c in 0..K {
+        let p = (c..K)
+            .max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))
+            .unwrap_or(c);
+        a.swap(c, p);
+        let d = a[c][c];
+        if d.abs() < 1e-300 {
+            return [0; K];
+        }
+        for v in a[c].iter_mut() {
+            *v /= d;
+        }
+        for r in 0..K {
+            if r != c {
+                let k = a[r][c];
+                let pivot = a[c];
+                for (v, pv) in a[r].iter_mut().zip(pivot) {
+                    *v -= k * pv;
+                }
+            }
+        }
+    }
+    std::array::from_fn(|i| {
+        ((a[i][K] * WEIGHT_ONE).round() as i32).clamp(-WEIGHT_LIMIT, WEIGHT_LIMIT)
+    })
+}
+
+/// Bucket of the sum of two neighbours' |detail|: 0, 1, 2, 3-4, 5 and more.
+fn neighbour_bucket(n: u32) -> usize {
+    match n {
+        0..=2 => n as usize,
+        3..=4 => 3,
+        _ => 4,
+    }
+}
+
+/// LOCO-I's median edge detector.
+fn med(a: f64, b: f64, c: f64) -> f64 {
+    if c >= a.max(b) {
+        a.min(b)
+    } else if c <= a.min(b) {
+        a.max(b)
+    } else {
+        a + b - c
+    }
+}
+
+/// Walks the whole pyramid, filling `g` (row-major, `size[0] * size[1]`) with decoded values.
+/// `target` gives the encoder's source values for fitting (the decoder passes `None`).
+pub fn walk(
+    layout: &Layout,
+    g: &mut [f64],
+    details: &mut dyn Details,
+    target: Option<&dyn Fn(usize) -> Option<f64>>,
+) {
+    let [w, h] = layout.size;
+    let s0 = 1usize << layout.levels;
+    // Level 0: MED over the coarse grid in raster order.
+    let step = layout.step_at(layout.levels + 1);
+    for y in (0..h).step_by(s0) {
+        for x in (0..w).step_by(s0) {
+            let i = y * w + x;
+            let (a, b, c) = match (x >= s0, y >= s0) {
+                (true, true) => (g[i - s0], g[i - s0 * w], g[i - s0 * w - s0]),
+                (true, false) => (g[i - s0], g[i - s0], g[i - s0]),
+                (false, true) => (g[i - s0 * w], g[i - s0 * w], g[i - s0 * w]),
+                (false, false) => (0.0, 0.0, 0.0),
+            };
+            let prediction = layout.snap(med(a, b, c));
+            let context = relief((a - b).abs().max((a - c).abs()), step);
+            let context = LEVEL0 + context * NEIGHBOUR_BUCKETS;
+            g[i] = details.sample(&Sample {
+                index: i,
+                prediction,
+                step,
+                context,
+            });
+        }
+    }
+    for level in 0..layout.levels {
+        let s = s0 >> level;
+        let half = s / 2;
+        let step = layout.step_at(level + 1);
+        for (pass, groups) in GROUPS[layout.order as usize].iter().enumerate() {
+            let grid = &*g;
+            let fit = |source: &dyn Fn(usize) -> Option<f64>| {
+                let rows: Vec<_> = pass_points(layout.size, s, layout.order, pass)
+                    .filter_map(|(x, y)| {
+                        let t = source(y * w + x)?;
+                        let (m, f, _) =
+                            predict(grid, layout.size, x, y, half, groups, [0.0; FEATURES]);
+                        Some((t - m, f))
+                    })
+                    .collect();
+                fit_weights(&rows)
+            };
+            let wq = details.weights(target.map(fit));
+            let wf = wq.map(|v| f64::from(v) / WEIGHT_ONE);
+            // |detail| of this pass's points in the row above and in this row, by column.
+            let (mut above, mut row) = (vec![0u8; w], vec![0u8; w]);
+            let mut row_y = usize::MAX;
+            let mut west = 0u8;
+            for (x, y) in pass_points(layout.size, s, layout.order, pass) {
+                if y != row_y {
+                    if row_y != usize::MAX {
+                        std::mem::swap(&mut above, &mut row);
+                    }
+                    row_y = y;
+                    west = 0;
+                }
+                let (pred, _, spread) = predict(g, layout.size, x, y, half, groups, wf);
+                let i = y * w + x;
+                let context = pass * CONTEXTS
+                    + relief(spread, step) * NEIGHBOUR_BUCKETS
+                    + neighbour_bucket(u32::from(west) + u32::from(above[x]));
+                let v = details.sample(&Sample {
+                    index: i,
+                    prediction: layout.snap(pred),
+                    step,
+                    context,
+                });
+                let q = ((v - layout.snap(pred)) / step).round().abs().min(255.0) as u8;
+                (west, row[x]) = (q, q);
+                g[i] = v;
+            }
+        }
+    }
+}
+
+/// The coders of one walk: per pass a set of contexts, plus the weights' coder.
+pub struct Coders {
+    passes: Vec<IntCoder>,
+    weights: IntCoder,
+}
+
+impl Coders {
+    /// Fresh contexts.
+    pub fn new() -> Coders {
+        Coders {
+            passes: (0..4 * CONTEXTS).map(|_| IntCoder::new()).collect(),
+            weights: IntCoder::new(),
+        }
+    }
+}
+
+impl Default for Coders {
+    fn default() -> Self {
+        Coders::new()
+    }
+}
+
+/// The encoder's side: quantises each source sample against its prediction and codes the detail.
+pub struct Quantiser<'a> {
+    /// The source (filled where invalid), source units.
+    pub source: &'a [f64],
+    /// Which samples count (invalid ones take their prediction: a zero detail).
+    pub valid: Option<&'a [bool]>,
+    /// Fraction of a step the dead zone adds around zero (0 in max-error mode).
+    pub dead_zone: f64,
+    /// The stream.
+    pub encoder: Encoder,
+    /// Contexts.
+    pub coders: Coders,
+}
+
+impl Details for Quantiser<'_> {
+    fn sample(&mut self, s: &Sample) -> f64 {
+        let valid = self.valid.is_none_or(|v| v[s.index]);
+        let q = if valid {
+            let r = (self.source[s.index] - s.prediction) / s.step;
+            let m = (r.abs() + 0.5 - self.dead_zone).floor().max(0.0);
+            (m.min(f64::from(i32::MAX / 2)) as i32) * if r < 0.0 { -1 } else { 1 }
+        } else {
+            0
+        };
+        self.coders.passes[s.context].put(&mut self.encoder, q);
+        s.prediction + f64::from(q) * s.step
+    }
+
+    fn weights(&mut self, fitted: Option<[i32; FEATURES]>) -> [i32; FEATURES] {
+        let w = fitted.unwrap_or([0; FEATURES]);
+        for v in w {
+            self.coders.weights.put(&mut self.encoder, v);
+        }
+        w
+    }
+}
+
+/// The decoder's side.
+pub struct Reader<'a> {
+    /// The stream.
+    pub decoder: Decoder<'a>,
+    /// Contexts.
+    pub coders: Coders,
+}
+
+impl Details for Reader<'_> {
+    fn sample(&mut self, s: &Sample) -> f64 {
+        let q = self.coders.passes[s.context].get(&mut self.decoder);
+        s.prediction + f64::from(q) * s.step
+    }
+
+    fn weights(&mut self, _fitted: Option<[i32; FEATURES]>) -> [i32; FEATURES] {
+        let mut w = [0; FEATURES];
+        for v in &mut w {
+            *v = self
+                .coders
+                .weights
+                .get(&mut self.decoder)
+                .clamp(-WEIGHT_LIMIT, WEIGHT_LIMIT);
+        }
+        w
+    }
+}

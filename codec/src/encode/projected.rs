@@ -1,0 +1,242 @@
+//! The pipeline of the projected codec ([`crate::codecs::projected`]): one grey channel in source
+//! units, nodata filled (and masked, its details forced to zero), then either a bound on the
+//! error at every valid sample or a size, and measured like every asset.
+
+use std::time::Instant;
+
+use fractile_proto::{ColourModel, SampleFormat};
+
+use super::{
+    Encoded, coding_range, decoded_errors, fill_invalid, measured, source_meta, without_map,
+};
+use crate::Error;
+use crate::codecs::projected::pyramid::Order;
+use crate::codecs::projected::{
+    self, CODEC_NAME, ProjectedHeader, ProjectedSettings, encode_grid, levels_for,
+};
+use crate::io::asset::{Asset, Mask};
+use crate::io::raster::Raster;
+
+/// Rate control's bisection steps on log(step): 2^-14 of the range of steps tried, far finer than
+/// a byte of difference.
+const BISECTIONS: u32 = 18;
+
+/// Encodes a grey image or a height field with the projected IFS with details: under
+/// `settings.max_error` every valid decoded sample is within it of the source; under
+/// `target_bpp` the finest step whose file fits is kept.
+pub fn encode_projected(
+    raster: &Raster,
+    settings: &ProjectedSettings,
+    target_bpp: Option<f64>,
+) -> Result<Encoded, Error> {
+    let start = Instant::now();
+    if raster.channels.len() != 1 {
+        return Err(Error::Settings(format!(
+            "projected codes one grey channel; the input has {} (use quadtree-pifs for colour)",
+            raster.channels.len()
+        )));
+    }
+    let (w, h) = (raster.width, raster.height);
+    if w < 2 || h < 2 {
+        return Err(Error::Input(format!(
+            "a {w}x{h} grid is too small (2x2 at least)"
+        )));
+    }
+    let (lo, hi) = coding_range(raster);
+    let span = hi - lo;
+    // Filled where invalid (the fill only steers predictions: those samples are not coded).
+    let mut filled = raster.channels[0].clone();
+    if let Some(valid) = &raster.valid {
+        fill_invalid(&mut filled, valid, w, h);
+    }
+    let source: Vec<f64> = filled.iter().map(|&v| f64::from(v)).collect();
+    let valid = raster.valid.as_deref();
+    let quantum = source_quantum(raster);
+    let mut header = ProjectedHeader {
+        samples: [w as u32, h as u32],
+        levels: levels_for(w, h),
+        step: 1.0,
+        growth: 1.0,
+        quantum,
+        value_min: lo,
+        value_span: span,
+        roughness: 0.0,
+        max_error: 0.0,
+        order: Order::Quincunx,
+    };
+    let (stream, grid) = match (settings.max_error, target_bpp) {
+        (Some(e), _) => {
+            header.step = max_error_step(e, quantum)?;
+            header.max_error = e;
+            let (stream, grid) = smaller_order(&mut header, &source, valid, 0.0);
+            check_bound(&grid, &source, valid, e, span)?;
+            (stream, grid)
+        }
+        (None, Some(bpp)) => {
+            if !(bpp.is_finite() && bpp > 0.0) {
+                return Err(Error::Settings(format!(
+                    "--target-bpp {bpp} must be positive"
+                )));
+            }
+            header.growth = settings.growth;
+            // No promise to keep at each sample: steps and predictions need not sit on the
+            // quantum, and rate control then moves in fine steps.
+            header.quantum = 0.0;
+            // The metadata and the mask come on top of the stream.
+            let budget =
+                without_map((bpp * (w * h) as f64 / 8.0).floor() as usize).saturating_sub(512);
+            fit_size(
+                &mut header,
+                &source,
+                valid,
+                settings.dead_zone,
+                budget,
+                span,
+            )
+        }
+        (None, None) => {
+            return Err(Error::Settings(
+                "projected takes --max-error (source units) or --target-bpp".into(),
+            ));
+        }
+    };
+    header.roughness = projected::fit_roughness(&grid, w, h);
+    let mut meta = source_meta(raster, String::new(), (lo, hi), ColourModel::Grey);
+    meta.encoder = format!(
+        "{CODEC_NAME} levels={} order={:?} step={} quantum={} max_error={} roughness={:.3}",
+        header.levels,
+        header.order,
+        header.step,
+        header.quantum,
+        header.max_error,
+        header.roughness
+    );
+    let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
+    let asset = Asset::from_projected_parts(meta, vec![(header, stream)], mask)?;
+    let errors = decoded_errors(&asset, raster);
+    Ok(measured(asset, start, errors, raster))
+}
+
+/// The quantum the source lies on: 1 for integer samples (and float samples that are all whole
+/// numbers, as most DEMs stored as float are not), else 0 (continuous).
+fn source_quantum(raster: &Raster) -> f64 {
+    if raster.sample != SampleFormat::F32 {
+        return 1.0;
+    }
+    let valid = raster.valid.as_deref();
+    let whole = raster.channels[0]
+        .iter()
+        .enumerate()
+        .all(|(i, &v)| valid.is_some_and(|m| !m[i]) || (v.fract() == 0.0 && v.abs() < 1e7));
+    if whole { 1.0 } else { 0.0 }
+}
+
+/// The step that keeps every sample within `e`: `2 delta + 1` quanta for `delta = floor(e /
+/// quantum)` on quantised data (JPEG-LS's near-lossless step), `2 e` on continuous data.
+fn max_error_step(e: f64, quantum: f64) -> Result<f64, Error> {
+    if !(e.is_finite() && e >= 0.0) {
+        return Err(Error::Settings(format!(
+            "--max-error {e} must be a distance >= 0"
+        )));
+    }
+    if quantum > 0.0 {
+        Ok((2.0 * (e / quantum).floor() + 1.0) * quantum)
+    } else if e > 0.0 {
+        Ok(2.0 * e)
+    } else {
+        Err(Error::Settings(
+            "--max-error 0 needs a source on a quantum (integer samples); this one is continuous"
+                .into(),
+        ))
+    }
+}
+
+/// Refuses an asset that breaks its promise (a bug, not an input error: the closed loop bounds
+/// every sample by construction). The decoded value is an f32 of the normalised range, so the
+/// check allows its rounding: 2^-22 of the range.
+fn check_bound(
+    grid: &[f64],
+    source: &[f64],
+    valid: Option<&[bool]>,
+    e: f64,
+    span: f64,
+) -> Result<(), Error> {
+    let slack = span * 2f64.powi(-22);
+    let worst = grid
+        .iter()
+        .zip(source)
+        .enumerate()
+        .filter(|(i, _)| valid.is_none_or(|v| v[*i]))
+        .map(|(_, (g, s))| (g - s).abs())
+        .fold(0.0f64, f64::max);
+    if worst > e + slack {
+        return Err(Error::Settings(format!(
+            "internal: a decoded sample is {worst} from its source, over the bound {e}"
+        )));
+    }
+    Ok(())
+}
+
+/// A coded stream and the samples it decodes to.
+type Coded = (Vec<u8>, Vec<f64>);
+
+/// Codes under both orders of the passes and keeps the smaller (the order goes in `header`).
+fn smaller_order(
+    header: &mut ProjectedHeader,
+    source: &[f64],
+    valid: Option<&[bool]>,
+    dead_zone: f64,
+) -> (Vec<u8>, Vec<f64>) {
+    let mut best: Option<(Order, Coded)> = None;
+    for order in [Order::Separable, Order::Quincunx] {
+        header.order = order;
+        let coded = encode_grid(header, source, valid, dead_zone);
+        if best.as_ref().is_none_or(|b| coded.0.len() < b.1.0.len()) {
+            best = Some((order, coded));
+        }
+    }
+    let (order, coded) = best.expect("two orders tried");
+    header.order = order;
+    coded
+}
+
+/// Rate mode: the smallest step (bisection on its logarithm) whose stream fits `budget` bytes.
+fn fit_size(
+    header: &mut ProjectedHeader,
+    source: &[f64],
+    valid: Option<&[bool]>,
+    dead_zone: f64,
+    budget: usize,
+    span: f64,
+) -> (Vec<u8>, Vec<f64>) {
+    // The order that codes a middling step smaller, then bisection under it.
+    header.step = (span * 1e-3).max(header.quantum);
+    smaller_order(header, source, valid, dead_zone);
+    let floor = if header.quantum > 0.0 {
+        header.quantum
+    } else {
+        span * 1e-6
+    };
+    let (mut lo, mut hi) = (floor.ln(), span.ln());
+    let try_step = |step: f64, header: &mut ProjectedHeader| {
+        header.step = step;
+        encode_grid(header, source, valid, dead_zone)
+    };
+    let mut best = try_step(lo.exp(), header);
+    if best.0.len() <= budget {
+        return best;
+    }
+    let mut best_step = hi.exp();
+    best = try_step(best_step, header);
+    for _ in 0..BISECTIONS {
+        let mid = 0.5 * (lo + hi);
+        let coded = try_step(mid.exp(), header);
+        if coded.0.len() <= budget {
+            (hi, best, best_step) = (mid, coded, mid.exp());
+        } else {
+            lo = mid;
+        }
+    }
+    header.step = best_step;
+    best
+}

@@ -1,0 +1,267 @@
+//! The projected codec on real DEMs: its promise (the max-error bound at every cell, lossless at
+//! 0 on integer data), against the anchors the issue names (JPEG-LS near-lossless at the same
+//! bound), what a corrupt stream gets, and its continuation past the source (the 4x zoom test:
+//! PSNR against bicubic, and the power of the finest octave against the real finer DEM's).
+
+use fractile_codec::Method;
+use fractile_codec::codecs::projected::{ProjectedHeader, ProjectedSettings};
+use fractile_codec::encode::projected::encode_projected;
+use fractile_codec::io::asset::{Asset, Coding};
+use fractile_codec::io::raster::Raster;
+use fractile_proto::AssetKind;
+
+fn testdata(name: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata")
+        .join(name)
+}
+
+/// JPEG-LS near-lossless ratios at a bound of 10 m (CharLS through imagecodecs, NEAR=10, as
+/// quoted in issue 29): the bar at the same bound.
+const JPEG_LS_AT_10: [(&str, f64); 2] = [("etopo20.tif", 4.45), ("jacksboro.tif", 10.6)];
+
+/// What f32 rounding may add to a bound: decoded values are f32 fractions of the asset's value
+/// range, so one unit in their last place (2^-23 of the range: 1.8 mm on etopo20).
+fn rounding(r: &Raster) -> f64 {
+    let (lo, hi) = r.value_range();
+    (hi - lo) * 2f64.powi(-23)
+}
+
+#[test]
+fn max_error_holds_at_every_cell_of_real_dems_read_back_from_their_bytes() {
+    for name in ["etopo20.tif", "jacksboro.tif", "topobathy.tif"] {
+        let r = Raster::open(&testdata(name)).expect("testdata");
+        for e in [0.0, 1.0, 10.0, 37.5] {
+            let s = ProjectedSettings {
+                max_error: Some(e),
+                ..Default::default()
+            };
+            let enc = encode_projected(&r, &s, None).expect("encode");
+            let asset = Asset::from_bytes(&enc.bytes).expect("read back");
+            assert_eq!(asset.codec_name(), "projected");
+            let (d, _) = asset.decode_native();
+            let slack = rounding(&r);
+            let mut over = 0;
+            let mut worst = 0.0f64;
+            for (i, (&src, &dec)) in r.channels[0].iter().zip(&d.channels[0]).enumerate() {
+                if r.valid.as_ref().is_some_and(|v| !v[i]) {
+                    continue;
+                }
+                let err = f64::from((dec - src).abs());
+                worst = worst.max(err);
+                if err > e + slack {
+                    over += 1;
+                }
+            }
+            println!(
+                "{name} E={e}: {:.2}:1, worst {worst:.4}, PSNR {:.2} dB",
+                enc.ratio(),
+                enc.errors.psnr
+            );
+            assert_eq!(
+                over, 0,
+                "{name} E={e}: {over} cells over the bound (worst {worst})"
+            );
+            // A bound that is not used is a wasted one: the worst error reaches it (to the
+            // quantum of integer data).
+            assert!(worst >= e.floor() - 1e-3, "{name} E={e}: worst {worst}");
+        }
+    }
+}
+
+#[test]
+fn max_error_10_codes_smaller_than_jpeg_ls_near_lossless() {
+    for (name, jpeg_ls) in JPEG_LS_AT_10 {
+        let r = Raster::open(&testdata(name)).expect("testdata");
+        let s = ProjectedSettings {
+            max_error: Some(10.0),
+            ..Default::default()
+        };
+        let enc = encode_projected(&r, &s, None).expect("encode");
+        println!("{name}: {:.2}:1 against JPEG-LS {jpeg_ls}:1", enc.ratio());
+        assert!(
+            enc.ratio() >= jpeg_ls,
+            "{name}: {:.3}:1 under JPEG-LS's {jpeg_ls}:1",
+            enc.ratio()
+        );
+    }
+}
+
+#[test]
+fn a_corrupt_or_truncated_stream_is_an_error() {
+    let r = Raster::open(&testdata("jacksboro.tif")).expect("testdata");
+    let s = ProjectedSettings {
+        max_error: Some(2.0),
+        ..Default::default()
+    };
+    let enc = encode_projected(&r, &s, None).expect("encode");
+    let Coding::Projected { header, stream } = &enc.asset.planes[0].coding else {
+        panic!("a projected plane");
+    };
+    let meta = enc.asset.meta.clone();
+    let part = |h: ProjectedHeader, s: Vec<u8>| {
+        Asset::from_projected_parts(meta.clone(), vec![(h, s)], None)
+    };
+    assert!(part(header.clone(), stream.clone()).is_ok());
+    for cut in [0, 10, stream.len() / 2] {
+        let e = part(header.clone(), stream[..cut].to_vec()).expect_err("truncated");
+        assert!(e.to_string().contains("projected"), "{e}");
+    }
+    let mut bad = header.clone();
+    bad.levels = 40;
+    assert!(part(bad, stream.clone()).is_err());
+    let mut bad = header.clone();
+    bad.roughness = 1.5;
+    assert!(part(bad, stream.clone()).is_err());
+}
+
+/// Power of the finest octave of a grid's spectrum: the part of its 2D power spectrum with a
+/// frequency over a quarter cycle a sample along x or y. The grid is mean-removed and Hann
+/// windowed first: the FFT sees it as periodic, and the jump between opposite edges would
+/// otherwise leak into every frequency (on etopo20 it was half the finest octave's power).
+fn finest_octave_power(v: &[f32], w: usize, h: usize) -> f64 {
+    use rustfft::{FftPlanner, num_complex::Complex};
+    let mean = v.iter().map(|&x| f64::from(x)).sum::<f64>() / v.len() as f64;
+    let hann = |i: usize, n: usize| {
+        0.5 - 0.5 * (2.0 * std::f64::consts::PI * (i as f64 + 0.5) / n as f64).cos()
+    };
+    let mut a: Vec<Complex<f64>> = v
+        .iter()
+        .enumerate()
+        .map(|(i, &x)| {
+            let k = hann(i % w, w) * hann(i / w, h);
+            Complex::new((f64::from(x) - mean) * k, 0.0)
+        })
+        .collect();
+    let mut planner = FftPlanner::new();
+    let (fw, fh) = (planner.plan_fft_forward(w), planner.plan_fft_forward(h));
+    for row in a.chunks_exact_mut(w) {
+        fw.process(row);
+    }
+    let mut col = vec![Complex::new(0.0, 0.0); h];
+    let mut total = 0.0;
+    for x in 0..w {
+        for y in 0..h {
+            col[y] = a[y * w + x];
+        }
+        fh.process(&mut col);
+        let fx = x.min(w - x) as f64 / w as f64;
+        for (y, c) in col.iter().enumerate() {
+            let fy = y.min(h - y) as f64 / h as f64;
+            if fx > 0.25 || fy > 0.25 {
+                total += c.norm_sqr();
+            }
+        }
+    }
+    total
+}
+
+/// The 4x zoom test of issue 29: a copy of a DEM 4x coarser (block means) is encoded, decoded at
+/// 4x by continuous extraction, and compared with the real DEM.
+struct Zoom {
+    psnr: f64,
+    bicubic_psnr: f64,
+    octave: f64,
+    bicubic_octave: f64,
+}
+
+fn zoom(name: &str) -> Zoom {
+    let r = Raster::open(&testdata(name)).expect("testdata");
+    let (cw, ch) = (r.width / 4, r.height / 4);
+    let (w, h) = (4 * cw, 4 * ch);
+    let fine: Vec<f32> = (0..w * h)
+        .map(|i| r.channels[0][(i / w) * r.width + i % w])
+        .collect();
+    let coarse: Vec<f32> = (0..cw * ch)
+        .map(|i| {
+            let (x, y) = (i % cw, i / cw);
+            let mut s = 0.0f64;
+            for k in 0..16 {
+                s += f64::from(fine[(4 * y + k / 4) * w + 4 * x + k % 4]);
+            }
+            (s / 16.0) as f32
+        })
+        .collect();
+    let c = Raster::from_values(cw, ch, coarse.clone(), AssetKind::HeightField).expect("coarse");
+    let s = ProjectedSettings {
+        max_error: Some(0.5),
+        ..Default::default()
+    };
+    let enc = encode_projected(&c, &s, None).expect("encode");
+    let (d, _) = enc
+        .asset
+        .window([0.0, 0.0, 1.0, 1.0], w, h, Some(40), Method::Continuous);
+    let (lo, hi) = fine
+        .iter()
+        .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
+            (a.min(v), b.max(v))
+        });
+    let img = image::ImageBuffer::<image::Luma<f32>, Vec<f32>>::from_raw(
+        cw as u32,
+        ch as u32,
+        // image's f32 filters clamp to 0..1: resize normalised heights.
+        coarse.iter().map(|v| (v - lo) / (hi - lo)).collect(),
+    )
+    .expect("grid");
+    let bicubic: Vec<f32> = image::imageops::resize(
+        &img,
+        w as u32,
+        h as u32,
+        image::imageops::FilterType::CatmullRom,
+    )
+    .into_raw()
+    .into_iter()
+    .map(|v| lo + v * (hi - lo))
+    .collect();
+    let psnr = |v: &[f32]| {
+        let mse = v
+            .iter()
+            .zip(&fine)
+            .map(|(a, b)| f64::from(a - b).powi(2))
+            .sum::<f64>()
+            / v.len() as f64;
+        10.0 * (f64::from(hi - lo).powi(2) / mse).log10()
+    };
+    let real = finest_octave_power(&fine, w, h);
+    Zoom {
+        psnr: psnr(&d.channels[0]),
+        bicubic_psnr: psnr(&bicubic),
+        octave: finest_octave_power(&d.channels[0], w, h) / real,
+        bicubic_octave: finest_octave_power(&bicubic, w, h) / real,
+    }
+}
+
+/// Measured, not all of issue 29's bar: the continuation keeps a tenth or more of the real
+/// finest octave where bicubic keeps almost none, within a few dB of bicubic's PSNR. Both halves
+/// of the bar at once (half the power within 0.5 dB) are out of reach of a linear self-similar
+/// continuation: its details are not correlated with the real ones, so each unit of their power
+/// is a unit of error (the sweep of rho is in docs/benchmarks.md).
+#[test]
+fn zoom_past_the_source_continues_the_roughness() {
+    for name in ["etopo20.tif", "jacksboro.tif"] {
+        let z = zoom(name);
+        println!(
+            "{name} 4x: PSNR {:.2} dB (bicubic {:.2}), finest-octave power {:.1}% of the real DEM's (bicubic {:.2}%)",
+            z.psnr,
+            z.bicubic_psnr,
+            100.0 * z.octave,
+            100.0 * z.bicubic_octave
+        );
+        assert!(
+            z.bicubic_octave < 0.01,
+            "{name}: bicubic keeps {}",
+            z.bicubic_octave
+        );
+        assert!(
+            z.octave > 10.0 * z.bicubic_octave && z.octave < 2.0,
+            "{name}: finest octave {:.4} of the real DEM's",
+            z.octave
+        );
+        assert!(
+            z.psnr >= z.bicubic_psnr - 3.0,
+            "{name}: {:.2} dB against bicubic's {:.2}",
+            z.psnr,
+            z.bicubic_psnr
+        );
+    }
+}
