@@ -68,7 +68,7 @@ pub fn encode_projected(
         (Some(e), _) => {
             header.step = max_error_step(e, quantum)?;
             header.max_error = e;
-            let (stream, grid) = smaller_order(&mut header, &source, valid, 0.0);
+            let (stream, grid) = smaller_order(&mut header, &source, valid, (0.0, 0.0));
             check_bound(&grid, &source, valid, e, span)?;
             (stream, grid)
         }
@@ -89,7 +89,7 @@ pub fn encode_projected(
                 &mut header,
                 &source,
                 valid,
-                settings.dead_zone,
+                (settings.dead_zone, settings.lambda),
                 budget,
                 span,
             )
@@ -185,12 +185,12 @@ fn smaller_order(
     header: &mut ProjectedHeader,
     source: &[f64],
     valid: Option<&[bool]>,
-    dead_zone: f64,
+    quantising: (f64, f64),
 ) -> (Vec<u8>, Vec<f64>) {
     let mut best: Option<(Order, Coded)> = None;
     for order in [Order::Separable, Order::Quincunx] {
         header.order = order;
-        let coded = encode_grid(header, source, valid, dead_zone);
+        let coded = encode_grid(header, source, valid, quantising);
         if best.as_ref().is_none_or(|b| coded.0.len() < b.1.0.len()) {
             best = Some((order, coded));
         }
@@ -205,13 +205,13 @@ fn fit_size(
     header: &mut ProjectedHeader,
     source: &[f64],
     valid: Option<&[bool]>,
-    dead_zone: f64,
+    quantising: (f64, f64),
     budget: usize,
     span: f64,
 ) -> (Vec<u8>, Vec<f64>) {
     // The order that codes a middling step smaller, then bisection under it.
     header.step = (span * 1e-3).max(header.quantum);
-    smaller_order(header, source, valid, dead_zone);
+    smaller_order(header, source, valid, quantising);
     let floor = if header.quantum > 0.0 {
         header.quantum
     } else {
@@ -220,7 +220,7 @@ fn fit_size(
     let (mut lo, mut hi) = (floor.ln(), span.ln());
     let try_step = |step: f64, header: &mut ProjectedHeader| {
         header.step = step;
-        encode_grid(header, source, valid, dead_zone)
+        encode_grid(header, source, valid, quantising)
     };
     let mut best = try_step(lo.exp(), header);
     if best.0.len() <= budget {

@@ -168,6 +168,27 @@ impl IntCoder {
         }
     }
 
+    /// What [`IntCoder::put`] of `v` would cost now, in bits (for rate-distortion choices).
+    pub(crate) fn cost(&self, v: i32) -> f64 {
+        let mut bits = self.zero.cost(v == 0);
+        if v == 0 {
+            return bits;
+        }
+        bits += self.sign.cost(v < 0);
+        let m = v.unsigned_abs();
+        let len = 32 - m.leading_zeros();
+        for k in 1..len {
+            bits += self.unary[k as usize].cost(true);
+        }
+        if len < 32 {
+            bits += self.unary[len as usize].cost(false);
+        }
+        for k in (0..len - 1).rev() {
+            bits += self.mantissa[k as usize].cost(m >> k & 1 == 1);
+        }
+        bits
+    }
+
     pub(crate) fn get(&mut self, dec: &mut Decoder) -> i32 {
         if dec.bit(&mut self.zero) {
             return 0;

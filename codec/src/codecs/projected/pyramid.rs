@@ -425,6 +425,8 @@ pub struct Quantiser<'a> {
     pub valid: Option<&'a [bool]>,
     /// Fraction of a step the dead zone adds around zero (0 in max-error mode).
     pub dead_zone: f64,
+    /// Rate-distortion weight of a bit, in squared steps (0: plain rounding; max-error mode).
+    pub lambda: f64,
     /// The stream.
     pub encoder: Encoder,
     /// Contexts.
@@ -437,7 +439,17 @@ impl Details for Quantiser<'_> {
         let q = if valid {
             let r = (self.source[s.index] - s.prediction) / s.step;
             let m = (r.abs() + 0.5 - self.dead_zone).floor().max(0.0);
-            (m.min(f64::from(i32::MAX / 2)) as i32) * if r < 0.0 { -1 } else { 1 }
+            let q = (m.min(f64::from(i32::MAX / 2)) as i32) * if r < 0.0 { -1 } else { 1 };
+            if self.lambda > 0.0 && q != 0 {
+                // Rate-distortion choice between q and one step nearer zero, in units of
+                // step^2: the squared error plus lambda per bit the context would spend.
+                let coder = &self.coders.passes[s.context];
+                let nearer = q - q.signum();
+                let cost = |q: i32| (r - f64::from(q)).powi(2) + self.lambda * coder.cost(q);
+                if cost(nearer) < cost(q) { nearer } else { q }
+            } else {
+                q
+            }
         } else {
             0
         };
