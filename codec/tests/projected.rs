@@ -272,8 +272,16 @@ fn rate_control_fits_its_target_and_beats_the_quadtree_by_3_db_on_etopo20() {
     // 47.1 dB (OpenJPEG, same bytes).
     let r = Raster::open(&testdata("etopo20.tif")).expect("testdata");
     let enc = encode_projected(&r, &ProjectedSettings::default(), Some(0.8)).expect("encode");
-    println!("etopo20 at 0.8 bpp: {:.3} bpp, {:.2} dB", enc.bpp(), enc.errors.psnr);
+    println!(
+        "etopo20 at 0.8 bpp: {:.3} bpp, {:.2} dB",
+        enc.bpp(),
+        enc.errors.psnr
+    );
     assert!(enc.bpp() <= 0.8, "{} bpp", enc.bpp());
-    assert!(enc.bpp() >= 0.75, "rate control left {} bpp unused", 0.8 - enc.bpp());
+    assert!(
+        enc.bpp() >= 0.75,
+        "rate control left {} bpp unused",
+        0.8 - enc.bpp()
+    );
     assert!(enc.errors.psnr >= 46.2, "{:.2} dB", enc.errors.psnr);
 }

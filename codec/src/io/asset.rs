@@ -1088,12 +1088,12 @@ impl Asset {
         if codec == Codec::Projected as u8 {
             let p: ProjectedPayload =
                 fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
-            // The decoded grid as f64 while decoding, then the samples as f32 and g at five
-            // half-lattice points a cell: about 32 bytes a sample.
+            // The decoded grid as f64 while decoding, then the samples as f32 and g at nine
+            // half-lattice points a cell: about 48 bytes a sample.
             let cells = lattice_nodes(&p.planes, ProjectedHeader::validate, |h| {
                 [h.samples[0] as usize, h.samples[1] as usize]
             })?;
-            limits.check_cost(cells * 32 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
+            limits.check_cost(cells * 48 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
             let mask = mask(p.mask)?;
             return Asset::from_projected_parts(meta, p.planes, mask);
         }
