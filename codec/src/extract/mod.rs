@@ -299,9 +299,28 @@ impl Asset {
             } else {
                 bounds[0]
             },
-            source_error: self.source_error.as_ref().map(|m| m.at(u, v)),
+            source_error: self.source_error_at(u, v),
             iterations: pv.iter().map(|p| p.iterations).max().unwrap_or(0),
         }
+    }
+
+    /// The bound on |answer - source| at unit point (u, v) beyond convergence: the source-error
+    /// map there, or, on a sample centre of an asset whose codec promised a largest error
+    /// (projected `--max-error`), that promise where it is smaller: the map bounds the block's
+    /// half-cell lattice, most of which lies between samples, where the continuation leaves the
+    /// bilinear source further.
+    pub fn source_error_at(&self, u: f32, v: f32) -> Option<f32> {
+        let map = self.source_error.as_ref()?.at(u, v);
+        let on_sample = |t: f32, n: u32| {
+            let x = t * n as f32 - 0.5;
+            (x - x.round()).abs() < 1e-3
+        };
+        let promise = self
+            .planes
+            .first()
+            .and_then(|p| p.promise())
+            .filter(|_| on_sample(u, self.meta.width) && on_sample(v, self.meta.height));
+        Some(promise.map_or(map, |e| e.min(map)))
     }
 
     /// Continuous decoding of many unit points at once (batched), each with its own bound; a
@@ -345,10 +364,7 @@ impl Asset {
                     } else {
                         b[0]
                     },
-                    source_error: self
-                        .source_error
-                        .as_ref()
-                        .map(|m| m.at(pts[i][0], pts[i][1])),
+                    source_error: self.source_error_at(pts[i][0], pts[i][1]),
                     iterations: per_plane.iter().map(|v| v[i].iterations).max().unwrap_or(0),
                 }
             })

@@ -387,6 +387,15 @@ pub struct Plane {
 }
 
 impl Plane {
+    /// The largest |decoded sample - source| the encoder promised at every valid sample centre
+    /// (source units), for codecs that promise one (projected under `--max-error`).
+    pub fn promise(&self) -> Option<f32> {
+        match &self.coding {
+            Coding::Projected { header, .. } => header.promise().map(|e| e as f32),
+            _ => None,
+        }
+    }
+
     /// The quadtree header, for quadtree planes.
     pub fn header(&self) -> Option<&PlaneHeader> {
         match &self.coding {

@@ -46,7 +46,8 @@ pub struct ProjectedHeader {
     pub value_span: f64,
     /// The detail scaling of the continuation past the finest level, in [0, 0.95].
     pub roughness: f32,
-    /// The bound the encoder promised (source units), or 0 in rate mode.
+    /// The bound the encoder promised (source units); 0 with a quantum is lossless, 0 without
+    /// one is rate mode (no promise, see [`ProjectedHeader::promise`]).
     pub max_error: f64,
     /// The order of each level's passes (the encoder keeps the one that codes smaller).
     pub order: pyramid::Order,
@@ -90,6 +91,15 @@ impl ProjectedHeader {
             quantum: self.quantum,
             order: self.order,
         }
+    }
+
+    /// The encoder's promise at every valid sample, source units: `max_error` in max-error mode
+    /// (which sets a quantum, or a positive bound on continuous data); none under rate control.
+    /// Decoded values are f32 fractions of the value range, so the promise carries their
+    /// rounding (2^-22 of the range; the encoder checks the bound with the same slack).
+    pub fn promise(&self) -> Option<f64> {
+        (self.max_error > 0.0 || self.quantum > 0.0)
+            .then_some(self.max_error + self.value_span * 2f64.powi(-22))
     }
 
     /// Samples in all.
