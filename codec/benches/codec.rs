@@ -426,12 +426,16 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
             );
         }
     }
-    for bpp in [0.25, 0.5, 1.0, 2.0] {
-        let p = encode_projected(camera, &rate, Some(bpp)).expect("projected");
-        let j = jpeg2000_at(camera, p.bpp());
-        let jp = jpeg_at(camera, p.bpp());
+    let astronaut = Raster::open(&root.join("testdata/astronaut.png")).expect("astronaut");
+    for ((label, image), bpp) in [("camera 512", camera), ("astronaut 512 RGB", &astronaut)]
+        .into_iter()
+        .flat_map(|i| [0.25, 0.5, 1.0, 2.0].map(|b| (i, b)))
+    {
+        let p = encode_projected(image, &rate, Some(bpp)).expect("projected");
+        let j = jpeg2000_at(image, p.bpp());
+        let jp = jpeg_at(image, p.bpp());
         println!(
-            "| camera 512 | {bpp} bpp | {:.2} dB at {:.3} bpp | JPEG {} | {} | {} |",
+            "| {label} | {bpp} bpp | {:.2} dB at {:.3} bpp | JPEG {} | {} | {} |",
             p.errors.psnr,
             p.bpp(),
             jp.map_or("-".into(), |(b, d)| format!("{d:.2} dB at {b:.3} bpp")),

@@ -1706,3 +1706,66 @@ async fn assets_without_a_source_error_map_answer_no_error_bound() {
         "{p}"
     );
 }
+
+/// A projected asset (issue 29) uploaded and served as any other: points at the source's cell
+/// centres within their `error_bound`, which is the encoder's promise there, and tiles.
+#[tokio::test]
+async fn projected_assets_serve_points_within_their_promise_and_tiles() {
+    use fractile_codec::codecs::projected::ProjectedSettings;
+    let (st, _) = writable(Some("p"), 1 << 22);
+    let src = Raster::open(&data("jacksboro.tif")).unwrap();
+    let settings = ProjectedSettings {
+        max_error: Some(5.0),
+        ..Default::default()
+    };
+    let enc = fractile_codec::encode::projected::encode_projected(&src, &settings, None).unwrap();
+    let put = Request::put("/v1/assets/jp")
+        .header(header::AUTHORIZATION, "Bearer p")
+        .body(Body::from(enc.bytes.clone()))
+        .unwrap();
+    let (s, b) = call(&st, put).await;
+    assert_eq!(s, StatusCode::CREATED, "{}", String::from_utf8_lossy(&b));
+    assert_eq!(json(&b)["codec"], "projected");
+    let g = enc.asset.meta.georef.clone().unwrap();
+    let (mut pts, mut truth) = (Vec::new(), Vec::new());
+    for j in (0..src.height).step_by(11) {
+        for i in (0..src.width).step_by(13) {
+            pts.push([
+                g.origin[0] + (i as f64 + 0.5) * g.pixel_size[0],
+                g.origin[1] + (j as f64 + 0.5) * g.pixel_size[1],
+            ]);
+            truth.push(f64::from(src.channels[0][j * src.width + i]));
+        }
+    }
+    let body = serde_json::json!({"points": pts, "iterations": 30}).to_string();
+    let req = Request::post("/v1/assets/jp/points")
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from(body))
+        .unwrap();
+    let (s, b) = call(&st, req).await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    let r = json(&b);
+    for (res, t) in r["results"].as_array().unwrap().iter().zip(&truth) {
+        let (v, bound) = (
+            res["values"][0].as_f64().unwrap(),
+            res["error_bound"].as_f64().unwrap(),
+        );
+        assert!((v - t).abs() <= bound, "{v} for {t}, bound {bound}");
+        assert!(bound < 5.1, "the promise bounds cell centres: {bound}");
+    }
+    let (x, y) = geo::lonlat_tile(12, -84.25, 36.6);
+    let req = Request::get(format!(
+        "/v1/assets/jp/tiles/12/{x}/{y}.png?encoding=terrainrgb"
+    ))
+    .body(Body::empty())
+    .unwrap();
+    let (s, b) = call(&st, req).await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    let img = image::load_from_memory(&b).unwrap().to_rgb8();
+    let heights: Vec<f64> = img.pixels().map(|p| terrain_rgb(p.0)).collect();
+    let (lo, hi) = heights
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), &h| (a.min(h), b.max(h)));
+    // jacksboro's relief is several hundred metres: a tile of it is not flat.
+    assert!(hi - lo > 50.0, "tile heights {lo}..{hi}");
+}

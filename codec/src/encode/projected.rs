@@ -7,7 +7,8 @@ use std::time::Instant;
 use fractile_proto::{ColourModel, SampleFormat};
 
 use super::{
-    Encoded, coding_range, decoded_errors, fill_invalid, measured, source_meta, without_map,
+    Encoded, coding_range, decoded_errors, fill_invalid, measured, source_meta, source_planes,
+    without_map,
 };
 use crate::Error;
 use crate::codecs::projected::pyramid::Order;
@@ -30,17 +31,14 @@ pub fn encode_projected(
     target_bpp: Option<f64>,
 ) -> Result<Encoded, Error> {
     let start = Instant::now();
-    if raster.channels.len() != 1 {
-        return Err(Error::Settings(format!(
-            "projected codes one grey channel; the input has {} (use quadtree-pifs for colour)",
-            raster.channels.len()
-        )));
-    }
     let (w, h) = (raster.width, raster.height);
     if w < 2 || h < 2 {
         return Err(Error::Input(format!(
             "a {w}x{h} grid is too small (2x2 at least)"
         )));
+    }
+    if raster.channels.len() != 1 {
+        return encode_colour(raster, settings, target_bpp, start);
     }
     let (lo, hi) = coding_range(raster);
     let span = hi - lo;
@@ -52,18 +50,7 @@ pub fn encode_projected(
     let source: Vec<f64> = filled.iter().map(|&v| f64::from(v)).collect();
     let valid = raster.valid.as_deref();
     let quantum = source_quantum(raster);
-    let mut header = ProjectedHeader {
-        samples: [w as u32, h as u32],
-        levels: levels_for(w, h),
-        step: 1.0,
-        growth: 1.0,
-        quantum,
-        value_min: lo,
-        value_span: span,
-        roughness: 0.0,
-        max_error: 0.0,
-        order: Order::Quincunx,
-    };
+    let mut header = plane_header(w, h, quantum, (lo, span));
     let (stream, grid) = match (settings.max_error, target_bpp) {
         (Some(e), _) => {
             header.step = max_error_step(e, quantum)?;
@@ -73,26 +60,15 @@ pub fn encode_projected(
             (stream, grid)
         }
         (None, Some(bpp)) => {
-            if !(bpp.is_finite() && bpp > 0.0) {
-                return Err(Error::Settings(format!(
-                    "--target-bpp {bpp} must be positive"
-                )));
-            }
             header.growth = settings.growth;
             // No promise to keep at each sample: steps and predictions need not sit on the
             // quantum, and rate control then moves in fine steps.
             header.quantum = 0.0;
-            // The metadata and the mask come on top of the stream.
-            let budget =
-                without_map((bpp * (w * h) as f64 / 8.0).floor() as usize).saturating_sub(512);
-            fit_size(
-                &mut header,
-                &source,
-                valid,
-                (settings.dead_zone, settings.lambda),
-                budget,
-                span,
-            )
+            let mut planes = [(header.clone(), source.as_slice(), valid)];
+            let quantising = (settings.dead_zone, settings.lambda);
+            let coded = fit_size(&mut planes, quantising, rate_budget(bpp, raster)?, span);
+            header = planes[0].0.clone();
+            coded.into_iter().next().expect("one plane")
         }
         (None, None) => {
             return Err(Error::Settings(
@@ -200,43 +176,128 @@ fn smaller_order(
     coded
 }
 
-/// Rate mode: the smallest step (bisection on its logarithm) whose stream fits `budget` bytes.
+/// One plane under rate control: its header, its source (plane units) and validity.
+type RatePlane<'a> = (ProjectedHeader, &'a [f64], Option<&'a [bool]>);
+
+/// Rate mode: the smallest step, shared by every plane (bisection on its logarithm), whose
+/// streams fit `budget` bytes together; each plane first takes the order that codes a
+/// middling step smaller. One step for all planes spends bits where they lower the summed
+/// squared error most (equal slopes), as the quadtree's one lambda does.
 fn fit_size(
-    header: &mut ProjectedHeader,
-    source: &[f64],
-    valid: Option<&[bool]>,
+    planes: &mut [RatePlane<'_>],
     quantising: (f64, f64),
     budget: usize,
     span: f64,
-) -> (Vec<u8>, Vec<f64>) {
-    // The order that codes a middling step smaller, then bisection under it.
-    header.step = (span * 1e-3).max(header.quantum);
-    smaller_order(header, source, valid, quantising);
-    let floor = if header.quantum > 0.0 {
-        header.quantum
-    } else {
-        span * 1e-6
-    };
-    let (mut lo, mut hi) = (floor.ln(), span.ln());
-    let try_step = |step: f64, header: &mut ProjectedHeader| {
-        header.step = step;
-        encode_grid(header, source, valid, quantising)
-    };
-    let mut best = try_step(lo.exp(), header);
-    if best.0.len() <= budget {
-        return best;
+) -> Vec<Coded> {
+    for (header, source, valid) in planes.iter_mut() {
+        header.step = span * 1e-3;
+        smaller_order(header, source, *valid, quantising);
     }
-    let mut best_step = hi.exp();
-    best = try_step(best_step, header);
+    let (mut lo, mut hi) = ((span * 1e-6).ln(), span.ln());
+    let mut try_step = |step: f64| -> Vec<Coded> {
+        planes
+            .iter_mut()
+            .map(|(header, source, valid)| {
+                header.step = step;
+                encode_grid(header, source, *valid, quantising)
+            })
+            .collect()
+    };
+    let bytes = |c: &[Coded]| c.iter().map(|c| c.0.len()).sum::<usize>();
+    let finest = try_step(lo.exp());
+    if bytes(&finest) <= budget {
+        return finest;
+    }
+    let mut best = try_step(hi.exp());
     for _ in 0..BISECTIONS {
         let mid = 0.5 * (lo + hi);
-        let coded = try_step(mid.exp(), header);
-        if coded.0.len() <= budget {
-            (hi, best, best_step) = (mid, coded, mid.exp());
+        let coded = try_step(mid.exp());
+        if bytes(&coded) <= budget {
+            (hi, best) = (mid, coded);
         } else {
             lo = mid;
         }
     }
-    header.step = best_step;
+    // The headers hold the last step tried: put back the one kept.
+    try_step(hi.exp());
     best
+}
+
+/// Colour under rate control: luma and half-resolution chroma (the quadtree's YCbCr planes,
+/// normalised), one shared step.
+fn encode_colour(
+    raster: &Raster,
+    settings: &ProjectedSettings,
+    target_bpp: Option<f64>,
+    start: Instant,
+) -> Result<Encoded, Error> {
+    let Some(bpp) = target_bpp.filter(|_| settings.max_error.is_none()) else {
+        return Err(Error::Settings(
+            "--max-error bounds one channel: projected codes colour under --target-bpp".into(),
+        ));
+    };
+    let budget = rate_budget(bpp, raster)?;
+    let (lo, hi, colour, planes) = source_planes(raster);
+    let sources: Vec<Vec<f64>> = planes
+        .iter()
+        .map(|p| p.values.iter().map(|&v| f64::from(v)).collect())
+        .collect();
+    let mut rate: Vec<RatePlane<'_>> = planes
+        .iter()
+        .zip(&sources)
+        .map(|(p, src)| {
+            let mut header = plane_header(p.width, p.height, 0.0, (0.0, 1.0));
+            header.growth = settings.growth;
+            (header, src.as_slice(), None)
+        })
+        .collect();
+    let coded = fit_size(
+        &mut rate,
+        (settings.dead_zone, settings.lambda),
+        budget,
+        1.0,
+    );
+    let parts: Vec<(ProjectedHeader, Vec<u8>)> = rate
+        .into_iter()
+        .zip(coded)
+        .zip(&planes)
+        .map(|(((mut header, ..), (stream, grid)), p)| {
+            header.roughness = projected::fit_roughness(&grid, p.width, p.height);
+            (header, stream)
+        })
+        .collect();
+    let mut meta = source_meta(raster, String::new(), (lo, hi), colour);
+    meta.encoder = format!("{CODEC_NAME} colour step={}", parts[0].0.step);
+    let asset = Asset::from_projected_parts(meta, parts, None)?;
+    let errors = decoded_errors(&asset, raster);
+    Ok(measured(asset, start, errors, raster))
+}
+
+/// A plane's header before coding: its levels, the quantum, and its value range (what decoded
+/// samples are normalised by).
+fn plane_header(w: usize, h: usize, quantum: f64, (lo, span): (f64, f64)) -> ProjectedHeader {
+    ProjectedHeader {
+        samples: [w as u32, h as u32],
+        levels: levels_for(w, h),
+        step: 1.0,
+        growth: 1.0,
+        quantum,
+        value_min: lo,
+        value_span: span,
+        roughness: 0.0,
+        max_error: 0.0,
+        order: Order::Quincunx,
+    }
+}
+
+/// The stream bytes a target rate allows: the file's, less the source-error map's share and
+/// what the metadata and mask take.
+fn rate_budget(bpp: f64, raster: &Raster) -> Result<usize, Error> {
+    if !(bpp.is_finite() && bpp > 0.0) {
+        return Err(Error::Settings(format!(
+            "--target-bpp {bpp} must be positive"
+        )));
+    }
+    let cells = (raster.width * raster.height) as f64;
+    Ok(without_map((bpp * cells / 8.0).floor() as usize).saturating_sub(512))
 }

@@ -15,6 +15,11 @@ use crate::geo::{self, Pixels};
 use crate::io::asset::Asset;
 use crate::render::colour::{rgb_bound, ycbcr_to_rgb};
 
+/// How near a sample centre (in cells) a point counts as on it, for assets with a promise per
+/// sample: far above the rounding of a coordinate (a longitude in f64 to unit coordinates in
+/// f32 is about 1e-6 of a cell on a 1,000-cell grid), far below any real offset.
+pub const SAMPLE_SNAP: f32 = 1e-4;
+
 /// Decodes one plane's point chains elsewhere (a GPU): `(plane, unit points, iterations,
 /// normalised tolerance)`, or `None` to leave them to the CPU.
 pub type ContinuousHook<'a> =
@@ -257,7 +262,7 @@ impl Asset {
     ) -> (Grid, DiscreteReport) {
         let native = [self.meta.width as usize, self.meta.height as usize];
         match op.samples() {
-            Some(z) if [width, height] == native => (
+            Some(z) if [width, height] == native && z.len() == width * height => (
                 Grid {
                     width,
                     height,
@@ -284,6 +289,7 @@ impl Asset {
 
     /// Continuous decoding of one unit point (u, v) with `iterations` inverse steps.
     pub fn point(&self, u: f32, v: f32, iterations: u32) -> PointSample {
+        let [u, v] = self.snap_to_samples(&[[u, v]]).map_or([u, v], |p| p[0]);
         let pv: Vec<_> = self
             .planes
             .iter()
@@ -304,6 +310,24 @@ impl Asset {
         }
     }
 
+    /// Points within [`SAMPLE_SNAP`] of a cell of a sample centre of an asset with a promise
+    /// per sample (projected `--max-error`), moved onto it: a longitude and latitude converted to
+    /// unit coordinates land a rounding away from the centre they name, and the promise (and
+    /// its bound) is the sample's (`None`: no asset with a promise, or nothing to move).
+    fn snap_to_samples(&self, pts: &[[f32; 2]]) -> Option<Vec<[f32; 2]>> {
+        self.planes.first()?.promise()?;
+        let (w, h) = (self.meta.width as f32, self.meta.height as f32);
+        let snap = |t: f32, n: f32| {
+            let x = t * n - 0.5;
+            if (x - x.round()).abs() < SAMPLE_SNAP {
+                (x.round() + 0.5) / n
+            } else {
+                t
+            }
+        };
+        Some(pts.iter().map(|&[u, v]| [snap(u, w), snap(v, h)]).collect())
+    }
+
     /// The bound on |answer - source| at unit point (u, v) beyond convergence: the source-error
     /// map there, or, on a sample centre of an asset whose codec promised a largest error
     /// (projected `--max-error`), that promise where it is smaller: the map bounds the block's
@@ -313,7 +337,7 @@ impl Asset {
         let map = self.source_error.as_ref()?.at(u, v);
         let on_sample = |t: f32, n: u32| {
             let x = t * n as f32 - 0.5;
-            (x - x.round()).abs() < 1e-3
+            (x - x.round()).abs() < SAMPLE_SNAP
         };
         let promise = self
             .planes
@@ -339,6 +363,8 @@ impl Asset {
         continuous: &ContinuousHook<'_>,
     ) -> Vec<PointSample> {
         let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
+        let snapped = self.snap_to_samples(pts);
+        let pts = snapped.as_deref().unwrap_or(pts);
         let per_plane: Vec<Vec<decode::PointValue>> = self
             .planes
             .iter()

@@ -679,11 +679,18 @@ impl Asset {
         mask: Option<Mask>,
     ) -> Result<Asset, Error> {
         Asset::assemble(meta, planes, mask, |meta, header, stream| {
-            if header.samples != [meta.width, meta.height] {
+            let (w, h) = (meta.width, meta.height);
+            // Chroma of a colour asset is coded at half resolution (as the quadtree's).
+            let chroma = meta.colour == fractile_proto::ColourModel::YCbCr
+                && header.samples == [w.div_ceil(2), h.div_ceil(2)];
+            if header.samples != [w, h] && !chroma {
                 return Err("sample grid and metadata disagree".into());
             }
             let grid = crate::codecs::projected::decode_grid(&header, &stream)?;
-            let operator = ProjectedOperator::new(&header, &grid)?;
+            let mut operator = ProjectedOperator::new(&header, &grid)?;
+            if chroma && header.samples != [w, h] {
+                operator = operator.with_valid([w as f32 / 2.0, h as f32 / 2.0]);
+            }
             Ok(Plane {
                 coding: Coding::Projected { header, stream },
                 operator: PlaneOperator::Projected(operator),

@@ -95,11 +95,13 @@ impl ProjectedHeader {
 
     /// The encoder's promise at every valid sample, source units: `max_error` in max-error mode
     /// (which sets a quantum, or a positive bound on continuous data); none under rate control.
-    /// Decoded values are f32 fractions of the value range, so the promise carries their
-    /// rounding (2^-22 of the range; the encoder checks the bound with the same slack).
+    /// Decoded values are f32 fractions of the value range, and a continuous decode sums a
+    /// chain of them, so the promise carries their rounding: 2^-20 of the range (0.015 m on
+    /// etopo20; the encoder checks its samples with 2^-22, the chain measured up to 4 times
+    /// that).
     pub fn promise(&self) -> Option<f64> {
         (self.max_error > 0.0 || self.quantum > 0.0)
-            .then_some(self.max_error + self.value_span * 2f64.powi(-22))
+            .then_some(self.max_error + self.value_span * 2f64.powi(-20))
     }
 
     /// Samples in all.
@@ -230,6 +232,9 @@ pub struct ProjectedOperator {
     records: Vec<[f32; 9]>,
     rho: f32,
     interval: (f32, f32),
+    /// The part of the frame unit coordinates map onto (the frame, or for half-resolution
+    /// chroma of an odd-sized image, half the luma's extent).
+    valid: [f32; 2],
 }
 
 /// The even `c` of a cell along one axis, so that `phi(t) = 2 t - c` maps the cell `[i, i + 1]`
@@ -287,6 +292,7 @@ impl ProjectedOperator {
             records: Vec::new(),
             rho,
             interval: (0.0, 1.0),
+            valid: [size[0] as f32, size[1] as f32],
         };
         let [nx, ny] = size;
         let records: Vec<[f32; 9]> = (0..(nx - 1) * (ny - 1))
@@ -372,6 +378,13 @@ impl ProjectedOperator {
         (c, t - c as f32)
     }
 
+    /// The operator with unit coordinates mapped onto `[0, valid)` of its frame (chroma planes:
+    /// the luma's extent halved).
+    pub fn with_valid(mut self, valid: [f32; 2]) -> ProjectedOperator {
+        self.valid = valid;
+        self
+    }
+
     /// The decoded samples, normalised, row-major: the attractor at the sample centres.
     pub fn samples(&self) -> &[f32] {
         &self.z
@@ -403,7 +416,7 @@ impl Operator<2> for ProjectedOperator {
     }
 
     fn valid(&self) -> [f32; 2] {
-        self.frame()
+        self.valid
     }
 
     /// 1: samples are points, so the discrete decoder samples the previous iterate at phi(p).
@@ -461,7 +474,7 @@ impl crate::core::pieces::Flatten for ProjectedOperator {
         }
         PieceTable {
             frame: self.frame(),
-            valid: self.frame(),
+            valid: self.valid,
             lut_origin: [0.5; 2],
             lut_cell: [0.5; 2],
             lut_size: [lx as u32, ly as u32],
