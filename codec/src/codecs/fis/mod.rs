@@ -208,12 +208,17 @@ impl IntCoder {
 }
 
 /// LOCO-I's median edge detector: the prediction of a node from its left, upper and upper-left
-/// neighbours (the best simple predictor for terrain-like grids).
-fn med(a: i32, b: i32, c: i32) -> i32 {
-    if c >= a.max(b) {
-        a.min(b)
-    } else if c <= a.min(b) {
-        a.max(b)
+/// neighbours (the best simple predictor for terrain-like grids). Integer heights here, decoded
+/// samples in the projected codec's control grid.
+pub(crate) fn med<T>(a: T, b: T, c: T) -> T
+where
+    T: Copy + PartialOrd + std::ops::Add<Output = T> + std::ops::Sub<Output = T>,
+{
+    let (lo, hi) = if a < b { (a, b) } else { (b, a) };
+    if c >= hi {
+        lo
+    } else if c <= lo {
+        hi
     } else {
         a + b - c
     }

@@ -24,7 +24,7 @@
 //! [`walk`], which asks a [`Details`] for each sample's decoded value: the encoder quantises
 //! and codes, the decoder reads. One walk, so the two cannot drift apart.
 
-use crate::codecs::fis::IntCoder;
+use crate::codecs::fis::{IntCoder, med};
 use crate::core::entropy::{Decoder, Encoder};
 
 /// Contexts of the detail coder per pass: local relief over the step (8 buckets) times the
@@ -299,17 +299,6 @@ fn neighbour_bucket(n: u32) -> usize {
         0..=2 => n as usize,
         3..=4 => 3,
         _ => 4,
-    }
-}
-
-/// LOCO-I's median edge detector.
-fn med(a: f64, b: f64, c: f64) -> f64 {
-    if c >= a.max(b) {
-        a.min(b)
-    } else if c <= a.min(b) {
-        a.max(b)
-    } else {
-        a + b - c
     }
 }
 
