@@ -356,6 +356,7 @@ fn colour_images_code_as_luma_and_half_resolution_chroma() {
     let Coding::Projected { header, .. } = &asset.planes[1].coding else {
         panic!("projected chroma");
     };
+    // At 1 bpp half-resolution chroma codes better than full (both are tried).
     assert_eq!(header.samples, [256, 256], "chroma at half resolution");
     println!(
         "astronaut at 1 bpp: {:.3} bpp, {:.2} dB",
@@ -374,3 +375,4 @@ fn colour_images_code_as_luma_and_half_resolution_chroma() {
         "a bound on colour is refused"
     );
 }
+
