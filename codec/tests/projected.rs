@@ -375,4 +375,3 @@ fn colour_images_code_as_luma_and_half_resolution_chroma() {
         "a bound on colour is refused"
     );
 }
-
