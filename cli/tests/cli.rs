@@ -394,3 +394,65 @@ fn crafted_files_are_refused_by_the_command_line() {
         }
     }
 }
+
+/// `--codec projected --max-error E`, as a DEM user runs it: the promise reported and kept
+/// (the decoded GeoTIFF compared with the source by `compare`), and the flags it refuses.
+#[test]
+fn projected_max_error_is_kept_through_encode_decode_and_compare() {
+    let dir = tempdir("projected");
+    let asset = dir.join("j.fra");
+    let enc = json(
+        &bin()
+            .arg("encode")
+            .arg(data("jacksboro.tif"))
+            .arg("-o")
+            .arg(&asset)
+            .args(["--codec", "projected", "--max-error", "3", "--json"])
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(enc["codec"], "projected");
+    assert_eq!(enc["max_error_bound"], 3.0);
+    assert!(enc["max_error"].as_f64().unwrap() <= 3.0 + 1e-3, "{enc}");
+    let tif = dir.join("j.tif");
+    let out = bin()
+        .arg("decode")
+        .arg(&asset)
+        .arg("-o")
+        .arg(&tif)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let cmp = json(
+        &bin()
+            .arg("compare")
+            .arg(data("jacksboro.tif"))
+            .arg(&tif)
+            .arg("--json")
+            .output()
+            .unwrap(),
+    );
+    assert!(cmp["max_error"].as_f64().unwrap() <= 3.0 + 1e-3, "{cmp}");
+    // A bound is for this codec only, and this codec needs a bound or a size.
+    for args in [
+        vec!["--max-error", "3"],
+        vec!["--codec", "projected"],
+        vec!["--codec", "projected", "--tolerance", "2"],
+    ] {
+        let out = bin()
+            .arg("encode")
+            .arg(data("jacksboro.tif"))
+            .arg("-o")
+            .arg(dir.join("x.fra"))
+            .args(&args)
+            .output()
+            .unwrap();
+        assert!(!out.status.success(), "{args:?} was accepted");
+        assert!(!dir.join("x.fra").exists(), "{args:?} left a file");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
