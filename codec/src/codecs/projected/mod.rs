@@ -372,9 +372,12 @@ impl ProjectedOperator {
     }
 
     /// The cell of sample coordinate `t` along an axis of `n` samples, and the position in it.
+    #[inline(always)]
     fn locate(&self, t: f32, n: usize) -> (usize, f32) {
         let t = (t - 0.5).clamp(0.0, (n - 1) as f32);
-        let c = (t as usize).min(n - 2);
+        // t is in [0, n - 1] here (a NaN clamps to NaN and truncates to some value the min
+        // bounds): one instruction, where `as usize` adds fix-ups for what cannot happen.
+        let c = (crate::codecs::quadtree::operator::truncate(t).max(0) as usize).min(n - 2);
         (c, t - c as f32)
     }
 

@@ -324,7 +324,7 @@ impl Operator<2> for QuadtreeOperator {
 /// `t` truncated towards zero; NaN and values out of the `i32` range give some value that
 /// the caller clamps. (One instruction on x86-64, where `as i32` adds fix-ups for those.)
 #[inline(always)]
-fn truncate(t: f32) -> i32 {
+pub(crate) fn truncate(t: f32) -> i32 {
     #[cfg(target_arch = "x86_64")]
     {
         use std::arch::x86_64::{_mm_cvttss_si32, _mm_set_ss};
