@@ -82,24 +82,39 @@ async fn tiles_in_every_encoding_agree() {
             .iter()
             .all(|&v| v as f64 >= lo - b - 1.0 && v as f64 <= hi + b + 1.0)
     );
-    // Each PNG encoding reads back to the float32 heights within its own quantum.
+    // Each PNG encoding at full precision reads back to the float32 heights within its own
+    // quantum; by default, terrain-RGB and Terrarium round further, by at most what their
+    // error bound grew by over the float32 tile's.
+    let worst = |p: &fractile_client::Tile| {
+        p.values
+            .iter()
+            .zip(&f32.values)
+            .map(|(a, b)| (a - b).abs() as f64)
+            .fold(0.0, f64::max)
+    };
     for (e, quantum) in [
         (TileEncoding::Terrarium, 1.0 / 256.0),
         (TileEncoding::TerrainRgb, 0.1),
         (TileEncoding::Gray16, (hi - lo) / 65535.0),
     ] {
-        let p = get(e).await;
+        let full = TileRequest {
+            precision: Some(fractile_client::Precision::Full),
+            ..TileRequest::new(t, e)
+        };
+        let p = c.tile("jacksboro", &full).await.unwrap();
         assert!(p.body.starts_with(b"\x89PNG"), "{e:?}");
-        let worst = p
-            .values
-            .iter()
-            .zip(&f32.values)
-            .map(|(a, b)| (a - b).abs() as f64)
-            .fold(0.0, f64::max);
+        let w = worst(&p);
+        assert!(w <= quantum * 0.5 + 1e-3, "{e:?}: {w} > {quantum}/2");
+        let rounded = get(e).await;
+        let grown = (rounded.error_bound.unwrap() - f32.error_bound.unwrap()) as f64;
+        let w = worst(&rounded);
         assert!(
-            worst <= quantum * 0.5 + 1e-3,
-            "{e:?}: {worst} > {quantum}/2"
+            w <= grown + quantum * 0.5 + 1e-3,
+            "{e:?}: rounded by {w}, its bound grew by {grown}"
         );
+        if e != TileEncoding::Gray16 {
+            assert!(grown > 0.0 && rounded.body.len() < p.body.len(), "{e:?}");
+        }
     }
     let visual = get(TileEncoding::Visual).await;
     assert_eq!(visual.values.len(), 256 * 256 * visual.channels as usize);

@@ -16,7 +16,7 @@ pub mod view;
 use std::time::{Duration, Instant};
 
 pub use error::ClientError;
-pub use fractile_proto::query::{Backend, Choice, MeshFormat, RegionFormat};
+pub use fractile_proto::query::{Backend, Choice, MeshFormat, Precision, RegionFormat};
 pub use fractile_proto::{
     AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, ErrorBody, LayerJson,
     PointResult, PointsRequest, PointsResponse, TileJson, TileRange,
@@ -365,6 +365,7 @@ impl Client {
                 (req.tile_size != 256).then(|| req.tile_size.to_string()),
             ),
             ("backend", self.backend.map(|b| b.name().to_string())),
+            ("precision", req.precision.map(|p| p.name().to_string())),
         ]);
         let path = self.asset_path(id, &format!("/tiles/{z}/{x}/{y}.{ext}"))?;
         let start = Instant::now();
@@ -623,6 +624,10 @@ impl Client {
                 let req = TileRequest {
                     iterations: Some(n),
                     tolerance: None,
+                    // Refinement compares steps and stops on the convergence bound: heights
+                    // rounded to the error bound would hide changes under a step and keep the
+                    // bound from falling under half of one.
+                    precision: Some(fractile_proto::query::Precision::Full),
                     ..*req
                 };
                 async move { self.tile(id, &req).await }

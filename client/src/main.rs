@@ -131,6 +131,11 @@ struct TileArgs {
     /// 256 or 512.
     #[arg(long, default_value_t = 256)]
     tile_size: u32,
+    /// Terrain-RGB and Terrarium tiles: `bound` rounds heights to what the tile's error
+    /// bound justifies (smaller PNGs; the server's default), `full` keeps every 0.1 m or
+    /// 1/256 m. `--refine` always asks for full precision.
+    #[arg(long)]
+    precision: Option<String>,
     #[command(flatten)]
     refine: RefineArgs,
 }
@@ -498,11 +503,17 @@ async fn tile(client: &Client, json: bool, a: TileArgs) -> Result<()> {
         output,
         encoding: enc,
         tile_size,
+        precision,
         refine,
     } = a;
+    let precision = precision
+        .map(|p| p.parse::<fractile_client::Precision>())
+        .transpose()
+        .map_err(|e| anyhow::anyhow!(e))?;
     let req = TileRequest {
         iterations: refine.iterations,
         tile_size,
+        precision,
         ..TileRequest::new(TileAddress { z, x, y }, {
             let by_name = output.extension().is_some_and(|e| e == "f32");
             let name = enc.unwrap_or_else(|| if by_name { "f32" } else { "png" }.into());

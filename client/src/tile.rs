@@ -110,6 +110,9 @@ pub struct TileRequest {
     pub tolerance: Option<f32>,
     /// 256 or 512.
     pub tile_size: u32,
+    /// `precision` of terrain-RGB and Terrarium tiles (`None`: the server's default,
+    /// `bound`: heights rounded to what the tile's error bound justifies).
+    pub precision: Option<fractile_proto::query::Precision>,
 }
 
 impl TileRequest {
@@ -121,6 +124,7 @@ impl TileRequest {
             iterations: None,
             tolerance: None,
             tile_size: 256,
+            precision: None,
         }
     }
 }

@@ -73,6 +73,21 @@ choice!(
 );
 
 choice!(
+    /// `precision` of a PNG height tile (terrain-RGB or Terrarium).
+    #[derive(Default)]
+    Precision, "precision" {
+        /// Heights rounded to the largest power-of-two multiple of the encoding's unit that
+        /// is at most a quarter of the tile's `X-Error-Bound` (which then includes the
+        /// rounding): neighbouring pixels repeat, and PNG codes them in fewer bytes. Tiles of
+        /// assets without a source-error map keep full precision (no bound justifies a step).
+        #[default]
+        Bound = "bound",
+        /// Every height at the encoding's own unit (0.1 m, 1/256 m).
+        Full = "full",
+    }
+);
+
+choice!(
     /// `colormap` of a visual PNG tile of a height field.
     Colormap, "colormap" {
         /// Black to white.

@@ -3,7 +3,9 @@
 //! keep it and the router in step both ways: every documented path is requested, and every
 //! route of `api::router` must be documented; closed choices come from `fractile-proto`.
 
-use fractile_proto::query::{Backend, Choice, Colormap, HeightEncoding, MeshFormat, RegionFormat};
+use fractile_proto::query::{
+    Backend, Choice, Colormap, HeightEncoding, MeshFormat, Precision, RegionFormat,
+};
 use serde_json::{Value, json};
 
 fn param(name: &str, place: &str, schema: Value, description: &str) -> Value {
@@ -83,7 +85,8 @@ pub fn document() -> Value {
                     param("encoding", "query", json!({"enum": names::<HeightEncoding>()}), "Height packing (MapLibre's formulas)"),
                     param("rescale", "query", json!({"type": "string"}), "min,max for visual PNGs of heights"),
                     param("colormap", "query", json!({"enum": names::<Colormap>()}), "Colour ramp for visual PNGs of heights"),
-                    param("hillshade", "query", json!({"type": "boolean"}), "Hillshade visual PNGs of heights (sun at 315 degrees, 45 degrees up)")],
+                    param("hillshade", "query", json!({"type": "boolean"}), "Hillshade visual PNGs of heights (sun at 315 degrees, 45 degrees up)"),
+                    param("precision", "query", json!({"enum": names::<Precision>(), "default": "bound"}), "terrainrgb and terrarium tiles: bound rounds heights to the largest power-of-two multiple of the encoding's unit (0.1 m, 1/256 m) that is at most a quarter of the tile's X-Error-Bound, which then includes the rounding (smaller PNGs; assets without a source-error map keep full precision); full keeps every unit")],
                 "responses": ok_tile}},
             "/v1/assets/{id}/layer.json": {"get": {"summary": "Cesium terrain layer (quantized-mesh-1.0, geographic TMS scheme, EPSG:4326) of a georeferenced height field: tile URLs relative to this document, the levels and the tiles available at each", "parameters": [id], "responses": {"200": {"description": "layer.json"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/terrain/{z}/{x}/{y}.terrain": {"get": {

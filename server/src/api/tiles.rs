@@ -1,6 +1,6 @@
 //! TileJSON and tiles: Web Mercator (or unit-square) tiles by continuous extraction, cached by ETag.
 
-use fractile_proto::query::Colormap;
+use fractile_proto::query::{Colormap, Precision};
 
 use super::*;
 
@@ -66,6 +66,7 @@ pub(super) struct TileQuery {
     rescale: Option<String>,
     colormap: Option<String>,
     hillshade: Option<bool>,
+    precision: Option<String>,
 }
 
 /// A tile's ETag: the asset's version, the request's key and the build that drew it. A new
@@ -127,6 +128,7 @@ struct TileJob {
     format: encoding::TileFormat,
     colormap: Option<fractile_codec::render::Colormap>,
     shade: bool,
+    precision: Precision,
     iterations: u32,
     tolerance: f32,
 }
@@ -145,8 +147,16 @@ pub(super) async fn tile(
     let choice = backend_for(&state, q.backend.as_deref())?;
     // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
     let key = format!(
-        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{:?}&{}&{:?}&{:?}&{:?}&{}",
-        a.hash, q.iterations, q.tolerance, job.size, q.encoding, q.rescale, q.colormap, job.shade
+        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{:?}&{}&{:?}&{:?}&{:?}&{}&{}",
+        a.hash,
+        q.iterations,
+        q.tolerance,
+        job.size,
+        q.encoding,
+        q.rescale,
+        q.colormap,
+        job.shade,
+        job.precision
     );
     let tag = etag(&a, &key);
     if not_modified(&headers, &tag) {
@@ -233,6 +243,12 @@ fn tile_job(
             "hillshade is for visual PNG tiles of height fields",
         ));
     }
+    let precision = match q.precision.as_deref() {
+        None => Precision::default(),
+        Some(p) => p
+            .parse()
+            .map_err(|e: String| AppError::bad_request("bad_precision", e))?,
+    };
     Ok(TileJob {
         z,
         x,
@@ -241,6 +257,7 @@ fn tile_job(
         format,
         colormap,
         shade,
+        precision,
         iterations,
         tolerance,
     })
@@ -373,13 +390,27 @@ fn draw_tile(
             shade,
         }
     });
-    let (content_type, body) =
-        encoding::encode_tile(&asset.asset.meta, &channels, size, job.format, style);
+    // Heights rounded to what the tile's bound justifies; the bounds then include the
+    // rounding, so they still hold for the heights as sent.
+    let rounding = match (job.format, job.precision, bound.error_bound()) {
+        (encoding::TileFormat::Heights(e), Precision::Bound, Some(b)) => {
+            encoding::Rounding::for_bound(e, b)
+        }
+        _ => encoding::Rounding::default(),
+    };
+    let (content_type, body) = encoding::encode_tile(
+        &asset.asset.meta,
+        &channels,
+        size,
+        job.format,
+        style,
+        (rounding, encoding::Deflate::for_tile(rounding)),
+    );
     Ok(Cached {
         content_type,
         content_encoding: None,
         body: Bytes::from(body),
-        bounds: bound,
+        bounds: bound.plus(rounding.error),
     })
 }
 

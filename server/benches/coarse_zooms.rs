@@ -1,0 +1,197 @@
+//! Uncached tiles of a 9.3 Mpx DEM over zooms 0-7: per zoom, the first tile (which waits for
+//! the zoom's coarse decode), then the rest with `CONCURRENCY` requests in flight: p50, p99,
+//! and how many coarse grids were decoded (`fractile_coarse_cache_total{result="miss"}`).
+//! Prints a table.
+//!
+//! The DEM is 16 copies of etopo20 (1080 x 540), mirrored so that they join, as one global
+//! 4320 x 2160 grid (issue 34 asks for a 9.3 Mpx DEM made from the real data). Its default
+//! encode (0.8 bits a cell) takes minutes on two cores, so it is kept in
+//! `target/bench-data/` and reused; delete it after changing the encoder.
+//!
+//! `cargo bench -p fractile --bench coarse_zooms [-- TILES_PER_ZOOM]` (default 256).
+
+use std::sync::Arc;
+use std::time::{Duration, Instant};
+
+use axum::body::Body;
+use axum::http::Request;
+use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_proto::Georef;
+use fractile_server::api::AppState;
+use fractile_server::store::Store;
+use http_body_util::BodyExt;
+use tower::ServiceExt;
+
+/// Requests in flight after a zoom's first tile: a map view asks for its tiles at once.
+const CONCURRENCY: usize = 8;
+
+/// etopo20 mirrored 4 x 4 (odd columns of copies flipped left-right, odd rows upside down).
+fn mosaic() -> Raster {
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata");
+    let src = Raster::open(&root.join("etopo20.tif")).expect("etopo20");
+    let (w, h) = (src.width, src.height);
+    let (mw, mh) = (4 * w, 4 * h);
+    let mut values = vec![0f32; mw * mh];
+    for y in 0..mh {
+        let (cy, sy) = (y / h, y % h);
+        let sy = if cy % 2 == 1 { h - 1 - sy } else { sy };
+        for x in 0..mw {
+            let (cx, sx) = (x / w, x % w);
+            let sx = if cx % 2 == 1 { w - 1 - sx } else { sx };
+            values[y * mw + x] = src.channels[0][sy * w + sx];
+        }
+    }
+    let mut r = Raster::from_values(mw, mh, values, src.kind).unwrap();
+    r.sample = src.sample;
+    r.units = src.units.clone();
+    r.georef = Some(Georef {
+        epsg: Some(4326),
+        origin: [-180.0, 90.0],
+        pixel_size: [360.0 / mw as f64, -180.0 / mh as f64],
+    });
+    r
+}
+
+/// The encoded mosaic, from `target/bench-data/` when it is there.
+fn asset() -> Vec<u8> {
+    let dir = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/bench-data");
+    let path = dir.join("etopo20-mosaic-9mpx.fra");
+    if let Ok(bytes) = std::fs::read(&path) {
+        return bytes;
+    }
+    let r = mosaic();
+    println!(
+        "encoding the {} x {} mosaic (default DEM encode, minutes)...",
+        r.width, r.height
+    );
+    let t = Instant::now();
+    let s = EncodeSettings {
+        rate: RateMode::TargetBpp(0.8),
+        ..EncodeSettings::default()
+    };
+    let enc = encode(&r, &s, &|_, _| {}).expect("an encode");
+    println!(
+        "encoded in {:.0} s, {} bytes",
+        t.elapsed().as_secs_f64(),
+        enc.bytes.len()
+    );
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(&path, &enc.bytes).unwrap();
+    enc.bytes
+}
+
+async fn get(state: &Arc<AppState>, uri: String) -> Duration {
+    let t = Instant::now();
+    let req = Request::get(&uri).body(Body::empty()).unwrap();
+    let resp = fractile_server::app(state.clone())
+        .oneshot(req)
+        .await
+        .unwrap();
+    let ok = resp.status().is_success();
+    resp.into_body().collect().await.unwrap();
+    assert!(ok, "{uri}");
+    t.elapsed()
+}
+
+fn coarse_misses(metrics: &metrics_exporter_prometheus::PrometheusHandle) -> u64 {
+    metrics
+        .render()
+        .lines()
+        .find(|l| l.starts_with("fractile_coarse_cache_total") && l.contains("\"miss\""))
+        .and_then(|l| l.rsplit(' ').next()?.parse().ok())
+        .unwrap_or(0)
+}
+
+fn percentile(sorted: &[Duration], p: f64) -> f64 {
+    if sorted.is_empty() {
+        return f64::NAN;
+    }
+    let k = ((sorted.len() as f64 * p).ceil() as usize).clamp(1, sorted.len()) - 1;
+    sorted[k].as_secs_f64() * 1e3
+}
+
+fn main() {
+    let per_zoom: usize = std::env::args()
+        .skip(1)
+        .find(|a| !a.starts_with("--"))
+        .map(|a| a.parse().expect("tiles per zoom"))
+        .unwrap_or(256);
+    let metrics = metrics_exporter_prometheus::PrometheusBuilder::new()
+        .install_recorder()
+        .unwrap();
+    let dir = std::env::temp_dir().join(format!("fractile-coarse-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("mosaic.fra"), asset()).unwrap();
+    let (store, _) = Store::open(&dir).unwrap();
+    let state = Arc::new(AppState::new(store, "http://bench".into()));
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    println!(
+        "\n9.3 Mpx mosaic, terrain-RGB tiles, uncached, {CONCURRENCY} in flight after each zoom's first tile"
+    );
+    println!("| zoom | tiles | first tile ms | p50 ms | p99 ms | coarse grids decoded |");
+    println!("|---|---|---|---|---|---|");
+    // SplitMix64 for the sample of tiles at deep zooms.
+    let mut seed = 7u64;
+    let mut next = move |n: u32| {
+        seed = seed.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = seed;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) % n as u64) as u32
+    };
+    let mut all_after_first = Vec::new();
+    for z in 0u8..=7 {
+        let side = 1u32 << z;
+        let mut tiles: Vec<(u32, u32)> = if (side * side) as usize <= per_zoom {
+            (0..side * side).map(|k| (k % side, k / side)).collect()
+        } else {
+            let mut seen = std::collections::HashSet::new();
+            while seen.len() < per_zoom {
+                seen.insert((next(side), next(side)));
+            }
+            seen.into_iter().collect()
+        };
+        tiles.sort();
+        let uri = |(x, y): (u32, u32)| {
+            format!("/v1/assets/mosaic/tiles/{z}/{x}/{y}.png?encoding=terrainrgb")
+        };
+        let before = coarse_misses(&metrics);
+        let first = rt.block_on(get(&state, uri(tiles[0])));
+        let rest: Vec<Duration> = rt.block_on(async {
+            let mut out = Vec::new();
+            let mut set = tokio::task::JoinSet::new();
+            let mut queue = tiles[1..].iter().copied();
+            loop {
+                while set.len() < CONCURRENCY {
+                    let Some(t) = queue.next() else { break };
+                    let (state, u) = (state.clone(), uri(t));
+                    set.spawn(async move { get(&state, u).await });
+                }
+                match set.join_next().await {
+                    Some(d) => out.push(d.unwrap()),
+                    None => break,
+                }
+            }
+            out
+        });
+        let mut sorted = rest.clone();
+        sorted.sort();
+        println!(
+            "| {z} | {} | {:.0} | {:.1} | {:.1} | {} |",
+            tiles.len(),
+            first.as_secs_f64() * 1e3,
+            percentile(&sorted, 0.5),
+            percentile(&sorted, 0.99),
+            coarse_misses(&metrics) - before
+        );
+        all_after_first.extend(rest);
+    }
+    all_after_first.sort();
+    println!(
+        "all zooms after each first tile: {} tiles, p50 {:.1} ms, p99 {:.1} ms",
+        all_after_first.len(),
+        percentile(&all_after_first, 0.5),
+        percentile(&all_after_first, 0.99)
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -1,0 +1,145 @@
+//! Bytes and encode time of terrain-RGB tiles by precision and deflate effort, on the default
+//! DEM encode (0.8 bits a cell) of a real DEM, over a walk of zooms 10 to 16 (eight tiles a
+//! zoom along the asset's diagonal). Prints a table.
+//!
+//! `cargo bench -p fractile --bench tile_png [-- DEM.tif ...]` (default: testdata/jacksboro.tif).
+
+use std::sync::Arc;
+use std::time::Instant;
+
+use axum::body::Body;
+use axum::http::Request;
+use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_server::api::AppState;
+use fractile_server::encoding::{Deflate, HeightEncoding, Rounding, TileFormat, encode_tile};
+use fractile_server::store::Store;
+use http_body_util::BodyExt;
+use tower::ServiceExt;
+
+/// A decoded tile: heights and the bound the server gives them at full precision.
+struct Decoded {
+    heights: Vec<f32>,
+    error_bound: f32,
+}
+
+async fn f32_tile(state: &Arc<AppState>, z: u8, x: u32, y: u32) -> Option<Decoded> {
+    let uri = format!("/v1/assets/dem/tiles/{z}/{x}/{y}.f32");
+    let req = Request::get(&uri).body(Body::empty()).unwrap();
+    let resp = fractile_server::app(state.clone())
+        .oneshot(req)
+        .await
+        .unwrap();
+    if !resp.status().is_success() {
+        return None;
+    }
+    let error_bound = resp
+        .headers()
+        .get("x-error-bound")?
+        .to_str()
+        .ok()?
+        .parse()
+        .ok()?;
+    let body = resp.into_body().collect().await.unwrap().to_bytes();
+    let heights = body
+        .chunks_exact(4)
+        .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
+        .collect();
+    Some(Decoded {
+        heights,
+        error_bound,
+    })
+}
+
+fn bench_dem(path: &std::path::Path) {
+    let src = Raster::open(path).expect("a DEM");
+    let settings = EncodeSettings {
+        rate: RateMode::TargetBpp(0.8),
+        ..EncodeSettings::default()
+    };
+    let enc = encode(&src, &settings, &|_, _| {}).expect("an encode");
+    let dir = std::env::temp_dir().join(format!("fractile-tile-png-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("dem.fra"), &enc.bytes).unwrap();
+    let (store, _) = Store::open(&dir).unwrap();
+    let state = Arc::new(AppState::new(store, "http://bench".into()));
+    let stored = state.store.get("dem").unwrap();
+    let place = stored.placement.clone().expect("a georeferenced DEM");
+    let [w, s, e, n] = place.bounds();
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    let mut tiles = Vec::new();
+    for z in 10u8..=16 {
+        for k in 0..8 {
+            let t = (k as f64 + 0.5) / 8.0;
+            let (x, y) = fractile_codec::geo::lonlat_tile(z, w + t * (e - w), n - t * (n - s));
+            if let Some(d) = rt.block_on(f32_tile(&state, z, x, y)) {
+                tiles.push(d);
+            }
+        }
+    }
+    let name = path.file_name().unwrap().to_string_lossy();
+    println!(
+        "\n{name}: {} tiles over zooms 10-16, mean X-Error-Bound {:.1} m",
+        tiles.len(),
+        tiles.iter().map(|t| t.error_bound as f64).sum::<f64>() / tiles.len() as f64
+    );
+    println!("| precision | deflate | mean bytes | vs full, fast | encode ms a tile |");
+    println!("|---|---|---|---|---|");
+    let format = TileFormat::Heights(HeightEncoding::TerrainRgb);
+    let mut baseline = None;
+    for bound in [false, true] {
+        for deflate in [
+            Deflate::Fast,
+            Deflate::Level(1),
+            Deflate::Level(3),
+            Deflate::Level(6),
+            Deflate::Level(9),
+        ] {
+            let (mut bytes, start) = (0usize, Instant::now());
+            let reps = 3;
+            for _ in 0..reps {
+                bytes = 0;
+                for t in &tiles {
+                    let rounding = if bound {
+                        Rounding::for_bound(HeightEncoding::TerrainRgb, t.error_bound)
+                    } else {
+                        Rounding::default()
+                    };
+                    let channels = [t.heights.clone()];
+                    let (_, body) = encode_tile(
+                        &stored.asset.meta,
+                        &channels,
+                        256,
+                        format,
+                        None,
+                        (rounding, deflate),
+                    );
+                    bytes += body.len();
+                }
+            }
+            let ms = start.elapsed().as_secs_f64() * 1e3 / (reps * tiles.len()) as f64;
+            let mean = bytes as f64 / tiles.len() as f64;
+            let base = *baseline.get_or_insert(mean);
+            println!(
+                "| {} | {deflate:?} | {mean:.0} | {:.2} | {ms:.2} |",
+                if bound { "bound" } else { "full" },
+                mean / base
+            );
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| !a.starts_with("--"))
+        .collect();
+    let paths: Vec<std::path::PathBuf> = if args.is_empty() {
+        vec![std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata/jacksboro.tif")]
+    } else {
+        args.iter().map(Into::into).collect()
+    };
+    for p in paths {
+        bench_dem(&p);
+    }
+}

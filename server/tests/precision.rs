@@ -1,0 +1,163 @@
+//! Terrain-RGB tiles rounded to the precision their error bound justifies (`precision=bound`,
+//! the default) against `precision=full`: bytes, and the bound still holding for the heights
+//! as sent, on the default DEM encode of a real DEM.
+
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode};
+use fractile_codec::core::decode::{Grid, sample_bilinear};
+use fractile_codec::geo;
+use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_server::api::AppState;
+use fractile_server::store::Store;
+use http_body_util::BodyExt;
+use tower::ServiceExt;
+
+fn data(name: &str) -> std::path::PathBuf {
+    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata")
+        .join(name)
+}
+
+/// What TiTiler answers for the same jacksboro tiles (issue 34: 8.4-8.8 KB over zooms 10-16).
+const TITILER_BYTES: f64 = 9_000.0;
+
+struct Answer {
+    bytes: usize,
+    heights: Vec<f64>,
+    error_bound: f64,
+}
+
+async fn tile(state: &Arc<AppState>, z: u8, x: u32, y: u32, precision: &str) -> Answer {
+    let uri = format!(
+        "/v1/assets/jacksboro/tiles/{z}/{x}/{y}.png?encoding=terrainrgb&precision={precision}"
+    );
+    let req = Request::get(&uri).body(Body::empty()).unwrap();
+    let resp = fractile_server::app(state.clone())
+        .oneshot(req)
+        .await
+        .unwrap();
+    assert_eq!(resp.status(), StatusCode::OK, "{uri}");
+    let error_bound = resp.headers()["x-error-bound"]
+        .to_str()
+        .unwrap()
+        .parse()
+        .unwrap();
+    let body = resp.into_body().collect().await.unwrap().to_bytes();
+    let img = image::load_from_memory(&body).unwrap().to_rgb8();
+    let heights = img
+        .pixels()
+        .map(|p| {
+            let [r, g, b] = p.0.map(f64::from);
+            -10000.0 + (r * 65536.0 + g * 256.0 + b) * 0.1
+        })
+        .collect();
+    Answer {
+        bytes: body.len(),
+        heights,
+        error_bound,
+    }
+}
+
+#[tokio::test]
+async fn height_tiles_carry_the_precision_their_bound_justifies_and_the_bound_holds() {
+    // The default DEM encode (0.8 bits a cell, with its source-error map).
+    let src = Raster::open(&data("jacksboro.tif")).unwrap();
+    let settings = EncodeSettings {
+        rate: RateMode::TargetBpp(0.8),
+        ..EncodeSettings::default()
+    };
+    let enc = encode(&src, &settings, &|_, _| {}).unwrap();
+    let dir = std::env::temp_dir().join(format!("fractile-precision-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("jacksboro.fra"), &enc.bytes).unwrap();
+    let (store, _) = Store::open(&dir).unwrap();
+    let state = Arc::new(AppState::new(store, "http://test".into()));
+    let place = state
+        .store
+        .get("jacksboro")
+        .unwrap()
+        .placement
+        .clone()
+        .unwrap();
+    let source = Grid {
+        width: src.width,
+        height: src.height,
+        values: src.channels[0].clone(),
+    };
+    // Zooms 10 to 16 (jacksboro's 3" cells are about zoom 12): four tiles a zoom, spread
+    // over the asset's interior along its diagonal.
+    let [w, s, e, n] = place.bounds();
+    println!("| zoom | full bytes | bound bytes | X-Error-Bound | largest error |");
+    println!("|---|---|---|---|---|");
+    let (mut full_bytes, mut bound_bytes, mut tiles) = (0usize, 0usize, 0usize);
+    for z in 10u8..=16 {
+        let mut row = [0f64; 4];
+        for k in 0..4 {
+            let t = (k as f64 + 0.5) / 4.0;
+            let (x, y) = geo::lonlat_tile(z, w + t * (e - w), n - t * (n - s));
+            let rounded = tile(&state, z, x, y, "bound").await;
+            let full = tile(&state, z, x, y, "full").await;
+            // The bound, which now includes the rounding, against the source sampled
+            // bilinearly at every pixel centre inside the source's cell centres.
+            let (pts, _) = geo::tile_points(Some(&place), z, x, y, 256);
+            let mut worst = 0f64;
+            for (i, p) in pts.iter().enumerate() {
+                let Some([u, v]) = p else { continue };
+                let (fx, fy) = (u * src.width as f32 - 0.5, v * src.height as f32 - 0.5);
+                if fx < 0.0
+                    || fy < 0.0
+                    || fx > (src.width - 1) as f32
+                    || fy > (src.height - 1) as f32
+                {
+                    continue;
+                }
+                let truth = sample_bilinear(&source, fx, fy) as f64;
+                worst = worst.max((rounded.heights[i] - truth).abs());
+                // Rounding moves a height by at most the difference of the two bounds
+                // (half a step), plus the encoding's own 0.05 m.
+                let moved = (rounded.heights[i] - full.heights[i]).abs();
+                assert!(
+                    moved <= rounded.error_bound - full.error_bound + 0.051,
+                    "{z}/{x}/{y}: rounding moved a height {moved} m, bounds {} and {}",
+                    rounded.error_bound,
+                    full.error_bound
+                );
+            }
+            assert!(
+                worst <= rounded.error_bound,
+                "{z}/{x}/{y}: a height {worst} m off the bilinear source, bound {}",
+                rounded.error_bound
+            );
+            assert!(
+                rounded.error_bound <= full.error_bound * 1.125 + 0.1,
+                "{z}/{x}/{y}: rounding grew the bound from {} to {}",
+                full.error_bound,
+                rounded.error_bound
+            );
+            row[0] += full.bytes as f64 / 4.0;
+            row[1] += rounded.bytes as f64 / 4.0;
+            row[2] += rounded.error_bound / 4.0;
+            row[3] = row[3].max(worst);
+            full_bytes += full.bytes;
+            bound_bytes += rounded.bytes;
+            tiles += 1;
+        }
+        println!(
+            "| {z} | {:.0} | {:.0} | {:.1} m | {:.1} m |",
+            row[0], row[1], row[2], row[3]
+        );
+    }
+    let (full, bound) = (
+        full_bytes as f64 / tiles as f64,
+        bound_bytes as f64 / tiles as f64,
+    );
+    println!("mean bytes: full {full:.0}, bound {bound:.0} (TiTiler about {TITILER_BYTES})");
+    assert!(bound < full, "rounded tiles {bound} B, full {full} B");
+    assert!(
+        bound <= 1.5 * TITILER_BYTES,
+        "rounded tiles {bound:.0} B a tile, over 1.5x TiTiler's {TITILER_BYTES}"
+    );
+    std::fs::remove_dir_all(&dir).ok();
+}
