@@ -5,10 +5,11 @@
 //!
 //! The DEM is 16 copies of etopo20 (1080 x 540), mirrored so that they join, as one global
 //! 4320 x 2160 grid (issue 34 asks for a 9.3 Mpx DEM made from the real data). Its default
-//! encode (0.8 bits a cell) takes minutes on two cores, so it is kept in
+//! encode (0.8 bits a cell) takes 4.5 minutes on two cores, so it is kept in
 //! `target/bench-data/` and reused; delete it after changing the encoder.
 //!
-//! `cargo bench -p fractile --bench coarse_zooms [-- TILES_PER_ZOOM]` (default 256).
+//! `cargo bench -p fractile --bench coarse_zooms [-- TILES_PER_ZOOM IN_FLIGHT COARSE_MIB]`
+//! (defaults 256, 8 and the server's `coarse_cache_mib`).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -21,9 +22,6 @@ use fractile_server::api::AppState;
 use fractile_server::store::Store;
 use http_body_util::BodyExt;
 use tower::ServiceExt;
-
-/// Requests in flight after a zoom's first tile: a map view asks for its tiles at once.
-const CONCURRENCY: usize = 8;
 
 /// etopo20 mirrored 4 x 4 (odd columns of copies flipped left-right, odd rows upside down).
 fn mosaic() -> Raster {
@@ -93,13 +91,15 @@ async fn get(state: &Arc<AppState>, uri: String) -> Duration {
     t.elapsed()
 }
 
-fn coarse_misses(metrics: &metrics_exporter_prometheus::PrometheusHandle) -> u64 {
-    metrics
-        .render()
-        .lines()
-        .find(|l| l.starts_with("fractile_coarse_cache_total") && l.contains("\"miss\""))
-        .and_then(|l| l.rsplit(' ').next()?.parse().ok())
-        .unwrap_or(0)
+/// Coarse-cache lookups so far that decoded a grid and that derived one from a finer grid.
+fn coarse_counts(metrics: &metrics_exporter_prometheus::PrometheusHandle) -> [u64; 2] {
+    let text = metrics.render();
+    ["\"miss\"", "\"derived\""].map(|label| {
+        text.lines()
+            .find(|l| l.starts_with("fractile_coarse_cache_total") && l.contains(label))
+            .and_then(|l| l.rsplit(' ').next()?.parse().ok())
+            .unwrap_or(0)
+    })
 }
 
 fn percentile(sorted: &[Duration], p: f64) -> f64 {
@@ -111,25 +111,33 @@ fn percentile(sorted: &[Duration], p: f64) -> f64 {
 }
 
 fn main() {
-    let per_zoom: usize = std::env::args()
+    let args: Vec<usize> = std::env::args()
         .skip(1)
-        .find(|a| !a.starts_with("--"))
-        .map(|a| a.parse().expect("tiles per zoom"))
-        .unwrap_or(256);
-    let metrics = metrics_exporter_prometheus::PrometheusBuilder::new()
-        .install_recorder()
-        .unwrap();
+        .filter(|a| !a.starts_with("--"))
+        .map(|a| a.parse().expect("a count"))
+        .collect();
+    let per_zoom = args.first().copied().unwrap_or(256);
+    // Requests in flight after a zoom's first tile: a map view asks for its tiles at once.
+    let in_flight = args.get(1).copied().unwrap_or(8);
+    let coarse_mib = args
+        .get(2)
+        .map(|&m| m as u64)
+        .unwrap_or(fractile_server::api::DEFAULT_COARSE_CACHE_MIB);
+    let metrics = fractile_server::telemetry::handle();
     let dir = std::env::temp_dir().join(format!("fractile-coarse-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("mosaic.fra"), asset()).unwrap();
     let (store, _) = Store::open(&dir).unwrap();
-    let state = Arc::new(AppState::new(store, "http://bench".into()));
+    let mut state = AppState::new(store, "http://bench".into());
+    state.coarse = fractile_server::api::coarse_cache(coarse_mib);
+    let state = Arc::new(state);
     let rt = tokio::runtime::Runtime::new().unwrap();
     println!(
-        "\n9.3 Mpx mosaic, terrain-RGB tiles, uncached, {CONCURRENCY} in flight after each zoom's first tile"
+        "\n9.3 Mpx mosaic, terrain-RGB tiles, uncached, {in_flight} in flight after each zoom's \
+         first tile, coarse cache {coarse_mib} MiB"
     );
-    println!("| zoom | tiles | first tile ms | p50 ms | p99 ms | coarse grids decoded |");
-    println!("|---|---|---|---|---|---|");
+    println!("| zoom | tiles | first tile ms | p50 ms | p99 ms | coarse grids decoded | derived |");
+    println!("|---|---|---|---|---|---|---|");
     // SplitMix64 for the sample of tiles at deep zooms.
     let mut seed = 7u64;
     let mut next = move |n: u32| {
@@ -155,14 +163,14 @@ fn main() {
         let uri = |(x, y): (u32, u32)| {
             format!("/v1/assets/mosaic/tiles/{z}/{x}/{y}.png?encoding=terrainrgb")
         };
-        let before = coarse_misses(&metrics);
+        let before = coarse_counts(metrics);
         let first = rt.block_on(get(&state, uri(tiles[0])));
         let rest: Vec<Duration> = rt.block_on(async {
             let mut out = Vec::new();
             let mut set = tokio::task::JoinSet::new();
             let mut queue = tiles[1..].iter().copied();
             loop {
-                while set.len() < CONCURRENCY {
+                while set.len() < in_flight {
                     let Some(t) = queue.next() else { break };
                     let (state, u) = (state.clone(), uri(t));
                     set.spawn(async move { get(&state, u).await });
@@ -177,12 +185,13 @@ fn main() {
         let mut sorted = rest.clone();
         sorted.sort();
         println!(
-            "| {z} | {} | {:.0} | {:.1} | {:.1} | {} |",
+            "| {z} | {} | {:.0} | {:.1} | {:.1} | {} | {} |",
             tiles.len(),
             first.as_secs_f64() * 1e3,
             percentile(&sorted, 0.5),
             percentile(&sorted, 0.99),
-            coarse_misses(&metrics) - before
+            coarse_counts(metrics)[0] - before[0],
+            coarse_counts(metrics)[1] - before[1],
         );
         all_after_first.extend(rest);
     }

@@ -415,7 +415,7 @@ mod tests {
             let r = Rounding::for_bound(e, 100.0);
             let (_, bytes) = encode_tile(
                 &m,
-                &[heights.clone()],
+                std::slice::from_ref(&heights),
                 8,
                 TileFormat::Heights(e),
                 None,

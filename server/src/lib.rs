@@ -43,11 +43,12 @@ pub struct FileConfig {
     pub max_concurrent_requests: Option<usize>,
     /// Tile cache size in MiB.
     pub tile_cache_mib: Option<u64>,
-    /// Coarse-decode cache size in MiB (default 64): the whole-asset discrete decodes that
+    /// Coarse-decode cache size in MiB (default 256): the whole-asset discrete decodes that
     /// tiles coarser than the source sample, a grid per asset, zoom and band of latitude (see
-    /// `Asset::sample_with`). Size it to hold the
-    /// coarse zooms of the largest assets (about 5 bytes a source pixel and plane), or
-    /// their grids are decoded again and again.
+    /// `Asset::sample_with`; a band's grid is derived from a finer one of the same zoom when
+    /// that is cached). Size it to hold the coarse zooms of the largest assets (about 8
+    /// bytes a source pixel and plane: 256 MiB holds a 30 Mpx DEM's), or their grids are
+    /// decoded again and again.
     pub coarse_cache_mib: Option<u64>,
     /// A folder holding CesiumJS's build (`Build/Cesium` of the npm package `cesium`;
     /// `tools/fetch-cesium.sh` puts one in `target/cesium`), served at `/vendor/cesium/` so that

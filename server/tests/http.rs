@@ -1001,24 +1001,78 @@ async fn coarse_tiles_share_their_decode_and_count_it() {
     );
 }
 
+/// A fresh state (empty caches) over etopo20, a global DEM, encoded once per test run at 0.8
+/// bits a cell.
+fn etopo20_state() -> Arc<AppState> {
+    static DIR: OnceLock<std::path::PathBuf> = OnceLock::new();
+    let dir = DIR.get_or_init(|| {
+        let dir = std::env::temp_dir().join(format!("fractile-http-etopo-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let r = Raster::open(&data("etopo20.tif")).unwrap();
+        let mut s = EncodeSettings {
+            rate: RateMode::TargetBpp(0.8),
+            ..EncodeSettings::default()
+        };
+        s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+        let bytes = encode(&r, &s, &|_, _| {}).unwrap().bytes;
+        std::fs::write(dir.join("etopo20.fra"), bytes).unwrap();
+        dir
+    });
+    let (store, _) = Store::open(dir).unwrap();
+    Arc::new(AppState::new(store, "http://test".into()))
+}
+
+/// A coarse grid that is a power-of-two shrink of one already cached (a band of latitude of
+/// a zoom next to a finer band, or the same zoom in 256- and 512-pixel tiles) is derived from
+/// it by block means instead of decoded again, and agrees with its own decode.
+#[tokio::test]
+async fn a_coarse_grid_derives_from_a_finer_one_cached() {
+    async fn zoom0(st: &Arc<AppState>, size: u32) -> Vec<f32> {
+        let req = Request::get(format!(
+            "/v1/assets/etopo20/tiles/0/0/0.f32?tilesize={size}"
+        ))
+        .body(Body::empty())
+        .unwrap();
+        let (s, b) = call(st, req).await;
+        assert_eq!(s, StatusCode::OK);
+        b.chunks_exact(4)
+            .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+            .collect()
+    }
+    // etopo20 (1080 x 540) at zoom 0: a 256-pixel tile samples a grid of 270 columns, a
+    // 512-pixel one a grid of 540.
+    let decoded = zoom0(&etopo20_state(), 256).await;
+    let st = etopo20_state();
+    zoom0(&st, 512).await;
+    let derived = zoom0(&st, 256).await;
+    st.coarse.run_pending_tasks();
+    assert_eq!(st.coarse.entry_count(), 2, "two grids");
+    let metrics = String::from_utf8(get("/metrics").await.2).unwrap();
+    assert!(
+        metrics.contains("fractile_coarse_cache_total{result=\"derived\"}"),
+        "{metrics}"
+    );
+    // The block means of the finer decode against the coarser decode: both approximate the
+    // attractor's cell means, within a small part of the coding error.
+    let rmse = st.store.get("etopo20").unwrap().asset.meta.stats.rmse as f32;
+    let pairs = decoded.iter().zip(&derived).filter(|(a, _)| a.is_finite());
+    let (mut sum, mut n, mut max) = (0.0f32, 0usize, 0.0f32);
+    for (a, b) in pairs {
+        sum += (a - b).abs();
+        max = max.max((a - b).abs());
+        n += 1;
+    }
+    let mean = sum / n as f32;
+    eprintln!("derived against decoded: mean {mean} m, max {max} m, encoding RMSE {rmse} m");
+    assert!(n > 30_000 && mean > 0.0, "{n} pixels, mean {mean}");
+    assert!(mean < 0.25 * rmse, "mean {mean} m, encoding RMSE {rmse} m");
+}
+
 #[tokio::test]
 async fn global_tiles_join_across_the_antimeridian() {
     // etopo20 spans all longitudes from -180: tile x = 0 and x = 2^z - 1 meet at +-180.
-    let dir = std::env::temp_dir().join(format!("fractile-http-etopo-{}", std::process::id()));
-    std::fs::create_dir_all(&dir).unwrap();
     let r = Raster::open(&data("etopo20.tif")).unwrap();
-    let mut s = EncodeSettings {
-        rate: RateMode::TargetBpp(0.8),
-        ..EncodeSettings::default()
-    };
-    s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
-    std::fs::write(
-        dir.join("etopo20.fra"),
-        encode(&r, &s, &|_, _| {}).unwrap().bytes,
-    )
-    .unwrap();
-    let (store, _) = Store::open(&dir).unwrap();
-    let st = Arc::new(AppState::new(store, "http://test".into()));
+    let st = etopo20_state();
     for z in [3u8, 6] {
         let last = (1u32 << z) - 1;
         let y = (1u32 << z) / 2 - 1; // just north of the equator

@@ -683,6 +683,39 @@ pub struct Grid {
     pub values: Vec<f32>,
 }
 
+impl Grid {
+    /// The grid `fx` x `fy` times coarser: each cell the mean of the finite values of its block
+    /// (NaN where there are none, as nodata stays nodata). `None` unless the factors divide the
+    /// size. A discrete decode at a coarser size is itself an approximation of the attractor's
+    /// cell means; the mean of a finer decode is a closer one, and costs a pass over the grid
+    /// instead of a decode.
+    pub fn shrink(&self, fx: usize, fy: usize) -> Option<Grid> {
+        if fx == 0 || fy == 0 || !self.width.is_multiple_of(fx) || !self.height.is_multiple_of(fy) {
+            return None;
+        }
+        let (w, h) = (self.width / fx, self.height / fy);
+        let mut sums = vec![(0.0f32, 0u32); w * h];
+        for (y, row) in self.values.chunks_exact(self.width).enumerate() {
+            let out = &mut sums[(y / fy) * w..][..w];
+            for (x, &v) in row.iter().enumerate() {
+                if v.is_finite() {
+                    let c = &mut out[x / fx];
+                    c.0 += v;
+                    c.1 += 1;
+                }
+            }
+        }
+        Some(Grid {
+            width: w,
+            height: h,
+            values: sums
+                .into_iter()
+                .map(|(s, n)| if n > 0 { s / n as f32 } else { f32::NAN })
+                .collect(),
+        })
+    }
+}
+
 /// When discrete decoding stops.
 #[derive(Clone, Copy, Debug)]
 pub struct DiscreteOptions {
@@ -1113,6 +1146,29 @@ pub fn sample_bilinear(g: &Grid, x: f32, y: f32) -> f32 {
 mod tests {
     use super::*;
     use crate::core::operator::{Step, invariant_interval};
+
+    #[test]
+    fn shrink_averages_blocks_and_keeps_nodata() {
+        // 4 x 2 -> 2 x 1: blocks {1, 2, 5, 6} and {3, NaN, 7, NaN}.
+        let g = Grid {
+            width: 4,
+            height: 2,
+            values: vec![1.0, 2.0, 3.0, f32::NAN, 5.0, 6.0, 7.0, f32::NAN],
+        };
+        let c = g.shrink(2, 2).unwrap();
+        assert_eq!((c.width, c.height), (2, 1));
+        assert_eq!(c.values, vec![3.5, 5.0]);
+        // Rows only, and a block of nodata alone.
+        let r = Grid {
+            width: 1,
+            height: 4,
+            values: vec![f32::NAN, f32::NAN, 2.0, 4.0],
+        }
+        .shrink(1, 2)
+        .unwrap();
+        assert!(r.values[0].is_nan() && r.values[1] == 3.0);
+        assert!(g.shrink(3, 1).is_none() && g.shrink(0, 1).is_none());
+    }
 
     /// Four cells of 4 on an 8x8 frame, each mapping its quadrant onto the whole frame (a flip
     /// for some), with constant contrast and offset: decoders are tested on the operator form

@@ -109,8 +109,10 @@ pub struct AppState {
 /// cost to decode ([`fractile_codec::AssetLimits::max_decode_bytes`]).
 pub const DEFAULT_DECODE_MIB: u32 = 3 * 1024;
 
-/// Default of `coarse_cache_mib`.
-pub const DEFAULT_COARSE_CACHE_MIB: u64 = 64;
+/// Default of `coarse_cache_mib`: every coarse zoom of a 9.3 Mpx DEM takes 73 MB (its zoom
+/// 4 grid alone 37 MB), and 64 MiB made that grid decode four times over a zoom's tiles
+/// (docs/benchmarks.md, `coarse_zooms`).
+pub const DEFAULT_COARSE_CACHE_MIB: u64 = 256;
 
 /// A coarse-decode cache of `mib` MiB, weighed by the bytes of its grids.
 pub fn coarse_cache(mib: u64) -> CoarseCache {
@@ -294,13 +296,31 @@ fn sample_on(
     let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
     let continuous =
         |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
-    let discrete = |w, h, n, t: f32| {
-        let decoded = std::sync::atomic::AtomicBool::new(false);
-        let grids = coarse.get_with((a.id.clone(), a.hash, w, h, n, t.to_bits()), || {
-            decoded.store(true, std::sync::atomic::Ordering::Relaxed);
+    let discrete = |w: usize, h: usize, n, t: f32| {
+        let result = std::cell::Cell::new("hit");
+        let key = |w, h| (a.id.clone(), a.hash, w, h, n, t.to_bits());
+        let grids = coarse.get_with(key(w, h), || {
+            // A zoom's tiles ask for grids that differ by powers of two (a band of latitude
+            // has half the rows of the next): one cached at 2, 4 or 8 times the size on
+            // either axis gives this one by block means, in a pass instead of a decode.
+            let finer = (0..=3)
+                .flat_map(|i| (0..=3).map(move |j| (i, j)))
+                .filter(|&ij| ij != (0, 0))
+                .find_map(|(i, j)| Some(((i, j), coarse.get(&key(w << i, h << j))?)));
+            if let Some(((i, j), fine)) = finer {
+                let shrunk: Option<Vec<CoarsePlane>> = fine
+                    .iter()
+                    .map(|(g, r)| Some((g.shrink(1 << i, 1 << j)?, *r)))
+                    .collect();
+                if let Some(planes) = shrunk {
+                    result.set("derived");
+                    return Arc::new(planes);
+                }
+            }
+            result.set("miss");
             Arc::new(a.asset.discrete_planes(w, h, n, t))
         });
-        let result = if decoded.into_inner() { "miss" } else { "hit" };
+        let result = result.get();
         metrics::counter!("fractile_coarse_cache_total", "result" => result).increment(1);
         grids
     };
