@@ -437,11 +437,36 @@ fn projected_max_error_is_kept_through_encode_decode_and_compare() {
             .unwrap(),
     );
     assert!(cmp["max_error"].as_f64().unwrap() <= 3.0 + 1e-3, "{cmp}");
+    // A bounded rate: within the size, every cell within the bound it reports.
+    let bounded = json(
+        &bin()
+            .arg("encode")
+            .arg(data("jacksboro.tif"))
+            .arg("-o")
+            .arg(dir.join("b.fra"))
+            .args([
+                "--codec",
+                "projected",
+                "--target-bpp",
+                "0.8",
+                "--bounded",
+                "--json",
+            ])
+            .output()
+            .unwrap(),
+    );
+    let bound = bounded["max_error_bound"]
+        .as_f64()
+        .expect("a bound reported");
+    assert!(bounded["bpp"].as_f64().unwrap() <= 0.8, "{bounded}");
+    assert!(bounded["max_error"].as_f64().unwrap() <= bound, "{bounded}");
     // A bound is for this codec only, and this codec needs a bound or a size.
     for args in [
         vec!["--max-error", "3"],
         vec!["--codec", "projected"],
         vec!["--codec", "projected", "--tolerance", "2"],
+        vec!["--codec", "projected", "--max-error", "3", "--bounded"],
+        vec!["--target-bpp", "0.8", "--bounded"],
     ] {
         let out = bin()
             .arg("encode")

@@ -303,6 +303,14 @@ fn error_bounds_hold_and_are_tight_at_random_cell_centres() {
                 None,
             ),
             ("--target-bpp 0.8", ProjectedSettings::default(), Some(0.8)),
+            (
+                "--target-bpp 0.8 --bounded",
+                ProjectedSettings {
+                    bounded: true,
+                    ..Default::default()
+                },
+                Some(0.8),
+            ),
         ] {
             let enc = encode_projected(&src, &settings, bpp).expect("encode");
             let asset = Asset::from_bytes(&enc.bytes).expect("read back");
@@ -340,8 +348,20 @@ fn error_bounds_hold_and_are_tight_at_random_cell_centres() {
             );
             // The promise makes the bound at sample centres; under rate control the map alone
             // bounds them, with the heavier tail of a dead-zone quantiser (reported).
-            if bpp.is_none() {
+            if settings.max_error.is_some() || settings.bounded {
                 assert!(ratio <= 4.0, "{name} {label}: bound {ratio:.2}x the error");
+            }
+            if settings.bounded {
+                // The rate is kept, and the bound found is the one the asset keeps.
+                assert!(enc.bpp() <= 0.8, "{name} {label}: {} bpp", enc.bpp());
+                let promise = asset.planes[0]
+                    .promise()
+                    .expect("a bounded encode promises");
+                assert!(
+                    enc.errors.max_error <= f64::from(promise),
+                    "{name} {label}: max error {} over the promise {promise}",
+                    enc.errors.max_error
+                );
             }
         }
     }

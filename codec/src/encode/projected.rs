@@ -52,6 +52,12 @@ pub fn encode_projected(
     let quantum = source_quantum(raster);
     let mut header = plane_header(w, h, quantum, (lo, span));
     let (stream, grid) = match (settings.max_error, target_bpp) {
+        (None, Some(bpp)) if settings.bounded => {
+            let budget = rate_budget(bpp, raster)?;
+            let (e, coded) = fit_bound(&mut header, (&source, valid), budget, span);
+            check_bound(&coded.1, &source, valid, e, span)?;
+            coded
+        }
         (Some(e), _) => {
             header.step = max_error_step(e, quantum)?;
             header.max_error = e;
@@ -222,6 +228,60 @@ fn fit_size(
     // The headers hold the last step tried: put back the one kept.
     try_step(hi.exp());
     best
+}
+
+/// Bounded rate: the smallest max error (the step of max-error mode) whose stream fits
+/// `budget` bytes, by bisection: on whole quanta for a source on a quantum (so the bound is
+/// JPEG-LS's odd steps), on the logarithm otherwise. The order is the one that codes a middling
+/// bound smaller. Returns the bound kept (also in `header.max_error`) and its stream.
+fn fit_bound(
+    header: &mut ProjectedHeader,
+    (source, valid): (&[f64], Option<&[bool]>),
+    budget: usize,
+    span: f64,
+) -> (f64, Coded) {
+    let quantum = header.quantum;
+    let (mut lo, mut hi) = if quantum > 0.0 {
+        (0.0, (span / quantum).ceil().max(1.0))
+    } else {
+        ((span * 1e-6).ln(), span.ln())
+    };
+    let bound = |x: f64| if quantum > 0.0 { x * quantum } else { x.exp() };
+    // The order: the one that codes a bound of 1/1000 of the range smaller.
+    let middling = (span * 1e-3).max(quantum);
+    header.step = max_error_step(middling, quantum).expect("a positive bound");
+    header.max_error = middling;
+    smaller_order(header, source, valid, (0.0, 0.0));
+    let mut try_bound = |e: f64| -> Coded {
+        header.step = max_error_step(e, quantum).expect("a bound >= 0 on a quantum or > 0");
+        header.max_error = e;
+        encode_grid(header, source, valid, (0.0, 0.0))
+    };
+    let finest = try_bound(bound(lo));
+    if finest.0.len() <= budget {
+        return (bound(lo), finest);
+    }
+    let mut best = try_bound(bound(hi));
+    let mut steps = 0;
+    while steps < BISECTIONS && (quantum == 0.0 || hi - lo > 1.0) {
+        let mid = if quantum > 0.0 {
+            (0.5 * (lo + hi)).floor()
+        } else {
+            0.5 * (lo + hi)
+        };
+        let coded = try_bound(bound(mid));
+        if coded.0.len() <= budget {
+            (hi, best) = (mid, coded);
+        } else {
+            lo = mid;
+        }
+        steps += 1;
+    }
+    // The header holds the last bound tried: put back the one kept.
+    let e = bound(hi);
+    header.step = max_error_step(e, quantum).expect("a bound kept");
+    header.max_error = e;
+    (e, best)
 }
 
 /// Chroma's step as a multiple of luma's (normalised units). Measured on astronaut at 0.5, 1

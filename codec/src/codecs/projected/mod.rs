@@ -500,6 +500,10 @@ pub struct ProjectedSettings {
     /// Rate mode: the weight of a bit against squared error in steps^2 when a detail may move
     /// one step towards zero.
     pub lambda: f64,
+    /// Under a target rate: the smallest max error whose file fits, every cell within it (the
+    /// max-error quantiser, no dead zone), instead of the best PSNR. Costs 1.8 dB at 0.8 bpp
+    /// on etopo20 and jacksboro, and gives a bound that holds at every cell.
+    pub bounded: bool,
 }
 
 impl Default for ProjectedSettings {
@@ -514,6 +518,7 @@ impl Default for ProjectedSettings {
             growth: 0.7,
             dead_zone: 0.15,
             lambda: 0.1,
+            bounded: false,
         }
     }
 }
