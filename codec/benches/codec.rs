@@ -389,6 +389,9 @@ fn main() {
     if want("projected") {
         projected(&root(), &camera, &dem_weighed);
     }
+    if want("projected") || want("points") {
+        projected_points(&root(), &dem_weighed);
+    }
 }
 
 /// Issue 29's tables: the projected codec beside the quadtree and JPEG 2000 at the same bytes
@@ -468,10 +471,22 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
             );
         }
     }
-    // Point decoding: 256 x 256 points, 10 steps, batched, one core; both at 20:1 on etopo20.
-    let (_, e) = &dems[1];
-    let p = encode_projected(e, &rate, Some(0.8)).expect("projected");
-    let q = encode(e, &quadtree(0.8), &quiet).expect("quadtree");
+}
+
+/// Point decoding of projected assets beside the quadtree's, both at 20:1 on etopo20: 256 x
+/// 256 points, batched, one core; ten steps each, and to the server's default tolerance (half
+/// a metre), where projected chains end on the bilinear interpolant and stop sooner.
+fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> EncodeSettings) {
+    use fractile_codec::codecs::projected::ProjectedSettings;
+    use fractile_codec::encode::projected::encode_projected;
+    let e = Raster::open(&root.join("testdata/etopo20.tif")).expect("testdata");
+    let bounded = ProjectedSettings {
+        bounded: true,
+        ..Default::default()
+    };
+    let p = encode_projected(&e, &ProjectedSettings::default(), Some(0.8)).expect("projected");
+    let b = encode_projected(&e, &bounded, Some(0.8)).expect("projected");
+    let q = encode(&e, &quadtree(0.8), &quiet).expect("quadtree");
     let pts: Vec<[f32; 2]> = (0..256 * 256)
         .map(|k| {
             [
@@ -480,18 +495,29 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
             ]
         })
         .collect();
-    let time = |a: &fractile_codec::Asset| {
+    let time = |a: &fractile_codec::Asset, steps: u32, tolerance_m: f64| {
         let op = &a.planes[0].operator;
-        median_ms(15, || {
-            std::hint::black_box(op.points(&pts, 10, 0.0));
-        })
+        let tolerance = (tolerance_m / (a.meta.value_max - a.meta.value_min)) as f32;
+        let mut n = 0u32;
+        let ms = median_ms(15, || {
+            let v = op.points(&pts, steps, tolerance);
+            n = v.iter().map(|p| p.iterations).sum();
+            std::hint::black_box(v);
+        });
+        (ms, f64::from(n) / pts.len() as f64)
     };
-    let (tp, tq) = (time(&p.asset), time(&q.asset));
-    println!(
-        "\n## Point decoding, etopo20 at 20:1 (256 x 256 points x 10 steps, batched, one core)\n"
-    );
-    println!("| codec | ms | against the quadtree |");
-    println!("|---|---|---|");
-    println!("| quadtree-pifs | {tq:.2} | 1.00x |");
-    println!("| projected | {tp:.2} | {:.2}x the time |", tp / tq);
+    println!("\n## Point decoding, etopo20 at 20:1 (256 x 256 points, batched, one core)\n");
+    println!("| codec | steps | ms | mean steps | against the quadtree |");
+    println!("|---|---|---|---|---|");
+    for (steps, tol, label) in [(10, 0.0, "10"), (64, 0.5, "to 0.5 m")] {
+        let (tq, nq) = time(&q.asset, steps, tol);
+        println!("| quadtree-pifs | {label} | {tq:.2} | {nq:.1} | 1.00x |");
+        for (name, a) in [("projected", &p.asset), ("projected --bounded", &b.asset)] {
+            let (t, n) = time(a, steps, tol);
+            println!(
+                "| {name} | {label} | {t:.2} | {n:.1} | {:.2}x the time |",
+                t / tq
+            );
+        }
+    }
 }

@@ -271,7 +271,9 @@ impl PlaneOperator {
             PlaneOperator::Quadtree(q) => decode::point(q, p, iterations),
             PlaneOperator::Fis(f) => decode::point(f, p, iterations),
             PlaneOperator::Psa(f) => decode::point(f, p, iterations),
-            PlaneOperator::Projected(f) => decode::point(f, p, iterations),
+            // Through its own chains, which end on the bilinear interpolant (see
+            // `ProjectedOperator::run_chains`), so that one point and a batch agree.
+            PlaneOperator::Projected(f) => decode::points(f, &[p], iterations, 0.0)[0],
         }
     }
 

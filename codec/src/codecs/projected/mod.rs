@@ -25,7 +25,7 @@ pub mod pyramid;
 use serde::{Deserialize, Serialize};
 
 use crate::core::entropy::{Decoder, Encoder};
-use crate::core::operator::{Operator, Step};
+use crate::core::operator::{Chain, Operator, Step};
 
 /// What a reader needs to decode a plane's stream.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -232,6 +232,10 @@ pub struct ProjectedOperator {
     records: Vec<[f32; 9]>,
     rho: f32,
     interval: (f32, f32),
+    /// A bound on |f - S| over the frame, S the bilinear interpolant of the samples (see
+    /// [`Self::residual_bound`]): chains end on S instead of a constant, so they need the
+    /// steps that take this bound, not the value range, under the tolerance.
+    residual: f32,
     /// The part of the frame unit coordinates map onto (the frame, or for half-resolution
     /// chroma of an odd-sized image, half the luma's extent).
     valid: [f32; 2],
@@ -292,6 +296,7 @@ impl ProjectedOperator {
             records: Vec::new(),
             rho,
             interval: (0.0, 1.0),
+            residual: f32::INFINITY,
             valid: [size[0] as f32, size[1] as f32],
         };
         let [nx, ny] = size;
@@ -313,7 +318,65 @@ impl ProjectedOperator {
         op.interval = crate::core::operator::invariant_interval(
             [(rho, clo - rho * chi, chi - rho * clo)].into_iter(),
         );
+        op.residual = op.residual_bound();
         Ok(op)
+    }
+
+    /// A bound on |f - S| everywhere, S the bilinear interpolant of the samples. With r = f - S,
+    /// `r(p) = d(p) + rho r(phi p)` where `d = g + rho S o phi - S`, so `|r| <= max |d| / (1 -
+    /// rho)`. On each quarter cell g is bilinear (the step blends its corners), phi maps the
+    /// quarter onto one lattice cell where S is bilinear, and S is bilinear: d is bilinear
+    /// there and its largest magnitude is at the quarter's corners, the cell's half-lattice
+    /// points. So the maximum over those nine points a cell is exact, not sampled.
+    fn residual_bound(&self) -> f32 {
+        use rayon::prelude::*;
+        let [nx, ny] = self.size;
+        if self.rho >= 1.0 {
+            return f32::INFINITY;
+        }
+        let worst = (0..(nx - 1) * (ny - 1))
+            .into_par_iter()
+            .map(|k| {
+                let (i, j) = (k % (nx - 1), k / (nx - 1));
+                let (cx, cy) = (block(i, nx) as isize, block(j, ny) as isize);
+                let mut m = 0.0f32;
+                for b in 0..3 {
+                    for a in 0..3 {
+                        // S at the half-lattice point: the mean of the samples around it.
+                        let (x0, y0) = ((i + a / 2) as isize, (j + b / 2) as isize);
+                        let (x1, y1) = ((i + a.div_ceil(2)) as isize, (j + b.div_ceil(2)) as isize);
+                        let here = 0.25
+                            * (self.at(x0, y0)
+                                + self.at(x1, y0)
+                                + self.at(x0, y1)
+                                + self.at(x1, y1));
+                        // phi of a half-lattice point is a sample: 2 (i + a/2) - c.
+                        let (px, py) = (
+                            2 * i as isize + a as isize - cx,
+                            2 * j as isize + b as isize - cy,
+                        );
+                        let g = self.records[k][3 * b + a];
+                        m = m.max((g + self.rho * self.at(px, py) - here).abs());
+                    }
+                }
+                m
+            })
+            .reduce(|| 0.0, f32::max);
+        // f32 rounding of the records, the blend and the chain's sums: a few ulps of the range.
+        worst / (1.0 - self.rho) + 1e-5
+    }
+
+    /// S, the bilinear interpolant of the samples, at a frame point (clamped as steps are).
+    #[inline(always)]
+    fn bilinear(&self, p: [f32; 2]) -> f32 {
+        let (i, u) = self.locate(p[0], self.size[0]);
+        let (j, v) = self.locate(p[1], self.size[1]);
+        let row = |y: usize| {
+            let r = &self.z[y * self.size[0] + i..];
+            r[0] + (r[1] - r[0]) * u
+        };
+        let (top, bottom) = (row(j), row(j + 1));
+        top + (bottom - top) * v
     }
 
     /// The sample at (x, y), clamped into the grid (an axis of two samples has no pair of
@@ -451,6 +514,54 @@ impl Operator<2> for ProjectedOperator {
     fn invariant_interval(&self) -> (f32, f32) {
         self.interval
     }
+
+    /// Chains stop once `|prod s| * residual` is under the tolerance and end on S, the
+    /// bilinear interpolant, at their last point: `f(q) = S(q) + r(q)` with `|r| <= residual`.
+    /// Callers read a chain as `acc_g + acc_s * seed` within `|acc_s| * half` (the invariant
+    /// interval's middle and half-width); the last step is folded into that form, `acc_s` set
+    /// to the bound over `half`, so their value is `acc_g + acc_s * S(q)` and their bound
+    /// `|acc_s| * residual` plus the chain's f32 rounding. A chain is not stepped again after
+    /// this (every caller finishes it).
+    fn run_chains(&self, chains: &mut [Chain<2>], iterations: u32, tolerance: f32) {
+        let (lo, hi) = self.interval;
+        let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
+        let r = self.residual;
+        if r.is_nan() || r >= half {
+            return crate::core::operator::run_chains_stepwise(self, chains, iterations, tolerance);
+        }
+        // The f32 rounding of a chain's sums, a few ulps of the largest value a step: with a
+        // bound of |acc_s| r the chain's own rounding would no longer hide under it.
+        let ulps = 2f32.powi(-21) * lo.abs().max(hi.abs()).max(1.0);
+        // Eight chains in lockstep, as `run_chains_stepwise` does: a chain's steps are
+        // dependent loads, and independent chains side by side overlap them.
+        for batch in chains.chunks_mut(8) {
+            loop {
+                let mut any = false;
+                for c in batch.iter_mut() {
+                    if c.taken >= iterations
+                        || !crate::core::operator::active(c.acc_s, r, tolerance)
+                    {
+                        continue;
+                    }
+                    let st = self.step(c.q);
+                    c.taken += 1;
+                    c.acc_g += c.acc_s * st.offset;
+                    c.acc_s *= st.contrast;
+                    c.q = st.next;
+                    any = true;
+                }
+                if !any {
+                    break;
+                }
+            }
+            for c in batch.iter_mut() {
+                let bound = c.acc_s.abs() * r + (c.taken + 4) as f32 * ulps;
+                let folded = bound / half;
+                c.acc_g += c.acc_s * self.bilinear(c.q) - folded * mid;
+                c.acc_s = folded;
+            }
+        }
+    }
 }
 
 impl crate::core::pieces::Flatten for ProjectedOperator {
@@ -581,7 +692,65 @@ mod tests {
                     pv.value
                 );
             }
-            crate::core::pieces::tests::agree(&op, "projected");
+            // The GPU's flattening steps as `step` does, seeded by a constant.
+            crate::core::pieces::tests::agree(&Stepwise(&op), "projected");
+            // Chains that end on the bilinear interpolant against chains from a constant seed:
+            // within the sum of their bounds, with the tolerance reached in fewer steps.
+            let probe: Vec<[f32; 2]> = (0..997)
+                .map(|i| {
+                    [
+                        (i as f32 * 0.618_034).fract(),
+                        (i as f32 * 0.414_214).fract(),
+                    ]
+                })
+                .collect();
+            let ended = decode::points(&op, &probe, 400, 1e-3);
+            let seeded = decode::points(&Stepwise(&op), &probe, 400, 1e-3);
+            let (mut fewer, mut steps) = (0u32, 0u32);
+            for (a, b) in ended.iter().zip(&seeded) {
+                assert!(
+                    (a.value - b.value).abs() <= a.error_bound + b.error_bound,
+                    "{w}x{h}: {} within {} against {} within {}",
+                    a.value,
+                    a.error_bound,
+                    b.value,
+                    b.error_bound
+                );
+                fewer += a.iterations;
+                steps += b.iterations;
+            }
+            assert!(
+                fewer < steps || op.roughness() == 0.0,
+                "{w}x{h}: {fewer} steps against {steps}"
+            );
+        }
+    }
+
+    /// The operator stepped as every other codec's is (the default `run_chains`, a constant
+    /// seed): what the flattening for the GPU reproduces.
+    struct Stepwise<'a>(&'a ProjectedOperator);
+
+    impl Operator<2> for Stepwise<'_> {
+        fn frame(&self) -> [f32; 2] {
+            self.0.frame()
+        }
+        fn valid(&self) -> [f32; 2] {
+            self.0.valid()
+        }
+        fn expansion(&self) -> u32 {
+            self.0.expansion()
+        }
+        fn step(&self, p: [f32; 2]) -> Step<2> {
+            self.0.step(p)
+        }
+        fn invariant_interval(&self) -> (f32, f32) {
+            self.0.invariant_interval()
+        }
+    }
+
+    impl crate::core::pieces::Flatten for Stepwise<'_> {
+        fn pieces(&self) -> crate::core::pieces::PieceTable {
+            self.0.pieces()
         }
     }
 
