@@ -222,7 +222,8 @@ pub fn fit_roughness(g: &[f64], w: usize, h: usize) -> f32 {
 /// blend over a quarter of the cell, exact at the half-lattice points, where g is the cubic
 /// interpolant less rho times the coarser cubic interpolant at phi. Computing the sample
 /// corners on the fly instead (five values a cell) took 4.4 times the quadtree's time a point,
-/// most of it in the fetch of z at phi; the record takes 40 bytes a sample with z.
+/// most of it in the fetch of z at phi; the record takes 40 bytes a sample with z (44 with the
+/// residual bound a cell).
 #[derive(Clone, Debug)]
 pub struct ProjectedOperator {
     size: [usize; 2],
@@ -232,10 +233,12 @@ pub struct ProjectedOperator {
     records: Vec<[f32; 9]>,
     rho: f32,
     interval: (f32, f32),
-    /// A bound on |f - S| over the frame, S the bilinear interpolant of the samples (see
-    /// [`Self::residual_bound`]): chains end on S instead of a constant, so they need the
-    /// steps that take this bound, not the value range, under the tolerance.
-    residual: f32,
+    /// Per cell, a bound on |f - S| there, S the bilinear interpolant of the samples (see
+    /// [`Self::residual_bounds`]): chains end on S instead of a constant, so they need the
+    /// steps that take the bound where they are, not the value range, under the tolerance.
+    residual: Vec<f32>,
+    /// The largest of `residual`.
+    residual_max: f32,
     /// The part of the frame unit coordinates map onto (the frame, or for half-resolution
     /// chroma of an odd-sized image, half the luma's extent).
     valid: [f32; 2],
@@ -296,7 +299,8 @@ impl ProjectedOperator {
             records: Vec::new(),
             rho,
             interval: (0.0, 1.0),
-            residual: f32::INFINITY,
+            residual: Vec::new(),
+            residual_max: f32::INFINITY,
             valid: [size[0] as f32, size[1] as f32],
         };
         let [nx, ny] = size;
@@ -318,23 +322,28 @@ impl ProjectedOperator {
         op.interval = crate::core::operator::invariant_interval(
             [(rho, clo - rho * chi, chi - rho * clo)].into_iter(),
         );
-        op.residual = op.residual_bound();
+        op.residual = op.residual_bounds();
+        op.residual_max = op.residual.iter().fold(0.0, |m: f32, &r| m.max(r));
         Ok(op)
     }
 
-    /// A bound on |f - S| everywhere, S the bilinear interpolant of the samples. With r = f - S,
-    /// `r(p) = d(p) + rho r(phi p)` where `d = g + rho S o phi - S`, so `|r| <= max |d| / (1 -
-    /// rho)`. On each quarter cell g is bilinear (the step blends its corners), phi maps the
-    /// quarter onto one lattice cell where S is bilinear, and S is bilinear: d is bilinear
-    /// there and its largest magnitude is at the quarter's corners, the cell's half-lattice
-    /// points. So the maximum over those nine points a cell is exact, not sampled.
-    fn residual_bound(&self) -> f32 {
+    /// Per cell, a bound on |f - S| there, S the bilinear interpolant of the samples. With
+    /// r = f - S, `r(p) = d(p) + rho r(phi p)` where `d = g + rho S o phi - S`. On each quarter
+    /// cell g is bilinear (the step blends its corners), phi maps the quarter onto one lattice
+    /// cell where S is bilinear, and S is bilinear: d is bilinear there and its largest
+    /// magnitude D_c over cell c is at the cell's nine half-lattice points, exactly. Then
+    /// `R_c = D_c + rho max R_c'` over the four cells c' that phi maps c onto; iterating that
+    /// map from the global bound `max D / (1 - rho)` gives a bound at every iterate (each is one
+    /// more unrolled step of the recursion), tighter where the cells phi reaches are smooth.
+    fn residual_bounds(&self) -> Vec<f32> {
         use rayon::prelude::*;
         let [nx, ny] = self.size;
+        let cells = (nx - 1) * (ny - 1);
         if self.rho >= 1.0 {
-            return f32::INFINITY;
+            return vec![f32::INFINITY; cells];
         }
-        let worst = (0..(nx - 1) * (ny - 1))
+        // f32 rounding of the records, the blend and the chain's sums: a few ulps of the range.
+        let d: Vec<f32> = (0..cells)
             .into_par_iter()
             .map(|k| {
                 let (i, j) = (k % (nx - 1), k / (nx - 1));
@@ -359,11 +368,34 @@ impl ProjectedOperator {
                         m = m.max((g + self.rho * self.at(px, py) - here).abs());
                     }
                 }
-                m
+                m + 1e-5
             })
-            .reduce(|| 0.0, f32::max);
-        // f32 rounding of the records, the blend and the chain's sums: a few ulps of the range.
-        worst / (1.0 - self.rho) + 1e-5
+            .collect();
+        // Axes of fewer than four samples have rho 0 (no pair of cells for phi): r = d.
+        if self.rho == 0.0 {
+            return d;
+        }
+        let global = d.iter().fold(0.0f32, |m, &v| m.max(v)) / (1.0 - self.rho);
+        let mut r = vec![global; cells];
+        // Each pass shrinks the excess over the least bound by rho: 24 passes leave under 1%
+        // of it at rho 0.8.
+        for _ in 0..24 {
+            r = (0..cells)
+                .into_par_iter()
+                .map(|k| {
+                    let (i, j) = (k % (nx - 1), k / (nx - 1));
+                    // phi maps cell i onto cells 2 i - c and 2 i - c + 1 (inside, as `block`
+                    // chooses c for axes of four samples or more).
+                    let (x0, y0) = (2 * i - block(i, nx), 2 * j - block(j, ny));
+                    let image = r[y0 * (nx - 1) + x0]
+                        .max(r[y0 * (nx - 1) + x0 + 1])
+                        .max(r[(y0 + 1) * (nx - 1) + x0])
+                        .max(r[(y0 + 1) * (nx - 1) + x0 + 1]);
+                    (d[k] + self.rho * image).min(r[k])
+                })
+                .collect();
+        }
+        r
     }
 
     /// S, the bilinear interpolant of the samples, at a frame point (clamped as steps are).
@@ -515,23 +547,27 @@ impl Operator<2> for ProjectedOperator {
         self.interval
     }
 
-    /// Chains stop once `|prod s| * residual` is under the tolerance and end on S, the
-    /// bilinear interpolant, at their last point: `f(q) = S(q) + r(q)` with `|r| <= residual`.
-    /// Callers read a chain as `acc_g + acc_s * seed` within `|acc_s| * half` (the invariant
-    /// interval's middle and half-width); the last step is folded into that form, `acc_s` set
-    /// to the bound over `half`, so their value is `acc_g + acc_s * S(q)` and their bound
-    /// `|acc_s| * residual` plus the chain's f32 rounding. A chain is not stepped again after
-    /// this (every caller finishes it).
+    /// Chains stop once `|prod s|` times the residual bound of the cell they are in is under
+    /// the tolerance, and end on S, the bilinear interpolant, at their last point q, where f
+    /// is S plus a residual within that bound. Callers read a chain as `acc_g + acc_s * seed`
+    /// within `|acc_s| * half` (the invariant interval's middle and half-width); the tail is
+    /// folded into that form, `acc_s` set to the bound over `half`, so their value is
+    /// `acc_g + acc_s * S(q)` and their bound `|acc_s| * R(q)` plus the chain's f32 rounding.
+    /// A chain is not stepped again after this (every caller finishes it).
     fn run_chains(&self, chains: &mut [Chain<2>], iterations: u32, tolerance: f32) {
         let (lo, hi) = self.interval;
         let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-        let r = self.residual;
-        if r.is_nan() || r >= half {
+        if self.residual_max.is_nan() || self.residual_max >= half {
             return crate::core::operator::run_chains_stepwise(self, chains, iterations, tolerance);
         }
         // The f32 rounding of a chain's sums, a few ulps of the largest value a step: with a
-        // bound of |acc_s| r the chain's own rounding would no longer hide under it.
+        // bound of |acc_s| R the chain's own rounding would no longer hide under it.
         let ulps = 2f32.powi(-21) * lo.abs().max(hi.abs()).max(1.0);
+        let residual = |q: [f32; 2]| {
+            let (i, _) = self.locate(q[0], self.size[0]);
+            let (j, _) = self.locate(q[1], self.size[1]);
+            self.residual[j * (self.size[0] - 1) + i]
+        };
         // Eight chains in lockstep, as `run_chains_stepwise` does: a chain's steps are
         // dependent loads, and independent chains side by side overlap them.
         for batch in chains.chunks_mut(8) {
@@ -539,7 +575,7 @@ impl Operator<2> for ProjectedOperator {
                 let mut any = false;
                 for c in batch.iter_mut() {
                     if c.taken >= iterations
-                        || !crate::core::operator::active(c.acc_s, r, tolerance)
+                        || !crate::core::operator::active(c.acc_s, residual(c.q), tolerance)
                     {
                         continue;
                     }
@@ -555,7 +591,7 @@ impl Operator<2> for ProjectedOperator {
                 }
             }
             for c in batch.iter_mut() {
-                let bound = c.acc_s.abs() * r + (c.taken + 4) as f32 * ulps;
+                let bound = c.acc_s.abs() * residual(c.q) + (c.taken + 4) as f32 * ulps;
                 let folded = bound / half;
                 c.acc_g += c.acc_s * self.bilinear(c.q) - folded * mid;
                 c.acc_s = folded;
