@@ -520,4 +520,51 @@ fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> EncodeSettings) {
             );
         }
     }
+    // Tiles and regions are separable grids: 256 x 256 pixel centres over a window `zoom`
+    // times finer than the source, to 0.5 m, decoded as a grid (blocks of points step
+    // together) and as the same points one chain each, in the same run.
+    println!("\n## Grid decoding, etopo20 at 20:1 (256 x 256 pixels to 0.5 m, one core)\n");
+    println!(
+        "| codec | pixels a source cell | grid ms | points ms | grid against points | against the quadtree's grid |"
+    );
+    println!("|---|---|---|---|---|---|");
+    let [w, h] = [e.width as f32, e.height as f32];
+    for zoom in [1.0f32, 4.0, 16.0, 32.0] {
+        // A window of 256 / zoom cells a side, off the lattice's dyadic points.
+        let (x0, y0) = (0.3 * w + 0.37, 0.4 * h + 0.21);
+        let axis = |o: f32, n: f32| -> Vec<f32> {
+            (0..256)
+                .map(|k| (o + (k as f32 + 0.5) / zoom) / n)
+                .collect()
+        };
+        let (xs, ys) = (axis(x0, w), axis(y0, h));
+        let pts: Vec<[f32; 2]> = ys
+            .iter()
+            .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
+            .collect();
+        let time = |a: &fractile_codec::Asset| {
+            let op = &a.planes[0].operator;
+            let tolerance = (0.5 / (a.meta.value_max - a.meta.value_min)) as f32;
+            let g = median_ms(15, || {
+                std::hint::black_box(op.grid(&xs, &ys, 64, tolerance));
+            });
+            let p = median_ms(15, || {
+                std::hint::black_box(op.points(&pts, 64, tolerance));
+            });
+            (g, p)
+        };
+        let (gq, pq) = time(&q.asset);
+        println!(
+            "| quadtree-pifs | {} | {gq:.2} | {pq:.2} | {:.2}x the time | 1.00x |",
+            zoom * zoom,
+            gq / pq
+        );
+        let (g, p) = time(&b.asset);
+        println!(
+            "| projected --bounded | {} | {g:.2} | {p:.2} | {:.2}x the time | {:.2}x the time |",
+            zoom * zoom,
+            g / p,
+            g / gq
+        );
+    }
 }

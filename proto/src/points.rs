@@ -11,7 +11,9 @@ pub const BINARY_MEDIA_TYPE: &str = "application/x-bincode";
 pub struct PointsRequest {
     /// `[lon, lat]` for georeferenced assets, `[x, y]` in unit coordinates otherwise.
     pub points: Vec<[f64; 2]>,
-    /// Inverse steps; the server's default (enough for half a quantisation step) when absent.
+    /// Inverse steps; when both this and `tolerance` are absent, the server's limit with the
+    /// asset's default tolerance (half a quantisation step, or an eighth of its smallest
+    /// source error where that is larger).
     pub iterations: Option<u32>,
     /// Value units: each point stops once its own error bound is under it (within
     /// `iterations`, or the server's limit).

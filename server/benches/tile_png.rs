@@ -2,7 +2,8 @@
 //! DEM encode (0.8 bits a cell) of a real DEM, over a walk of zooms 10 to 16 (eight tiles a
 //! zoom along the asset's diagonal). Prints a table.
 //!
-//! `cargo bench -p fractile --bench tile_png [-- DEM.tif ...]` (default: testdata/jacksboro.tif).
+//! `cargo bench -p fractile --bench tile_png [-- DEM.tif|ASSET.fra ...]` (default:
+//! testdata/jacksboro.tif; an asset file is benched as it is, whatever its codec and rate).
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -18,6 +19,7 @@ use tower::ServiceExt;
 
 /// A decoded tile: heights and the bound the server gives them at full precision.
 struct Decoded {
+    zoom: u8,
     heights: Vec<f32>,
     error_bound: f32,
 }
@@ -45,21 +47,33 @@ async fn f32_tile(state: &Arc<AppState>, z: u8, x: u32, y: u32) -> Option<Decode
         .map(|b| f32::from_le_bytes(b.try_into().unwrap()))
         .collect();
     Some(Decoded {
+        zoom: z,
         heights,
         error_bound,
     })
 }
 
-fn bench_dem(path: &std::path::Path) {
+/// The asset of `path`: a `.fra` file as it is (any codec, any rate), else the default encode
+/// of a DEM.
+fn asset_bytes(path: &std::path::Path) -> Vec<u8> {
+    if path.extension().is_some_and(|e| e == "fra") {
+        return std::fs::read(path).expect("an asset file");
+    }
     let src = Raster::open(path).expect("a DEM");
     let settings = EncodeSettings {
         rate: RateMode::TargetBpp(0.8),
         ..EncodeSettings::default()
     };
-    let enc = encode(&src, &settings, &|_, _| {}).expect("an encode");
+    encode(&src, &settings, &|_, _| {})
+        .expect("an encode")
+        .bytes
+}
+
+fn bench_dem(path: &std::path::Path) {
+    let bytes = asset_bytes(path);
     let dir = std::env::temp_dir().join(format!("fractile-tile-png-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
-    std::fs::write(dir.join("dem.fra"), &enc.bytes).unwrap();
+    std::fs::write(dir.join("dem.fra"), &bytes).unwrap();
     let (store, _) = Store::open(&dir).unwrap();
     let state = Arc::new(AppState::new(store, "http://bench".into()));
     let stored = state.store.get("dem").unwrap();
@@ -125,6 +139,37 @@ fn bench_dem(path: &std::path::Path) {
                 mean / base
             );
         }
+    }
+    // Where the bytes are: by zoom, at the server's default (rounded to the bound, zlib 6).
+    println!("\n| zoom | mean X-Error-Bound m | rounding step m | mean bytes |");
+    println!("|---|---|---|---|");
+    for z in 10u8..=16 {
+        let at: Vec<&Decoded> = tiles.iter().filter(|t| t.zoom == z).collect();
+        if at.is_empty() {
+            continue;
+        }
+        let (mut bytes, mut bound, mut step) = (0usize, 0.0f64, 0.0f64);
+        for t in &at {
+            let rounding = Rounding::for_bound(HeightEncoding::TerrainRgb, t.error_bound);
+            let (_, body) = encode_tile(
+                &stored.asset.meta,
+                std::slice::from_ref(&t.heights),
+                256,
+                format,
+                None,
+                (rounding, Deflate::for_tile(rounding)),
+            );
+            bytes += body.len();
+            bound += f64::from(t.error_bound);
+            step += 0.1 * f64::from(1u32 << rounding.shift);
+        }
+        let n = at.len() as f64;
+        println!(
+            "| {z} | {:.1} | {:.1} | {:.0} |",
+            bound / n,
+            step / n,
+            bytes as f64 / n
+        );
     }
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -42,7 +42,7 @@ pub fn document() -> Value {
         "tolerance",
         "query",
         json!({"type": "number", "exclusiveMinimum": 0}),
-        "Error bound wanted, value units: each point stops once its own bound is under it (default: half a quantisation step of the source)",
+        "Error bound wanted, value units: each point stops once its own bound is under it (default: half a quantisation step of the source, or an eighth of the asset's smallest source error where that is larger)",
     );
     let backend = param(
         "backend",

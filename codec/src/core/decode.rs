@@ -16,7 +16,7 @@ use rayon::prelude::*;
 use crate::core::operator::{AxisAligned, Chain, ISOMETRY_MATRICES, Operator, active};
 
 /// The value of the attractor at one point, with its a-priori error bound.
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
 pub struct PointValue {
     /// Value (normalised units).
     pub value: f32,
@@ -106,7 +106,8 @@ fn seed_of<const D: usize, O: Operator<D> + ?Sized>(op: &O) -> (f32, f32) {
 }
 
 impl<const D: usize> Chain<D> {
-    fn start(q: [f32; D]) -> Self {
+    /// A chain at frame point `q` that has taken no step.
+    pub(crate) fn start(q: [f32; D]) -> Self {
         Chain {
             q,
             acc_g: 0.0,
@@ -115,7 +116,8 @@ impl<const D: usize> Chain<D> {
         }
     }
 
-    fn finish(&self, seed: f32, half: f32) -> PointValue {
+    /// The chain's answer from a seed `seed` within `half` of the attractor.
+    pub(crate) fn finish(&self, seed: f32, half: f32) -> PointValue {
         PointValue {
             value: self.acc_g + self.acc_s * seed,
             error_bound: self.acc_s.abs() * half,
@@ -179,27 +181,12 @@ pub fn grid<O: AxisAligned + ?Sized>(
         return chains.iter().map(|c| c.finish(seed, half)).collect();
     }
     let mut acc_g = vec![0.0f32; nx * ny];
-    let mut out = vec![
-        PointValue {
-            value: 0.0,
-            error_bound: 0.0,
-            iterations: 0,
-        };
-        nx * ny
-    ];
+    let mut out = vec![PointValue::default(); nx * ny];
     let mut chains: Vec<(usize, Chain<2>)> = Vec::new();
     let mut todo = Vec::new();
     let mut terms: Vec<f32> = Vec::new();
     if nx > 0 && ny > 0 {
-        todo.push(Block {
-            cols: [0, nx],
-            rows: [0, ny],
-            col_list: 0,
-            row_list: nx,
-            swap: false,
-            acc_s: 1.0,
-            taken: 0,
-        });
+        todo.push(Block::whole(nx, ny));
     }
     while let Some(b) = todo.pop() {
         let (w, h) = (b.cols[1] - b.cols[0], b.rows[1] - b.rows[0]);
@@ -267,23 +254,7 @@ pub fn grid<O: AxisAligned + ?Sized>(
             )
         };
         debug_assert!(cw > 0 && ch > 0);
-        // The rest of the block waits at the same step: its other columns beside the leading
-        // rows, then every column below them.
-        if cw < w {
-            todo.push(Block {
-                cols: [b.cols[0] + cw, b.cols[1]],
-                rows: [b.rows[0], b.rows[0] + ch],
-                col_list: b.col_list + cw,
-                ..b
-            });
-        }
-        if ch < h {
-            todo.push(Block {
-                rows: [b.rows[0] + ch, b.rows[1]],
-                row_list: b.row_list + ch,
-                ..b
-            });
-        }
+        b.split_rest(cw, ch, &mut todo);
         // One step of the leading block: g at every point (the same expression as `step`),
         // phi on the coordinate lists.
         let m = cell.map;
@@ -661,15 +632,52 @@ pub const MIN_BLOCK: usize = 8;
 /// arena offsets of their coordinate lists, which list holds frame x, and the shared part of the
 /// chain state (every point of a block has met the same maps).
 #[derive(Clone, Copy, Debug)]
-struct Block {
-    cols: [usize; 2],
-    rows: [usize; 2],
-    col_list: usize,
-    row_list: usize,
+pub(crate) struct Block {
+    pub(crate) cols: [usize; 2],
+    pub(crate) rows: [usize; 2],
+    pub(crate) col_list: usize,
+    pub(crate) row_list: usize,
     /// Whether the columns carry frame y (and the rows frame x).
-    swap: bool,
-    acc_s: f32,
-    taken: u32,
+    pub(crate) swap: bool,
+    pub(crate) acc_s: f32,
+    pub(crate) taken: u32,
+}
+
+impl Block {
+    /// The whole grid of `nx x ny` points, its column list first in the arena and its row
+    /// list after it, before any step.
+    pub(crate) fn whole(nx: usize, ny: usize) -> Block {
+        Block {
+            cols: [0, nx],
+            rows: [0, ny],
+            col_list: 0,
+            row_list: nx,
+            swap: false,
+            acc_s: 1.0,
+            taken: 0,
+        }
+    }
+
+    /// Puts on `todo` what is left of the block once its leading `cw` columns and `ch` rows
+    /// step: the rest waits at the same step, its other columns beside the leading rows, then
+    /// every column below them.
+    pub(crate) fn split_rest(&self, cw: usize, ch: usize, todo: &mut Vec<Block>) {
+        if cw < self.cols[1] - self.cols[0] {
+            todo.push(Block {
+                cols: [self.cols[0] + cw, self.cols[1]],
+                rows: [self.rows[0], self.rows[0] + ch],
+                col_list: self.col_list + cw,
+                ..*self
+            });
+        }
+        if ch < self.rows[1] - self.rows[0] {
+            todo.push(Block {
+                rows: [self.rows[0] + ch, self.rows[1]],
+                row_list: self.row_list + ch,
+                ..*self
+            });
+        }
+    }
 }
 
 /// A decoded grid (normalised values), row-major.

@@ -164,6 +164,16 @@ impl SourceError {
         self.bounds.iter().copied().fold(0.0, f32::max)
     }
 
+    /// The smallest positive bound of the map (blocks of nodata measure 0 and are left out),
+    /// or `None` when no block has one.
+    pub fn smallest(&self) -> Option<f32> {
+        self.bounds
+            .iter()
+            .copied()
+            .filter(|&b| b > 0.0)
+            .reduce(f32::min)
+    }
+
     /// The mean of the blocks' bounds.
     pub fn mean(&self) -> f32 {
         (self.bounds.iter().map(|&b| f64::from(b)).sum::<f64>() / self.bounds.len().max(1) as f64)

@@ -20,6 +20,11 @@ use crate::render::colour::{rgb_bound, ycbcr_to_rgb};
 /// f32 is about 1e-6 of a cell on a 1,000-cell grid), far below any real offset.
 pub const SAMPLE_SNAP: f32 = 1e-4;
 
+/// The part of an asset's smallest source error that its default tolerance may reach (see
+/// [`Asset::default_tolerance`]): an eighth, so that the convergence adds at most 12.5% to a
+/// bound that the source error makes anyway.
+pub const SETTLED_FRACTION: f32 = 0.125;
+
 /// Decodes one plane's point chains elsewhere (a GPU): `(plane, unit points, iterations,
 /// normalised tolerance)`, or `None` to leave them to the CPU.
 pub type ContinuousHook<'a> =
@@ -326,6 +331,28 @@ impl Asset {
             }
         };
         Some(pts.iter().map(|&[u, v]| [snap(u, w), snap(v, h)]).collect())
+    }
+
+    /// The tolerance of a request that names neither steps nor a tolerance (value units): the
+    /// larger of half a quantisation step of the source (1 for integer samples, 1/65535 of the
+    /// range for floats, 1/254 for 8-bit) and [`SETTLED_FRACTION`] of the smallest bound of its
+    /// source-error map. Iterating past that refines an answer far below its distance to the
+    /// source: a convergence bound under an eighth of the source error adds at most an eighth
+    /// to `error_bound`, and each further step costs as much as the first ones.
+    pub fn default_tolerance(&self) -> f32 {
+        let m = &self.meta;
+        let step = match m.sample {
+            SampleFormat::F32 => (m.value_max - m.value_min) / 65535.0,
+            SampleFormat::I8 => (m.value_max - m.value_min) / 254.0,
+            _ => 1.0,
+        };
+        let settled = self
+            .source_error
+            .as_ref()
+            .and_then(|map| map.smallest())
+            .filter(|e| e.is_finite())
+            .map_or(0.0, |e| SETTLED_FRACTION * e);
+        (0.5 * step as f32).max(settled)
     }
 
     /// The bound on |answer - source| at unit point (u, v) beyond convergence: the source-error

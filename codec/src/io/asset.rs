@@ -224,8 +224,9 @@ impl PlaneOperator {
     }
 
     /// Continuous decoding of the separable grid `(xs[i], ys[j])`, row-major: [`decode::grid`]
-    /// for the quadtree (whose blocks of points step together), [`Self::points`] on the listed
-    /// points for codecs whose cells are not axis-aligned boxes. Same answers either way.
+    /// for the quadtree and [`ProjectedOperator::grid`] for the projected continuation (whose
+    /// blocks of points step together), [`Self::points`] on the listed points for codecs whose
+    /// cells are not axis-aligned boxes. Same answers either way.
     pub fn grid(
         &self,
         xs: &[f32],
@@ -235,6 +236,7 @@ impl PlaneOperator {
     ) -> Vec<decode::PointValue> {
         match self {
             PlaneOperator::Quadtree(q) => decode::grid(q, xs, ys, iterations, tolerance),
+            PlaneOperator::Projected(p) => p.grid(xs, ys, iterations, tolerance),
             _ => {
                 let pts: Vec<[f32; 2]> = ys
                     .iter()

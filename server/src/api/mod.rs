@@ -353,8 +353,9 @@ pub type CoarsePlane = (
 
 /// Steps and per-point tolerance of a request. `iterations` alone: exactly that many steps.
 /// `tolerance` (value units): each point stops once its own a-priori bound is under it, within
-/// `iterations` or the limit. Neither: the tolerance is half a quantisation step of the source
-/// (1 for integer samples, 1/65535 of the range for floats).
+/// `iterations` or the limit. Neither: the asset's default tolerance (half a quantisation step
+/// of the source, or an eighth of its smallest source error where that is larger: see
+/// `Asset::default_tolerance`).
 fn iterations_for(
     state: &AppState,
     a: &StoredAsset,
@@ -385,15 +386,7 @@ fn iterations_for(
         )),
         (_, Some(t)) => Ok((n, t)),
         (Some(n), None) => Ok((n, 0.0)),
-        (None, None) => {
-            let m = &a.asset.meta;
-            let step = match m.sample {
-                fractile_proto::SampleFormat::F32 => (m.value_max - m.value_min) / 65535.0,
-                fractile_proto::SampleFormat::I8 => (m.value_max - m.value_min) / 254.0,
-                _ => 1.0,
-            };
-            Ok((max, 0.5 * step as f32))
-        }
+        (None, None) => Ok((max, a.asset.default_tolerance())),
     }
 }
 
