@@ -73,8 +73,10 @@ pub(crate) enum DomainsArg {
 
 #[derive(clap::Args)]
 pub(crate) struct EncodeArgs {
-    /// Input raster.
-    input: PathBuf,
+    /// Input: a raster, a mesh or a GeoJSON file; or, for a mosaic, several GeoTIFFs (or a
+    /// folder of them) on one grid, read as one raster (cells none covers are nodata).
+    #[arg(required = true, num_args = 1..)]
+    inputs: Vec<PathBuf>,
     /// Output asset file.
     #[arg(short, long)]
     output: PathBuf,
@@ -219,7 +221,8 @@ pub(crate) fn encode_volume(a: &EncodeArgs) -> Result<()> {
     if a.target_bpp.is_some() || a.codec != CodecArg::QuadtreePifs {
         bail!("meshes take --grid, --band and --tolerance (voxels), --transforms or --const-range");
     }
-    let mesh = fractile_codec::mesh::Mesh::read(&a.input)?;
+    let input = a.input()?;
+    let mesh = fractile_codec::mesh::Mesh::read(input)?;
     let mut s = fractile_codec::encode::volume::MeshSettings {
         grid: a.grid,
         band: a.band,
@@ -240,16 +243,15 @@ pub(crate) fn encode_volume(a: &EncodeArgs) -> Result<()> {
         // 0.08 voxel RMS collage error: the bench's setting, past the seed's quality bars.
         _ => Partition3::Tolerance((0.08 / (2.0 * a.band)) as f32),
     };
-    let name = a
-        .input
+    let name = input
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
     let enc = fractile_codec::encode::volume::encode_mesh(&mesh, &s, &name)?;
     fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
-    let file_bytes = std::fs::metadata(&a.input).map(|m| m.len()).unwrap_or(0);
+    let file_bytes = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0);
     let report = json!({
-        "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
+        "input": input, "output": a.output, "codec": enc.asset.codec_name(),
         "grid": enc.field.size, "band_voxels": a.band, "voxel": enc.field.voxel,
         "bytes": enc.bytes.len(), "ratio_i8": enc.ratio_i8(), "ratio_f32": enc.ratio_f32(),
         "ratio_mesh_file": file_bytes as f64 / enc.bytes.len() as f64,
@@ -261,7 +263,7 @@ pub(crate) fn encode_volume(a: &EncodeArgs) -> Result<()> {
     } else {
         println!(
             "{} -> {}: ifs3d-octree {}^3, {} bytes, {:.2}:1 against i8 ({:.2}:1 f32, {:.2}:1 the mesh file), {} maps, {:.2} s ({:.2} s distance field), PSNR {:.2} dB",
-            a.input.display(),
+            input.display(),
             a.output.display(),
             enc.field.size,
             enc.bytes.len(),
@@ -293,20 +295,20 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
     {
         bail!("GeoJSON takes --codec curve and --tolerance (degrees of arc; 0 keeps every detail)");
     }
+    let input = a.input()?;
     let tolerance = f64::from(a.tolerance.unwrap_or(0.0));
     if !(tolerance.is_finite() && tolerance >= 0.0) {
         bail!("--tolerance {tolerance} must be a distance >= 0");
     }
-    let text = std::fs::read_to_string(&a.input)
-        .with_context(|| format!("reading {}", a.input.display()))?;
+    let text =
+        std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
     let lines =
         fractile_codec::codecs::curve::geojson::read(&text).map_err(|e| anyhow::anyhow!(e))?;
     let settings = fractile_codec::codecs::curve::CurveSettings {
         tolerance,
         ..Default::default()
     };
-    let name = a
-        .input
+    let name = input
         .file_name()
         .map(|n| n.to_string_lossy().into_owned())
         .unwrap_or_default();
@@ -315,7 +317,7 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
     let set = &enc.asset.curve.as_ref().expect("a curve asset").set;
     let m = &enc.asset.meta;
     let report = json!({
-        "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
+        "input": input, "output": a.output, "codec": enc.asset.codec_name(),
         "polylines": set.rings.len(), "points": enc.points, "bytes": enc.bytes.len(),
         "ratio_f64": (enc.points * 16) as f64 / enc.bytes.len() as f64,
         "ratio_f32": (enc.points * 8) as f64 / enc.bytes.len() as f64,
@@ -329,7 +331,7 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
     } else {
         println!(
             "{} -> {}: {} polylines, {} points, {} bytes ({:.2}:1 vs float32, {:.2}:1 vs float64), Hausdorff distance to the source {:.0} m, {} levels, {:.2} s",
-            a.input.display(),
+            input.display(),
             a.output.display(),
             set.rings.len(),
             enc.points,
@@ -344,14 +346,25 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
     Ok(())
 }
 
+impl EncodeArgs {
+    /// The one input of a kind that does not mosaic (a mesh, a GeoJSON file).
+    fn input(&self) -> Result<&PathBuf> {
+        match self.inputs.as_slice() {
+            [one] => Ok(one),
+            _ => bail!("only GeoTIFFs make a mosaic: give one mesh or GeoJSON file"),
+        }
+    }
+}
+
 pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
-    if is_mesh(&a.input) {
+    if is_mesh(&a.inputs[0]) {
         return encode_volume(&a);
     }
-    if is_geojson(&a.input) || a.codec == CodecArg::Curve {
+    if is_geojson(&a.inputs[0]) || a.codec == CodecArg::Curve {
         return encode_curve(&a);
     }
-    let raster = Raster::open(&a.input)?;
+    let files = fractile_codec::io::mosaic::input_files(&a.inputs)?;
+    let raster = fractile_codec::io::mosaic::open(&a.inputs)?;
     let lattice = |a: &EncodeArgs| {
         if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
             bail!(
@@ -412,7 +425,8 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     };
     fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
     let report = json!({
-        "input": a.input, "output": a.output, "codec": enc.asset.codec_name(),
+        "input": a.inputs[0], "inputs": files, "output": a.output, "codec": enc.asset.codec_name(),
+        "width": raster.width, "height": raster.height,
         "bytes": enc.bytes.len(), "source_bytes": enc.asset.meta.source_bytes(),
         "ratio": enc.ratio(), "bpp": enc.bpp(), "transforms": enc.transforms,
         "seconds": enc.seconds, "psnr": enc.errors.psnr, "rmse": enc.errors.rmse,
@@ -427,8 +441,18 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         println!("{report}");
     } else {
         println!(
-            "{} -> {}: {} {} bytes, {:.2}:1, {:.3} bpp, {} transforms, {:.2} s, PSNR {:.2} dB, RMSE {:.3}, max error {:.3}",
-            a.input.display(),
+            "{}{} -> {}: {} {} bytes, {:.2}:1, {:.3} bpp, {} transforms, {:.2} s, PSNR {:.2} dB, RMSE {:.3}, max error {:.3}",
+            a.inputs[0].display(),
+            if files.len() > 1 {
+                format!(
+                    " (a mosaic of {} files, {}x{})",
+                    files.len(),
+                    raster.width,
+                    raster.height
+                )
+            } else {
+                String::new()
+            },
             a.output.display(),
             enc.asset.codec_name(),
             enc.bytes.len(),

@@ -481,3 +481,96 @@ fn projected_max_error_is_kept_through_encode_decode_and_compare() {
     }
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+/// Issue 30's mosaics: a real DEM cut into four GeoTIFFs (sharing an edge row and column, as
+/// SRTM tiles do), given as files or as their folder, encodes as the DEM itself does; inputs
+/// on another grid are refused by name and leave no output.
+#[test]
+fn geotiffs_that_tile_an_area_encode_as_one_asset() {
+    use fractile_codec::io::raster::write_geotiff_f32;
+    let dir = tempdir("mosaic");
+    let tiles = dir.join("tiles");
+    std::fs::create_dir_all(&tiles).unwrap();
+    let src = fractile_codec::Raster::open(&data("jacksboro.tif")).unwrap();
+    let g = src.georef.clone().expect("georeferenced");
+    let (w, h) = (src.width, src.height);
+    let write = |path: &std::path::Path, [x0, y0, x1, y1]: [usize; 4]| {
+        let values: Vec<f32> = (y0..y1)
+            .flat_map(|y| (x0..x1).map(move |x| (x, y)))
+            .map(|(x, y)| src.channels[0][y * w + x])
+            .collect();
+        let georef = fractile_proto::Georef {
+            origin: [
+                g.origin[0] + x0 as f64 * g.pixel_size[0],
+                g.origin[1] + y0 as f64 * g.pixel_size[1],
+            ],
+            ..g.clone()
+        };
+        write_geotiff_f32(path, x1 - x0, y1 - y0, &values, Some(&georef), src.nodata).unwrap();
+    };
+    // The whole DEM as one float32 file: what the mosaic must equal.
+    let whole = dir.join("whole.tif");
+    write(&whole, [0, 0, w, h]);
+    let (mx, my) = (w / 2, h / 2);
+    let parts: Vec<PathBuf> = [
+        [0, 0, mx + 1, my + 1],
+        [mx, 0, w, my + 1],
+        [0, my, mx + 1, h],
+        [mx, my, w, h],
+    ]
+    .iter()
+    .enumerate()
+    .map(|(k, win)| {
+        let p = tiles.join(format!("t{k}.tif"));
+        write(&p, *win);
+        p
+    })
+    .collect();
+    let encode = |inputs: &[PathBuf], out: &std::path::Path| {
+        bin()
+            .arg("encode")
+            .args(inputs)
+            .arg("-o")
+            .arg(out)
+            .args(["--target-bpp", "0.8", "--json"])
+            .output()
+            .unwrap()
+    };
+    let one = json(&encode(&[whole], &dir.join("whole.fra")));
+    for (label, inputs) in [("files", parts.clone()), ("folder", vec![tiles.clone()])] {
+        let out = dir.join(format!("{label}.fra"));
+        let m = json(&encode(&inputs, &out));
+        assert_eq!(m["inputs"].as_array().map(Vec::len), Some(4), "{label}");
+        assert_eq!(
+            (m["width"].as_u64(), m["height"].as_u64()),
+            (Some(w as u64), Some(h as u64))
+        );
+        // The same raster, so the same encode: the same bytes and errors.
+        for key in ["bytes", "psnr", "max_error"] {
+            assert_eq!(m[key], one[key], "{label}: {key}");
+        }
+        let info = json(&bin().arg("info").arg(&out).arg("--json").output().unwrap());
+        assert_eq!(
+            info["georef"]["origin"][0].as_f64(),
+            Some(g.origin[0]),
+            "{label}"
+        );
+    }
+    // A tile on another grid (half a pixel off): refused, named, and nothing written.
+    let off = tiles.join("t9.tif");
+    let values = vec![300.0f32; 64];
+    let georef = fractile_proto::Georef {
+        origin: [g.origin[0] + 0.5 * g.pixel_size[0], g.origin[1]],
+        ..g.clone()
+    };
+    write_geotiff_f32(&off, 8, 8, &values, Some(&georef), None).unwrap();
+    let out = dir.join("refused.fra");
+    let res = encode(std::slice::from_ref(&tiles), &out);
+    let err = String::from_utf8_lossy(&res.stderr);
+    assert!(
+        !res.status.success() && err.contains("t9.tif") && err.contains("grid"),
+        "{err}"
+    );
+    assert!(!out.exists());
+    std::fs::remove_dir_all(&dir).ok();
+}

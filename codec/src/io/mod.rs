@@ -3,4 +3,5 @@
 //! works on, are [`crate::mesh`].)
 
 pub mod asset;
+pub mod mosaic;
 pub mod raster;
