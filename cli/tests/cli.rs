@@ -574,3 +574,46 @@ fn geotiffs_that_tile_an_area_encode_as_one_asset() {
     assert!(!out.exists());
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// Issue 32: `--backend auto` never decodes on a software adapter (Mesa's lavapipe is slower
+/// than the CPU), in the CLI as in the server; where the only adapter is one (CI, this
+/// machine), a million-pixel continuous decode runs on the CPU.
+#[test]
+fn auto_never_decodes_on_a_software_adapter() {
+    let dir = tempdir("auto-backend");
+    let asset = dir.join("j.fra");
+    json(
+        &bin()
+            .arg("encode")
+            .arg(data("jacksboro.tif"))
+            .arg("-o")
+            .arg(&asset)
+            .args(["--target-bpp", "0.8", "--json"])
+            .output()
+            .unwrap(),
+    );
+    // 3x jacksboro: 1209 x 1032, over the million pixels from which auto takes a GPU.
+    let out = bin()
+        .arg("decode")
+        .arg(&asset)
+        .arg("-o")
+        .arg(dir.join("x3.tif"))
+        .args([
+            "--scale",
+            "3",
+            "--method",
+            "continuous",
+            "--backend",
+            "auto",
+        ])
+        .output()
+        .unwrap();
+    let said = String::from_utf8_lossy(&out.stderr);
+    assert!(out.status.success(), "{said}");
+    let hardware = fractile_gpu::Gpu::new().ok().filter(|g| !g.is_software());
+    match hardware {
+        None => assert!(said.contains(", CPU)"), "{said}"),
+        Some(g) => assert!(said.contains(&g.adapter()), "{said}"),
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
