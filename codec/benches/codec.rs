@@ -392,6 +392,51 @@ fn main() {
     if want("projected") || want("points") {
         projected_points(&root(), &dem_weighed);
     }
+    if want("scale") {
+        scale(&root(), &dem_weighed);
+    }
+}
+
+/// Issue 30's scaling: the default DEM encode (0.8 bpp, as the CLI encodes DEMs) of mosaics of
+/// k x k mirrored copies of etopo20 (a real DEM; mirrors keep it continuous across the seams),
+/// time a megapixel against one copy's, and PSNR.
+fn scale(root: &Path, dem: &dyn Fn(f64) -> EncodeSettings) {
+    let e = Raster::open(&root.join("testdata/etopo20.tif")).expect("testdata");
+    println!(
+        "\n## Encode time against raster size (mirrored etopo20, 0.8 bpp, {} threads)\n",
+        rayon::current_num_threads()
+    );
+    println!("| copies | size | Mpx | encode s | s a Mpx | against one copy | PSNR dB |");
+    println!("|---|---|---|---|---|---|---|");
+    let mut base = None;
+    for k in [1usize, 2, 4] {
+        let (w, h) = (e.width * k, e.height * k);
+        let values: Vec<f32> = (0..w * h)
+            .map(|i| {
+                let (x, y) = (i % w, i / w);
+                let mirror = |t: usize, n: usize| {
+                    if (t / n).is_multiple_of(2) {
+                        t % n
+                    } else {
+                        n - 1 - t % n
+                    }
+                };
+                e.channels[0][mirror(y, e.height) * e.width + mirror(x, e.width)]
+            })
+            .collect();
+        let r = Raster::from_values(w, h, values, fractile_proto::AssetKind::HeightField)
+            .expect("a mosaic");
+        let enc = encode(&r, &dem(0.8), &quiet).expect("encode");
+        let mpx = (w * h) as f64 / 1e6;
+        let per = enc.seconds / mpx;
+        let first = *base.get_or_insert(per);
+        println!(
+            "| {k} x {k} | {w} x {h} | {mpx:.2} | {:.1} | {per:.2} | {:.2}x | {:.2} |",
+            enc.seconds,
+            per / first,
+            enc.errors.psnr
+        );
+    }
 }
 
 /// Issue 29's tables: the projected codec beside the quadtree and JPEG 2000 at the same bytes
