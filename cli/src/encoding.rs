@@ -514,8 +514,10 @@ pub(crate) fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractil
     // The bar appears only once an encode has run for a second (short encodes stay quiet).
     let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
     bar.set_style(
-        ProgressStyle::with_template("{spinner} fitting blocks {bar:30} {pos}/{len} {elapsed}")
-            .expect("template"),
+        ProgressStyle::with_template(
+            "{spinner} fitting blocks {bar:30} {pos}/{len} {elapsed}, about {eta} to go",
+        )
+        .expect("template"),
     );
     let started = Instant::now();
     let shown = std::sync::atomic::AtomicBool::new(false);
