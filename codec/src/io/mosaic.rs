@@ -82,7 +82,9 @@ fn offset(first: (&Path, &Georef), part: (&Path, &Georef)) -> Result<[i64; 2], E
         )));
     }
     for k in 0..2 {
-        if ((g.pixel_size[k] - g0.pixel_size[k]) / g0.pixel_size[k]).abs() > SAME_GRID {
+        // A NaN (a zero or non-finite pixel size) is refused too.
+        let apart = ((g.pixel_size[k] - g0.pixel_size[k]) / g0.pixel_size[k]).abs();
+        if apart.is_nan() || apart > SAME_GRID {
             return Err(Error::Input(format!(
                 "{} has pixels of {:?} and {} of {:?}: a mosaic's inputs share one resolution (resample them first)",
                 p.display(),
@@ -95,7 +97,8 @@ fn offset(first: (&Path, &Georef), part: (&Path, &Georef)) -> Result<[i64; 2], E
     let mut at = [0i64; 2];
     for (k, at) in at.iter_mut().enumerate() {
         let cells = (g.origin[k] - g0.origin[k]) / g0.pixel_size[k];
-        if (cells - cells.round()).abs() > SAME_GRID {
+        let off = (cells - cells.round()).abs();
+        if off.is_nan() || off > SAME_GRID {
             return Err(Error::Input(format!(
                 "{} is {:.3} pixels off the grid of {} (not a whole number): a mosaic's inputs share one grid",
                 p.display(),
