@@ -221,6 +221,34 @@ async fn points_at_source_pixel_centres_are_as_good_as_the_encoding() {
     // Against the source: the measured source error there plus convergence.
     assert!(p["error_bound"].as_f64().unwrap() >= p["convergence_bound"].as_f64().unwrap());
     assert!(p["convergence_bound"].as_f64().unwrap() >= 0.0);
+    // Without steps or a tolerance, each point converges to the asset's default tolerance (an
+    // eighth of its smallest source error where that is over half a metre), not to the step
+    // limit's bound: its convergence bound is within that tolerance, and the tolerance is what
+    // the codec says it is.
+    let tolerance = f64::from(a.asset.default_tolerance());
+    let smallest = a.asset.source_error.as_ref().and_then(|m| m.smallest());
+    assert_eq!(
+        tolerance,
+        f64::from(0.5f32.max(smallest.expect("a source-error map") / 8.0))
+    );
+    let body = serde_json::json!({"points": pts}).to_string();
+    let req = Request::post("/v1/assets/jacksboro/points")
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from(body))
+        .unwrap();
+    let (s, _, b) = send(req).await;
+    assert_eq!(s, StatusCode::OK);
+    let mut loosest = 0.0f64;
+    for r in json(&b)["results"].as_array().unwrap() {
+        let c = r["convergence_bound"].as_f64().unwrap();
+        // The f32 rounding of a chain's sums on top (a few ulps of the value range).
+        assert!(c <= tolerance * 1.001 + 1e-3, "{r} against {tolerance}");
+        assert!(r["error_bound"].as_f64().unwrap() >= c);
+        loosest = loosest.max(c);
+    }
+    // Chains stopped at that tolerance, not at half a metre as they did before it (this
+    // asset's tolerance is over a metre).
+    assert!(tolerance > 1.0 && loosest > 0.5, "{loosest} of {tolerance}");
 }
 
 #[tokio::test]
