@@ -89,6 +89,17 @@ async fn send(req: Request<Body>) -> (StatusCode, axum::http::HeaderMap, Vec<u8>
     )
 }
 
+/// POSTs a JSON body to `uri` and reads the JSON answer, which must be 200.
+async fn post_json(uri: &str, body: serde_json::Value) -> serde_json::Value {
+    let req = Request::post(uri)
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from(body.to_string()))
+        .unwrap();
+    let (s, _, b) = send(req).await;
+    assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&b));
+    json(&b)
+}
+
 fn json(b: &[u8]) -> serde_json::Value {
     serde_json::from_slice(b).unwrap()
 }
@@ -189,14 +200,11 @@ async fn points_at_source_pixel_centres_are_as_good_as_the_encoding() {
             truth.push(src.channels[0][j * src.width + i] as f64);
         }
     }
-    let body = serde_json::json!({"points": pts, "iterations": 20}).to_string();
-    let req = Request::post("/v1/assets/jacksboro/points")
-        .header(header::CONTENT_TYPE, "application/json")
-        .body(Body::from(body))
-        .unwrap();
-    let (s, _, b) = send(req).await;
-    assert_eq!(s, StatusCode::OK);
-    let r = json(&b);
+    let r = post_json(
+        "/v1/assets/jacksboro/points",
+        serde_json::json!({"points": pts, "iterations": 20}),
+    )
+    .await;
     let results = r["results"].as_array().unwrap();
     assert_eq!(results.len(), pts.len());
     let se: f64 = results
@@ -231,15 +239,13 @@ async fn points_at_source_pixel_centres_are_as_good_as_the_encoding() {
         tolerance,
         f64::from(0.5f32.max(smallest.expect("a source-error map") / 8.0))
     );
-    let body = serde_json::json!({"points": pts}).to_string();
-    let req = Request::post("/v1/assets/jacksboro/points")
-        .header(header::CONTENT_TYPE, "application/json")
-        .body(Body::from(body))
-        .unwrap();
-    let (s, _, b) = send(req).await;
-    assert_eq!(s, StatusCode::OK);
+    let r = post_json(
+        "/v1/assets/jacksboro/points",
+        serde_json::json!({"points": pts}),
+    )
+    .await;
     let mut loosest = 0.0f64;
-    for r in json(&b)["results"].as_array().unwrap() {
+    for r in r["results"].as_array().unwrap() {
         let c = r["convergence_bound"].as_f64().unwrap();
         // The f32 rounding of a chain's sums on top (a few ulps of the value range).
         assert!(c <= tolerance * 1.001 + 1e-3, "{r} against {tolerance}");
