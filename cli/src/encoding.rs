@@ -1,6 +1,10 @@
-//! `fractile encode`: rasters (quadtree PIFS, FIS, psa2d), meshes (IFS3D) and curves into assets.
+//! `fractile encode`: rasters (quadtree PIFS, projected, FIS, psa2d) into assets, and with `shapes`
+//! meshes (IFS3D) and curves.
 
 use super::*;
+
+mod shapes;
+pub(crate) use shapes::*;
 
 #[derive(Clone, Copy, ValueEnum)]
 pub(crate) enum Search {
@@ -146,9 +150,13 @@ pub(crate) struct EncodeArgs {
     #[arg(long)]
     attractor_passes: Option<u32>,
     /// Codec: FIS codecs take height fields, psa2d grey images and height fields; GeoJSON input
-    /// is always `curve`.
-    #[arg(long, value_enum, default_value_t = CodecArg::QuadtreePifs)]
-    codec: CodecArg,
+    /// is always `curve`, a mesh IFS3D. Default for a height field: `projected` under a bounded
+    /// rate (`--target-bpp B --bounded`, B = 0.8 unless given; or `--max-error E`), whose every
+    /// cell is within the bound it answers; for an image, or a height field with a flag only
+    /// the quadtree reads (--tolerance, --transforms, --const-range, --roi, --speed, ...):
+    /// `quadtree-pifs`.
+    #[arg(long, value_enum)]
+    codec: Option<CodecArg>,
     /// psa2d: touching or overlapping domains.
     #[arg(long, value_enum, default_value_t = DomainsArg::Overlapping)]
     domains: DomainsArg,
@@ -177,7 +185,30 @@ pub(crate) struct EncodeArgs {
     /// Print JSON.
     #[arg(long)]
     json: bool,
+    /// The quadtree-only flags given on the command line (by `main`, from clap's matches: the
+    /// flags with defaults cannot tell given from defaulted otherwise).
+    #[arg(skip)]
+    pub(crate) quadtree_flags: Vec<&'static str>,
 }
+
+/// The flags only the quadtree PIFS reads, by clap id: given any, a height field with no
+/// `--codec` is coded by the quadtree, as before the projected default.
+pub(crate) const QUADTREE_FLAGS: &[&str] = &[
+    "tolerance",
+    "transforms",
+    "const_range",
+    "roi",
+    "min_range",
+    "max_range",
+    "speed",
+    "domain_step",
+    "contrast_bits",
+    "offset_bits",
+    "slope_bits",
+    "search",
+    "candidates",
+    "attractor_passes",
+];
 
 pub(crate) fn parse_roi(s: &str) -> Result<Roi, String> {
     let mut parts = s.split(':');
@@ -206,147 +237,36 @@ pub(crate) fn parse_roi(s: &str) -> Result<Roi, String> {
     })
 }
 
-/// Whether a path names a mesh (by extension).
-pub(crate) fn is_mesh(p: &Path) -> bool {
-    p.extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| ["off", "obj", "ply", "stl"].contains(&e.to_ascii_lowercase().as_str()))
-}
-
-/// `fractile encode mesh.off --grid N [--tolerance T | --transforms N]`: IFS3D. The octree's
-/// ranges are 4 to 16 voxels and its quantiser is its own (`octree::VolumeSettings`); the
-/// raster flags of range sizes and bits do not apply.
-pub(crate) fn encode_volume(a: &EncodeArgs) -> Result<()> {
-    use fractile_codec::codecs::ifs3d::octree::Partition3;
-    if a.target_bpp.is_some() || a.codec != CodecArg::QuadtreePifs {
-        bail!("meshes take --grid, --band and --tolerance (voxels), --transforms or --const-range");
-    }
-    let input = a.input()?;
-    let mesh = fractile_codec::mesh::Mesh::read(input)?;
-    let mut s = fractile_codec::encode::volume::MeshSettings {
-        grid: a.grid,
-        band: a.band,
-        ..Default::default()
-    };
-    s.codec.partition = match (a.tolerance, a.transforms, a.const_range) {
-        (Some(t), ..) if !(t.is_finite() && t > 0.0) => bail!("--tolerance {t} must be positive"),
-        // Voxels -> normalised units: the field spans 2 band voxels.
-        (Some(t), ..) => Partition3::Tolerance(t / (2.0 * a.band) as f32),
-        (_, Some(n), _) => Partition3::Transforms(n),
-        (.., Some(r)) => {
-            let sizes: Vec<u32> = (0..s.codec.levels).map(|l| s.codec.min_size << l).collect();
-            match sizes.iter().position(|&n| n == r) {
-                Some(l) => Partition3::ConstRange(l),
-                None => bail!("--const-range {r}: the octree's ranges are {sizes:?} voxels"),
-            }
-        }
-        // 0.08 voxel RMS collage error: the bench's setting, past the seed's quality bars.
-        _ => Partition3::Tolerance((0.08 / (2.0 * a.band)) as f32),
-    };
-    let name = input
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let enc = fractile_codec::encode::volume::encode_mesh(&mesh, &s, &name)?;
-    fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
-    let file_bytes = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0);
-    let report = json!({
-        "input": input, "output": a.output, "codec": enc.asset.codec_name(),
-        "grid": enc.field.size, "band_voxels": a.band, "voxel": enc.field.voxel,
-        "bytes": enc.bytes.len(), "ratio_i8": enc.ratio_i8(), "ratio_f32": enc.ratio_f32(),
-        "ratio_mesh_file": file_bytes as f64 / enc.bytes.len() as f64,
-        "transforms": enc.asset.meta.stats.transforms, "seconds": enc.seconds,
-        "field_seconds": enc.field_seconds, "psnr": enc.psnr(), "rmse": enc.asset.meta.stats.rmse,
-    });
-    if a.json {
-        println!("{report}");
-    } else {
-        println!(
-            "{} -> {}: ifs3d-octree {}^3, {} bytes, {:.2}:1 against i8 ({:.2}:1 f32, {:.2}:1 the mesh file), {} maps, {:.2} s ({:.2} s distance field), PSNR {:.2} dB",
-            input.display(),
-            a.output.display(),
-            enc.field.size,
-            enc.bytes.len(),
-            enc.ratio_i8(),
-            enc.ratio_f32(),
-            file_bytes as f64 / enc.bytes.len() as f64,
-            enc.asset.meta.stats.transforms,
-            enc.seconds,
-            enc.field_seconds,
-            enc.psnr()
-        );
-    }
-    Ok(())
-}
-
-/// Whether a path names GeoJSON (by extension).
-pub(crate) fn is_geojson(p: &Path) -> bool {
-    p.extension()
-        .and_then(|e| e.to_str())
-        .is_some_and(|e| ["geojson", "json"].contains(&e.to_ascii_lowercase().as_str()))
-}
-
-/// `fractile encode coast.geojson -o coast.fra [--codec curve] [--tolerance T]`.
-pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
-    if ![CodecArg::Curve, CodecArg::QuadtreePifs].contains(&a.codec)
-        || a.target_bpp.is_some()
-        || a.transforms.is_some()
-        || a.const_range.is_some()
-    {
-        bail!("GeoJSON takes --codec curve and --tolerance (degrees of arc; 0 keeps every detail)");
-    }
-    let input = a.input()?;
-    let tolerance = f64::from(a.tolerance.unwrap_or(0.0));
-    if !(tolerance.is_finite() && tolerance >= 0.0) {
-        bail!("--tolerance {tolerance} must be a distance >= 0");
-    }
-    let text =
-        std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
-    let lines =
-        fractile_codec::codecs::curve::geojson::read(&text).map_err(|e| anyhow::anyhow!(e))?;
-    let settings = fractile_codec::codecs::curve::CurveSettings {
-        tolerance,
-        ..Default::default()
-    };
-    let name = input
-        .file_name()
-        .map(|n| n.to_string_lossy().into_owned())
-        .unwrap_or_default();
-    let enc = fractile_codec::encode::curve::encode_asset(&lines, &settings, &name)?;
-    fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
-    let set = &enc.asset.curve.as_ref().expect("a curve asset").set;
-    let m = &enc.asset.meta;
-    let report = json!({
-        "input": input, "output": a.output, "codec": enc.asset.codec_name(),
-        "polylines": set.rings.len(), "points": enc.points, "bytes": enc.bytes.len(),
-        "ratio_f64": (enc.points * 16) as f64 / enc.bytes.len() as f64,
-        "ratio_f32": (enc.points * 8) as f64 / enc.bytes.len() as f64,
-        "tolerance_degrees": tolerance,
-        "tolerance_m": tolerance * fractile_codec::codecs::curve::METRES_PER_DEGREE,
-        "hausdorff_m": m.stats.max_error * fractile_codec::codecs::curve::METRES_PER_DEGREE,
-        "finest_level": set.finest(), "fit": enc.fit, "seconds": m.stats.seconds,
-    });
-    if a.json {
-        println!("{report}");
-    } else {
-        println!(
-            "{} -> {}: {} polylines, {} points, {} bytes ({:.2}:1 vs float32, {:.2}:1 vs float64), Hausdorff distance to the source {:.0} m, {} levels, {:.2} s",
-            input.display(),
-            a.output.display(),
-            set.rings.len(),
-            enc.points,
-            enc.bytes.len(),
-            report["ratio_f32"].as_f64().unwrap_or(0.0),
-            report["ratio_f64"].as_f64().unwrap_or(0.0),
-            report["hausdorff_m"].as_f64().unwrap_or(0.0),
-            set.finest(),
-            m.stats.seconds
-        );
-    }
-    Ok(())
-}
-
 impl EncodeArgs {
+    /// The arguments with `--codec` decided when none was given (see its help): `projected`
+    /// under a bounded rate for a height field unless a quadtree-only flag is given, or for
+    /// any raster with `--max-error` or `--bounded`; `quadtree-pifs` otherwise.
+    fn with_default_codec(mut self, kind: AssetKind) -> EncodeArgs {
+        if self.codec.is_some() {
+            return self;
+        }
+        let quadtree = !self.quadtree_flags.is_empty();
+        let projected = !quadtree
+            && (kind == AssetKind::HeightField || self.max_error.is_some() || self.bounded);
+        self.codec = Some(if projected {
+            CodecArg::Projected
+        } else {
+            CodecArg::QuadtreePifs
+        });
+        if projected && self.max_error.is_none() {
+            self.bounded = true;
+            self.target_bpp = self
+                .target_bpp
+                .or(Some(fractile_codec::encode::DEFAULT_HEIGHT_FIELD_BPP));
+        }
+        self
+    }
+
+    /// The codec (decided by [`Self::with_default_codec`] for rasters).
+    fn codec(&self) -> CodecArg {
+        self.codec.unwrap_or(CodecArg::QuadtreePifs)
+    }
+
     /// The one input of a kind that does not mosaic (a mesh, a GeoJSON file).
     fn input(&self) -> Result<&PathBuf> {
         match self.inputs.as_slice() {
@@ -360,29 +280,30 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     if is_mesh(&a.inputs[0]) {
         return encode_volume(&a);
     }
-    if is_geojson(&a.inputs[0]) || a.codec == CodecArg::Curve {
+    if is_geojson(&a.inputs[0]) || a.codec == Some(CodecArg::Curve) {
         return encode_curve(&a);
     }
     let files = fractile_codec::io::mosaic::input_files(&a.inputs)?;
     let raster = fractile_codec::io::mosaic::open(&a.inputs)?;
+    let a = a.with_default_codec(raster.kind);
     let lattice = |a: &EncodeArgs| {
         if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
             bail!(
                 "--codec {} takes --spacing, --max-error or --target-bpp",
-                a.codec.name()
+                a.codec().name()
             );
         }
         Ok(())
     };
-    if (a.max_error.is_some() || a.bounded) && a.codec != CodecArg::Projected {
+    if (a.max_error.is_some() || a.bounded) && a.codec() != CodecArg::Projected {
         bail!("--max-error and --bounded are for --codec projected");
     }
     if a.bounded && a.target_bpp.is_none() {
         bail!("--bounded bounds the error under --target-bpp B");
     }
-    let enc = if a.codec == CodecArg::QuadtreePifs {
+    let enc = if a.codec() == CodecArg::QuadtreePifs {
         encode_quadtree(&a, &raster)?
-    } else if a.codec == CodecArg::Projected {
+    } else if a.codec() == CodecArg::Projected {
         lattice(&a)?;
         let settings = fractile_codec::codecs::projected::ProjectedSettings {
             max_error: a.max_error,
@@ -393,7 +314,7 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
             bail!("--codec projected takes --max-error E (source units) or --target-bpp B");
         }
         fractile_codec::encode::projected::encode_projected(&raster, &settings, a.target_bpp)?
-    } else if let Some(tiling) = a.codec.psa_tiling() {
+    } else if let Some(tiling) = a.codec().psa_tiling() {
         lattice(&a)?;
         let domains = match a.domains {
             DomainsArg::Touching => Domains::Touching,
@@ -410,7 +331,7 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         };
         fractile_codec::encode::encode_psa(&raster, &settings, a.target_bpp)?
     } else {
-        let Some(scaling) = a.codec.fis_scaling() else {
+        let Some(scaling) = a.codec().fis_scaling() else {
             bail!("--codec curve is for GeoJSON input");
         };
         lattice(&a)?;

@@ -462,11 +462,12 @@ fn projected_max_error_is_kept_through_encode_decode_and_compare() {
     assert!(bounded["max_error"].as_f64().unwrap() <= bound, "{bounded}");
     // A bound is for this codec only, and this codec needs a bound or a size.
     for args in [
-        vec!["--max-error", "3"],
+        vec!["--codec", "quadtree-pifs", "--max-error", "3"],
         vec!["--codec", "projected"],
         vec!["--codec", "projected", "--tolerance", "2"],
         vec!["--codec", "projected", "--max-error", "3", "--bounded"],
-        vec!["--target-bpp", "0.8", "--bounded"],
+        vec!["--codec", "fis-rect", "--target-bpp", "0.8", "--bounded"],
+        vec!["--tolerance", "2", "--bounded"],
     ] {
         let out = bin()
             .arg("encode")
@@ -478,6 +479,55 @@ fn projected_max_error_is_kept_through_encode_decode_and_compare() {
             .unwrap();
         assert!(!out.status.success(), "{args:?} was accepted");
         assert!(!dir.join("x.fra").exists(), "{args:?} left a file");
+    }
+    let _ = std::fs::remove_dir_all(&dir);
+}
+
+/// With no `--codec`, a height field is coded by `projected` under a bounded rate (0.8 bits a
+/// cell unless given), so the asset reports the bound every cell keeps; a quadtree-only flag
+/// keeps it on the quadtree; an image goes to the quadtree.
+#[test]
+fn a_dem_without_a_codec_is_coded_projected_under_a_bounded_rate() {
+    let dir = std::env::temp_dir().join(format!("fractile-cli-auto-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let encode = |input: &str, args: &[&str]| {
+        let out = bin()
+            .arg("encode")
+            .arg(data(input))
+            .arg("-o")
+            .arg(dir.join("a.fra"))
+            .args(args)
+            .arg("--json")
+            .output()
+            .unwrap();
+        assert!(
+            out.status.success(),
+            "{args:?}: {}",
+            String::from_utf8_lossy(&out.stderr)
+        );
+        serde_json::from_slice::<serde_json::Value>(&out.stdout).unwrap()
+    };
+    for (args, bpp) in [(vec![], 0.8), (vec!["--target-bpp", "1.6"], 1.6)] {
+        let r = encode("jacksboro.tif", &args);
+        assert_eq!(r["codec"], "projected", "{args:?}: {r}");
+        assert!(r["bpp"].as_f64().unwrap() <= bpp, "{r}");
+        // A bounded rate spends most of it (a file far under the rate would be an unbounded
+        // default or another codec).
+        assert!(r["bpp"].as_f64().unwrap() > 0.8 * bpp, "{r}");
+        let bound = r["max_error_bound"].as_f64().expect("a bound");
+        assert!(r["max_error"].as_f64().unwrap() <= bound, "{r}");
+    }
+    let r = encode("jacksboro.tif", &["--max-error", "5"]);
+    assert_eq!(r["codec"], "projected", "{r}");
+    assert!(r["max_error"].as_f64().unwrap() <= 5.0, "{r}");
+    for (input, args) in [
+        ("jacksboro.tif", vec!["--tolerance", "3"]),
+        ("jacksboro.tif", vec!["--speed", "3", "--target-bpp", "0.8"]),
+        ("camera.png", vec![]),
+    ] {
+        let r = encode(input, &args);
+        assert_eq!(r["codec"], "quadtree-pifs", "{input} {args:?}: {r}");
+        assert!(r["max_error_bound"].is_null(), "{r}");
     }
     let _ = std::fs::remove_dir_all(&dir);
 }

@@ -29,7 +29,7 @@ pub mod render;
 pub use crate::core::decode::{DiscreteOptions, Method};
 pub use crate::core::transform::Quantiser;
 pub use codecs::quadtree::search::SearchMode;
-pub use encode::{EncodeSettings, Encoded, RateMode, Roi, encode};
+pub use encode::{EncodeSettings, Encoded, RateMode, Roi, encode, encode_default};
 pub use io::asset::{Asset, AssetLimits};
 pub use io::raster::Raster;
 

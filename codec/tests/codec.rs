@@ -1370,8 +1370,9 @@ fn adaptive_terrain_tiles_meet_without_cracks_and_keep_their_bound() {
 
 #[test]
 fn error_bounds_hold_against_the_source_at_random_pixel_centres() {
-    // The default DEM encode (0.8 bits a cell, as the demo) of jacksboro and etopo20; 10,000
-    // random cell centres each, answered as the points endpoint answers them.
+    // The quadtree at 0.8 bits a cell (the DEM default before `projected` became it) of
+    // jacksboro and etopo20; 10,000 random cell centres each, answered as the points endpoint
+    // answers them.
     for name in ["jacksboro.tif", "etopo20.tif"] {
         let src = Raster::open(&data(name)).unwrap();
         let settings = EncodeSettings {

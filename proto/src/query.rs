@@ -77,7 +77,7 @@ choice!(
     #[derive(Default)]
     Precision, "precision" {
         /// Heights rounded to the largest power-of-two multiple of the encoding's unit that
-        /// is at most a quarter of the tile's `X-Error-Bound` (which then includes the
+        /// is at most half the tile's `X-Error-Bound` (which then includes the
         /// rounding): neighbouring pixels repeat, and PNG codes them in fewer bytes. Tiles of
         /// assets without a source-error map keep full precision (no bound justifies a step).
         #[default]

@@ -5,8 +5,9 @@
 //!
 //! The DEM is 16 copies of etopo20 (1080 x 540), mirrored so that they join, as one global
 //! 4320 x 2160 grid (issue 34 asks for a 9.3 Mpx DEM made from the real data). Its default
-//! encode (0.8 bits a cell) takes 4.5 minutes on two cores, so it is kept in
-//! `target/bench-data/` and reused; delete it after changing the encoder.
+//! encode ([`fractile_codec::encode_default`], 0.8 bits a cell) takes about a minute on two
+//! cores, so it is kept in `target/bench-data/` (named by codec) and reused; delete it after
+//! changing the encoder.
 //!
 //! `cargo bench -p fractile --bench coarse_zooms [-- TILES_PER_ZOOM IN_FLIGHT COARSE_MIB]`
 //! (defaults 256, 8 and the server's `coarse_cache_mib`).
@@ -16,7 +17,7 @@ use std::time::{Duration, Instant};
 
 use axum::body::Body;
 use axum::http::Request;
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{Raster, encode_default};
 use fractile_proto::Georef;
 use fractile_server::api::AppState;
 use fractile_server::store::Store;
@@ -53,7 +54,7 @@ fn mosaic() -> Raster {
 /// The encoded mosaic, from `target/bench-data/` when it is there.
 fn asset() -> Vec<u8> {
     let dir = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/bench-data");
-    let path = dir.join("etopo20-mosaic-9mpx.fra");
+    let path = dir.join("etopo20-mosaic-9mpx-default.fra");
     if let Ok(bytes) = std::fs::read(&path) {
         return bytes;
     }
@@ -63,11 +64,12 @@ fn asset() -> Vec<u8> {
         r.width, r.height
     );
     let t = Instant::now();
-    let s = EncodeSettings {
-        rate: RateMode::TargetBpp(0.8),
-        ..EncodeSettings::default()
-    };
-    let enc = encode(&r, &s, &|_, _| {}).expect("an encode");
+    let enc = encode_default(
+        &r,
+        fractile_codec::encode::DEFAULT_HEIGHT_FIELD_BPP,
+        &|_, _| {},
+    )
+    .expect("an encode");
     println!(
         "encoded in {:.0} s, {} bytes",
         t.elapsed().as_secs_f64(),

@@ -10,7 +10,7 @@ use std::time::Instant;
 
 use axum::body::Body;
 use axum::http::Request;
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{Raster, encode_default};
 use fractile_server::api::AppState;
 use fractile_server::encoding::{Deflate, HeightEncoding, Rounding, TileFormat, encode_tile};
 use fractile_server::store::Store;
@@ -60,13 +60,13 @@ fn asset_bytes(path: &std::path::Path) -> Vec<u8> {
         return std::fs::read(path).expect("an asset file");
     }
     let src = Raster::open(path).expect("a DEM");
-    let settings = EncodeSettings {
-        rate: RateMode::TargetBpp(0.8),
-        ..EncodeSettings::default()
-    };
-    encode(&src, &settings, &|_, _| {})
-        .expect("an encode")
-        .bytes
+    encode_default(
+        &src,
+        fractile_codec::encode::DEFAULT_HEIGHT_FIELD_BPP,
+        &|_, _| {},
+    )
+    .expect("an encode")
+    .bytes
 }
 
 fn bench_dem(path: &std::path::Path) {

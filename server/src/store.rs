@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, RwLock};
 
 use fractile_codec::geo::Placement;
-use fractile_codec::{Asset, AssetLimits, EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{Asset, AssetLimits, Raster};
 
 use crate::error::AppError;
 
@@ -239,13 +239,14 @@ fn crc32(bytes: &[u8]) -> u32 {
         .unwrap_or(0)
 }
 
-/// The demo assets: real data shipped in the binary, with how each is encoded.
-const DEMO: &[(&str, &str, &[u8], RateMode)] = &[
+/// The demo assets: real data shipped in the binary, with the rate each is encoded at (bits a
+/// source cell), by the codec `fractile encode` picks when none is named.
+const DEMO: &[(&str, &str, &[u8], f64)] = &[
     (
         "jacksboro",
         "jacksboro.tif",
         include_bytes!("../../testdata/jacksboro.tif"),
-        RateMode::TargetBpp(0.8),
+        0.8,
     ),
     (
         // The same terrain on a UTM 16N grid (GDAL's warp): tiles and points go through the
@@ -253,27 +254,31 @@ const DEMO: &[(&str, &str, &[u8], RateMode)] = &[
         "jacksboro-utm",
         "jacksboro-utm.tif",
         include_bytes!("../../testdata/jacksboro-utm.tif"),
-        RateMode::TargetBpp(0.8),
+        0.8,
     ),
     (
         "topobathy",
         "topobathy.tif",
         include_bytes!("../../testdata/topobathy.tif"),
-        RateMode::TargetBpp(1.6),
+        1.6,
     ),
     (
         "camera",
         "camera.png",
         include_bytes!("../../testdata/camera.png"),
-        RateMode::TargetBpp(0.48),
+        0.48,
     ),
     (
         "astronaut",
         "astronaut.png",
         include_bytes!("../../testdata/astronaut.png"),
-        RateMode::TargetBpp(0.5),
+        0.5,
     ),
 ];
+
+/// The revision of the demo's raster encodes, kept beside them: a folder of another revision
+/// is encoded again. Bump it when [`fractile_codec::encode_default`] changes what it writes.
+const DEMO_REVISION: &str = "2 (height fields: projected, bounded rate)";
 
 /// The demo volume: fandisk (a CAD part with sharp features) as a 64^3 distance field.
 const DEMO_VOLUME: (&str, &str, &[u8]) = (
@@ -345,26 +350,22 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
             enc.bytes.len()
         );
     }
+    // Demo rasters written by an older build (before the source-error maps of format version
+    // 5, or before the default encode changed) are encoded again, so the demo is what
+    // `fractile encode` writes today.
+    let revision = dir.join(".demo-revision");
+    let current = std::fs::read_to_string(&revision).is_ok_and(|r| r.trim() == DEMO_REVISION);
     for (id, name, bytes, rate) in DEMO {
         let out = dir.join(format!("{id}.fra"));
-        // Demo rasters written by an older build (before the source-error maps of format
-        // version 5) are encoded again, so the demo answers bounds against its source.
-        if out.exists() && !older_format(&out) {
+        if out.exists() && current && !older_format(&out) {
             continue;
         }
         tracing::info!("encoding demo asset {id} from {name} (first start, or an older format)");
         let src = dir.join(format!(".{name}"));
         fractile_codec::io::asset::write_atomic(&src, bytes)?;
         let raster = Raster::open(&src)?;
-        let mut settings = EncodeSettings {
-            rate: *rate,
-            ..EncodeSettings::default()
-        };
         // As `fractile encode` codes them by default.
-        settings.quantiser.slope_bits = EncodeSettings::default_slope_bits(raster.kind);
-        settings.quantiser_choices =
-            EncodeSettings::default_quantiser_choices(raster.kind, settings.quantiser);
-        let enc = encode(&raster, &settings, &|_, _| {})?;
+        let enc = fractile_codec::encode_default(&raster, *rate, &|_, _| {})?;
         fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
         let _ = std::fs::remove_file(&src);
         tracing::info!(
@@ -373,6 +374,9 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
             enc.ratio(),
             enc.errors.psnr
         );
+    }
+    if !current {
+        fractile_codec::io::asset::write_atomic(&revision, DEMO_REVISION.as_bytes())?;
     }
     Ok(())
 }

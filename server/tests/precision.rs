@@ -8,7 +8,7 @@ use axum::body::Body;
 use axum::http::{Request, StatusCode};
 use fractile_codec::core::decode::{Grid, sample_bilinear};
 use fractile_codec::geo;
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{Raster, encode_default};
 use fractile_server::api::AppState;
 use fractile_server::store::Store;
 use http_body_util::BodyExt;
@@ -62,13 +62,9 @@ async fn tile(state: &Arc<AppState>, z: u8, x: u32, y: u32, precision: &str) -> 
 
 #[tokio::test]
 async fn height_tiles_carry_the_precision_their_bound_justifies_and_the_bound_holds() {
-    // The default DEM encode (0.8 bits a cell, with its source-error map).
+    // The default DEM encode (projected under a bounded rate of 0.8 bits a cell).
     let src = Raster::open(&data("jacksboro.tif")).unwrap();
-    let settings = EncodeSettings {
-        rate: RateMode::TargetBpp(0.8),
-        ..EncodeSettings::default()
-    };
-    let enc = encode(&src, &settings, &|_, _| {}).unwrap();
+    let enc = encode_default(&src, 0.8, &|_, _| {}).unwrap();
     let dir = std::env::temp_dir().join(format!("fractile-precision-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("jacksboro.fra"), &enc.bytes).unwrap();
@@ -86,16 +82,17 @@ async fn height_tiles_carry_the_precision_their_bound_justifies_and_the_bound_ho
         height: src.height,
         values: src.channels[0].clone(),
     };
-    // Zooms 10 to 16 (jacksboro's 3" cells are about zoom 12): four tiles a zoom, spread
-    // over the asset's interior along its diagonal.
+    // Zooms 10 to 16 (jacksboro's 3" cells are about zoom 12): eight tiles a zoom along the
+    // asset's diagonal, the walk of the `tile_png` bench (docs/benchmarks.md; the mean depends
+    // on the walk: four tiles a zoom, at the quarters' centres, average 13.9 KB).
     let [w, s, e, n] = place.bounds();
     println!("| zoom | full bytes | bound bytes | X-Error-Bound | largest error |");
     println!("|---|---|---|---|---|");
     let (mut full_bytes, mut bound_bytes, mut tiles) = (0usize, 0usize, 0usize);
     for z in 10u8..=16 {
         let mut row = [0f64; 4];
-        for k in 0..4 {
-            let t = (k as f64 + 0.5) / 4.0;
+        for k in 0..8 {
+            let t = (k as f64 + 0.5) / 8.0;
             let (x, y) = geo::lonlat_tile(z, w + t * (e - w), n - t * (n - s));
             let rounded = tile(&state, z, x, y, "bound").await;
             let full = tile(&state, z, x, y, "full").await;
@@ -130,15 +127,16 @@ async fn height_tiles_carry_the_precision_their_bound_justifies_and_the_bound_ho
                 "{z}/{x}/{y}: a height {worst} m off the bilinear source, bound {}",
                 rounded.error_bound
             );
+            // Steps of at most half the bound: rounding adds at most a quarter.
             assert!(
-                rounded.error_bound <= full.error_bound * 1.125 + 0.1,
+                rounded.error_bound <= full.error_bound * 1.25 + 0.1,
                 "{z}/{x}/{y}: rounding grew the bound from {} to {}",
                 full.error_bound,
                 rounded.error_bound
             );
-            row[0] += full.bytes as f64 / 4.0;
-            row[1] += rounded.bytes as f64 / 4.0;
-            row[2] += rounded.error_bound / 4.0;
+            row[0] += full.bytes as f64 / 8.0;
+            row[1] += rounded.bytes as f64 / 8.0;
+            row[2] += rounded.error_bound / 8.0;
             row[3] = row[3].max(worst);
             full_bytes += full.bytes;
             bound_bytes += rounded.bytes;
