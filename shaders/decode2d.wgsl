@@ -1,6 +1,7 @@
 // Continuous decoding of a flattened 2D operator (codec::core::pieces), one invocation per point.
 // Mirrors PieceTable::step and decode::points line by line, in f32:
-//   cell = clamp(floor((p - lut_origin) / lut_cell), 0, size - 1); entry = lut[cell]
+//   p = floor(unit * valid / quantum + 0.5) * quantum (fixed-point starts, see below)
+//   cell = clamp(floor((p - lut_origin) * inv_lut_cell), 0, size - 1); entry = lut[cell]
 //   piece = entry & 0x7fffffff (+1 on the far half of a split cell, u + v > 1)
 //   (u, v) = clamp((p - origin) * inv_size, 0, 1)
 //   g, s bilinear in (u, v); phi(p) = n0 + nu u + nv v per axis
@@ -32,7 +33,12 @@ struct Params {
     b: vec2<f32>,
     // Points per row of the dispatch grid (x groups * 256), for 2D dispatches past 65,535 groups.
     row: u32,
+    // The fixed-point step of positions (a power of two) and its inverse.
+    quantum: f32,
+    inv_quantum: f32,
     _pad0: u32,
+    // 1 / lut_cell: a product is exact for power-of-two cells; a WGSL division need not be.
+    inv_lut_cell: vec2<f32>,
     _pad1: u32,
     _pad2: u32,
 };
@@ -73,7 +79,10 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         results[idx] = vec4<f32>(nan, 0.0, 0.0, 0.0);
         return;
     }
-    var p = unit * params.valid;
+    // Positions are multiples of the quantum, small enough that every step below is exact in
+    // f32 on the lattice codecs (codec::core::decode::to_frame and position_quantum): the
+    // same bits as the CPU's chains, so both visit the same cells.
+    var p = floor(unit * params.valid * params.inv_quantum + vec2<f32>(0.5)) * params.quantum;
     var acc_g = 0.0;
     var acc_s = 1.0;
     var taken = 0u;
@@ -81,7 +90,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         if (acc_s == 0.0 || abs(acc_s) * params.half <= params.tolerance) {
             break;
         }
-        let cf = floor((p - params.lut_origin) / params.lut_cell);
+        let cf = floor((p - params.lut_origin) * params.inv_lut_cell);
         let cx = min(u32(max(cf.x, 0.0)), params.lut_size.x - 1u);
         let cy = min(u32(max(cf.y, 0.0)), params.lut_size.y - 1u);
         let entry = lut[cy * params.lut_size.x + cx];

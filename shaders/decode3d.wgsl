@@ -28,10 +28,11 @@ struct Params {
     step_x: f32,
     step_y: f32,
     step_z: f32,
+    // The fixed-point step of positions and its inverse (codec::core::decode::to_frame).
+    quantum: f32,
+    inv_quantum: f32,
     _pad0: u32,
     _pad1: u32,
-    _pad2: u32,
-    _pad3: u32,
 };
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -62,7 +63,7 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         return;
     }
     let unit = clamp(unit_point(params.first + idx), vec3<f32>(0.0), vec3<f32>(1.0));
-    var p = unit * params.valid;
+    var p = floor(unit * params.valid * params.inv_quantum + vec3<f32>(0.5)) * params.quantum;
     var acc_g = 0.0;
     var acc_s = 1.0;
     var taken = 0u;

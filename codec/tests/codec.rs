@@ -153,7 +153,7 @@ proptest! {
             let fast = decode::points(q, &pts, n, tol);
             let valid = q.valid();
             let mut chains: Vec<operator::Chain<2>> = pts.iter().map(|p| operator::Chain {
-                q: [decode::to_frame(p[0], valid[0]), decode::to_frame(p[1], valid[1])],
+                q: [decode::to_frame(p[0], valid[0], decode::position_quantum(&valid)), decode::to_frame(p[1], valid[1], decode::position_quantum(&valid))],
                 acc_g: 0.0,
                 acc_s: 1.0,
                 taken: 0,

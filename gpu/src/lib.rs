@@ -48,7 +48,7 @@ pub enum GpuError {
     TooLarge(String),
 }
 
-/// Uniforms of one dispatch; the layout of `Params` in the kernel (96 bytes).
+/// Uniforms of one dispatch; the layout of `Params` in the kernel (112 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 struct Params {
@@ -67,7 +67,15 @@ struct Params {
     a: [f32; 2],
     b: [f32; 2],
     row: u32,
-    pad: [u32; 3],
+    /// The fixed-point step of chain positions and its inverse (powers of two; see
+    /// `fractile_codec::core::decode::position_quantum`).
+    quantum: f32,
+    inv_quantum: f32,
+    pad0: u32,
+    /// `1 / lut_cell`: the kernel multiplies (exact for the power-of-two cells of the lattice
+    /// codecs), where a WGSL division may be off by 2.5 ulp and floor onto the cell before.
+    inv_lut_cell: [f32; 2],
+    pad: [u32; 2],
 }
 
 /// Uniforms of a 3D dispatch; the layout of `Params` in `decode3d.wgsl` (96 bytes).
@@ -88,7 +96,10 @@ struct Params3 {
     row: u32,
     lo: [f32; 3],
     step: [f32; 3],
-    pad: [u32; 4],
+    /// The fixed-point step of positions and its inverse, as in 2D.
+    quantum: f32,
+    inv_quantum: f32,
+    pad: [u32; 2],
 }
 
 /// Where a dispatch's points come from.
@@ -280,6 +291,7 @@ impl Gpu {
             bytemuck::cast_slice(&pieces),
         )?;
         let (lo, hi) = table.interval;
+        let quantum = fractile_codec::core::decode::position_quantum(&table.valid);
         Ok(GpuOperator {
             lut,
             pieces,
@@ -290,6 +302,9 @@ impl Gpu {
                 lut_cell: table.lut_cell,
                 lut_size: table.lut_size,
                 valid: table.valid,
+                quantum,
+                inv_quantum: 1.0 / quantum,
+                inv_lut_cell: table.lut_cell.map(|c| 1.0 / c),
                 ..Params::default()
             },
             volume: None,
@@ -359,6 +374,8 @@ impl Gpu {
                 side: (frame / cell as f32) as u32,
                 inv_cell: 1.0 / cell as f32,
                 valid: op.valid()[0],
+                quantum: fractile_codec::core::decode::position_quantum(&op.valid()),
+                inv_quantum: 1.0 / fractile_codec::core::decode::position_quantum(&op.valid()),
                 ..Params3::default()
             }),
             bytes,
@@ -488,28 +505,34 @@ impl Gpu {
         tolerance: f32,
     ) -> Result<Vec<PointValue>, GpuError> {
         let (width, height, mode, a, b, axes) = match &grid {
+            // A window is the separable grid of its pixel centres, made as the CPU makes them
+            // (in f64, rounded once): both must start every chain at the same f32 point.
             Grid::Window {
                 rect,
                 width,
                 height,
-            } => (
-                *width,
-                *height,
-                1,
-                [rect[0], rect[1]],
-                [
-                    (rect[2] - rect[0]) / (*width).max(1) as f32,
-                    (rect[3] - rect[1]) / (*height).max(1) as f32,
-                ],
-                vec![0.0f32; 2],
-            ),
+            } => {
+                let (xs, ys) = fractile_codec::core::decode::window_axes(
+                    *rect,
+                    *width as usize,
+                    *height as usize,
+                );
+                (
+                    *width,
+                    *height,
+                    2,
+                    [0.0; 2],
+                    [0.0; 2],
+                    xs.into_iter().chain(ys).collect::<Vec<f32>>(),
+                )
+            }
             Grid::Separable { xs, ys } => (
                 xs.len() as u32,
                 ys.len() as u32,
                 2,
                 [0.0; 2],
                 [0.0; 2],
-                xs.iter().chain(ys).copied().collect(),
+                xs.iter().chain(ys).copied().collect::<Vec<f32>>(),
             ),
         };
         let total = width as usize * height as usize;

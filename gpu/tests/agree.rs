@@ -145,14 +145,11 @@ fn windows_and_reprojected_tiles_agree_with_the_cpu() {
             0.0,
         )
         .unwrap();
-    let pts: Vec<[f32; 2]> = (0..w * h)
-        .map(|k| {
-            let (i, j) = ((k % w) as f32 + 0.5, (k / w) as f32 + 0.5);
-            [
-                rect[0] + i * ((rect[2] - rect[0]) / w as f32),
-                rect[1] + j * ((rect[3] - rect[1]) / h as f32),
-            ]
-        })
+    // The pixel centres as the CPU's windows make them.
+    let (xs, ys) = decode::window_axes(rect, w as usize, h as usize);
+    let pts: Vec<[f32; 2]> = ys
+        .iter()
+        .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
         .collect();
     close("window", &decode::points(op, &pts, 10, 0.0), &got);
 
@@ -198,6 +195,73 @@ fn windows_and_reprojected_tiles_agree_with_the_cpu() {
             .all(|p| (0.0..=1.0).contains(&p[0]) && (0.0..=1.0).contains(&p[1]))
     );
     close("zoom-14 tile", &decode::points(op, &pts, 10, 0.0), &got);
+}
+
+/// Issue 32: dyadic grids (the source's own size, 2x, 4x, windows aligned with the source's
+/// cells) and points exactly on cell boundaries put chains on range boundaries at some step,
+/// where the last bit of a position's rounding used to send the CPU and the GPU into different
+/// ranges (etopo20 at 1.6 bpp, 2x at 12 steps: 1,367 m apart at worst). With fixed-point
+/// positions every step is exact on both, so they differ by f32 accumulation only.
+#[test]
+fn dyadic_grids_and_points_on_cell_boundaries_agree_with_the_cpu() {
+    let mut gpu = gpu();
+    gpu.set_chunk(1 << 20);
+    let asset = quadtree("etopo20.tif", 1.6);
+    let op = &asset.planes[0].operator;
+    let dev = gpu.upload(&op.pieces()).unwrap();
+    let (w, h) = (asset.meta.width as usize, asset.meta.height as usize);
+    for (label, rect, (gw, gh)) in [
+        ("1x", [0.0f32, 0.0, 1.0, 1.0], (w, h)),
+        ("2x", [0.0, 0.0, 1.0, 1.0], (2 * w, 2 * h)),
+        ("4x of a quarter", [0.25, 0.5, 0.5, 0.75], (w, h)),
+        // A window whose edges are cell edges (cells 100..356 by 50..178), at 8x.
+        (
+            "8x on cells",
+            [
+                100.0 / w as f32,
+                50.0 / h as f32,
+                356.0 / w as f32,
+                178.0 / h as f32,
+            ],
+            (2048, 1024),
+        ),
+    ] {
+        let got = gpu
+            .grid(
+                &dev,
+                Grid::Window {
+                    rect,
+                    width: gw as u32,
+                    height: gh as u32,
+                },
+                12,
+                0.0,
+            )
+            .unwrap();
+        let (xs, ys) = decode::window_axes(rect, gw, gh);
+        let pts: Vec<[f32; 2]> = ys
+            .iter()
+            .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
+            .collect();
+        close(
+            &format!("etopo20 {label}"),
+            &decode::points(op, &pts, 12, 0.0),
+            &got,
+        );
+    }
+    // Points on the cell lattice itself (corners of source cells, and halves).
+    let pts: Vec<[f32; 2]> = (0..20_000u32)
+        .map(|k| {
+            let (i, j) = (k * 7919 % (2 * w as u32), k * 104_729 % (2 * h as u32));
+            [i as f32 / (2 * w) as f32, j as f32 / (2 * h) as f32]
+        })
+        .collect();
+    let got = gpu.points(&dev, &pts, 12, 0.0).unwrap();
+    close(
+        "etopo20 points on cell corners",
+        &decode::points(op, &pts, 12, 0.0),
+        &got,
+    );
 }
 
 #[test]

@@ -36,9 +36,10 @@ pub fn point<const D: usize, O: Operator<D> + ?Sized>(
     iterations: u32,
 ) -> PointValue {
     let valid = op.valid();
+    let quantum = position_quantum(&valid);
     let mut q = [0.0f32; D];
     for d in 0..D {
-        q[d] = to_frame(p[d], valid[d]);
+        q[d] = to_frame(p[d], valid[d], quantum);
     }
     let (lo, hi) = op.invariant_interval();
     let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
@@ -77,25 +78,51 @@ pub fn points<const D: usize, O: Operator<D> + ?Sized>(
     tolerance: f32,
 ) -> Vec<PointValue> {
     let valid = op.valid();
+    let quantum = position_quantum(&valid);
     let mut chains: Vec<Chain<D>> = pts
         .iter()
-        .map(|p| Chain::start(std::array::from_fn(|d| to_frame(p[d], valid[d]))))
+        .map(|p| Chain::start(std::array::from_fn(|d| to_frame(p[d], valid[d], quantum))))
         .collect();
     run_chains(op, &mut chains, iterations, tolerance);
     let (seed, half) = seed_of(op);
     chains.iter().map(|c| c.finish(seed, half)).collect()
 }
 
-/// A unit coordinate clamped into `[0, 1]` and scaled to the frame's `valid` extent. NaN is
-/// taken as 0 (an edge of the asset), so that every decoding path and operator layout gives
-/// the same finite answer for it.
+/// A unit coordinate clamped into `[0, 1]`, scaled to the frame's `valid` extent and rounded to
+/// a multiple of `quantum` ([`position_quantum`]). NaN is taken as 0 (an edge of the asset), so
+/// that every decoding path and operator layout gives the same finite answer for it. The GPU
+/// kernel starts its chains with the same three operations (`shaders/decode2d.wgsl`).
 #[inline]
-pub fn to_frame(t: f32, valid: f32) -> f32 {
+pub fn to_frame(t: f32, valid: f32, quantum: f32) -> f32 {
     if t.is_nan() {
         0.0
     } else {
-        t.clamp(0.0, 1.0) * valid
+        let x = t.clamp(0.0, 1.0) * valid;
+        // x / quantum is exact (a power of two) and under 2^21, so + 0.5 and floor are too.
+        ((x * (1.0 / quantum) + 0.5).floor()) * quantum
     }
+}
+
+/// The fixed-point step of chain positions in a frame whose valid extents are `valid`
+/// (samples): the power of two `2^-F` with `F = 24 - ceil(log2(8 max(valid)))`.
+///
+/// Why: a chain's next position is `a x + b y + c`, with a and b in {0, +-1, +-2} times a power
+/// of two on the lattice codecs (the quadtree's scale-2 isometries, the projected codec's
+/// `2 t - c`) and c a multiple of the lattice. A position that is a multiple of `2^-F` under
+/// 8 frames (no intermediate of a step exceeds three) has at most 24 significant bits, so
+/// every product and sum of a step is exact in f32, whatever the order of the operations or
+/// whether the hardware fuses them: the CPU (in lattice units) and the GPU (in samples, through
+/// its piece table) then visit the same cells for every point, bit for bit, where before a
+/// point on a cell boundary (every dyadic grid has them) went either way with the last bit of
+/// rounding. Positions carry integers times `2^-F` in f32 rather than i32: the same bits, one
+/// kernel for every codec. The cost is rounding starts to `2^-(F + 1)` of a sample (1/2048 at
+/// etopo20's 1,080 samples), far under a pixel at any zoom f32 could resolve anyway. FIS and
+/// psa2d maps scale by ratios that are not powers of two: their steps round, and CPU and GPU
+/// may still part at boundaries there.
+pub fn position_quantum(valid: &[f32]) -> f32 {
+    let side = valid.iter().fold(1.0f32, |m, &v| m.max(v)).min(1e6);
+    let bits = (8.0 * side).log2().ceil() as i32;
+    2f32.powi(bits - 24)
 }
 
 /// The seed value (the middle of the invariant interval) and its largest distance from the
@@ -158,8 +185,9 @@ pub fn grid<O: AxisAligned + ?Sized>(
     // Coordinate lists, all in one arena: a block refers to a slice for its columns and one for
     // its rows; a block that steps appends its images.
     let mut arena: Vec<f32> = Vec::with_capacity(4 * (nx + ny));
-    arena.extend(xs.iter().map(|&x| to_frame(x, valid[0])));
-    arena.extend(ys.iter().map(|&y| to_frame(y, valid[1])));
+    let quantum = position_quantum(&valid);
+    arena.extend(xs.iter().map(|&x| to_frame(x, valid[0], quantum)));
+    arena.extend(ys.iter().map(|&y| to_frame(y, valid[1], quantum)));
     // Where the grid is about as coarse as the lattice, blocks would hold a few points and
     // cost more than they share: decode point by point (the same answers). The bench puts the
     // break-even near 32 points per lattice square (a 256-pixel window over 256 source pixels,
@@ -911,6 +939,22 @@ pub enum Method {
     Continuous,
 }
 
+/// The unit coordinates of the pixel centres of a `width x height` window over `rect`
+/// (`[u0, v0, u1, v1]`): columns, then rows. Computed in f64 and rounded once; the GPU's windows
+/// take the same axes, so both decode the same points.
+pub fn window_axes(rect: [f32; 4], width: usize, height: usize) -> (Vec<f32>, Vec<f32>) {
+    let axis = |a: f32, b: f32, n: usize| -> Vec<f32> {
+        let (a, d) = (f64::from(a), f64::from((b - a).max(1e-9)));
+        (0..n)
+            .map(|i| (a + (i as f64 + 0.5) / n as f64 * d) as f32)
+            .collect()
+    };
+    (
+        axis(rect[0], rect[2], width),
+        axis(rect[1], rect[3], height),
+    )
+}
+
 /// A window `[u0, v0, u1, v1]` of the unit square decoded at `width x height`: value at each
 /// pixel centre. `iterations` counts inverse steps (continuous) or iterations (discrete);
 /// `None` lets each method use its own stopping rule (point: 12 steps).
@@ -934,12 +978,8 @@ pub fn window<O: Operator<2> + ?Sized>(
         Method::Auto => Method::Continuous,
         m => m,
     };
-    let centre = |i: usize, j: usize| {
-        [
-            u0 + (i as f32 + 0.5) / width as f32 * du,
-            v0 + (j as f32 + 0.5) / height as f32 * dv,
-        ]
-    };
+    let (xs, ys) = window_axes(rect, width, height);
+    let centre = |i: usize, j: usize| [xs[i], ys[j]];
     let values = match chosen {
         Method::Discrete => {
             let opts = iterations.map(DiscreteOptions::fixed).unwrap_or_default();

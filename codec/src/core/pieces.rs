@@ -4,7 +4,8 @@
 //! line by line; `PieceTable` is itself an [`Operator`], so the CPU decoders check the
 //! flattening against the codec's own operator (tests below) and the GPU against both.
 //!
-//! For a frame point p: the lookup cell is `clamp(floor((p - lut_origin) / lut_cell), 0, n-1)`;
+//! For a frame point p: the lookup cell is `clamp(floor((p - lut_origin) * (1 / lut_cell)), 0, n-1)`
+//! (a product: exact for power-of-two cells, where a WGSL division need not be);
 //! its entry names a piece (the low 31 bits) and, with the top bit set, says the cell is split
 //! along its diagonal into two pieces (the second for local `u + v > 1`, psa2d's triangles).
 //! Local coordinates `(u, v) = clamp((p - origin) * inv_size, 0, 1)`; then
@@ -76,7 +77,7 @@ impl PieceTable {
     #[inline]
     fn piece(&self, p: [f32; 2]) -> (&Piece, f32, f32) {
         let cell = |d: usize| -> usize {
-            let c = ((p[d] - self.lut_origin[d]) / self.lut_cell[d]).floor();
+            let c = ((p[d] - self.lut_origin[d]) * (1.0 / self.lut_cell[d])).floor();
             (c.max(0.0) as usize).min(self.lut_size[d] as usize - 1)
         };
         let entry = self.lut[cell(1) * self.lut_size[0] as usize + cell(0)];

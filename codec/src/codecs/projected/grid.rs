@@ -12,7 +12,7 @@
 
 // Blocks are `decode::grid`'s, with columns that always carry frame x (no isometries here);
 // s is rho everywhere, so every point of a block has the same product.
-use crate::core::decode::{Block, MIN_BLOCK, PointValue, to_frame};
+use crate::core::decode::{Block, MIN_BLOCK, PointValue, position_quantum, to_frame};
 use crate::core::operator::{Chain, Operator, active};
 
 use super::{ProjectedOperator, block};
@@ -108,8 +108,9 @@ impl ProjectedOperator {
         let (lo, hi) = self.interval;
         let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
         let mut arena: Vec<f32> = Vec::with_capacity(4 * (nx + ny));
-        arena.extend(xs.iter().map(|&x| to_frame(x, valid[0])));
-        arena.extend(ys.iter().map(|&y| to_frame(y, valid[1])));
+        let quantum = position_quantum(&valid);
+        arena.extend(xs.iter().map(|&x| to_frame(x, valid[0], quantum)));
+        arena.extend(ys.iter().map(|&y| to_frame(y, valid[1], quantum)));
         let mut chains: Vec<(usize, Chain<2>)> = Vec::new();
         let mut acc_g = vec![0.0f32; nx * ny];
         let mut todo = Vec::new();
