@@ -36,7 +36,8 @@ struct Params {
     // The fixed-point step of positions (a power of two) and its inverse.
     quantum: f32,
     inv_quantum: f32,
-    _pad0: u32,
+    // 1: write `values` and `summary` instead of `results`.
+    values_only: u32,
     // 1 / lut_cell: a product is exact for power-of-two cells; a WGSL division need not be.
     inv_lut_cell: vec2<f32>,
     _pad1: u32,
@@ -49,6 +50,9 @@ struct Params {
 // Mode 0: x0, y0, x1, y1, ...; mode 2: the width unit xs, then the height unit ys.
 @group(0) @binding(3) var<storage, read> points: array<f32>;
 @group(0) @binding(4) var<storage, read_write> results: array<vec4<f32>>;
+// Values-only dispatches: the values, and the largest bound's bits and step count.
+@group(0) @binding(5) var<storage, read_write> values: array<f32>;
+@group(0) @binding(6) var<storage, read_write> summary: array<atomic<u32>>;
 
 const SPLIT: u32 = 0x80000000u;
 
@@ -65,19 +69,13 @@ fn unit_point(k: u32) -> vec2<f32> {
     return params.a + ij * params.b;
 }
 
-@compute @workgroup_size(256)
-fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    let idx = id.x + id.y * params.row;
-    if (idx >= params.count) {
-        return;
-    }
-    let k = params.first + idx;
+// Value, bound, steps taken and 1 for point k of the dispatch's grid or list.
+fn decode(k: u32) -> vec4<f32> {
     let unit = unit_point(k);
     // Outside the unit square: no value (NaN), as the CPU answers outside points.
     if (unit.x < 0.0 || unit.x > 1.0 || unit.y < 0.0 || unit.y > 1.0 || unit.x != unit.x) {
         let nan = bitcast<f32>(0x7fc00000u);
-        results[idx] = vec4<f32>(nan, 0.0, 0.0, 0.0);
-        return;
+        return vec4<f32>(nan, 0.0, 0.0, 0.0);
     }
     // Positions are multiples of the quantum, small enough that every step below is exact in
     // f32 on the lattice codecs (codec::core::decode::to_frame and position_quantum): the
@@ -113,5 +111,46 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
         taken = taken + 1u;
         p = vec2<f32>(nx.x + nx.y * u + nx.z * v, ny.x + ny.y * u + ny.z * v);
     }
-    results[idx] = vec4<f32>(acc_g + acc_s * params.seed, abs(acc_s) * params.half, f32(taken), 1.0);
+    return vec4<f32>(acc_g + acc_s * params.seed, abs(acc_s) * params.half, f32(taken), 1.0);
+}
+
+// The largest bound and step count of a workgroup's points (values-only dispatches), before
+// one invocation folds them into `summary`: one global atomic a workgroup, not one a point.
+var<workgroup> group_bound: atomic<u32>;
+var<workgroup> group_taken: atomic<u32>;
+
+@compute @workgroup_size(256)
+fn main(
+    @builtin(global_invocation_id) id: vec3<u32>,
+    @builtin(local_invocation_index) lane: u32,
+) {
+    let idx = id.x + id.y * params.row;
+    let live = idx < params.count;
+    var r = vec4<f32>(0.0);
+    if (live) {
+        r = decode(params.first + idx);
+    }
+    if (params.values_only == 0u) {
+        if (live) {
+            results[idx] = r;
+        }
+        return;
+    }
+    // Values alone (4 bytes a point to read back) and the bounds reduced here: a bound is a
+    // non-negative float, whose bits order as unsigned integers do.
+    if (lane == 0u) {
+        atomicStore(&group_bound, 0u);
+        atomicStore(&group_taken, 0u);
+    }
+    workgroupBarrier();
+    if (live) {
+        values[idx] = r.x;
+        atomicMax(&group_bound, bitcast<u32>(r.y));
+        atomicMax(&group_taken, u32(r.z));
+    }
+    workgroupBarrier();
+    if (lane == 0u) {
+        atomicMax(&summary[0], atomicLoad(&group_bound));
+        atomicMax(&summary[1], atomicLoad(&group_taken));
+    }
 }

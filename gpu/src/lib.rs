@@ -71,7 +71,8 @@ struct Params {
     /// `fractile_codec::core::decode::position_quantum`).
     quantum: f32,
     inv_quantum: f32,
-    pad0: u32,
+    /// 1: values and a reduced bound ([`Gpu::grid_values`]) instead of four floats a point.
+    values_only: u32,
     /// `1 / lut_cell`: the kernel multiplies (exact for the power-of-two cells of the lattice
     /// codecs), where a WGSL division may be off by 2.5 ulp and floor onto the cell before.
     inv_lut_cell: [f32; 2],
@@ -122,6 +123,35 @@ pub enum Grid {
         /// Unit y of each row.
         ys: Vec<f32>,
     },
+}
+
+/// What a dispatch reads back.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+enum Read {
+    /// Nothing: wait for the device (kernel timing).
+    Nothing,
+    /// Value, bound and step count of every point.
+    Points,
+    /// Values, and the largest bound and step count.
+    Values,
+}
+
+/// What a dispatch read back (see [`Read`]).
+enum Readback {
+    Nothing,
+    Points(Vec<PointValue>),
+    Values(Vec<f32>, f32, u32),
+}
+
+/// A grid's values with one bound for them all ([`Gpu::grid_values`]).
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GridValues {
+    /// Normalised values, row-major (NaN outside the unit square).
+    pub values: Vec<f32>,
+    /// The largest of the points' bounds (normalised; 0 for none).
+    pub error_bound: f32,
+    /// The most steps a point took.
+    pub iterations: u32,
 }
 
 /// An operator resident on the device (2D pieces, or a 3D octree when `volume` is set).
@@ -207,6 +237,8 @@ impl Gpu {
                 entry(2, read),
                 entry(3, read),
                 entry(4, wgpu::BufferBindingType::Storage { read_only: false }),
+                entry(5, wgpu::BufferBindingType::Storage { read_only: false }),
+                entry(6, wgpu::BufferBindingType::Storage { read_only: false }),
             ],
         });
         let pipeline_layout = device.create_pipeline_layout(&wgpu::PipelineLayoutDescriptor {
@@ -222,7 +254,7 @@ impl Gpu {
             compilation_options: Default::default(),
             cache: None,
         });
-        // The 3D kernel binds the same five buffers: one layout for both.
+        // The 3D kernel binds the first five of the same buffers: one layout for both.
         let pipeline3 = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("decode3d"),
             layout: Some(&pipeline_layout),
@@ -343,7 +375,7 @@ impl Gpu {
                 count,
                 &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
                 &[0u8; 16],
-                false,
+                Read::Nothing,
             )?;
             first += count;
         }
@@ -496,7 +528,8 @@ impl Gpu {
     }
 
     /// Continuous decoding of a grid of points generated on the device (a window, or a
-    /// separable grid such as a tile's reprojected pixels); row-major, normalised values.
+    /// separable grid such as a tile's reprojected pixels); row-major, normalised values, each
+    /// with its own bound and step count (16 bytes a point read back).
     pub fn grid(
         &self,
         op: &GpuOperator,
@@ -504,7 +537,52 @@ impl Gpu {
         iterations: u32,
         tolerance: f32,
     ) -> Result<Vec<PointValue>, GpuError> {
-        let (width, height, mode, a, b, axes) = match &grid {
+        let mut out = Vec::new();
+        self.grid_dispatches(op, &grid, iterations, tolerance, false, &mut |r| {
+            if let Readback::Points(v) = r {
+                out.extend(v);
+            }
+        })?;
+        Ok(out)
+    }
+
+    /// [`Gpu::grid`] reading back the values alone (4 bytes a point), with the bounds and step
+    /// counts reduced on the device to their largest: what a tile or a window needs (one
+    /// bound for all its pixels), at a quarter of the transfer.
+    pub fn grid_values(
+        &self,
+        op: &GpuOperator,
+        grid: Grid,
+        iterations: u32,
+        tolerance: f32,
+    ) -> Result<GridValues, GpuError> {
+        let mut out = GridValues::default();
+        self.grid_dispatches(op, &grid, iterations, tolerance, true, &mut |r| {
+            if let Readback::Values(v, bound, taken) = r {
+                out.values.extend(v);
+                // NaN (a chain whose contrast product is NaN) wins, as it would per point.
+                out.error_bound = if bound.is_nan() {
+                    bound
+                } else {
+                    out.error_bound.max(bound)
+                };
+                out.iterations = out.iterations.max(taken);
+            }
+        })?;
+        Ok(out)
+    }
+
+    /// The dispatches of a grid, in chunks, each read back into `sink`.
+    fn grid_dispatches(
+        &self,
+        op: &GpuOperator,
+        grid: &Grid,
+        iterations: u32,
+        tolerance: f32,
+        values_only: bool,
+        sink: &mut dyn FnMut(Readback),
+    ) -> Result<(), GpuError> {
+        let (width, height, axes) = match grid {
             // A window is the separable grid of its pixel centres, made as the CPU makes them
             // (in f64, rounded once): both must start every chain at the same f32 point.
             Grid::Window {
@@ -520,23 +598,16 @@ impl Gpu {
                 (
                     *width,
                     *height,
-                    2,
-                    [0.0; 2],
-                    [0.0; 2],
                     xs.into_iter().chain(ys).collect::<Vec<f32>>(),
                 )
             }
             Grid::Separable { xs, ys } => (
                 xs.len() as u32,
                 ys.len() as u32,
-                2,
-                [0.0; 2],
-                [0.0; 2],
                 xs.iter().chain(ys).copied().collect::<Vec<f32>>(),
             ),
         };
         let total = width as usize * height as usize;
-        let mut out = Vec::with_capacity(total);
         let mut first = 0usize;
         while first < total {
             let count = (total - first).min(self.chunk);
@@ -544,17 +615,28 @@ impl Gpu {
                 count: count as u32,
                 first: first as u32,
                 iterations,
-                mode,
+                mode: 2,
                 tolerance,
                 width,
-                a,
-                b,
+                values_only: u32::from(values_only),
                 ..op.params
             };
-            out.extend(self.dispatch(op, params, bytemuck::cast_slice(&axes))?);
+            let read = if values_only {
+                Read::Values
+            } else {
+                Read::Points
+            };
+            sink(self.run(
+                &self.pipeline,
+                op,
+                count,
+                &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
+                bytemuck::cast_slice(&axes),
+                read,
+            )?);
             first += count;
         }
-        Ok(out)
+        Ok(())
     }
 
     fn dispatch(
@@ -582,11 +664,14 @@ impl Gpu {
         uniform: &dyn Fn(u32) -> Vec<u8>,
         points: &[u8],
     ) -> Result<Vec<PointValue>, GpuError> {
-        self.run(pipeline, op, count, uniform, points, true)
+        match self.run(pipeline, op, count, uniform, points, Read::Points)? {
+            Readback::Points(v) => Ok(v),
+            _ => Ok(Vec::new()),
+        }
     }
 
-    /// Records, submits and (with `read`) reads back one dispatch. Without `read` it waits for
-    /// the device to finish and returns nothing: what [`Gpu::kernel_seconds`] times.
+    /// Records, submits and reads back one dispatch as `read` says. [`Read::Nothing`] waits for
+    /// the device to finish and reads nothing: what [`Gpu::kernel_seconds`] times.
     fn run(
         &self,
         pipeline: &wgpu::ComputePipeline,
@@ -594,10 +679,10 @@ impl Gpu {
         count: usize,
         uniform: &dyn Fn(u32) -> Vec<u8>,
         points: &[u8],
-        read: bool,
-    ) -> Result<Vec<PointValue>, GpuError> {
+        read: Read,
+    ) -> Result<Readback, GpuError> {
         if count == 0 {
-            return Ok(Vec::new());
+            return Ok(Readback::Nothing);
         }
         let groups = (count as u32).div_ceil(WORKGROUP);
         let gx = groups.min(65_535);
@@ -613,44 +698,46 @@ impl Gpu {
             contents: points,
             usage: wgpu::BufferUsages::STORAGE,
         });
-        let size = (count * 16) as u64;
-        let results = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("results"),
-            size,
+        // The outputs a dispatch does not write are bound as a few bytes (every binding of the
+        // layout must be).
+        let values_only = read == Read::Values;
+        let output = |label, bytes: u64| {
+            dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size: bytes.max(16),
+                usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
+                mapped_at_creation: false,
+            })
+        };
+        let (results_bytes, values_bytes) = if values_only {
+            (0, count as u64 * 4)
+        } else {
+            (count as u64 * 16, 0)
+        };
+        let results = output("results", results_bytes);
+        let values = output("values", values_bytes);
+        // Zeroed: the kernel takes maxima into it.
+        let summary = dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+            label: Some("summary"),
+            contents: &[0u8; 16],
             usage: wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC,
-            mapped_at_creation: false,
-        });
-        let readback = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
         });
         let bind = dev.create_bind_group(&wgpu::BindGroupDescriptor {
             label: Some("decode2d"),
             layout: &self.layout,
             entries: &[
-                wgpu::BindGroupEntry {
-                    binding: 0,
-                    resource: uniform.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 1,
-                    resource: op.lut.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 2,
-                    resource: op.pieces.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 3,
-                    resource: input.as_entire_binding(),
-                },
-                wgpu::BindGroupEntry {
-                    binding: 4,
-                    resource: results.as_entire_binding(),
-                },
-            ],
+                (0, &uniform),
+                (1, &op.lut),
+                (2, &op.pieces),
+                (3, &input),
+                (4, &results),
+                (5, &values),
+                (6, &summary),
+            ]
+            .map(|(binding, b)| wgpu::BindGroupEntry {
+                binding,
+                resource: b.as_entire_binding(),
+            }),
         });
         let mut encoder = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
             label: Some("decode2d"),
@@ -664,13 +751,30 @@ impl Gpu {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(gx, gy, 1);
         }
-        if !read {
+        if read == Read::Nothing {
             self.queue.submit([encoder.finish()]);
             dev.poll(wgpu::PollType::wait_indefinitely())
                 .map_err(|e| GpuError::Readback(e.to_string()))?;
-            return Ok(Vec::new());
+            return Ok(Readback::Nothing);
         }
-        encoder.copy_buffer_to_buffer(&results, 0, &readback, 0, size);
+        // Values then the summary's two words, or four floats a point.
+        let size = if values_only {
+            values_bytes + 8
+        } else {
+            results_bytes
+        };
+        let readback = dev.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        });
+        if values_only {
+            encoder.copy_buffer_to_buffer(&values, 0, &readback, 0, values_bytes);
+            encoder.copy_buffer_to_buffer(&summary, 0, &readback, values_bytes, 8);
+        } else {
+            encoder.copy_buffer_to_buffer(&results, 0, &readback, 0, size);
+        }
         self.queue.submit([encoder.finish()]);
         let slice = readback.slice(..);
         let (tx, rx) = std::sync::mpsc::channel();
@@ -685,15 +789,26 @@ impl Gpu {
         let view = slice
             .get_mapped_range()
             .map_err(|e| GpuError::Readback(e.to_string()))?;
-        let raw: &[[f32; 4]] = bytemuck::cast_slice(&view);
-        let out = raw
-            .iter()
-            .map(|r| PointValue {
-                value: r[0],
-                error_bound: r[1],
-                iterations: r[2] as u32,
-            })
-            .collect();
+        let out = if values_only {
+            let (v, tail) = view.split_at(values_bytes as usize);
+            let word = |k: usize| u32::from_le_bytes(tail[4 * k..4 * k + 4].try_into().expect("4"));
+            Readback::Values(
+                bytemuck::cast_slice(v).to_vec(),
+                f32::from_bits(word(0)),
+                word(1),
+            )
+        } else {
+            let raw: &[[f32; 4]] = bytemuck::cast_slice(&view);
+            Readback::Points(
+                raw.iter()
+                    .map(|r| PointValue {
+                        value: r[0],
+                        error_bound: r[1],
+                        iterations: r[2] as u32,
+                    })
+                    .collect(),
+            )
+        };
         drop(view);
         readback.unmap();
         Ok(out)

@@ -197,6 +197,47 @@ fn windows_and_reprojected_tiles_agree_with_the_cpu() {
     close("zoom-14 tile", &decode::points(op, &pts, 10, 0.0), &got);
 }
 
+/// Values read back alone (issue 32's 4 bytes a point), with the bounds and step counts reduced
+/// on the device: the same values as the full readback, bit for bit, and the largest bound and
+/// step count of its points, over several dispatches and with points outside the square.
+#[test]
+fn values_only_readback_is_the_full_readback_reduced() {
+    let mut gpu = gpu();
+    let asset = quadtree("jacksboro.tif", 1.0);
+    let op = &asset.planes[0].operator;
+    let dev = gpu.upload(&op.pieces()).unwrap();
+    gpu.set_chunk(5_000);
+    for grid in [
+        Grid::Window {
+            rect: [0.1, 0.2, 0.6, 0.5],
+            width: 173,
+            height: 111,
+        },
+        Grid::Separable {
+            xs: (0..90).map(|i| -0.1 + i as f32 * 0.013).collect(),
+            ys: (0..70).map(|j| 0.05 + j as f32 * 0.011).collect(),
+        },
+    ] {
+        for tolerance in [0.0, 1e-3] {
+            let full = gpu.grid(&dev, grid.clone(), 12, tolerance).unwrap();
+            let got = gpu.grid_values(&dev, grid.clone(), 12, tolerance).unwrap();
+            assert_eq!(got.values.len(), full.len());
+            for (k, (v, p)) in got.values.iter().zip(&full).enumerate() {
+                assert!(
+                    v.to_bits() == p.value.to_bits(),
+                    "point {k}: {v} against {}",
+                    p.value
+                );
+            }
+            let bound = full.iter().fold(0.0f32, |m, p| m.max(p.error_bound));
+            let steps = full.iter().map(|p| p.iterations).max().unwrap();
+            assert_eq!(got.error_bound, bound, "{grid:?}");
+            assert_eq!(got.iterations, steps, "{grid:?}");
+            assert!(bound > 0.0 && steps > 0);
+        }
+    }
+}
+
 /// Issue 32: dyadic grids (the source's own size, 2x, 4x, windows aligned with the source's
 /// cells) and points exactly on cell boundaries put chains on range boundaries at some step,
 /// where the last bit of a position's rounding used to send the CPU and the GPU into different
