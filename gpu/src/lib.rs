@@ -143,6 +143,15 @@ enum Readback {
     Values(Vec<f32>, f32, u32),
 }
 
+/// A dispatch submitted, its results on their way into a mapped buffer.
+struct Pending {
+    readback: wgpu::Buffer,
+    submission: wgpu::SubmissionIndex,
+    mapped: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
+    /// The bytes of values before the summary, for a values-only dispatch.
+    values_bytes: Option<u64>,
+}
+
 /// A grid's values with one bound for them all ([`Gpu::grid_values`]).
 #[derive(Clone, Debug, Default, PartialEq)]
 pub struct GridValues {
@@ -609,6 +618,7 @@ impl Gpu {
         };
         let total = width as usize * height as usize;
         let mut first = 0usize;
+        let mut pending = None;
         while first < total {
             let count = (total - first).min(self.chunk);
             let params = Params {
@@ -626,15 +636,23 @@ impl Gpu {
             } else {
                 Read::Points
             };
-            sink(self.run(
+            // The next chunk is submitted before this one is read: the device computes it
+            // while the host copies the last one out.
+            let next = self.submit(
                 &self.pipeline,
                 op,
                 count,
                 &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
                 bytemuck::cast_slice(&axes),
                 read,
-            )?);
+            )?;
+            if let Some(done) = std::mem::replace(&mut pending, next) {
+                sink(self.finish(done)?);
+            }
             first += count;
+        }
+        if let Some(done) = pending {
+            sink(self.finish(done)?);
         }
         Ok(())
     }
@@ -681,8 +699,26 @@ impl Gpu {
         points: &[u8],
         read: Read,
     ) -> Result<Readback, GpuError> {
+        match self.submit(pipeline, op, count, uniform, points, read)? {
+            Some(pending) => self.finish(pending),
+            None => Ok(Readback::Nothing),
+        }
+    }
+
+    /// Records and submits one dispatch with the copy of its results into a mapped buffer;
+    /// [`Gpu::finish`] waits for it and reads it. `None`: nothing to read (no points, or
+    /// [`Read::Nothing`], which has waited for the device).
+    fn submit(
+        &self,
+        pipeline: &wgpu::ComputePipeline,
+        op: &GpuOperator,
+        count: usize,
+        uniform: &dyn Fn(u32) -> Vec<u8>,
+        points: &[u8],
+        read: Read,
+    ) -> Result<Option<Pending>, GpuError> {
         if count == 0 {
-            return Ok(Readback::Nothing);
+            return Ok(None);
         }
         let groups = (count as u32).div_ceil(WORKGROUP);
         let gx = groups.min(65_535);
@@ -755,7 +791,7 @@ impl Gpu {
             self.queue.submit([encoder.finish()]);
             dev.poll(wgpu::PollType::wait_indefinitely())
                 .map_err(|e| GpuError::Readback(e.to_string()))?;
-            return Ok(Readback::Nothing);
+            return Ok(None);
         }
         // Values then the summary's two words, or four floats a point.
         let size = if values_only {
@@ -775,21 +811,42 @@ impl Gpu {
         } else {
             encoder.copy_buffer_to_buffer(&results, 0, &readback, 0, size);
         }
-        self.queue.submit([encoder.finish()]);
-        let slice = readback.slice(..);
-        let (tx, rx) = std::sync::mpsc::channel();
-        slice.map_async(wgpu::MapMode::Read, move |r| {
+        let submission = self.queue.submit([encoder.finish()]);
+        let (tx, mapped) = std::sync::mpsc::channel();
+        readback.slice(..).map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
         });
-        dev.poll(wgpu::PollType::wait_indefinitely())
+        Ok(Some(Pending {
+            readback,
+            submission,
+            mapped,
+            values_bytes: values_only.then_some(values_bytes),
+        }))
+    }
+
+    /// Waits for a submitted dispatch (and no later one) and reads its results.
+    fn finish(&self, pending: Pending) -> Result<Readback, GpuError> {
+        let Pending {
+            readback,
+            submission,
+            mapped,
+            values_bytes,
+        } = pending;
+        self.device
+            .poll(wgpu::PollType::Wait {
+                submission_index: Some(submission),
+                timeout: None,
+            })
             .map_err(|e| GpuError::Readback(e.to_string()))?;
-        rx.recv()
+        mapped
+            .recv()
             .map_err(|e| GpuError::Readback(e.to_string()))?
             .map_err(|e| GpuError::Readback(e.to_string()))?;
+        let slice = readback.slice(..);
         let view = slice
             .get_mapped_range()
             .map_err(|e| GpuError::Readback(e.to_string()))?;
-        let out = if values_only {
+        let out = if let Some(values_bytes) = values_bytes {
             let (v, tail) = view.split_at(values_bytes as usize);
             let word = |k: usize| u32::from_le_bytes(tail[4 * k..4 * k + 4].try_into().expect("4"));
             Readback::Values(
