@@ -247,62 +247,103 @@ fn values_only_readback_is_the_full_readback_reduced() {
 fn dyadic_grids_and_points_on_cell_boundaries_agree_with_the_cpu() {
     let mut gpu = gpu();
     gpu.set_chunk(1 << 20);
-    let asset = quadtree("etopo20.tif", 1.6);
-    let op = &asset.planes[0].operator;
-    let dev = gpu.upload(&op.pieces()).unwrap();
-    let (w, h) = (asset.meta.width as usize, asset.meta.height as usize);
-    for (label, rect, (gw, gh)) in [
-        ("1x", [0.0f32, 0.0, 1.0, 1.0], (w, h)),
-        ("2x", [0.0, 0.0, 1.0, 1.0], (2 * w, 2 * h)),
-        ("4x of a quarter", [0.25, 0.5, 0.5, 0.75], (w, h)),
-        // A window whose edges are cell edges (cells 100..356 by 50..178), at 8x.
+    let dem = Raster::open(&data("jacksboro.tif")).unwrap();
+    let assets: Vec<(&str, Asset, u32)> = vec![
+        ("etopo20 quadtree", quadtree("etopo20.tif", 1.6), 12),
         (
-            "8x on cells",
-            [
-                100.0 / w as f32,
-                50.0 / h as f32,
-                356.0 / w as f32,
-                178.0 / h as f32,
-            ],
-            (2048, 1024),
+            "jacksboro projected",
+            fractile_codec::encode_default(&dem, 0.8, &|_, _| {})
+                .unwrap()
+                .asset,
+            12,
         ),
-    ] {
-        let got = gpu
-            .grid(
-                &dev,
-                Grid::Window {
-                    rect,
-                    width: gw as u32,
-                    height: gh as u32,
+        (
+            "jacksboro psa2d-tri",
+            encode_psa(
+                &dem,
+                &PsaSettings {
+                    tiling: Tiling::Triangular,
+                    ..PsaSettings::default()
                 },
-                12,
-                0.0,
+                None,
             )
-            .unwrap();
-        let (xs, ys) = decode::window_axes(rect, gw, gh);
-        let pts: Vec<[f32; 2]> = ys
-            .iter()
-            .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
+            .unwrap()
+            .asset,
+            12,
+        ),
+        (
+            "jacksboro fis-rect",
+            encode_fis(
+                &dem,
+                &FisSettings {
+                    scaling: Scaling::PerCell,
+                    ..FisSettings::default()
+                },
+                None,
+            )
+            .unwrap()
+            .asset,
+            // As in the test above: its maps scale by the cell count, so steps round.
+            3,
+        ),
+    ];
+    for (name, asset, n) in &assets {
+        let op = &asset.planes[0].operator;
+        let dev = gpu.upload(&op.pieces()).unwrap();
+        let (w, h) = (asset.meta.width as usize, asset.meta.height as usize);
+        for (label, rect, (gw, gh)) in [
+            ("1x", [0.0f32, 0.0, 1.0, 1.0], (w, h)),
+            ("2x", [0.0, 0.0, 1.0, 1.0], (2 * w, 2 * h)),
+            ("4x of a quarter", [0.25, 0.5, 0.5, 0.75], (w, h)),
+            // A window whose edges are cell edges, at 8x.
+            (
+                "8x on cells",
+                [
+                    (w / 8) as f32 / w as f32,
+                    (h / 8) as f32 / h as f32,
+                    (w / 8 + w / 4) as f32 / w as f32,
+                    (h / 8 + h / 4) as f32 / h as f32,
+                ],
+                (2 * w, 2 * h),
+            ),
+        ] {
+            let got = gpu
+                .grid(
+                    &dev,
+                    Grid::Window {
+                        rect,
+                        width: gw as u32,
+                        height: gh as u32,
+                    },
+                    *n,
+                    0.0,
+                )
+                .unwrap();
+            let (xs, ys) = decode::window_axes(rect, gw, gh);
+            let pts: Vec<[f32; 2]> = ys
+                .iter()
+                .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
+                .collect();
+            close(
+                &format!("{name} {label}"),
+                &decode::points(op, &pts, *n, 0.0),
+                &got,
+            );
+        }
+        // Points on the cell lattice itself (corners of source cells, and halves).
+        let pts: Vec<[f32; 2]> = (0..20_000u32)
+            .map(|k| {
+                let (i, j) = (k * 7919 % (2 * w as u32), k * 104_729 % (2 * h as u32));
+                [i as f32 / (2 * w) as f32, j as f32 / (2 * h) as f32]
+            })
             .collect();
+        let got = gpu.points(&dev, &pts, *n, 0.0).unwrap();
         close(
-            &format!("etopo20 {label}"),
-            &decode::points(op, &pts, 12, 0.0),
+            &format!("{name} points on cell corners"),
+            &decode::points(op, &pts, *n, 0.0),
             &got,
         );
     }
-    // Points on the cell lattice itself (corners of source cells, and halves).
-    let pts: Vec<[f32; 2]> = (0..20_000u32)
-        .map(|k| {
-            let (i, j) = (k * 7919 % (2 * w as u32), k * 104_729 % (2 * h as u32));
-            [i as f32 / (2 * w) as f32, j as f32 / (2 * h) as f32]
-        })
-        .collect();
-    let got = gpu.points(&dev, &pts, 12, 0.0).unwrap();
-    close(
-        "etopo20 points on cell corners",
-        &decode::points(op, &pts, 12, 0.0),
-        &got,
-    );
 }
 
 #[test]
