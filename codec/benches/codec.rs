@@ -254,8 +254,8 @@ fn main() {
                 .iter()
                 .map(|p| operator::Chain {
                     q: [
-                        decode::to_frame(p[0], valid[0], decode::position_quantum(&valid)),
-                        decode::to_frame(p[1], valid[1], decode::position_quantum(&valid)),
+                        decode::to_frame(p[0], valid[0], decode::position_quantum(&op.frame())),
+                        decode::to_frame(p[1], valid[1], decode::position_quantum(&op.frame())),
                     ],
                     acc_g: 0.0,
                     acc_s: 1.0,

@@ -153,7 +153,7 @@ proptest! {
             let fast = decode::points(q, &pts, n, tol);
             let valid = q.valid();
             let mut chains: Vec<operator::Chain<2>> = pts.iter().map(|p| operator::Chain {
-                q: [decode::to_frame(p[0], valid[0], decode::position_quantum(&valid)), decode::to_frame(p[1], valid[1], decode::position_quantum(&valid))],
+                q: [decode::to_frame(p[0], valid[0], decode::position_quantum(&q.frame())), decode::to_frame(p[1], valid[1], decode::position_quantum(&q.frame()))],
                 acc_g: 0.0,
                 acc_s: 1.0,
                 taken: 0,
@@ -174,8 +174,8 @@ proptest! {
     }
 
     /// Patch decoding answers what a plain chain in f64 answers at each of the patch's points
-    /// (`reference_chain`), and, but for points within f32 rounding of a cell boundary at some
-    /// step, what point decoding answers at the points rounded to f32; over zooms, rotations,
+    /// (`reference_chain`), and, but for points within a position quantum of a cell boundary at
+    /// some step, what point decoding answers at the points rounded to f32; over zooms, rotations,
     /// twists, tolerances and patches that reach outside the unit square (points clamped).
     #[test]
     fn patch_decoding_is_point_decoding(u0 in -0.05f32..0.9, v0 in -0.05f32..0.9, zoom in 0u32..7, angle in -0.6f64..0.6, twist in -0.2f64..0.2, nx in 1usize..70, ny in 1usize..70, tol in prop_oneof![Just(0.0f32), 0.0005f32..0.02], n in 0u32..30) {
@@ -217,7 +217,10 @@ proptest! {
                 .zip(&by_point)
                 .filter(|(a, b)| (a.value - b.value).abs() > a.error_bound + b.error_bound + 1e-5)
                 .count();
-            prop_assert!(beyond * 50 <= (nx * ny).max(50), "{} of {} points beyond their bounds", beyond, nx * ny);
+            // Point decoding starts on the position quantum (`decode::position_quantum`), up to
+            // half a quantum from the patch's f64 point, where f32 alone moved it a quarter as
+            // far: chains that pass near a cell boundary part a few times as often as before.
+            prop_assert!(beyond * 10 <= (nx * ny).max(50), "{} of {} points beyond their bounds", beyond, nx * ny);
         }
     }
 

@@ -332,7 +332,7 @@ impl Gpu {
             bytemuck::cast_slice(&pieces),
         )?;
         let (lo, hi) = table.interval;
-        let quantum = fractile_codec::core::decode::position_quantum(&table.valid);
+        let quantum = fractile_codec::core::decode::position_quantum(&table.frame);
         Ok(GpuOperator {
             lut,
             pieces,
@@ -415,8 +415,8 @@ impl Gpu {
                 side: (frame / cell as f32) as u32,
                 inv_cell: 1.0 / cell as f32,
                 valid: op.valid()[0],
-                quantum: fractile_codec::core::decode::position_quantum(&op.valid()),
-                inv_quantum: 1.0 / fractile_codec::core::decode::position_quantum(&op.valid()),
+                quantum: fractile_codec::core::decode::position_quantum(&op.frame()),
+                inv_quantum: 1.0 / fractile_codec::core::decode::position_quantum(&op.frame()),
                 ..Params3::default()
             }),
             bytes,

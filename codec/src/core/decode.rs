@@ -36,7 +36,7 @@ pub fn point<const D: usize, O: Operator<D> + ?Sized>(
     iterations: u32,
 ) -> PointValue {
     let valid = op.valid();
-    let quantum = position_quantum(&valid);
+    let quantum = position_quantum(&op.frame());
     let mut q = [0.0f32; D];
     for d in 0..D {
         q[d] = to_frame(p[d], valid[d], quantum);
@@ -78,7 +78,7 @@ pub fn points<const D: usize, O: Operator<D> + ?Sized>(
     tolerance: f32,
 ) -> Vec<PointValue> {
     let valid = op.valid();
-    let quantum = position_quantum(&valid);
+    let quantum = position_quantum(&op.frame());
     let mut chains: Vec<Chain<D>> = pts
         .iter()
         .map(|p| Chain::start(std::array::from_fn(|d| to_frame(p[d], valid[d], quantum))))
@@ -89,7 +89,7 @@ pub fn points<const D: usize, O: Operator<D> + ?Sized>(
 }
 
 /// A unit coordinate clamped into `[0, 1]`, scaled to the frame's `valid` extent and rounded to
-/// a multiple of `quantum` ([`position_quantum`]). NaN is taken as 0 (an edge of the asset), so
+/// a multiple of `quantum` ([`position_quantum`] of the operator's frame). NaN is taken as 0 (an edge of the asset), so
 /// that every decoding path and operator layout gives the same finite answer for it. The GPU
 /// kernel starts its chains with the same three operations (`shaders/decode2d.wgsl`).
 #[inline]
@@ -98,30 +98,33 @@ pub fn to_frame(t: f32, valid: f32, quantum: f32) -> f32 {
         0.0
     } else {
         let x = t.clamp(0.0, 1.0) * valid;
-        // x / quantum is exact (a power of two) and under 2^21, so + 0.5 and floor are too.
-        ((x * (1.0 / quantum) + 0.5).floor()) * quantum
+        // x / quantum is exact (a power of two) and under 2^22, so + 0.5 and the rounding to
+        // an integer are too. Truncation is the kernel's floor here (x >= 0), and a conversion
+        // instruction where `f32::floor` calls libm on baseline x86-64 (+11% on a quadtree
+        // point decode, measured).
+        ((x * (1.0 / quantum) + 0.5) as i32 as f32) * quantum
     }
 }
 
-/// The fixed-point step of chain positions in a frame whose valid extents are `valid`
-/// (samples): the power of two `2^-F` with `F = 24 - ceil(log2(8 max(valid)))`.
+/// The fixed-point step of chain positions in a frame of `frame` samples a side: the power of
+/// two `2^-F` with `F = 24 - ceil(log2(4 max(frame)))`.
 ///
 /// Why: a chain's next position is `a x + b y + c`, with a and b in {0, +-1, +-2} times a power
 /// of two on the lattice codecs (the quadtree's scale-2 isometries, the projected codec's
-/// `2 t - c`) and c a multiple of the lattice. A position that is a multiple of `2^-F` under
-/// 8 frames (no intermediate of a step exceeds three) has at most 24 significant bits, so
-/// every product and sum of a step is exact in f32, whatever the order of the operations or
-/// whether the hardware fuses them: the CPU (in lattice units) and the GPU (in samples, through
-/// its piece table) then visit the same cells for every point, bit for bit, where before a
-/// point on a cell boundary (every dyadic grid has them) went either way with the last bit of
-/// rounding. Positions carry integers times `2^-F` in f32 rather than i32: the same bits, one
-/// kernel for every codec. The cost is rounding starts to `2^-(F + 1)` of a sample (1/2048 at
-/// etopo20's 1,080 samples), far under a pixel at any zoom f32 could resolve anyway. FIS and
-/// psa2d maps scale by ratios that are not powers of two: their steps round, and CPU and GPU
-/// may still part at boundaries there.
-pub fn position_quantum(valid: &[f32]) -> f32 {
-    let side = valid.iter().fold(1.0f32, |m, &v| m.max(v)).min(1e6);
-    let bits = (8.0 * side).log2().ceil() as i32;
+/// `2 t - c`) and c a multiple of the lattice. No intermediate of a step leaves
+/// `[-2 frame, 3 frame]`, so a position that is a multiple of `2^-F` needs at most 24
+/// significant bits there, and every product and sum of a step is exact in f32, whatever the
+/// order of the operations or whether the hardware fuses them: the CPU (in lattice units) and
+/// the GPU (in samples, through its piece table) then visit the same cells for every point, bit
+/// for bit, where before a point on a cell boundary (every dyadic grid has them) went either
+/// way with the last bit of rounding. Positions carry integers times `2^-F` in f32 rather than
+/// i32: the same bits, one kernel for every codec. The cost is moving starts by up to
+/// `2^-(F + 1)` of a sample (1/4096 on etopo20's frame of about 1,100), about what f32 itself
+/// resolves at the frame's far edge. FIS and psa2d maps scale by ratios that are not powers of
+/// two: their steps round, and CPU and GPU may still part at boundaries there.
+pub fn position_quantum(frame: &[f32]) -> f32 {
+    let side = frame.iter().fold(1.0f32, |m, &v| m.max(v)).min(1e6);
+    let bits = (4.0 * side).log2().ceil() as i32;
     2f32.powi(bits - 24)
 }
 
@@ -185,7 +188,7 @@ pub fn grid<O: AxisAligned + ?Sized>(
     // Coordinate lists, all in one arena: a block refers to a slice for its columns and one for
     // its rows; a block that steps appends its images.
     let mut arena: Vec<f32> = Vec::with_capacity(4 * (nx + ny));
-    let quantum = position_quantum(&valid);
+    let quantum = position_quantum(&op.frame());
     arena.extend(xs.iter().map(|&x| to_frame(x, valid[0], quantum)));
     arena.extend(ys.iter().map(|&y| to_frame(y, valid[1], quantum)));
     // Where the grid is about as coarse as the lattice, blocks would hold a few points and

@@ -108,7 +108,7 @@ impl ProjectedOperator {
         let (lo, hi) = self.interval;
         let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
         let mut arena: Vec<f32> = Vec::with_capacity(4 * (nx + ny));
-        let quantum = position_quantum(&valid);
+        let quantum = position_quantum(&self.frame());
         arena.extend(xs.iter().map(|&x| to_frame(x, valid[0], quantum)));
         arena.extend(ys.iter().map(|&y| to_frame(y, valid[1], quantum)));
         let mut chains: Vec<(usize, Chain<2>)> = Vec::new();
