@@ -57,7 +57,15 @@ async fn get(uri: &str) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
 }
 
 /// The Python of a virtual environment holding quantized-mesh-tile 0.7.0.
+///
+/// Made once per test binary behind a `OnceLock`: two tests creating the same venv at once
+/// raced (`File exists`) and failed CI.
 fn reader_python() -> PathBuf {
+    static PYTHON: OnceLock<PathBuf> = OnceLock::new();
+    PYTHON.get_or_init(make_reader_python).clone()
+}
+
+fn make_reader_python() -> PathBuf {
     let venv = root().join("target/test-tools/quantized-mesh");
     let python = venv.join("bin/python");
     let ready = |p: &Path| {
@@ -68,7 +76,7 @@ fn reader_python() -> PathBuf {
     };
     if !ready(&python) {
         let ok = std::process::Command::new("python3")
-            .args(["-m", "venv"])
+            .args(["-m", "venv", "--clear"])
             .arg(&venv)
             .status()
             .is_ok_and(|s| s.success());
