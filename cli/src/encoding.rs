@@ -2,6 +2,7 @@
 //! meshes (IFS3D) and curves.
 
 use super::*;
+use fractile_codec::encode::chunked::{DEFAULT_CHUNK, encode_chunked, wants_chunks};
 
 mod shapes;
 pub(crate) use shapes::*;
@@ -182,6 +183,11 @@ pub(crate) struct EncodeArgs {
     /// FIS: bits of each vertical scaling.
     #[arg(long, default_value_t = FisSettings::default().scaling_bits)]
     scaling_bits: u8,
+    /// Rasters: code in chunks of N x N cells (a power of two, 64 to 16384), each on its own,
+    /// on every core, with overviews for coarse zooms; 0 never chunks. Default: chunks of
+    /// 1024 for rasters over 2048 cells on a side, one operator for smaller ones.
+    #[arg(long)]
+    chunk: Option<u32>,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -301,48 +307,33 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     if a.bounded && a.target_bpp.is_none() {
         bail!("--bounded bounds the error under --target-bpp B");
     }
-    let enc = if a.codec() == CodecArg::QuadtreePifs {
-        encode_quadtree(&a, &raster)?
-    } else if a.codec() == CodecArg::Projected {
+    if a.codec() == CodecArg::Projected && a.max_error.is_none() && a.target_bpp.is_none() {
+        bail!("--codec projected takes --max-error E (source units) or --target-bpp B");
+    }
+    if a.codec() == CodecArg::Curve {
+        bail!("--codec curve is for GeoJSON input");
+    }
+    if a.codec() != CodecArg::QuadtreePifs {
         lattice(&a)?;
-        let settings = fractile_codec::codecs::projected::ProjectedSettings {
-            max_error: a.max_error,
-            bounded: a.bounded,
-            ..Default::default()
-        };
-        if a.max_error.is_none() && a.target_bpp.is_none() {
-            bail!("--codec projected takes --max-error E (source units) or --target-bpp B");
+    }
+    let chunk = match a.chunk {
+        Some(0) => None,
+        Some(c) => Some(c),
+        None => wants_chunks(raster.width, raster.height, DEFAULT_CHUNK).then_some(DEFAULT_CHUNK),
+    };
+    let enc = match chunk {
+        None => encode_with(&a, &raster, true)?,
+        Some(c) => {
+            let bar = progress_bar("coding chunks", a.json);
+            let progress = |done: u64, total: u64| bar.update(done, total);
+            let one = |r: &Raster| {
+                encode_with(&a, r, false)
+                    .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
+            };
+            let enc = encode_chunked(&raster, c, &one, &progress)?;
+            bar.finish();
+            enc
         }
-        fractile_codec::encode::projected::encode_projected(&raster, &settings, a.target_bpp)?
-    } else if let Some(tiling) = a.codec().psa_tiling() {
-        lattice(&a)?;
-        let domains = match a.domains {
-            DomainsArg::Touching => Domains::Touching,
-            DomainsArg::Overlapping => Domains::Overlapping,
-        };
-        let settings = PsaSettings {
-            tiling,
-            domains,
-            region: a.spacing,
-            ratio: a.domain_ratio,
-            radius: a.radius,
-            max_scaling: a.max_contrast,
-            ..PsaSettings::default()
-        };
-        fractile_codec::encode::encode_psa(&raster, &settings, a.target_bpp)?
-    } else {
-        let Some(scaling) = a.codec().fis_scaling() else {
-            bail!("--codec curve is for GeoJSON input");
-        };
-        lattice(&a)?;
-        let settings = FisSettings {
-            scaling,
-            spacing: a.spacing,
-            height_step: a.height_step,
-            scaling_bits: a.scaling_bits,
-            max_scaling: a.max_contrast,
-        };
-        fractile_codec::encode::encode_fis(&raster, &settings, a.target_bpp)?
     };
     fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
     let report = json!({
@@ -389,7 +380,95 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     Ok(())
 }
 
-pub(crate) fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractile_codec::Encoded> {
+/// A progress bar on stderr that appears only once its work has run for a second (short
+/// encodes stay quiet), never with `quiet` (`--json`).
+struct Progress {
+    bar: ProgressBar,
+    started: Instant,
+    shown: std::sync::atomic::AtomicBool,
+    quiet: bool,
+}
+
+fn progress_bar(what: &str, quiet: bool) -> Progress {
+    let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
+    bar.set_style(
+        ProgressStyle::with_template(&format!(
+            "{{spinner}} {what} {{bar:30}} {{pos}}/{{len}} {{elapsed}}, about {{eta}} to go"
+        ))
+        .expect("template"),
+    );
+    Progress {
+        bar,
+        started: Instant::now(),
+        shown: false.into(),
+        quiet,
+    }
+}
+
+impl Progress {
+    fn update(&self, done: u64, total: u64) {
+        self.bar.set_length(total);
+        self.bar.set_position(done);
+        if !self.quiet
+            && self.started.elapsed().as_secs_f32() > 1.0
+            && !self.shown.swap(true, std::sync::atomic::Ordering::Relaxed)
+        {
+            self.bar.set_draw_target(ProgressDrawTarget::stderr());
+        }
+    }
+
+    fn finish(&self) {
+        self.bar.finish_and_clear();
+    }
+}
+
+/// `raster` coded by the codec `a` names (chunked or not, the same settings); `bar`: whether a
+/// long quadtree encode shows its own progress bar (not for chunks, which share one).
+fn encode_with(a: &EncodeArgs, raster: &Raster, bar: bool) -> Result<fractile_codec::Encoded> {
+    Ok(if a.codec() == CodecArg::QuadtreePifs {
+        encode_quadtree(a, raster, bar)?
+    } else if a.codec() == CodecArg::Projected {
+        let settings = fractile_codec::codecs::projected::ProjectedSettings {
+            max_error: a.max_error,
+            bounded: a.bounded,
+            ..Default::default()
+        };
+        fractile_codec::encode::projected::encode_projected(raster, &settings, a.target_bpp)?
+    } else if let Some(tiling) = a.codec().psa_tiling() {
+        let domains = match a.domains {
+            DomainsArg::Touching => Domains::Touching,
+            DomainsArg::Overlapping => Domains::Overlapping,
+        };
+        let settings = PsaSettings {
+            tiling,
+            domains,
+            region: a.spacing,
+            ratio: a.domain_ratio,
+            radius: a.radius,
+            max_scaling: a.max_contrast,
+            ..PsaSettings::default()
+        };
+        fractile_codec::encode::encode_psa(raster, &settings, a.target_bpp)?
+    } else {
+        let Some(scaling) = a.codec().fis_scaling() else {
+            bail!("--codec curve is for GeoJSON input");
+        };
+        let settings = FisSettings {
+            scaling,
+            spacing: a.spacing,
+            height_step: a.height_step,
+            scaling_bits: a.scaling_bits,
+            max_scaling: a.max_contrast,
+        };
+        fractile_codec::encode::encode_fis(raster, &settings, a.target_bpp)?
+    })
+}
+
+pub(crate) fn encode_quadtree(
+    a: &EncodeArgs,
+    raster: &Raster,
+    show_bar: bool,
+) -> Result<fractile_codec::Encoded> {
     let rate = match (a.target_bpp, a.tolerance, a.transforms, a.const_range) {
         (Some(b), ..) => RateMode::TargetBpp(b),
         (_, Some(t), ..) => RateMode::Tolerance(t),
@@ -432,28 +511,10 @@ pub(crate) fn encode_quadtree(a: &EncodeArgs, raster: &Raster) -> Result<fractil
         attractor_passes: a.attractor_passes.unwrap_or(preset.attractor_passes),
         ..preset
     };
-    // The bar appears only once an encode has run for a second (short encodes stay quiet).
-    let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
-    bar.set_style(
-        ProgressStyle::with_template(
-            "{spinner} fitting blocks {bar:30} {pos}/{len} {elapsed}, about {eta} to go",
-        )
-        .expect("template"),
-    );
-    let started = Instant::now();
-    let shown = std::sync::atomic::AtomicBool::new(false);
-    let progress = |done: u64, total: u64| {
-        bar.set_length(total);
-        bar.set_position(done);
-        if !a.json
-            && started.elapsed().as_secs_f32() > 1.0
-            && !shown.swap(true, std::sync::atomic::Ordering::Relaxed)
-        {
-            bar.set_draw_target(ProgressDrawTarget::stderr());
-        }
-    };
+    let bar = progress_bar("fitting blocks", a.json || !show_bar);
+    let progress = |done: u64, total: u64| bar.update(done, total);
     let enc = encode(raster, &settings, &progress)?;
-    bar.finish_and_clear();
+    bar.finish();
     Ok(enc)
 }
 

@@ -35,7 +35,7 @@ pub use io::raster::Raster;
 
 /// Everything that can go wrong, by whose fault: the input, the settings, an asset file, or
 /// writing the output. Messages name the file and the problem.
-#[derive(Debug, thiserror::Error)]
+#[derive(Clone, Debug, thiserror::Error)]
 pub enum Error {
     /// The input file or grid cannot be encoded.
     #[error("input: {0}")]

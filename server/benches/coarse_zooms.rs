@@ -28,21 +28,8 @@ use tower::ServiceExt;
 fn mosaic() -> Raster {
     let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata");
     let src = Raster::open(&root.join("etopo20.tif")).expect("etopo20");
-    let (w, h) = (src.width, src.height);
-    let (mw, mh) = (4 * w, 4 * h);
-    let mut values = vec![0f32; mw * mh];
-    for y in 0..mh {
-        let (cy, sy) = (y / h, y % h);
-        let sy = if cy % 2 == 1 { h - 1 - sy } else { sy };
-        for x in 0..mw {
-            let (cx, sx) = (x / w, x % w);
-            let sx = if cx % 2 == 1 { w - 1 - sx } else { sx };
-            values[y * mw + x] = src.channels[0][sy * w + sx];
-        }
-    }
-    let mut r = Raster::from_values(mw, mh, values, src.kind).unwrap();
-    r.sample = src.sample;
-    r.units = src.units.clone();
+    let mut r = fractile_codec::io::mosaic::mirrored(&src, 4, 4).unwrap();
+    let (mw, mh) = (r.width, r.height);
     r.georef = Some(Georef {
         epsg: Some(4326),
         origin: [-180.0, 90.0],

@@ -50,6 +50,11 @@ pub struct FileConfig {
     /// bytes a source pixel and plane: 256 MiB holds a 30 Mpx DEM's), or their grids are
     /// decoded again and again.
     pub coarse_cache_mib: Option<u64>,
+    /// Decoded chunks of chunked assets in MiB (default 256), shared by all of them: each
+    /// request reads the chunks it touches by range and decodes them into this cache (a
+    /// 1024^2 chunk of the default DEM codec holds about 48 MB). With it, the server's memory
+    /// is bounded by its caches, not by the sizes of its assets.
+    pub chunk_cache_mib: Option<u64>,
     /// A folder holding CesiumJS's build (`Build/Cesium` of the npm package `cesium`;
     /// `tools/fetch-cesium.sh` puts one in `target/cesium`), served at `/vendor/cesium/` so that
     /// the viewer shows the DEM on a globe through `layer.json`. Not compiled in: it is 14 MB.
@@ -153,7 +158,14 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     };
     let (store, skipped) = tokio::task::spawn_blocking({
         let dir = dir.clone();
-        move || store::Store::open_with(&dir, limits)
+        let chunks = fractile_codec::io::chunked::ChunkCache::new(
+            opts.file
+                .chunk_cache_mib
+                .unwrap_or(store::DEFAULT_CHUNK_CACHE_MIB)
+                .max(1)
+                << 20,
+        );
+        move || store::Store::open_with_cache(&dir, limits, chunks)
     })
     .await?
     .map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;

@@ -7,6 +7,7 @@ use std::path::{Path, PathBuf};
 use std::sync::{Arc, RwLock};
 
 use fractile_codec::geo::Placement;
+use fractile_codec::io::chunked::ChunkCache;
 use fractile_codec::{Asset, AssetLimits, Raster};
 
 use crate::error::AppError;
@@ -31,6 +32,8 @@ pub struct Store {
     assets: RwLock<BTreeMap<String, Arc<StoredAsset>>>,
     /// What one asset may claim and cost (checked on load and on upload).
     limits: AssetLimits,
+    /// Decoded chunks of the chunked assets (`chunk_cache_mib`), shared by all of them.
+    chunks: ChunkCache,
     /// Held while a file is replaced and the catalog updated, so that concurrent writers of
     /// an id serialise and the file on disk is always the version served.
     writes: std::sync::Mutex<()>,
@@ -60,6 +63,17 @@ impl Store {
     /// an interrupted write are removed first, and symbolic links are skipped (the folder's own
     /// files only). Returns the store and one message per skipped file.
     pub fn open_with(dir: &Path, limits: AssetLimits) -> std::io::Result<(Store, Vec<String>)> {
+        Store::open_with_cache(dir, limits, ChunkCache::new(DEFAULT_CHUNK_CACHE_MIB << 20))
+    }
+
+    /// [`Store::open_with`], the chunked assets' decoded chunks kept in `chunks`. A chunked
+    /// file is opened by its header alone; its chunks are read by range when a request needs
+    /// them.
+    pub fn open_with_cache(
+        dir: &Path,
+        limits: AssetLimits,
+        chunks: ChunkCache,
+    ) -> std::io::Result<(Store, Vec<String>)> {
         let mut assets = BTreeMap::new();
         let mut skipped = Vec::new();
         let mut entries = Vec::new();
@@ -102,10 +116,7 @@ impl Store {
                 skipped.push(format!("{}: not a valid asset id", path.display()));
                 continue;
             }
-            match std::fs::read(&path)
-                .map_err(|e| e.to_string())
-                .and_then(|b| load(&id, &b, &limits).map_err(|e| e.to_string()))
-            {
+            match load_file(&id, &path, &limits, &chunks) {
                 Ok(a) => {
                     assets.insert(id, Arc::new(a));
                 }
@@ -117,6 +128,7 @@ impl Store {
                 dir: dir.to_path_buf(),
                 assets: RwLock::new(assets),
                 limits,
+                chunks,
                 writes: std::sync::Mutex::new(()),
             },
             skipped,
@@ -128,11 +140,14 @@ impl Store {
     /// and the catalog are updated together, so the last writer's version is both.
     pub fn put(&self, id: &str, bytes: &[u8]) -> Result<Arc<StoredAsset>, AppError> {
         validate_id(id)?;
-        let stored = Arc::new(load(id, bytes, &self.limits).map_err(|e| AppError {
-            status: axum::http::StatusCode::UNPROCESSABLE_ENTITY,
-            code: "bad_asset",
-            detail: e.to_string(),
-        })?);
+        let stored =
+            Arc::new(
+                load(id, bytes, &self.limits, &self.chunks).map_err(|e| AppError {
+                    status: axum::http::StatusCode::UNPROCESSABLE_ENTITY,
+                    code: "bad_asset",
+                    detail: e.to_string(),
+                })?,
+            );
         let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
         fractile_codec::io::asset::write_atomic(&self.dir.join(format!("{id}.fra")), bytes)
             .map_err(|e| {
@@ -204,13 +219,53 @@ fn stale_temporary(path: &Path) -> Option<String> {
     (old || (procfs && !alive)).then(|| name.to_string())
 }
 
-/// Parses an asset file's bytes into a stored asset, under `limits`.
+/// Default of `chunk_cache_mib`: about five decoded 1024^2 chunks of the default DEM codec
+/// (48 MB each), so that the tiles of a view, which touch a few chunks of one or two levels,
+/// decode each once.
+pub const DEFAULT_CHUNK_CACHE_MIB: u64 = 256;
+
+/// An asset file of the folder, under `limits`: a chunked one by its header (its chunks read
+/// by range into `chunks` when needed), any other whole.
+fn load_file(
+    id: &str,
+    path: &Path,
+    limits: &AssetLimits,
+    chunks: &ChunkCache,
+) -> Result<StoredAsset, String> {
+    let asset = Asset::open(path, limits, chunks.clone()).map_err(|e| e.to_string())?;
+    let Some(c) = asset.chunks.clone() else {
+        // Read whole: load again from its bytes for the size and checksum.
+        let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
+        return load(id, &bytes, limits, chunks).map_err(|e| e.to_string());
+    };
+    let size = std::fs::metadata(path).map_err(|e| e.to_string())?.len();
+    Ok(stored(id, asset, size, c.header_crc))
+}
+
+/// Parses an asset file's bytes into a stored asset, under `limits`, a chunked one's chunks
+/// decoded into `chunks`.
 pub fn load(
     id: &str,
     bytes: &[u8],
     limits: &AssetLimits,
+    chunks: &ChunkCache,
 ) -> Result<StoredAsset, fractile_codec::Error> {
-    let asset = Asset::from_bytes_limited(bytes, limits)?;
+    let asset = if fractile_codec::io::chunked::is_chunked(bytes) {
+        let source = fractile_codec::io::chunked::InMemory(bytes.into());
+        Asset::open_chunked(Box::new(source), limits, chunks.clone())?
+    } else {
+        Asset::from_bytes_limited(bytes, limits)?
+    };
+    // A chunked file's header checksum covers its table, which holds every chunk's.
+    let hash = asset
+        .chunks
+        .as_ref()
+        .map_or_else(|| crc32(bytes), |c| c.header_crc);
+    Ok(stored(id, asset, bytes.len() as u64, hash))
+}
+
+/// A stored asset with what the server derives from it once.
+fn stored(id: &str, asset: Asset, bytes: u64, hash: u32) -> StoredAsset {
     let placement = asset.meta.georef.as_ref().and_then(|g| {
         match Placement::of(g, asset.meta.width, asset.meta.height) {
             Ok(p) => Some(p),
@@ -221,13 +276,13 @@ pub fn load(
             }
         }
     });
-    Ok(StoredAsset {
+    StoredAsset {
         id: id.to_string(),
         asset,
-        bytes: bytes.len() as u64,
-        hash: crc32(bytes),
+        bytes,
+        hash,
         placement,
-    })
+    }
 }
 
 fn crc32(bytes: &[u8]) -> u32 {

@@ -6,6 +6,7 @@
 //! const range, or a target rate by bisection) -> entropy code -> decode once to report the real
 //! error.
 
+pub mod chunked;
 pub mod curve;
 pub mod fidelity;
 pub mod projected;

@@ -2,6 +2,7 @@
 //! brought back to source terms — value units, RGB from YCbCr, nodata where the source had none.
 //! This is what the CLI and the server call.
 
+mod chunked;
 pub mod volume;
 
 use fractile_proto::{ColourModel, SampleFormat};
@@ -54,6 +55,22 @@ pub struct Delegates<'a> {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Cancelled;
 
+/// Why [`Asset::sample_with`] gave no answer.
+#[derive(Clone, Debug)]
+pub enum SampleError {
+    /// Its [`CancelHook`] said to stop.
+    Cancelled,
+    /// A chunk of a chunked asset could not be read or decoded (a corrupt or missing part of
+    /// the file, or its store unreachable).
+    Chunk(crate::Error),
+}
+
+impl From<Cancelled> for SampleError {
+    fn from(_: Cancelled) -> SampleError {
+        SampleError::Cancelled
+    }
+}
+
 /// Points decoded between two questions to a [`CancelHook`]: a few tens of milliseconds of
 /// work on one core, and a 512 x 512 tile in one band (no split, no cost).
 const BAND_POINTS: usize = 1 << 18;
@@ -84,6 +101,16 @@ impl Sites<'_> {
     /// Whether there are none.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
+    }
+}
+
+/// Delegates that keep all work on the CPU and never stop (chunked assets, which ask their
+/// chunks' own discrete decodes).
+fn no_delegates() -> Delegates<'static> {
+    Delegates {
+        continuous: &|_, _, _, _| None,
+        discrete: &|_, _, _, _| Arc::new(Vec::new()),
+        cancelled: &|| false,
     }
 }
 
@@ -128,6 +155,9 @@ impl Asset {
 
     /// Largest |s| over every map, for choosing iteration counts.
     pub fn max_contrast(&self) -> f32 {
+        if let Some(c) = &self.chunks {
+            return c.table.max_contrast;
+        }
         self.planes
             .iter()
             .map(|p| p.operator.max_contrast())
@@ -137,6 +167,10 @@ impl Asset {
 
     /// A-priori bound (source units) after `n` iterations everywhere, from the largest |s|.
     pub fn bound_after(&self, n: u32) -> f32 {
+        if let Some(c) = &self.chunks {
+            // The largest chunk's bound at n is at most max |s|^n times the largest seed bound.
+            return c.table.max_contrast.powi(n as i32) * c.table.seed_bound;
+        }
         let half = self
             .planes
             .iter()
@@ -224,6 +258,9 @@ impl Asset {
         height: usize,
         opts: DiscreteOptions,
     ) -> (Decoded, DiscreteReport) {
+        if self.chunks.is_some() {
+            return self.decode_chunked(width, height, opts);
+        }
         let results: Vec<(Grid, DiscreteReport)> = self
             .planes
             .iter()
@@ -283,6 +320,55 @@ impl Asset {
         }
     }
 
+    /// [`Asset::decode`] of a chunked asset: its chunks sample the pixel centres (continuously;
+    /// coarser than the source, from the overview of their size), each to within the
+    /// options' tolerance or iterations. A chunk that cannot be read leaves NaN, and the
+    /// report an infinite bound.
+    fn decode_chunked(
+        &self,
+        width: usize,
+        height: usize,
+        opts: DiscreteOptions,
+    ) -> (Decoded, DiscreteReport) {
+        let centres = |n: usize| (0..n).map(|i| Some((i as f32 + 0.5) / n as f32)).collect();
+        let pixels = Pixels {
+            sites: geo::Sites::Grid {
+                xs: centres(width),
+                ys: centres(height),
+            },
+            footprint: [1.0 / width as f32, 1.0 / height as f32],
+        };
+        let delegates = no_delegates();
+        // Fixed iterations stay fixed; a change criterion becomes the default tolerance.
+        let tolerance = if opts.max_error > 0.0 {
+            opts.max_error * self.span()
+        } else if opts.min_change > 0.0 {
+            self.default_tolerance()
+        } else {
+            0.0
+        };
+        let (channels, bound) =
+            match self.sample_with(&pixels, opts.max_iterations, tolerance, &delegates) {
+                Ok(r) => r,
+                Err(_) => (
+                    vec![vec![f32::NAN; width * height]; self.meta.channels as usize],
+                    f32::INFINITY,
+                ),
+            };
+        (
+            Decoded {
+                width,
+                height,
+                channels,
+            },
+            DiscreteReport {
+                iterations: opts.max_iterations,
+                last_change: 0.0,
+                error_bound: bound / self.span().max(f32::MIN_POSITIVE),
+            },
+        )
+    }
+
     /// Discrete decoding at the source's own size.
     pub fn decode_native(&self) -> (Decoded, DiscreteReport) {
         self.decode(
@@ -294,6 +380,9 @@ impl Asset {
 
     /// Continuous decoding of one unit point (u, v) with `iterations` inverse steps.
     pub fn point(&self, u: f32, v: f32, iterations: u32) -> PointSample {
+        if self.chunks.is_some() {
+            return self.points(&[[u, v]], iterations, 0.0).remove(0);
+        }
         let [u, v] = self.snap_to_samples(&[[u, v]]).map_or([u, v], |p| p[0]);
         let pv: Vec<_> = self
             .planes
@@ -350,6 +439,7 @@ impl Asset {
             .source_error
             .as_ref()
             .and_then(|map| map.smallest())
+            .or_else(|| self.chunks.as_ref()?.table.smallest_source_error)
             .filter(|e| e.is_finite())
             .map_or(0.0, |e| SETTLED_FRACTION * e);
         (0.5 * step as f32).max(settled)
@@ -389,6 +479,30 @@ impl Asset {
         tolerance: f32,
         continuous: &ContinuousHook<'_>,
     ) -> Vec<PointSample> {
+        self.try_points_with(pts, iterations, tolerance, continuous)
+            .unwrap_or_else(|_| {
+                let unknown = PointSample {
+                    values: vec![f32::NAN; self.meta.channels as usize],
+                    error_bound: f32::INFINITY,
+                    source_error: None,
+                    iterations: 0,
+                };
+                vec![unknown; pts.len()]
+            })
+    }
+
+    /// [`Asset::points_with`], with the error of a chunk that cannot be read (chunked assets;
+    /// the others always answer). Chunked assets answer on the CPU: `continuous` is not asked.
+    pub fn try_points_with(
+        &self,
+        pts: &[[f32; 2]],
+        iterations: u32,
+        tolerance: f32,
+        continuous: &ContinuousHook<'_>,
+    ) -> Result<Vec<PointSample>, crate::Error> {
+        if let Some(c) = &self.chunks {
+            return c.points(&self.meta, pts, iterations, tolerance);
+        }
         let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
         let snapped = self.snap_to_samples(pts);
         let pts = snapped.as_deref().unwrap_or(pts);
@@ -407,7 +521,7 @@ impl Asset {
             .map(|v| v.iter().map(|p| p.value).collect())
             .collect();
         let values = self.to_source(planes, |i| (pts[i][0], pts[i][1]), None);
-        (0..pts.len())
+        Ok((0..pts.len())
             .map(|i| {
                 let b: Vec<f32> = per_plane.iter().map(|v| v[i].error_bound * span).collect();
                 PointSample {
@@ -421,7 +535,7 @@ impl Asset {
                     iterations: per_plane.iter().map(|v| v[i].iterations).max().unwrap_or(0),
                 }
             })
-            .collect()
+            .collect())
     }
 
     /// Normalised planes of a `width x height` window `[u0, v0, u1, v1]` decoded elsewhere (the
@@ -460,6 +574,40 @@ impl Asset {
         iterations: Option<u32>,
         method: Method,
     ) -> (Decoded, Method) {
+        if self.chunks.is_some() {
+            // Chunks answer continuously (the overview of the pixels' size where they are
+            // coarser than the source), whatever the method asked.
+            let (xs, ys) = decode::window_axes(rect, width, height);
+            let pixels = Pixels {
+                sites: geo::Sites::Grid {
+                    xs: xs.into_iter().map(Some).collect(),
+                    ys: ys.into_iter().map(Some).collect(),
+                },
+                footprint: [
+                    (rect[2] - rect[0]).abs() / width as f32,
+                    (rect[3] - rect[1]).abs() / height as f32,
+                ],
+            };
+            let n = iterations
+                .unwrap_or(crate::core::decode::DiscreteOptions::default().max_iterations);
+            let tolerance = if iterations.is_some() {
+                0.0
+            } else {
+                self.default_tolerance()
+            };
+            let channels = match self.sample_with(&pixels, n, tolerance, &no_delegates()) {
+                Ok((c, _)) => c,
+                Err(_) => vec![vec![f32::NAN; width * height]; self.meta.channels as usize],
+            };
+            return (
+                Decoded {
+                    width,
+                    height,
+                    channels,
+                },
+                Method::Continuous,
+            );
+        }
         let mut chosen = method;
         let planes = self
             .planes
@@ -499,6 +647,10 @@ impl Asset {
     /// filtered answer) this is the largest point error under them, which bounds the filtered
     /// answer against the source filtered the same way.
     pub fn source_error_over(&self, pixels: &Pixels) -> Option<f32> {
+        if let Some(c) = &self.chunks {
+            // A chunk that cannot be read has already failed the answer it bounds.
+            return c.source_error_over(&self.meta, pixels).ok().flatten();
+        }
         let map = self.source_error.as_ref()?;
         let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
         let mut take = |p: [f32; 2]| {
@@ -562,7 +714,10 @@ impl Asset {
         iterations: u32,
         tolerance: f32,
         delegates: &Delegates<'_>,
-    ) -> Result<(Vec<Vec<f32>>, f32), Cancelled> {
+    ) -> Result<(Vec<Vec<f32>>, f32), SampleError> {
+        if let Some(c) = &self.chunks {
+            return c.sample(&self.meta, pixels, (iterations, tolerance), delegates);
+        }
         let stop = || {
             if (delegates.cancelled)() {
                 Err(Cancelled)

@@ -21,6 +21,7 @@
 
 use std::io::Write;
 use std::path::Path;
+use std::sync::Arc;
 
 use fractile_proto::{AssetKind, AssetMeta};
 use serde::{Deserialize, Serialize};
@@ -77,7 +78,7 @@ impl Default for AssetLimits {
 
 impl AssetLimits {
     /// Checks the grid a file claims.
-    fn check_pixels(&self, what: &str, pixels: u64) -> Result<(), Error> {
+    pub(crate) fn check_pixels(&self, what: &str, pixels: u64) -> Result<(), Error> {
         if pixels > self.max_pixels {
             return Err(Error::Asset(format!(
                 "{what} of {pixels} samples is over this reader's limit of {} (max_asset_pixels)",
@@ -148,6 +149,21 @@ pub enum Codec {
     Curve = 5,
     /// Projected IFS with details on a grid (height fields, grey images).
     Projected = 6,
+}
+
+impl Codec {
+    /// The codec of a codec byte.
+    pub fn from_byte(b: u8) -> Option<Codec> {
+        Some(match b {
+            1 => Codec::QuadtreePifs,
+            2 => Codec::Fis,
+            3 => Codec::Psa,
+            4 => Codec::Octree,
+            5 => Codec::Curve,
+            6 => Codec::Projected,
+            _ => return None,
+        })
+    }
 }
 
 /// How a plane is coded: the header a reader needs and the entropy-coded stream.
@@ -589,9 +605,12 @@ pub struct Asset {
     /// Each block's measured error against the source (format version 5 on; `None` in older
     /// files and for volumes and curves): what answers' `error_bound` adds to convergence.
     pub source_error: Option<SourceError>,
+    /// The chunks of a chunked asset (format version 6), read and decoded on demand; such an
+    /// asset has no planes of its own, and its answers are its chunks' (`extract::chunked`).
+    pub chunks: Option<Arc<super::chunked::Chunked>>,
 }
 
-fn kind_byte(k: AssetKind) -> u8 {
+pub(crate) fn kind_byte(k: AssetKind) -> u8 {
     match k {
         AssetKind::Image => 0,
         AssetKind::HeightField => 1,
@@ -723,6 +742,7 @@ impl Asset {
             volume: None,
             curve: None,
             source_error: None,
+            chunks: None,
         };
         asset.check()?;
         Ok(asset)
@@ -760,6 +780,7 @@ impl Asset {
             }),
             curve: None,
             source_error: None,
+            chunks: None,
         };
         asset.check()?;
         Ok(asset)
@@ -787,6 +808,7 @@ impl Asset {
                 set,
             }),
             source_error: None,
+            chunks: None,
         };
         asset.check()?;
         Ok(asset)
@@ -794,6 +816,9 @@ impl Asset {
 
     /// The codec of the planes.
     pub fn codec(&self) -> Codec {
+        if let Some(c) = &self.chunks {
+            return Codec::from_byte(c.table.codec).unwrap_or(Codec::QuadtreePifs);
+        }
         if self.curve.is_some() {
             return Codec::Curve;
         }
@@ -810,6 +835,14 @@ impl Asset {
 
     /// The codec's name as the CLI and the API spell it.
     pub fn codec_name(&self) -> &'static str {
+        if let Some(c) = &self.chunks {
+            // The chunks' codec (a FIS or psa2d name needs a chunk's header).
+            let first = c.table.levels[0].chunks.iter().position(|e| e.length > 0);
+            return match first.map(|i| c.chunk(0, i)) {
+                Some(Ok(Some(a))) => a.codec_name(),
+                _ => "chunked",
+            };
+        }
         if self.curve.is_some() {
             return "curve-pifs";
         }
@@ -867,6 +900,10 @@ impl Asset {
 
     /// The file's bytes.
     pub fn to_bytes(&self) -> Vec<u8> {
+        if let Some(c) = &self.chunks {
+            // Empty if its source cannot be read: `write` says why instead.
+            return c.bytes().unwrap_or_default();
+        }
         let mask = self.mask.as_ref().map(Mask::encode);
         let payload = match self.codec() {
             Codec::QuadtreePifs => fractile_proto::encode(&Payload {
@@ -1039,6 +1076,14 @@ impl Asset {
     /// Parses and checks a file's bytes; the sizes it claims are checked against `limits` and
     /// against what its streams can hold before anything is allocated for them.
     pub fn from_bytes_limited(bytes: &[u8], limits: &AssetLimits) -> Result<Asset, Error> {
+        if super::chunked::is_chunked(bytes) {
+            let source = super::chunked::InMemory(bytes.into());
+            return Asset::open_chunked(
+                Box::new(source),
+                limits,
+                super::chunked::ChunkCache::shared(),
+            );
+        }
         let (codec, meta, payload, section) = Asset::container(bytes)?;
         let (w, h) = (meta.width as usize, meta.height as usize);
         let span = (meta.value_max - meta.value_min) as f32;
@@ -1142,18 +1187,72 @@ impl Asset {
         Asset::from_parts(meta, p.planes, mask)
     }
 
-    /// Reads an asset file.
-    pub fn read(path: &Path) -> Result<Asset, Error> {
-        let bytes =
-            std::fs::read(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
-        Asset::from_bytes(&bytes).map_err(|e| match e {
+    /// A chunked container from `source`: its header is read now, its chunks when answers
+    /// need them, decoded into `cache`.
+    pub fn open_chunked(
+        source: Box<dyn super::chunked::ChunkSource>,
+        limits: &AssetLimits,
+        cache: super::chunked::ChunkCache,
+    ) -> Result<Asset, Error> {
+        let (meta, chunked) = super::chunked::Chunked::open(source, limits, cache)?;
+        Ok(Asset {
+            meta,
+            planes: Vec::new(),
+            mask: None,
+            volume: None,
+            curve: None,
+            source_error: None,
+            chunks: Some(Arc::new(chunked)),
+        })
+    }
+
+    /// Opens an asset file under `limits`: a chunked one by its header alone (its chunks are
+    /// read by range when needed, decoded into `cache`), any other whole.
+    pub fn open(
+        path: &Path,
+        limits: &AssetLimits,
+        cache: super::chunked::ChunkCache,
+    ) -> Result<Asset, Error> {
+        let input = |e: std::io::Error| Error::Input(format!("{}: {e}", path.display()));
+        let mut head = [0u8; 12];
+        let n = {
+            use std::io::Read;
+            let mut f = std::fs::File::open(path).map_err(input)?;
+            let mut n = 0;
+            while n < head.len() {
+                match f.read(&mut head[n..]).map_err(input)? {
+                    0 => break,
+                    k => n += k,
+                }
+            }
+            n
+        };
+        if super::chunked::is_chunked(&head[..n]) {
+            let source = super::chunked::FileSource::open(path).map_err(input)?;
+            return Asset::open_chunked(Box::new(source), limits, cache);
+        }
+        let bytes = std::fs::read(path).map_err(input)?;
+        Asset::from_bytes_limited(&bytes, limits).map_err(|e| match e {
             Error::Asset(m) => Error::Asset(format!("{}: {m}", path.display())),
             e => e,
         })
     }
 
+    /// Reads an asset file under the default limits (a chunked one by its header; its chunks
+    /// go to the process's shared cache).
+    pub fn read(path: &Path) -> Result<Asset, Error> {
+        Asset::open(
+            path,
+            &AssetLimits::default(),
+            super::chunked::ChunkCache::shared(),
+        )
+    }
+
     /// Writes the file atomically: a temporary file beside it, synced, then renamed over it.
     pub fn write(&self, path: &Path) -> Result<(), Error> {
+        if let Some(c) = &self.chunks {
+            return write_atomic(path, &c.bytes()?);
+        }
         write_atomic(path, &self.to_bytes())
     }
 }

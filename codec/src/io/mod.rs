@@ -3,5 +3,6 @@
 //! works on, are [`crate::mesh`].)
 
 pub mod asset;
+pub mod chunked;
 pub mod mosaic;
 pub mod raster;

@@ -207,3 +207,26 @@ pub fn mosaic(parts: &[(&Path, Raster)]) -> Result<Raster, Error> {
     };
     Ok(mosaic)
 }
+
+/// `nx x ny` copies of `src` side by side, odd columns of copies flipped left-right and odd
+/// rows upside down, so that copies meet without a step: large real rasters for tests and
+/// benches (issue 30: never synthetic noise). Single-channel; no georeference (the caller
+/// places it).
+pub fn mirrored(src: &Raster, nx: usize, ny: usize) -> Result<Raster, Error> {
+    let (w, h) = (src.width, src.height);
+    let (mw, mh) = (nx * w, ny * h);
+    let mut values = vec![0f32; mw * mh];
+    for y in 0..mh {
+        let (cy, sy) = (y / h, y % h);
+        let sy = if cy % 2 == 1 { h - 1 - sy } else { sy };
+        for x in 0..mw {
+            let (cx, sx) = (x / w, x % w);
+            let sx = if cx % 2 == 1 { w - 1 - sx } else { sx };
+            values[y * mw + x] = src.channels[0][sy * w + sx];
+        }
+    }
+    let mut r = Raster::from_values(mw, mh, values, src.kind)?;
+    r.sample = src.sample;
+    r.units = src.units.clone();
+    Ok(r)
+}

@@ -333,13 +333,27 @@ fn sample_on(
     let (channels, attractor) = a
         .asset
         .sample_with(pixels, iterations, tolerance, &delegates)
-        .map_err(|_| AppError {
-            status: StatusCode::SERVICE_UNAVAILABLE,
-            code: "cancelled",
-            detail: "the request was given up before its decode finished".into(),
+        .map_err(|e| match e {
+            fractile_codec::extract::SampleError::Cancelled => AppError {
+                status: StatusCode::SERVICE_UNAVAILABLE,
+                code: "cancelled",
+                detail: "the request was given up before its decode finished".into(),
+            },
+            fractile_codec::extract::SampleError::Chunk(e) => chunk_unavailable(e),
         })?;
     let source = a.asset.source_error_over(pixels);
     Ok((channels, Bounds { attractor, source }))
+}
+
+/// A chunk of a chunked asset that could not be read or decoded: 503, since a store that
+/// comes back answers again. Where and why go to the log, not to the client.
+pub(crate) fn chunk_unavailable(e: fractile_codec::Error) -> AppError {
+    tracing::error!("{e}");
+    AppError {
+        status: StatusCode::SERVICE_UNAVAILABLE,
+        code: "chunk_unavailable",
+        detail: "a chunk of the asset could not be read or decoded".into(),
+    }
 }
 
 /// Discrete decodes for coarse tiles (see [`AppState::coarse`]).

@@ -197,13 +197,14 @@ async fn answer_points(
     let cost = sampling_bytes(coords.len(), a.asset.meta.channels);
     decode(state, cost, move |_| {
         let inside: Vec<[f32; 2]> = units.iter().map(|u| u.unwrap_or([0.0, 0.0])).collect();
-        let samples = match gpu.as_deref().filter(|g| g.takes(choice, inside.len())) {
-            Some(g) => a.asset.points_with(&inside, n, tolerance, &|k, p, n, t| {
-                g.points(&a, k, p, n, t)
-            }),
-            None => a.asset.points(&inside, n, tolerance),
-        };
-        coords
+        let gpu = gpu.as_deref().filter(|g| g.takes(choice, inside.len()));
+        let samples = a
+            .asset
+            .try_points_with(&inside, n, tolerance, &|k, p, n, t| {
+                gpu.and_then(|g| g.points(&a, k, p, n, t))
+            })
+            .map_err(super::chunk_unavailable)?;
+        Ok(coords
             .iter()
             .zip(&units)
             .zip(samples)
@@ -230,7 +231,7 @@ async fn answer_points(
                     outside: true,
                 },
             })
-            .collect()
+            .collect())
     })
-    .await
+    .await?
 }

@@ -1,0 +1,288 @@
+//! Answers of chunked assets (`io::chunked`): every pixel or point is answered by the chunk
+//! that owns it, at the level whose cells match the pixels' size. No math of its own beyond
+//! moving unit coordinates between the asset and a chunk: each chunk answers as any asset.
+//!
+//! The level: pixels of `f` source cells are sampled from level `round(log2 f)`, whose cells
+//! are then between 0.7 and 1.4 pixels, continuously (the overview is the filter, so a chunk is
+//! never decoded discretely for coarse pixels). On the coarsest level, which is one chunk,
+//! pixels coarser still are filtered by that chunk as any asset filters them.
+
+use fractile_proto::AssetMeta;
+
+use super::{Delegates, PointSample, SampleError};
+use crate::geo::{Pixels, Sites};
+use crate::io::chunked::Chunked;
+
+/// The pixels one chunk answers, in its unit coordinates, and where its answers go.
+struct Part {
+    /// The chunk's index in its level.
+    index: usize,
+    /// The pixels, in the chunk's unit coordinates.
+    pixels: Pixels,
+    /// Where each answer goes.
+    back: Back,
+}
+
+/// Where a chunk's answers go in the whole request.
+enum Back {
+    /// Pixel `(cols[i], rows[j])` of the request's grid (`width` columns).
+    Grid {
+        cols: Vec<usize>,
+        rows: Vec<usize>,
+        width: usize,
+    },
+    /// Pixel `to[k]` of the request's list.
+    List(Vec<usize>),
+}
+
+/// One axis of a level: which chunk owns unit coordinate `t`, and where `t` lies in the
+/// cells that chunk codes.
+struct Axis {
+    /// Source cells on the axis.
+    source: f32,
+    /// Level cell size in source cells.
+    scale: f32,
+    /// Chunk side.
+    chunk: u32,
+    /// Chunks on the axis.
+    count: u32,
+}
+
+impl Axis {
+    /// The owning chunk of `t` and `t` in level cells.
+    fn owner(&self, t: f32) -> (u32, f32) {
+        let x = t * self.source / self.scale;
+        let c = ((x / self.chunk as f32).floor().max(0.0) as u32).min(self.count - 1);
+        (c, x)
+    }
+}
+
+impl Chunked {
+    /// The level for pixels `cells` source cells wide (the smaller axis).
+    fn level_for(&self, cells: f32) -> usize {
+        let top = self.table.levels.len() - 1;
+        if cells <= 1.0 || !cells.is_finite() {
+            return 0;
+        }
+        ((cells.log2() + 0.5).floor() as usize).min(top)
+    }
+
+    /// The axes of `level`.
+    fn axes(&self, meta: &AssetMeta, level: usize) -> [Axis; 2] {
+        let l = &self.table.levels[level];
+        let (nx, ny) = self.table.grid(l.width, l.height);
+        let scale = (1u64 << level) as f32;
+        [
+            Axis {
+                source: meta.width as f32,
+                scale,
+                chunk: self.table.chunk,
+                count: nx,
+            },
+            Axis {
+                source: meta.height as f32,
+                scale,
+                chunk: self.table.chunk,
+                count: ny,
+            },
+        ]
+    }
+
+    /// The level the pixels are answered from, and the pixels of each chunk they touch.
+    fn split(&self, meta: &AssetMeta, pixels: &Pixels) -> (usize, Vec<Part>) {
+        let cells =
+            (pixels.footprint[0] * meta.width as f32).min(pixels.footprint[1] * meta.height as f32);
+        let level = self.level_for(cells);
+        let top = level + 1 == self.table.levels.len();
+        let [ax, ay] = self.axes(meta, level);
+        let entries = &self.table.levels[level].chunks;
+        // Footprint in level cells; below the top level at most one cell (see the module).
+        let fp = |f: f32, axis: &Axis| {
+            let f = f * axis.source / axis.scale;
+            if top { f } else { f.min(1.0) }
+        };
+        let (fx, fy) = (fp(pixels.footprint[0], &ax), fp(pixels.footprint[1], &ay));
+        let local = |x: f32, lo: u32, hi: u32| (x - lo as f32) / (hi - lo) as f32;
+        let mut parts = Vec::new();
+        match &pixels.sites {
+            Sites::Grid { xs, ys } => {
+                let group = |ts: &[Option<f32>], axis: &Axis| {
+                    let mut g: Vec<Vec<(usize, f32)>> = vec![Vec::new(); axis.count as usize];
+                    for (i, t) in ts.iter().enumerate() {
+                        if let Some(t) = t {
+                            let (c, x) = axis.owner(*t);
+                            g[c as usize].push((i, x));
+                        }
+                    }
+                    g
+                };
+                let (cols, rows) = (group(xs, &ax), group(ys, &ay));
+                for (cy, row) in rows.iter().enumerate().filter(|(_, r)| !r.is_empty()) {
+                    for (cx, col) in cols.iter().enumerate().filter(|(_, c)| !c.is_empty()) {
+                        let index = cy * ax.count as usize + cx;
+                        let [x0, y0, x1, y1] = entries[index].cells;
+                        parts.push(Part {
+                            index,
+                            pixels: Pixels {
+                                sites: Sites::Grid {
+                                    xs: col.iter().map(|&(_, x)| Some(local(x, x0, x1))).collect(),
+                                    ys: row.iter().map(|&(_, y)| Some(local(y, y0, y1))).collect(),
+                                },
+                                footprint: [fx / (x1 - x0) as f32, fy / (y1 - y0) as f32],
+                            },
+                            back: Back::Grid {
+                                cols: col.iter().map(|&(i, _)| i).collect(),
+                                rows: row.iter().map(|&(j, _)| j).collect(),
+                                width: xs.len(),
+                            },
+                        });
+                    }
+                }
+            }
+            Sites::List { points, .. } => {
+                let mut groups: Vec<Vec<(usize, [f32; 2])>> = vec![Vec::new(); entries.len()];
+                for (k, p) in points.iter().enumerate() {
+                    if let Some([u, v]) = p {
+                        let ((cx, x), (cy, y)) = (ax.owner(*u), ay.owner(*v));
+                        groups[(cy * ax.count + cx) as usize].push((k, [x, y]));
+                    }
+                }
+                for (index, group) in groups.into_iter().enumerate() {
+                    if group.is_empty() {
+                        continue;
+                    }
+                    let [x0, y0, x1, y1] = entries[index].cells;
+                    parts.push(Part {
+                        index,
+                        pixels: Pixels {
+                            sites: Sites::List {
+                                width: group.len(),
+                                points: group
+                                    .iter()
+                                    .map(|&(_, [x, y])| Some([local(x, x0, x1), local(y, y0, y1)]))
+                                    .collect(),
+                                patches: Vec::new(),
+                            },
+                            footprint: [fx / (x1 - x0) as f32, fy / (y1 - y0) as f32],
+                        },
+                        back: Back::List(group.into_iter().map(|(k, _)| k).collect()),
+                    });
+                }
+            }
+        }
+        (level, parts)
+    }
+
+    /// [`crate::Asset::sample_with`] of a chunked asset: each chunk's pixels decoded by the
+    /// chunk (on the CPU: `delegates` only asks whether to stop). Pixels of chunks with no
+    /// valid cell, and pixels outside, are NaN.
+    pub(crate) fn sample(
+        &self,
+        meta: &AssetMeta,
+        pixels: &Pixels,
+        (iterations, tolerance): (u32, f32),
+        delegates: &Delegates<'_>,
+    ) -> Result<(Vec<Vec<f32>>, f32), SampleError> {
+        let (level, parts) = self.split(meta, pixels);
+        let mut out = vec![vec![f32::NAN; pixels.len()]; meta.channels as usize];
+        let mut bound = 0.0f32;
+        for part in parts {
+            if (delegates.cancelled)() {
+                return Err(SampleError::Cancelled);
+            }
+            let Some(chunk) = self.chunk(level, part.index).map_err(SampleError::Chunk)? else {
+                continue;
+            };
+            let discrete = |w, h, n, t| std::sync::Arc::new(chunk.discrete_planes(w, h, n, t));
+            let own = Delegates {
+                continuous: &|_, _, _, _| None,
+                discrete: &discrete,
+                cancelled: delegates.cancelled,
+            };
+            let (values, b) = chunk.sample_with(&part.pixels, iterations, tolerance, &own)?;
+            bound = bound.max(b);
+            for (plane, v) in out.iter_mut().zip(values) {
+                match &part.back {
+                    Back::Grid { cols, rows, width } => {
+                        for (j, &row) in rows.iter().enumerate() {
+                            for (i, &col) in cols.iter().enumerate() {
+                                plane[row * width + col] = v[j * cols.len() + i];
+                            }
+                        }
+                    }
+                    Back::List(to) => {
+                        for (&k, x) in to.iter().zip(v) {
+                            plane[k] = x;
+                        }
+                    }
+                }
+            }
+        }
+        Ok((out, bound))
+    }
+
+    /// [`crate::Asset::source_error_over`] of a chunked asset: the largest of the chunks'
+    /// under the pixels.
+    pub(crate) fn source_error_over(
+        &self,
+        meta: &AssetMeta,
+        pixels: &Pixels,
+    ) -> Result<Option<f32>, crate::Error> {
+        let (level, parts) = self.split(meta, pixels);
+        let mut worst: Option<f32> = None;
+        for part in parts {
+            if let Some(chunk) = self.chunk(level, part.index)?
+                && let Some(e) = chunk.source_error_over(&part.pixels)
+            {
+                worst = Some(worst.map_or(e, |w| w.max(e)));
+            }
+        }
+        Ok(worst)
+    }
+
+    /// [`crate::Asset::points`] of a chunked asset: each point by the source level's chunk
+    /// that owns it; points of chunks with no valid cell are NaN.
+    pub(crate) fn points(
+        &self,
+        meta: &AssetMeta,
+        pts: &[[f32; 2]],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Result<Vec<PointSample>, crate::Error> {
+        let [ax, ay] = self.axes(meta, 0);
+        let entries = &self.table.levels[0].chunks;
+        let mut groups: Vec<Vec<(usize, [f32; 2])>> = vec![Vec::new(); entries.len()];
+        for (k, &[u, v]) in pts.iter().enumerate() {
+            let ((cx, x), (cy, y)) = (ax.owner(u), ay.owner(v));
+            let [x0, y0, x1, y1] = entries[(cy * ax.count + cx) as usize].cells;
+            let local = [
+                (x - x0 as f32) / (x1 - x0) as f32,
+                (y - y0 as f32) / (y1 - y0) as f32,
+            ];
+            groups[(cy * ax.count + cx) as usize].push((k, local));
+        }
+        let nodata = PointSample {
+            values: vec![f32::NAN; meta.channels as usize],
+            error_bound: 0.0,
+            source_error: None,
+            iterations: 0,
+        };
+        let mut out = vec![nodata; pts.len()];
+        for (index, group) in groups.into_iter().enumerate() {
+            if group.is_empty() {
+                continue;
+            }
+            let Some(chunk) = self.chunk(0, index)? else {
+                continue;
+            };
+            let local: Vec<[f32; 2]> = group.iter().map(|&(_, p)| p).collect();
+            for ((k, _), answer) in group
+                .iter()
+                .zip(chunk.points(&local, iterations, tolerance))
+            {
+                out[*k] = answer;
+            }
+        }
+        Ok(out)
+    }
+}

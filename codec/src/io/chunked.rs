@@ -1,0 +1,521 @@
+//! Chunked assets (format version 6): a raster cut into square chunks, each coded on its own as
+//! a whole asset file of version 5, behind a table that says where each chunk lies in the file,
+//! so that a reader fetches and decodes one chunk by byte range without reading the rest
+//! (`docs/asset-format.md`). Coarser levels (overviews: the raster box-averaged by 2, 4, ...)
+//! are chunked the same way, so that a coarse tile of a huge raster decodes a few chunks of a
+//! coarse level instead of the whole raster.
+//!
+//! Each chunk codes `OVERLAP` cells beyond its own on every side (clamped at the raster's
+//! edges): a point is answered by the chunk that owns it, and every point a chunk owns lies
+//! between the centres of cells that chunk coded, so its bilinear neighbourhood never crosses
+//! into another chunk. Two neighbours then differ at their shared edge by at most the sum of
+//! their coding errors: no seam beyond the chunks' own error.
+//!
+//! Decoded chunks are kept in a [`ChunkCache`] bounded in bytes, shared by every chunked asset
+//! of a process (a server sizes it with `chunk_cache_mib`).
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+
+use fractile_proto::AssetMeta;
+use serde::{Deserialize, Serialize};
+
+use super::asset::{Asset, AssetLimits, MAGIC};
+use crate::Error;
+
+/// The format version of a chunked container. Single-operator files stay version 5 (their
+/// layout did not change), so readers of version 5 keep reading what they read.
+pub const CHUNKED_VERSION: u16 = 6;
+
+/// The codec byte of a chunked container (its chunks name their own codec).
+pub const CHUNKED_CODEC: u8 = 7;
+
+/// Cells each chunk codes beyond its own on every side (see the module's doc).
+pub const OVERLAP: u32 = 1;
+
+/// Most chunks a file may list, over all its levels: 2^20 chunks of 1024^2 cells is a
+/// terapixel, and the table of that many is 64 MiB.
+pub const MAX_CHUNKS: usize = 1 << 20;
+
+/// Smallest and largest chunk sides (powers of two).
+pub const CHUNK_SIDES: (u32, u32) = (64, 1 << 14);
+
+/// One chunk of a level: where its file lies and what it covers.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChunkEntry {
+    /// Offset of the chunk's file from the container's start.
+    pub offset: u64,
+    /// Length of the chunk's file; 0 for a chunk with no valid cell (nodata everywhere).
+    pub length: u64,
+    /// The cells it codes, `[x0, y0, x1, y1)` in its level's cells (its own and the overlap).
+    pub cells: [u32; 4],
+    /// Smallest and largest value of its valid cells (source units).
+    pub value_range: [f64; 2],
+    /// The chunk file's own CRC-32 (its last four bytes), checked against the bytes read.
+    pub crc: u32,
+}
+
+/// One level of the pyramid: level `l` has cells of `2^l` source cells.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Level {
+    /// Cells a row: `ceil(width / 2^l)`.
+    pub width: u32,
+    /// Rows: `ceil(height / 2^l)`.
+    pub height: u32,
+    /// The chunks in row order, `ceil(width / chunk)` a row.
+    pub chunks: Vec<ChunkEntry>,
+}
+
+/// The table of a chunked container.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChunkTable {
+    /// Side of a chunk in cells (a power of two), the overlap aside.
+    pub chunk: u32,
+    /// Cells each chunk codes beyond its own on every side.
+    pub overlap: u32,
+    /// The codec byte of the chunks (one codec for the whole asset).
+    pub codec: u8,
+    /// Largest |s| over every chunk.
+    pub max_contrast: f32,
+    /// Largest a-priori bound before any step over every chunk (source units):
+    /// `bound_after(n)` is at most `max_contrast^n` times it.
+    pub seed_bound: f32,
+    /// Smallest source error of any chunk's map (source units), for the default tolerance.
+    pub smallest_source_error: Option<f32>,
+    /// Level 0 (the source's cells) first, then each overview.
+    pub levels: Vec<Level>,
+}
+
+impl ChunkTable {
+    /// Chunks a row and rows of chunks of a level of `width x height` cells: the last chunk of
+    /// a row or column takes the remainder (so it is between half a chunk and a chunk and a
+    /// half): a sliver of a few cells would pay a chunk's fixed bytes for nothing, and under a
+    /// rate would be coded far worse than its neighbours.
+    pub fn grid(&self, width: u32, height: u32) -> (u32, u32) {
+        let count = |n: u32| (n.saturating_add(self.chunk / 2) / self.chunk).max(1);
+        (count(width), count(height))
+    }
+
+    /// The cells chunk `(cx, cy)` of a level of `width x height` codes: its own and the
+    /// overlap, clamped to the level.
+    pub fn coded_cells(&self, width: u32, height: u32, cx: u32, cy: u32) -> [u32; 4] {
+        let (c, o) = (self.chunk, self.overlap);
+        let (nx, ny) = self.grid(width, height);
+        let end = |i: u32, n: u32, size: u32| {
+            if i + 1 == n {
+                size
+            } else {
+                ((i + 1) * c + o).min(size)
+            }
+        };
+        [
+            (cx * c).saturating_sub(o),
+            (cy * c).saturating_sub(o),
+            end(cx, nx, width),
+            end(cy, ny, height),
+        ]
+    }
+
+    /// The levels' sizes for a source of `width x height` and chunks of `chunk`: halved
+    /// (rounding up) until a level fits in one chunk.
+    pub fn level_sizes(width: u32, height: u32, chunk: u32) -> Vec<(u32, u32)> {
+        let mut sizes = vec![(width, height)];
+        let one = |n: u32| n < chunk + chunk / 2;
+        while let Some(&(w, h)) = sizes.last() {
+            if (one(w) && one(h)) || sizes.len() >= 32 {
+                break;
+            }
+            sizes.push((w.div_ceil(2), h.div_ceil(2)));
+        }
+        sizes
+    }
+
+    /// Checks the table against the metadata and the file's length: every size and range is
+    /// the one the layout implies, every chunk lies in the file after the header.
+    fn validate(&self, meta: &AssetMeta, header_end: u64, file_len: u64) -> Result<(), String> {
+        let (lo, hi) = CHUNK_SIDES;
+        if !self.chunk.is_power_of_two() || self.chunk < lo || self.chunk > hi {
+            return Err(format!(
+                "chunk side {} is not a power of two in {lo}..={hi}",
+                self.chunk
+            ));
+        }
+        if self.overlap > self.chunk / 4 {
+            return Err(format!("overlap {} is over a quarter chunk", self.overlap));
+        }
+        if !(1..=6).contains(&self.codec) || self.codec == 4 || self.codec == 5 {
+            return Err(format!("chunks of codec {} are not rasters", self.codec));
+        }
+        if !(self.max_contrast.is_finite() && self.seed_bound.is_finite()) {
+            return Err("non-finite contrast or bound".into());
+        }
+        let sizes = ChunkTable::level_sizes(meta.width, meta.height, self.chunk);
+        if sizes.len() != self.levels.len() {
+            return Err(format!(
+                "{} levels where a {}x{} raster in chunks of {} has {}",
+                self.levels.len(),
+                meta.width,
+                meta.height,
+                self.chunk,
+                sizes.len()
+            ));
+        }
+        let total: usize = self.levels.iter().map(|l| l.chunks.len()).sum();
+        if total > MAX_CHUNKS {
+            return Err(format!("{total} chunks, over the limit of {MAX_CHUNKS}"));
+        }
+        for (l, (level, &(w, h))) in self.levels.iter().zip(&sizes).enumerate() {
+            let (nx, ny) = self.grid(w, h);
+            if (level.width, level.height) != (w, h)
+                || level.chunks.len() != (nx as usize) * (ny as usize)
+            {
+                return Err(format!("level {l} does not have the layout's size"));
+            }
+            for (i, e) in level.chunks.iter().enumerate() {
+                let (cx, cy) = (i as u32 % nx, i as u32 / nx);
+                if e.cells != self.coded_cells(w, h, cx, cy) {
+                    return Err(format!("chunk {i} of level {l} claims other cells"));
+                }
+                let end = e.offset.checked_add(e.length);
+                if e.length > 0 && (e.offset < header_end || end.is_none_or(|e| e > file_len)) {
+                    return Err(format!("chunk {i} of level {l} lies outside the file"));
+                }
+                if e.length > 0
+                    && e.value_range[0]
+                        .partial_cmp(&e.value_range[1])
+                        .is_none_or(|o| o.is_gt())
+                {
+                    return Err(format!("chunk {i} of level {l} has a bad value range"));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Where a chunked container's bytes come from: read by range, so that only the chunks a
+/// request touches are read (a file now; object storage next).
+pub trait ChunkSource: Send + Sync {
+    /// Length of the container in bytes.
+    fn len(&self) -> u64;
+    /// Whether it is empty.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// `len` bytes from `offset`.
+    fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>>;
+    /// Where the bytes are, for messages.
+    fn describe(&self) -> String;
+}
+
+/// A container held in memory (an upload, a file read whole).
+pub struct InMemory(pub Arc<[u8]>);
+
+impl ChunkSource for InMemory {
+    fn len(&self) -> u64 {
+        self.0.len() as u64
+    }
+
+    fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>> {
+        usize::try_from(offset)
+            .ok()
+            .and_then(|o| self.0.get(o..o.checked_add(len)?))
+            .map(<[u8]>::to_vec)
+            .ok_or_else(|| std::io::Error::from(std::io::ErrorKind::UnexpectedEof))
+    }
+
+    fn describe(&self) -> String {
+        "an asset in memory".into()
+    }
+}
+
+/// A container in a file, read by positioned reads (no shared cursor, so concurrent chunk
+/// reads need no lock).
+pub struct FileSource {
+    file: std::fs::File,
+    len: u64,
+    path: PathBuf,
+}
+
+impl FileSource {
+    /// Opens `path` for reading by range.
+    pub fn open(path: &Path) -> std::io::Result<FileSource> {
+        let file = std::fs::File::open(path)?;
+        let len = file.metadata()?.len();
+        Ok(FileSource {
+            file,
+            len,
+            path: path.to_path_buf(),
+        })
+    }
+}
+
+impl ChunkSource for FileSource {
+    fn len(&self) -> u64 {
+        self.len
+    }
+
+    fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>> {
+        use std::os::unix::fs::FileExt;
+        let mut buf = vec![0u8; len];
+        self.file.read_exact_at(&mut buf, offset)?;
+        Ok(buf)
+    }
+
+    fn describe(&self) -> String {
+        self.path.display().to_string()
+    }
+}
+
+/// Decoded chunks of every chunked asset of a process, bounded in bytes (their estimated
+/// resident size: operators and masks), least recently used out first. moka's cache also makes
+/// concurrent requests for one chunk decode it once.
+#[derive(Clone)]
+pub struct ChunkCache {
+    cache: moka::sync::Cache<(u64, u8, u32), Arc<Asset>>,
+}
+
+impl ChunkCache {
+    /// A cache of at most `bytes` of decoded chunks.
+    pub fn new(bytes: u64) -> ChunkCache {
+        ChunkCache {
+            cache: moka::sync::Cache::builder()
+                .max_capacity(bytes)
+                .weigher(|_, a: &Arc<Asset>| resident_bytes(a).min(u64::from(u32::MAX)) as u32)
+                .build(),
+        }
+    }
+
+    /// The process's default cache, 512 MiB: what [`Asset::read`] and [`Asset::from_bytes`]
+    /// give chunked assets.
+    pub fn shared() -> ChunkCache {
+        static SHARED: std::sync::OnceLock<ChunkCache> = std::sync::OnceLock::new();
+        SHARED.get_or_init(|| ChunkCache::new(512 << 20)).clone()
+    }
+
+    /// Estimated bytes held by the cache now.
+    pub fn weighted_bytes(&self) -> u64 {
+        self.cache.run_pending_tasks();
+        self.cache.weighted_size()
+    }
+}
+
+/// Estimated resident bytes of a decoded chunk: its operator's bytes a cell (measured on the
+/// 9.3 Mpx mosaic: projected 44 B a sample, quadtree 13) and its mask.
+fn resident_bytes(a: &Asset) -> u64 {
+    let cells = u64::from(a.meta.width) * u64::from(a.meta.height);
+    let per_cell = match a.codec() {
+        super::asset::Codec::Projected => 48,
+        _ => 16,
+    };
+    cells * per_cell * a.planes.len() as u64 + a.mask.as_ref().map_or(0, |_| cells) + 4096
+}
+
+/// A chunked container opened for reading: its table, its bytes by range, and the cache its
+/// decoded chunks go to.
+pub struct Chunked {
+    /// The chunk table.
+    pub table: ChunkTable,
+    source: Box<dyn ChunkSource>,
+    limits: AssetLimits,
+    cache: ChunkCache,
+    /// This container's key in the shared cache.
+    key: u64,
+    /// CRC-32 of the header (magic to table): names this version of the asset.
+    pub header_crc: u32,
+}
+
+impl std::fmt::Debug for Chunked {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Chunked")
+            .field("source", &self.source.describe())
+            .field("chunk", &self.table.chunk)
+            .field("levels", &self.table.levels.len())
+            .finish()
+    }
+}
+
+/// Whether `bytes` (at least the first 12 of a file) start a chunked container.
+pub fn is_chunked(bytes: &[u8]) -> bool {
+    bytes.len() >= 12
+        && &bytes[..8] == MAGIC
+        && u16::from_le_bytes([bytes[8], bytes[9]]) == CHUNKED_VERSION
+}
+
+/// The bytes of a chunked container: the header (magic, version, kind, codec, metadata, table,
+/// CRC) then the chunk files in the order given. `chunks[l][i]` is level `l`'s chunk `i`'s
+/// file, empty for a chunk with no valid cell; the table's offsets, lengths and CRCs are
+/// filled in here.
+pub fn assemble(meta: &AssetMeta, mut table: ChunkTable, chunks: &[Vec<Vec<u8>>]) -> Vec<u8> {
+    let meta_bytes = fractile_proto::encode(meta);
+    // The table's size does not depend on the offsets' values (fixed-width integers).
+    let table_len = fractile_proto::encode(&table).len();
+    let header_len = 8 + 2 + 2 + 4 + meta_bytes.len() + 4 + table_len + 4;
+    let mut offset = header_len as u64;
+    for (level, files) in table.levels.iter_mut().zip(chunks) {
+        for (entry, file) in level.chunks.iter_mut().zip(files) {
+            entry.offset = offset;
+            entry.length = file.len() as u64;
+            entry.crc = file
+                .len()
+                .checked_sub(4)
+                .map_or(0, |n| u32::from_le_bytes(file[n..].try_into().expect("4")));
+            offset += file.len() as u64;
+        }
+    }
+    let table_bytes = fractile_proto::encode(&table);
+    debug_assert_eq!(table_bytes.len(), table_len);
+    let mut out = Vec::with_capacity(offset as usize);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&CHUNKED_VERSION.to_le_bytes());
+    out.push(super::asset::kind_byte(meta.kind));
+    out.push(CHUNKED_CODEC);
+    out.extend_from_slice(&(meta_bytes.len() as u32).to_le_bytes());
+    out.extend_from_slice(&meta_bytes);
+    out.extend_from_slice(&(table_bytes.len() as u32).to_le_bytes());
+    out.extend_from_slice(&table_bytes);
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    for file in chunks.iter().flatten() {
+        out.extend_from_slice(file);
+    }
+    out
+}
+
+impl Chunked {
+    /// Reads and checks a container's header from `source` (a few kilobytes: nothing of the
+    /// chunks is read). Returns the metadata and the opened container.
+    pub fn open(
+        source: Box<dyn ChunkSource>,
+        limits: &AssetLimits,
+        cache: ChunkCache,
+    ) -> Result<(AssetMeta, Chunked), Error> {
+        let bad = |m: String| Error::Asset(format!("{}: {m}", source.describe()));
+        let io = |e: std::io::Error| Error::Asset(format!("{}: {e}", source.describe()));
+        let file_len = source.len();
+        if file_len < 24 {
+            return Err(bad(format!("{file_len} bytes is too short for an asset")));
+        }
+        let head = source.read(0, 16).map_err(io)?;
+        if !is_chunked(&head) {
+            return Err(bad("not a chunked fractile asset".into()));
+        }
+        if head[11] != CHUNKED_CODEC {
+            return Err(bad(format!(
+                "codec byte {} in a chunked container",
+                head[11]
+            )));
+        }
+        let len_at = |b: &[u8], at: usize| u32::from_le_bytes(b[at..at + 4].try_into().expect("4"));
+        let m_len = u64::from(len_at(&head, 12));
+        // The metadata is a few hundred bytes and the table 64 bytes a chunk.
+        let most = 64 + (MAX_CHUNKS as u64) * 64;
+        if 20 + m_len > file_len.min(most) {
+            return Err(bad("truncated metadata".into()));
+        }
+        let meta_and_len = source.read(16, m_len as usize + 4).map_err(io)?;
+        let t_len = u64::from(len_at(&meta_and_len, m_len as usize));
+        let header_end = 20 + m_len + t_len + 4;
+        if header_end > file_len || t_len > most {
+            return Err(bad("truncated chunk table".into()));
+        }
+        let rest = source.read(20 + m_len, t_len as usize + 4).map_err(io)?;
+        let mut header = head.clone();
+        header.extend_from_slice(&meta_and_len);
+        header.extend_from_slice(&rest[..t_len as usize]);
+        let crc = u32::from_le_bytes(rest[t_len as usize..].try_into().expect("4"));
+        if crc32fast::hash(&header) != crc {
+            return Err(bad(
+                "header checksum mismatch: the file is corrupt or truncated".into(),
+            ));
+        }
+        let meta: AssetMeta = fractile_proto::decode(&meta_and_len[..m_len as usize])
+            .map_err(|e| bad(e.to_string()))?;
+        if super::asset::kind_byte(meta.kind) != head[10] {
+            return Err(bad("kind byte and metadata disagree".into()));
+        }
+        if meta.width == 0 || meta.height == 0 || meta.width > 1 << 24 || meta.height > 1 << 24 {
+            return Err(bad(format!(
+                "bad size {}x{} in the metadata",
+                meta.width, meta.height
+            )));
+        }
+        let table: ChunkTable =
+            fractile_proto::decode(&rest[..t_len as usize]).map_err(|e| bad(e.to_string()))?;
+        table.validate(&meta, header_end, file_len).map_err(bad)?;
+        // Each chunk is read under the limits as its own asset; the chunk side bounds its
+        // grid (a last chunk takes up to half a chunk more), so a chunk over the limits is
+        // refused when the file opens.
+        let side = u64::from(table.chunk + table.chunk / 2 + 2 * table.overlap);
+        limits.check_pixels("a chunk", side * side)?;
+        static NEXT: AtomicU64 = AtomicU64::new(0);
+        Ok((
+            meta,
+            Chunked {
+                table,
+                source,
+                limits: *limits,
+                cache,
+                key: NEXT.fetch_add(1, Ordering::Relaxed),
+                header_crc: crc,
+            },
+        ))
+    }
+
+    /// Chunk `index` of level `level`, decoded (from the cache, or read by range and checked);
+    /// `None` for a chunk with no valid cell.
+    pub fn chunk(&self, level: usize, index: usize) -> Result<Option<Arc<Asset>>, Error> {
+        let entry = self
+            .table
+            .levels
+            .get(level)
+            .and_then(|l| l.chunks.get(index))
+            .ok_or_else(|| Error::Asset(format!("no chunk {index} in level {level}")))?;
+        if entry.length == 0 {
+            return Ok(None);
+        }
+        let load = || -> Result<Arc<Asset>, Error> {
+            let what = format!("{}: chunk {index} of level {level}", self.source.describe());
+            let bytes = self
+                .source
+                .read(entry.offset, entry.length as usize)
+                .map_err(|e| Error::Asset(format!("{what}: {e}")))?;
+            let crc = bytes
+                .len()
+                .checked_sub(4)
+                .map(|n| u32::from_le_bytes(bytes[n..].try_into().expect("4")));
+            if crc != Some(entry.crc) {
+                return Err(Error::Asset(format!(
+                    "{what}: its checksum is not the table's (corrupt file)"
+                )));
+            }
+            let asset = Asset::from_bytes_limited(&bytes, &self.limits)
+                .map_err(|e| Error::Asset(format!("{what}: {e}")))?;
+            let [x0, y0, x1, y1] = entry.cells;
+            if asset.chunks.is_some()
+                || (asset.meta.width, asset.meta.height) != (x1 - x0, y1 - y0)
+                || asset.codec() as u8 != self.table.codec
+            {
+                return Err(Error::Asset(format!(
+                    "{what}: not the {}x{} raster of the table's codec",
+                    x1 - x0,
+                    y1 - y0
+                )));
+            }
+            Ok(Arc::new(asset))
+        };
+        self.cache
+            .cache
+            .try_get_with((self.key, level as u8, index as u32), load)
+            .map(Some)
+            .map_err(|e| (*e).clone())
+    }
+
+    /// The container's bytes, whole (for `Asset::to_bytes`).
+    pub fn bytes(&self) -> Result<Vec<u8>, Error> {
+        self.source
+            .read(0, self.source.len() as usize)
+            .map_err(|e| Error::Asset(format!("{}: {e}", self.source.describe())))
+    }
+}

@@ -1,0 +1,238 @@
+//! Chunked assets (format version 6) on a real DEM: every cell within the bound its answer
+//! carries, no seam between chunks beyond their own errors, coarse pixels answered from the
+//! overview of their size, and corrupt or empty chunks answered by name without losing the
+//! rest.
+
+use fractile_codec::encode::chunked::encode_chunked;
+use fractile_codec::extract::{Delegates, SampleError};
+use fractile_codec::geo::{Pixels, Sites};
+use fractile_codec::io::chunked::is_chunked;
+use fractile_codec::{Asset, Encoded, Raster, encode_default};
+
+fn testdata(name: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata")
+        .join(name)
+}
+
+const CHUNK: u32 = 256;
+
+fn chunked(r: &Raster) -> Encoded {
+    let one = |part: &Raster| encode_default(part, 0.8, &|_, _| {});
+    encode_chunked(r, CHUNK, &one, &|_, _| {}).expect("chunked encode")
+}
+
+/// What f32 rounding may add to a bound (a few units in the last place of the value range).
+fn rounding(r: &Raster) -> f32 {
+    let (lo, hi) = r.value_range();
+    ((hi - lo) * 2f64.powi(-20)) as f32
+}
+
+fn file_of(enc: &Encoded, name: &str) -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("fractile-chunked-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let path = dir.join(name);
+    std::fs::write(&path, &enc.bytes).unwrap();
+    path
+}
+
+#[test]
+fn every_cell_of_a_chunked_dem_is_within_its_bound_and_chunks_meet_within_their_errors() {
+    let r = Raster::open(&testdata("etopo20.tif")).unwrap();
+    let (w, h) = (r.width, r.height);
+    let enc = chunked(&r);
+    assert!(is_chunked(&enc.bytes));
+    // Read by range from a file, as a server does.
+    let asset = Asset::read(&file_of(&enc, "etopo20.fra")).unwrap();
+    let table = &asset.chunks.as_ref().expect("chunked").table;
+    assert!(
+        table.levels[0].chunks.len() >= 6,
+        "{:?}",
+        table.levels[0].chunks.len()
+    );
+    assert!(table.levels.len() >= 2, "overviews");
+    // Every cell centre.
+    let pts: Vec<[f32; 2]> = (0..h)
+        .flat_map(|y| {
+            (0..w).map(move |x| [(x as f32 + 0.5) / w as f32, (y as f32 + 0.5) / h as f32])
+        })
+        .collect();
+    let answers = asset
+        .try_points_with(&pts, 40, 0.0, &|_, _, _, _| None)
+        .unwrap();
+    let slack = rounding(&r);
+    let mut worst = 0.0f32;
+    for (i, a) in answers.iter().enumerate() {
+        let bound = a.error_bound + a.source_error.expect("each chunk has a map") + slack;
+        let err = (a.values[0] - r.channels[0][i]).abs();
+        assert!(err <= bound, "cell {i}: error {err} over its bound {bound}");
+        worst = worst.max(err);
+    }
+    assert!(worst > 0.0, "a lossy rate has errors");
+    // Seams: just either side of every chunk edge, the two chunks' answers differ by at most
+    // the sum of their bounds (each is within its bound of the bilinear source, which is
+    // continuous).
+    let eps = 1e-3;
+    let mut seams = 0;
+    for k in 1..(w as u32 / CHUNK) {
+        let x = (k * CHUNK) as f32;
+        for y in (0..h).step_by(7) {
+            let v = (y as f32 + 0.5) / h as f32;
+            let pair = [[(x - eps) / w as f32, v], [(x + eps) / w as f32, v]];
+            let a = asset
+                .try_points_with(&pair, 40, 0.0, &|_, _, _, _| None)
+                .unwrap();
+            let bound: f32 = a
+                .iter()
+                .map(|p| p.error_bound + p.source_error.unwrap())
+                .sum();
+            let step = (a[0].values[0] - a[1].values[0]).abs();
+            assert!(
+                step <= bound + 2.0 * slack,
+                "seam at x {x}, row {y}: {step} > {bound}"
+            );
+            seams += 1;
+        }
+    }
+    assert!(seams > 100);
+    // The file's bytes back, whole.
+    assert_eq!(asset.to_bytes(), enc.bytes);
+}
+
+#[test]
+fn coarse_pixels_are_answered_from_the_overview_of_their_size() {
+    let r = Raster::open(&testdata("etopo20.tif")).unwrap();
+    let (w, h) = (r.width, r.height);
+    let asset = Asset::from_bytes(&chunked(&r).bytes).unwrap();
+    let centres = |n: usize| (0..n).map(|i| Some((i as f32 + 0.5) / n as f32)).collect();
+    let levels = asset.chunks.as_ref().unwrap().table.levels.len();
+    assert_eq!(
+        levels, 3,
+        "1080 x 540 in chunks of 256: 540 x 270, then 270 x 135"
+    );
+    // Pixels of b x b source cells, centred on b x b blocks: the cells of level log2(b) (1,
+    // an overview; 2, the top level).
+    for level in 1..levels {
+        let b = 1usize << level;
+        let (pw, ph) = (w / b, h / b);
+        let pixels = Pixels {
+            sites: Sites::Grid {
+                xs: centres(pw),
+                ys: centres(ph),
+            },
+            footprint: [b as f32 / w as f32, b as f32 / h as f32],
+        };
+        let (values, bound) = asset.sample(&pixels, 40, 0.0);
+        assert!(bound.is_finite());
+        // The overview is the block mean, rounded to the source's integers at each halving
+        // (half a metre each), coded within each of its chunks' promise.
+        let mut worst = 0.0f32;
+        for j in 0..ph {
+            for i in 0..pw {
+                let mean = (0..b)
+                    .flat_map(|dy| (0..b).map(move |dx| (b * i + dx, b * j + dy)))
+                    .map(|(x, y)| r.channels[0][y * w + x] as f64)
+                    .sum::<f64>()
+                    / (b * b) as f64;
+                worst = worst.max((values[0][j * pw + i] - mean as f32).abs());
+            }
+        }
+        let chunks = asset.chunks.as_ref().unwrap();
+        let promise = (0..chunks.table.levels[level].chunks.len())
+            .filter_map(|i| chunks.chunk(level, i).unwrap())
+            .map(|c| c.planes[0].promise().expect("bounded") + c.bound_after(40))
+            .fold(0.0f32, f32::max);
+        let slack = 0.5 * level as f32 + rounding(&r);
+        assert!(
+            worst <= promise + slack,
+            "level {level}: {worst} > {promise}"
+        );
+    }
+    // And a sample whose pixels are coarser than the whole asset still answers (the top
+    // level, filtered by its one chunk).
+    let tiny = Pixels {
+        sites: Sites::Grid {
+            xs: centres(4),
+            ys: centres(2),
+        },
+        footprint: [0.25, 0.5],
+    };
+    let (v, _) = asset.sample(&tiny, 40, 0.0);
+    assert!(v[0].iter().all(|x| x.is_finite()));
+}
+
+#[test]
+fn a_corrupt_chunk_is_refused_by_name_and_the_other_chunks_still_answer() {
+    let r = Raster::open(&testdata("etopo20.tif")).unwrap();
+    let enc = chunked(&r);
+    let table = Asset::from_bytes(&enc.bytes)
+        .unwrap()
+        .chunks
+        .unwrap()
+        .table
+        .clone();
+    let last = table.levels[0].chunks.last().unwrap().clone();
+    let mut bytes = enc.bytes.clone();
+    bytes[(last.offset + last.length / 2) as usize] ^= 0x40;
+    let asset = Asset::read(&file_of(&Encoded { bytes, ..enc }, "corrupt.fra")).unwrap();
+    let hook = |_, _: fractile_codec::extract::Sites<'_>, _, _| None;
+    let first = asset
+        .try_points_with(&[[0.01, 0.01]], 20, 0.0, &hook)
+        .unwrap();
+    assert!(first[0].values[0].is_finite());
+    let err = asset
+        .try_points_with(&[[0.99, 0.99]], 20, 0.0, &hook)
+        .unwrap_err();
+    assert!(err.to_string().contains("checksum"), "{err}");
+    let pixels = Pixels {
+        sites: Sites::List {
+            width: 1,
+            points: vec![Some([0.99, 0.99])],
+            patches: Vec::new(),
+        },
+        footprint: [1e-4, 1e-4],
+    };
+    let none = Delegates {
+        continuous: &|_, _, _, _| None,
+        discrete: &|_, _, _, _| std::sync::Arc::new(Vec::new()),
+        cancelled: &|| false,
+    };
+    assert!(matches!(
+        asset.sample_with(&pixels, 20, 0.0, &none),
+        Err(SampleError::Chunk(_))
+    ));
+    // A corrupt header is refused when the file opens.
+    let enc = chunked(&r);
+    let mut bytes = enc.bytes.clone();
+    bytes[40] ^= 1;
+    let err = Asset::from_bytes(&bytes).unwrap_err().to_string();
+    assert!(
+        err.contains("checksum") || err.contains("metadata"),
+        "{err}"
+    );
+}
+
+#[test]
+fn chunks_without_data_answer_nodata_and_the_rest_answer_values() {
+    let mut r = Raster::open(&testdata("etopo20.tif")).unwrap();
+    let w = r.width;
+    // The north-west chunk and its overlap: no data.
+    let mut valid = vec![true; r.width * r.height];
+    for y in 0..(CHUNK as usize + 8) {
+        for x in 0..(CHUNK as usize + 8) {
+            valid[y * w + x] = false;
+            r.channels[0][y * w + x] = f32::NAN;
+        }
+    }
+    r.valid = Some(valid);
+    let enc = chunked(&r);
+    let asset = Asset::from_bytes(&enc.bytes).unwrap();
+    assert_eq!(
+        asset.chunks.as_ref().unwrap().table.levels[0].chunks[0].length,
+        0
+    );
+    let (u, v) = (10.0 / w as f32, 10.0 / r.height as f32);
+    let p = asset.points(&[[u, v], [0.9, 0.9]], 20, 0.0);
+    assert!(p[0].values[0].is_nan(), "{:?}", p[0]);
+    assert!(p[1].values[0].is_finite());
+}

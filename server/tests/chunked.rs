@@ -1,0 +1,115 @@
+//! A chunked asset served from the folder (read by range, chunks decoded on demand): its tiles
+//! across chunk edges agree with the single-operator asset of the same DEM within the two
+//! bounds they answer, its ETag names its version, and a corrupt chunk costs only the tiles
+//! that need it (503 by name), never the others.
+
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode};
+use fractile_codec::encode::chunked::encode_chunked;
+use fractile_codec::{Raster, encode_default};
+use fractile_server::api::AppState;
+use fractile_server::store::Store;
+use http_body_util::BodyExt;
+use tower::ServiceExt;
+
+fn data(name: &str) -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
+        .join("../testdata")
+        .join(name)
+}
+
+/// etopo20 whole and in chunks of 256 cells (4 x 2 chunks, a chunk edge at 256 cells, -94.67
+/// degrees), and the chunked file with its last source chunk corrupt.
+fn state() -> Arc<AppState> {
+    static DIR: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+    let dir = DIR.get_or_init(write_assets);
+    let (store, skipped) = Store::open(dir).unwrap();
+    assert!(skipped.is_empty(), "{skipped:?}");
+    Arc::new(AppState::new(store, "http://test".into()))
+}
+
+fn write_assets() -> std::path::PathBuf {
+    let dir = std::env::temp_dir().join(format!("fractile-chunked-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let r = Raster::open(&data("etopo20.tif")).unwrap();
+    let one = |part: &Raster| encode_default(part, 0.8, &|_, _| {});
+    std::fs::write(dir.join("single.fra"), one(&r).unwrap().bytes).unwrap();
+    let chunked = encode_chunked(&r, 256, &one, &|_, _| {}).unwrap();
+    std::fs::write(dir.join("chunked.fra"), &chunked.bytes).unwrap();
+    let last = chunked.asset.chunks.as_ref().unwrap().table.levels[0]
+        .chunks
+        .last()
+        .unwrap()
+        .clone();
+    let mut bytes = chunked.bytes.clone();
+    bytes[(last.offset + last.length / 2) as usize] ^= 0x10;
+    std::fs::write(dir.join("corrupt.fra"), bytes).unwrap();
+    dir
+}
+
+async fn get(st: &Arc<AppState>, uri: &str) -> (StatusCode, axum::http::HeaderMap, Vec<u8>) {
+    let req = Request::get(uri).body(Body::empty()).unwrap();
+    let r = fractile_server::app(st.clone()).oneshot(req).await.unwrap();
+    let (parts, body) = r.into_parts();
+    let bytes = body.collect().await.unwrap().to_bytes().to_vec();
+    (parts.status, parts.headers, bytes)
+}
+
+fn floats(b: &[u8]) -> Vec<f32> {
+    b.chunks_exact(4)
+        .map(|c| f32::from_le_bytes(c.try_into().unwrap()))
+        .collect()
+}
+
+#[tokio::test]
+async fn tiles_across_chunk_edges_agree_with_the_whole_asset_within_their_bounds() {
+    let st = state();
+    let a = st.store.get("chunked").unwrap();
+    assert!(a.asset.chunks.is_some(), "served chunked");
+    // Zoom 3, tile (1, 3) spans -135 to -90 degrees: the chunk edge at -94.67 crosses it
+    // (and the equator's chunk edge at 256 rows is near its north). Zoom 2 is coarser than
+    // the source (its pixels from level 0 still); zoom 5 deeper.
+    for (z, x, y) in [(3, 1, 3), (3, 1, 4), (2, 0, 1), (5, 6, 14)] {
+        let uri = |id: &str| format!("/v1/assets/{id}/tiles/{z}/{x}/{y}.f32");
+        let (s1, h1, b1) = get(&st, &uri("single")).await;
+        let (s2, h2, b2) = get(&st, &uri("chunked")).await;
+        assert_eq!((s1, s2), (StatusCode::OK, StatusCode::OK));
+        let bound = |h: &axum::http::HeaderMap| -> f32 {
+            h["x-error-bound"].to_str().unwrap().parse().unwrap()
+        };
+        let (e1, e2) = (bound(&h1), bound(&h2));
+        assert!(e2.is_finite() && e2 > 0.0);
+        let (v1, v2) = (floats(&b1), floats(&b2));
+        assert_eq!(v1.len(), v2.len());
+        let mut worst = 0.0f32;
+        for (p, q) in v1.iter().zip(&v2) {
+            assert!(q.is_finite());
+            worst = worst.max((p - q).abs());
+        }
+        assert!(worst <= e1 + e2, "zoom {z}: {worst} over {e1} + {e2}");
+        // The same version answers the same ETag, and it is not the whole asset's.
+        let (_, again, _) = get(&st, &uri("chunked")).await;
+        assert_eq!(h2["etag"], again["etag"]);
+        assert_ne!(h1["etag"], h2["etag"]);
+    }
+}
+
+#[tokio::test]
+async fn a_corrupt_chunk_costs_only_the_tiles_that_need_it() {
+    let st = state();
+    // The last source chunk is the south-east one: zoom 3's tile (7, 7) lies in it.
+    let (s, _, body) = get(&st, "/v1/assets/corrupt/tiles/3/7/7.png").await;
+    assert_eq!(s, StatusCode::SERVICE_UNAVAILABLE);
+    let body = String::from_utf8_lossy(&body);
+    assert!(body.contains("chunk_unavailable"), "{body}");
+    assert!(!body.contains("/tmp"), "no path to the client: {body}");
+    let (s, _, _) = get(&st, "/v1/assets/corrupt/tiles/3/0/1.png").await;
+    assert_eq!(s, StatusCode::OK);
+    // Points: the same.
+    let (s, _, _) = get(&st, "/v1/assets/corrupt/point/170,-80").await;
+    assert_eq!(s, StatusCode::SERVICE_UNAVAILABLE);
+    let (s, _, _) = get(&st, "/v1/assets/corrupt/point/-170,80").await;
+    assert_eq!(s, StatusCode::OK);
+}
