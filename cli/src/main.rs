@@ -208,12 +208,24 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
             .volume
             .as_ref()
             .map_or(0, |v| v.operator.leaves().len());
+    // The file's own version (bytes 8-9), not this build's.
+    let version = {
+        let mut head = [0u8; 10];
+        std::io::Read::read_exact(&mut std::fs::File::open(path)?, &mut head)?;
+        u16::from_le_bytes([head[8], head[9]])
+    };
+    // A chunked asset's maps are its chunks': the encoder's count.
+    let ranges = if asset.chunks.is_some() {
+        m.stats.transforms as usize
+    } else {
+        ranges
+    };
     let info = json!({
         "kind": format!("{:?}", m.kind), "width": m.width, "height": m.height, "channels": m.channels,
         "colour": format!("{:?}", m.colour), "sample": format!("{:?}", m.sample), "units": m.units,
         "value_range": [m.value_min, m.value_max], "nodata": m.nodata,
         "georef": m.georef.as_ref().map(|g| json!({"epsg": g.epsg, "origin": g.origin, "pixel_size": g.pixel_size})),
-        "codec": asset.codec_name(), "format_version": fractile_codec::io::asset::FORMAT_VERSION,
+        "codec": asset.codec_name(), "format_version": version,
         "bytes": bytes, "source_bytes": m.source_bytes(), "ratio": m.source_bytes() as f64 / bytes as f64,
         "bpp": bytes as f64 * 8.0 / (m.width as f64 * m.height as f64),
         "transforms": ranges, "max_contrast": asset.max_contrast(),
@@ -222,6 +234,13 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
         "encode_stats": {"rmse": m.stats.rmse, "psnr": m.stats.psnr, "max_error": m.stats.max_error, "seconds": m.stats.seconds},
     });
     let mut info = info;
+    if let Some(c) = &asset.chunks {
+        let t = &c.table;
+        info["chunks"] = json!({"chunk": t.chunk, "overlap": t.overlap,
+            "levels": t.levels.iter().map(|l| json!({"width": l.width, "height": l.height,
+                "chunks": l.chunks.len(), "empty": l.chunks.iter().filter(|e| e.length == 0).count()}))
+                .collect::<Vec<_>>()});
+    }
     if let Some(c) = &asset.curve {
         let h = &c.header;
         info["curve"] = json!({"polylines": h.rings.len(), "finest_level": c.set.finest(),

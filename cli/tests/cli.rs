@@ -672,3 +672,83 @@ fn auto_never_decodes_on_a_software_adapter() {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// `--chunk N` codes a DEM in chunks (format version 6) that `info` describes and `decode`
+/// brings back within the error the encoder measured; a chunk side that is not a power of two
+/// in range is refused with no output.
+#[test]
+fn a_dem_coded_in_chunks_is_described_and_decoded_like_any_asset() {
+    let dir = tempdir("chunked");
+    let asset = dir.join("j.fra");
+    let enc = json(
+        &bin()
+            .arg("encode")
+            .arg(data("jacksboro.tif"))
+            .arg("-o")
+            .arg(&asset)
+            .args(["--chunk", "128", "--json"])
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(enc["codec"], "projected");
+    let info = json(
+        &bin()
+            .arg("info")
+            .arg(&asset)
+            .arg("--json")
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(info["format_version"], 6);
+    assert_eq!(info["chunks"]["chunk"], 128);
+    let levels = info["chunks"]["levels"].as_array().unwrap();
+    // 403 x 344 in chunks of 128: 3 x 3 (the last of each row and column takes the
+    // remainder), then 202 x 172 in 2 x 1 (a side of 1.5 chunks or more is two), then
+    // 101 x 86 in one.
+    let sizes: Vec<(u64, u64, u64)> = levels
+        .iter()
+        .map(|l| {
+            let n = |k: &str| l[k].as_u64().unwrap();
+            (n("width"), n("height"), n("chunks"))
+        })
+        .collect();
+    assert_eq!(
+        sizes,
+        [(403, 344, 9), (202, 172, 2), (101, 86, 1)],
+        "{info}"
+    );
+    let out = dir.join("j.tif");
+    let st = bin()
+        .arg("decode")
+        .arg(&asset)
+        .arg("-o")
+        .arg(&out)
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let cmp = json(
+        &bin()
+            .arg("compare")
+            .arg(data("jacksboro.tif"))
+            .arg(&out)
+            .arg("--json")
+            .output()
+            .unwrap(),
+    );
+    let (rmse, written) = (cmp["rmse"].as_f64().unwrap(), enc["rmse"].as_f64().unwrap());
+    assert!(
+        (rmse - written).abs() < 0.05 * written,
+        "decoded {rmse}, encoded {written}"
+    );
+    let bad = bin()
+        .arg("encode")
+        .arg(data("jacksboro.tif"))
+        .arg("-o")
+        .arg(dir.join("bad.fra"))
+        .args(["--chunk", "100"])
+        .output()
+        .unwrap();
+    assert!(!bad.status.success());
+    assert!(String::from_utf8_lossy(&bad.stderr).contains("power of two"));
+    assert!(!dir.join("bad.fra").exists());
+}

@@ -34,7 +34,11 @@ fn every_format_version_is_read_as_it_was_written() {
         .filter(|p| p.extension().is_some_and(|e| e == "fra"))
         .collect();
     files.sort();
-    assert_eq!(files.len(), 30, "six codecs a version, versions 1 to 5");
+    assert_eq!(
+        files.len(),
+        31,
+        "six codecs a version, versions 1 to 5; version 6 chunked"
+    );
     let mut versions = std::collections::BTreeSet::new();
     for path in files {
         let name = path.file_name().unwrap().to_string_lossy().into_owned();
@@ -50,11 +54,13 @@ fn every_format_version_is_read_as_it_was_written() {
             continue;
         }
         let asset = read.unwrap_or_else(|e| panic!("{name}: {e}"));
-        // Version 5 added the source-error map, to rasters only.
+        // Version 5 added the source-error map, to rasters only; version 6 is the chunked
+        // container, whose chunks are version-5 files with their maps.
         let raster = matches!(asset.meta.kind, AssetKind::Image | AssetKind::HeightField);
+        assert_eq!(asset.chunks.is_some(), version == 6, "{name}");
         assert_eq!(
             asset.source_error.is_some(),
-            version >= 5 && raster,
+            version == 5 && raster,
             "{name}"
         );
         match asset.meta.kind {
@@ -104,6 +110,6 @@ fn every_format_version_is_read_as_it_was_written() {
     }
     assert_eq!(
         versions.into_iter().collect::<Vec<_>>(),
-        vec![1, 2, 3, 4, 5]
+        vec![1, 2, 3, 4, 5, 6]
     );
 }

@@ -179,7 +179,7 @@ proptest! {
     /// panic (proptest reports one as a failure, with the smallest mutation list).
     #[test]
     fn mutated_files_never_panic(
-        which in 0usize..7,
+        which in 0usize..8,
         mutations in prop::collection::vec(mutation(), 1..4),
     ) {
         let (_, source) = &sources_once()[which];
@@ -191,7 +191,7 @@ proptest! {
 #[test]
 fn every_source_is_valid() {
     let s = sources_once();
-    assert_eq!(s.len(), 7);
+    assert_eq!(s.len(), 8);
     for (name, bytes) in s {
         assert!(exercise(bytes), "{name}");
     }

@@ -629,7 +629,8 @@ impl Asset {
     /// [`crate::io::asset::PlaneOperator::points`] for point lists) with at most `iterations`
     /// steps, stopping once its bound is at most `tolerance` (source units; 0: never early).
     /// Returns the channels and the a-priori error bound (source units, largest over the
-    /// points).
+    /// points). A chunk of a chunked asset that cannot be read leaves NaN and an infinite
+    /// bound ([`Asset::sample_with`] says why).
     pub fn sample(&self, pixels: &Pixels, iterations: u32, tolerance: f32) -> (Vec<Vec<f32>>, f32) {
         let discrete = |w, h, n, t| Arc::new(self.discrete_planes(w, h, n, t));
         let delegates = Delegates {
@@ -638,7 +639,10 @@ impl Asset {
             cancelled: &|| false,
         };
         self.sample_with(pixels, iterations, tolerance, &delegates)
-            .expect("never cancelled")
+            .unwrap_or_else(|_| {
+                let nan = vec![f32::NAN; pixels.len()];
+                (vec![nan; self.meta.channels as usize], f32::INFINITY)
+            })
     }
 
     /// The asset's measured error against its source over the pixels (the largest of its

@@ -59,9 +59,26 @@ fn reseal_append(out: &mut Vec<u8>) {
     out.extend_from_slice(&crc.to_le_bytes());
 }
 
-/// Writes a valid checksum over a mutated file (its last four bytes), as an attacker would.
+/// Writes a valid checksum over a mutated file (its last four bytes), as an attacker would. A
+/// chunked container (version 6, from the spec) gets its header's checksum written instead,
+/// so that mutations of its table reach the reader's checks of the layout.
 pub fn reseal(bytes: &mut Vec<u8>) {
     if bytes.len() < 4 {
+        return;
+    }
+    if bytes.len() >= 20 && &bytes[..8] == b"FRACTILE" && bytes[8..10] == [6, 0] {
+        let len = |at: usize| {
+            bytes
+                .get(at..at + 4)
+                .map(|b| u32::from_le_bytes(b.try_into().unwrap()) as usize)
+        };
+        if let Some(m) = len(12)
+            && let Some(t) = len(16 + m)
+            && let Some(end) = (20 + m).checked_add(t).filter(|&e| e + 4 <= bytes.len())
+        {
+            let crc = crc32fast::hash(&bytes[..end]);
+            bytes[end..end + 4].copy_from_slice(&crc.to_le_bytes());
+        }
         return;
     }
     bytes.truncate(bytes.len() - 4);
@@ -127,7 +144,7 @@ pub fn metadata_bomb(real: &[u8], w: u32, h: u32) -> Vec<u8> {
 }
 
 /// Small valid assets of every codec, with a name: quadtree grey, colour and height field with
-/// nodata, FIS, psa2d, IFS3D and curves.
+/// nodata, FIS, psa2d, IFS3D, a chunked container and curves.
 pub fn sources() -> Vec<(&'static str, Vec<u8>)> {
     let quick = |r: &Raster, bpp: f64| {
         let settings = EncodeSettings {
@@ -180,6 +197,15 @@ pub fn sources() -> Vec<(&'static str, Vec<u8>)> {
     out.push((
         "ifs3d",
         fractile_codec::encode::volume::encode_mesh(&mesh, &settings, "fandisk")
+            .unwrap()
+            .bytes,
+    ));
+    // Chunked (version 6): 3 x 2 chunks of 64 and an overview.
+    let part = crop(&jacksboro, 0, 0, 190, 130);
+    let one = |r: &Raster| fractile_codec::encode_default(r, 1.0, &|_, _| {});
+    out.push((
+        "chunked",
+        fractile_codec::encode::chunked::encode_chunked(&part, 64, &one, &|_, _| {})
             .unwrap()
             .bytes,
     ));
