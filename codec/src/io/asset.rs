@@ -836,7 +836,13 @@ impl Asset {
     /// The codec's name as the CLI and the API spell it.
     pub fn codec_name(&self) -> &'static str {
         if let Some(c) = &self.chunks {
-            // The chunks' codec (a FIS or psa2d name needs a chunk's header).
+            // The chunks' codec: by its byte, or (a FIS or psa2d name needs a chunk's header)
+            // from the first chunk with data.
+            match Codec::from_byte(c.table.codec) {
+                Some(Codec::QuadtreePifs) => return "quadtree-pifs",
+                Some(Codec::Projected) => return crate::codecs::projected::CODEC_NAME,
+                _ => {}
+            }
             let first = c.table.levels[0].chunks.iter().position(|e| e.length > 0);
             return match first.map(|i| c.chunk(0, i)) {
                 Some(Ok(Some(a))) => a.codec_name(),
