@@ -288,10 +288,17 @@ pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
     };
     // The GPU runs continuous decoding: asked for, or (auto) a continuous-capable request of a
     // million pixels or more, where the transfer pays for itself.
-    let gpu = gpu_for(
-        a.backend,
-        method != Method::Discrete && width * height >= 1 << 20,
-    )?;
+    // Chunked assets decode on the CPU, chunk by chunk (the kernels take one operator).
+    if asset.chunks.is_some() && a.backend == BackendArg::Gpu {
+        bail!("a chunked asset decodes on the CPU: use --backend cpu or auto");
+    }
+    let gpu = match asset.chunks {
+        Some(_) => None,
+        None => gpu_for(
+            a.backend,
+            method != Method::Discrete && width * height >= 1 << 20,
+        )?,
+    };
     let (decoded, used, backend) = if let Some(g) = &gpu {
         // As many steps as the CPU's continuous window takes by default.
         let n = a.iterations.unwrap_or(12);
@@ -310,11 +317,14 @@ pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
         (d, Method::Continuous, g.adapter())
     } else if a.window.is_none() && method != Method::Continuous {
         let opts = a.iterations.map(DiscreteOptions::fixed).unwrap_or_default();
-        (
-            asset.decode(width, height, opts).0,
-            Method::Discrete,
-            "CPU".into(),
-        )
+        // A chunked asset's decode samples its chunks continuously (from the overview of
+        // the pixels' size).
+        let used = if asset.chunks.is_some() {
+            Method::Continuous
+        } else {
+            Method::Discrete
+        };
+        (asset.decode(width, height, opts).0, used, "CPU".into())
     } else {
         let (d, m) = asset.window(window, width, height, a.iterations, method);
         (d, m, "CPU".into())

@@ -740,6 +740,17 @@ fn a_dem_coded_in_chunks_is_described_and_decoded_like_any_asset() {
         (rmse - written).abs() < 0.05 * written,
         "decoded {rmse}, encoded {written}"
     );
+    // The GPU kernels take one operator: asked for, the GPU is refused by name.
+    let gpu = bin()
+        .arg("decode")
+        .arg(&asset)
+        .arg("-o")
+        .arg(dir.join("g.tif"))
+        .args(["--backend", "gpu"])
+        .output()
+        .unwrap();
+    assert!(!gpu.status.success());
+    assert!(String::from_utf8_lossy(&gpu.stderr).contains("chunked asset decodes on the CPU"));
     let bad = bin()
         .arg("encode")
         .arg(data("jacksboro.tif"))
