@@ -68,8 +68,10 @@ enum Command {
         #[arg(long, env = "FRACTILE_BIND")]
         bind: Option<std::net::SocketAddr>,
         /// A `fractile.toml` with any of: assets, bind, public_url, write_token, cache_control,
-        /// max_upload_mib, max_iterations, max_concurrent_requests, tile_cache_mib, backend,
-        /// gpu_memory_mib. Flags and environment variables override it.
+        /// max_upload_mib, max_iterations, max_concurrent_requests, tile_cache_mib,
+        /// coarse_cache_mib, chunk_cache_mib, prefetch_chunks, max_asset_pixels,
+        /// max_decode_mib, backend, gpu_memory_mib, cesium_dir (docs/operations.md). Flags and
+        /// environment variables override it.
         #[arg(long, env = "FRACTILE_CONFIG")]
         config: Option<PathBuf>,
         /// Public base URL for absolute links in TileJSON (behind a proxy).

@@ -763,3 +763,33 @@ fn a_dem_coded_in_chunks_is_described_and_decoded_like_any_asset() {
     assert!(String::from_utf8_lossy(&bad.stderr).contains("power of two"));
     assert!(!dir.join("bad.fra").exists());
 }
+
+/// Ctrl-C during a long encode leaves no file behind: the asset is written once, whole, by a
+/// temporary file renamed over the output at the end.
+#[test]
+fn an_encode_interrupted_by_ctrl_c_leaves_no_file() {
+    let dir = tempdir("interrupted");
+    let mut child = bin()
+        .arg("encode")
+        .arg(data("etopo20.tif"))
+        .arg("-o")
+        .arg(dir.join("e.fra"))
+        .args(["--chunk", "64"])
+        .spawn()
+        .unwrap();
+    std::thread::sleep(std::time::Duration::from_millis(400));
+    assert!(
+        child.try_wait().unwrap().is_none(),
+        "the encode ended before it could be interrupted"
+    );
+    let pid = child.id().to_string();
+    let kill = Command::new("kill").args(["-INT", &pid]).status().unwrap();
+    assert!(kill.success());
+    let status = child.wait().unwrap();
+    assert!(!status.success(), "{status}");
+    let left: Vec<_> = std::fs::read_dir(&dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name())
+        .collect();
+    assert!(left.is_empty(), "{left:?}");
+}

@@ -236,3 +236,56 @@ fn chunks_without_data_answer_nodata_and_the_rest_answer_values() {
     assert!(p[0].values[0].is_nan(), "{:?}", p[0]);
     assert!(p[1].values[0].is_finite());
 }
+
+/// Prefetching fills a cache with every chunk when they fit, coarsest level first, and stops
+/// before its budget when they do not; a corrupt chunk is skipped (its requests report it).
+#[test]
+fn prefetch_decodes_chunks_coarsest_first_within_its_budget() {
+    use fractile_codec::io::chunked::ChunkCache;
+    let r = Raster::open(&testdata("etopo20.tif")).unwrap();
+    let enc = chunked(&r);
+    let path = file_of(&enc, "prefetch.fra");
+    let limits = fractile_codec::AssetLimits::default();
+    let open = |mib: u64| {
+        let cache = ChunkCache::new(mib << 20);
+        let a = Asset::open(&path, &limits, cache.clone()).unwrap();
+        (a, cache)
+    };
+    let (asset, cache) = open(256);
+    let c = asset.chunks.as_ref().unwrap();
+    let all: usize = c.table.levels.iter().map(|l| l.chunks.len()).sum();
+    assert!(all > 4, "{all} chunks");
+    assert_eq!(cache.weighted_bytes(), 0);
+    let (n, bytes) = c.prefetch(cache.capacity());
+    assert_eq!(n, all);
+    assert_eq!(bytes, cache.weighted_bytes());
+    // A budget of a byte: the first chunk only, the top level's (built whole: 44 bytes a cell,
+    // where the finer levels' hold about 5).
+    let (asset, cache) = open(256);
+    let c = asset.chunks.as_ref().unwrap();
+    let (n, top) = c.prefetch(1);
+    let l = c.table.levels.last().unwrap();
+    assert_eq!(n, 1);
+    assert!(
+        top > 30 * u64::from(l.width) * u64::from(l.height),
+        "{top} bytes"
+    );
+    // Twice that: the next level's chunks while they fit, not all of them.
+    let (n, _) = c.prefetch(2 * top);
+    let held = cache.weighted_bytes();
+    assert!(n > 1 && n < all, "{n} of {all}");
+    assert!(
+        held <= 2 * top + held / n as u64 + top,
+        "{held} over {}",
+        2 * top
+    );
+    // A corrupt chunk: the others are cached, and it is not.
+    let last = c.table.levels[0].chunks.last().unwrap().clone();
+    let mut bytes = enc.bytes.clone();
+    bytes[(last.offset + last.length / 2) as usize] ^= 0x40;
+    let path = file_of(&Encoded { bytes, ..enc }, "prefetch-corrupt.fra");
+    let cache = ChunkCache::new(256 << 20);
+    let asset = Asset::open(&path, &limits, cache.clone()).unwrap();
+    let (n, _) = asset.chunks.as_ref().unwrap().prefetch(cache.capacity());
+    assert_eq!(n, all - 1);
+}

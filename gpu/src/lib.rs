@@ -198,6 +198,18 @@ impl Gpu {
         pollster::block_on(Self::open())
     }
 
+    /// Whether the adapter [`Gpu::new`] would open is a software rasteriser, found without
+    /// opening a device (which is what takes memory: Mesa's lavapipe holds 82 MB once open).
+    pub fn adapter_is_software() -> Result<bool, GpuError> {
+        let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
+        let adapter = pollster::block_on(instance.request_adapter(&wgpu::RequestAdapterOptions {
+            power_preference: wgpu::PowerPreference::HighPerformance,
+            ..Default::default()
+        }))
+        .map_err(|e| GpuError::NoAdapter(e.to_string()))?;
+        Ok(adapter.get_info().device_type == wgpu::DeviceType::Cpu)
+    }
+
     async fn open() -> Result<Gpu, GpuError> {
         let instance = wgpu::Instance::new(wgpu::InstanceDescriptor::new_without_display_handle());
         let adapter = instance

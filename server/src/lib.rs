@@ -50,11 +50,14 @@ pub struct FileConfig {
     /// bytes a source pixel and plane: 256 MiB holds a 30 Mpx DEM's), or their grids are
     /// decoded again and again.
     pub coarse_cache_mib: Option<u64>,
-    /// Decoded chunks of chunked assets in MiB (default 256), shared by all of them: each
+    /// Decoded chunks of chunked assets in MiB (default 384), shared by all of them: each
     /// request reads the chunks it touches by range and decodes them into this cache (a
-    /// 1024^2 chunk of the default DEM codec holds about 48 MB). With it, the server's memory
+    /// 1024^2 chunk of the default DEM codec holds about 5.3 MB). With it, the server's memory
     /// is bounded by its caches, not by the sizes of its assets.
     pub chunk_cache_mib: Option<u64>,
+    /// Whether chunks are decoded into the chunk cache ahead of requests at start, coarsest
+    /// level first, until it is 90% full (default true; see `Chunked::prefetch`).
+    pub prefetch_chunks: Option<bool>,
     /// A folder holding CesiumJS's build (`Build/Cesium` of the npm package `cesium`;
     /// `tools/fetch-cesium.sh` puts one in `target/cesium`), served at `/vendor/cesium/` so that
     /// the viewer shows the DEM on a globe through `layer.json`. Not compiled in: it is 14 MB.
@@ -177,6 +180,9 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
         store.list().len(),
         dir.display()
     );
+    if opts.file.prefetch_chunks.unwrap_or(true) {
+        store.prefetch_in_background();
+    }
     let public = opts
         .public_url
         .clone()
@@ -221,14 +227,7 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     };
     if state.backend != backend::Backend::Cpu {
         let memory = opts.file.gpu_memory_mib.unwrap_or(1024) * 1024 * 1024;
-        // Opening an adapter blocks (and may take a second): not on the async executor.
-        match tokio::task::spawn_blocking(move || backend::GpuBackend::open(memory)).await? {
-            Ok(g) => {
-                tracing::info!("GPU decoding on {} ({:?})", g.adapter(), state.backend);
-                state.gpu = Some(Arc::new(g));
-            }
-            Err(e) => tracing::warn!("{e}: decoding on the CPU"),
-        }
+        state.gpu = open_gpu(state.backend, memory).await?;
     }
     let concurrency = opts.file.max_concurrent_requests.unwrap_or(1024).max(1);
     let state = Arc::new(state);
@@ -237,6 +236,40 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     let app = app(state).layer(tower::limit::ConcurrencyLimitLayer::new(concurrency));
     run(listener, app, shutdown(), HEADER_READ_TIMEOUT).await;
     Ok(())
+}
+
+/// The server's GPU for `backend` (not `cpu`), `memory` bytes of resident operators; `None`
+/// (logged) without one. Auto never decodes on a software adapter (slower than the CPU), and
+/// an open one holds memory (Mesa's lavapipe: 82 MB resident, measured), so Auto looks at the
+/// adapter before opening it. Opening blocks (and may take a second): not on the executor.
+async fn open_gpu(
+    backend: backend::Backend,
+    memory: u64,
+) -> anyhow::Result<Option<Arc<backend::GpuBackend>>> {
+    let auto = backend == backend::Backend::Auto;
+    let opened = tokio::task::spawn_blocking(move || {
+        if auto && fractile_gpu::Gpu::adapter_is_software().unwrap_or(false) {
+            return Ok(None);
+        }
+        backend::GpuBackend::open(memory).map(Some)
+    })
+    .await?;
+    Ok(match opened {
+        Ok(Some(g)) => {
+            tracing::info!("GPU decoding on {} ({backend:?})", g.adapter());
+            Some(Arc::new(g))
+        }
+        Ok(None) => {
+            tracing::info!(
+                "only a software adapter: decoding on the CPU (backend = \"gpu\" would use it)"
+            );
+            None
+        }
+        Err(e) => {
+            tracing::warn!("{e}: decoding on the CPU");
+            None
+        }
+    })
 }
 
 /// How long a connection may take to send a request's headers (a new connection: its first

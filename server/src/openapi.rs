@@ -42,7 +42,7 @@ pub fn document() -> Value {
         "tolerance",
         "query",
         json!({"type": "number", "exclusiveMinimum": 0}),
-        "Error bound wanted, value units: each point stops once its own bound is under it (default: half a quantisation step of the source, or an eighth of the asset's smallest source error where that is larger)",
+        "Error bound wanted, value units: each point stops once its own bound is under it (default for tiles, regions and meshes of a region: an eighth of the largest source error over them, which their X-Error-Bound carries anyway; for points and quantized-mesh terrain tiles, whose neighbours share edge vertices: an eighth of the asset's smallest source error; never under half a quantisation step of the source)",
     );
     let backend = param(
         "backend",

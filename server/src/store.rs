@@ -190,6 +190,40 @@ impl Store {
             .ok_or_else(|| AppError::not_found("unknown_asset", format!("no asset {id:?}")))
     }
 
+    /// Decodes the chunked assets' chunks into the chunk cache on a thread of its own, until
+    /// it is 90% full (see `Chunked::prefetch`), and logs what it cached: the first requests
+    /// then wait on no chunk. Requests still run meanwhile; a chunk both want is decoded once.
+    pub fn prefetch_in_background(&self) {
+        let assets: Vec<Arc<StoredAsset>> = self
+            .list()
+            .into_iter()
+            .filter(|a| a.asset.chunks.is_some())
+            .collect();
+        if assets.is_empty() {
+            return;
+        }
+        let budget = self.chunks.capacity() / 10 * 9;
+        let spawned = std::thread::Builder::new()
+            .name("chunk-prefetch".into())
+            .spawn(move || {
+                let t = std::time::Instant::now();
+                for a in assets {
+                    if let Some(c) = &a.asset.chunks {
+                        let (n, bytes) = c.prefetch(budget);
+                        tracing::info!(
+                            "prefetched {n} chunks of {} ({} MiB) in {:.1} s",
+                            a.id,
+                            bytes >> 20,
+                            t.elapsed().as_secs_f64()
+                        );
+                    }
+                }
+            });
+        if let Err(e) = spawned {
+            tracing::warn!("no chunk prefetch: {e}");
+        }
+    }
+
     /// Every asset, by id.
     pub fn list(&self) -> Vec<Arc<StoredAsset>> {
         self.assets
@@ -219,10 +253,12 @@ fn stale_temporary(path: &Path) -> Option<String> {
     (old || (procfs && !alive)).then(|| name.to_string())
 }
 
-/// Default of `chunk_cache_mib`: about five decoded 1024^2 chunks of the default DEM codec
-/// (48 MB each), so that the tiles of a view, which touch a few chunks of one or two levels,
-/// decode each once.
-pub const DEFAULT_CHUNK_CACHE_MIB: u64 = 256;
+/// Default of `chunk_cache_mib`: the chunks of a 60 Mpx DEM coded by the default DEM codec and
+/// its overviews (a 1024^2 chunk holds its samples and a byte a cell of residual bounds, about
+/// 5.3 MB; the top level's one chunk is built whole, 44 bytes a cell), so that random tiles of
+/// a 37 Mpx mosaic decode each chunk once (measured: docs/benchmarks.md), with the server's
+/// resident memory under 500 MB.
+pub const DEFAULT_CHUNK_CACHE_MIB: u64 = 384;
 
 /// An asset file of the folder, under `limits`: a chunked one by its header (its chunks read
 /// by range into `chunks` when needed), any other whole.

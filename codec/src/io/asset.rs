@@ -65,6 +65,16 @@ pub struct AssetLimits {
     pub max_decode_bytes: u64,
 }
 
+/// How an asset's operators are built when it is read.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub(crate) enum Build {
+    /// Whole: everything an answer reads, made once (every asset but chunks).
+    Whole,
+    /// Lazily where the codec can (projected: [`ProjectedOperator::lazy`]): chunks of chunked
+    /// assets, which a server keeps by the hundred.
+    Lazy,
+}
+
 impl Default for AssetLimits {
     /// 2^28 samples (16384 x 16384) and 3 GiB: every asset of the demo and the benches, and a
     /// 16384^2 DEM, fit; anything larger is the chunked assets' job.
@@ -235,7 +245,7 @@ impl PlaneOperator {
             PlaneOperator::Quadtree(q) => decode::points(q, pts, iterations, tolerance),
             PlaneOperator::Fis(f) => decode::points(f, pts, iterations, tolerance),
             PlaneOperator::Psa(f) => decode::points(f, pts, iterations, tolerance),
-            PlaneOperator::Projected(f) => decode::points(f, pts, iterations, tolerance),
+            PlaneOperator::Projected(f) => f.points(pts, iterations, tolerance),
         }
     }
 
@@ -291,7 +301,7 @@ impl PlaneOperator {
             PlaneOperator::Psa(f) => decode::point(f, p, iterations),
             // Through its own chains, which end on the bilinear interpolant (see
             // `ProjectedOperator::run_chains`), so that one point and a batch agree.
-            PlaneOperator::Projected(f) => decode::points(f, &[p], iterations, 0.0)[0],
+            PlaneOperator::Projected(f) => f.points(&[p], iterations, 0.0)[0],
         }
     }
 
@@ -701,6 +711,16 @@ impl Asset {
         planes: Vec<(ProjectedHeader, Vec<u8>)>,
         mask: Option<Mask>,
     ) -> Result<Asset, Error> {
+        Asset::from_projected_built(meta, planes, mask, Build::Whole)
+    }
+
+    /// [`Asset::from_projected_parts`], the operators built as `build` says.
+    fn from_projected_built(
+        meta: AssetMeta,
+        planes: Vec<(ProjectedHeader, Vec<u8>)>,
+        mask: Option<Mask>,
+        build: Build,
+    ) -> Result<Asset, Error> {
         Asset::assemble(meta, planes, mask, |meta, header, stream| {
             let (w, h) = (meta.width, meta.height);
             // Chroma of a colour asset is coded at half resolution (as the quadtree's).
@@ -710,7 +730,10 @@ impl Asset {
                 return Err("sample grid and metadata disagree".into());
             }
             let grid = crate::codecs::projected::decode_grid(&header, &stream)?;
-            let mut operator = ProjectedOperator::new(&header, &grid)?;
+            let mut operator = match build {
+                Build::Whole => ProjectedOperator::new(&header, &grid)?,
+                Build::Lazy => ProjectedOperator::lazy(&header, grid)?,
+            };
             if chroma && header.samples != [w, h] {
                 operator = operator.with_valid([w as f32 / 2.0, h as f32 / 2.0]);
             }
@@ -1082,6 +1105,15 @@ impl Asset {
     /// Parses and checks a file's bytes; the sizes it claims are checked against `limits` and
     /// against what its streams can hold before anything is allocated for them.
     pub fn from_bytes_limited(bytes: &[u8], limits: &AssetLimits) -> Result<Asset, Error> {
+        Asset::from_bytes_built(bytes, limits, Build::Whole)
+    }
+
+    /// [`Asset::from_bytes_limited`], its operators built as `build` says.
+    pub(crate) fn from_bytes_built(
+        bytes: &[u8],
+        limits: &AssetLimits,
+        build: Build,
+    ) -> Result<Asset, Error> {
         if super::chunked::is_chunked(bytes) {
             let source = super::chunked::InMemory(bytes.into());
             return Asset::open_chunked(
@@ -1093,7 +1125,7 @@ impl Asset {
         let (codec, meta, payload, section) = Asset::container(bytes)?;
         let (w, h) = (meta.width as usize, meta.height as usize);
         let span = (meta.value_max - meta.value_min) as f32;
-        let mut asset = Asset::from_payload(codec, meta, payload, limits)?;
+        let mut asset = Asset::from_payload(codec, meta, payload, limits, build)?;
         if !section.is_empty() {
             if asset.planes.is_empty() {
                 return Err(Error::Asset(
@@ -1113,6 +1145,7 @@ impl Asset {
         meta: AssetMeta,
         payload: &[u8],
         limits: &AssetLimits,
+        build: Build,
     ) -> Result<Asset, Error> {
         let bad = |m: String| Error::Asset(m);
         let (w, h) = (u64::from(meta.width), u64::from(meta.height));
@@ -1166,7 +1199,7 @@ impl Asset {
             })?;
             limits.check_cost(cells * 48 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
             let mask = mask(p.mask)?;
-            return Asset::from_projected_parts(meta, p.planes, mask);
+            return Asset::from_projected_built(meta, p.planes, mask, build);
         }
         if codec == Codec::Fis as u8 {
             let p: FisPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;

@@ -65,7 +65,7 @@ pub(super) async fn mesh(
             None => [0.0, 0.0, 1.0, 1.0],
         },
     };
-    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
+    let (iterations, tolerance) = iterations_for(&state, q.iterations, q.tolerance)?;
     let geo_ref = a.placement.is_some();
     // Vertex (i, j): i east, j south, corners included.
     let frac = |k: usize| k as f64 / (n - 1) as f64;
@@ -233,7 +233,7 @@ async fn volume_mesh(
             ),
         ));
     }
-    let (iterations, tolerance) = iterations_for(state, &a, q.iterations, q.tolerance)?;
+    let (iterations, tolerance) = iterations_for(state, q.iterations, q.tolerance)?;
     let (choice, gpu) = (backend_for(state, q.backend.as_deref())?, state.gpu.clone());
     let samples = match bbox {
         Some((lo, hi)) => {
@@ -256,7 +256,7 @@ async fn volume_mesh(
             };
             let (m, bound) = a
                 .asset
-                .volume_mesh_with(bbox, n, iterations, tolerance, Some(&on_gpu))
+                .volume_mesh_with(bbox, n, iterations, tolerance.anywhere(&a), Some(&on_gpu))
                 .map_err(|e| AppError::bad_request("bad_request", e.to_string()))?;
             // Volumes hold no source-error map.
             let bounds = Bounds {

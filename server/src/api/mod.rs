@@ -291,8 +291,9 @@ fn sample_on(
     a: &StoredAsset,
     pixels: &geo::Pixels,
     iterations: u32,
-    tolerance: f32,
+    tolerance: Tolerance,
 ) -> Result<(Vec<Vec<f32>>, Bounds), AppError> {
+    let tolerance = tolerance.over(a, pixels);
     let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
     let continuous =
         |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
@@ -365,17 +366,46 @@ pub type CoarsePlane = (
     fractile_codec::core::decode::DiscreteReport,
 );
 
+/// A request's tolerance (value units): what it asked for (0 with fixed steps), or, where it
+/// named neither steps nor a tolerance, settled by the codec for what is answered.
+#[derive(Clone, Copy, Debug)]
+pub(crate) enum Tolerance {
+    /// Asked for (0: none, `iterations` steps exactly).
+    Asked(f32),
+    /// Neither asked: see [`Tolerance::over`] and [`Tolerance::anywhere`].
+    Settled,
+}
+
+impl Tolerance {
+    /// The tolerance of an answer at `pixels`: a settled one is `Asset::tolerance_over` them
+    /// (an eighth of the largest source error their bound carries anyway, or the asset's
+    /// default where that is larger).
+    fn over(self, a: &StoredAsset, pixels: &geo::Pixels) -> f32 {
+        match self {
+            Tolerance::Asked(t) => t,
+            Tolerance::Settled => a.asset.tolerance_over(pixels),
+        }
+    }
+
+    /// The tolerance of answers anywhere (points, each with its own bound): a settled one is
+    /// the asset's default (see `Asset::default_tolerance`).
+    fn anywhere(self, a: &StoredAsset) -> f32 {
+        match self {
+            Tolerance::Asked(t) => t,
+            Tolerance::Settled => a.asset.default_tolerance(),
+        }
+    }
+}
+
 /// Steps and per-point tolerance of a request. `iterations` alone: exactly that many steps.
 /// `tolerance` (value units): each point stops once its own a-priori bound is under it, within
-/// `iterations` or the limit. Neither: the asset's default tolerance (half a quantisation step
-/// of the source, or an eighth of its smallest source error where that is larger: see
-/// `Asset::default_tolerance`).
+/// `iterations` or the limit. Neither: a tolerance settled by what is answered (see
+/// [`Tolerance`]).
 fn iterations_for(
     state: &AppState,
-    a: &StoredAsset,
     asked: Option<u32>,
     tolerance: Option<f32>,
-) -> Result<(u32, f32), AppError> {
+) -> Result<(u32, Tolerance), AppError> {
     let max = state.limits.max_iterations;
     let n = match asked {
         Some(0) => {
@@ -398,9 +428,9 @@ fn iterations_for(
             "bad_tolerance",
             "tolerance must be a positive number (value units)",
         )),
-        (_, Some(t)) => Ok((n, t)),
-        (Some(n), None) => Ok((n, 0.0)),
-        (None, None) => Ok((max, a.asset.default_tolerance())),
+        (_, Some(t)) => Ok((n, Tolerance::Asked(t))),
+        (Some(n), None) => Ok((n, Tolerance::Asked(0.0))),
+        (None, None) => Ok((max, Tolerance::Settled)),
     }
 }
 

@@ -69,11 +69,13 @@ async fn volume_point(
             "coordinates must be finite",
         ));
     }
-    let (n, tolerance) = iterations_for(state, &a, q.iterations, q.tolerance)?;
-    let sample = decode(state, 0, move |_| a.asset.distances(&[p], n, tolerance))
-        .await?
-        .map_err(|e| AppError::internal(e.to_string()))?
-        .remove(0);
+    let (n, tolerance) = iterations_for(state, q.iterations, q.tolerance)?;
+    let sample = decode(state, 0, move |_| {
+        a.asset.distances(&[p], n, tolerance.anywhere(&a))
+    })
+    .await?
+    .map_err(|e| AppError::internal(e.to_string()))?
+    .remove(0);
     match sample {
         Some(s) => Ok(DistanceResult {
             coordinates: p,
@@ -185,7 +187,7 @@ async fn answer_points(
     choice: Backend,
 ) -> Result<Vec<PointResult>, AppError> {
     let a = planar(state.store.get(id)?)?;
-    let (n, tolerance) = iterations_for(state, &a, iterations, tolerance)?;
+    let (n, tolerance) = iterations_for(state, iterations, tolerance)?;
     let units: Vec<Option<[f32; 2]>> = coords.iter().map(|&c| unit_of(&a, c)).collect();
     if single && units[0].is_none() {
         return Err(AppError::not_found(
@@ -200,7 +202,7 @@ async fn answer_points(
         let gpu = gpu.as_deref().filter(|g| g.takes(choice, inside.len()));
         let samples = a
             .asset
-            .try_points_with(&inside, n, tolerance, &|k, p, n, t| {
+            .try_points_with(&inside, n, tolerance.anywhere(&a), &|k, p, n, t| {
                 gpu.and_then(|g| g.points(&a, k, p, n, t))
             })
             .map_err(super::chunk_unavailable)?;

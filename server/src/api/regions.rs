@@ -34,7 +34,7 @@ pub(super) async fn region(
             ),
         ));
     }
-    let (n, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
+    let (n, tolerance) = iterations_for(&state, q.iterations, q.tolerance)?;
     let format = region_format(&a, q.format.as_deref())?;
     let (w, h) = (q.width, q.height);
     // Pixel centres in the request's coordinates: lon/lat (north up) or unit x/y (y down).

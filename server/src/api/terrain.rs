@@ -118,7 +118,10 @@ pub(super) async fn terrain_tile(
             format!("terrain tile {z}/{x}/{y} is outside the asset"),
         ));
     }
-    let (iterations, tolerance) = iterations_for(&state, &a, q.iterations, q.tolerance)?;
+    let (iterations, tolerance) = iterations_for(&state, q.iterations, q.tolerance)?;
+    // One tolerance for every tile of the asset, not one settled by each tile's own source
+    // error: neighbouring tiles share their edge vertices, which must decode alike (no cracks).
+    let tolerance = super::Tolerance::Asked(tolerance.anywhere(&a));
     let choice = backend_for(&state, q.backend.as_deref())?;
     // quantized-mesh is made to be gzipped (about half the bytes): to clients that accept it,
     // as browsers and Cesium do, the tile goes gzipped, as a variant of its own (key and ETag).

@@ -130,7 +130,7 @@ struct TileJob {
     shade: bool,
     precision: Precision,
     iterations: u32,
-    tolerance: f32,
+    tolerance: super::Tolerance,
 }
 
 pub(super) async fn tile(
@@ -219,7 +219,7 @@ fn tile_job(
     }
     let heights = a.asset.meta.kind == AssetKind::HeightField;
     let format = tile_format(ext, heights, q, a)?;
-    let (iterations, tolerance) = iterations_for(state, a, q.iterations, q.tolerance)?;
+    let (iterations, tolerance) = iterations_for(state, q.iterations, q.tolerance)?;
     let visual_heights = heights && ext == "png" && q.encoding.is_none();
     let colormap = match q.colormap.as_deref() {
         None => None,

@@ -105,6 +105,19 @@ impl ProjectedOperator {
     pub fn grid(&self, xs: &[f32], ys: &[f32], iterations: u32, tolerance: f32) -> Vec<PointValue> {
         let (nx, ny) = (xs.len(), ys.len());
         let valid = self.valid();
+        if self.needs_window() && nx > 0 && ny > 0 {
+            let span = |list: &[f32], v: f32| {
+                let (lo, hi) = list
+                    .iter()
+                    .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &t| {
+                        (a.min(t), b.max(t))
+                    });
+                (lo * v, hi * v)
+            };
+            let ((x0, x1), (y0, y1)) = (span(xs, valid[0]), span(ys, valid[1]));
+            let window = self.window_over([x0, y0, x1, y1]);
+            return window.grid(xs, ys, iterations, tolerance);
+        }
         let (lo, hi) = self.interval;
         let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
         let mut arena: Vec<f32> = Vec::with_capacity(4 * (nx + ny));
@@ -152,7 +165,7 @@ impl ProjectedOperator {
             b.split_rest(cw, ch, &mut todo);
             let (qx, qy) = (col_steps[0].quarter, row_steps[0].quarter);
             let (i, j) = (qx / 2, qy / 2);
-            let residual = self.residual[j * (self.size[0] - 1) + i];
+            let residual = self.residual_of(i, j);
             if b.taken >= iterations || !active(b.acc_s, residual, tolerance) {
                 for jj in 0..ch {
                     for ii in 0..cw {

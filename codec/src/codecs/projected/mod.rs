@@ -22,6 +22,9 @@
 
 pub mod grid;
 pub mod pyramid;
+pub mod records;
+
+use std::sync::Arc;
 
 use serde::{Deserialize, Serialize};
 
@@ -228,21 +231,51 @@ pub fn fit_roughness(g: &[f64], w: usize, h: usize) -> f32 {
 #[derive(Clone, Debug)]
 pub struct ProjectedOperator {
     size: [usize; 2],
-    /// Decoded samples, normalised.
-    z: Vec<f32>,
-    /// Per cell, g at the half-lattice points (a/2, b/2), a, b in 0..3, at `3 b + a`.
+    /// Decoded samples, normalised (shared with the windows of a lazily built operator).
+    z: Arc<[f32]>,
+    /// The cells whose records and residual bounds are at hand: all of them for an operator
+    /// built whole, none for one built lazily, a request's for a window of one (see
+    /// [`records`]).
+    region: Region,
+    /// Per cell of `region`, g at the half-lattice points (a/2, b/2), a, b in 0..3, at
+    /// `3 b + a`.
     records: Vec<[f32; 9]>,
     rho: f32,
     interval: (f32, f32),
-    /// Per cell, a bound on |f - S| there, S the bilinear interpolant of the samples (see
-    /// [`Self::residual_bounds`]): chains end on S instead of a constant, so they need the
-    /// steps that take the bound where they are, not the value range, under the tolerance.
+    /// Per cell of `region`, a bound on |f - S| there, S the bilinear interpolant of the
+    /// samples (see [`Self::residual_bounds`]): chains end on S instead of a constant, so they
+    /// need the steps that take the bound where they are, not the value range, under the
+    /// tolerance.
     residual: Vec<f32>,
-    /// The largest of `residual`.
+    /// Of a lazily built operator: every cell's residual bound, coded in a byte.
+    coarse: Option<Arc<records::ResidualCodes>>,
+    /// The largest residual bound.
     residual_max: f32,
     /// The part of the frame unit coordinates map onto (the frame, or for half-resolution
     /// chroma of an odd-sized image, half the luma's extent).
     valid: [f32; 2],
+}
+
+/// A rectangle of cells.
+#[derive(Clone, Copy, Debug, PartialEq)]
+struct Region {
+    /// Its first cell.
+    origin: [usize; 2],
+    /// Cells along each axis.
+    size: [usize; 2],
+}
+
+impl Region {
+    /// The index of cell (i, j) in the region's row-major arrays, if it is inside.
+    #[inline(always)]
+    fn index(&self, i: usize, j: usize) -> Option<usize> {
+        // One subtraction and comparison an axis: a cell left of the origin wraps past the size.
+        let (x, y) = (
+            i.wrapping_sub(self.origin[0]),
+            j.wrapping_sub(self.origin[1]),
+        );
+        (x < self.size[0] && y < self.size[1]).then(|| y * self.size[0] + x)
+    }
 }
 
 /// The even `c` of a cell along one axis, so that `phi(t) = 2 t - c` maps the cell `[i, i + 1]`
@@ -270,91 +303,48 @@ fn catmull_rom(t: f32) -> [f32; 4] {
     ]
 }
 
-/// A grid's Catmull-Rom interpolant (edges replicated) on its half lattice: at the samples,
-/// halfway between two along either axis, and at cell centres, by separable 4-tap passes whose
-/// products and sums are those of the tensor-product evaluation at those points (the weights
-/// at 0 and 1 select one sample exactly), so the values are the same bits.
-struct HalfLattice {
-    w: usize,
-    h: usize,
-    /// The samples.
-    z: Vec<f32>,
-    /// At (i + 1/2, j), index `j w + i`.
-    across: Vec<f32>,
-    /// At (i, j + 1/2).
-    down: Vec<f32>,
-    /// At (i + 1/2, j + 1/2).
-    centre: Vec<f32>,
-}
-
-impl HalfLattice {
-    fn new(z: Vec<f32>, w: usize, h: usize) -> HalfLattice {
-        let weights = catmull_rom(0.5);
-        let tap = |get: &dyn Fn(isize) -> f32, c: isize| {
-            let mut r = 0.0;
-            for (a, wa) in weights.iter().enumerate() {
-                r += wa * get(c + a as isize - 1);
-            }
-            r
-        };
-        let (lx, ly) = (w as isize - 1, h as isize - 1);
-        let mut across = vec![0.0; w * h];
-        let mut down = vec![0.0; w * h];
-        for j in 0..h {
-            for i in 0..w.saturating_sub(1) {
-                across[j * w + i] = tap(&|x| z[j * w + x.clamp(0, lx) as usize], i as isize);
-            }
-        }
-        for j in 0..h.saturating_sub(1) {
-            for i in 0..w {
-                down[j * w + i] = tap(&|y| z[y.clamp(0, ly) as usize * w + i], j as isize);
-            }
-        }
-        let mut centre = vec![0.0; w * h];
-        for j in 0..h.saturating_sub(1) {
-            for i in 0..w.saturating_sub(1) {
-                centre[j * w + i] = tap(&|y| across[y.clamp(0, ly) as usize * w + i], j as isize);
-            }
-        }
-        HalfLattice {
-            w,
-            h,
-            z,
-            across,
-            down,
-            centre,
-        }
-    }
-
-    /// The interpolant at (x / 2, y / 2) in sample coordinates, clamped into the grid.
-    fn at(&self, x: isize, y: isize) -> f32 {
-        let x = x.clamp(0, 2 * (self.w as isize - 1)) as usize;
-        let y = y.clamp(0, 2 * (self.h as isize - 1)) as usize;
-        let k = (y / 2) * self.w + x / 2;
-        match (x % 2, y % 2) {
-            (0, 0) => self.z[k],
-            (1, 0) => self.across[k],
-            (0, _) => self.down[k],
-            _ => self.centre[k],
-        }
-    }
-}
-
 /// Largest sum of negative Catmull-Rom weights in 2D (tensor products of 1D weights whose
 /// absolute sum is at most 1.25): interpolants overshoot the samples' range by at most this
 /// much of it.
 const OVERSHOOT: f32 = 0.29;
 
 impl ProjectedOperator {
-    /// The operator of decoded samples `grid` (source units) under `header`.
+    /// The operator of decoded samples `grid` (source units) under `header`, built whole: a
+    /// record and a residual bound a cell (about 44 bytes a sample with the sample).
     pub fn new(header: &ProjectedHeader, grid: &[f64]) -> Result<ProjectedOperator, String> {
-        use rayon::prelude::*;
+        let mut op = ProjectedOperator::samples_only(header, grid)?;
+        op.records = op.all_records();
+        op.region.size = [op.size[0] - 1, op.size[1] - 1];
+        op.residual = op.residual_bounds();
+        op.residual_max = op.residual.iter().fold(0.0, |m: f32, &r| m.max(r));
+        Ok(op)
+    }
+
+    /// The operator of decoded samples `grid` under `header`, built lazily: its samples and a
+    /// residual bound a cell coded in a byte (5 bytes a sample), the records of the cells a
+    /// request needs built for it ([`Self::window`]). The same values as [`Self::new`]'s
+    /// operator where chains take the same steps; its residual bounds are rounded up by at
+    /// most 9%, so a chain may take a step more to reach a tolerance. What chunks of chunked
+    /// assets use (see [`records`]).
+    pub fn lazy(header: &ProjectedHeader, grid: Vec<f64>) -> Result<ProjectedOperator, String> {
+        // The grid goes once the samples are made: it is twice their size, and a server builds
+        // chunks' operators a core at a time.
+        let mut op = ProjectedOperator::samples_only(header, &grid)?;
+        drop(grid);
+        let coded = op.residual_codes();
+        op.residual_max = coded.max();
+        op.coarse = Some(Arc::new(coded));
+        Ok(op)
+    }
+
+    /// The samples, rho and the invariant interval; no records yet.
+    fn samples_only(header: &ProjectedHeader, grid: &[f64]) -> Result<ProjectedOperator, String> {
         header.validate()?;
         if grid.len() != header.cells() {
             return Err("projected grid does not match its header".into());
         }
         let size = [header.samples[0] as usize, header.samples[1] as usize];
-        let z: Vec<f32> = grid
+        let z: Arc<[f32]> = grid
             .iter()
             .map(|&v| ((v - header.value_min) / header.value_span) as f32)
             .collect();
@@ -364,46 +354,42 @@ impl ProjectedOperator {
         } else {
             header.roughness
         };
-        let mut op = ProjectedOperator {
-            size,
-            z,
-            records: Vec::new(),
-            rho,
-            interval: (0.0, 1.0),
-            residual: Vec::new(),
-            residual_max: f32::INFINITY,
-            valid: [size[0] as f32, size[1] as f32],
-        };
-        let [nx, ny] = size;
-        // The two interpolants g blends, on their half lattices (every point g is asked at).
-        let fine = HalfLattice::new(op.z.clone(), nx, ny);
-        let (ex, ey) = ((nx - 1) / 2 + 1, (ny - 1) / 2 + 1);
-        let even: Vec<f32> = (0..ey)
-            .flat_map(|y| (0..ex).map(move |x| (x, y)))
-            .map(|(x, y)| op.z[2 * y * nx + 2 * x])
-            .collect();
-        let coarse = HalfLattice::new(even, ex, ey);
-        let records: Vec<[f32; 9]> = (0..(nx - 1) * (ny - 1))
-            .into_par_iter()
-            .map(|k| {
-                let (i, j) = (k % (nx - 1), k / (nx - 1));
-                std::array::from_fn(|n| op.record(i, j, n % 3, n / 3, (&fine, &coarse)))
-            })
-            .collect();
-        op.records = records;
-        let (lo, hi) =
-            op.z.iter()
-                .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
-                    (a.min(v), b.max(v))
-                });
+        let (lo, hi) = z
+            .iter()
+            .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
+                (a.min(v), b.max(v))
+            });
         let over = OVERSHOOT * (hi - lo);
         let (clo, chi) = (lo - over, hi + over);
-        op.interval = crate::core::operator::invariant_interval(
+        let interval = crate::core::operator::invariant_interval(
             [(rho, clo - rho * chi, chi - rho * clo)].into_iter(),
         );
-        op.residual = op.residual_bounds();
-        op.residual_max = op.residual.iter().fold(0.0, |m: f32, &r| m.max(r));
-        Ok(op)
+        Ok(ProjectedOperator {
+            size,
+            z,
+            region: Region {
+                origin: [0, 0],
+                size: [0, 0],
+            },
+            records: Vec::new(),
+            rho,
+            interval,
+            residual: Vec::new(),
+            coarse: None,
+            residual_max: f32::INFINITY,
+            valid: [size[0] as f32, size[1] as f32],
+        })
+    }
+
+    /// Bytes the operator holds (a cache's weight).
+    pub fn resident_bytes(&self) -> u64 {
+        let coarse = self.coarse.as_ref().map_or(0, |c| c.bytes());
+        (4 * self.z.len() + 36 * self.records.len() + 4 * self.residual.len() + coarse) as u64
+    }
+
+    /// Whether the operator was built lazily (see [`Self::lazy`]).
+    pub fn is_lazy(&self) -> bool {
+        self.coarse.is_some()
     }
 
     /// Per cell, a bound on |f - S| there, S the bilinear interpolant of the samples. With
@@ -411,9 +397,12 @@ impl ProjectedOperator {
     /// cell g is bilinear (the step blends its corners), phi maps the quarter onto one lattice
     /// cell where S is bilinear, and S is bilinear: d is bilinear there and its largest
     /// magnitude D_c over cell c is at the cell's nine half-lattice points, exactly. Then
-    /// `R_c = D_c + rho max R_c'` over the four cells c' that phi maps c onto; iterating that
-    /// map from the global bound `max D / (1 - rho)` gives a bound at every iterate (each is one
-    /// more unrolled step of the recursion), tighter where the cells phi reaches are smooth.
+    /// `R_c = D_c + rho max R_c'` over the 2 x 2 block Q of cells that phi maps c onto. Every
+    /// cell of such a block (even-aligned) maps onto the block itself, so `max_Q R <= max_Q D +
+    /// rho max_Q R`, that is `max_Q R <= max_Q D / (1 - rho)`, and
+    /// `R_c = D_c + rho max_Q D / (1 - rho)`: the limit of iterating the recursion, in closed
+    /// form (chains never leave their block, but for the unpaired last cell of an even axis,
+    /// which maps onto the pair before it).
     fn residual_bounds(&self) -> Vec<f32> {
         use rayon::prelude::*;
         let [nx, ny] = self.size;
@@ -421,65 +410,29 @@ impl ProjectedOperator {
         if self.rho >= 1.0 {
             return vec![f32::INFINITY; cells];
         }
-        // f32 rounding of the records, the blend and the chain's sums: a few ulps of the range.
         let d: Vec<f32> = (0..cells)
             .into_par_iter()
-            .map(|k| {
-                let (i, j) = (k % (nx - 1), k / (nx - 1));
-                let (cx, cy) = (block(i, nx) as isize, block(j, ny) as isize);
-                let mut m = 0.0f32;
-                for b in 0..3 {
-                    for a in 0..3 {
-                        // S at the half-lattice point: the mean of the samples around it.
-                        let (x0, y0) = ((i + a / 2) as isize, (j + b / 2) as isize);
-                        let (x1, y1) = ((i + a.div_ceil(2)) as isize, (j + b.div_ceil(2)) as isize);
-                        let here = 0.25
-                            * (self.at(x0, y0)
-                                + self.at(x1, y0)
-                                + self.at(x0, y1)
-                                + self.at(x1, y1));
-                        // phi of a half-lattice point is a sample: 2 (i + a/2) - c.
-                        let (px, py) = (
-                            2 * i as isize + a as isize - cx,
-                            2 * j as isize + b as isize - cy,
-                        );
-                        let g = self.records[k][3 * b + a];
-                        m = m.max((g + self.rho * self.at(px, py) - here).abs());
-                    }
-                }
-                m + 1e-5
-            })
+            .map(|k| self.excess((k % (nx - 1), k / (nx - 1)), &self.records[k]))
             .collect();
-        // Axes of fewer than four samples have rho 0 (no pair of cells for phi): r = d.
+        (0..cells)
+            .into_par_iter()
+            .map(|k| self.closed_bound(&d, k % (nx - 1), k / (nx - 1)))
+            .collect()
+    }
+
+    /// `R_c` of [`Self::residual_bounds`] for cell (i, j), from every cell's D (row-major).
+    fn closed_bound(&self, d: &[f32], i: usize, j: usize) -> f32 {
+        let [nx, ny] = self.size;
+        let k = j * (nx - 1) + i;
+        // Axes of fewer than four samples have rho 0 (no pair of cells for phi): R = D.
         if self.rho == 0.0 {
-            return d;
+            return d[k];
         }
-        let global = d.iter().fold(0.0f32, |m, &v| m.max(v)) / (1.0 - self.rho);
-        let mut r = vec![global; cells];
-        // Each pass shrinks the excess over the least bound by rho: 24 passes leave under 1%
-        // of it at rho 0.8.
-        for _ in 0..24 {
-            let next: Vec<f32> = (0..cells)
-                .into_par_iter()
-                .map(|k| {
-                    let (i, j) = (k % (nx - 1), k / (nx - 1));
-                    // phi maps cell i onto cells 2 i - c and 2 i - c + 1 (inside, as `block`
-                    // chooses c for axes of four samples or more).
-                    let (x0, y0) = (2 * i - block(i, nx), 2 * j - block(j, ny));
-                    let image = r[y0 * (nx - 1) + x0]
-                        .max(r[y0 * (nx - 1) + x0 + 1])
-                        .max(r[(y0 + 1) * (nx - 1) + x0])
-                        .max(r[(y0 + 1) * (nx - 1) + x0 + 1]);
-                    (d[k] + self.rho * image).min(r[k])
-                })
-                .collect();
-            // A pass that changes nothing is the fixpoint: every further pass is the same.
-            if next == r {
-                break;
-            }
-            r = next;
-        }
-        r
+        // The block phi maps the cell onto: cells 2 i - c and 2 i - c + 1 along each axis.
+        let (x0, y0) = (2 * i - block(i, nx), 2 * j - block(j, ny));
+        let q = y0 * (nx - 1) + x0;
+        let most = d[q].max(d[q + 1]).max(d[q + nx - 1]).max(d[q + nx]);
+        d[k] + self.rho * most / (1.0 - self.rho)
     }
 
     /// S, the bilinear interpolant of the samples, at a frame point (clamped as steps are).
@@ -503,33 +456,8 @@ impl ProjectedOperator {
         self.z[y * self.size[0] + x]
     }
 
-    /// [`Self::half_point`] from the interpolants' half lattices: bit for bit the same value
-    /// (the same products summed in the same order), in a few operations instead of 32
-    /// products and their clamps. Building the records took 70% of an asset's decoding.
-    fn record(
-        &self,
-        i: usize,
-        j: usize,
-        a: usize,
-        b: usize,
-        (fine, coarse): (&HalfLattice, &HalfLattice),
-    ) -> f32 {
-        let (x, y) = ((2 * i + a) as isize, (2 * j + b) as isize);
-        let (cx, cy) = (
-            block(i, self.size[0]) as isize,
-            block(j, self.size[1]) as isize,
-        );
-        if a.is_multiple_of(2) && b.is_multiple_of(2) {
-            let (x, y) = (x / 2, y / 2);
-            return self.at(x, y) - self.rho * self.at(2 * x - cx, 2 * y - cy);
-        }
-        // phi of a half-lattice point is a point of the even lattice's half lattice.
-        fine.at(x, y) - self.rho * coarse.at(x - cx, y - cy)
-    }
-
     /// The Catmull-Rom interpolant at sample coordinates (x, y) of the samples on multiples of
     /// `k` (1: all of them; 2: the even lattice), edges replicated.
-    #[cfg(test)]
     fn cubic(&self, x: f32, y: f32, k: usize) -> f32 {
         let axis = |t: f32, n: usize| {
             let last = (n - 1) / k;
@@ -554,7 +482,6 @@ impl ProjectedOperator {
 
     /// g at sample coordinates (x, y) of cell (i, j): the cubic interpolant of the samples less
     /// rho times the even lattice's at phi.
-    #[cfg(test)]
     fn offset_at(&self, i: usize, j: usize, x: f32, y: f32) -> f32 {
         let (cx, cy) = (block(i, self.size[0]), block(j, self.size[1]));
         let (qx, qy) = (2.0 * x - cx as f32, 2.0 * y - cy as f32);
@@ -564,8 +491,8 @@ impl ProjectedOperator {
     /// g at half-lattice point (a, b) in {0, 1, 2}^2 of cell (i, j), computed (what the
     /// records hold): at a sample, the sample less rho times the sample at phi (exactly, so
     /// that the continuation passes through the samples); elsewhere [`Self::offset_at`]. The
-    /// reference [`Self::record`] is tested against.
-    #[cfg(test)]
+    /// reference records are tested against, and what a lazily built operator evaluates for a
+    /// cell outside its window.
     fn half_point(&self, i: usize, j: usize, a: usize, b: usize) -> f32 {
         if a.is_multiple_of(2) && b.is_multiple_of(2) {
             let (x, y) = ((i + a / 2) as isize, (j + b / 2) as isize);
@@ -600,7 +527,19 @@ impl ProjectedOperator {
     fn residual_at(&self, q: [f32; 2]) -> f32 {
         let (i, _) = self.locate(q[0], self.size[0]);
         let (j, _) = self.locate(q[1], self.size[1]);
-        self.residual[j * (self.size[0] - 1) + i]
+        self.residual_of(i, j)
+    }
+
+    /// The residual bound of cell (i, j): its own, or outside the region its block's.
+    #[inline(always)]
+    fn residual_of(&self, i: usize, j: usize) -> f32 {
+        match self.region.index(i, j) {
+            Some(k) => self.residual[k],
+            None => self
+                .coarse
+                .as_ref()
+                .map_or(f32::INFINITY, |c| c.at(j * (self.size[0] - 1) + i)),
+        }
     }
 
     /// Ends a chain that has stopped on S at its point, folded into the callers' seed form
@@ -644,9 +583,22 @@ impl ProjectedOperator {
     /// (1,1).
     #[inline(always)]
     fn quarter(&self, i: usize, j: usize, qa: usize, qb: usize) -> [f32; 4] {
-        let r = &self.records[j * (self.size[0] - 1) + i];
-        let n = 3 * qb + qa;
-        [r[n], r[n + 1], r[n + 3], r[n + 4]]
+        match self.region.index(i, j) {
+            Some(k) => {
+                let r = &self.records[k];
+                let n = 3 * qb + qa;
+                [r[n], r[n + 1], r[n + 3], r[n + 4]]
+            }
+            None => self.quarter_direct(i, j, qa, qb),
+        }
+    }
+
+    /// [`Self::quarter`] of a cell outside the region, evaluated (the same bits, slower).
+    #[cold]
+    #[inline(never)]
+    fn quarter_direct(&self, i: usize, j: usize, qa: usize, qb: usize) -> [f32; 4] {
+        let g = |a: usize, b: usize| self.half_point(i, j, qa + a, qb + b);
+        [g(0, 0), g(1, 0), g(0, 1), g(1, 1)]
     }
 }
 
@@ -665,7 +617,7 @@ impl Operator<2> for ProjectedOperator {
     }
 
     /// Samples sit on frame pixel centres k + 0.5.
-    #[inline]
+    #[inline(always)]
     fn step(&self, p: [f32; 2]) -> Step<2> {
         let (i, u) = self.locate(p[0], self.size[0]);
         let (j, v) = self.locate(p[1], self.size[1]);

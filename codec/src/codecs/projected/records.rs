@@ -1,0 +1,491 @@
+//! The continuation's records (g at the nine half-lattice points of a cell) for any window of
+//! cells, and the coded residual bounds of an operator built lazily.
+//!
+//! Why windows: an operator of a chunk of a chunked asset that kept a record and a residual
+//! bound a cell (40 bytes) would make a 37 Mpx asset 2 GB of operators, so a server could keep
+//! a few of its chunks and rebuilt one for nearly every random tile (records 80 ms and a
+//! per-cell fixpoint 140 ms a 1024^2 chunk, on one core, against 5-7 ms for the tile itself).
+//! A lazily built operator keeps its samples and a residual bound a cell coded in a byte (5
+//! bytes a cell); a request builds the records of the cells under it and drops them after.
+//! A chain never leaves the even-aligned 2 x 2 block of cells it starts in (each such block
+//! maps onto itself), so a window needs a margin of two cells whatever the steps. Records are
+//! computed with the whole grid's edge clamping, so a window's records are the whole
+//! operator's bit for bit, and a chain outside its window (a caller's far-flung points) reads
+//! records evaluated directly: the same bits again, slower.
+
+use std::sync::Arc;
+
+use super::{ProjectedOperator, block, catmull_rom};
+
+/// A Catmull-Rom interpolant (edges replicated) on its half lattice over a rectangle of
+/// samples: at the samples, halfway between two along either axis, and at cell centres, by
+/// separable 4-tap passes whose products and sums are those of the tensor-product evaluation
+/// at those points (the weights at 0 and 1 select one sample exactly), so the values are the
+/// same bits. Taps past the rectangle read the grid's own samples (clamped at the grid's
+/// edges, not the rectangle's), so a rectangle's values are the whole lattice's.
+pub(super) struct HalfLattice {
+    /// Samples of the whole grid along each axis.
+    n: [usize; 2],
+    /// The rectangle's first sample.
+    origin: [usize; 2],
+    /// Half-lattice points a row of `values`.
+    width: usize,
+    /// At half-lattice point (2 origin + (x, y)), index `y width + x`: the interpolant at
+    /// (origin + (x, y) / 2) in sample coordinates.
+    values: Vec<f32>,
+}
+
+impl HalfLattice {
+    /// The half lattice over samples `[x0, x1] x [y0, y1]` (inclusive, inside the grid) of the
+    /// grid of `n` samples whose sample (x, y) is `get(x, y)`.
+    pub(super) fn over(
+        n: [usize; 2],
+        [x0, y0, x1, y1]: [usize; 4],
+        get: impl Fn(usize, usize) -> f32,
+    ) -> HalfLattice {
+        let weights = catmull_rom(0.5);
+        let [w, h] = n;
+        let clamp = |t: usize, a: usize, last: usize| (t + a).saturating_sub(1).min(last);
+        // Halfway along x on the rows the rectangle's cell centres tap (defined left of the
+        // last column, as the lattice is).
+        let (r0, r1) = (y0.saturating_sub(1), (y1 + 2).min(h - 1));
+        let cols = x1 - x0 + 1;
+        let mut across = vec![0.0f32; cols * (r1 - r0 + 1)];
+        for y in r0..=r1 {
+            for x in x0..=x1.min(w.saturating_sub(2)) {
+                let mut r = 0.0;
+                for (a, wa) in weights.iter().enumerate() {
+                    r += wa * get(clamp(x, a, w - 1), y);
+                }
+                across[(y - r0) * cols + x - x0] = r;
+            }
+        }
+        let width = 2 * (x1 - x0) + 1;
+        let mut values = vec![0.0f32; width * (2 * (y1 - y0) + 1)];
+        for y in y0..=y1 {
+            for x in x0..=x1 {
+                let at = 2 * (y - y0) * width + 2 * (x - x0);
+                values[at] = get(x, y);
+                if x < x1 {
+                    values[at + 1] = across[(y - r0) * cols + x - x0];
+                }
+                if y < y1 {
+                    let mut r = 0.0;
+                    for (b, wb) in weights.iter().enumerate() {
+                        r += wb * get(x, clamp(y, b, h - 1));
+                    }
+                    values[at + width] = r;
+                    if x < x1 {
+                        let mut r = 0.0;
+                        for (b, wb) in weights.iter().enumerate() {
+                            r += wb * across[(clamp(y, b, h - 1) - r0) * cols + x - x0];
+                        }
+                        values[at + width + 1] = r;
+                    }
+                }
+            }
+        }
+        HalfLattice {
+            n,
+            origin: [x0, y0],
+            width,
+            values,
+        }
+    }
+}
+
+/// Every cell's residual bound (see [`ProjectedOperator::lazy`]) in a byte: code k stands for
+/// `largest 2^(-k/8)`, each bound rounded up to the next code (at most 9% over it; bounds
+/// under 2^-32 of the largest read as that).
+#[derive(Clone, Debug)]
+pub struct ResidualCodes {
+    /// The bound of each code.
+    table: Box<[f32; 256]>,
+    /// Row-major, a code a cell.
+    codes: Vec<u8>,
+}
+
+impl ResidualCodes {
+    /// Codes of the `n` bounds `bound(k)`, evaluated twice each (once for the largest) rather
+    /// than held: a chunk's operator is built with little besides its samples.
+    fn new(n: usize, bound: impl Fn(usize) -> f32 + Sync) -> ResidualCodes {
+        use rayon::prelude::*;
+        let largest = (0..n)
+            .into_par_iter()
+            .map(&bound)
+            .reduce(|| 0.0f32, f32::max);
+        let table: Box<[f32; 256]> = Box::new(std::array::from_fn(|k| {
+            largest * (-(k as f32) / 8.0).exp2()
+        }));
+        let codes = (0..n)
+            .into_par_iter()
+            .map(|i| {
+                let r = bound(i);
+                let k = (-8.0 * (r / largest).log2()).floor().clamp(0.0, 255.0) as usize;
+                // exp2 rounds: step back until the code's bound covers r (a NaN covers nothing
+                // and takes code 0, the largest, itself NaN then).
+                let mut k = if r.is_nan() { 0 } else { k };
+                while k > 0 && table[k] < r {
+                    k -= 1;
+                }
+                k as u8
+            })
+            .collect();
+        ResidualCodes { table, codes }
+    }
+
+    /// The bound of cell `k` (row-major).
+    #[inline(always)]
+    pub(super) fn at(&self, k: usize) -> f32 {
+        self.table[usize::from(self.codes[k])]
+    }
+
+    /// Bytes held.
+    pub(super) fn bytes(&self) -> usize {
+        self.codes.len() + 4 * 256
+    }
+
+    /// The largest bound.
+    pub(super) fn max(&self) -> f32 {
+        self.table[0]
+    }
+}
+
+/// Rows of cells a task of the whole-grid passes takes (records, or their excesses).
+const BAND: usize = 32;
+
+impl ProjectedOperator {
+    /// The records of the cells `[i0, i1) x [j0, j1)`, row-major.
+    pub(super) fn records_for(&self, [i0, j0, i1, j1]: [usize; 4]) -> Vec<[f32; 9]> {
+        let [nx, ny] = self.size;
+        let z = &self.z;
+        let fine = HalfLattice::over(self.size, [i0, j0, i1, j1], |x, y| z[y * nx + x]);
+        // phi of the cells' half-lattice points lies within two samples of them; the even
+        // lattice has a sample every two.
+        let (ex, ey) = ((nx - 1) / 2 + 1, (ny - 1) / 2 + 1);
+        let even = [
+            (i0 / 2).saturating_sub(2),
+            (j0 / 2).saturating_sub(2),
+            (i1 / 2 + 2).min(ex - 1),
+            (j1 / 2 + 2).min(ey - 1),
+        ];
+        let coarse = HalfLattice::over([ex, ey], even, |x, y| z[2 * y * nx + 2 * x]);
+        // Every record is `fine - rho coarse` at points inside both rectangles (at a sample,
+        // the sample less rho times the sample at phi: the even lattice's sample there, the
+        // same bits as `Self::record`); only the even lattice clamps, at its last sample.
+        let top = 2 * (coarse.n[0] - 1);
+        let bottom = 2 * (coarse.n[1] - 1);
+        let mut out = Vec::with_capacity((i1 - i0) * (j1 - j0));
+        for j in j0..j1 {
+            let cy = block(j, ny);
+            let fine_rows: [usize; 3] = std::array::from_fn(|b| (2 * (j - j0) + b) * fine.width);
+            let coarse_rows: [usize; 3] = std::array::from_fn(|b| {
+                ((2 * j + b - cy).min(bottom) - 2 * coarse.origin[1]) * coarse.width
+            });
+            for i in i0..i1 {
+                let cx = block(i, nx);
+                let fine_cols: [usize; 3] = std::array::from_fn(|a| 2 * (i - i0) + a);
+                let coarse_cols: [usize; 3] =
+                    std::array::from_fn(|a| (2 * i + a - cx).min(top) - 2 * coarse.origin[0]);
+                out.push(std::array::from_fn(|n| {
+                    let (a, b) = (n % 3, n / 3);
+                    fine.values[fine_rows[b] + fine_cols[a]]
+                        - self.rho * coarse.values[coarse_rows[b] + coarse_cols[a]]
+                }));
+            }
+        }
+        debug_assert!(ny >= 2);
+        out
+    }
+
+    /// Every cell's records, by bands of rows on all cores.
+    pub(super) fn all_records(&self) -> Vec<[f32; 9]> {
+        use rayon::prelude::*;
+        let [nx, ny] = self.size;
+        (0..ny - 1)
+            .into_par_iter()
+            .step_by(BAND)
+            .flat_map_iter(|j0| self.records_for([0, j0, nx - 1, (j0 + BAND).min(ny - 1)]))
+            .collect()
+    }
+
+    /// D_c of [`Self::residual_bounds`]: the largest |g + rho S o phi - S| over cell (i, j),
+    /// at its nine half-lattice points (`rec`: its records), plus the f32 rounding of the
+    /// records, the blend and the chain's sums (a few ulps of the range).
+    pub(super) fn excess(&self, (i, j): (usize, usize), rec: &[f32; 9]) -> f32 {
+        let (cx, cy) = (
+            block(i, self.size[0]) as isize,
+            block(j, self.size[1]) as isize,
+        );
+        let mut m = 0.0f32;
+        for b in 0..3 {
+            for a in 0..3 {
+                // S at the half-lattice point: the mean of the samples around it.
+                let (x0, y0) = ((i + a / 2) as isize, (j + b / 2) as isize);
+                let (x1, y1) = ((i + a.div_ceil(2)) as isize, (j + b.div_ceil(2)) as isize);
+                let here =
+                    0.25 * (self.at(x0, y0) + self.at(x1, y0) + self.at(x0, y1) + self.at(x1, y1));
+                // phi of a half-lattice point is a sample: 2 (i + a/2) - c.
+                let (px, py) = (
+                    2 * i as isize + a as isize - cx,
+                    2 * j as isize + b as isize - cy,
+                );
+                m = m.max((rec[3 * b + a] + self.rho * self.at(px, py) - here).abs());
+            }
+        }
+        m + 1e-5
+    }
+
+    /// Every cell's residual bound ([`Self::residual_bounds`]), coded: the records made and
+    /// dropped by bands of rows, only their excesses kept until the bounds are coded.
+    pub(super) fn residual_codes(&self) -> ResidualCodes {
+        use rayon::prelude::*;
+        let [nx, ny] = self.size;
+        let d: Vec<f32> = (0..ny - 1)
+            .into_par_iter()
+            .step_by(BAND)
+            .flat_map_iter(|j0| {
+                let records = self.records_for([0, j0, nx - 1, (j0 + BAND).min(ny - 1)]);
+                records
+                    .iter()
+                    .enumerate()
+                    .map(|(k, rec)| self.excess((k % (nx - 1), j0 + k / (nx - 1)), rec))
+                    .collect::<Vec<_>>()
+            })
+            .collect();
+        if self.rho >= 1.0 {
+            return ResidualCodes::new(d.len(), |_| f32::INFINITY);
+        }
+        ResidualCodes::new(d.len(), |k| {
+            self.closed_bound(&d, k % (nx - 1), k / (nx - 1))
+        })
+    }
+
+    /// The operator with the records and residual bounds of the cells `[i0, i1) x [j0, j1)`
+    /// (clamped into the grid) at hand, for answers there: of a lazily built operator, a
+    /// window; of one built whole, itself.
+    pub fn window(&self, [i0, j0, i1, j1]: [usize; 4]) -> std::borrow::Cow<'_, ProjectedOperator> {
+        let Some(coarse) = &self.coarse else {
+            return std::borrow::Cow::Borrowed(self);
+        };
+        let [nx, ny] = self.size;
+        // Even starts keep each cell's records those of the whole (they are anyway, but the
+        // even lattice's rectangle then starts on a sample of it).
+        let (i0, j0) = (i0.min(nx - 2) & !1, j0.min(ny - 2) & !1);
+        let (i1, j1) = (i1.clamp(i0 + 1, nx - 1), j1.clamp(j0 + 1, ny - 1));
+        let records = self.records_for([i0, j0, i1, j1]);
+        let residual = (j0..j1)
+            .flat_map(|j| (i0..i1).map(move |i| coarse.at(j * (nx - 1) + i)))
+            .collect();
+        std::borrow::Cow::Owned(ProjectedOperator {
+            records,
+            residual,
+            region: super::Region {
+                origin: [i0, j0],
+                size: [i1 - i0, j1 - j0],
+            },
+            coarse: Some(Arc::clone(coarse)),
+            z: Arc::clone(&self.z),
+            ..*self
+        })
+    }
+}
+
+/// Cells a window reaches past the cells of its points: a chain never leaves the even-aligned
+/// 2 x 2 block of cells it starts in (each maps onto itself), but for the unpaired last cell of
+/// an even axis, which maps onto the two before it.
+const MARGIN: usize = 2;
+
+impl ProjectedOperator {
+    /// Whether answers need a window first: a lazily built operator, not yet a window.
+    pub(super) fn needs_window(&self) -> bool {
+        self.coarse.is_some() && self.records.is_empty()
+    }
+
+    /// The window for answers at frame points within `[x0, y0, x1, y1]` (see [`Self::window`]).
+    pub(super) fn window_over(
+        &self,
+        [x0, y0, x1, y1]: [f32; 4],
+    ) -> std::borrow::Cow<'_, ProjectedOperator> {
+        let m = MARGIN;
+        // A NaN or infinite corner saturates to the grid's edge.
+        let cell = |t: f32, n: usize| ((t - 0.5).max(0.0) as usize).min(n - 2);
+        let (i0, j0) = (cell(x0, self.size[0]), cell(y0, self.size[1]));
+        let (i1, j1) = (cell(x1, self.size[0]), cell(y1, self.size[1]));
+        self.window([
+            i0.saturating_sub(m),
+            j0.saturating_sub(m),
+            i1.saturating_add(m + 1),
+            j1.saturating_add(m + 1),
+        ])
+    }
+
+    /// Continuous decoding of unit points ([`crate::core::decode::points`]), through a window
+    /// of a lazily built operator when the points are near enough together for one to pay
+    /// (its cells under 64 a point); far-flung points are answered by the operator itself.
+    pub fn points(
+        &self,
+        pts: &[[f32; 2]],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Vec<crate::core::decode::PointValue> {
+        use crate::core::operator::Operator;
+        if self.needs_window() && !pts.is_empty() {
+            let v = self.valid();
+            let mut b = [
+                f32::INFINITY,
+                f32::INFINITY,
+                f32::NEG_INFINITY,
+                f32::NEG_INFINITY,
+            ];
+            for p in pts {
+                b = [
+                    b[0].min(p[0] * v[0]),
+                    b[1].min(p[1] * v[1]),
+                    b[2].max(p[0] * v[0]),
+                    b[3].max(p[1] * v[1]),
+                ];
+            }
+            let m = 2.0 * MARGIN as f32 + 1.0;
+            let cells = (b[2] - b[0] + m) * (b[3] - b[1] + m);
+            if cells <= 64.0 * pts.len() as f32 {
+                let w = self.window_over(b);
+                return crate::core::decode::points(&*w, pts, iterations, tolerance);
+            }
+        }
+        crate::core::decode::points(self, pts, iterations, tolerance)
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::codecs::projected::tests::{grid as rough, header};
+    use crate::core::decode;
+    use crate::core::operator::Operator;
+
+    const SIZES: [(usize, usize); 6] = [(33, 20), (16, 9), (64, 41), (4, 4), (5, 6), (2, 5)];
+
+    fn operators(w: usize, h: usize) -> (ProjectedOperator, ProjectedOperator) {
+        let g = rough(w, h);
+        let hd = header(w, h, &g);
+        (
+            ProjectedOperator::new(&hd, &g).expect("whole"),
+            ProjectedOperator::lazy(&hd, g.clone()).expect("lazy"),
+        )
+    }
+
+    #[test]
+    fn windows_hold_the_whole_operators_records_and_bounds_no_tighter() {
+        for (w, h) in SIZES {
+            let (whole, lazy) = operators(w, h);
+            assert!(lazy.needs_window());
+            // Samples and a byte a cell against 44 bytes (and a table of 1 KB).
+            let (a, b) = (lazy.resident_bytes(), whole.resident_bytes());
+            assert!(a < b / 5 || w * h < 500, "{w}x{h}: {a} against {b} bytes");
+            let (cx, cy) = (w - 1, h - 1);
+            for rect in [
+                [0, 0, 2, 2],
+                [3, 1, 9, 7],
+                [cx.saturating_sub(3), cy.saturating_sub(3), cx, cy],
+                [1, 1, cx - 1, cy - 1],
+                [0, 0, usize::MAX, usize::MAX],
+            ] {
+                let win = lazy.window(rect);
+                assert!(!win.needs_window(), "{w}x{h} {rect:?}");
+                let r = win.region;
+                assert!(r.size[0] > 0 && r.size[1] > 0);
+                for y in 0..r.size[1] {
+                    for x in 0..r.size[0] {
+                        let (i, j) = (r.origin[0] + x, r.origin[1] + y);
+                        let (k, kw) = (y * r.size[0] + x, j * cx + i);
+                        let bits = |rec: &[f32; 9]| rec.map(f32::to_bits);
+                        assert_eq!(bits(&win.records[k]), bits(&whole.records[kw]));
+                        // Codes round up by at most 2^(1/8), or down to the smallest code.
+                        let (coded, exact) = (win.residual[k], whole.residual[kw]);
+                        assert!(coded >= exact, "{w}x{h} cell ({i}, {j})");
+                        assert!(coded <= exact * 1.0906 + 1e-9 * lazy.residual_max);
+                    }
+                }
+            }
+        }
+    }
+
+    /// A chain never leaves the 2 x 2 block of cells it starts in, but for the unpaired last
+    /// cell of an even axis, which maps onto the pair before it (and its own last sample onto
+    /// itself): what lets a window's margin be [`MARGIN`] cells, whatever the steps.
+    #[test]
+    fn chains_stay_within_two_cells_of_their_start() {
+        for (w, h) in SIZES {
+            let (whole, _) = operators(w, h);
+            if whole.rho == 0.0 {
+                continue;
+            }
+            // The cells a chain from cell i may visit along an axis of n samples.
+            let allowed = |i: usize, n: usize, at: usize| {
+                let pair = if i + 2 < n || i % 2 == 1 {
+                    i & !1
+                } else {
+                    i - 2
+                };
+                at == i || at / 2 == pair / 2
+            };
+            for k in 0..2000 {
+                let mut p = [
+                    (k as f32 * 0.618_034).fract() * (w as f32 + 0.2) - 0.1,
+                    (k as f32 * 0.414_214).fract() * (h as f32 + 0.2) - 0.1,
+                ];
+                let (i0, _) = whole.locate(p[0], w);
+                let (j0, _) = whole.locate(p[1], h);
+                for step in 0..40 {
+                    p = whole.step(p).next;
+                    let (i, _) = whole.locate(p[0], w);
+                    let (j, _) = whole.locate(p[1], h);
+                    assert!(
+                        allowed(i0, w, i) && allowed(j0, h, j),
+                        "{w}x{h} point {k} from ({i0}, {j0}) at ({i}, {j}) after {step} steps"
+                    );
+                    assert!(i.abs_diff(i0) <= MARGIN && j.abs_diff(j0) <= MARGIN);
+                }
+            }
+        }
+    }
+
+    #[test]
+    fn lazy_operators_answer_as_whole_ones() {
+        for (w, h) in SIZES {
+            let (whole, lazy) = operators(w, h);
+            let probe: Vec<[f32; 2]> = (0..997)
+                .map(|i| {
+                    [
+                        (i as f32 * 0.618_034).fract(),
+                        (i as f32 * 0.414_214).fract(),
+                    ]
+                })
+                .collect();
+            // Fixed steps: the same chains, so the same values to rounding; bounds no tighter.
+            let a = lazy.points(&probe, 9, 0.0);
+            let b = decode::points(&whole, &probe, 9, 0.0);
+            for (x, y) in a.iter().zip(&b) {
+                assert!((x.value - y.value).abs() <= 1e-5, "{w}x{h}: {x:?} {y:?}");
+                assert!(x.error_bound >= y.error_bound, "{w}x{h}: {x:?} {y:?}");
+            }
+            // To a tolerance: within the sum of the bounds.
+            let a = lazy.points(&probe, 400, 1e-3);
+            let b = decode::points(&whole, &probe, 400, 1e-3);
+            for (x, y) in a.iter().zip(&b) {
+                assert!((x.value - y.value).abs() <= x.error_bound + y.error_bound);
+            }
+            // A grid, through a window: as the whole operator's grid at fixed steps.
+            let xs: Vec<f32> = (0..40)
+                .map(|i| (i as f32 + 0.3) / 40.0 * 0.6 + 0.2)
+                .collect();
+            let ys: Vec<f32> = (0..30).map(|i| (i as f32 + 0.7) / 30.0 * 0.5).collect();
+            let a = lazy.grid(&xs, &ys, 9, 0.0);
+            let b = whole.grid(&xs, &ys, 9, 0.0);
+            for (x, y) in a.iter().zip(&b) {
+                assert!((x.value - y.value).abs() <= 1e-5, "{w}x{h}: {x:?} {y:?}");
+            }
+        }
+    }
+}
