@@ -768,15 +768,25 @@ fn a_dem_coded_in_chunks_is_described_and_decoded_like_any_asset() {
 /// temporary file renamed over the output at the end.
 #[test]
 fn an_encode_interrupted_by_ctrl_c_leaves_no_file() {
+    use std::os::unix::process::CommandExt;
     let dir = tempdir("interrupted");
-    let mut child = bin()
+    let mut encode = bin();
+    encode
         .arg("encode")
         .arg(data("etopo20.tif"))
         .arg("-o")
         .arg(dir.join("e.fra"))
-        .args(["--chunk", "64"])
-        .spawn()
-        .unwrap();
+        .args(["--chunk", "64"]);
+    // SIGINT as a terminal delivers it: to a process that has not inherited it ignored (a
+    // test run started in the background of a non-interactive shell would hand it down).
+    // SAFETY: between fork and exec, only an async-signal-safe call (signal(2)).
+    unsafe {
+        encode.pre_exec(|| {
+            libc::signal(libc::SIGINT, libc::SIG_DFL);
+            Ok(())
+        });
+    }
+    let mut child = encode.spawn().unwrap();
     std::thread::sleep(std::time::Duration::from_millis(400));
     assert!(
         child.try_wait().unwrap().is_none(),

@@ -23,11 +23,15 @@ fn data(name: &str) -> std::path::PathBuf {
 /// etopo20 whole and in chunks of 256 cells (4 x 2 chunks, a chunk edge at 256 cells, -94.67
 /// degrees), and the chunked file with its last source chunk corrupt.
 fn state() -> Arc<AppState> {
-    static DIR: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
-    let dir = DIR.get_or_init(write_assets);
-    let (store, skipped) = Store::open(dir).unwrap();
+    let (store, skipped) = Store::open(dir()).unwrap();
     assert!(skipped.is_empty(), "{skipped:?}");
     Arc::new(AppState::new(store, "http://test".into()))
+}
+
+/// The folder of the assets, written once a test binary.
+fn dir() -> &'static std::path::PathBuf {
+    static DIR: std::sync::OnceLock<std::path::PathBuf> = std::sync::OnceLock::new();
+    DIR.get_or_init(write_assets)
 }
 
 fn write_assets() -> std::path::PathBuf {
@@ -111,5 +115,40 @@ async fn a_corrupt_chunk_costs_only_the_tiles_that_need_it() {
     let (s, _, _) = get(&st, "/v1/assets/corrupt/point/170,-80").await;
     assert_eq!(s, StatusCode::SERVICE_UNAVAILABLE);
     let (s, _, _) = get(&st, "/v1/assets/corrupt/point/-170,80").await;
+    assert_eq!(s, StatusCode::OK);
+}
+
+/// Asking a server with a GPU (lavapipe in CI) to decode a chunked asset there is refused by
+/// name, not answered on the CPU behind the caller's back; `auto` and `cpu` answer.
+#[tokio::test]
+async fn the_gpu_is_refused_for_chunked_assets_by_name() {
+    let (store, _) = Store::open(dir()).unwrap();
+    let mut st = AppState::new(store, "http://test".into());
+    let gpu = fractile_server::backend::GpuBackend::open(64 << 20)
+        .unwrap_or_else(|e| panic!("{e} (install mesa-vulkan-drivers)"));
+    st.gpu = Some(Arc::new(gpu));
+    let st = Arc::new(st);
+    let tile = "/v1/assets/chunked/tiles/3/2/3.f32";
+    for (backend, want) in [("cpu", 200), ("auto", 200), ("gpu", 400)] {
+        let (s, _, body) = get(&st, &format!("{tile}?backend={backend}")).await;
+        assert_eq!(
+            s.as_u16(),
+            want,
+            "{backend}: {}",
+            String::from_utf8_lossy(&body)
+        );
+        if want == 400 {
+            let e: serde_json::Value = serde_json::from_slice(&body).unwrap();
+            assert_eq!(e["code"], "gpu_unsupported", "{e}");
+        }
+    }
+    let req = Request::post("/v1/assets/chunked/points?backend=gpu")
+        .header("content-type", "application/json")
+        .body(Body::from(r#"{"points": [[-100.0, 40.0]]}"#))
+        .unwrap();
+    let r = fractile_server::app(st.clone()).oneshot(req).await.unwrap();
+    assert_eq!(r.status(), StatusCode::BAD_REQUEST);
+    // The whole asset of the same DEM does go to the GPU.
+    let (s, _, _) = get(&st, "/v1/assets/single/tiles/3/2/3.f32?backend=gpu").await;
     assert_eq!(s, StatusCode::OK);
 }

@@ -19,8 +19,9 @@ use crate::io::asset::Asset;
 use crate::io::chunked::{self, ChunkEntry, ChunkTable, Level, OVERLAP};
 use crate::io::raster::Raster;
 
-/// The chunk side `fractile encode` picks: 1024 cells (a chunk's projected operator holds
-/// about 48 MB decoded, and decodes in a few tens of milliseconds).
+/// The chunk side `fractile encode` picks: 1024 cells (a chunk's lazily built projected
+/// operator holds about 5.3 MB decoded, and decodes in about 100 ms of a core; 512 cost 0.33
+/// dB on the 37 Mpx mosaic).
 pub const DEFAULT_CHUNK: u32 = 1024;
 
 /// Whether a raster of `width x height` is coded in chunks of `chunk` by default: when it is

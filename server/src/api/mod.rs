@@ -283,6 +283,19 @@ fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppErro
     Ok(b)
 }
 
+/// Refuses `backend=gpu` for a chunked asset: its chunks decode on the CPU (a GPU would need
+/// each chunk's operator resident, which it does not hold yet), and asking for the GPU is not
+/// answered by the CPU behind the caller's back. `auto` goes to the CPU.
+pub(crate) fn gpu_for(a: &StoredAsset, choice: Backend) -> Result<(), AppError> {
+    if choice == Backend::Gpu && a.asset.chunks.is_some() {
+        return Err(AppError::bad_request(
+            "gpu_unsupported",
+            "chunked assets decode on the CPU: use backend=cpu or auto",
+        ));
+    }
+    Ok(())
+}
+
 /// `Asset::sample` of a raster's pixels on the chosen backend, with coarse decodes shared
 /// through `coarse` (runs inside `decode`, on the blocking pool).
 fn sample_on(
@@ -293,6 +306,7 @@ fn sample_on(
     iterations: u32,
     tolerance: Tolerance,
 ) -> Result<(Vec<Vec<f32>>, Bounds), AppError> {
+    gpu_for(a, choice)?;
     let tolerance = tolerance.over(a, pixels);
     let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
     let continuous =

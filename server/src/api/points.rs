@@ -187,6 +187,7 @@ async fn answer_points(
     choice: Backend,
 ) -> Result<Vec<PointResult>, AppError> {
     let a = planar(state.store.get(id)?)?;
+    super::gpu_for(&a, choice)?;
     let (n, tolerance) = iterations_for(state, iterations, tolerance)?;
     let units: Vec<Option<[f32; 2]>> = coords.iter().map(|&c| unit_of(&a, c)).collect();
     if single && units[0].is_none() {

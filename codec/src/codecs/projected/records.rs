@@ -156,7 +156,14 @@ const BAND: usize = 32;
 
 impl ProjectedOperator {
     /// The records of the cells `[i0, i1) x [j0, j1)`, row-major.
-    pub(super) fn records_for(&self, [i0, j0, i1, j1]: [usize; 4]) -> Vec<[f32; 9]> {
+    pub(super) fn records_for(&self, rect: [usize; 4]) -> Vec<[f32; 9]> {
+        let mut out = vec![[0.0; 9]; (rect[2] - rect[0]) * (rect[3] - rect[1])];
+        self.records_into(rect, &mut out);
+        out
+    }
+
+    /// [`Self::records_for`] into `out`.
+    fn records_into(&self, [i0, j0, i1, j1]: [usize; 4], out: &mut [[f32; 9]]) {
         let [nx, ny] = self.size;
         let z = &self.z;
         let fine = HalfLattice::over(self.size, [i0, j0, i1, j1], |x, y| z[y * nx + x]);
@@ -172,10 +179,10 @@ impl ProjectedOperator {
         let coarse = HalfLattice::over([ex, ey], even, |x, y| z[2 * y * nx + 2 * x]);
         // Every record is `fine - rho coarse` at points inside both rectangles (at a sample,
         // the sample less rho times the sample at phi: the even lattice's sample there, the
-        // same bits as `Self::record`); only the even lattice clamps, at its last sample.
+        // same bits as `Self::half_point`); only the even lattice clamps, at its last sample.
         let top = 2 * (coarse.n[0] - 1);
         let bottom = 2 * (coarse.n[1] - 1);
-        let mut out = Vec::with_capacity((i1 - i0) * (j1 - j0));
+        let mut cells = out.iter_mut();
         for j in j0..j1 {
             let cy = block(j, ny);
             let fine_rows: [usize; 3] = std::array::from_fn(|b| (2 * (j - j0) + b) * fine.width);
@@ -187,26 +194,30 @@ impl ProjectedOperator {
                 let fine_cols: [usize; 3] = std::array::from_fn(|a| 2 * (i - i0) + a);
                 let coarse_cols: [usize; 3] =
                     std::array::from_fn(|a| (2 * i + a - cx).min(top) - 2 * coarse.origin[0]);
-                out.push(std::array::from_fn(|n| {
+                let cell = cells.next().expect("a record a cell");
+                *cell = std::array::from_fn(|n| {
                     let (a, b) = (n % 3, n / 3);
                     fine.values[fine_rows[b] + fine_cols[a]]
                         - self.rho * coarse.values[coarse_rows[b] + coarse_cols[a]]
-                }));
+                });
             }
         }
-        debug_assert!(ny >= 2);
-        out
     }
 
     /// Every cell's records, by bands of rows on all cores.
     pub(super) fn all_records(&self) -> Vec<[f32; 9]> {
         use rayon::prelude::*;
+        // Into their place, by bands (a collect of unknown length would grow its vector,
+        // twice the records' bytes at a time: measured, 70 MB more on a chunked encode).
         let [nx, ny] = self.size;
-        (0..ny - 1)
-            .into_par_iter()
-            .step_by(BAND)
-            .flat_map_iter(|j0| self.records_for([0, j0, nx - 1, (j0 + BAND).min(ny - 1)]))
-            .collect()
+        let mut out = vec![[0.0; 9]; (nx - 1) * (ny - 1)];
+        out.par_chunks_mut(BAND * (nx - 1))
+            .enumerate()
+            .for_each(|(b, band)| {
+                let j0 = b * BAND;
+                self.records_into([0, j0, nx - 1, (j0 + BAND).min(ny - 1)], band);
+            });
+        out
     }
 
     /// D_c of [`Self::residual_bounds`]: the largest |g + rho S o phi - S| over cell (i, j),
@@ -241,18 +252,16 @@ impl ProjectedOperator {
     pub(super) fn residual_codes(&self) -> ResidualCodes {
         use rayon::prelude::*;
         let [nx, ny] = self.size;
-        let d: Vec<f32> = (0..ny - 1)
-            .into_par_iter()
-            .step_by(BAND)
-            .flat_map_iter(|j0| {
+        let mut d = vec![0.0f32; (nx - 1) * (ny - 1)];
+        d.par_chunks_mut(BAND * (nx - 1))
+            .enumerate()
+            .for_each(|(b, band)| {
+                let j0 = b * BAND;
                 let records = self.records_for([0, j0, nx - 1, (j0 + BAND).min(ny - 1)]);
-                records
-                    .iter()
-                    .enumerate()
-                    .map(|(k, rec)| self.excess((k % (nx - 1), j0 + k / (nx - 1)), rec))
-                    .collect::<Vec<_>>()
-            })
-            .collect();
+                for (k, (rec, out)) in records.iter().zip(band).enumerate() {
+                    *out = self.excess((k % (nx - 1), j0 + k / (nx - 1)), rec);
+                }
+            });
         if self.rho >= 1.0 {
             return ResidualCodes::new(d.len(), |_| f32::INFINITY);
         }
