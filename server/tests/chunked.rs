@@ -152,3 +152,40 @@ async fn the_gpu_is_refused_for_chunked_assets_by_name() {
     let (s, _, _) = get(&st, "/v1/assets/single/tiles/3/2/3.f32?backend=gpu").await;
     assert_eq!(s, StatusCode::OK);
 }
+
+/// Pixels coarser than a chunked asset's top level share its grids through the server's
+/// coarse cache (one a grid size), as a whole asset's do, instead of a discrete decode a
+/// request; their heights are the whole asset's within the two bounds.
+#[tokio::test]
+async fn coarse_pixels_of_a_chunked_asset_share_cached_grids() {
+    let st = state();
+    // Regions of the whole globe with pixels of 17, 8 and 11 source cells: the top level
+    // (etopo20's 1080 x 540 halved twice, 270 x 135 cells, one chunk) filtered from its grids
+    // of 68 x 34, 135 x 68 and 135 x 68 cells (a pixel's cells between half a pixel and one).
+    let sizes = [(64, 32), (128, 64), (96, 48)];
+    for (w, h) in sizes {
+        let uri = |id: &str| {
+            format!("/v1/assets/{id}/region?bbox=-180,-90,180,90&width={w}&height={h}&format=f32")
+        };
+        let (s, hc, body) = get(&st, &uri("chunked")).await;
+        assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
+        let (_, hw, whole) = get(&st, &uri("single")).await;
+        let bound = |h: &axum::http::HeaderMap| -> f32 {
+            h["x-error-bound"].to_str().unwrap().parse().unwrap()
+        };
+        let within = bound(&hc) + bound(&hw);
+        let (a, b) = (floats(&body), floats(&whole));
+        assert_eq!(a.len(), w * h);
+        for (p, q) in a.iter().zip(&b) {
+            // The overview averages 2 x 2 source cells where the whole asset's grid averages
+            // its own decode: both filter the same cells, each within its bound.
+            assert!(
+                (p - q).abs() <= within,
+                "{w}x{h}: {p} against {q} within {within}"
+            );
+        }
+    }
+    st.coarse.run_pending_tasks();
+    let grids = st.coarse.iter().filter(|(k, _)| k.0 == "chunked").count();
+    assert_eq!(grids, 2, "the chunked asset's grids in the coarse cache");
+}

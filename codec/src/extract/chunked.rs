@@ -193,10 +193,14 @@ impl Chunked {
             let Some(chunk) = self.chunk(level, part.index).map_err(SampleError::Chunk)? else {
                 continue;
             };
+            // Only the top level's pixels may be coarser than its cells (see `split`), and its
+            // grids are the asset's (`Asset::discrete_planes`): the caller's delegate may keep
+            // them (a server's coarse cache), instead of a decode a tile.
             let discrete = |w, h, n, t| std::sync::Arc::new(chunk.discrete_planes(w, h, n, t));
+            let top = level + 1 == self.table.levels.len();
             let own = Delegates {
                 continuous: &|_, _, _, _| None,
-                discrete: &discrete,
+                discrete: if top { delegates.discrete } else { &discrete },
                 cancelled: delegates.cancelled,
             };
             let (values, b) = chunk.sample_with(&part.pixels, iterations, tolerance, &own)?;
@@ -219,6 +223,25 @@ impl Chunked {
             }
         }
         Ok((out, bound))
+    }
+
+    /// [`crate::Asset::discrete_planes`] of a chunked asset: its top level's one chunk's, at
+    /// `width x height` (nothing when the chunk cannot be read: the answer that needs it
+    /// reports that chunk itself).
+    pub(crate) fn top_discrete_planes(
+        &self,
+        width: usize,
+        height: usize,
+        iterations: u32,
+        tolerance: f32,
+    ) -> Vec<(
+        crate::core::decode::Grid,
+        crate::core::decode::DiscreteReport,
+    )> {
+        match self.chunk(self.table.levels.len() - 1, 0) {
+            Ok(Some(top)) => top.discrete_planes(width, height, iterations, tolerance),
+            _ => Vec::new(),
+        }
     }
 
     /// [`crate::Asset::source_error_over`] of a chunked asset: the largest of the chunks'

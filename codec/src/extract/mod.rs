@@ -712,6 +712,10 @@ impl Asset {
         iterations: u32,
         tolerance: f32,
     ) -> Vec<(Grid, DiscreteReport)> {
+        if let Some(c) = &self.chunks {
+            // Coarse pixels of a chunked asset are filtered from its top level, one chunk.
+            return c.top_discrete_planes(width, height, iterations, tolerance);
+        }
         let opts = DiscreteOptions::within(tolerance, iterations);
         self.planes
             .iter()
