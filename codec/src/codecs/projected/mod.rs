@@ -248,7 +248,7 @@ pub struct ProjectedOperator {
     /// tolerance.
     residual: Vec<f32>,
     /// Of a lazily built operator: every cell's residual bound, coded in a byte.
-    coarse: Option<Arc<records::ResidualCodes>>,
+    coded: Option<Arc<records::ResidualCodes>>,
     /// The largest residual bound.
     residual_max: f32,
     /// The part of the frame unit coordinates map onto (the frame, or for half-resolution
@@ -333,7 +333,7 @@ impl ProjectedOperator {
         drop(grid);
         let coded = op.residual_codes();
         op.residual_max = coded.max();
-        op.coarse = Some(Arc::new(coded));
+        op.coded = Some(Arc::new(coded));
         Ok(op)
     }
 
@@ -375,7 +375,7 @@ impl ProjectedOperator {
             rho,
             interval,
             residual: Vec::new(),
-            coarse: None,
+            coded: None,
             residual_max: f32::INFINITY,
             valid: [size[0] as f32, size[1] as f32],
         })
@@ -383,13 +383,13 @@ impl ProjectedOperator {
 
     /// Bytes the operator holds (a cache's weight).
     pub fn resident_bytes(&self) -> u64 {
-        let coarse = self.coarse.as_ref().map_or(0, |c| c.bytes());
-        (4 * self.z.len() + 36 * self.records.len() + 4 * self.residual.len() + coarse) as u64
+        let coded = self.coded.as_ref().map_or(0, |c| c.bytes());
+        (4 * self.z.len() + 36 * self.records.len() + 4 * self.residual.len() + coded) as u64
     }
 
     /// Whether the operator was built lazily (see [`Self::lazy`]).
     pub fn is_lazy(&self) -> bool {
-        self.coarse.is_some()
+        self.coded.is_some()
     }
 
     /// Per cell, a bound on |f - S| there, S the bilinear interpolant of the samples. With
@@ -530,13 +530,13 @@ impl ProjectedOperator {
         self.residual_of(i, j)
     }
 
-    /// The residual bound of cell (i, j): its own, or outside the region its block's.
+    /// The residual bound of cell (i, j): from the region, or outside it its coded one.
     #[inline(always)]
     fn residual_of(&self, i: usize, j: usize) -> f32 {
         match self.region.index(i, j) {
             Some(k) => self.residual[k],
             None => self
-                .coarse
+                .coded
                 .as_ref()
                 .map_or(f32::INFINITY, |c| c.at(j * (self.size[0] - 1) + i)),
         }

@@ -274,7 +274,7 @@ impl ProjectedOperator {
     /// (clamped into the grid) at hand, for answers there: of a lazily built operator, a
     /// window; of one built whole, itself.
     pub fn window(&self, [i0, j0, i1, j1]: [usize; 4]) -> std::borrow::Cow<'_, ProjectedOperator> {
-        let Some(coarse) = &self.coarse else {
+        let Some(coded) = &self.coded else {
             return std::borrow::Cow::Borrowed(self);
         };
         let [nx, ny] = self.size;
@@ -284,7 +284,7 @@ impl ProjectedOperator {
         let (i1, j1) = (i1.clamp(i0 + 1, nx - 1), j1.clamp(j0 + 1, ny - 1));
         let records = self.records_for([i0, j0, i1, j1]);
         let residual = (j0..j1)
-            .flat_map(|j| (i0..i1).map(move |i| coarse.at(j * (nx - 1) + i)))
+            .flat_map(|j| (i0..i1).map(move |i| coded.at(j * (nx - 1) + i)))
             .collect();
         std::borrow::Cow::Owned(ProjectedOperator {
             records,
@@ -293,7 +293,7 @@ impl ProjectedOperator {
                 origin: [i0, j0],
                 size: [i1 - i0, j1 - j0],
             },
-            coarse: Some(Arc::clone(coarse)),
+            coded: Some(Arc::clone(coded)),
             z: Arc::clone(&self.z),
             ..*self
         })
@@ -308,7 +308,7 @@ const MARGIN: usize = 2;
 impl ProjectedOperator {
     /// Whether answers need a window first: a lazily built operator, not yet a window.
     pub(super) fn needs_window(&self) -> bool {
-        self.coarse.is_some() && self.records.is_empty()
+        self.coded.is_some() && self.records.is_empty()
     }
 
     /// The window for answers at frame points within `[x0, y0, x1, y1]` (see [`Self::window`]).
