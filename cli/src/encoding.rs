@@ -2,7 +2,7 @@
 //! meshes (IFS3D) and curves.
 
 use super::*;
-use fractile_codec::encode::chunked::{DEFAULT_CHUNK, encode_chunked, wants_chunks};
+use fractile_codec::encode::chunked::{DEFAULT_CHUNK, encode_chunked_file, wants_chunks};
 
 mod shapes;
 pub(crate) use shapes::*;
@@ -290,8 +290,10 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         return encode_curve(&a);
     }
     let files = fractile_codec::io::mosaic::input_files(&a.inputs)?;
-    let raster = fractile_codec::io::mosaic::open(&a.inputs)?;
-    let a = a.with_default_codec(raster.kind);
+    // Rows, not a raster: a chunked encode reads its input a band at a time.
+    let mut rows = fractile_codec::io::rows::open(&a.inputs)?;
+    let (width, height) = (rows.header().width, rows.header().height);
+    let a = a.with_default_codec(rows.header().kind);
     let lattice = |a: &EncodeArgs| {
         if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
             bail!(
@@ -319,10 +321,10 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     let chunk = match a.chunk {
         Some(0) => None,
         Some(c) => Some(c),
-        None => wants_chunks(raster.width, raster.height, DEFAULT_CHUNK).then_some(DEFAULT_CHUNK),
+        None => wants_chunks(width, height, DEFAULT_CHUNK).then_some(DEFAULT_CHUNK),
     };
     let enc = match chunk {
-        None => encode_with(&a, &raster, true)?,
+        None => encode_with(&a, &rows.read_all()?, true)?.write(&a.output)?,
         Some(c) => {
             let bar = progress_bar("coding chunks", a.json);
             let progress = |done: u64, total: u64| bar.update(done, total);
@@ -330,16 +332,15 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
                 encode_with(&a, r, false)
                     .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
             };
-            let enc = encode_chunked(&raster, c, &one, &progress)?;
+            let enc = encode_chunked_file(rows.as_mut(), c, &one, &progress, &a.output)?;
             bar.finish();
             enc
         }
     };
-    fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
     let report = json!({
         "input": a.inputs[0], "inputs": files, "output": a.output, "codec": enc.asset.codec_name(),
-        "width": raster.width, "height": raster.height,
-        "bytes": enc.bytes.len(), "source_bytes": enc.asset.meta.source_bytes(),
+        "width": width, "height": height,
+        "bytes": enc.length, "source_bytes": enc.asset.meta.source_bytes(),
         "ratio": enc.ratio(), "bpp": enc.bpp(), "transforms": enc.transforms,
         "seconds": enc.seconds, "psnr": enc.errors.psnr, "rmse": enc.errors.rmse,
         "max_error": enc.errors.max_error,
@@ -356,18 +357,13 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
             "{}{} -> {}: {} {} bytes, {:.2}:1, {:.3} bpp, {} transforms, {:.2} s, PSNR {:.2} dB, RMSE {:.3}, max error {:.3}",
             a.inputs[0].display(),
             if files.len() > 1 {
-                format!(
-                    " (a mosaic of {} files, {}x{})",
-                    files.len(),
-                    raster.width,
-                    raster.height
-                )
+                format!(" (a mosaic of {} files, {}x{})", files.len(), width, height)
             } else {
                 String::new()
             },
             a.output.display(),
             enc.asset.codec_name(),
-            enc.bytes.len(),
+            enc.length,
             enc.ratio(),
             enc.bpp(),
             enc.transforms,

@@ -7,17 +7,22 @@
 //! add about a third to the cells coded, as a COG's overviews do, and let a coarse tile decode
 //! a few chunks of a coarse level instead of the whole raster.
 
+use std::io::Write;
+use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use rayon::prelude::*;
 
-use super::Encoded;
+use super::pyramid::Pyramid;
+use super::{Encoded, Written};
 use crate::Error;
 use crate::core::metrics::Errors;
-use crate::io::asset::Asset;
-use crate::io::chunked::{self, ChunkEntry, ChunkTable, Level, OVERLAP};
+use crate::io::asset::{Asset, write_atomic_with};
+use crate::io::chunked::{self, ChunkEntry, ChunkTable, OVERLAP};
+use crate::io::mosaic;
 use crate::io::raster::Raster;
+use crate::io::rows::{Header, InMemory, Rows};
 
 /// The chunk side `fractile encode` picks: 1024 cells (a chunk's lazily built projected
 /// operator holds about 5.3 MB decoded, and decodes in about 100 ms of a core; 512 cost 0.33
@@ -34,16 +39,149 @@ pub fn wants_chunks(width: usize, height: usize, chunk: u32) -> bool {
 /// Codes one chunk (a raster of its own) by whichever 2D codec and settings the caller chose.
 pub type EncodeOne<'a> = dyn Fn(&Raster) -> Result<Encoded, Error> + Sync + 'a;
 
+/// Counts chunks coded: `progress(done, total)`.
+pub type Progress<'a> = dyn Fn(u64, u64) + Sync + 'a;
+
+/// Rows read from the source at a time: a level holds its chunk row in progress and at most
+/// this many rows more.
+const READ_ROWS: usize = 128;
+
 /// Codes `raster` in chunks of `chunk` cells (a power of two in
 /// [`chunked::CHUNK_SIDES`]), each by `encode_one`, in parallel; `progress(done, total)`
 /// counts chunks. The errors reported are those of the source level's chunks over their coded
-/// cells.
+/// cells. The file is built in memory: [`encode_chunked_file`] writes one of any size.
 pub fn encode_chunked(
     raster: &Raster,
     chunk: u32,
     encode_one: &EncodeOne<'_>,
-    progress: &(dyn Fn(u64, u64) + Sync),
+    progress: &Progress<'_>,
 ) -> Result<Encoded, Error> {
+    let mut spill = Spill::Memory(Vec::new());
+    let mut coded = code_streamed(
+        &mut InMemory::new(raster),
+        chunk,
+        (encode_one, progress),
+        &mut spill,
+    )?;
+    let mut bytes = chunked::header(&coded.meta, &mut coded.table);
+    for (at, len) in coded.order() {
+        spill
+            .copy(at, len, &mut bytes)
+            .map_err(|e| Error::Output(e.to_string()))?;
+    }
+    let asset = Asset::from_bytes(&bytes)?;
+    Ok(Encoded {
+        asset,
+        bytes,
+        errors: coded.errors,
+        transforms: coded.transforms,
+        seconds: coded.start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Codes the raster `rows` reads in chunks (as [`encode_chunked`]) and writes the file to
+/// `output`, in memory bounded whatever the raster's size: rows are read a band at a time
+/// and dropped once the chunks (and overview rows) that need them are made, and each chunk's
+/// file goes to an unnamed temporary file as it is coded. The output appears whole or not at
+/// all ([`write_atomic_with`]).
+pub fn encode_chunked_file(
+    rows: &mut dyn Rows,
+    chunk: u32,
+    encode_one: &EncodeOne<'_>,
+    progress: &Progress<'_>,
+    output: &Path,
+) -> Result<Written, Error> {
+    let dir = output
+        .parent()
+        .filter(|p| !p.as_os_str().is_empty())
+        .unwrap_or(Path::new("."));
+    let out = |e: std::io::Error| Error::Output(format!("{}: {e}", output.display()));
+    let mut spill = Spill::File(tempfile::tempfile_in(dir).map_err(out)?, 0);
+    let mut coded = code_streamed(rows, chunk, (encode_one, progress), &mut spill)?;
+    let head = chunked::header(&coded.meta, &mut coded.table);
+    let mut length = head.len() as u64;
+    write_atomic_with(output, &mut |f| {
+        let mut f = std::io::BufWriter::new(f);
+        f.write_all(&head)?;
+        for (at, len) in coded.order() {
+            spill.copy(at, len, &mut f)?;
+            length += len;
+        }
+        f.flush()
+    })?;
+    Ok(Written {
+        asset: Asset::read(output)?,
+        length,
+        errors: coded.errors,
+        transforms: coded.transforms,
+        seconds: coded.start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Where chunk files wait while the others are coded: memory for a file built in memory, an
+/// unnamed temporary file (and its length) for one written to disk.
+enum Spill {
+    Memory(Vec<u8>),
+    File(std::fs::File, u64),
+}
+
+impl Spill {
+    /// Appends a chunk's file; returns where it starts.
+    fn push(&mut self, file: &[u8]) -> std::io::Result<u64> {
+        match self {
+            Spill::Memory(v) => {
+                v.extend_from_slice(file);
+                Ok((v.len() - file.len()) as u64)
+            }
+            Spill::File(f, len) => {
+                f.write_all(file)?;
+                *len += file.len() as u64;
+                Ok(*len - file.len() as u64)
+            }
+        }
+    }
+
+    /// Copies `len` bytes from `at` to `out`.
+    fn copy(&self, at: u64, len: u64, out: &mut dyn Write) -> std::io::Result<()> {
+        match self {
+            Spill::Memory(v) => out.write_all(&v[at as usize..(at + len) as usize]),
+            Spill::File(f, _) => {
+                use std::os::unix::fs::FileExt;
+                let mut buf = vec![0u8; len as usize];
+                f.read_exact_at(&mut buf, at)?;
+                out.write_all(&buf)
+            }
+        }
+    }
+}
+
+/// What a streaming encode coded: the file's metadata and table (lengths and CRCs set,
+/// offsets not yet), where each chunk's file lies in the spill, and the source level's errors.
+struct Streamed {
+    meta: fractile_proto::AssetMeta,
+    table: ChunkTable,
+    /// `(start, length)` in the spill of every chunk, level by level (length 0: no file).
+    spilled: Vec<Vec<(u64, u64)>>,
+    errors: Errors,
+    transforms: usize,
+    start: Instant,
+}
+
+impl Streamed {
+    /// Every chunk's place in the spill, in the file's order.
+    fn order(&self) -> impl Iterator<Item = (u64, u64)> + '_ {
+        self.spilled.iter().flatten().copied()
+    }
+}
+
+/// Every chunk of every level of the raster `rows` reads, coded by `encode_one` on all cores
+/// as soon as the rows it covers are read (see [`Pyramid`]), its file pushed to `spill`.
+fn code_streamed(
+    rows: &mut dyn Rows,
+    chunk: u32,
+    work: (&EncodeOne<'_>, &Progress<'_>),
+    spill: &mut Spill,
+) -> Result<Streamed, Error> {
     let start = Instant::now();
     let (lo, hi) = chunked::CHUNK_SIDES;
     if !chunk.is_power_of_two() || !(lo..=hi).contains(&chunk) {
@@ -51,16 +189,20 @@ pub fn encode_chunked(
             "--chunk {chunk}: a power of two from {lo} to {hi}"
         )));
     }
-    if raster.width > 1 << 24 || raster.height > 1 << 24 {
-        return Err(Error::Input("a raster over 2^24 cells a side".into()));
+    let header = rows.header().clone();
+    if header.width == 0 || header.height == 0 {
+        return Err(Error::Input("the grid is empty (0 samples)".into()));
     }
-    let sizes = ChunkTable::level_sizes(raster.width as u32, raster.height as u32, chunk);
-    let mut levels = vec![None];
-    for _ in 1..sizes.len() {
-        let finer = levels.last().and_then(Option::as_ref).unwrap_or(raster);
-        levels.push(Some(halve(finer)));
+    if header.width > mosaic::MAX_WIDTH || header.height > 1 << 24 {
+        return Err(Error::Input(format!(
+            "{}x{}: a chunked raster is at most {} cells wide (a band of its rows is held in memory) and 2^24 high",
+            header.width,
+            header.height,
+            mosaic::MAX_WIDTH
+        )));
     }
-    let mut table = ChunkTable {
+    let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk);
+    let table = ChunkTable {
         chunk,
         overlap: OVERLAP,
         codec: 0,
@@ -69,101 +211,31 @@ pub fn encode_chunked(
         smallest_source_error: None,
         levels: Vec::new(),
     };
-    let coded = code_chunks(raster, &levels, &table, &sizes, (encode_one, progress))?;
-    let (mut files, mut entries) = blank(&table, &sizes);
-    // Squared error sums of the source level's chunks, for the file's errors.
-    let (mut sq, mut abs, mut samples, mut max_error) = (0.0f64, 0.0f64, 0u64, 0.0f64);
-    let (mut transforms, mut template) = (0usize, None);
-    let (mut value_min, mut value_max) = (f64::INFINITY, f64::NEG_INFINITY);
-    for (l, i, coded) in coded {
-        let Some(c) = coded else { continue };
-        if table.codec != 0 && table.codec != c.codec {
-            return Err(Error::Settings("chunks coded by different codecs".into()));
+    let mut pyramid = Pyramid::new(&header, &sizes, &table);
+    let mut tally = Tally::new(blank(&table, &sizes), work, spill);
+    let mut code = |l, i, part| tally.push(l, i, part);
+    let mut y = 0;
+    while y < header.height {
+        let y1 = (y + READ_ROWS).min(header.height);
+        let band = rows.read(y, y1)?;
+        if band.width != header.width || band.height != y1 - y {
+            return Err(Error::Input(format!(
+                "rows {y}..{y1} read as {}x{}, not {}x{}",
+                band.width,
+                band.height,
+                header.width,
+                y1 - y
+            )));
         }
-        table.codec = c.codec;
-        table.max_contrast = table.max_contrast.max(c.max_contrast);
-        table.seed_bound = table.seed_bound.max(c.seed_bound);
-        if let Some(e) = c.smallest_source_error {
-            let s = table.smallest_source_error.get_or_insert(e);
-            *s = s.min(e);
-        }
-        let entry = &mut entries[l][i as usize];
-        entry.value_range = [c.meta.value_min, c.meta.value_max];
-        value_min = value_min.min(c.meta.value_min);
-        value_max = value_max.max(c.meta.value_max);
-        if l == 0 {
-            let e = &c.errors;
-            sq += e.rmse * e.rmse * e.samples as f64;
-            abs += e.mae * e.samples as f64;
-            samples += e.samples;
-            max_error = max_error.max(e.max_error);
-            transforms += c.transforms;
-            template.get_or_insert(c.meta);
-        }
-        files[l][i as usize] = c.bytes;
+        pyramid.push(0, &band, &mut code)?;
+        y = y1;
     }
-    let Some(mut meta) = template else {
-        return Err(Error::Input("no cell of the raster has data".into()));
-    };
-    for (entries, &(w, h)) in entries.into_iter().zip(&sizes) {
-        table.levels.push(Level {
-            width: w,
-            height: h,
-            chunks: entries,
-        });
-    }
-    meta.width = raster.width as u32;
-    meta.height = raster.height as u32;
-    meta.georef = raster.georef.clone();
-    // Images keep their fixed 0-255 range; height fields span every chunk's.
-    if meta.kind == fractile_proto::AssetKind::HeightField {
-        meta.value_min = value_min;
-        meta.value_max = value_max;
-    }
-    let rmse = (sq / samples.max(1) as f64).sqrt();
-    let psnr = if rmse > 0.0 {
-        20.0 * (meta.psnr_peak() / rmse).log10()
-    } else {
-        f64::INFINITY
-    };
-    meta.encoder = format!("chunked {chunk}: {}", meta.encoder);
-    meta.stats = fractile_proto::EncodeStats {
-        transforms: transforms as u64,
-        rmse,
-        psnr,
-        max_error,
-        seconds: start.elapsed().as_secs_f64(),
-    };
-    let bytes = chunked::assemble(&meta, table, &files);
-    drop(files);
-    let asset = Asset::from_bytes(&bytes)?;
-    Ok(Encoded {
-        asset,
-        bytes,
-        errors: Errors {
-            rmse,
-            mae: abs / samples.max(1) as f64,
-            max_error,
-            psnr,
-            samples,
-        },
-        transforms,
-        seconds: start.elapsed().as_secs_f64(),
-    })
+    tally.flush()?;
+    tally.finish(&header, table, &sizes, start)
 }
-
-/// An empty file and a table entry (its cells, nothing yet of its bytes) for every chunk of
-/// every level.
-#[allow(clippy::type_complexity)]
-fn blank(table: &ChunkTable, sizes: &[(u32, u32)]) -> (Vec<Vec<Vec<u8>>>, Vec<Vec<ChunkEntry>>) {
-    let files: Vec<Vec<Vec<u8>>> = sizes
-        .iter()
-        .map(|&(w, h)| {
-            let (nx, ny) = table.grid(w, h);
-            vec![Vec::new(); (nx * ny) as usize]
-        })
-        .collect();
-    let entries: Vec<Vec<ChunkEntry>> = sizes
+/// A table entry (its cells, nothing yet of its file) for every chunk of every level.
+fn blank(table: &ChunkTable, sizes: &[(u32, u32)]) -> Vec<Vec<ChunkEntry>> {
+    sizes
         .iter()
         .map(|&(w, h)| {
             let (nx, ny) = table.grid(w, h);
@@ -177,8 +249,193 @@ fn blank(table: &ChunkTable, sizes: &[(u32, u32)]) -> (Vec<Vec<Vec<u8>>>, Vec<Ve
                 })
                 .collect()
         })
-        .collect();
-    (files, entries)
+        .collect()
+}
+
+/// Chunks waiting to be coded (a batch of a chunk a core), and what the file keeps of those
+/// coded: table entries, places in the spill, the table's and the metadata's figures.
+struct Tally<'w, 's> {
+    entries: Vec<Vec<ChunkEntry>>,
+    spilled: Vec<Vec<(u64, u64)>>,
+    queue: Vec<(usize, u32, Raster)>,
+    work: (&'w EncodeOne<'w>, &'w Progress<'w>),
+    spill: &'s mut Spill,
+    done: AtomicU64,
+    total: u64,
+    codec: u8,
+    max_contrast: f32,
+    seed_bound: f32,
+    smallest_source_error: Option<f32>,
+    value_range: [f64; 2],
+    /// Squared and absolute error sums, samples and largest error of the source level.
+    sums: (f64, f64, u64, f64),
+    transforms: usize,
+    template: Option<fractile_proto::AssetMeta>,
+}
+
+impl<'w, 's> Tally<'w, 's> {
+    fn new(
+        entries: Vec<Vec<ChunkEntry>>,
+        work: (&'w EncodeOne<'w>, &'w Progress<'w>),
+        spill: &'s mut Spill,
+    ) -> Self {
+        let total = entries.iter().map(Vec::len).sum::<usize>() as u64;
+        (work.1)(0, total);
+        Tally {
+            spilled: entries.iter().map(|l| vec![(0, 0); l.len()]).collect(),
+            entries,
+            queue: Vec::new(),
+            work,
+            spill,
+            done: AtomicU64::new(0),
+            total,
+            codec: 0,
+            max_contrast: 0.0,
+            seed_bound: 0.0,
+            smallest_source_error: None,
+            value_range: [f64::INFINITY, f64::NEG_INFINITY],
+            sums: (0.0, 0.0, 0, 0.0),
+            transforms: 0,
+            template: None,
+        }
+    }
+
+    /// Queues chunk `i` of level `l`; codes the queue once it holds a chunk a core.
+    fn push(&mut self, l: usize, i: u32, part: Raster) -> Result<(), Error> {
+        self.queue.push((l, i, part));
+        if self.queue.len() >= rayon::current_num_threads().max(1) {
+            self.flush()?;
+        }
+        Ok(())
+    }
+
+    /// Codes every queued chunk on all cores and records each.
+    fn flush(&mut self) -> Result<(), Error> {
+        let jobs = std::mem::take(&mut self.queue);
+        let (encode_one, progress) = self.work;
+        let (done, total) = (&self.done, self.total);
+        // One chunk a task: a core waiting inside a chunk's own parallel work would otherwise
+        // steal further chunks, and hold more of them in memory than there are cores.
+        let coded: Vec<_> = jobs
+            .into_par_iter()
+            .with_max_len(1)
+            .map(|(l, i, part)| {
+                let any_valid = part.valid.as_ref().is_none_or(|v| v.contains(&true));
+                let enc = if any_valid {
+                    let enc = encode_one(&part).map_err(|e| match e {
+                        Error::Input(m) => Error::Input(format!("chunk {i} of level {l}: {m}")),
+                        e => e,
+                    })?;
+                    Some(Coded::of(enc))
+                } else {
+                    None
+                };
+                progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
+                Ok((l, i, enc))
+            })
+            .collect::<Result<_, Error>>()?;
+        for (l, i, c) in coded {
+            if let Some(c) = c {
+                self.record(l, i as usize, c)?;
+            }
+        }
+        Ok(())
+    }
+
+    fn record(&mut self, l: usize, i: usize, c: Coded) -> Result<(), Error> {
+        if self.codec != 0 && self.codec != c.codec {
+            return Err(Error::Settings("chunks coded by different codecs".into()));
+        }
+        self.codec = c.codec;
+        self.max_contrast = self.max_contrast.max(c.max_contrast);
+        self.seed_bound = self.seed_bound.max(c.seed_bound);
+        if let Some(e) = c.smallest_source_error {
+            let s = self.smallest_source_error.get_or_insert(e);
+            *s = s.min(e);
+        }
+        let [lo, hi] = &mut self.value_range;
+        *lo = lo.min(c.meta.value_min);
+        *hi = hi.max(c.meta.value_max);
+        if l == 0 {
+            let (e, s) = (&c.errors, &mut self.sums);
+            s.0 += e.rmse * e.rmse * e.samples as f64;
+            s.1 += e.mae * e.samples as f64;
+            s.2 += e.samples;
+            s.3 = s.3.max(e.max_error);
+            self.transforms += c.transforms;
+            self.template.get_or_insert_with(|| c.meta.clone());
+        }
+        let at = self
+            .spill
+            .push(&c.bytes)
+            .map_err(|e| Error::Output(format!("spilling a chunk: {e}")))?;
+        let entry = &mut self.entries[l][i];
+        entry.value_range = [c.meta.value_min, c.meta.value_max];
+        entry.length = c.bytes.len() as u64;
+        entry.crc = chunked::file_crc(&c.bytes);
+        self.spilled[l][i] = (at, entry.length);
+        Ok(())
+    }
+
+    /// The file's metadata and table from every chunk recorded.
+    fn finish(
+        self,
+        header: &Header,
+        mut table: ChunkTable,
+        sizes: &[(u32, u32)],
+        start: Instant,
+    ) -> Result<Streamed, Error> {
+        let Some(mut meta) = self.template else {
+            return Err(Error::Input("no cell of the raster has data".into()));
+        };
+        table.codec = self.codec;
+        table.max_contrast = self.max_contrast;
+        table.seed_bound = self.seed_bound;
+        table.smallest_source_error = self.smallest_source_error;
+        for (entries, &(w, h)) in self.entries.into_iter().zip(sizes) {
+            table.levels.push(chunked::Level {
+                width: w,
+                height: h,
+                chunks: entries,
+            });
+        }
+        meta.width = header.width as u32;
+        meta.height = header.height as u32;
+        meta.georef = header.georef.clone();
+        // Images keep their fixed 0-255 range; height fields span every chunk's.
+        if meta.kind == fractile_proto::AssetKind::HeightField {
+            [meta.value_min, meta.value_max] = self.value_range;
+        }
+        let (sq, abs, samples, max_error) = self.sums;
+        let rmse = (sq / samples.max(1) as f64).sqrt();
+        let psnr = if rmse > 0.0 {
+            20.0 * (meta.psnr_peak() / rmse).log10()
+        } else {
+            f64::INFINITY
+        };
+        meta.encoder = format!("chunked {}: {}", table.chunk, meta.encoder);
+        meta.stats = fractile_proto::EncodeStats {
+            transforms: self.transforms as u64,
+            rmse,
+            psnr,
+            max_error,
+            seconds: start.elapsed().as_secs_f64(),
+        };
+        Ok(Streamed {
+            meta,
+            table,
+            spilled: self.spilled,
+            errors: Errors {
+                rmse,
+                mae: abs / samples.max(1) as f64,
+                max_error,
+                psnr,
+                samples,
+            },
+            transforms: self.transforms,
+            start,
+        })
+    }
 }
 
 /// What the file keeps of a chunk's encode: its bytes and the figures of its table entry and
@@ -212,138 +469,100 @@ impl Coded {
     }
 }
 
-/// Every chunk of every level coded by `encode_one` on all cores: `(level, index, coded)`,
-/// `None` for a chunk with no valid cell.
-fn code_chunks(
-    raster: &Raster,
-    levels: &[Option<Raster>],
-    table: &ChunkTable,
-    sizes: &[(u32, u32)],
-    (encode_one, progress): (&EncodeOne<'_>, &(dyn Fn(u64, u64) + Sync)),
-) -> Result<Vec<(usize, u32, Option<Coded>)>, Error> {
-    // Every chunk of every level, coarse levels first (they are small, and a slow start on
-    // the big level would leave a core idle at the end).
-    let mut jobs = Vec::new();
-    for (l, &(w, h)) in sizes.iter().enumerate() {
-        let (nx, ny) = table.grid(w, h);
-        for i in 0..nx * ny {
-            jobs.push((l, i, table.coded_cells(w, h, i % nx, i / nx)));
-        }
-    }
-    jobs.reverse();
-    let total = jobs.len() as u64;
-    let done = AtomicU64::new(0);
-    progress(0, total);
-    // In batches of a chunk a core: a core waiting inside a chunk's own parallel work would
-    // otherwise steal further chunks, and hold more of them in memory than there are cores.
-    let mut coded = Vec::with_capacity(jobs.len());
-    for batch in jobs.chunks(rayon::current_num_threads().max(1)) {
-        let part: Vec<_> = batch
-            .par_iter()
-            .with_max_len(1)
-            .map(|&(l, i, cells)| {
-                let source = levels[l].as_ref().unwrap_or(raster);
-                let part = crop(source, cells);
-                let any_valid = part.valid.as_ref().is_none_or(|v| v.iter().any(|&b| b));
-                let enc = if any_valid {
-                    let enc = encode_one(&part).map_err(|e| match e {
-                        Error::Input(m) => Error::Input(format!("chunk {i} of level {l}: {m}")),
-                        e => e,
-                    })?;
-                    Some(Coded::of(enc))
-                } else {
-                    None
-                };
-                progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
-                Ok((l, i, enc))
-            })
-            .collect::<Result<_, Error>>()?;
-        coded.extend(part);
-    }
-    Ok(coded)
-}
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use std::sync::Mutex;
 
-/// The cells `[x0, y0, x1, y1)` of `raster` as a raster of their own (georeference moved to
-/// its corner).
-fn crop(raster: &Raster, [x0, y0, x1, y1]: [u32; 4]) -> Raster {
-    let (x0, y0, x1, y1) = (x0 as usize, y0 as usize, x1 as usize, y1 as usize);
-    let w = raster.width;
-    let rows = |plane: &[f32]| -> Vec<f32> {
-        (y0..y1)
-            .flat_map(|y| plane[y * w + x0..y * w + x1].iter().copied())
-            .collect()
-    };
-    let valid = raster.valid.as_ref().map(|v| {
-        (y0..y1)
-            .flat_map(|y| v[y * w + x0..y * w + x1].iter().copied())
-            .collect::<Vec<bool>>()
-    });
-    Raster {
-        width: x1 - x0,
-        height: y1 - y0,
-        channels: raster.channels.iter().map(|c| rows(c)).collect(),
-        valid: valid.filter(|v| v.iter().any(|&b| !b)),
-        kind: raster.kind,
-        sample: raster.sample,
-        units: raster.units.clone(),
-        nodata: raster.nodata,
-        georef: raster.georef.as_ref().map(|g| fractile_proto::Georef {
-            origin: [
-                g.origin[0] + x0 as f64 * g.pixel_size[0],
-                g.origin[1] + y0 as f64 * g.pixel_size[1],
-            ],
-            ..g.clone()
-        }),
+    fn testdata(name: &str) -> std::path::PathBuf {
+        Path::new(env!("CARGO_MANIFEST_DIR"))
+            .join("../testdata")
+            .join(name)
     }
-}
 
-/// The raster box-averaged by 2 (sizes rounded up): each cell the mean of the valid cells of
-/// its 2 x 2 block (rounded for integer samples), nodata where none is.
-pub(crate) fn halve(raster: &Raster) -> Raster {
-    let (w, h) = (raster.width, raster.height);
-    let (hw, hh) = (w.div_ceil(2), h.div_ceil(2));
-    let valid_at = |i: usize| raster.valid.as_ref().is_none_or(|v| v[i]);
-    // Integer samples stay integers (rounded means): an overview of an integer source is of
-    // its sample type, and the codecs that keep a bound per sample count on its quantum.
-    let whole = raster.sample != fractile_proto::SampleFormat::F32;
-    let mut valid = vec![true; hw * hh];
-    let mut channels = vec![vec![f32::NAN; hw * hh]; raster.channels.len()];
-    for y in 0..hh {
-        for x in 0..hw {
-            let cells = [(0, 0), (1, 0), (0, 1), (1, 1)]
-                .into_iter()
-                .map(|(dx, dy)| (2 * x + dx, 2 * y + dy))
-                .filter(|&(cx, cy)| cx < w && cy < h)
-                .map(|(cx, cy)| cy * w + cx)
-                .filter(|&i| valid_at(i));
-            let (mut n, mut sums) = (0u32, [0f64; 4]);
-            for i in cells {
-                n += 1;
-                for (s, c) in sums.iter_mut().zip(&raster.channels) {
-                    *s += f64::from(c[i]);
-                }
+    /// Where a chunk lies: its level (pixel size), corner and size.
+    fn key(r: &Raster) -> (u64, u64, u64, usize, usize) {
+        let g = r.georef.as_ref().expect("georeferenced");
+        (
+            g.pixel_size[0].to_bits(),
+            g.origin[0].to_bits(),
+            g.origin[1].to_bits(),
+            r.width,
+            r.height,
+        )
+    }
+
+    /// The cells `[x0, y0, x1, y1)` of a whole raster (its georeference moved to the corner).
+    fn crop(r: &Raster, [x0, y0, x1, y1]: [u32; 4]) -> Raster {
+        let (x0, y0, x1, y1) = (x0 as usize, y0 as usize, x1 as usize, y1 as usize);
+        let rows = |p: &[f32]| -> Vec<f32> {
+            (y0..y1)
+                .flat_map(|y| p[y * r.width + x0..y * r.width + x1].to_vec())
+                .collect()
+        };
+        let valid = r.valid.as_ref().map(|v| {
+            (y0..y1)
+                .flat_map(|y| v[y * r.width + x0..y * r.width + x1].to_vec())
+                .collect::<Vec<bool>>()
+        });
+        Header::of(r).band(
+            [x0, y0],
+            x1 - x0,
+            r.channels.iter().map(|c| rows(c)).collect(),
+            valid.filter(|v| v.contains(&false)),
+        )
+    }
+
+    /// The chunks a streaming encode codes, read a band at a time, are the cells a chunk of
+    /// the raster held whole (and of its overviews, halved whole) holds: nodata cells, odd
+    /// sizes and the last lone row of a level included.
+    #[test]
+    fn streamed_chunks_are_the_whole_rasters_chunks() {
+        // 344 x 363 with nodata around the rotated source: levels of 344 x 363, 172 x 182,
+        // 86 x 91 in chunks of 64.
+        let raster = Raster::open(&testdata("jacksboro-utm.tif")).unwrap();
+        let seen = Mutex::new(Vec::new());
+        let one = |part: &Raster| {
+            seen.lock().unwrap().push(part.clone());
+            crate::encode_default(part, 0.8, &|_, _| {})
+        };
+        let enc = encode_chunked(&raster, 64, &one, &|_, _| {}).unwrap();
+        let table = &enc.asset.chunks.as_ref().unwrap().table;
+        let mut level = raster.clone();
+        let mut expected = Vec::new();
+        for (l, lev) in table.levels.iter().enumerate() {
+            if l > 0 {
+                level = super::super::pyramid::halve(&level);
             }
-            valid[y * hw + x] = n > 0;
-            if n > 0 {
-                for (c, s) in channels.iter_mut().zip(sums) {
-                    let mean = s / f64::from(n);
-                    c[y * hw + x] = if whole { mean.round() } else { mean } as f32;
+            assert_eq!(
+                (lev.width as usize, lev.height as usize),
+                (level.width, level.height)
+            );
+            for e in &lev.chunks {
+                let part = crop(&level, e.cells);
+                if part.valid.as_ref().is_none_or(|v| v.contains(&true)) {
+                    expected.push(part);
                 }
             }
         }
-    }
-    Raster {
-        width: hw,
-        height: hh,
-        channels,
-        valid: raster.valid.as_ref().map(|_| valid),
-        kind: raster.kind,
-        sample: raster.sample,
-        units: raster.units.clone(),
-        nodata: raster.nodata,
-        georef: raster.georef.as_ref().map(|g| fractile_proto::Georef {
-            pixel_size: [g.pixel_size[0] * 2.0, g.pixel_size[1] * 2.0],
-            ..g.clone()
-        }),
+        let mut seen = seen.into_inner().unwrap();
+        assert_eq!(seen.len(), expected.len());
+        assert!(
+            table.levels.len() == 3 && expected.len() > 30,
+            "{}",
+            expected.len()
+        );
+        seen.sort_by_key(key);
+        expected.sort_by_key(key);
+        for (s, e) in seen.iter().zip(&expected) {
+            assert_eq!(key(s), key(e));
+            assert_eq!(s.valid, e.valid, "{:?}", key(e));
+            for (a, b) in s.channels[0].iter().zip(&e.channels[0]) {
+                assert!(
+                    a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()),
+                    "{a} {b}"
+                );
+            }
+        }
     }
 }

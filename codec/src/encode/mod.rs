@@ -10,6 +10,7 @@ pub mod chunked;
 pub mod curve;
 pub mod fidelity;
 pub mod projected;
+mod pyramid;
 pub mod volume;
 
 use std::time::Instant;
@@ -333,14 +334,58 @@ pub struct Encoded {
 impl Encoded {
     /// Bits per source pixel of the whole file.
     pub fn bpp(&self) -> f64 {
-        self.bytes.len() as f64 * 8.0
-            / (self.asset.meta.width as f64 * self.asset.meta.height as f64)
+        bpp(&self.asset.meta, self.bytes.len() as u64)
     }
 
     /// Source bytes (at the source's sample type) over file bytes.
     pub fn ratio(&self) -> f64 {
         self.asset.meta.source_bytes() as f64 / self.bytes.len() as f64
     }
+
+    /// Writes the file to `path` atomically; keeps what was measured.
+    pub fn write(self, path: &std::path::Path) -> Result<Written, Error> {
+        crate::io::asset::write_atomic(path, &self.bytes)?;
+        Ok(Written {
+            length: self.bytes.len() as u64,
+            asset: self.asset,
+            errors: self.errors,
+            transforms: self.transforms,
+            seconds: self.seconds,
+        })
+    }
+}
+
+/// What an encode wrote to a file and measured: [`Encoded::write`], or a chunked encode
+/// streamed to disk ([`chunked::encode_chunked_file`]), whose bytes were never all in memory.
+#[derive(Clone, Debug)]
+pub struct Written {
+    /// The asset (a chunked one as opened from the file: its header, chunks on demand).
+    pub asset: Asset,
+    /// The file's length in bytes.
+    pub length: u64,
+    /// Errors of the decoded asset against the source (a chunked one's: its source level's
+    /// chunks over their coded cells).
+    pub errors: Errors,
+    /// Ranges over all planes (a chunked one's: over its source level's chunks).
+    pub transforms: usize,
+    /// Wall time in seconds.
+    pub seconds: f64,
+}
+
+impl Written {
+    /// Bits per source pixel of the whole file.
+    pub fn bpp(&self) -> f64 {
+        bpp(&self.asset.meta, self.length)
+    }
+
+    /// Source bytes (at the source's sample type) over file bytes.
+    pub fn ratio(&self) -> f64 {
+        self.asset.meta.source_bytes() as f64 / self.length as f64
+    }
+}
+
+fn bpp(meta: &fractile_proto::AssetMeta, length: u64) -> f64 {
+    length as f64 * 8.0 / (f64::from(meta.width) * f64::from(meta.height))
 }
 
 /// The rate of a height field's default encode: 0.8 bits a cell (20:1 against 16-bit samples),

@@ -1332,6 +1332,16 @@ pub fn temporary_owner(name: &str) -> Option<u32> {
 
 /// Writes bytes to `path` atomically (temporary file in the same directory, fsync, rename).
 pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
+    write_atomic_with(path, &mut |f| f.write_all(bytes))
+}
+
+/// Writes to `path` atomically what `write` writes into the temporary file (a file too large
+/// to hold in memory is written in parts): the temporary file is synced, then renamed over
+/// `path`, or removed if `write` fails.
+pub fn write_atomic_with(
+    path: &Path,
+    write: &mut dyn FnMut(&mut std::fs::File) -> std::io::Result<()>,
+) -> Result<(), Error> {
     let err = |e: std::io::Error| Error::Output(format!("{}: {e}", path.display()));
     let dir = path
         .parent()
@@ -1351,7 +1361,7 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
     ));
     let result = (|| {
         let mut f = std::fs::File::create(&tmp)?;
-        f.write_all(bytes)?;
+        write(&mut f)?;
         f.sync_all()?;
         std::fs::rename(&tmp, path)
     })();

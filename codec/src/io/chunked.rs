@@ -400,25 +400,42 @@ pub fn is_chunked(bytes: &[u8]) -> bool {
 /// file, empty for a chunk with no valid cell; the table's offsets, lengths and CRCs are
 /// filled in here.
 pub fn assemble(meta: &AssetMeta, mut table: ChunkTable, chunks: &[Vec<Vec<u8>>]) -> Vec<u8> {
-    let meta_bytes = fractile_proto::encode(meta);
-    // The table's size does not depend on the offsets' values (fixed-width integers).
-    let table_len = fractile_proto::encode(&table).len();
-    let header_len = 8 + 2 + 2 + 4 + meta_bytes.len() + 4 + table_len + 4;
-    let mut offset = header_len as u64;
     for (level, files) in table.levels.iter_mut().zip(chunks) {
         for (entry, file) in level.chunks.iter_mut().zip(files) {
-            entry.offset = offset;
             entry.length = file.len() as u64;
-            entry.crc = file
-                .len()
-                .checked_sub(4)
-                .map_or(0, |n| u32::from_le_bytes(file[n..].try_into().expect("4")));
-            offset += file.len() as u64;
+            entry.crc = file_crc(file);
         }
     }
-    let table_bytes = fractile_proto::encode(&table);
+    let mut out = header(meta, &mut table);
+    for file in chunks.iter().flatten() {
+        out.extend_from_slice(file);
+    }
+    out
+}
+
+/// The CRC a chunk's file ends with (0 for an empty file): what its table entry repeats.
+pub fn file_crc(file: &[u8]) -> u32 {
+    file.len()
+        .checked_sub(4)
+        .map_or(0, |n| u32::from_le_bytes(file[n..].try_into().expect("4")))
+}
+
+/// The header of a chunked container (magic, version, kind, codec, metadata, table, CRC) whose
+/// chunk files follow it in the table's order, level by level: every entry's offset is set
+/// here from the lengths before it (its length and CRC are the caller's).
+pub fn header(meta: &AssetMeta, table: &mut ChunkTable) -> Vec<u8> {
+    let meta_bytes = fractile_proto::encode(meta);
+    // The table's size does not depend on the offsets' values (fixed-width integers).
+    let table_len = fractile_proto::encode(&*table).len();
+    let header_len = 8 + 2 + 2 + 4 + meta_bytes.len() + 4 + table_len + 4;
+    let mut offset = header_len as u64;
+    for entry in table.levels.iter_mut().flat_map(|l| &mut l.chunks) {
+        entry.offset = offset;
+        offset += entry.length;
+    }
+    let table_bytes = fractile_proto::encode(&*table);
     debug_assert_eq!(table_bytes.len(), table_len);
-    let mut out = Vec::with_capacity(offset as usize);
+    let mut out = Vec::with_capacity(header_len);
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&CHUNKED_VERSION.to_le_bytes());
     out.push(super::asset::kind_byte(meta.kind));
@@ -429,9 +446,6 @@ pub fn assemble(meta: &AssetMeta, mut table: ChunkTable, chunks: &[Vec<Vec<u8>>]
     out.extend_from_slice(&table_bytes);
     let crc = crc32fast::hash(&out);
     out.extend_from_slice(&crc.to_le_bytes());
-    for file in chunks.iter().flatten() {
-        out.extend_from_slice(file);
-    }
     out
 }
 

@@ -6,3 +6,4 @@ pub mod asset;
 pub mod chunked;
 pub mod mosaic;
 pub mod raster;
+pub mod rows;

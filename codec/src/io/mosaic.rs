@@ -1,5 +1,5 @@
-//! Mosaics: many georeferenced rasters that tile an area (SRTM and Copernicus DEMs come as
-//! 1-degree tiles) read as one [`Raster`], which then encodes as any raster does.
+//! Mosaics: many GeoTIFFs that tile an area (SRTM and Copernicus DEMs come as 1-degree
+//! tiles) read as one raster, by bands of rows ([`Mosaic`]) or whole ([`open`]).
 //!
 //! The inputs must share a grid: the same CRS, the same pixel size, and origins a whole number
 //! of pixels apart. Reprojection and resampling are out of scope: inputs that would need them
@@ -14,15 +14,21 @@ use fractile_proto::{Georef, SampleFormat};
 
 use crate::Error;
 use crate::io::raster::Raster;
+use crate::io::rows::{GeoTiff, Header, Rows};
 
 /// How far (in pixels) two origins may be from a whole number of pixels apart, or two pixel
 /// sizes apart relative to their size, and still count as one grid: far above the rounding of
 /// coordinates a GeoTIFF stores in f64, far below any real misalignment.
 const SAME_GRID: f64 = 1e-6;
 
-/// The largest mosaic in cells: inputs far apart would otherwise ask for a grid of mostly
-/// nodata bigger than memory. The same side limit as a single raster has.
-const MAX_SIDE: usize = 1 << 15;
+/// The widest mosaic in cells: a band of rows of it is held in memory while it encodes
+/// (about 5 bytes a cell for 1,030 rows of each overview level). Inputs far apart would
+/// otherwise ask for a grid of mostly nodata. The same side limit as a single raster has.
+pub const MAX_WIDTH: usize = 1 << 15;
+
+/// The tallest mosaic in cells: rows are read a band at a time, so height costs time, not
+/// memory; this bounds the time that inputs far apart would spend on nodata.
+pub const MAX_HEIGHT: usize = 1 << 20;
 
 /// The rasters a list of paths names: each file as given, each folder's `.tif` / `.tiff` files
 /// in name order.
@@ -56,17 +62,78 @@ pub fn input_files(paths: &[PathBuf]) -> Result<Vec<PathBuf>, Error> {
 }
 
 /// Reads `paths` (see [`input_files`]) as one raster: the one file itself, or the mosaic of
-/// several.
+/// several, whole (a chunked encode reads them by bands instead: [`super::rows::open`]).
 pub fn open(paths: &[PathBuf]) -> Result<Raster, Error> {
-    let files = input_files(paths)?;
-    if let [one] = files.as_slice() {
-        return Raster::open(one);
+    super::rows::open(paths)?.read_all()
+}
+
+/// A mosaic of GeoTIFFs read by bands of rows: each band gathered from the inputs it crosses,
+/// each read by its own strips or tiles.
+pub struct Mosaic {
+    header: Header,
+    /// Each input and its column and row on the mosaic.
+    parts: Vec<([usize; 2], GeoTiff)>,
+}
+
+impl Mosaic {
+    /// Reads the headers of `files` (GeoTIFFs on one grid) and places them.
+    pub fn open(files: &[PathBuf]) -> Result<Mosaic, Error> {
+        let mut parts = Vec::with_capacity(files.len());
+        for f in files {
+            if !super::rows::is_tiff(f) {
+                return Err(Error::Input(format!(
+                    "{}: a mosaic's inputs are GeoTIFFs (.tif, .tiff)",
+                    f.display()
+                )));
+            }
+            parts.push(GeoTiff::open(f)?);
+        }
+        let headers: Vec<(&Path, &Header)> = files
+            .iter()
+            .zip(&parts)
+            .map(|(f, p)| (f.as_path(), p.header()))
+            .collect();
+        let (header, at) = place(&headers)?;
+        Ok(Mosaic {
+            header,
+            parts: at.into_iter().zip(parts).collect(),
+        })
     }
-    let parts = files
-        .iter()
-        .map(|f| Raster::open(f).map(|r| (f.as_path(), r)))
-        .collect::<Result<Vec<_>, _>>()?;
-    mosaic(&parts)
+}
+
+impl Rows for Mosaic {
+    fn header(&self) -> &Header {
+        &self.header
+    }
+
+    fn read(&mut self, y0: usize, y1: usize) -> Result<Raster, Error> {
+        let w = self.header.width;
+        let y1 = y1.min(self.header.height);
+        let n = w * y1.saturating_sub(y0);
+        let mut values = vec![f32::NAN; n];
+        let mut valid = vec![false; n];
+        for ([ox, oy], part) in &mut self.parts {
+            let (pw, ph) = (part.header().width, part.header().height);
+            let (from, to) = (y0.max(*oy), y1.min(*oy + ph));
+            if from >= to {
+                continue;
+            }
+            let band = part.read(from - *oy, to - *oy)?;
+            for y in from..to {
+                for x in 0..pw {
+                    let (i, k) = ((y - from) * pw + x, (y - y0) * w + *ox + x);
+                    // The first input with data here keeps the cell.
+                    if valid[k] || !band.is_valid(i) {
+                        continue;
+                    }
+                    valid[k] = true;
+                    values[k] = band.channels[0][i];
+                }
+            }
+        }
+        let valid = valid.contains(&false).then_some(valid);
+        Ok(self.header.band([0, y0], w, vec![values], valid))
+    }
 }
 
 /// Where a part lies on the first part's grid: its column and row offsets.
@@ -115,13 +182,14 @@ fn crs_name(epsg: Option<u32>) -> String {
     epsg.map_or_else(|| "an unnamed CRS".into(), |c| format!("EPSG:{c}"))
 }
 
-/// The mosaic of `parts` (each with the path it came from, for errors): one raster over the
-/// union of their extents on their shared grid (see the module's documentation).
-pub fn mosaic(parts: &[(&Path, Raster)]) -> Result<Raster, Error> {
-    let Some((first_path, first)) = parts.first() else {
+/// The header of the mosaic of `parts` (each with the path it came from, for errors) and
+/// where each lies on it: the union of their extents on their shared grid (see the module's
+/// documentation).
+fn place(parts: &[(&Path, &Header)]) -> Result<(Header, Vec<[usize; 2]>), Error> {
+    let Some(&(first_path, first)) = parts.first() else {
         return Err(Error::Input("a mosaic of no rasters".into()));
     };
-    let georef = |(p, r): &(&Path, Raster)| {
+    let georef = |(p, r): (&Path, &Header)| {
         r.georef.clone().ok_or_else(|| {
             Error::Input(format!(
                 "{} has no georeference: a mosaic places its inputs by theirs",
@@ -129,22 +197,21 @@ pub fn mosaic(parts: &[(&Path, Raster)]) -> Result<Raster, Error> {
             ))
         })
     };
-    let g0 = georef(&parts[0])?;
+    let g0 = georef(parts[0])?;
     let mut placed = Vec::with_capacity(parts.len());
-    for part in parts {
-        let (p, r) = part;
-        if r.kind != first.kind || r.channels.len() != first.channels.len() {
+    for &(p, r) in parts {
+        if r.kind != first.kind || r.channels != first.channels {
             return Err(Error::Input(format!(
                 "{} and {} hold different kinds of data (a height field and an image, or different channels)",
                 p.display(),
                 first_path.display()
             )));
         }
-        let g = georef(part)?;
+        let g = georef((p, r))?;
         placed.push((offset((first_path, &g0), (p, &g))?, r));
     }
     let lo = |k: usize| placed.iter().map(|(at, _)| at[k]).min().unwrap_or(0);
-    let size = |r: &Raster| [r.width as i64, r.height as i64];
+    let size = |r: &Header| [r.width as i64, r.height as i64];
     let hi = |k: usize| {
         placed
             .iter()
@@ -154,42 +221,22 @@ pub fn mosaic(parts: &[(&Path, Raster)]) -> Result<Raster, Error> {
     };
     let (x0, y0) = (lo(0), lo(1));
     let (w, h) = ((hi(0) - x0) as usize, (hi(1) - y0) as usize);
-    if w > MAX_SIDE || h > MAX_SIDE {
+    if w > MAX_WIDTH || h > MAX_HEIGHT {
         return Err(Error::Input(format!(
-            "the mosaic of these inputs is {w}x{h}, larger than the {MAX_SIDE} samples a side this version encodes (are they of one area?)"
+            "the mosaic of these inputs is {w}x{h}, larger than the {MAX_WIDTH} samples wide and {MAX_HEIGHT} high this version encodes (are they of one area?)"
         )));
     }
-    let mut channels = vec![vec![f32::NAN; w * h]; first.channels.len()];
-    let mut valid = vec![false; w * h];
-    for (at, r) in &placed {
-        let (ox, oy) = ((at[0] - x0) as usize, (at[1] - y0) as usize);
-        for y in 0..r.height {
-            for x in 0..r.width {
-                let (i, k) = (y * r.width + x, (oy + y) * w + ox + x);
-                // The first input with data here keeps the cell.
-                if valid[k] || !r.is_valid(i) {
-                    continue;
-                }
-                valid[k] = true;
-                for (out, ch) in channels.iter_mut().zip(&r.channels) {
-                    out[k] = ch[i];
-                }
-            }
-        }
-    }
-    let same = |f: &dyn Fn(&Raster) -> bool| parts.iter().all(|(_, r)| f(r));
-    let sample = if same(&|r| r.sample == first.sample) {
-        first.sample
-    } else {
-        SampleFormat::F32
-    };
-    let mosaic = Raster {
+    let same = |f: &dyn Fn(&Header) -> bool| parts.iter().all(|(_, r)| f(r));
+    let header = Header {
         width: w,
         height: h,
-        channels,
-        valid: (!valid.iter().all(|&v| v)).then_some(valid),
+        channels: first.channels,
         kind: first.kind,
-        sample,
+        sample: if same(&|r| r.sample == first.sample) {
+            first.sample
+        } else {
+            SampleFormat::F32
+        },
         units: if same(&|r| r.units == first.units) {
             first.units.clone()
         } else {
@@ -205,7 +252,11 @@ pub fn mosaic(parts: &[(&Path, Raster)]) -> Result<Raster, Error> {
             pixel_size: g0.pixel_size,
         }),
     };
-    Ok(mosaic)
+    let at = placed
+        .iter()
+        .map(|(at, _)| [(at[0] - x0) as usize, (at[1] - y0) as usize])
+        .collect();
+    Ok((header, at))
 }
 
 /// `nx x ny` copies of `src` side by side, odd columns of copies flipped left-right and odd

@@ -107,7 +107,7 @@ impl Raster {
         self.valid = any.then_some(valid);
     }
 
-    fn check(&self) -> Result<(), Error> {
+    pub(crate) fn check(&self) -> Result<(), Error> {
         if self.width == 0 || self.height == 0 {
             return Err(Error::Input("the grid is empty (0 samples)".into()));
         }
@@ -219,75 +219,16 @@ fn split_rgb<T: Copy + Into<f64>>(px: &[T]) -> Vec<Vec<f32>> {
         .collect()
 }
 
+/// A GeoTIFF whole: every row of [`super::rows::GeoTiff`] (one reader of the format).
 fn read_geotiff(path: &Path) -> Result<Raster, Error> {
-    use tiff::decoder::{Decoder, DecodingResult as R};
-    use tiff::tags::Tag;
-    let bad = |e: tiff::TiffError| Error::Input(format!("{}: {e}", path.display()));
-    let file =
-        std::fs::File::open(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
-    let mut dec = Decoder::new(std::io::BufReader::new(file)).map_err(bad)?;
-    let (w, h) = dec.dimensions().map_err(bad)?;
-    let (w, h) = (w as usize, h as usize);
-    let nodata = dec
-        .find_tag(Tag::GdalNodata)
-        .ok()
-        .flatten()
-        .and_then(|v| v.into_string().ok())
-        .and_then(|s| s.trim_matches(char::from(0)).trim().parse::<f64>().ok());
-    let tie = dec.get_tag_f64_vec(Tag::ModelTiepointTag).ok();
-    let scale = dec.get_tag_f64_vec(Tag::ModelPixelScaleTag).ok();
-    let keys = dec.get_tag_u16_vec(Tag::GeoKeyDirectoryTag).ok();
-    let data = dec.read_image().map_err(bad)?;
-    let (values, sample): (Vec<f32>, _) = match data {
-        R::U8(v) => (v.into_iter().map(f32::from).collect(), SampleFormat::U8),
-        R::U16(v) => (v.into_iter().map(f32::from).collect(), SampleFormat::U16),
-        R::I16(v) => (v.into_iter().map(f32::from).collect(), SampleFormat::I16),
-        R::I8(v) => (v.into_iter().map(f32::from).collect(), SampleFormat::I16),
-        R::I32(v) => (v.into_iter().map(|x| x as f32).collect(), SampleFormat::F32),
-        R::U32(v) => (v.into_iter().map(|x| x as f32).collect(), SampleFormat::F32),
-        R::F32(v) => (v, SampleFormat::F32),
-        R::F64(v) => (v.into_iter().map(|x| x as f32).collect(), SampleFormat::F32),
-        _ => {
-            return Err(Error::Input(format!(
-                "{}: unsupported sample type",
-                path.display()
-            )));
-        }
-    };
-    if values.len() != w * h {
-        return Err(Error::Input(format!(
-            "{}: {} samples for {w}x{h}: only single-band GeoTIFFs are supported",
-            path.display(),
-            values.len()
-        )));
-    }
-    let georef = match (tie, scale) {
-        (Some(t), Some(s)) if t.len() >= 6 && s.len() >= 2 => Some(Georef {
-            epsg: keys.as_deref().and_then(epsg_of),
-            origin: [t[3] - t[0] * s[0], t[4] + t[1] * s[1]],
-            pixel_size: [s[0], -s[1]],
-        }),
-        _ => None,
-    };
-    let mut r = Raster {
-        width: w,
-        height: h,
-        channels: vec![values],
-        valid: None,
-        kind: AssetKind::HeightField,
-        sample,
-        // GeoTIFF DEMs are in metres unless a vertical-units key says otherwise; we read no
-        // vertical units key, so we say metres only for georeferenced grids.
-        units: georef.as_ref().map(|_| "m".to_string()),
-        nodata,
-        georef,
-    };
-    r.mask_invalid();
-    Ok(r)
+    use super::rows::Rows;
+    let mut file = super::rows::GeoTiff::open(path)?;
+    let h = file.header().height;
+    file.read(0, h)
 }
 
 /// The EPSG code in a GeoKeyDirectory: ProjectedCSTypeGeoKey (3072) or GeographicTypeGeoKey (2048).
-fn epsg_of(keys: &[u16]) -> Option<u32> {
+pub(crate) fn epsg_of(keys: &[u16]) -> Option<u32> {
     let entries = keys.get(4..)?;
     let find = |id: u16| {
         entries

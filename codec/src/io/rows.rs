@@ -1,0 +1,368 @@
+//! Rasters read by bands of rows, so that one larger than memory can be encoded (issue 30).
+//! A chunked encode asks its source for a few hundred rows at a time and keeps only the rows
+//! its chunks in progress need. A GeoTIFF is read strip by strip or tile by tile through
+//! `tiff`'s `read_chunk`, and a mosaic of GeoTIFFs ([`super::mosaic`]) band by band from each
+//! input. PNG and JPEG files are decoded whole: `image` has no row-by-row reader.
+
+use std::path::{Path, PathBuf};
+
+use fractile_proto::{AssetKind, Georef, SampleFormat};
+
+use crate::Error;
+use crate::io::raster::Raster;
+
+/// What a raster is without its cells: everything its file's header says.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Header {
+    /// Width in samples.
+    pub width: usize,
+    /// Height in samples.
+    pub height: usize,
+    /// Channels (1 grey/height, 3 RGB).
+    pub channels: usize,
+    /// Image or height field.
+    pub kind: AssetKind,
+    /// Sample type of the source.
+    pub sample: SampleFormat,
+    /// Units of the values, when known.
+    pub units: Option<String>,
+    /// The source's nodata value.
+    pub nodata: Option<f64>,
+    /// Georeference of the raster's top-left corner.
+    pub georef: Option<Georef>,
+}
+
+impl Header {
+    /// The header of a raster in memory.
+    pub fn of(r: &Raster) -> Header {
+        Header {
+            width: r.width,
+            height: r.height,
+            channels: r.channels.len(),
+            kind: r.kind,
+            sample: r.sample,
+            units: r.units.clone(),
+            nodata: r.nodata,
+            georef: r.georef.clone(),
+        }
+    }
+
+    /// The cells from `[x0, y0]` on, `width` wide, as a raster of their own holding
+    /// `channels` and `valid`, its georeference moved to its top-left corner.
+    pub fn band(
+        &self,
+        [x0, y0]: [usize; 2],
+        width: usize,
+        channels: Vec<Vec<f32>>,
+        valid: Option<Vec<bool>>,
+    ) -> Raster {
+        let height = channels.first().map_or(0, |c| c.len() / width.max(1));
+        Raster {
+            width,
+            height,
+            channels,
+            valid,
+            kind: self.kind,
+            sample: self.sample,
+            units: self.units.clone(),
+            nodata: self.nodata,
+            georef: self.georef.as_ref().map(|g| Georef {
+                origin: [
+                    g.origin[0] + x0 as f64 * g.pixel_size[0],
+                    g.origin[1] + y0 as f64 * g.pixel_size[1],
+                ],
+                ..g.clone()
+            }),
+        }
+    }
+}
+
+/// A raster read by bands of rows.
+pub trait Rows: Send {
+    /// The raster's size, channels and metadata.
+    fn header(&self) -> &Header;
+
+    /// Rows `y0..y1` (full width) as a raster whose georeference is the band's. `valid` is
+    /// `None` where every cell of the band holds data.
+    fn read(&mut self, y0: usize, y1: usize) -> Result<Raster, Error>;
+
+    /// Every row: the raster whole (checked as [`Raster::open`] checks a file).
+    fn read_all(&mut self) -> Result<Raster, Error> {
+        let h = self.header().height;
+        let r = self.read(0, h)?;
+        r.check()?;
+        Ok(r)
+    }
+}
+
+/// A raster already in memory, read by bands (a PNG or JPEG input, tests, benches).
+pub struct InMemory<'a> {
+    raster: std::borrow::Cow<'a, Raster>,
+    header: Header,
+}
+
+impl<'a> InMemory<'a> {
+    /// Bands of `raster`, borrowed.
+    pub fn new(raster: &'a Raster) -> InMemory<'a> {
+        InMemory {
+            header: Header::of(raster),
+            raster: std::borrow::Cow::Borrowed(raster),
+        }
+    }
+
+    /// Bands of `raster`, owned.
+    pub fn owned(raster: Raster) -> InMemory<'static> {
+        InMemory {
+            header: Header::of(&raster),
+            raster: std::borrow::Cow::Owned(raster),
+        }
+    }
+}
+
+impl Rows for InMemory<'_> {
+    fn header(&self) -> &Header {
+        &self.header
+    }
+
+    fn read(&mut self, y0: usize, y1: usize) -> Result<Raster, Error> {
+        let r = &*self.raster;
+        let y1 = y1.min(r.height);
+        let span = y0 * r.width..y1 * r.width;
+        let valid = r.valid.as_ref().map(|v| v[span.clone()].to_vec());
+        let channels = r
+            .channels
+            .iter()
+            .map(|c| c[span.clone()].to_vec())
+            .collect();
+        Ok(self.header.band(
+            [0, y0],
+            r.width,
+            channels,
+            valid.filter(|v| v.contains(&false)),
+        ))
+    }
+
+    fn read_all(&mut self) -> Result<Raster, Error> {
+        Ok(self.raster.clone().into_owned())
+    }
+}
+
+/// A GeoTIFF read by its own strips or tiles. The file is opened again for each band (a
+/// mosaic of thousands of tiles would otherwise hold thousands of descriptors), and the
+/// row of strips or tiles a band ends inside is kept for the next band.
+pub struct GeoTiff {
+    path: PathBuf,
+    header: Header,
+    /// Rows of one strip or one row of tiles.
+    chunk_rows: usize,
+    /// The last row of chunks decoded: its index and its values (full width).
+    last: Option<(usize, Vec<f32>)>,
+}
+
+type Decoder = tiff::decoder::Decoder<std::io::BufReader<std::fs::File>>;
+
+impl GeoTiff {
+    /// Reads the header of the GeoTIFF at `path` (none of its cells).
+    pub fn open(path: &Path) -> Result<GeoTiff, Error> {
+        use tiff::tags::Tag;
+        let mut dec = decoder(path)?;
+        let bad = |e: tiff::TiffError| Error::Input(format!("{}: {e}", path.display()));
+        let (w, h) = dec.dimensions().map_err(bad)?;
+        let nodata = dec
+            .find_tag(Tag::GdalNodata)
+            .ok()
+            .flatten()
+            .and_then(|v| v.into_string().ok())
+            .and_then(|s| s.trim_matches(char::from(0)).trim().parse::<f64>().ok());
+        let tie = dec.get_tag_f64_vec(Tag::ModelTiepointTag).ok();
+        let scale = dec.get_tag_f64_vec(Tag::ModelPixelScaleTag).ok();
+        let keys = dec.get_tag_u16_vec(Tag::GeoKeyDirectoryTag).ok();
+        let samples = dec
+            .find_tag_unsigned::<u16>(Tag::SamplesPerPixel)
+            .ok()
+            .flatten()
+            .unwrap_or(1);
+        if samples != 1 {
+            return Err(Error::Input(format!(
+                "{}: {samples} samples a pixel: only single-band GeoTIFFs are supported",
+                path.display()
+            )));
+        }
+        let sample = sample_format(&mut dec)
+            .ok_or_else(|| Error::Input(format!("{}: unsupported sample type", path.display())))?;
+        let georef = match (tie, scale) {
+            (Some(t), Some(s)) if t.len() >= 6 && s.len() >= 2 => Some(Georef {
+                epsg: keys.as_deref().and_then(super::raster::epsg_of),
+                origin: [t[3] - t[0] * s[0], t[4] + t[1] * s[1]],
+                pixel_size: [s[0], -s[1]],
+            }),
+            _ => None,
+        };
+        let chunk_rows = dec.chunk_dimensions().1.max(1) as usize;
+        Ok(GeoTiff {
+            path: path.to_path_buf(),
+            header: Header {
+                width: w as usize,
+                height: h as usize,
+                channels: 1,
+                kind: AssetKind::HeightField,
+                sample,
+                // GeoTIFF DEMs are in metres unless a vertical-units key says otherwise; we
+                // read no vertical units key, so we say metres only for georeferenced grids.
+                units: georef.as_ref().map(|_| "m".to_string()),
+                nodata,
+                georef,
+            },
+            chunk_rows,
+            last: None,
+        })
+    }
+
+    /// Row `row` of the file's chunks (one strip, or one row of tiles), full width.
+    fn chunk_row(&mut self, dec: &mut Decoder, row: usize) -> Result<&[f32], Error> {
+        if self.last.as_ref().is_none_or(|(r, _)| *r != row) {
+            let values = self.decode_chunk_row(dec, row)?;
+            self.last = Some((row, values));
+        }
+        Ok(&self.last.as_ref().expect("just decoded").1)
+    }
+
+    fn decode_chunk_row(&self, dec: &mut Decoder, row: usize) -> Result<Vec<f32>, Error> {
+        let path = &self.path;
+        let bad = |e: tiff::TiffError| Error::Input(format!("{}: {e}", path.display()));
+        let w = self.header.width;
+        let (tw, _) = dec.chunk_dimensions();
+        let across = match dec.get_chunk_type() {
+            tiff::decoder::ChunkType::Tile => w.div_ceil(tw.max(1) as usize),
+            _ => 1,
+        };
+        let rows = self
+            .chunk_rows
+            .min(self.header.height - row * self.chunk_rows);
+        let mut out = vec![0f32; w * rows];
+        let mut x0 = 0;
+        for k in 0..across {
+            let index = (row * across + k) as u32;
+            let data = dec.read_chunk(index).map_err(bad)?;
+            let (cw, ch) = dec.chunk_data_dimensions(index);
+            let (cw, ch) = (cw as usize, ch as usize);
+            let values = values_of(data);
+            if values.len() != cw * ch || ch != rows || x0 + cw > w {
+                return Err(Error::Input(format!(
+                    "{}: chunk {index} holds {} samples for {cw}x{ch}: only single-band GeoTIFFs are supported",
+                    path.display(),
+                    values.len()
+                )));
+            }
+            for y in 0..rows {
+                out[y * w + x0..y * w + x0 + cw].copy_from_slice(&values[y * cw..(y + 1) * cw]);
+            }
+            x0 += cw;
+        }
+        Ok(out)
+    }
+}
+
+impl Rows for GeoTiff {
+    fn header(&self) -> &Header {
+        &self.header
+    }
+
+    fn read(&mut self, y0: usize, y1: usize) -> Result<Raster, Error> {
+        let (w, h) = (self.header.width, self.header.height);
+        let y1 = y1.min(h);
+        let mut values = Vec::with_capacity(w * (y1.saturating_sub(y0)));
+        let mut dec = decoder(&self.path)?;
+        let per = self.chunk_rows;
+        let mut y = y0;
+        while y < y1 {
+            let row = y / per;
+            let top = row * per;
+            let end = ((row + 1) * per).min(y1);
+            let rows = self.chunk_row(&mut dec, row)?;
+            values.extend_from_slice(&rows[(y - top) * w..(end - top) * w]);
+            y = end;
+        }
+        // Keep the last chunk row only if the next band starts inside it: a mosaic holds one
+        // reader an input, and would otherwise keep a chunk row of every input read so far.
+        if y1 % per == 0 || y1 == h {
+            self.last = None;
+        }
+        let nodata = self.header.nodata.map(|v| v as f32);
+        let valid: Vec<bool> = values
+            .iter()
+            .map(|&v| v.is_finite() && Some(v) != nodata)
+            .collect();
+        let valid = valid.contains(&false).then_some(valid);
+        Ok(self.header.band([0, y0], w, vec![values], valid))
+    }
+}
+
+fn decoder(path: &Path) -> Result<Decoder, Error> {
+    let file =
+        std::fs::File::open(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+    // The decoder's default limits stay: they bound one strip or tile (256 MiB), not the
+    // raster, since nothing here reads a whole image at once.
+    tiff::decoder::Decoder::new(std::io::BufReader::new(file))
+        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))
+}
+
+/// The sample type a GeoTIFF's tags announce, as [`values_of`] converts it: integers of up to
+/// 16 bits keep their type (an 8-bit signed one widens to 16), the rest are read as f32.
+fn sample_format(dec: &mut Decoder) -> Option<SampleFormat> {
+    use tiff::ColorType as C;
+    use tiff::tags::{SampleFormat as F, Tag};
+    let format = dec
+        .find_tag_unsigned::<u16>(Tag::SampleFormat)
+        .ok()
+        .flatten()
+        .map_or(F::Uint, F::from_u16_exhaustive);
+    let bits = match dec.colortype().ok()? {
+        C::Gray(b) => b,
+        _ => return None,
+    };
+    Some(match (format, bits) {
+        (F::Uint, 8) => SampleFormat::U8,
+        (F::Uint, 16) => SampleFormat::U16,
+        (F::Int, 8 | 16) => SampleFormat::I16,
+        (F::Uint | F::Int, 32 | 64) | (F::IEEEFP, 16 | 32 | 64) => SampleFormat::F32,
+        _ => return None,
+    })
+}
+
+/// A chunk's decoded samples as f32.
+fn values_of(data: tiff::decoder::DecodingResult) -> Vec<f32> {
+    use tiff::decoder::DecodingResult as R;
+    match data {
+        R::U8(v) => v.into_iter().map(f32::from).collect(),
+        R::U16(v) => v.into_iter().map(f32::from).collect(),
+        R::I16(v) => v.into_iter().map(f32::from).collect(),
+        R::I8(v) => v.into_iter().map(f32::from).collect(),
+        R::I32(v) => v.into_iter().map(|x| x as f32).collect(),
+        R::U32(v) => v.into_iter().map(|x| x as f32).collect(),
+        R::I64(v) => v.into_iter().map(|x| x as f32).collect(),
+        R::U64(v) => v.into_iter().map(|x| x as f32).collect(),
+        R::F32(v) => v,
+        R::F64(v) => v.into_iter().map(|x| x as f32).collect(),
+        R::F16(v) => v.into_iter().map(f32::from).collect(),
+    }
+}
+
+/// The raster `paths` name (see [`super::mosaic::input_files`]) as bands of rows: one GeoTIFF
+/// read by its strips or tiles, a mosaic of several read band by band from each, any other
+/// file (PNG, JPEG) decoded whole.
+pub fn open(paths: &[PathBuf]) -> Result<Box<dyn Rows>, Error> {
+    let files = super::mosaic::input_files(paths)?;
+    match files.as_slice() {
+        [one] if is_tiff(one) => Ok(Box::new(GeoTiff::open(one)?)),
+        [one] => Ok(Box::new(InMemory::owned(Raster::open(one)?))),
+        _ => Ok(Box::new(super::mosaic::Mosaic::open(&files)?)),
+    }
+}
+
+/// Whether `path` names a TIFF by its extension.
+pub fn is_tiff(path: &Path) -> bool {
+    path.extension()
+        .and_then(|e| e.to_str())
+        .is_some_and(|e| e.eq_ignore_ascii_case("tif") || e.eq_ignore_ascii_case("tiff"))
+}
