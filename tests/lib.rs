@@ -72,7 +72,7 @@ pub fn server() -> String {
                     .expect("bind");
                 let base = format!("http://{}", listener.local_addr().expect("addr"));
                 let mut state = AppState::new(store, base.clone());
-                state.write_token = Some(TOKEN.into());
+                state.writes = fractile_server::api::Writes::Token(TOKEN.into());
                 state.limits.max_points = MAX_POINTS;
                 state.limits.max_iterations = MAX_ITERATIONS;
                 state.max_upload = 4 * 1024 * 1024;

@@ -67,7 +67,8 @@ enum Command {
         /// Address to listen on [default: 127.0.0.1:8080].
         #[arg(long, env = "FRACTILE_BIND")]
         bind: Option<std::net::SocketAddr>,
-        /// A `fractile.toml` with any of: assets, bind, public_url, write_token, cache_control,
+        /// A `fractile.toml` with any of: assets, bind, public_url, write_token,
+        /// allow_anonymous_writes, cache_control,
         /// max_upload_mib, max_iterations, max_concurrent_requests, tile_cache_mib,
         /// coarse_cache_mib, chunk_cache_mib, prefetch_chunks, max_asset_pixels,
         /// max_decode_mib, backend, gpu_memory_mib, cesium_dir (docs/operations.md). Flags and
@@ -81,6 +82,10 @@ enum Command {
         /// production: argv is visible to other users).
         #[arg(long, env = "FRACTILE_WRITE_TOKEN", hide_env_values = true)]
         write_token: Option<String>,
+        /// With no write token, let anyone upload and delete (a demo, a private network);
+        /// without this flag such a server refuses writes with 403.
+        #[arg(long, env = "FRACTILE_ALLOW_ANONYMOUS_WRITES")]
+        allow_anonymous_writes: bool,
         /// Where continuous decoding runs: cpu, gpu or auto (the GPU for work of a tile or more
         /// on a hardware adapter); requests may override it with `backend=`.
         #[arg(long, env = "FRACTILE_BACKEND")]
@@ -141,6 +146,7 @@ fn main() {
             config,
             public_url,
             write_token,
+            allow_anonymous_writes,
             backend,
             cesium,
         } => run_serve(
@@ -148,7 +154,7 @@ fn main() {
             bind,
             config,
             public_url,
-            write_token,
+            (write_token, allow_anonymous_writes),
             (backend, cesium),
         ),
     };
@@ -163,7 +169,7 @@ fn run_serve(
     bind: Option<std::net::SocketAddr>,
     config: Option<PathBuf>,
     public_url: Option<String>,
-    write_token: Option<String>,
+    (write_token, allow_anonymous_writes): (Option<String>, bool),
     (backend, cesium): (Option<String>, Option<PathBuf>),
 ) -> Result<()> {
     tracing_subscriber::fmt()
@@ -181,6 +187,9 @@ fn run_serve(
     }
     if cesium.is_some() {
         file.cesium_dir = cesium;
+    }
+    if allow_anonymous_writes {
+        file.allow_anonymous_writes = Some(true);
     }
     let opts = fractile_server::ServeOptions {
         assets: assets.or(file.assets.take()),

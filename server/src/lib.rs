@@ -33,6 +33,9 @@ pub struct FileConfig {
     pub public_url: Option<String>,
     /// Bearer token for PUT and DELETE.
     pub write_token: Option<String>,
+    /// Whether PUT and DELETE are open to anyone when no write token is set (default false:
+    /// they are refused with 403).
+    pub allow_anonymous_writes: Option<bool>,
     /// `Cache-Control` of tiles.
     pub cache_control: Option<String>,
     /// Largest upload, in MiB.
@@ -91,7 +94,8 @@ pub struct ServeOptions {
     pub bind: SocketAddr,
     /// Public base URL for absolute links (defaults to `http://{bind}`).
     pub public_url: Option<String>,
-    /// Bearer token for PUT and DELETE; writes are open without one.
+    /// Bearer token for PUT and DELETE; without one they are refused, unless the file
+    /// config allows anonymous writes.
     pub write_token: Option<String>,
     /// Everything else the config file may set.
     pub file: FileConfig,
@@ -188,13 +192,20 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
         .clone()
         .unwrap_or_else(|| format!("http://{}", opts.bind));
     let mut state = api::AppState::new(store, public.trim_end_matches('/').to_string());
-    if opts.write_token.is_none() {
-        tracing::warn!(
-            "no write token configured: PUT and DELETE are open to anyone who can reach {}",
+    state.writes = api::Writes::from_options(
+        opts.write_token.clone(),
+        opts.file.allow_anonymous_writes.unwrap_or(false),
+    );
+    match &state.writes {
+        api::Writes::Anyone => tracing::warn!(
+            "anonymous writes allowed: PUT and DELETE are open to anyone who can reach {}",
             opts.bind
-        );
+        ),
+        api::Writes::Refused => {
+            tracing::info!("no write token configured: PUT and DELETE are refused (403)")
+        }
+        api::Writes::Token(_) => {}
     }
-    state.write_token = opts.write_token.clone();
     if let Some(c) = &opts.file.cache_control {
         state.cache_control = c.clone();
     }

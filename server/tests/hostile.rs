@@ -75,7 +75,7 @@ async fn an_unauthorised_upload_is_refused_before_its_body_is_read() {
     let dir = fresh_dir("auth");
     let (store, _) = Store::open(&dir).unwrap();
     let mut st = AppState::new(store, "http://test".into());
-    st.write_token = Some("sesame".into());
+    st.writes = fractile_server::api::Writes::Token("sesame".into());
     let st = Arc::new(st);
     let read = Arc::new(AtomicUsize::new(0));
     let req = Request::put("/v1/assets/big")
@@ -114,7 +114,7 @@ async fn an_unauthorised_upload_is_refused_before_its_body_is_read() {
 async fn concurrent_writes_of_one_id_serialise_and_match_the_file() {
     let dir = fresh_dir("race");
     let (store, _) = Store::open(&dir).unwrap();
-    let st = Arc::new(AppState::new(store, "http://test".into()));
+    let st = Arc::new(anonymous_writes(store));
     let (a, b) = two_assets();
     for round in 0..6 {
         let mut tasks = Vec::new();
@@ -216,7 +216,7 @@ async fn a_folder_of_crafted_files_starts_and_names_each() {
 async fn crafted_uploads_are_refused_with_422() {
     let dir = fresh_dir("put");
     let (store, _) = Store::open(&dir).unwrap();
-    let st = Arc::new(AppState::new(store, "http://test".into()));
+    let st = Arc::new(anonymous_writes(store));
     for entry in std::fs::read_dir(data("hostile")).unwrap() {
         let path = entry.unwrap().path();
         let name = path.file_name().unwrap().to_string_lossy().into_owned();
@@ -376,4 +376,12 @@ async fn readiness_follows_the_decode_slots() {
     tx.send(()).unwrap();
     busy.await.unwrap().unwrap();
     assert_eq!(send(&st, ready()).await.0, StatusCode::OK);
+}
+
+/// A state that lets anyone write (`--allow-anonymous-writes`): these tests are about what
+/// an upload holds, not about who sends it.
+fn anonymous_writes(store: Store) -> AppState {
+    let mut st = AppState::new(store, "http://test".into());
+    st.writes = fractile_server::api::Writes::Anyone;
+    st
 }

@@ -463,7 +463,7 @@ fn writable(token: Option<&str>, max_upload: usize) -> (Arc<AppState>, Vec<u8>) 
     std::fs::create_dir_all(&dir).unwrap();
     let (store, _) = Store::open(&dir).unwrap();
     let mut st = AppState::new(store, "http://test".into());
-    st.write_token = token.map(str::to_string);
+    st.writes = fractile_server::api::Writes::from_options(token.map(str::to_string), true);
     st.max_upload = max_upload;
     let r = Raster::open(&data("topobathy.tif")).unwrap();
     let enc = encode(
@@ -552,6 +552,56 @@ async fn upload_replace_and_delete() {
     )
     .await;
     assert_eq!(s, StatusCode::NOT_FOUND);
+}
+
+#[tokio::test]
+async fn with_no_token_writes_are_refused_unless_anonymous_writes_are_allowed() {
+    use fractile_server::api::Writes;
+    // What `fractile serve` runs with when neither a token nor --allow-anonymous-writes is
+    // given, and a state built with no policy at all: both refuse.
+    assert_eq!(Writes::from_options(None, false), Writes::Refused);
+    let dir = std::env::temp_dir().join(format!("fractile-http-default-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    let (store, _) = Store::open(&dir).unwrap();
+    assert_eq!(
+        AppState::new(store, "http://t".into()).writes,
+        Writes::Refused
+    );
+    let (mut st, bytes) = writable(None, 1 << 20);
+    Arc::get_mut(&mut st).unwrap().writes = Writes::Refused;
+    for req in [
+        Request::put("/v1/assets/topo").body(Body::from(bytes.clone())),
+        Request::delete("/v1/assets/topo").body(Body::empty()),
+    ] {
+        let (s, b) = call(&st, req.unwrap()).await;
+        assert_eq!(s, StatusCode::FORBIDDEN);
+        assert_eq!(json(&b)["code"], "writes_disabled");
+        assert!(
+            json(&b)["detail"]
+                .as_str()
+                .unwrap()
+                .contains("--allow-anonymous-writes")
+        );
+    }
+    assert_eq!(
+        call(
+            &st,
+            Request::get("/v1/assets/topo").body(Body::empty()).unwrap()
+        )
+        .await
+        .0,
+        StatusCode::NOT_FOUND,
+        "nothing was stored"
+    );
+    // Asked for by name, anyone may write; a token, when set, wins over it.
+    assert_eq!(Writes::from_options(None, true), Writes::Anyone);
+    assert_eq!(
+        Writes::from_options(Some("t".into()), true),
+        Writes::Token("t".into())
+    );
+    let (open, bytes) = writable(None, 1 << 20);
+    let put = Request::put("/v1/assets/topo").body(Body::from(bytes));
+    assert_eq!(call(&open, put.unwrap()).await.0, StatusCode::CREATED);
 }
 
 #[tokio::test]

@@ -42,8 +42,16 @@ pub(super) async fn list_assets(State(state): Shared) -> Json<Catalog> {
 }
 
 fn authorise(state: &AppState, headers: &HeaderMap) -> Result<(), AppError> {
-    let Some(token) = &state.write_token else {
-        return Ok(());
+    let token = match &state.writes {
+        super::Writes::Token(t) => t,
+        super::Writes::Anyone => return Ok(()),
+        super::Writes::Refused => {
+            return Err(AppError {
+                status: StatusCode::FORBIDDEN,
+                code: "writes_disabled",
+                detail: "this server takes no writes: it was started with no write token (set FRACTILE_WRITE_TOKEN, or pass --allow-anonymous-writes on a private network)".into(),
+            });
+        }
     };
     let given = headers
         .get(header::AUTHORIZATION)

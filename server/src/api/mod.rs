@@ -93,8 +93,8 @@ pub struct AppState {
     pub cache_control: String,
     /// Public base URL for absolute links (TileJSON), e.g. behind a proxy.
     pub public_url: String,
-    /// Bearer token that PUT and DELETE need; `None` leaves writes open (demo and local use).
-    pub write_token: Option<String>,
+    /// Who may PUT and DELETE assets (nobody unless a token or anonymous writes are set).
+    pub writes: Writes,
     /// Largest asset upload in bytes.
     pub max_upload: usize,
     /// Where continuous decoding runs unless a request says otherwise.
@@ -163,7 +163,7 @@ impl AppState {
             coarse: coarse_cache(DEFAULT_COARSE_CACHE_MIB),
             cache_control: "public, max-age=3600".into(),
             public_url,
-            write_token: None,
+            writes: Writes::Refused,
             max_upload: 64 * 1024 * 1024,
             backend: Backend::Auto,
             gpu: None,
@@ -506,3 +506,29 @@ fn cell_size([x0, y0, x1, y1]: [f64; 4], w: usize, h: usize) -> [f64; 2] {
 
 /// The default request timeout.
 pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// Who may PUT and DELETE assets. Secure by default: a server started with no write token
+/// takes no writes at all (403), since one reachable by others would otherwise let anyone
+/// replace or delete its assets; anonymous writes are for a demo or a private network, and
+/// must be asked for by name.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Writes {
+    /// Requests with `Authorization: Bearer <token>`.
+    Token(String),
+    /// Anyone (`--allow-anonymous-writes`).
+    Anyone,
+    /// Nobody: no token is configured (the default).
+    Refused,
+}
+
+impl Writes {
+    /// The policy a server's options ask for: the token if one is set, else anyone if
+    /// anonymous writes are allowed, else nobody.
+    pub fn from_options(token: Option<String>, allow_anonymous: bool) -> Writes {
+        match token {
+            Some(t) => Writes::Token(t),
+            None if allow_anonymous => Writes::Anyone,
+            None => Writes::Refused,
+        }
+    }
+}
