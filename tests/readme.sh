@@ -9,7 +9,9 @@
 # Adjustments, all on the outside of the commands: the server listens on a free port (through
 # FRACTILE_BIND, the environment variable the README documents) and `localhost:8080` in the
 # commands is pointed at it; the client finds it through FRACTILE_SERVER; curl runs with a
-# curlrc that adds --fail; the demo cache is a fresh folder. Lines left out, each said aloud:
+# curlrc that adds --fail; the demo cache is a fresh folder; the server gets the write token the
+# README's upload line sends (`FRACTILE_WRITE_TOKEN=...`: a server with none takes no writes,
+# as that line's comment says). Lines left out, each said aloud:
 # `cargo test` (this script is part of that run's CI), and `--backend gpu` lines unless a
 # hardware GPU is at hand (README_GPU=1). Files the commands write at the top of the repository
 # are removed at the end. Prints a closing "N passed, N failed" line.
@@ -54,7 +56,7 @@ bad() { fail=$((fail + 1)); echo "FAILED: $1"; }
 
 echo "starting the README's server: $serve_cmd"
 export FRACTILE_BIND=127.0.0.1:$PORT FRACTILE_CACHE=$WORK/cache FRACTILE_BACKEND=cpu RUST_LOG=warn
-setsid bash -c "exec $serve_cmd" >"$WORK/server.log" 2>&1 &
+FRACTILE_WRITE_TOKEN=... setsid bash -c "exec $serve_cmd" >"$WORK/server.log" 2>&1 &
 SERVER_PID=$!
 up=0
 # The command compiles the server package first when it is not built yet (minutes).

@@ -2,12 +2,16 @@
 //! meshes (IFS3D) and curves.
 
 use super::*;
-use fractile_codec::encode::chunked::{DEFAULT_CHUNK, encode_chunked_file, wants_chunks};
+use fractile_codec::encode::chunked::{DEFAULT_CHUNK, Share, encode_chunked_file, wants_chunks};
+use fractile_codec::io::rows::Rows;
 
+mod parts;
 mod shapes;
+use parts::encode_part;
+pub(crate) use parts::run_assemble;
 pub(crate) use shapes::*;
 
-#[derive(Clone, Copy, ValueEnum)]
+#[derive(Clone, Copy, Debug, ValueEnum)]
 pub(crate) enum Search {
     /// Every domain and isometry (slow; the reference).
     Full,
@@ -76,7 +80,7 @@ pub(crate) enum DomainsArg {
     Overlapping,
 }
 
-#[derive(clap::Args)]
+#[derive(clap::Args, Debug)]
 pub(crate) struct EncodeArgs {
     /// Input: a raster, a mesh or a GeoJSON file; or, for a mosaic, several GeoTIFFs (or a
     /// folder of them) on one grid, read as one raster (cells none covers are nodata).
@@ -188,6 +192,11 @@ pub(crate) struct EncodeArgs {
     /// 1024 for rasters over 2048 cells on a side, one operator for smaller ones.
     #[arg(long)]
     chunk: Option<u32>,
+    /// Rasters in chunks: code only share I of N of the chunks (chunk k, counted level by
+    /// level, when k mod N = I) into the part file -o names; `fractile assemble` joins the N
+    /// parts into the asset, the same bytes as one encode. Runs N processes or machines.
+    #[arg(long, value_name = "I/N")]
+    part: Option<String>,
     /// Print JSON.
     #[arg(long)]
     json: bool,
@@ -323,6 +332,12 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         Some(c) => Some(c),
         None => wants_chunks(width, height, DEFAULT_CHUNK).then_some(DEFAULT_CHUNK),
     };
+    if let Some(text) = &a.part {
+        let Some(c) = chunk else {
+            bail!("--part splits an encode in chunks, and this one is whole: give --chunk N")
+        };
+        return encode_part(&a, rows.as_mut(), c, Share::parse(text)?);
+    }
     let enc = match chunk {
         None => encode_with(&a, &rows.read_all()?, true)?.write(&a.output)?,
         Some(c) => {

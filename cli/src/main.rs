@@ -44,6 +44,19 @@ enum Command {
     /// PLY, STL: a signed distance volume, IFS3D) or curves (GeoJSON: projected IFS with
     /// details) into an asset.
     Encode(EncodeArgs),
+    /// Join the part files of an encode split with `encode --part I/N` into the asset (the
+    /// same bytes as the encode in one process).
+    Assemble {
+        /// Every part file, in any order.
+        #[arg(required = true, num_args = 1..)]
+        parts: Vec<PathBuf>,
+        /// The asset to write.
+        #[arg(short, long)]
+        output: PathBuf,
+        /// Print JSON.
+        #[arg(long)]
+        json: bool,
+    },
     /// Decode a curve asset to GeoJSON at any level (one feature per input ring, in order).
     Curve(CurveArgs),
     /// Extract the surface of a volume asset as a mesh (OBJ, PLY or GLB by extension), at any
@@ -131,6 +144,11 @@ fn main() {
     }
     let result = match cli.command {
         Command::Encode(a) => run_encode(a),
+        Command::Assemble {
+            parts,
+            output,
+            json,
+        } => run_assemble(&parts, &output, json),
         Command::Mesh(a) => run_mesh(a),
         Command::Curve(a) => run_curve(a),
         Command::Decode(a) => run_decode(a),

@@ -803,3 +803,79 @@ fn an_encode_interrupted_by_ctrl_c_leaves_no_file() {
         .collect();
     assert!(left.is_empty(), "{left:?}");
 }
+
+/// An encode split over 4 processes (`--part I/4`, run at once) and joined by `assemble` is
+/// the file one `encode` writes; assembling without every part fails and writes nothing.
+#[test]
+fn an_encode_split_over_four_processes_assembles_into_the_same_file() {
+    let dir = tempdir("parts");
+    let input = data("jacksboro-utm.tif");
+    let single = dir.join("single.fra");
+    let out = bin()
+        .arg("encode")
+        .arg(&input)
+        .args(["--chunk", "64", "--json", "-o"])
+        .arg(&single)
+        .output()
+        .unwrap();
+    json(&out);
+    let children: Vec<_> = (0..4)
+        .map(|i| {
+            bin()
+                .arg("encode")
+                .arg(&input)
+                .args(["--chunk", "64", "--json", "--part", &format!("{i}/4"), "-o"])
+                .arg(dir.join(format!("part{i}")))
+                .stdout(std::process::Stdio::piped())
+                .stderr(std::process::Stdio::piped())
+                .spawn()
+                .unwrap()
+        })
+        .collect();
+    let mut chunks = 0;
+    for c in children {
+        let v = json(&c.wait_with_output().unwrap());
+        chunks += v["chunks"].as_u64().unwrap();
+    }
+    assert!(chunks > 30, "{chunks} chunks coded over the parts");
+    let parts: Vec<PathBuf> = (0..4).map(|i| dir.join(format!("part{i}"))).collect();
+    let joined = dir.join("joined.fra");
+    let v = json(
+        &bin()
+            .arg("assemble")
+            .args(&parts)
+            .arg("--json")
+            .arg("-o")
+            .arg(&joined)
+            .output()
+            .unwrap(),
+    );
+    assert_eq!(v["codec"], "projected");
+    let (a, b) = (
+        std::fs::read(&single).unwrap(),
+        std::fs::read(&joined).unwrap(),
+    );
+    assert!(a == b, "the assembled file differs from the single encode");
+    assert_eq!(v["bytes"].as_u64(), Some(b.len() as u64));
+    let fails = bin()
+        .arg("assemble")
+        .args(&parts[..3])
+        .arg("-o")
+        .arg(dir.join("three.fra"))
+        .output()
+        .unwrap();
+    assert!(!fails.status.success());
+    assert!(String::from_utf8_lossy(&fails.stderr).contains("part 3/4 is missing"));
+    assert!(!dir.join("three.fra").exists());
+    // A raster coded whole has no chunks to share.
+    let whole = bin()
+        .arg("encode")
+        .arg(data("jacksboro.tif"))
+        .args(["--part", "0/2", "-o"])
+        .arg(dir.join("whole"))
+        .output()
+        .unwrap();
+    assert!(!whole.status.success());
+    assert!(String::from_utf8_lossy(&whole.stderr).contains("--chunk N"));
+    std::fs::remove_dir_all(&dir).unwrap();
+}

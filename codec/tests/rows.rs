@@ -114,36 +114,13 @@ fn a_chunked_encode_streamed_from_a_file_writes_what_the_encode_in_memory_does()
     let bytes = std::fs::read(&out).unwrap();
     assert_eq!(written.length, bytes.len() as u64);
     assert_eq!(bytes.len(), in_memory.bytes.len());
-    let (a, b) = (
-        written.asset.chunks.as_ref().unwrap(),
-        in_memory.asset.chunks.as_ref().unwrap(),
+    // Chunk files and the file's metadata hold no encode time: the same bytes.
+    assert!(
+        bytes == in_memory.bytes,
+        "a streamed encode wrote other bytes"
     );
-    // The same chunks at the same offsets; each chunk's file differs only in the encode time
-    // its metadata holds (so in its CRC).
-    let no_crc = |t: &fractile_codec::io::chunked::ChunkTable| {
-        let mut t = t.clone();
-        t.levels
-            .iter_mut()
-            .flat_map(|l| &mut l.chunks)
-            .for_each(|e| e.crc = 0);
-        t
-    };
-    assert_eq!(no_crc(&a.table), no_crc(&b.table));
-    assert!(a.table.levels.len() >= 3, "overviews");
-    let timeless = |file: &[u8]| {
-        let mut chunk = fractile_codec::Asset::from_bytes(file).unwrap();
-        chunk.meta.stats.seconds = 0.0;
-        chunk.to_bytes()
-    };
-    for e in a.table.levels.iter().flat_map(|l| &l.chunks) {
-        let span = e.offset as usize..(e.offset + e.length) as usize;
-        if e.length > 0 {
-            assert_eq!(
-                timeless(&bytes[span.clone()]),
-                timeless(&in_memory.bytes[span])
-            );
-        }
-    }
+    let table = &written.asset.chunks.as_ref().unwrap().table;
+    assert!(table.levels.len() >= 3, "overviews");
     assert_eq!(written.errors.rmse, in_memory.errors.rmse);
     // Nothing but the output is left beside it (the spilled chunks were in an unnamed file).
     let left: Vec<_> = std::fs::read_dir(&dir)

@@ -13,6 +13,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
 use rayon::prelude::*;
+use serde::{Deserialize, Serialize};
 
 use super::pyramid::Pyramid;
 use super::{Encoded, Written};
@@ -57,13 +58,15 @@ pub fn encode_chunked(
     progress: &Progress<'_>,
 ) -> Result<Encoded, Error> {
     let mut spill = Spill::Memory(Vec::new());
-    let mut coded = code_streamed(
+    let coded = code_streamed(
         &mut InMemory::new(raster),
-        chunk,
+        (chunk, Share::WHOLE),
         (encode_one, progress),
         &mut spill,
     )?;
-    let mut bytes = chunked::header(&coded.meta, &mut coded.table);
+    let (meta, mut table, errors, transforms) =
+        summarise(coded.size(), chunk, &coded.sizes, coded.records())?;
+    let mut bytes = chunked::header(&meta, &mut table);
     for (at, len) in coded.order() {
         spill
             .copy(at, len, &mut bytes)
@@ -73,8 +76,8 @@ pub fn encode_chunked(
     Ok(Encoded {
         asset,
         bytes,
-        errors: coded.errors,
-        transforms: coded.transforms,
+        errors,
+        transforms,
         seconds: coded.start.elapsed().as_secs_f64(),
     })
 }
@@ -91,43 +94,70 @@ pub fn encode_chunked_file(
     progress: &Progress<'_>,
     output: &Path,
 ) -> Result<Written, Error> {
-    let dir = output
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let out = |e: std::io::Error| Error::Output(format!("{}: {e}", output.display()));
-    let mut spill = Spill::File(tempfile::tempfile_in(dir).map_err(out)?, 0);
-    let mut coded = code_streamed(rows, chunk, (encode_one, progress), &mut spill)?;
-    let head = chunked::header(&coded.meta, &mut coded.table);
-    let mut length = head.len() as u64;
+    let mut spill = Spill::beside(output)?;
+    let coded = code_streamed(
+        rows,
+        (chunk, Share::WHOLE),
+        (encode_one, progress),
+        &mut spill,
+    )?;
+    let (meta, mut table, errors, transforms) =
+        summarise(coded.size(), chunk, &coded.sizes, coded.records())?;
+    let head = chunked::header(&meta, &mut table);
+    let length = write_spilled(output, &head, coded.order(), &spill)?;
+    Ok(Written {
+        asset: Asset::read(output)?,
+        length,
+        errors,
+        transforms,
+        seconds: coded.start.elapsed().as_secs_f64(),
+    })
+}
+
+/// Writes `head` then the spilled files at `order` (start, length) to `output`, atomically;
+/// returns the file's length.
+pub(super) fn write_spilled(
+    output: &Path,
+    head: &[u8],
+    order: impl Iterator<Item = (u64, u64)> + Clone,
+    spill: &Spill,
+) -> Result<u64, Error> {
+    let mut length = 0;
     write_atomic_with(output, &mut |f| {
         let mut f = std::io::BufWriter::new(f);
-        f.write_all(&head)?;
-        for (at, len) in coded.order() {
+        f.write_all(head)?;
+        length = head.len() as u64;
+        for (at, len) in order.clone() {
             spill.copy(at, len, &mut f)?;
             length += len;
         }
         f.flush()
     })?;
-    Ok(Written {
-        asset: Asset::read(output)?,
-        length,
-        errors: coded.errors,
-        transforms: coded.transforms,
-        seconds: coded.start.elapsed().as_secs_f64(),
-    })
+    Ok(length)
 }
 
 /// Where chunk files wait while the others are coded: memory for a file built in memory, an
 /// unnamed temporary file (and its length) for one written to disk.
-enum Spill {
+pub(super) enum Spill {
     Memory(Vec<u8>),
     File(std::fs::File, u64),
 }
 
 impl Spill {
+    /// An unnamed temporary file in `output`'s folder (the same file system, and nothing
+    /// left behind if the process is killed).
+    pub(super) fn beside(output: &Path) -> Result<Spill, Error> {
+        let dir = output
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let file = tempfile::tempfile_in(dir)
+            .map_err(|e| Error::Output(format!("{}: {e}", output.display())))?;
+        Ok(Spill::File(file, 0))
+    }
+
     /// Appends a chunk's file; returns where it starts.
-    fn push(&mut self, file: &[u8]) -> std::io::Result<u64> {
+    pub(super) fn push(&mut self, file: &[u8]) -> std::io::Result<u64> {
         match self {
             Spill::Memory(v) => {
                 v.extend_from_slice(file);
@@ -142,7 +172,7 @@ impl Spill {
     }
 
     /// Copies `len` bytes from `at` to `out`.
-    fn copy(&self, at: u64, len: u64, out: &mut dyn Write) -> std::io::Result<()> {
+    pub(super) fn copy(&self, at: u64, len: u64, out: &mut dyn Write) -> std::io::Result<()> {
         match self {
             Spill::Memory(v) => out.write_all(&v[at as usize..(at + len) as usize]),
             Spill::File(f, _) => {
@@ -155,30 +185,234 @@ impl Spill {
     }
 }
 
-/// What a streaming encode coded: the file's metadata and table (lengths and CRCs set,
-/// offsets not yet), where each chunk's file lies in the spill, and the source level's errors.
-struct Streamed {
-    meta: fractile_proto::AssetMeta,
-    table: ChunkTable,
-    /// `(start, length)` in the spill of every chunk, level by level (length 0: no file).
-    spilled: Vec<Vec<(u64, u64)>>,
-    errors: Errors,
-    transforms: usize,
-    start: Instant,
+/// What a streaming encode coded: every chunk's record and where its file lies in the
+/// spill, in table order (`None`: a chunk with no valid cell, or one of another share).
+pub(super) struct Streamed {
+    pub(super) header: Header,
+    pub(super) sizes: Vec<(u32, u32)>,
+    pub(super) records: Vec<Vec<Option<(ChunkRecord, u64)>>>,
+    pub(super) start: Instant,
 }
 
 impl Streamed {
-    /// Every chunk's place in the spill, in the file's order.
-    fn order(&self) -> impl Iterator<Item = (u64, u64)> + '_ {
-        self.spilled.iter().flatten().copied()
+    /// The raster's size and georeference, as [`summarise`] takes them.
+    pub(super) fn size(&self) -> (usize, usize, Option<&fractile_proto::Georef>) {
+        (
+            self.header.width,
+            self.header.height,
+            self.header.georef.as_ref(),
+        )
+    }
+
+    /// Every chunk's record in table order.
+    pub(super) fn records(&self) -> impl Iterator<Item = &ChunkRecord> + '_ {
+        self.records.iter().flatten().flatten().map(|(r, _)| r)
+    }
+
+    /// Every chunk's place in the spill (start, length), in table order.
+    pub(super) fn order(&self) -> impl Iterator<Item = (u64, u64)> + Clone + '_ {
+        self.records
+            .iter()
+            .flatten()
+            .flatten()
+            .map(|(r, at)| (*at, r.length))
     }
 }
 
-/// Every chunk of every level of the raster `rows` reads, coded by `encode_one` on all cores
-/// as soon as the rows it covers are read (see [`Pyramid`]), its file pushed to `spill`.
-fn code_streamed(
-    rows: &mut dyn Rows,
+/// The chunks one process codes when an encode is split over several (`fractile encode
+/// --part I/N`, then `fractile assemble`): chunk number k, counted level by level in table
+/// order, belongs to share k mod N. Every share thus holds chunks of every level and of every
+/// part of the raster, so N processes finish at about the same time.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
+pub struct Share {
+    /// Which share, from 0.
+    pub index: u32,
+    /// Of how many.
+    pub count: u32,
+}
+
+impl Share {
+    /// Every chunk: an encode that is not split.
+    pub const WHOLE: Share = Share { index: 0, count: 1 };
+
+    /// `I/N` as the command line writes it.
+    pub fn parse(text: &str) -> Result<Share, Error> {
+        let bad = || Error::Settings(format!("--part {text}: I/N with 0 <= I < N <= 4096"));
+        let (i, n) = text.split_once('/').ok_or_else(bad)?;
+        let (index, count) = (
+            i.trim().parse().map_err(|_| bad())?,
+            n.trim().parse().map_err(|_| bad())?,
+        );
+        if count == 0 || index >= count || count > 4096 {
+            return Err(bad());
+        }
+        Ok(Share { index, count })
+    }
+
+    fn holds(&self, k: u64) -> bool {
+        k % u64::from(self.count) == u64::from(self.index)
+    }
+}
+
+/// What the file keeps of one chunk's encode: the figures of its table entry and of the
+/// file's metadata (its bytes go to the spill).
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub(super) struct ChunkRecord {
+    pub(super) level: u32,
+    pub(super) index: u32,
+    pub(super) length: u64,
+    pub(super) crc: u32,
+    codec: u8,
+    max_contrast: f32,
+    seed_bound: f32,
+    smallest_source_error: Option<f32>,
+    meta: fractile_proto::AssetMeta,
+    /// RMSE, MAE and largest error over its coded cells, and their count.
+    errors: [f64; 3],
+    samples: u64,
+    transforms: u64,
+}
+
+/// A chunk coded: its file and its record.
+struct Coded {
+    bytes: Vec<u8>,
+    record: ChunkRecord,
+}
+
+impl Coded {
+    /// The file of a chunk's encode, with no encode time in its metadata: an encode of one
+    /// input is then the same bytes however it ran (split in parts or not, on any machine).
+    /// The decoded asset an encode returns (a projected one holds 48 bytes a cell) is
+    /// dropped here, so that memory holds the chunks in flight, not every chunk coded.
+    fn of(enc: Encoded, level: usize, index: u32) -> Coded {
+        let mut a = enc.asset;
+        a.meta.stats.seconds = 0.0;
+        let bytes = a.to_bytes();
+        let e = enc.errors;
+        Coded {
+            record: ChunkRecord {
+                level: level as u32,
+                index,
+                length: bytes.len() as u64,
+                crc: chunked::file_crc(&bytes),
+                codec: a.codec() as u8,
+                max_contrast: a.max_contrast(),
+                seed_bound: a.bound_after(0),
+                smallest_source_error: a.source_error.as_ref().and_then(|m| m.smallest()),
+                meta: a.meta.clone(),
+                errors: [e.rmse, e.mae, e.max_error],
+                samples: e.samples,
+                transforms: enc.transforms as u64,
+            },
+            bytes,
+        }
+    }
+}
+
+/// The file's metadata, table (offsets not yet set) and source-level errors from the records
+/// of every chunk of `header`'s raster, taken in table order so that the same chunks give the
+/// same file however they were coded.
+pub(super) fn summarise<'r>(
+    (width, height, georef): (usize, usize, Option<&fractile_proto::Georef>),
     chunk: u32,
+    sizes: &[(u32, u32)],
+    records: impl Iterator<Item = &'r ChunkRecord>,
+) -> Result<(fractile_proto::AssetMeta, ChunkTable, Errors, usize), Error> {
+    let mut table = new_table(chunk);
+    let mut entries = blank(&table, sizes);
+    let (mut sq, mut abs, mut samples, mut max_error) = (0.0f64, 0.0f64, 0u64, 0.0f64);
+    let (mut transforms, mut template) = (0u64, None::<&fractile_proto::AssetMeta>);
+    let mut value_range = [f64::INFINITY, f64::NEG_INFINITY];
+    for c in records {
+        if table.codec != 0 && table.codec != c.codec {
+            return Err(Error::Settings("chunks coded by different codecs".into()));
+        }
+        table.codec = c.codec;
+        table.max_contrast = table.max_contrast.max(c.max_contrast);
+        table.seed_bound = table.seed_bound.max(c.seed_bound);
+        if let Some(e) = c.smallest_source_error {
+            let s = table.smallest_source_error.get_or_insert(e);
+            *s = s.min(e);
+        }
+        value_range[0] = value_range[0].min(c.meta.value_min);
+        value_range[1] = value_range[1].max(c.meta.value_max);
+        if c.level == 0 {
+            let [rmse, mae, max] = c.errors;
+            sq += rmse * rmse * c.samples as f64;
+            abs += mae * c.samples as f64;
+            samples += c.samples;
+            max_error = max_error.max(max);
+            transforms += c.transforms;
+            template.get_or_insert(&c.meta);
+        }
+        let entry = entries
+            .get_mut(c.level as usize)
+            .and_then(|l| l.get_mut(c.index as usize))
+            .ok_or_else(|| Error::Input(format!("no chunk {} of level {}", c.index, c.level)))?;
+        entry.value_range = [c.meta.value_min, c.meta.value_max];
+        entry.length = c.length;
+        entry.crc = c.crc;
+    }
+    let Some(mut meta) = template.cloned() else {
+        return Err(Error::Input("no cell of the raster has data".into()));
+    };
+    for (entries, &(w, h)) in entries.into_iter().zip(sizes) {
+        table.levels.push(chunked::Level {
+            width: w,
+            height: h,
+            chunks: entries,
+        });
+    }
+    meta.width = width as u32;
+    meta.height = height as u32;
+    meta.georef = georef.cloned();
+    // Images keep their fixed 0-255 range; height fields span every chunk's.
+    if meta.kind == fractile_proto::AssetKind::HeightField {
+        [meta.value_min, meta.value_max] = value_range;
+    }
+    let rmse = (sq / samples.max(1) as f64).sqrt();
+    let psnr = if rmse > 0.0 {
+        20.0 * (meta.psnr_peak() / rmse).log10()
+    } else {
+        f64::INFINITY
+    };
+    meta.encoder = format!("chunked {chunk}: {}", meta.encoder);
+    // No encode time (see `Coded::of`): the command line reports it.
+    meta.stats = fractile_proto::EncodeStats {
+        transforms,
+        rmse,
+        psnr,
+        max_error,
+        seconds: 0.0,
+    };
+    let errors = Errors {
+        rmse,
+        mae: abs / samples.max(1) as f64,
+        max_error,
+        psnr,
+        samples,
+    };
+    Ok((meta, table, errors, transforms as usize))
+}
+
+fn new_table(chunk: u32) -> ChunkTable {
+    ChunkTable {
+        chunk,
+        overlap: OVERLAP,
+        codec: 0,
+        max_contrast: 0.0,
+        seed_bound: 0.0,
+        smallest_source_error: None,
+        levels: Vec::new(),
+    }
+}
+
+/// Every chunk of every level of the raster `rows` reads that `share` holds, coded by
+/// `encode_one` on all cores as soon as the rows it covers are read (see [`Pyramid`]), its
+/// file pushed to `spill`.
+pub(super) fn code_streamed(
+    rows: &mut dyn Rows,
+    (chunk, share): (u32, Share),
     work: (&EncodeOne<'_>, &Progress<'_>),
     spill: &mut Spill,
 ) -> Result<Streamed, Error> {
@@ -202,17 +436,9 @@ fn code_streamed(
         )));
     }
     let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk);
-    let table = ChunkTable {
-        chunk,
-        overlap: OVERLAP,
-        codec: 0,
-        max_contrast: 0.0,
-        seed_bound: 0.0,
-        smallest_source_error: None,
-        levels: Vec::new(),
-    };
+    let table = new_table(chunk);
     let mut pyramid = Pyramid::new(&header, &sizes, &table);
-    let mut tally = Tally::new(blank(&table, &sizes), work, spill);
+    let mut tally = Tally::new(&blank(&table, &sizes), share, work, spill);
     let mut code = |l, i, part| tally.push(l, i, part);
     let mut y = 0;
     while y < header.height {
@@ -231,8 +457,14 @@ fn code_streamed(
         y = y1;
     }
     tally.flush()?;
-    tally.finish(&header, table, &sizes, start)
+    Ok(Streamed {
+        header,
+        sizes,
+        records: tally.records,
+        start,
+    })
 }
+
 /// A table entry (its cells, nothing yet of its file) for every chunk of every level.
 fn blank(table: &ChunkTable, sizes: &[(u32, u32)]) -> Vec<Vec<ChunkEntry>> {
     sizes
@@ -252,56 +484,55 @@ fn blank(table: &ChunkTable, sizes: &[(u32, u32)]) -> Vec<Vec<ChunkEntry>> {
         .collect()
 }
 
-/// Chunks waiting to be coded (a batch of a chunk a core), and what the file keeps of those
-/// coded: table entries, places in the spill, the table's and the metadata's figures.
+/// Chunks waiting to be coded (a batch of a chunk a core), and the records of those coded.
 struct Tally<'w, 's> {
-    entries: Vec<Vec<ChunkEntry>>,
-    spilled: Vec<Vec<(u64, u64)>>,
+    records: Vec<Vec<Option<(ChunkRecord, u64)>>>,
+    /// The number of each level's first chunk, counted over all levels.
+    first: Vec<u64>,
+    share: Share,
     queue: Vec<(usize, u32, Raster)>,
     work: (&'w EncodeOne<'w>, &'w Progress<'w>),
     spill: &'s mut Spill,
     done: AtomicU64,
     total: u64,
-    codec: u8,
-    max_contrast: f32,
-    seed_bound: f32,
-    smallest_source_error: Option<f32>,
-    value_range: [f64; 2],
-    /// Squared and absolute error sums, samples and largest error of the source level.
-    sums: (f64, f64, u64, f64),
-    transforms: usize,
-    template: Option<fractile_proto::AssetMeta>,
 }
 
 impl<'w, 's> Tally<'w, 's> {
     fn new(
-        entries: Vec<Vec<ChunkEntry>>,
+        entries: &[Vec<ChunkEntry>],
+        share: Share,
         work: (&'w EncodeOne<'w>, &'w Progress<'w>),
         spill: &'s mut Spill,
     ) -> Self {
-        let total = entries.iter().map(Vec::len).sum::<usize>() as u64;
+        let first: Vec<u64> = entries
+            .iter()
+            .scan(0u64, |n, l| {
+                let at = *n;
+                *n += l.len() as u64;
+                Some(at)
+            })
+            .collect();
+        let all = entries.iter().map(Vec::len).sum::<usize>() as u64;
+        let total = (0..all).filter(|&k| share.holds(k)).count() as u64;
         (work.1)(0, total);
         Tally {
-            spilled: entries.iter().map(|l| vec![(0, 0); l.len()]).collect(),
-            entries,
+            records: entries.iter().map(|l| vec![None; l.len()]).collect(),
+            first,
+            share,
             queue: Vec::new(),
             work,
             spill,
             done: AtomicU64::new(0),
             total,
-            codec: 0,
-            max_contrast: 0.0,
-            seed_bound: 0.0,
-            smallest_source_error: None,
-            value_range: [f64::INFINITY, f64::NEG_INFINITY],
-            sums: (0.0, 0.0, 0, 0.0),
-            transforms: 0,
-            template: None,
         }
     }
 
-    /// Queues chunk `i` of level `l`; codes the queue once it holds a chunk a core.
+    /// Queues chunk `i` of level `l` if it is of this share; codes the queue once it holds a
+    /// chunk a core.
     fn push(&mut self, l: usize, i: u32, part: Raster) -> Result<(), Error> {
+        if !self.share.holds(self.first[l] + u64::from(i)) {
+            return Ok(());
+        }
         self.queue.push((l, i, part));
         if self.queue.len() >= rayon::current_num_threads().max(1) {
             self.flush()?;
@@ -309,7 +540,7 @@ impl<'w, 's> Tally<'w, 's> {
         Ok(())
     }
 
-    /// Codes every queued chunk on all cores and records each.
+    /// Codes every queued chunk on all cores and spills each.
     fn flush(&mut self) -> Result<(), Error> {
         let jobs = std::mem::take(&mut self.queue);
         let (encode_one, progress) = self.work;
@@ -326,7 +557,7 @@ impl<'w, 's> Tally<'w, 's> {
                         Error::Input(m) => Error::Input(format!("chunk {i} of level {l}: {m}")),
                         e => e,
                     })?;
-                    Some(Coded::of(enc))
+                    Some(Coded::of(enc, l, i))
                 } else {
                     None
                 };
@@ -336,136 +567,14 @@ impl<'w, 's> Tally<'w, 's> {
             .collect::<Result<_, Error>>()?;
         for (l, i, c) in coded {
             if let Some(c) = c {
-                self.record(l, i as usize, c)?;
+                let at = self
+                    .spill
+                    .push(&c.bytes)
+                    .map_err(|e| Error::Output(format!("spilling a chunk: {e}")))?;
+                self.records[l][i as usize] = Some((c.record, at));
             }
         }
         Ok(())
-    }
-
-    fn record(&mut self, l: usize, i: usize, c: Coded) -> Result<(), Error> {
-        if self.codec != 0 && self.codec != c.codec {
-            return Err(Error::Settings("chunks coded by different codecs".into()));
-        }
-        self.codec = c.codec;
-        self.max_contrast = self.max_contrast.max(c.max_contrast);
-        self.seed_bound = self.seed_bound.max(c.seed_bound);
-        if let Some(e) = c.smallest_source_error {
-            let s = self.smallest_source_error.get_or_insert(e);
-            *s = s.min(e);
-        }
-        let [lo, hi] = &mut self.value_range;
-        *lo = lo.min(c.meta.value_min);
-        *hi = hi.max(c.meta.value_max);
-        if l == 0 {
-            let (e, s) = (&c.errors, &mut self.sums);
-            s.0 += e.rmse * e.rmse * e.samples as f64;
-            s.1 += e.mae * e.samples as f64;
-            s.2 += e.samples;
-            s.3 = s.3.max(e.max_error);
-            self.transforms += c.transforms;
-            self.template.get_or_insert_with(|| c.meta.clone());
-        }
-        let at = self
-            .spill
-            .push(&c.bytes)
-            .map_err(|e| Error::Output(format!("spilling a chunk: {e}")))?;
-        let entry = &mut self.entries[l][i];
-        entry.value_range = [c.meta.value_min, c.meta.value_max];
-        entry.length = c.bytes.len() as u64;
-        entry.crc = chunked::file_crc(&c.bytes);
-        self.spilled[l][i] = (at, entry.length);
-        Ok(())
-    }
-
-    /// The file's metadata and table from every chunk recorded.
-    fn finish(
-        self,
-        header: &Header,
-        mut table: ChunkTable,
-        sizes: &[(u32, u32)],
-        start: Instant,
-    ) -> Result<Streamed, Error> {
-        let Some(mut meta) = self.template else {
-            return Err(Error::Input("no cell of the raster has data".into()));
-        };
-        table.codec = self.codec;
-        table.max_contrast = self.max_contrast;
-        table.seed_bound = self.seed_bound;
-        table.smallest_source_error = self.smallest_source_error;
-        for (entries, &(w, h)) in self.entries.into_iter().zip(sizes) {
-            table.levels.push(chunked::Level {
-                width: w,
-                height: h,
-                chunks: entries,
-            });
-        }
-        meta.width = header.width as u32;
-        meta.height = header.height as u32;
-        meta.georef = header.georef.clone();
-        // Images keep their fixed 0-255 range; height fields span every chunk's.
-        if meta.kind == fractile_proto::AssetKind::HeightField {
-            [meta.value_min, meta.value_max] = self.value_range;
-        }
-        let (sq, abs, samples, max_error) = self.sums;
-        let rmse = (sq / samples.max(1) as f64).sqrt();
-        let psnr = if rmse > 0.0 {
-            20.0 * (meta.psnr_peak() / rmse).log10()
-        } else {
-            f64::INFINITY
-        };
-        meta.encoder = format!("chunked {}: {}", table.chunk, meta.encoder);
-        meta.stats = fractile_proto::EncodeStats {
-            transforms: self.transforms as u64,
-            rmse,
-            psnr,
-            max_error,
-            seconds: start.elapsed().as_secs_f64(),
-        };
-        Ok(Streamed {
-            meta,
-            table,
-            spilled: self.spilled,
-            errors: Errors {
-                rmse,
-                mae: abs / samples.max(1) as f64,
-                max_error,
-                psnr,
-                samples,
-            },
-            transforms: self.transforms,
-            start,
-        })
-    }
-}
-
-/// What the file keeps of a chunk's encode: its bytes and the figures of its table entry and
-/// of the file's metadata. The decoded asset an encode returns (a projected one holds 48 bytes
-/// a cell) is dropped as soon as the chunk is coded, so that memory holds the chunks in flight,
-/// not every chunk coded so far.
-struct Coded {
-    bytes: Vec<u8>,
-    codec: u8,
-    max_contrast: f32,
-    seed_bound: f32,
-    smallest_source_error: Option<f32>,
-    meta: fractile_proto::AssetMeta,
-    errors: Errors,
-    transforms: usize,
-}
-
-impl Coded {
-    fn of(enc: Encoded) -> Coded {
-        let a = &enc.asset;
-        Coded {
-            codec: a.codec() as u8,
-            max_contrast: a.max_contrast(),
-            seed_bound: a.bound_after(0),
-            smallest_source_error: a.source_error.as_ref().and_then(|m| m.smallest()),
-            meta: a.meta.clone(),
-            errors: enc.errors,
-            transforms: enc.transforms,
-            bytes: enc.bytes,
-        }
     }
 }
 

@@ -9,6 +9,7 @@
 pub mod chunked;
 pub mod curve;
 pub mod fidelity;
+pub mod parts;
 pub mod projected;
 mod pyramid;
 pub mod volume;

@@ -1,0 +1,83 @@
+//! `fractile encode --part I/N` and `fractile assemble`: a chunked encode split over processes
+//! or machines, and its parts joined (`fractile_codec::encode::parts`).
+
+use super::*;
+use fractile_codec::encode::parts::encode_chunked_part;
+
+/// `encode --part I/N`: one share of a chunked encode into a part file.
+pub(super) fn encode_part(
+    a: &EncodeArgs,
+    rows: &mut dyn Rows,
+    chunk: u32,
+    share: Share,
+) -> Result<()> {
+    // The settings every part must share: the arguments less what names this part's files.
+    let settings = format!(
+        "{:?}",
+        EncodeArgs {
+            inputs: Vec::new(),
+            output: PathBuf::new(),
+            part: None,
+            json: false,
+            quadtree_flags: a.quadtree_flags.clone(),
+            roi: a.roi.clone(),
+            ..*a
+        }
+    );
+    let bar = progress_bar("coding chunks", a.json);
+    let progress = |done: u64, total: u64| bar.update(done, total);
+    let one = |r: &Raster| {
+        encode_with(a, r, false).map_err(|e| fractile_codec::Error::Settings(e.to_string()))
+    };
+    let w = encode_chunked_part(rows, (chunk, share, &settings), &one, &progress, &a.output)?;
+    bar.finish();
+    let report = json!({
+        "output": a.output, "part": format!("{}/{}", share.index, share.count),
+        "chunks": w.chunks, "bytes": w.length, "seconds": w.seconds,
+    });
+    if a.json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} -> {}: part {}/{} of chunks of {chunk}, {} chunks, {} bytes, {:.2} s (join the parts with fractile assemble)",
+            a.inputs[0].display(),
+            a.output.display(),
+            share.index,
+            share.count,
+            w.chunks,
+            w.length,
+            w.seconds
+        );
+    }
+    Ok(())
+}
+
+/// `fractile assemble`: the part files of a split encode joined into the asset.
+pub(crate) fn run_assemble(parts: &[PathBuf], output: &Path, as_json: bool) -> Result<()> {
+    let w = fractile_codec::encode::parts::assemble(parts, output)?;
+    let m = &w.asset.meta;
+    let report = json!({
+        "parts": parts, "output": output, "codec": w.asset.codec_name(),
+        "width": m.width, "height": m.height, "bytes": w.length, "ratio": w.ratio(),
+        "bpp": w.bpp(), "psnr": w.errors.psnr, "rmse": w.errors.rmse,
+        "max_error": w.errors.max_error, "seconds": w.seconds,
+    });
+    if as_json {
+        println!("{report}");
+    } else {
+        println!(
+            "{} parts -> {}: {} {}x{}, {} bytes, {:.3} bpp, PSNR {:.2} dB, RMSE {:.3}, max error {:.3}",
+            parts.len(),
+            output.display(),
+            w.asset.codec_name(),
+            m.width,
+            m.height,
+            w.length,
+            w.bpp(),
+            w.errors.psnr,
+            w.errors.rmse,
+            w.errors.max_error
+        );
+    }
+    Ok(())
+}
