@@ -81,7 +81,7 @@ enum Command {
         #[arg(long, env = "FRACTILE_BIND")]
         bind: Option<std::net::SocketAddr>,
         /// A `fractile.toml` with any of: assets, bind, public_url, write_token,
-        /// allow_anonymous_writes, cache_control,
+        /// allow_anonymous_writes, cache_control, rescan_seconds,
         /// max_upload_mib, max_iterations, max_concurrent_requests, tile_cache_mib,
         /// coarse_cache_mib, chunk_cache_mib, prefetch_chunks, max_asset_pixels,
         /// max_decode_mib, backend, gpu_memory_mib, cesium_dir (docs/operations.md). Flags and

@@ -38,6 +38,9 @@ pub struct FileConfig {
     pub allow_anonymous_writes: Option<bool>,
     /// `Cache-Control` of tiles.
     pub cache_control: Option<String>,
+    /// How often, in seconds, the asset folder is looked at for files another process (a
+    /// replica sharing the volume) stored, replaced or removed (default 10; 0: never).
+    pub rescan_seconds: Option<u64>,
     /// Largest upload, in MiB.
     pub max_upload_mib: Option<usize>,
     /// Most inverse steps a request may ask for.
@@ -242,11 +245,44 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     }
     let concurrency = opts.file.max_concurrent_requests.unwrap_or(1024).max(1);
     let state = Arc::new(state);
+    let rescan = opts.file.rescan_seconds.unwrap_or(DEFAULT_RESCAN_SECONDS);
+    if rescan > 0 {
+        tokio::spawn(rescan_assets(state.clone(), rescan));
+    }
     let listener = tokio::net::TcpListener::bind(opts.bind).await?;
     tracing::info!("listening on http://{}", listener.local_addr()?);
     let app = app(state).layer(tower::limit::ConcurrencyLimitLayer::new(concurrency));
     run(listener, app, shutdown(), HEADER_READ_TIMEOUT).await;
     Ok(())
+}
+
+/// How often (seconds) a server looks for assets that another process stored in or removed
+/// from its folder (`rescan_seconds`; 0: never): replicas sharing one volume serve what one of
+/// them stored within this time.
+pub const DEFAULT_RESCAN_SECONDS: u64 = 10;
+
+/// Every `seconds`, brings the catalog up to date with the folder ([`store::Store::refresh`]),
+/// off the executor (a changed file is read and checked).
+async fn rescan_assets(state: Arc<api::AppState>, seconds: u64) {
+    let mut every = tokio::time::interval(std::time::Duration::from_secs(seconds));
+    every.set_missed_tick_behavior(tokio::time::MissedTickBehavior::Delay);
+    every.tick().await;
+    loop {
+        every.tick().await;
+        let st = state.clone();
+        let Ok(found) = tokio::task::spawn_blocking(move || st.store.refresh()).await else {
+            continue;
+        };
+        for id in &found.loaded {
+            tracing::info!("asset {id} loaded from the folder (stored by another process)");
+        }
+        for id in &found.removed {
+            tracing::info!("asset {id} removed from the folder: no longer served");
+        }
+        for m in &found.skipped {
+            tracing::warn!("changed asset file not loaded (its previous version stays): {m}");
+        }
+    }
 }
 
 /// The server's GPU for `backend` (not `cpu`), `memory` bytes of resident operators; `None`

@@ -12,6 +12,9 @@ use fractile_codec::{Asset, AssetLimits, Raster};
 
 use crate::error::AppError;
 
+mod demo;
+pub use demo::ensure_demo_assets;
+
 /// An asset with what the server derives from it once.
 pub struct StoredAsset {
     /// Its id (file stem).
@@ -37,6 +40,40 @@ pub struct Store {
     /// Held while a file is replaced and the catalog updated, so that concurrent writers of
     /// an id serialise and the file on disk is always the version served.
     writes: std::sync::Mutex<()>,
+    /// Each served file's stamp when it was loaded, for [`Store::refresh`].
+    stamps: std::sync::Mutex<BTreeMap<String, FileStamp>>,
+}
+
+/// What tells that a file changed without reading it: its length, modification time and
+/// inode (an atomic replace is a new inode).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+struct FileStamp {
+    len: u64,
+    modified: Option<std::time::SystemTime>,
+    ino: u64,
+}
+
+impl FileStamp {
+    fn of(path: &Path) -> Option<FileStamp> {
+        use std::os::unix::fs::MetadataExt;
+        let m = std::fs::symlink_metadata(path).ok()?;
+        Some(FileStamp {
+            len: m.len(),
+            modified: m.modified().ok(),
+            ino: m.ino(),
+        })
+    }
+}
+
+/// What [`Store::refresh`] found changed in the folder.
+#[derive(Debug, Default, PartialEq, Eq)]
+pub struct Refreshed {
+    /// Ids of files new to the catalog, or replaced, and loaded.
+    pub loaded: Vec<String>,
+    /// Ids whose file is gone, dropped from the catalog.
+    pub removed: Vec<String>,
+    /// Files that changed but do not load (the version served before stays): one message each.
+    pub skipped: Vec<String>,
 }
 
 /// Checks an asset id: 1-64 characters of letters, digits, `-` and `_`, not starting with `-`
@@ -75,6 +112,7 @@ impl Store {
         chunks: ChunkCache,
     ) -> std::io::Result<(Store, Vec<String>)> {
         let mut assets = BTreeMap::new();
+        let mut stamps = BTreeMap::new();
         let mut skipped = Vec::new();
         let mut entries = Vec::new();
         for e in std::fs::read_dir(dir)? {
@@ -116,8 +154,12 @@ impl Store {
                 skipped.push(format!("{}: not a valid asset id", path.display()));
                 continue;
             }
+            let stamp = FileStamp::of(&path);
             match load_file(&id, &path, &limits, &chunks) {
                 Ok(a) => {
+                    if let Some(s) = stamp {
+                        stamps.insert(id.clone(), s);
+                    }
                     assets.insert(id, Arc::new(a));
                 }
                 Err(e) => skipped.push(format!("{}: {e}", path.display())),
@@ -130,6 +172,7 @@ impl Store {
                 limits,
                 chunks,
                 writes: std::sync::Mutex::new(()),
+                stamps: std::sync::Mutex::new(stamps),
             },
             skipped,
         ))
@@ -159,6 +202,12 @@ impl Store {
             .write()
             .expect("store lock")
             .insert(id.to_string(), stored.clone());
+        if let Some(s) = FileStamp::of(&self.dir.join(format!("{id}.fra"))) {
+            self.stamps
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .insert(id.to_string(), s);
+        }
         Ok(stored)
     }
 
@@ -224,6 +273,81 @@ impl Store {
         }
     }
 
+    /// Brings the catalog up to date with the folder, as another process sharing it (a
+    /// replica on one volume) left it: files new or replaced since they were loaded (by
+    /// length, modification time or inode) are loaded, ids whose file is gone are dropped. A
+    /// changed file that does not load is logged and its previous version kept. Reads only
+    /// the folder's listing and the changed files; `serve` runs it every `rescan_seconds`.
+    pub fn refresh(&self) -> Refreshed {
+        let mut found = Refreshed::default();
+        let Ok(dir) = std::fs::read_dir(&self.dir) else {
+            return found;
+        };
+        let mut present = std::collections::BTreeSet::new();
+        let mut changed = Vec::new();
+        {
+            let stamps = self.stamps.lock().unwrap_or_else(|e| e.into_inner());
+            for e in dir.flatten() {
+                let path = e.path();
+                let is_file = e.file_type().is_ok_and(|k| k.is_file());
+                let id = path
+                    .file_stem()
+                    .and_then(|s| s.to_str())
+                    .map(str::to_string);
+                let (Some(id), true) = (id, is_file) else {
+                    continue;
+                };
+                if path.extension().and_then(|e| e.to_str()) != Some("fra")
+                    || validate_id(&id).is_err()
+                {
+                    continue;
+                }
+                let stamp = FileStamp::of(&path);
+                if stamp.is_some() && stamps.get(&id) != stamp.as_ref() {
+                    changed.push((id.clone(), path, stamp));
+                }
+                present.insert(id);
+            }
+        }
+        // Writers of this process first finish: the file and the catalog move together.
+        let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
+        for (id, path, stamp) in changed {
+            match load_file(&id, &path, &self.limits, &self.chunks) {
+                Ok(a) => {
+                    self.assets
+                        .write()
+                        .expect("store lock")
+                        .insert(id.clone(), Arc::new(a));
+                    if let Some(s) = stamp {
+                        self.stamps
+                            .lock()
+                            .unwrap_or_else(|e| e.into_inner())
+                            .insert(id.clone(), s);
+                    }
+                    found.loaded.push(id);
+                }
+                Err(e) => found.skipped.push(format!("{}: {e}", path.display())),
+            }
+        }
+        let gone: Vec<String> = self
+            .assets
+            .read()
+            .expect("store lock")
+            .keys()
+            .filter(|id| !present.contains(*id))
+            .cloned()
+            .collect();
+        for id in gone {
+            self.assets.write().expect("store lock").remove(&id);
+            self.stamps
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .remove(&id);
+            found.removed.push(id);
+        }
+        found
+    }
+
     /// Every asset, by id.
     pub fn list(&self) -> Vec<Arc<StoredAsset>> {
         self.assets
@@ -243,14 +367,19 @@ fn stale_temporary(path: &Path) -> Option<String> {
     // Our own pid counts as alive: another store of this process may be writing (a previous
     // process of the same pid left files that the age rule removes).
     let alive = Path::new(&format!("/proc/{owner}")).exists();
-    let old = std::fs::symlink_metadata(path)
+    let age = std::fs::symlink_metadata(path)
         .and_then(|m| m.modified())
         .ok()
         .and_then(|t| t.elapsed().ok())
-        .is_some_and(|age| age > std::time::Duration::from_secs(3600));
-    // Where /proc is missing (not Linux), only age tells.
+        .unwrap_or_default();
+    let old = age > std::time::Duration::from_secs(3600);
+    // Where /proc is missing (not Linux), only age tells. A writer whose process is gone is
+    // taken at its word only after 5 minutes: replicas sharing the folder have pids of their
+    // own namespaces, and another replica's upload in progress must not be removed (an upload
+    // of the largest asset takes seconds).
     let procfs = Path::new("/proc/self").exists();
-    (old || (procfs && !alive)).then(|| name.to_string())
+    let orphan = procfs && !alive && age > std::time::Duration::from_secs(300);
+    (old || orphan).then(|| name.to_string())
 }
 
 /// Default of `chunk_cache_mib`: the chunks of a 60 Mpx DEM coded by the default DEM codec and
@@ -328,161 +457,4 @@ fn crc32(bytes: &[u8]) -> u32 {
         .checked_sub(4)
         .map(|n| u32::from_le_bytes(bytes[n..].try_into().expect("4 bytes")))
         .unwrap_or(0)
-}
-
-/// The demo assets: real data shipped in the binary, with the rate each is encoded at (bits a
-/// source cell), by the codec `fractile encode` picks when none is named.
-const DEMO: &[(&str, &str, &[u8], f64)] = &[
-    (
-        "jacksboro",
-        "jacksboro.tif",
-        include_bytes!("../../testdata/jacksboro.tif"),
-        0.8,
-    ),
-    (
-        // The same terrain on a UTM 16N grid (GDAL's warp): tiles and points go through the
-        // reprojection.
-        "jacksboro-utm",
-        "jacksboro-utm.tif",
-        include_bytes!("../../testdata/jacksboro-utm.tif"),
-        0.8,
-    ),
-    (
-        "topobathy",
-        "topobathy.tif",
-        include_bytes!("../../testdata/topobathy.tif"),
-        1.6,
-    ),
-    (
-        "camera",
-        "camera.png",
-        include_bytes!("../../testdata/camera.png"),
-        0.48,
-    ),
-    (
-        "astronaut",
-        "astronaut.png",
-        include_bytes!("../../testdata/astronaut.png"),
-        0.5,
-    ),
-];
-
-/// The revision of the demo's raster encodes, kept beside them: a folder of another revision
-/// is encoded again. Bump it when [`fractile_codec::encode_default`] changes what it writes.
-const DEMO_REVISION: &str = "2 (height fields: projected, bounded rate)";
-
-/// The demo volume: fandisk (a CAD part with sharp features) as a 64^3 distance field.
-const DEMO_VOLUME: (&str, &str, &[u8]) = (
-    "fandisk",
-    "fandisk.off",
-    include_bytes!("../../testdata/mesh/fandisk.off"),
-);
-
-/// The demo curves: five Natural Earth 1:50m coastlines, coded to about 1 km (0.009°).
-const DEMO_CURVE: (&str, &str, &[u8], f64) = (
-    "coast",
-    "coast5.geojson",
-    include_bytes!("../../testdata/curve/coast5.geojson"),
-    0.009,
-);
-
-/// Whether the asset file at `path` is of a format version older than this build writes (its
-/// version field, bytes 8-9; unreadable files are left to the store to report).
-fn older_format(path: &Path) -> bool {
-    let mut head = [0u8; 10];
-    std::fs::File::open(path)
-        .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut head))
-        .is_ok_and(|()| {
-            u16::from_le_bytes([head[8], head[9]]) < fractile_codec::io::asset::FORMAT_VERSION
-        })
-}
-
-/// Encodes the demo assets into `dir` unless they are there already (a progress line each).
-pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
-    std::fs::create_dir_all(dir)
-        .map_err(|e| fractile_codec::Error::Output(format!("{}: {e}", dir.display())))?;
-    let (id, name, bytes) = DEMO_VOLUME;
-    let out = dir.join(format!("{id}.fra"));
-    if !out.exists() {
-        tracing::info!("encoding demo volume {id} from {name} (first start only)");
-        let text = std::str::from_utf8(bytes)
-            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
-        let mesh = fractile_codec::mesh::Mesh::parse_off(text)
-            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
-        let enc = fractile_codec::encode::volume::encode_mesh(
-            &mesh,
-            &fractile_codec::encode::volume::MeshSettings::default(),
-            name,
-        )?;
-        fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
-        tracing::info!(
-            "demo volume {id}: {} bytes, {:.2}:1 against i8, PSNR {:.2} dB",
-            enc.bytes.len(),
-            enc.ratio_i8(),
-            enc.psnr()
-        );
-    }
-    let (id, name, bytes, tolerance) = DEMO_CURVE;
-    let out = dir.join(format!("{id}.fra"));
-    if !out.exists() {
-        let text = std::str::from_utf8(bytes)
-            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
-        let lines = fractile_codec::codecs::curve::geojson::read(text)
-            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
-        let settings = fractile_codec::codecs::curve::CurveSettings {
-            tolerance,
-            ..Default::default()
-        };
-        let enc = fractile_codec::encode::curve::encode_asset(&lines, &settings, name)?;
-        fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
-        tracing::info!(
-            "demo curves {id}: {} polylines, {} bytes",
-            lines.len(),
-            enc.bytes.len()
-        );
-    }
-    // Demo rasters written by an older build (before the source-error maps of format version
-    // 5, or before the default encode changed) are encoded again, so the demo is what
-    // `fractile encode` writes today.
-    let revision = dir.join(".demo-revision");
-    let current = std::fs::read_to_string(&revision).is_ok_and(|r| r.trim() == DEMO_REVISION);
-    for (id, name, bytes, rate) in DEMO {
-        let out = dir.join(format!("{id}.fra"));
-        if out.exists() && current && !older_format(&out) {
-            continue;
-        }
-        tracing::info!("encoding demo asset {id} from {name} (first start, or an older format)");
-        let src = dir.join(format!(".{name}"));
-        fractile_codec::io::asset::write_atomic(&src, bytes)?;
-        let raster = Raster::open(&src)?;
-        // As `fractile encode` codes them by default.
-        let enc = fractile_codec::encode_default(&raster, *rate, &|_, _| {})?;
-        fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
-        let _ = std::fs::remove_file(&src);
-        tracing::info!(
-            "demo asset {id}: {} bytes, {:.2}:1, PSNR {:.2} dB",
-            enc.bytes.len(),
-            enc.ratio(),
-            enc.errors.psnr
-        );
-    }
-    if !current {
-        fractile_codec::io::asset::write_atomic(&revision, DEMO_REVISION.as_bytes())?;
-    }
-    Ok(())
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    #[test]
-    fn demo_assets_of_an_older_format_are_told_apart() {
-        let golden = Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/golden");
-        assert!(older_format(&golden.join("v4-quadtree-jacksboro-utm.fra")));
-        assert!(older_format(&golden.join("v1-quadtree-camera.fra")));
-        assert!(!older_format(&golden.join("v5-quadtree-jacksboro-utm.fra")));
-        // Unreadable or too short: left to the store, which names the problem.
-        assert!(!older_format(&golden.join("missing.fra")));
-    }
 }

@@ -179,9 +179,18 @@ async fn a_folder_of_crafted_files_starts_and_names_each() {
     for name in &crafted {
         std::fs::copy(data(&format!("hostile/{name}")), dir.join(name)).unwrap();
     }
-    // A temporary file of a writer that is gone (no such process), and one of a live writer
-    // (this process), which must stay.
+    // A temporary file of a writer that is gone (no such process) 10 minutes ago, and one of a
+    // live writer (this process), which must stay; so must a fresh one of a pid not alive
+    // here (another replica's upload in progress, in its own pid namespace).
     std::fs::write(dir.join(".x.fra.tmp-999999999-0"), b"partial").unwrap();
+    std::fs::File::options()
+        .write(true)
+        .open(dir.join(".x.fra.tmp-999999999-0"))
+        .unwrap()
+        .set_modified(std::time::SystemTime::now() - Duration::from_secs(600))
+        .unwrap();
+    let replica = ".z.fra.tmp-999999998-0";
+    std::fs::write(dir.join(replica), b"another replica's upload").unwrap();
     let live = format!(".y.fra.tmp-{}-7", std::process::id());
     std::fs::write(dir.join(&live), b"being written").unwrap();
     // A link to a valid asset elsewhere is not served.
@@ -210,6 +219,10 @@ async fn a_folder_of_crafted_files_starts_and_names_each() {
         "a stale temporary file stays"
     );
     assert!(dir.join(&live).exists(), "a live writer's file was removed");
+    assert!(
+        dir.join(replica).exists(),
+        "a fresh upload of another pid namespace was removed"
+    );
 }
 
 #[tokio::test]
