@@ -12,81 +12,33 @@
 //! 4. Four clients looping maximum regions (4096 x 4096): p99 of cached tiles and of points,
 //!    beside the same figures without the load, measured in the same run.
 
-use std::io::{Read, Write};
-use std::net::TcpStream;
 use std::path::{Path, PathBuf};
-use std::process::{Child, Command, Stdio};
 use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use std::sync::{Arc, Mutex};
 use std::time::{Duration, Instant};
 
+#[path = "../tests/harness/mod.rs"]
+mod harness;
+
 use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use harness::{Server, binary, data, get, header, percentile, put};
 
 const TOKEN: &str = "bench-secret";
 
-fn data(name: &str) -> PathBuf {
-    PathBuf::from(env!("CARGO_MANIFEST_DIR"))
-        .join("../testdata")
-        .join(name)
+/// Starts the server under test on `dir` with the write token.
+fn serve(dir: &Path, port: u16, log: PathBuf) -> Option<Server> {
+    let assets = dir.to_str().expect("a UTF-8 temp path");
+    Server::try_start(assets, port, &[], &[("FRACTILE_WRITE_TOKEN", TOKEN)], &log)
 }
 
-/// A running server process.
-struct Server {
-    child: Child,
-}
-
-/// The binary under test: this build's, or `FRACTILE_BIN` (an older build, for a baseline in
-/// the same run).
-fn binary() -> String {
-    std::env::var("FRACTILE_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_fractile").to_string())
-}
-
-impl Server {
-    fn start(dir: &Path, port: u16, log: PathBuf) -> Server {
-        Server::try_start(dir, port, log.clone()).unwrap_or_else(|| {
-            panic!(
-                "the server did not start: {}",
-                std::fs::read_to_string(&log).unwrap_or_default()
-            )
-        })
-    }
-
-    /// Starts a server; `None` if it exits or does not answer within 30 s.
-    fn try_start(dir: &Path, port: u16, log: PathBuf) -> Option<Server> {
-        let child = Command::new(binary())
-            .args(["serve", "--assets"])
-            .arg(dir)
-            .args(["--bind", &format!("127.0.0.1:{port}")])
-            .env("FRACTILE_WRITE_TOKEN", TOKEN)
-            .env("FRACTILE_BACKEND", "cpu")
-            .env("RUST_LOG", "info")
-            // tracing writes to stdout.
-            .stdout(std::fs::File::create(&log).unwrap())
-            .stderr(Stdio::null())
-            .spawn()
-            .expect("the fractile binary runs");
-        let mut s = Server { child };
-        for _ in 0..600 {
-            if get(port, "/healthz").map(|r| r.0) == Some(200) {
-                return Some(s);
-            }
-            if s.child.try_wait().ok().flatten().is_some() {
-                return None;
-            }
-            std::thread::sleep(Duration::from_millis(50));
-        }
-        s.stop();
-        None
-    }
-
-    fn rss(&self) -> u64 {
-        rss_of(self.child.id())
-    }
-
-    fn stop(mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
+/// [`serve`], or a panic with the log.
+fn start(dir: &Path, port: u16, log: PathBuf) -> Server {
+    serve(dir, port, log.clone()).unwrap_or_else(|| {
+        panic!(
+            "the server did not start: {}",
+            std::fs::read_to_string(&log).unwrap_or_default()
+        )
+    })
 }
 
 /// Resident memory of a process, bytes.
@@ -128,54 +80,6 @@ impl Peak {
         self.thread.join().unwrap();
         self.peak.load(Ordering::Relaxed)
     }
-}
-
-/// One HTTP/1.1 exchange (Connection: close): status, headers, body.
-fn request(port: u16, head: &str, body: &[u8]) -> Option<(u16, String, Vec<u8>)> {
-    let mut s = TcpStream::connect(("127.0.0.1", port)).ok()?;
-    s.set_read_timeout(Some(Duration::from_secs(120))).ok()?;
-    s.write_all(head.as_bytes()).ok()?;
-    // The server may answer and close before the body is sent (a refused upload): a write
-    // error is then expected, and the answer is still there to read.
-    let _ = s.write_all(body);
-    let mut raw = Vec::new();
-    let _ = s.read_to_end(&mut raw);
-    let split = raw.windows(4).position(|w| w == b"\r\n\r\n")?;
-    let headers = String::from_utf8_lossy(&raw[..split]).into_owned();
-    let status = headers.split_whitespace().nth(1)?.parse().ok()?;
-    Some((status, headers, raw[split + 4..].to_vec()))
-}
-
-fn get(port: u16, path: &str) -> Option<(u16, String, Vec<u8>)> {
-    request(
-        port,
-        &format!("GET {path} HTTP/1.1\r\nHost: bench\r\nConnection: close\r\n\r\n"),
-        &[],
-    )
-}
-
-fn put(port: u16, id: &str, body: &[u8], token: Option<&str>) -> Option<u16> {
-    let auth = token.map_or(String::new(), |t| format!("Authorization: Bearer {t}\r\n"));
-    let head = format!(
-        "PUT /v1/assets/{id} HTTP/1.1\r\nHost: bench\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n",
-        body.len()
-    );
-    request(port, &head, body).map(|r| r.0)
-}
-
-fn header<'a>(headers: &'a str, name: &str) -> Option<&'a str> {
-    headers.lines().find_map(|l| {
-        let (k, v) = l.split_once(':')?;
-        k.eq_ignore_ascii_case(name).then_some(v.trim())
-    })
-}
-
-fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
-    if v.is_empty() {
-        return f64::NAN;
-    }
-    v.sort_by(f64::total_cmp);
-    v[((v.len() - 1) as f64 * p).round() as usize]
 }
 
 fn mib(b: u64) -> f64 {
@@ -231,7 +135,7 @@ fn main() {
     let port = 18300 + (std::process::id() % 500) as u16;
     let log = work.join("server.log");
     let t = Instant::now();
-    let started = Server::try_start(&dir, port, log.clone());
+    let started = serve(&dir, port, log.clone());
     let elapsed = t.elapsed();
     println!(
         "issue 35 bars on {}, {} cores\n",
@@ -265,15 +169,15 @@ fn main() {
             for (name, _) in &crafted {
                 let _ = std::fs::remove_file(dir.join(name));
             }
-            Server::start(&dir, port, work.join("server-plain.log"))
+            start(&dir, port, work.join("server-plain.log"))
         }
     };
 
     // 1. Crafted uploads.
     let mut worst = Duration::ZERO;
     let mut statuses = Vec::new();
-    let base = server.rss();
-    let peak = Peak::watch(server.child.id());
+    let base = rss_of(server.pid());
+    let peak = Peak::watch(server.pid());
     for (_, bytes) in &crafted {
         let t = Instant::now();
         statuses.push(put(port, "crafted", bytes, Some(TOKEN)).unwrap_or(0));
@@ -294,8 +198,8 @@ fn main() {
 
     // 2. Unauthenticated 64 MiB uploads.
     let big = Arc::new(vec![7u8; 64 << 20]);
-    let base = server.rss();
-    let peak = Peak::watch(server.child.id());
+    let base = rss_of(server.pid());
+    let peak = Peak::watch(server.pid());
     let threads: Vec<_> = (0..16)
         .map(|_| {
             let big = big.clone();
@@ -305,7 +209,7 @@ fn main() {
     let statuses: Vec<u16> = threads.into_iter().map(|t| t.join().unwrap()).collect();
     std::thread::sleep(Duration::from_millis(200));
     let extra = peak.end().saturating_sub(base);
-    let after = server.rss().saturating_sub(base);
+    let after = rss_of(server.pid()).saturating_sub(base);
     row(
         "16 unauthenticated 64 MiB uploads",
         format!(
@@ -352,7 +256,7 @@ fn main() {
     let tile = "/v1/assets/race/tiles/1/0/0.png";
     let before = get(port, tile).and_then(|(_, h, _)| header(&h, "etag").map(str::to_string));
     server.stop();
-    let server = Server::start(&dir, port, work.join("server2.log"));
+    let server = start(&dir, port, work.join("server2.log"));
     let after_restart =
         get(port, tile).and_then(|(_, h, _)| header(&h, "etag").map(str::to_string));
     row(
@@ -418,8 +322,8 @@ fn main() {
         if load {
             std::thread::sleep(Duration::from_secs(2));
         }
-        let base = server.rss();
-        let peak = Peak::watch(server.child.id());
+        let base = rss_of(server.pid());
+        let peak = Peak::watch(server.pid());
         let probes = [
             probe(cached, stop.clone(), tiles.clone()),
             probe(point, stop.clone(), points.clone()),

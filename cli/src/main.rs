@@ -74,14 +74,16 @@ enum Command {
     },
     /// Serve assets over HTTP (tiles, points, regions); with no --assets, the built-in demo assets.
     Serve {
-        /// Directory of `.fra` assets.
+        /// Directory of `.fra` assets, or an S3 bucket and prefix (`s3://bucket/prefix`; the
+        /// endpoint and keys from AWS_ENDPOINT_URL, AWS_ACCESS_KEY_ID, AWS_SECRET_ACCESS_KEY,
+        /// AWS_REGION, AWS_ALLOW_HTTP).
         #[arg(long, env = "FRACTILE_ASSETS")]
         assets: Option<PathBuf>,
         /// Address to listen on [default: 127.0.0.1:8080].
         #[arg(long, env = "FRACTILE_BIND")]
         bind: Option<std::net::SocketAddr>,
         /// A `fractile.toml` with any of: assets, bind, public_url, write_token,
-        /// allow_anonymous_writes, cache_control, rescan_seconds,
+        /// allow_anonymous_writes, cache_control, rescan_seconds, disk_cache, disk_cache_mib,
         /// max_upload_mib, max_iterations, max_concurrent_requests, tile_cache_mib,
         /// coarse_cache_mib, chunk_cache_mib, prefetch_chunks, max_asset_pixels,
         /// max_decode_mib, backend, gpu_memory_mib, cesium_dir (docs/operations.md). Flags and

@@ -68,7 +68,7 @@ fn main() {
         Asset::open(&path, &AssetLimits::default(), ChunkCache::new(mib << 20)).expect("an asset");
     let mode = args.get(3).map_or("tile", String::as_str).to_string();
     let tolerance = |p: &Pixels| match mode.as_str() {
-        "tile" => asset.tolerance_over(p),
+        "tile" => asset.tolerance_over(p).expect("a readable chunk"),
         "asset" => asset.default_tolerance(),
         t => t.parse().expect("tile, asset or a number"),
     };

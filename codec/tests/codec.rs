@@ -1455,7 +1455,7 @@ fn error_bounds_hold_against_the_source_at_random_pixel_centres() {
                 [1.0 / (2.3 * w as f32), 1.0 / (2.3 * h as f32)],
             );
             let (values, convergence) = asset.sample(&pixels, 12, 0.0);
-            let bound = convergence + asset.source_error_over(&pixels).unwrap();
+            let bound = convergence + asset.source_error_over(&pixels).unwrap().unwrap();
             let mut worst = 0.0f32;
             for (j, &y) in ys.iter().enumerate() {
                 for (i, &x) in xs.iter().enumerate() {

@@ -25,8 +25,14 @@ use tower_http::trace::TraceLayer;
 #[derive(Debug, Default, serde::Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct FileConfig {
-    /// Asset directory.
+    /// Asset directory, or an object store's bucket (`s3://bucket/prefix`).
     pub assets: Option<PathBuf>,
+    /// With assets in an object store: a folder where the ranges read are also kept (so a
+    /// chunk evicted from the chunk cache, or needed again after a restart's prefetch, is read
+    /// from local disk); none by default.
+    pub disk_cache: Option<PathBuf>,
+    /// Size of `disk_cache` in MiB (default 4096).
+    pub disk_cache_mib: Option<u64>,
     /// Address to listen on.
     pub bind: Option<SocketAddr>,
     /// Public base URL for absolute links.
@@ -91,7 +97,8 @@ impl FileConfig {
 
 /// How to run the server.
 pub struct ServeOptions {
-    /// Asset directory; `None` serves the built-in demo assets.
+    /// Asset directory or object store bucket (`s3://bucket/prefix`); `None` serves the
+    /// built-in demo assets.
     pub assets: Option<PathBuf>,
     /// Address to listen on.
     pub bind: SocketAddr,
@@ -140,20 +147,6 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
 
 /// Loads the assets and serves until SIGTERM or ctrl-c (in-flight requests finish).
 pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
-    let dir = match &opts.assets {
-        Some(d) => d.clone(),
-        None => {
-            let d = std::env::var_os("FRACTILE_CACHE")
-                .map(PathBuf::from)
-                .unwrap_or_else(|| {
-                    std::env::temp_dir()
-                        .join(format!("fractile-demo-{}", env!("CARGO_PKG_VERSION")))
-                });
-            let d2 = d.clone();
-            tokio::task::spawn_blocking(move || store::ensure_demo_assets(&d2)).await??;
-            d
-        }
-    };
     let decode_mib = opts
         .file
         .max_decode_mib
@@ -166,26 +159,23 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
             .unwrap_or(fractile_codec::AssetLimits::default().max_pixels),
         max_decode_bytes: u64::from(decode_mib) << 20,
     };
-    let (store, skipped) = tokio::task::spawn_blocking({
-        let dir = dir.clone();
-        let chunks = fractile_codec::io::chunked::ChunkCache::new(
-            opts.file
-                .chunk_cache_mib
-                .unwrap_or(store::DEFAULT_CHUNK_CACHE_MIB)
-                .max(1)
-                << 20,
-        );
-        move || store::Store::open_with_cache(&dir, limits, chunks)
-    })
-    .await?
-    .map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))?;
+    let chunks = fractile_codec::io::chunked::ChunkCache::new(
+        opts.file
+            .chunk_cache_mib
+            .unwrap_or(store::DEFAULT_CHUNK_CACHE_MIB)
+            .max(1)
+            << 20,
+    );
+    let backing = backing(&opts).await?;
+    let (store, skipped) =
+        tokio::task::spawn_blocking(move || store::Store::over(backing, limits, chunks)).await??;
     for s in &skipped {
         tracing::warn!("skipped broken asset {s}");
     }
     tracing::info!(
         "serving {} assets from {}",
         store.list().len(),
-        dir.display()
+        store.describe()
     );
     if opts.file.prefetch_chunks.unwrap_or(true) {
         store.prefetch_in_background();
@@ -256,12 +246,52 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// Where `opts` says the assets are: an object store's bucket (`s3://`), a folder, or the
+/// demo assets' folder (made at first start). Listed by [`store::Store::over`].
+async fn backing(opts: &ServeOptions) -> anyhow::Result<Box<dyn store::Backing>> {
+    let url = opts
+        .assets
+        .as_ref()
+        .and_then(|a| a.to_str())
+        .filter(|a| a.contains("://"));
+    if let Some(url) = url {
+        let disk = match &opts.file.disk_cache {
+            Some(dir) => Some(
+                store::DiskCache::new(dir, opts.file.disk_cache_mib.unwrap_or(4096).max(1) << 20)
+                    .map_err(|e| anyhow::anyhow!("disk cache {}: {e}", dir.display()))?,
+            ),
+            None => None,
+        };
+        // Nothing is requested yet: the listing (Store::over) is the first request.
+        return Ok(Box::new(store::Bucket::connect(url, disk)?));
+    }
+    let dir = match &opts.assets {
+        Some(d) => d.clone(),
+        None => {
+            let d = std::env::var_os("FRACTILE_CACHE")
+                .map(PathBuf::from)
+                .unwrap_or_else(|| {
+                    std::env::temp_dir()
+                        .join(format!("fractile-demo-{}", env!("CARGO_PKG_VERSION")))
+                });
+            let d2 = d.clone();
+            tokio::task::spawn_blocking(move || store::ensure_demo_assets(&d2)).await??;
+            d
+        }
+    };
+    let folder = tokio::task::spawn_blocking(move || {
+        store::Folder::open(&dir).map_err(|e| anyhow::anyhow!("{}: {e}", dir.display()))
+    })
+    .await??;
+    Ok(Box::new(folder))
+}
+
 /// How often (seconds) a server looks for assets that another process stored in or removed
 /// from its folder (`rescan_seconds`; 0: never): replicas sharing one volume serve what one of
 /// them stored within this time.
 pub const DEFAULT_RESCAN_SECONDS: u64 = 10;
 
-/// Every `seconds`, brings the catalog up to date with the folder ([`store::Store::refresh`]),
+/// Every `seconds`, brings the catalog up to date with the store ([`store::Store::refresh`]),
 /// off the executor (a changed file is read and checked).
 async fn rescan_assets(state: Arc<api::AppState>, seconds: u64) {
     let mut every = tokio::time::interval(std::time::Duration::from_secs(seconds));
@@ -274,13 +304,22 @@ async fn rescan_assets(state: Arc<api::AppState>, seconds: u64) {
             continue;
         };
         for id in &found.loaded {
-            tracing::info!("asset {id} loaded from the folder (stored by another process)");
+            tracing::info!(
+                "asset {id} loaded from {} (stored by another process)",
+                state.store.describe()
+            );
         }
         for id in &found.removed {
-            tracing::info!("asset {id} removed from the folder: no longer served");
+            tracing::info!(
+                "asset {id} removed from {}: no longer served",
+                state.store.describe()
+            );
         }
         for m in &found.skipped {
             tracing::warn!("changed asset file not loaded (its previous version stays): {m}");
+        }
+        if let Some(m) = &found.unreachable {
+            tracing::warn!("asset store not listed (the catalog stays as it was): {m}");
         }
     }
 }

@@ -1,19 +1,55 @@
-//! The assets the server holds: loaded from a directory at start (a broken file is reported and
-//! skipped, the rest serve), or the built-in demo assets, encoded from small real files shipped
-//! in the binary at first start and cached on disk afterwards.
+//! The assets the server holds, over a [`Backing`]: a folder of `.fra` files ([`Folder`], the
+//! default) or a bucket of an object store ([`Bucket`], `--assets s3://bucket/prefix`). The
+//! catalog is loaded at start (a broken file is reported and skipped, the rest serve) and kept
+//! up to date with what other replicas store ([`Store::refresh`]). Without `--assets`, the
+//! built-in demo assets, encoded from small real files shipped in the binary at first start and
+//! cached on disk afterwards.
 
 use std::collections::BTreeMap;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 use std::sync::{Arc, RwLock};
 
 use fractile_codec::geo::Placement;
-use fractile_codec::io::chunked::ChunkCache;
-use fractile_codec::{Asset, AssetLimits, Raster};
+use fractile_codec::io::chunked::{ChunkCache, ChunkSource};
+use fractile_codec::{Asset, AssetLimits};
 
 use crate::error::AppError;
 
+mod bucket;
 mod demo;
+mod folder;
+pub use bucket::{Bucket, DiskCache};
 pub use demo::ensure_demo_assets;
+pub use folder::Folder;
+
+/// Where the asset files are kept. The catalog ([`Store`]) is the same over every backing: it
+/// lists, opens by range, and replaces through these calls only, all blocking (call them off
+/// the async executor).
+pub trait Backing: Send + Sync {
+    /// The asset files there now, each with its version (an opaque text that changes when the
+    /// file does); an error when the backing cannot be read.
+    fn list(&self) -> std::io::Result<Listing>;
+    /// The file of `id`, as listed at `version`, read by range.
+    fn open(&self, id: &str, version: &str) -> std::io::Result<Box<dyn ChunkSource>>;
+    /// Stores `bytes` as the file of `id` so that readers see the old file or the new one
+    /// whole, never a mix; returns the new version.
+    fn put(&self, id: &str, bytes: &[u8]) -> std::io::Result<String>;
+    /// Removes the file of `id`.
+    fn delete(&self, id: &str) -> std::io::Result<()>;
+    /// Where, for messages.
+    fn describe(&self) -> String;
+    /// Where the file of `id` is, for messages.
+    fn locate(&self, id: &str) -> String;
+}
+
+/// What a [`Backing`] holds.
+#[derive(Debug, Default)]
+pub struct Listing {
+    /// `(id, version)` of each asset file, by id.
+    pub files: Vec<(String, String)>,
+    /// Entries that are not served, one message each (a symbolic link, a bad id).
+    pub skipped: Vec<String>,
+}
 
 /// An asset with what the server derives from it once.
 pub struct StoredAsset {
@@ -23,49 +59,28 @@ pub struct StoredAsset {
     pub asset: Asset,
     /// File size in bytes.
     pub bytes: u64,
-    /// Checksum of the file, part of every ETag.
+    /// Checksum of the file, part of every ETag (so equal on every replica).
     pub hash: u32,
     /// Where it lies on the Earth (geographic georeference), if it does.
     pub placement: Option<Placement>,
 }
 
-/// The asset catalog, backed by a directory of `{id}.fra` files.
+/// The asset catalog over a [`Backing`].
 pub struct Store {
-    dir: PathBuf,
+    backing: Box<dyn Backing>,
     assets: RwLock<BTreeMap<String, Arc<StoredAsset>>>,
     /// What one asset may claim and cost (checked on load and on upload).
     limits: AssetLimits,
     /// Decoded chunks of the chunked assets (`chunk_cache_mib`), shared by all of them.
     chunks: ChunkCache,
     /// Held while a file is replaced and the catalog updated, so that concurrent writers of
-    /// an id serialise and the file on disk is always the version served.
+    /// an id serialise and the file stored is always the version served.
     writes: std::sync::Mutex<()>,
-    /// Each served file's stamp when it was loaded, for [`Store::refresh`].
-    stamps: std::sync::Mutex<BTreeMap<String, FileStamp>>,
+    /// Each served file's version when it was loaded, for [`Store::refresh`].
+    versions: std::sync::Mutex<BTreeMap<String, String>>,
 }
 
-/// What tells that a file changed without reading it: its length, modification time and
-/// inode (an atomic replace is a new inode).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-struct FileStamp {
-    len: u64,
-    modified: Option<std::time::SystemTime>,
-    ino: u64,
-}
-
-impl FileStamp {
-    fn of(path: &Path) -> Option<FileStamp> {
-        use std::os::unix::fs::MetadataExt;
-        let m = std::fs::symlink_metadata(path).ok()?;
-        Some(FileStamp {
-            len: m.len(),
-            modified: m.modified().ok(),
-            ino: m.ino(),
-        })
-    }
-}
-
-/// What [`Store::refresh`] found changed in the folder.
+/// What [`Store::refresh`] found changed in the backing.
 #[derive(Debug, Default, PartialEq, Eq)]
 pub struct Refreshed {
     /// Ids of files new to the catalog, or replaced, and loaded.
@@ -74,6 +89,8 @@ pub struct Refreshed {
     pub removed: Vec<String>,
     /// Files that changed but do not load (the version served before stays): one message each.
     pub skipped: Vec<String>,
+    /// Why the backing could not be listed, if it could not (the catalog is left as it was).
+    pub unreachable: Option<String>,
 }
 
 /// Checks an asset id: 1-64 characters of letters, digits, `-` and `_`, not starting with `-`
@@ -86,6 +103,17 @@ pub fn validate_id(id: &str) -> Result<(), AppError> {
             "bad_id",
             format!("asset id {id:?} must be 1-64 letters, digits, '-' or '_'"),
         ))
+    }
+}
+
+/// A backing that failed on a write: 503, since a store that comes back takes writes again.
+/// Where and why go to the log, not to the client.
+fn storage_unavailable(what: &str, id: &str, e: std::io::Error) -> AppError {
+    tracing::error!("{what} asset {id}: {e}");
+    AppError {
+        status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
+        code: "storage_unavailable",
+        detail: format!("the asset store could not be written ({what}); try again"),
     }
 }
 
@@ -111,121 +139,122 @@ impl Store {
         limits: AssetLimits,
         chunks: ChunkCache,
     ) -> std::io::Result<(Store, Vec<String>)> {
+        Store::over(Box::new(Folder::open(dir)?), limits, chunks)
+    }
+
+    /// The catalog of every asset file of `backing`, under `limits`, chunks decoded into
+    /// `chunks`; an error when the backing cannot be listed. Returns the store and one message
+    /// per skipped file.
+    pub fn over(
+        backing: Box<dyn Backing>,
+        limits: AssetLimits,
+        chunks: ChunkCache,
+    ) -> std::io::Result<(Store, Vec<String>)> {
+        let listing = backing
+            .list()
+            .map_err(|e| std::io::Error::new(e.kind(), format!("{}: {e}", backing.describe())))?;
+        let mut skipped = listing.skipped;
         let mut assets = BTreeMap::new();
-        let mut stamps = BTreeMap::new();
-        let mut skipped = Vec::new();
-        let mut entries = Vec::new();
-        for e in std::fs::read_dir(dir)? {
-            let Ok(e) = e else { continue };
-            // `file_type` does not follow links.
-            let Ok(kind) = e.file_type() else { continue };
-            let path = e.path();
-            if let Some(tmp) = stale_temporary(&path) {
-                match std::fs::remove_file(&path) {
-                    Ok(()) => tracing::info!("removed {tmp}, left by an interrupted write"),
-                    Err(err) => tracing::warn!("could not remove {tmp}: {err}"),
-                }
-                continue;
-            }
-            if path.extension().and_then(|e| e.to_str()) != Some("fra") {
-                continue;
-            }
-            if kind.is_symlink() {
-                skipped.push(format!(
-                    "{}: a symbolic link (only the folder's own files are served)",
-                    path.display()
-                ));
-                continue;
-            }
-            if kind.is_file() {
-                entries.push(path);
-            }
-        }
-        entries.sort();
-        for path in entries {
-            let Some(id) = path
-                .file_stem()
-                .and_then(|s| s.to_str())
-                .map(str::to_string)
-            else {
-                continue;
-            };
-            if validate_id(&id).is_err() {
-                skipped.push(format!("{}: not a valid asset id", path.display()));
-                continue;
-            }
-            let stamp = FileStamp::of(&path);
-            match load_file(&id, &path, &limits, &chunks) {
+        let mut versions = BTreeMap::new();
+        for (id, version) in listing.files {
+            match load_from(backing.as_ref(), &id, &version, &limits, &chunks) {
                 Ok(a) => {
-                    if let Some(s) = stamp {
-                        stamps.insert(id.clone(), s);
-                    }
+                    versions.insert(id.clone(), version);
                     assets.insert(id, Arc::new(a));
                 }
-                Err(e) => skipped.push(format!("{}: {e}", path.display())),
+                Err(e) => skipped.push(e),
             }
         }
         Ok((
             Store {
-                dir: dir.to_path_buf(),
+                backing,
                 assets: RwLock::new(assets),
                 limits,
                 chunks,
                 writes: std::sync::Mutex::new(()),
-                stamps: std::sync::Mutex::new(stamps),
+                versions: std::sync::Mutex::new(versions),
             },
             skipped,
         ))
     }
 
-    /// Validates an uploaded asset and stores it (atomically: a temporary file of its own,
-    /// then a rename), replacing any asset of that id. Writers of one id serialise: the file
-    /// and the catalog are updated together, so the last writer's version is both.
+    /// Where the assets are kept, for messages.
+    pub fn describe(&self) -> String {
+        self.backing.describe()
+    }
+
+    /// Validates an uploaded asset and stores it (see [`Backing::put`]: readers see the old
+    /// file or the new one), replacing any asset of that id. Writers of one id serialise: the
+    /// file and the catalog are updated together, so the last writer's version is both.
+    /// Blocking.
     pub fn put(&self, id: &str, bytes: &[u8]) -> Result<Arc<StoredAsset>, AppError> {
         validate_id(id)?;
-        let stored =
-            Arc::new(
-                load(id, bytes, &self.limits, &self.chunks).map_err(|e| AppError {
-                    status: axum::http::StatusCode::UNPROCESSABLE_ENTITY,
-                    code: "bad_asset",
-                    detail: e.to_string(),
-                })?,
-            );
+        let bad_asset = |e: fractile_codec::Error| AppError {
+            status: axum::http::StatusCode::UNPROCESSABLE_ENTITY,
+            code: "bad_asset",
+            detail: e.to_string(),
+        };
+        let stored = load(id, bytes, &self.limits, &self.chunks).map_err(bad_asset)?;
+        // A chunked upload is checked whole: a file is stored only when every chunk is sound.
+        if let Some(c) = &stored.asset.chunks {
+            c.verify().map_err(bad_asset)?;
+        }
+        let stored = Arc::new(stored);
         let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
-        fractile_codec::io::asset::write_atomic(&self.dir.join(format!("{id}.fra")), bytes)
-            .map_err(|e| {
-                // The path and the OS error go to the log, not to the client.
-                tracing::error!("storing asset {id}: {e}");
-                AppError::internal("the asset could not be stored")
-            })?;
+        let version = self
+            .backing
+            .put(id, bytes)
+            .map_err(|e| storage_unavailable("storing", id, e))?;
+        // A chunked upload is served from where it is stored, read by range as any replica
+        // reads it, not from the upload's bytes: the server's memory stays bounded by its
+        // caches, not by what was uploaded to it. Should that read fail, the bytes serve.
+        let stored = match &stored.asset.chunks {
+            Some(_) => match load_from(
+                self.backing.as_ref(),
+                id,
+                &version,
+                &self.limits,
+                &self.chunks,
+            ) {
+                Ok(reopened) => Arc::new(reopened),
+                Err(e) => {
+                    tracing::warn!("{id} served from the uploaded bytes until reloaded: {e}");
+                    stored
+                }
+            },
+            None => stored,
+        };
         self.assets
             .write()
             .expect("store lock")
             .insert(id.to_string(), stored.clone());
-        if let Some(s) = FileStamp::of(&self.dir.join(format!("{id}.fra"))) {
-            self.stamps
-                .lock()
-                .unwrap_or_else(|e| e.into_inner())
-                .insert(id.to_string(), s);
-        }
+        self.versions
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .insert(id.to_string(), version);
         Ok(stored)
     }
 
-    /// Removes an asset and its file.
+    /// Removes an asset and its file. Blocking.
     pub fn delete(&self, id: &str) -> Result<(), AppError> {
         validate_id(id)?;
         let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
-        let removed = self.assets.write().expect("store lock").remove(id);
-        if removed.is_none() {
+        if !self.assets.read().expect("store lock").contains_key(id) {
             return Err(AppError::not_found(
                 "unknown_asset",
                 format!("no asset {id:?}"),
             ));
         }
-        std::fs::remove_file(self.dir.join(format!("{id}.fra"))).map_err(|e| {
-            tracing::error!("deleting asset {id}: {e}");
-            AppError::internal("the asset's file could not be removed")
-        })
+        // The file first: when the backing refuses, the asset is still served and still there.
+        self.backing
+            .delete(id)
+            .map_err(|e| storage_unavailable("deleting", id, e))?;
+        self.assets.write().expect("store lock").remove(id);
+        self.versions
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(id);
+        Ok(())
     }
 
     /// The asset `id`, or 404.
@@ -273,60 +302,55 @@ impl Store {
         }
     }
 
-    /// Brings the catalog up to date with the folder, as another process sharing it (a
-    /// replica on one volume) left it: files new or replaced since they were loaded (by
-    /// length, modification time or inode) are loaded, ids whose file is gone are dropped. A
-    /// changed file that does not load is logged and its previous version kept. Reads only
-    /// the folder's listing and the changed files; `serve` runs it every `rescan_seconds`.
+    /// Brings the catalog up to date with the backing, as another process sharing it (a
+    /// replica on one volume or bucket) left it: files new or replaced since they were loaded
+    /// (their version differs) are loaded, ids whose file is gone are dropped. A changed file
+    /// that does not load is logged and its previous version kept; a backing that cannot be
+    /// listed changes nothing. Reads only the listing and the changed files; `serve` runs it
+    /// every `rescan_seconds`. Blocking.
     pub fn refresh(&self) -> Refreshed {
         let mut found = Refreshed::default();
-        let Ok(dir) = std::fs::read_dir(&self.dir) else {
-            return found;
-        };
-        let mut present = std::collections::BTreeSet::new();
-        let mut changed = Vec::new();
-        {
-            let stamps = self.stamps.lock().unwrap_or_else(|e| e.into_inner());
-            for e in dir.flatten() {
-                let path = e.path();
-                let is_file = e.file_type().is_ok_and(|k| k.is_file());
-                let id = path
-                    .file_stem()
-                    .and_then(|s| s.to_str())
-                    .map(str::to_string);
-                let (Some(id), true) = (id, is_file) else {
-                    continue;
-                };
-                if path.extension().and_then(|e| e.to_str()) != Some("fra")
-                    || validate_id(&id).is_err()
-                {
-                    continue;
-                }
-                let stamp = FileStamp::of(&path);
-                if stamp.is_some() && stamps.get(&id) != stamp.as_ref() {
-                    changed.push((id.clone(), path, stamp));
-                }
-                present.insert(id);
-            }
-        }
-        // Writers of this process first finish: the file and the catalog move together.
+        // Writers of this process wait for the rescan, listing included: a listing taken
+        // before a write finished would not hold what it stored, and would drop it.
         let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
-        for (id, path, stamp) in changed {
-            match load_file(&id, &path, &self.limits, &self.chunks) {
+        let listing = match self.backing.list() {
+            Ok(l) => l,
+            Err(e) => {
+                found.unreachable = Some(format!("{}: {e}", self.backing.describe()));
+                return found;
+            }
+        };
+        let changed: Vec<(String, String)> = {
+            let versions = self.versions.lock().unwrap_or_else(|e| e.into_inner());
+            listing
+                .files
+                .iter()
+                .filter(|(id, v)| versions.get(id) != Some(v))
+                .cloned()
+                .collect()
+        };
+        let present: std::collections::BTreeSet<&str> =
+            listing.files.iter().map(|(id, _)| id.as_str()).collect();
+        for (id, version) in changed {
+            match load_from(
+                self.backing.as_ref(),
+                &id,
+                &version,
+                &self.limits,
+                &self.chunks,
+            ) {
                 Ok(a) => {
                     self.assets
                         .write()
                         .expect("store lock")
                         .insert(id.clone(), Arc::new(a));
-                    if let Some(s) = stamp {
-                        self.stamps
-                            .lock()
-                            .unwrap_or_else(|e| e.into_inner())
-                            .insert(id.clone(), s);
-                    }
+                    self.versions
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .insert(id.clone(), version);
                     found.loaded.push(id);
                 }
-                Err(e) => found.skipped.push(format!("{}: {e}", path.display())),
+                Err(e) => found.skipped.push(e),
             }
         }
         let gone: Vec<String> = self
@@ -334,12 +358,12 @@ impl Store {
             .read()
             .expect("store lock")
             .keys()
-            .filter(|id| !present.contains(*id))
+            .filter(|id| !present.contains(id.as_str()))
             .cloned()
             .collect();
         for id in gone {
             self.assets.write().expect("store lock").remove(&id);
-            self.stamps
+            self.versions
                 .lock()
                 .unwrap_or_else(|e| e.into_inner())
                 .remove(&id);
@@ -359,29 +383,6 @@ impl Store {
     }
 }
 
-/// Whether `path` is a temporary file of [`fractile_codec::io::asset::write_atomic`] that no
-/// running writer owns (its process is gone, or it is over an hour old): its name, if so.
-fn stale_temporary(path: &Path) -> Option<String> {
-    let name = path.file_name()?.to_str()?;
-    let owner = fractile_codec::io::asset::temporary_owner(name)?;
-    // Our own pid counts as alive: another store of this process may be writing (a previous
-    // process of the same pid left files that the age rule removes).
-    let alive = Path::new(&format!("/proc/{owner}")).exists();
-    let age = std::fs::symlink_metadata(path)
-        .and_then(|m| m.modified())
-        .ok()
-        .and_then(|t| t.elapsed().ok())
-        .unwrap_or_default();
-    let old = age > std::time::Duration::from_secs(3600);
-    // Where /proc is missing (not Linux), only age tells. A writer whose process is gone is
-    // taken at its word only after 5 minutes: replicas sharing the folder have pids of their
-    // own namespaces, and another replica's upload in progress must not be removed (an upload
-    // of the largest asset takes seconds).
-    let procfs = Path::new("/proc/self").exists();
-    let orphan = procfs && !alive && age > std::time::Duration::from_secs(300);
-    (old || orphan).then(|| name.to_string())
-}
-
 /// Default of `chunk_cache_mib`: the chunks of a 60 Mpx DEM coded by the default DEM codec and
 /// its overviews (a 1024^2 chunk holds its samples and a byte a cell of residual bounds, about
 /// 5.3 MB; the top level's one chunk is built whole, 44 bytes a cell), so that random tiles of
@@ -389,22 +390,30 @@ fn stale_temporary(path: &Path) -> Option<String> {
 /// resident memory under 500 MB.
 pub const DEFAULT_CHUNK_CACHE_MIB: u64 = 384;
 
-/// An asset file of the folder, under `limits`: a chunked one by its header (its chunks read
-/// by range into `chunks` when needed), any other whole.
-fn load_file(
+/// The file of `id` at `version` in `backing`, under `limits`: a chunked one by its header (its
+/// chunks read by range into `chunks` when needed), any other whole. The error names the file.
+fn load_from(
+    backing: &dyn Backing,
     id: &str,
-    path: &Path,
+    version: &str,
     limits: &AssetLimits,
     chunks: &ChunkCache,
 ) -> Result<StoredAsset, String> {
-    let asset = Asset::open(path, limits, chunks.clone()).map_err(|e| e.to_string())?;
-    let Some(c) = asset.chunks.clone() else {
-        // Read whole: load again from its bytes for the size and checksum.
-        let bytes = std::fs::read(path).map_err(|e| e.to_string())?;
-        return load(id, &bytes, limits, chunks).map_err(|e| e.to_string());
-    };
-    let size = std::fs::metadata(path).map_err(|e| e.to_string())?.len();
-    Ok(stored(id, asset, size, c.header_crc))
+    let what = |e: &dyn std::fmt::Display| format!("{}: {e}", backing.locate(id));
+    let source = backing.open(id, version).map_err(|e| what(&e))?;
+    let head = source
+        .read(0, source.len().min(12) as usize)
+        .map_err(|e| what(&e))?;
+    if !fractile_codec::io::chunked::is_chunked(&head) {
+        let bytes = source
+            .read(0, source.len() as usize)
+            .map_err(|e| what(&e))?;
+        return load(id, &bytes, limits, chunks).map_err(|e| what(&e));
+    }
+    let size = source.len();
+    let asset = Asset::open_chunked(source, limits, chunks.clone()).map_err(|e| what(&e))?;
+    let crc = asset.chunks.as_ref().map_or(0, |c| c.header_crc);
+    Ok(stored(id, asset, size, crc))
 }
 
 /// Parses an asset file's bytes into a stored asset, under `limits`, a chunked one's chunks

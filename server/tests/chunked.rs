@@ -1,7 +1,7 @@
 //! A chunked asset served from the folder (read by range, chunks decoded on demand): its tiles
 //! across chunk edges agree with the single-operator asset of the same DEM within the two
 //! bounds they answer, its ETag names its version, and a corrupt chunk costs only the tiles
-//! that need it (503 by name), never the others.
+//! that need it (503 by name), never the others; an upload with a corrupt chunk is refused.
 
 use std::sync::Arc;
 
@@ -116,6 +116,32 @@ async fn a_corrupt_chunk_costs_only_the_tiles_that_need_it() {
     assert_eq!(s, StatusCode::SERVICE_UNAVAILABLE);
     let (s, _, _) = get(&st, "/v1/assets/corrupt/point/-170,80").await;
     assert_eq!(s, StatusCode::OK);
+}
+
+/// An upload is checked chunk by chunk before it is stored: the file with one corrupt chunk
+/// is refused (422, naming the chunk) and leaves nothing behind; the sound one is stored, and
+/// served from its file.
+#[test]
+fn an_upload_with_a_corrupt_chunk_is_refused_whole() {
+    let uploads = dir().join("uploads");
+    std::fs::create_dir_all(&uploads).unwrap();
+    let (store, _) = Store::open(&uploads).unwrap();
+    let corrupt = std::fs::read(dir().join("corrupt.fra")).unwrap();
+    let Err(e) = store.put("etopo", &corrupt) else {
+        panic!("a file with a corrupt chunk was stored")
+    };
+    assert_eq!(e.status, StatusCode::UNPROCESSABLE_ENTITY);
+    assert!(e.detail.contains("chunk"), "{}", e.detail);
+    assert!(store.get("etopo").is_err());
+    assert!(!uploads.join("etopo.fra").exists());
+    let sound = std::fs::read(dir().join("chunked.fra")).unwrap();
+    let Ok(served) = store.put("etopo", &sound) else {
+        panic!("the sound file was refused")
+    };
+    assert_eq!(std::fs::read(uploads.join("etopo.fra")).unwrap(), sound);
+    // Served from the stored file by range, not from the upload's bytes held in memory.
+    let source = format!("{:?}", served.asset.chunks.as_ref().unwrap());
+    assert!(source.contains("etopo.fra"), "{source}");
 }
 
 /// Asking a server with a GPU (lavapipe in CI) to decode a chunked asset there is refused by

@@ -255,7 +255,7 @@ impl Chunked {
         let mut worst: Option<f32> = None;
         for part in parts {
             if let Some(chunk) = self.chunk(level, part.index)?
-                && let Some(e) = chunk.source_error_over(&part.pixels)
+                && let Some(e) = chunk.source_error_over(&part.pixels)?
             {
                 worst = Some(worst.map_or(e, |w| w.max(e)));
             }

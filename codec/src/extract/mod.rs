@@ -451,12 +451,15 @@ impl Asset {
     /// error (one bound for all the pixels, as a tile's), so converging further refines values
     /// far below what the bound can tell; the asset's default, an eighth of its smallest
     /// source error anywhere, took rough tiles of a 37 Mpx DEM 6 steps a pixel where 3 keep
-    /// the same bound within 12.5% (measured: docs/benchmarks.md).
-    pub fn tolerance_over(&self, pixels: &Pixels) -> f32 {
+    /// the same bound within 12.5% (measured: docs/benchmarks.md). Fails where a chunk of a
+    /// chunked asset under the pixels cannot be read: an answer settled on the default instead
+    /// would take other steps than the same request answered later, under the same ETag.
+    pub fn tolerance_over(&self, pixels: &Pixels) -> Result<f32, crate::Error> {
         let default = self.default_tolerance();
-        self.source_error_over(pixels)
+        Ok(self
+            .source_error_over(pixels)?
             .filter(|e| e.is_finite())
-            .map_or(default, |e| default.max(SETTLED_FRACTION * e))
+            .map_or(default, |e| default.max(SETTLED_FRACTION * e)))
     }
 
     /// The bound on |answer - source| at unit point (u, v) beyond convergence: the source-error
@@ -663,12 +666,17 @@ impl Asset {
     /// source-error map over their extent, each pixel's footprint included); `None` for assets
     /// without a map and for pixels wholly outside. For pixels coarser than the source (a
     /// filtered answer) this is the largest point error under them, which bounds the filtered
-    /// answer against the source filtered the same way.
-    pub fn source_error_over(&self, pixels: &Pixels) -> Option<f32> {
+    /// answer against the source filtered the same way. Fails where a chunk of a chunked
+    /// asset under the pixels cannot be read (its map is in the chunk).
+    pub fn source_error_over(&self, pixels: &Pixels) -> Result<Option<f32>, crate::Error> {
         if let Some(c) = &self.chunks {
-            // A chunk that cannot be read has already failed the answer it bounds.
-            return c.source_error_over(&self.meta, pixels).ok().flatten();
+            return c.source_error_over(&self.meta, pixels);
         }
+        Ok(self.source_error_map_over(pixels))
+    }
+
+    /// [`Asset::source_error_over`] of an asset that is one operator.
+    fn source_error_map_over(&self, pixels: &Pixels) -> Option<f32> {
         let map = self.source_error.as_ref()?;
         let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
         let mut take = |p: [f32; 2]| {

