@@ -1,0 +1,33 @@
+#!/usr/bin/env bash
+# Issue 32's GPU measurements (docs/benchmarks.md, "On an H100"), for a machine with a GPU:
+# the gpu bench (4096 x 4096 window, points, device time, 3D) at 16 CPU threads, then uncached
+# terrarium tiles of etopo20 (the client's cold pyramid walk, 21,845 tiles) with backend=cpu and
+# backend=gpu at 16, 4 and 1 clients, each on a freshly started server. Run from the repository
+# root after `cargo build --release` and `cargo bench -p fractile-gpu --bench gpu --no-run`, or
+# with BIN naming a folder holding `fractile`, `fractile-client` and `gpu-bench` built elsewhere.
+set -u
+D=${DUR:-10}
+OUT=${OUT:-/tmp/gpu-bars}
+mkdir -p "$OUT"
+BIN=${BIN:-}
+if [ -z "$BIN" ]; then
+  BIN=$(mktemp -d)
+  ln -s "$PWD/target/release/fractile" "$PWD/target/release/fractile-client" "$BIN/"
+  ln -s "$(ls -t target/release/deps/gpu-* | grep -v '\.d$' | head -1)" "$BIN/gpu-bench"
+fi
+command -v nvidia-smi >/dev/null && nvidia-smi -L
+export RAYON_NUM_THREADS=${THREADS:-16}
+timeout 240 "$BIN/gpu-bench" 2>&1 | tee "$OUT/gpu-bench.txt"
+assets=$(mktemp -d)
+"$BIN/fractile" encode testdata/etopo20.tif -o "$assets/etopo20.fra"
+for run in cpu:16 gpu:16 cpu:16 gpu:16 cpu:4 gpu:4 cpu:1 gpu:1; do
+  b=${run%:*}; c=${run#*:}
+  "$BIN/fractile" serve --assets "$assets" --bind 127.0.0.1:18080 --backend auto > "$OUT/serve-$b.log" 2>&1 &
+  pid=$!
+  for _ in $(seq 240); do curl -sf localhost:18080/readyz >/dev/null && break; sleep 0.5; done
+  echo "== etopo20 backend=$b clients=$c"
+  timeout 60 "$BIN/fractile-client" bench --server http://127.0.0.1:18080 --asset etopo20 \
+    --kinds tiles-cold --backend "$b" --duration "$D" --concurrency "$c" | tail -1
+  kill $pid; wait $pid 2>/dev/null
+done 2>&1 | tee "$OUT/tiles.txt"
+grep -h "GPU decoding" "$OUT/serve-gpu.log" | head -1
