@@ -86,7 +86,7 @@ pub(crate) struct EncodeArgs {
     /// folder of them) on one grid, read as one raster (cells none covers are nodata).
     #[arg(required = true, num_args = 1..)]
     inputs: Vec<PathBuf>,
-    /// Output asset file.
+    /// Output asset file, or object (`s3://bucket/key`, the AWS variables as for `serve`).
     #[arg(short, long)]
     output: PathBuf,
     /// Largest file size in bits per source pixel (rate control).
@@ -338,8 +338,10 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         };
         return encode_part(&a, rows.as_mut(), c, Share::parse(text)?);
     }
+    // An s3:// output is written here first, then uploaded.
+    let out = crate::remote::Local::output(&a.output)?;
     let enc = match chunk {
-        None => encode_with(&a, &rows.read_all()?, true)?.write(&a.output)?,
+        None => encode_with(&a, &rows.read_all()?, true)?.write(out.path())?,
         Some(c) => {
             let bar = progress_bar("coding chunks", a.json);
             let progress = |done: u64, total: u64| bar.update(done, total);
@@ -347,11 +349,12 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
                 encode_with(&a, r, false)
                     .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
             };
-            let enc = encode_chunked_file(rows.as_mut(), c, &one, &progress, &a.output)?;
+            let enc = encode_chunked_file(rows.as_mut(), c, &one, &progress, out.path())?;
             bar.finish();
             enc
         }
     };
+    out.finish()?;
     let report = json!({
         "input": a.inputs[0], "inputs": files, "output": a.output, "codec": enc.asset.codec_name(),
         "width": width, "height": height,

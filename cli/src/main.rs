@@ -7,6 +7,7 @@
 
 mod decoding;
 mod encoding;
+mod remote;
 
 use decoding::*;
 use encoding::*;
@@ -47,10 +48,10 @@ enum Command {
     /// Join the part files of an encode split with `encode --part I/N` into the asset (the
     /// same bytes as the encode in one process).
     Assemble {
-        /// Every part file, in any order.
+        /// Every part file, in any order (files, or `s3://bucket/key` objects).
         #[arg(required = true, num_args = 1..)]
         parts: Vec<PathBuf>,
-        /// The asset to write.
+        /// The asset to write (a file, or an `s3://bucket/key` object).
         #[arg(short, long)]
         output: PathBuf,
         /// Print JSON.

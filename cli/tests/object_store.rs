@@ -3,7 +3,7 @@
 //! serves, with the same bytes and ETag; an upload cut off midway or refused leaves the
 //! version served whole; one replica killed and restarted under load costs the other no
 //! request; the store going away gives clear 503s (but for chunks a replica keeps on its
-//! disk) and coming back needs no restart.
+//! disk) and coming back needs no restart; a split encode runs through the bucket.
 //!
 //! One sequential test, since the steps build on each other's state. Without a `weed` binary
 //! it says so and passes, except under CI (`CI` set), where a missing store is a failure.
@@ -187,6 +187,55 @@ fn replicas_share_one_bucket_and_survive_the_store_going_away() {
     let (done, failed) = (done.load(Ordering::Relaxed), failed.load(Ordering::Relaxed));
     assert!(done > 100, "B answered {done} requests under load");
     assert_eq!(failed, 0, "B failed {failed} of {} requests", done + failed);
+
+    // A split encode through the bucket, as machines sharing no volume run it: two parts
+    // encoded into it, assembled into the served prefix: the same bytes as one encode (v1),
+    // which the replicas serve at their next listing.
+    let fractile = |args: &[&str]| {
+        let ok = Command::new(binary())
+            .args(args)
+            .envs(weed.env())
+            .status()
+            .expect("the fractile binary runs")
+            .success();
+        assert!(ok, "fractile {args:?} failed");
+    };
+    let input = data("etopo20.tif");
+    for part in ["0/2", "1/2"] {
+        let out = format!("s3://fractile/parts/part-{}", &part[..1]);
+        let input = input.to_str().unwrap();
+        fractile(&[
+            "encode",
+            input,
+            "--chunk",
+            "128",
+            "--target-bpp",
+            "1.0",
+            "--part",
+            part,
+            "-o",
+            &out,
+        ]);
+    }
+    let parts = ["s3://fractile/parts/part-0", "s3://fractile/parts/part-1"];
+    fractile(&[
+        "assemble",
+        parts[0],
+        parts[1],
+        "-o",
+        "s3://fractile/assets/split.fra",
+    ]);
+    let object = get(weed.s3_port(), "/fractile/assets/split.fra").unwrap();
+    assert_eq!(object.0, 200);
+    assert!(
+        object.2 == v1,
+        "the assembled asset is not the single encode's bytes"
+    );
+    let split = "/v1/assets/split/tiles/3/1/3.png";
+    assert!(
+        eventually(Duration::from_secs(15), || fetch(pb, split).2 == on_a.2),
+        "B does not serve the assembled asset as v1"
+    );
 
     // A replica with a disk cache reads every source chunk once (zoom 3's tiles touch them
     // all; its memory holds a few of them), keeping the ranges on disk.

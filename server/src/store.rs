@@ -18,7 +18,7 @@ use crate::error::AppError;
 mod bucket;
 mod demo;
 mod folder;
-pub use bucket::{Bucket, DiskCache};
+pub use bucket::{Bucket, DiskCache, s3_store};
 pub use demo::ensure_demo_assets;
 pub use folder::Folder;
 

@@ -29,8 +29,11 @@ pub(super) fn encode_part(
     let one = |r: &Raster| {
         encode_with(a, r, false).map_err(|e| fractile_codec::Error::Settings(e.to_string()))
     };
-    let w = encode_chunked_part(rows, (chunk, share, &settings), &one, &progress, &a.output)?;
+    // An s3:// part is written here first, then uploaded: the machines share a bucket.
+    let out = crate::remote::Local::output(&a.output)?;
+    let w = encode_chunked_part(rows, (chunk, share, &settings), &one, &progress, out.path())?;
     bar.finish();
+    out.finish()?;
     let report = json!({
         "output": a.output, "part": format!("{}/{}", share.index, share.count),
         "chunks": w.chunks, "bytes": w.length, "seconds": w.seconds,
@@ -54,7 +57,15 @@ pub(super) fn encode_part(
 
 /// `fractile assemble`: the part files of a split encode joined into the asset.
 pub(crate) fn run_assemble(parts: &[PathBuf], output: &Path, as_json: bool) -> Result<()> {
-    let w = fractile_codec::encode::parts::assemble(parts, output)?;
+    // Parts and the asset may be s3:// objects: parts are downloaded, the asset uploaded.
+    let local: Vec<crate::remote::Local> = parts
+        .iter()
+        .map(|p| crate::remote::Local::input(p))
+        .collect::<Result<_>>()?;
+    let files: Vec<PathBuf> = local.iter().map(|l| l.path().to_path_buf()).collect();
+    let out = crate::remote::Local::output(output)?;
+    let w = fractile_codec::encode::parts::assemble(&files, out.path())?;
+    out.finish()?;
     let m = &w.asset.meta;
     let report = json!({
         "parts": parts, "output": output, "codec": w.asset.codec_name(),

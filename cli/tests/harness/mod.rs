@@ -270,6 +270,11 @@ impl Weed {
         text[text.len().saturating_sub(2000)..].to_string()
     }
 
+    /// The S3 gateway's port on 127.0.0.1 (anonymous reads: `GET /{bucket}/{key}`).
+    pub fn s3_port(&self) -> u16 {
+        self.ports[0]
+    }
+
     /// The environment a fractile process needs to reach it.
     pub fn env(&self) -> Vec<(&'static str, String)> {
         vec![

@@ -96,28 +96,7 @@ impl Bucket {
     /// errors (503) rather than requests that hang. Ranges read are kept under `disk` when
     /// given. Nothing is read yet.
     pub fn connect(url: &str, disk: Option<DiskCache>) -> std::io::Result<Bucket> {
-        let parsed = url.strip_prefix("s3://").ok_or_else(|| {
-            std::io::Error::other(format!(
-                "{url}: only s3:// object stores are supported (S3, SeaweedFS, MinIO, R2)"
-            ))
-        })?;
-        let (bucket, prefix) = parsed.split_once('/').unwrap_or((parsed, ""));
-        let retry = object_store::RetryConfig {
-            max_retries: 2,
-            retry_timeout: Duration::from_secs(10),
-            ..Default::default()
-        };
-        // Set key by key: `with_client_options` would drop those of the environment
-        // (AWS_ALLOW_HTTP among them).
-        use object_store::ClientConfigKey as C;
-        use object_store::aws::AmazonS3ConfigKey as K;
-        let store = object_store::aws::AmazonS3Builder::from_env()
-            .with_bucket_name(bucket)
-            .with_retry(retry)
-            .with_config(K::Client(C::ConnectTimeout), "2s")
-            .with_config(K::Client(C::Timeout), "30s")
-            .build()
-            .map_err(|e| std::io::Error::other(format!("{url}: {e}")))?;
+        let (store, prefix) = s3_store(url)?;
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
             .thread_name("object-store")
@@ -125,11 +104,11 @@ impl Bucket {
             .build()?;
         Ok(Bucket {
             remote: Arc::new(Remote {
-                store: Arc::new(store),
+                store,
                 runtime: Some(runtime),
                 disk,
             }),
-            prefix: Path::from(prefix.trim_matches('/')),
+            prefix,
             url: url.to_string(),
             listings: Default::default(),
         })
@@ -204,6 +183,37 @@ impl Bucket {
         }
         Ok(())
     }
+}
+
+/// The object store of `url` (`s3://bucket` or `s3://bucket/key`) and the key under it, its
+/// credentials and endpoint from the standard AWS variables. A request that gets no answer
+/// fails after a few seconds (a 2 s connect timeout, two retries at most), so that a store that
+/// has gone away gives clear errors rather than requests that hang. What the server's bucket
+/// and the command line's transfers (`encode --part`, `assemble`) both open.
+pub fn s3_store(url: &str) -> std::io::Result<(Arc<dyn ObjectStore>, Path)> {
+    let parsed = url.strip_prefix("s3://").ok_or_else(|| {
+        std::io::Error::other(format!(
+            "{url}: only s3:// object stores are supported (S3, SeaweedFS, MinIO, R2)"
+        ))
+    })?;
+    let (bucket, key) = parsed.split_once('/').unwrap_or((parsed, ""));
+    let retry = object_store::RetryConfig {
+        max_retries: 2,
+        retry_timeout: Duration::from_secs(10),
+        ..Default::default()
+    };
+    // Set key by key: `with_client_options` would drop those of the environment
+    // (AWS_ALLOW_HTTP among them).
+    use object_store::ClientConfigKey as C;
+    use object_store::aws::AmazonS3ConfigKey as K;
+    let store = object_store::aws::AmazonS3Builder::from_env()
+        .with_bucket_name(bucket)
+        .with_retry(retry)
+        .with_config(K::Client(C::ConnectTimeout), "2s")
+        .with_config(K::Client(C::Timeout), "30s")
+        .build()
+        .map_err(|e| std::io::Error::other(format!("{url}: {e}")))?;
+    Ok((Arc::new(store), Path::from(key.trim_matches('/'))))
 }
 
 impl Backing for Bucket {
