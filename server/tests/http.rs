@@ -662,6 +662,11 @@ async fn metrics_count_requests_by_route_and_cache_hits() {
     );
     assert!(text.contains("fractile_request_seconds_bucket"), "{text}");
     assert!(text.contains("fractile_decode_seconds"), "{text}");
+    // An uncached tile's stages, each timed.
+    for stage in ["sites", "sample", "encode"] {
+        let name = format!("fractile_tile_stage_seconds_count{{stage=\"{stage}\"}}");
+        assert!(text.contains(&name), "{name} in {text}");
+    }
 }
 
 #[tokio::test]

@@ -337,7 +337,16 @@ fn draw_tile(
     // Hillshading needs each pixel's neighbours: decode a one-pixel margin around the tile, so
     // that shading is seamless across tiles.
     let margin = usize::from(job.shade);
+    // Where an uncached tile's time goes, for /metrics: its pixels' sites, their sampling
+    // (the decode, on the CPU or the GPU), and the rest (style, rounding, PNG).
+    let started = std::time::Instant::now();
+    let stage = |name: &'static str, since: std::time::Instant| {
+        metrics::histogram!("fractile_tile_stage_seconds", "stage" => name)
+            .record(since.elapsed().as_secs_f64());
+        std::time::Instant::now()
+    };
     let grid = geo::tile_pixels(asset.placement.as_ref(), z, x, y, size, margin);
+    let sampled = stage("sites", started);
     let (mut channels, bound) = if grid.is_outside() {
         // The tile overlaps the asset's bounds, but no pixel centre falls on it (a small asset
         // at a coarse zoom): a tile of nodata, not a 404, so that map clients draw the zoom
@@ -358,6 +367,7 @@ fn draw_tile(
             job.tolerance,
         )?
     };
+    let encoded = stage("sample", sampled);
     let style = (job.colormap.is_some() || job.shade).then(|| {
         let side = size + 2 * margin;
         let shade = job.shade.then(|| {
@@ -407,6 +417,7 @@ fn draw_tile(
         style,
         (rounding, encoding::Deflate::for_tile(rounding)),
     );
+    stage("encode", encoded);
     Ok(Cached {
         content_type,
         content_encoding: None,
