@@ -157,7 +157,6 @@ enum Readback<'a> {
 /// A dispatch submitted, its results on their way into a mapped buffer.
 struct Pending {
     readback: wgpu::Buffer,
-    submission: wgpu::SubmissionIndex,
     mapped: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
     /// The bytes of values before the summary, for a values-only dispatch.
     values_bytes: Option<u64>,
@@ -846,14 +845,13 @@ impl Gpu {
         } else {
             encoder.copy_buffer_to_buffer(&results, 0, &readback, 0, size);
         }
-        let submission = self.queue.submit([encoder.finish()]);
+        self.queue.submit([encoder.finish()]);
         let (tx, mapped) = std::sync::mpsc::channel();
         readback.slice(..).map_async(wgpu::MapMode::Read, move |r| {
             let _ = tx.send(r);
         });
         Ok(Some(Pending {
             readback,
-            submission,
             mapped,
             values_bytes: values_only.then_some(values_bytes),
         }))
@@ -864,20 +862,26 @@ impl Gpu {
     fn finish(&self, pending: Pending, sink: &mut dyn FnMut(Readback<'_>)) -> Result<(), GpuError> {
         let Pending {
             readback,
-            submission,
             mapped,
             values_bytes,
         } = pending;
-        self.device
-            .poll(wgpu::PollType::Wait {
-                submission_index: Some(submission),
-                timeout: None,
-            })
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
-        mapped
-            .recv()
-            .map_err(|e| GpuError::Readback(e.to_string()))?
-            .map_err(|e| GpuError::Readback(e.to_string()))?;
+        // Waited for by polling without blocking: a blocking poll holds the device's resource
+        // lock for the whole wait, and the submissions and buffer drops of other requests
+        // queue behind it (measured on an H100: a tile sampled in 0.65 ms alone took 1.85 ms
+        // with 16 in flight).
+        let done = loop {
+            self.device
+                .poll(wgpu::PollType::Poll)
+                .map_err(|e| GpuError::Readback(e.to_string()))?;
+            match mapped.try_recv() {
+                Ok(r) => break r,
+                Err(std::sync::mpsc::TryRecvError::Empty) => {
+                    std::thread::sleep(std::time::Duration::from_micros(20))
+                }
+                Err(e) => return Err(GpuError::Readback(e.to_string())),
+            }
+        };
+        done.map_err(|e| GpuError::Readback(e.to_string()))?;
         let slice = readback.slice(..);
         let view = slice
             .get_mapped_range()
