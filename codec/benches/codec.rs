@@ -445,9 +445,16 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
     use fractile_codec::codecs::projected::ProjectedSettings;
     use fractile_codec::encode::projected::encode_projected;
     let rate = ProjectedSettings::default();
+    let pyramid = ProjectedSettings {
+        pyramid: true,
+        ..ProjectedSettings::default()
+    };
     println!("\n## projected against the quadtree and JPEG 2000 at the same bytes\n");
-    println!("| image | ratio | projected | quadtree-pifs | JPEG 2000 | projected - JPEG 2000 |");
-    println!("|---|---|---|---|---|---|");
+    println!(
+        "| image | ratio | projected (kernel) | projected, pyramid | quadtree-pifs | JPEG 2000 | \
+         projected - JPEG 2000 |"
+    );
+    println!("|---|---|---|---|---|---|---|");
     let dems: Vec<(&str, Raster)> = ["jacksboro.tif", "etopo20.tif"]
         .iter()
         .map(|n| {
@@ -461,12 +468,17 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
         for ratio in [10.0, 20.0, 40.0, 80.0] {
             let bpp = 16.0 / ratio;
             let p = encode_projected(r, &rate, Some(bpp)).expect("projected");
+            let pp = encode_projected(r, &pyramid, Some(bpp)).expect("projected");
             let q = encode(r, &quadtree(bpp), &quiet).expect("quadtree");
             let j = jpeg2000_at(r, p.bpp());
             println!(
-                "| {name} | {ratio}:1 | {:.2} dB at {:.3} bpp | {:.2} dB at {:.3} bpp | {} | {} |",
+                "| {name} | {ratio}:1 | {:.2} dB at {:.3} bpp ({}) | {:.2} dB at {:.3} bpp | \
+                 {:.2} dB at {:.3} bpp | {} | {} |",
                 p.errors.psnr,
                 p.bpp(),
+                kernel(&p.asset),
+                pp.errors.psnr,
+                pp.bpp(),
                 q.errors.psnr,
                 q.bpp(),
                 j.map_or("-".into(), |(b, d)| format!("{d:.2} dB at {b:.3} bpp")),
@@ -480,12 +492,15 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
         .flat_map(|i| [0.25, 0.5, 1.0, 2.0].map(|b| (i, b)))
     {
         let p = encode_projected(image, &rate, Some(bpp)).expect("projected");
+        let pp = encode_projected(image, &pyramid, Some(bpp)).expect("projected");
         let j = jpeg2000_at(image, p.bpp());
         let jp = jpeg_at(image, p.bpp());
         println!(
-            "| {label} | {bpp} bpp | {:.2} dB at {:.3} bpp | JPEG {} | {} | {} |",
+            "| {label} | {bpp} bpp | {:.2} dB at {:.3} bpp ({}) | {:.2} dB | JPEG {} | {} | {} |",
             p.errors.psnr,
             p.bpp(),
+            kernel(&p.asset),
+            pp.errors.psnr,
             jp.map_or("-".into(), |(b, d)| format!("{d:.2} dB at {b:.3} bpp")),
             j.map_or("-".into(), |(b, d)| format!("{d:.2} dB at {b:.3} bpp")),
             j.map_or("-".into(), |(_, d)| format!("{:+.2} dB", p.errors.psnr - d)),
@@ -515,6 +530,16 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
                 p.seconds
             );
         }
+    }
+}
+
+/// The multiresolution a projected asset's first plane was coded with.
+fn kernel(asset: &fractile_codec::io::asset::Asset) -> String {
+    match &asset.planes[0].coding {
+        fractile_codec::io::asset::Coding::Projected { header, .. } => {
+            format!("{:?}", header.order)
+        }
+        _ => "-".into(),
     }
 }
 

@@ -1,5 +1,5 @@
-//! The plots of the README: rate-distortion curves (PSNR against bits per pixel) of fractile,
-//! JPEG and JPEG 2000 on camera and etopo20, and the throughput comparison of the service.
+//! The plots of the README: rate-distortion curves (PSNR against bits per pixel) of fractile
+//! (the quadtree and projected codecs), JPEG and JPEG 2000 on camera and etopo20, and the throughput comparison of the service.
 //! `cargo bench -p fractile-codec --bench plots` encodes each image at a sweep of rates, prints
 //! the points as tables and writes `docs/plots/rd-camera.svg`, `docs/plots/rd-etopo20.svg` and
 //! `docs/plots/throughput.svg` (from `docs/plots/tiles.csv`, the load test's figures). JPEG 2000
@@ -46,21 +46,33 @@ fn settings(r: &Raster, bpp: f64) -> EncodeSettings {
 }
 
 fn curves(r: &Raster, rates: &[f64], with_jpeg: bool) -> Vec<Curve> {
+    use fractile_codec::codecs::projected::ProjectedSettings;
+    use fractile_codec::encode::projected::encode_projected;
     let mut fractile = Vec::new();
+    let mut projected = Vec::new();
     let (mut jpeg, mut j2k) = (Vec::new(), Vec::new());
     for &bpp in rates {
         let enc = encode(r, &settings(r, bpp), &|_, _| {}).expect("encode");
         fractile.push((enc.bpp(), enc.errors.psnr));
+        let p = encode_projected(r, &ProjectedSettings::default(), Some(bpp)).expect("projected");
+        projected.push((p.bpp(), p.errors.psnr));
         if with_jpeg {
             jpeg.extend(jpeg_at(r, bpp));
         }
         j2k.extend(jpeg2000_at(r, bpp));
     }
-    let mut out = vec![Curve {
-        name: "fractile (quadtree PIFS)",
-        colour: RGBColor(200, 60, 30),
-        points: fractile,
-    }];
+    let mut out = vec![
+        Curve {
+            name: "fractile (quadtree PIFS)",
+            colour: RGBColor(200, 60, 30),
+            points: fractile,
+        },
+        Curve {
+            name: "fractile (projected)",
+            colour: RGBColor(30, 150, 60),
+            points: projected,
+        },
+    ];
     if with_jpeg {
         out.push(Curve {
             name: "JPEG (image crate, baseline)",

@@ -36,8 +36,9 @@ fn every_format_version_is_read_as_it_was_written() {
     files.sort();
     assert_eq!(
         files.len(),
-        31,
-        "six codecs a version, versions 1 to 5; version 6 chunked"
+        34,
+        "six codecs a version, versions 1 to 5; version 6 chunked; the projected codec's three \
+         multiresolutions in version 5"
     );
     let mut versions = std::collections::BTreeSet::new();
     for path in files {
@@ -63,6 +64,20 @@ fn every_format_version_is_read_as_it_was_written() {
             version == 5 && raster,
             "{name}"
         );
+        // A projected file holds the multiresolution its name says.
+        if name.contains("projected") {
+            use fractile_codec::codecs::projected::pyramid::Order;
+            use fractile_codec::io::asset::Coding;
+            let Coding::Projected { header, .. } = &asset.planes[0].coding else {
+                panic!("{name}: not a projected plane");
+            };
+            let want = match () {
+                _ if name.contains("lifted") => vec![Order::Lifted],
+                _ if name.contains("cdf97") => vec![Order::Lifted97],
+                _ => vec![Order::Separable, Order::Quincunx],
+            };
+            assert!(want.contains(&header.order), "{name}: {:?}", header.order);
+        }
         match asset.meta.kind {
             AssetKind::Image | AssetKind::HeightField => {
                 let src = Raster::open(&data(source(&name))).unwrap();

@@ -90,29 +90,43 @@ fn max_error_10_codes_smaller_than_jpeg_ls_near_lossless() {
 #[test]
 fn a_corrupt_or_truncated_stream_is_an_error() {
     let r = Raster::open(&testdata("jacksboro.tif")).expect("testdata");
-    let s = ProjectedSettings {
+    let bounded = ProjectedSettings {
         max_error: Some(2.0),
         ..Default::default()
     };
-    let enc = encode_projected(&r, &s, None).expect("encode");
-    let Coding::Projected { header, stream } = &enc.asset.planes[0].coding else {
-        panic!("a projected plane");
-    };
-    let meta = enc.asset.meta.clone();
-    let part = |h: ProjectedHeader, s: Vec<u8>| {
-        Asset::from_projected_parts(meta.clone(), vec![(h, s)], None)
-    };
-    assert!(part(header.clone(), stream.clone()).is_ok());
-    for cut in [0, 10, stream.len() / 2] {
-        let e = part(header.clone(), stream[..cut].to_vec()).expect_err("truncated");
-        assert!(e.to_string().contains("projected"), "{e}");
+    // The pyramid (max error) and the lifted levels (rate).
+    for (settings, bpp) in [(bounded, None), (ProjectedSettings::default(), Some(0.8))] {
+        let enc = encode_projected(&r, &settings, bpp).expect("encode");
+        let Coding::Projected { header, stream } = &enc.asset.planes[0].coding else {
+            panic!("a projected plane");
+        };
+        let meta = enc.asset.meta.clone();
+        let part = |h: ProjectedHeader, s: Vec<u8>| {
+            Asset::from_projected_parts(meta.clone(), vec![(h, s)], None)
+        };
+        assert!(part(header.clone(), stream.clone()).is_ok());
+        for cut in [0, 10, stream.len() / 2] {
+            let e = part(header.clone(), stream[..cut].to_vec()).expect_err("truncated");
+            assert!(
+                e.to_string().contains("projected"),
+                "{:?}: {e}",
+                header.order
+            );
+        }
+        let mut bad = header.clone();
+        bad.levels = 40;
+        assert!(part(bad, stream.clone()).is_err());
+        let mut bad = header.clone();
+        bad.roughness = 1.5;
+        assert!(part(bad, stream.clone()).is_err());
+        if header.order.lifting().is_some() {
+            // A lifted plane promises nothing per sample: a header that says it does is not
+            // one an encoder wrote.
+            let mut bad = header.clone();
+            bad.quantum = 1.0;
+            assert!(part(bad, stream.clone()).is_err());
+        }
     }
-    let mut bad = header.clone();
-    bad.levels = 40;
-    assert!(part(bad, stream.clone()).is_err());
-    let mut bad = header.clone();
-    bad.roughness = 1.5;
-    assert!(part(bad, stream.clone()).is_err());
 }
 
 /// Power of the finest octave of a grid's spectrum: the part of its 2D power spectrum with a
@@ -267,9 +281,9 @@ fn zoom_past_the_source_continues_the_roughness() {
 }
 
 #[test]
-fn rate_control_fits_its_target_and_beats_the_quadtree_by_3_db_on_etopo20() {
-    // Figures of the codec bench at 20:1: projected 47.0 dB, quadtree-pifs 43.2 dB, JPEG 2000
-    // 47.1 dB (OpenJPEG, same bytes).
+fn rate_control_fits_its_target_and_reaches_jpeg_2000_on_etopo20() {
+    // Issue 29's bar: JPEG 2000 (OpenJPEG) gives 47.2 dB on etopo20 at 20:1 (0.8 bpp); the
+    // quadtree 43.2 dB.
     let r = Raster::open(&testdata("etopo20.tif")).expect("testdata");
     let enc = encode_projected(&r, &ProjectedSettings::default(), Some(0.8)).expect("encode");
     println!(
@@ -283,7 +297,37 @@ fn rate_control_fits_its_target_and_beats_the_quadtree_by_3_db_on_etopo20() {
         "rate control left {} bpp unused",
         0.8 - enc.bpp()
     );
-    assert!(enc.errors.psnr >= 46.2, "{:.2} dB", enc.errors.psnr);
+    assert!(enc.errors.psnr >= 47.2, "{:.2} dB", enc.errors.psnr);
+}
+
+#[test]
+fn lifted_levels_beat_the_closed_loop_pyramid_at_low_rates() {
+    // At 80:1 most details are zero: the pyramid then subdivides sub-sampled control points,
+    // the lifted levels local means (measured 1.0-1.2 dB apart on both DEMs).
+    for name in ["jacksboro.tif", "etopo20.tif"] {
+        let r = Raster::open(&testdata(name)).expect("testdata");
+        let lifted =
+            encode_projected(&r, &ProjectedSettings::default(), Some(0.2)).expect("lifted");
+        let pyramid = ProjectedSettings {
+            pyramid: true,
+            ..Default::default()
+        };
+        let pyramid = encode_projected(&r, &pyramid, Some(0.2)).expect("pyramid");
+        println!(
+            "{name} at 0.2 bpp: lifted {:.2} dB at {:.3} bpp, pyramid {:.2} dB at {:.3} bpp",
+            lifted.errors.psnr,
+            lifted.bpp(),
+            pyramid.errors.psnr,
+            pyramid.bpp()
+        );
+        assert!(lifted.bpp() <= 0.2 && pyramid.bpp() <= 0.2);
+        assert!(
+            lifted.errors.psnr >= pyramid.errors.psnr + 0.5,
+            "{name}: lifted {:.2} dB, pyramid {:.2} dB",
+            lifted.errors.psnr,
+            pyramid.errors.psnr
+        );
+    }
 }
 
 /// Issue 34's bar on projected assets: at 10,000 random cell centres, every answer within its
@@ -400,24 +444,36 @@ fn error_bounds_hold_and_are_tight_at_random_cell_centres() {
 }
 
 #[test]
-fn colour_images_code_as_luma_and_half_resolution_chroma() {
+fn colour_images_code_as_luma_and_chroma_at_the_resolution_that_codes_better() {
     let r = Raster::open(&testdata("astronaut.png")).expect("testdata");
-    let enc = encode_projected(&r, &ProjectedSettings::default(), Some(1.0)).expect("encode");
-    let asset = Asset::from_bytes(&enc.bytes).expect("read back");
-    assert_eq!(asset.planes.len(), 3);
-    let Coding::Projected { header, .. } = &asset.planes[1].coding else {
-        panic!("projected chroma");
-    };
-    // At 1 bpp half-resolution chroma codes better than full (both are tried).
-    assert_eq!(header.samples, [256, 256], "chroma at half resolution");
-    println!(
-        "astronaut at 1 bpp: {:.3} bpp, {:.2} dB",
-        enc.bpp(),
-        enc.errors.psnr
-    );
-    assert!(enc.bpp() <= 1.0 && enc.bpp() > 0.9, "{} bpp", enc.bpp());
-    // JPEG at the same rate is 32.8 dB on it (the codec bench); a broken chroma path is far under.
-    assert!(enc.errors.psnr > 31.0, "{:.2} dB", enc.errors.psnr);
+    // JPEG at these rates gives 27.7 and 36.99 dB on it (the codec bench at 0.5 and 2 bpp; it
+    // cannot reach 0.25), JPEG 2000 28.65 and 40.70; a broken chroma path is far under.
+    for (bpp, chroma, floor) in [(0.25, 256, 27.0), (2.0, 512, 40.0)] {
+        let enc = encode_projected(&r, &ProjectedSettings::default(), Some(bpp)).expect("encode");
+        let asset = Asset::from_bytes(&enc.bytes).expect("read back");
+        assert_eq!(asset.planes.len(), 3);
+        let Coding::Projected { header, .. } = &asset.planes[1].coding else {
+            panic!("projected chroma");
+        };
+        // Half-resolution chroma codes better at low rates, full resolution at high ones
+        // (both are tried).
+        assert_eq!(header.samples, [chroma, chroma], "chroma at {bpp} bpp");
+        println!(
+            "astronaut at {bpp} bpp: {:.3} bpp, {:.2} dB",
+            enc.bpp(),
+            enc.errors.psnr
+        );
+        assert!(
+            enc.bpp() <= bpp && enc.bpp() > 0.9 * bpp,
+            "{} bpp",
+            enc.bpp()
+        );
+        assert!(
+            enc.errors.psnr > floor,
+            "{:.2} dB at {bpp} bpp",
+            enc.errors.psnr
+        );
+    }
     let settings = ProjectedSettings {
         max_error: Some(2.0),
         ..Default::default()

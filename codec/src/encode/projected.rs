@@ -4,6 +4,8 @@
 
 use std::time::Instant;
 
+use rayon::prelude::*;
+
 use fractile_proto::{ColourModel, SampleFormat};
 
 use super::{
@@ -94,12 +96,23 @@ fn encode_within(
             // No promise to keep at each sample: steps and predictions need not sit on the
             // quantum, and rate control then moves in fine steps.
             header.quantum = 0.0;
-            let mut planes = [(header.clone(), source.as_slice(), valid, 1.0)];
-            let quantising = (settings.dead_zone, settings.lambda);
             let budget = rate_budget(bpp, raster)?.saturating_sub(excess);
-            let coded = fit_size(&mut planes, quantising, budget, span);
-            header = planes[0].0.clone();
-            coded.into_iter().next().expect("one plane")
+            // Each design on its own core (their bisections are independent).
+            let tries: Vec<(f64, ProjectedHeader, Coded)> = designs(settings)
+                .into_par_iter()
+                .map(|lifted| {
+                    let mut planes = [(header.clone(), source.as_slice(), valid, 1.0)];
+                    let quantising = (settings.dead_zone, settings.lambda);
+                    let coded = fit_size(&mut planes, quantising, budget, (span, lifted));
+                    let coded = coded.into_iter().next().expect("one plane");
+                    let error = squared_error(&coded.1, &source, valid);
+                    (error, planes[0].0.clone(), coded)
+                })
+                .collect();
+            let best = tries.into_iter().min_by(|a, b| a.0.total_cmp(&b.0));
+            let (_, kept, coded) = best.expect("a design tried");
+            header = kept;
+            coded
         }
         (None, None) => {
             return Err(Error::Settings(
@@ -122,6 +135,26 @@ fn encode_within(
     let asset = Asset::from_projected_parts(meta, vec![(header, stream)], mask)?;
     let errors = decoded_errors(&asset, raster);
     Ok(measured(asset, start, errors, raster))
+}
+
+/// The multiresolutions rate mode tries, the better kept: both lifted kernels (the fitted one
+/// codes DEMs best, CDF 9/7 photographs; measured in docs/benchmarks.md), or the pyramid.
+fn designs(settings: &ProjectedSettings) -> Vec<Option<Order>> {
+    if settings.pyramid {
+        vec![None]
+    } else {
+        vec![Some(Order::Lifted), Some(Order::Lifted97)]
+    }
+}
+
+/// The summed squared error of the valid decoded samples.
+fn squared_error(grid: &[f64], source: &[f64], valid: Option<&[bool]>) -> f64 {
+    grid.iter()
+        .zip(source)
+        .enumerate()
+        .filter(|(i, _)| valid.is_none_or(|v| v[*i]))
+        .map(|(_, (g, s))| (g - s) * (g - s))
+        .sum()
 }
 
 /// The quantum the source lies on: 1 for integer samples (and float samples that are all whole
@@ -212,18 +245,23 @@ fn smaller_order(
 type RatePlane<'a> = (ProjectedHeader, &'a [f64], Option<&'a [bool]>, f64);
 
 /// Rate mode: the smallest step, shared by every plane (bisection on its logarithm), whose
-/// streams fit `budget` bytes together; each plane first takes the order that codes a
-/// middling step smaller. One step for all planes spends bits where they lower the summed
+/// streams fit `budget` bytes together; each plane takes the lifted kernel given, or with the
+/// pyramid (`None`) first the order that codes a middling step smaller. One step for all planes spends bits where they lower the summed
 /// squared error most (equal slopes), as the quadtree's one lambda does.
 fn fit_size(
     planes: &mut [RatePlane<'_>],
     quantising: (f64, f64),
     budget: usize,
-    span: f64,
+    (span, lifted): (f64, Option<Order>),
 ) -> Vec<Coded> {
     for (header, source, valid, scale) in planes.iter_mut() {
         header.step = span * 1e-3 * *scale;
-        smaller_order(header, source, *valid, quantising);
+        match lifted {
+            Some(order) => header.order = order,
+            None => {
+                smaller_order(header, source, *valid, quantising);
+            }
+        }
     }
     let (mut lo, mut hi) = ((span * 1e-6).ln(), span.ln());
     let mut try_step = |step: f64| -> Vec<Coded> {
@@ -309,15 +347,29 @@ fn fit_bound(
     (e, best)
 }
 
-/// Chroma's step as a multiple of luma's (normalised units). Measured on astronaut at 0.5, 1
-/// and 2 bpp: 0.5 gains 0.7, 0.5 and 0.05 dB over 1; 0.35 and 0.7 less; 1.5 to 3 lose 0.4 to
-/// 4.4 dB (a chroma error counts in all three RGB channels).
-const CHROMA_STEP: f64 = 0.5;
+/// What a unit of error in Y, Cb and Cr adds to the squared error summed over R, G and B: the
+/// sums of the squared weights of each plane in the conversion back (`1 + 1 + 1`,
+/// `0.344136^2 + 1.772^2`, `1.402^2 + 0.714136^2`).
+const RGB_WEIGHTS: [f64; 3] = [3.0, 3.258, 2.476];
+
+/// A plane's step as a multiple of luma's, so that a step costs each plane the same squared
+/// RGB error per coded sample (equal slopes): `sqrt(w_Y / (w_k * area))`, `area` the pixels one
+/// of its samples covers (4 for chroma at half resolution). Measured on astronaut against the
+/// 0.5 used before for chroma at either resolution: the same at 0.25-0.5 bpp, +0.5-0.7 dB at 2
+/// bpp (full-resolution chroma then wins).
+fn plane_step_scale(k: usize, pixels: usize, samples: usize) -> f64 {
+    let area = pixels as f64 / samples as f64;
+    (RGB_WEIGHTS[0] / (RGB_WEIGHTS[k] * area)).sqrt()
+}
+
+/// A plane to code: its width, height and values (normalised).
+type Plane = (usize, usize, Vec<f32>);
 
 /// Colour under rate control: luma and chroma (the YCbCr planes of the quadtree), one shared
-/// step with chroma's at [`CHROMA_STEP`] of it. Chroma at half and at full resolution are both
-/// coded and the better kept: half resolution wins at low rates, but caps the PSNR at high
-/// ones (astronaut: 37.6 dB at 2 bpp, where JPEG 2000 reaches 40.7).
+/// step scaled per plane by [`plane_step_scale`]. Chroma at half and at full resolution, and
+/// each multiresolution of [`designs`], are all coded and the best kept: half resolution wins at
+/// low rates, but caps the PSNR at high ones (astronaut: 37.6 dB at 2 bpp with the pyramid,
+/// where JPEG 2000 reaches 40.7).
 fn encode_colour(
     raster: &Raster,
     settings: &ProjectedSettings,
@@ -332,7 +384,7 @@ fn encode_colour(
     let budget = rate_budget(bpp, raster)?.saturating_sub(excess);
     let (lo, hi, colour, half) = source_planes(raster);
     let (w, h) = (raster.width, raster.height);
-    let full: Vec<(usize, usize, Vec<f32>)> = rgb_to_ycbcr(&raster.channels, hi as f32)
+    let full: Vec<Plane> = rgb_to_ycbcr(&raster.channels, hi as f32)
         .into_iter()
         .map(|c| {
             let v = c
@@ -341,49 +393,61 @@ fn encode_colour(
             (w, h, v.collect())
         })
         .collect();
-    let half: Vec<(usize, usize, Vec<f32>)> = half
+    let half: Vec<Plane> = half
         .into_iter()
         .map(|p| (p.width, p.height, p.values))
         .collect();
-    let mut best: Option<(Asset, super::Errors)> = None;
-    for planes in [half, full] {
-        let sources: Vec<Vec<f64>> = planes
-            .iter()
-            .map(|p| p.2.iter().map(|&v| f64::from(v)).collect())
-            .collect();
-        let mut rate: Vec<RatePlane<'_>> = planes
-            .iter()
-            .zip(&sources)
-            .enumerate()
-            .map(|(k, (p, src))| {
-                let mut header = plane_header(p.0, p.1, 0.0, (0.0, 1.0));
-                header.growth = settings.growth;
-                let scale = if k == 0 { 1.0 } else { CHROMA_STEP };
-                (header, src.as_slice(), None, scale)
-            })
-            .collect();
-        let quantising = (settings.dead_zone, settings.lambda);
-        let coded = fit_size(&mut rate, quantising, budget, 1.0);
-        let parts: Vec<(ProjectedHeader, Vec<u8>)> = rate
-            .into_iter()
-            .zip(coded)
-            .zip(&planes)
-            .map(|(((mut header, ..), (stream, grid)), p)| {
-                header.roughness = projected::fit_roughness(&grid, p.0, p.1);
-                (header, stream)
-            })
-            .collect();
-        let mut meta = source_meta(raster, String::new(), (lo, hi), colour);
-        meta.encoder = format!(
-            "{CODEC_NAME} colour step={} chroma={}x{}",
-            parts[0].0.step, parts[1].0.samples[0], parts[1].0.samples[1]
-        );
-        let asset = Asset::from_projected_parts(meta, parts, None)?;
-        let errors = decoded_errors(&asset, raster);
-        if best.as_ref().is_none_or(|b| errors.rmse < b.1.rmse) {
-            best = Some((asset, errors));
-        }
-    }
+    let tries: Vec<(Vec<Plane>, Option<Order>)> = [half, full]
+        .into_iter()
+        .flat_map(|planes| {
+            designs(settings)
+                .into_iter()
+                .map(move |d| (planes.clone(), d))
+        })
+        .collect();
+    // Each resolution and design on its own core.
+    let coded: Vec<(Asset, super::Errors)> = tries
+        .into_par_iter()
+        .map(|(planes, lifted)| {
+            let sources: Vec<Vec<f64>> = planes
+                .iter()
+                .map(|p| p.2.iter().map(|&v| f64::from(v)).collect())
+                .collect();
+            let mut rate: Vec<RatePlane<'_>> = planes
+                .iter()
+                .zip(&sources)
+                .enumerate()
+                .map(|(k, (p, src))| {
+                    let mut header = plane_header(p.0, p.1, 0.0, (0.0, 1.0));
+                    header.growth = settings.growth;
+                    let scale = plane_step_scale(k, w * h, p.0 * p.1);
+                    (header, src.as_slice(), None, scale)
+                })
+                .collect();
+            let quantising = (settings.dead_zone, settings.lambda);
+            let coded = fit_size(&mut rate, quantising, budget, (1.0, lifted));
+            let parts: Vec<(ProjectedHeader, Vec<u8>)> = rate
+                .into_iter()
+                .zip(coded)
+                .zip(&planes)
+                .map(|(((mut header, ..), (stream, grid)), p)| {
+                    header.roughness = projected::fit_roughness(&grid, p.0, p.1);
+                    (header, stream)
+                })
+                .collect();
+            let mut meta = source_meta(raster, String::new(), (lo, hi), colour);
+            meta.encoder = format!(
+                "{CODEC_NAME} colour step={} chroma={}x{}",
+                parts[0].0.step, parts[1].0.samples[0], parts[1].0.samples[1]
+            );
+            let asset = Asset::from_projected_parts(meta, parts, None)?;
+            let errors = decoded_errors(&asset, raster);
+            Ok((asset, errors))
+        })
+        .collect::<Result<_, Error>>()?;
+    let best = coded
+        .into_iter()
+        .min_by(|a, b| a.1.rmse.total_cmp(&b.1.rmse));
     let (asset, errors) = best.expect("two chroma resolutions tried");
     Ok(measured(asset, start, errors, raster))
 }

@@ -8,7 +8,9 @@
 //!   units), because each detail is quantised in closed loop with a step of 2E (an odd multiple
 //!   of the quantum for integer data). The measured ratio is reported beside LERC and JPEG-LS
 //!   near-lossless, which make the same promise.
-//! - **rate** (`--target-bpp`): the step is found by bisection, with a dead zone.
+//! - **rate** (`--target-bpp`): the step is found by bisection, and the levels are lifted
+//!   ([`lifting`]): each coarse grid holds local means, not samples, which is what approximates
+//!   the surface best at a given rate.
 //!
 //! Past the finest level the surface is continued by a partitioned affine operator of the
 //! form every decoder of fractile evaluates ([`ProjectedOperator`]): in each cell between four
@@ -21,6 +23,7 @@
 //! fitted per asset as the ratio of the finest two octaves' detail amplitudes.
 
 pub mod grid;
+pub mod lifting;
 pub mod pyramid;
 pub mod records;
 
@@ -53,7 +56,8 @@ pub struct ProjectedHeader {
     /// The bound the encoder promised (source units); 0 with a quantum is lossless, 0 without
     /// one is rate mode (no promise, see [`ProjectedHeader::promise`]).
     pub max_error: f64,
-    /// The order of each level's passes (the encoder keeps the one that codes smaller).
+    /// The multiresolution: the pyramid's order of each level's passes (the encoder keeps the
+    /// one that codes smaller), or a lifted kernel (rate mode).
     pub order: pyramid::Order,
 }
 
@@ -82,6 +86,9 @@ impl ProjectedHeader {
         }
         if !(0.0..=0.95).contains(&self.roughness) {
             return Err(format!("bad projected roughness {}", self.roughness));
+        }
+        if self.order.lifting().is_some() && (self.max_error != 0.0 || self.quantum != 0.0) {
+            return Err("a lifted projected plane makes no per-sample promise".into());
         }
         Ok(())
     }
@@ -127,8 +134,9 @@ pub fn levels_for(w: usize, h: usize) -> u8 {
     l
 }
 
-/// Codes a grid (source units, invalid cells filled) under `header` with a dead zone and a
-/// rate-distortion weight (rate mode only); returns the stream and the decoded samples.
+/// Codes a grid (source units, invalid cells filled) under `header` with a dead zone (the
+/// pyramid's) and a rate-distortion weight (rate mode only); returns the stream and the decoded
+/// samples.
 pub fn encode_grid(
     header: &ProjectedHeader,
     source: &[f64],
@@ -142,6 +150,9 @@ pub fn encode_grid(
         0.0
     };
     let layout = header.layout();
+    if let Some(kernel) = layout.order.lifting() {
+        return lifting::encode(&lifted_plane(&layout, kernel), source, lambda);
+    }
     let mut g = vec![0.0; header.cells()];
     let mut q = pyramid::Quantiser {
         source,
@@ -154,6 +165,17 @@ pub fn encode_grid(
     let target = |i: usize| valid.is_none_or(|v| v[i]).then(|| source[i]);
     pyramid::walk(&layout, &mut g, &mut q, Some(&target));
     (q.encoder.finish(), g)
+}
+
+/// A lifted plane's parameters from its layout (its dead zone and step growth are the pyramid's
+/// alone: band steps follow from the synthesis gains).
+fn lifted_plane(layout: &pyramid::Layout, kernel: lifting::Kernel) -> lifting::Plane {
+    lifting::Plane {
+        size: layout.size,
+        levels: layout.levels,
+        step: layout.step,
+        kernel,
+    }
 }
 
 /// Decodes a plane's samples (source units).
@@ -169,13 +191,21 @@ pub fn decode_grid(header: &ProjectedHeader, stream: &[u8]) -> Result<Vec<f64>, 
             header.cells()
         ));
     }
-    let mut g = vec![0.0; header.cells()];
-    let mut r = pyramid::Reader {
-        decoder: Decoder::new(stream),
-        coders: pyramid::Coders::new(),
+    let layout = header.layout();
+    let mut decoder = Decoder::new(stream);
+    let g = if let Some(kernel) = layout.order.lifting() {
+        lifting::decode(&lifted_plane(&layout, kernel), &mut decoder)
+    } else {
+        let mut g = vec![0.0; header.cells()];
+        let mut r = pyramid::Reader {
+            decoder,
+            coders: pyramid::Coders::new(),
+        };
+        pyramid::walk(&layout, &mut g, &mut r, None);
+        decoder = r.decoder;
+        g
     };
-    pyramid::walk(&header.layout(), &mut g, &mut r, None);
-    if r.decoder.overrun() || g.iter().any(|v| !v.is_finite()) {
+    if decoder.overrun() || g.iter().any(|v| !v.is_finite()) {
         return Err("projected stream truncated or corrupt".into());
     }
     Ok(g)
@@ -735,9 +765,12 @@ impl crate::core::pieces::Flatten for ProjectedOperator {
 pub struct ProjectedSettings {
     /// The bound on |decoded - source| at every valid sample, source units (max-error mode).
     pub max_error: Option<f64>,
-    /// Step growth per coarser level in rate mode.
+    /// Rate mode with the interpolating pyramid's closed loop instead of the lifted levels
+    /// (kept to measure one against the other; 0.6-1.9 dB worse at 40:1 and 80:1).
+    pub pyramid: bool,
+    /// Step growth per coarser level in rate mode, with the pyramid.
     pub growth: f64,
-    /// Dead zone in rate mode, as a fraction of a step.
+    /// Dead zone in rate mode with the pyramid, as a fraction of a step.
     pub dead_zone: f64,
     /// Rate mode: the weight of a bit against squared error in steps^2 when a detail may move
     /// one step towards zero.
@@ -750,13 +783,15 @@ pub struct ProjectedSettings {
 
 impl Default for ProjectedSettings {
     fn default() -> Self {
-        // Measured on etopo20 and jacksboro at 0.2 and 0.8 bpp (docs/benchmarks.md): coarse
-        // levels finer (0.65-0.75 a level) gain 1.5 dB at 0.8 bpp and 3 dB at 0.2 bpp on
-        // etopo20 over one step for all, since a coarse sample predicts many finer ones; a
-        // dead zone of 0.15 step beats none and 0.35 by 0.1-0.6 dB; the rate-distortion
-        // choice at lambda 0.1 adds 0.1-0.3 dB (0.05, 0.15, 0.25 and 0.5 tried).
+        // Measured on etopo20 and jacksboro at 0.2 and 0.8 bpp (docs/benchmarks.md). The
+        // pyramid: coarse levels finer (0.65-0.75 a level) gain 1.5 dB at 0.8 bpp and 3 dB at
+        // 0.2 bpp on etopo20 over one step for all, since a coarse sample predicts many finer
+        // ones; a dead zone of 0.15 step beats none and 0.35 by 0.1-0.6 dB. Both: the
+        // rate-distortion choice at lambda 0.1 adds 0.1-0.3 dB (0.05, 0.15, 0.2, 0.25, 0.3 and
+        // 0.5 tried; on the lifted levels too).
         ProjectedSettings {
             max_error: None,
+            pyramid: false,
             growth: 0.7,
             dead_zone: 0.15,
             lambda: 0.1,

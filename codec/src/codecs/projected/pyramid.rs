@@ -167,6 +167,22 @@ pub enum Order {
     /// Face centres from the four coarser corners, then rows and columns from four neighbours
     /// each (two coarser, two faces).
     Quincunx,
+    /// Not this pyramid: the lifted multiresolution of rate mode ([`super::lifting`]), whose
+    /// coarse samples are local means, with the fitted four-point kernel.
+    Lifted,
+    /// The lifted multiresolution with the CDF 9/7 kernel.
+    Lifted97,
+}
+
+impl Order {
+    /// The kernel of a lifted plane; `None` for the pyramid's orders.
+    pub fn lifting(self) -> Option<super::lifting::Kernel> {
+        match self {
+            Order::Separable | Order::Quincunx => None,
+            Order::Lifted => Some(super::lifting::Kernel::Fitted),
+            Order::Lifted97 => Some(super::lifting::Kernel::Cdf97),
+        }
+    }
 }
 
 /// Relief bucket of a spread over a step.
@@ -302,6 +318,24 @@ fn neighbour_bucket(n: u32) -> usize {
     }
 }
 
+/// The west, north and north-west neighbours of (x, y) on a coarse grid of spacing `s` in a
+/// row-major grid `w` wide, for LOCO-I's median: a missing one takes the other's value, and the
+/// first sample has zeros.
+pub(crate) fn causal_neighbours<T: Copy + Default>(
+    g: &[T],
+    w: usize,
+    (x, y): (usize, usize),
+    s: usize,
+) -> (T, T, T) {
+    let i = y * w + x;
+    match (x >= s, y >= s) {
+        (true, true) => (g[i - s], g[i - s * w], g[i - s * w - s]),
+        (true, false) => (g[i - s], g[i - s], g[i - s]),
+        (false, true) => (g[i - s * w], g[i - s * w], g[i - s * w]),
+        (false, false) => (T::default(), T::default(), T::default()),
+    }
+}
+
 /// Walks the whole pyramid, filling `g` (row-major, `size[0] * size[1]`) with decoded values.
 /// `target` gives the encoder's source values for fitting (the decoder passes `None`).
 pub fn walk(
@@ -310,6 +344,10 @@ pub fn walk(
     details: &mut dyn Details,
     target: Option<&dyn Fn(usize) -> Option<f64>>,
 ) {
+    assert!(
+        layout.order.lifting().is_none(),
+        "a lifted plane is not walked by the pyramid"
+    );
     let [w, h] = layout.size;
     let s0 = 1usize << layout.levels;
     // Level 0: MED over the coarse grid in raster order.
@@ -317,12 +355,7 @@ pub fn walk(
     for y in (0..h).step_by(s0) {
         for x in (0..w).step_by(s0) {
             let i = y * w + x;
-            let (a, b, c) = match (x >= s0, y >= s0) {
-                (true, true) => (g[i - s0], g[i - s0 * w], g[i - s0 * w - s0]),
-                (true, false) => (g[i - s0], g[i - s0], g[i - s0]),
-                (false, true) => (g[i - s0 * w], g[i - s0 * w], g[i - s0 * w]),
-                (false, false) => (0.0, 0.0, 0.0),
-            };
+            let (a, b, c) = causal_neighbours(g, w, (x, y), s0);
             let prediction = layout.snap(med(a, b, c));
             let context = relief((a - b).abs().max((a - c).abs()), step);
             let context = LEVEL0 + context * NEIGHBOUR_BUCKETS;
