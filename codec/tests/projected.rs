@@ -292,8 +292,9 @@ fn rate_control_fits_its_target_and_reaches_jpeg_2000_on_etopo20() {
         enc.errors.psnr
     );
     assert!(enc.bpp() <= 0.8, "{} bpp", enc.bpp());
+    // A file more than 1% under its rate is coded again with the slack.
     assert!(
-        enc.bpp() >= 0.75,
+        enc.bpp() >= 0.99 * 0.8,
         "rate control left {} bpp unused",
         0.8 - enc.bpp()
     );
@@ -321,6 +322,9 @@ fn lifted_levels_beat_the_closed_loop_pyramid_at_low_rates() {
             pyramid.bpp()
         );
         assert!(lifted.bpp() <= 0.2 && pyramid.bpp() <= 0.2);
+        // The allowance for the rest of the file (12% of a small one) is given back to the
+        // streams where it was not needed.
+        assert!(lifted.bpp() >= 0.99 * 0.2, "{name}: {} bpp", lifted.bpp());
         assert!(
             lifted.errors.psnr >= pyramid.errors.psnr + 0.5,
             "{name}: lifted {:.2} dB, pyramid {:.2} dB",
