@@ -1,7 +1,8 @@
 //! Codec bench: prints a table per test image and setting (bpp, ratio, PSNR, encode s, decode
 //! ms, and JPEG and JPEG 2000 at the same rate beside it), then decoder speeds. Release build:
 //! `cargo bench -p fractile-codec --bench codec`. Uses `testdata/` and, when present,
-//! `../shared/data` (etopo20).
+//! `../shared/data` (etopo20); `PROJECTED_EXTRA=a.tif:b.png` adds held-out rasters to the
+//! projected codec's table.
 
 use std::path::{Path, PathBuf};
 use std::time::Instant;
@@ -464,7 +465,7 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
             )
         })
         .collect();
-    for (name, r) in &dems {
+    let dem_rows = |name: &str, r: &Raster| {
         for ratio in [10.0, 20.0, 40.0, 80.0] {
             let bpp = 16.0 / ratio;
             let p = encode_projected(r, &rate, Some(bpp)).expect("projected");
@@ -485,26 +486,49 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
                 j.map_or("-".into(), |(_, d)| format!("{:+.2} dB", p.errors.psnr - d)),
             );
         }
+    };
+    let image_rows = |label: &str, image: &Raster| {
+        for bpp in [0.25, 0.5, 1.0, 2.0] {
+            let p = encode_projected(image, &rate, Some(bpp)).expect("projected");
+            let pp = encode_projected(image, &pyramid, Some(bpp)).expect("projected");
+            let j = jpeg2000_at(image, p.bpp());
+            let jp = jpeg_at(image, p.bpp());
+            println!(
+                "| {label} | {bpp} bpp | {:.2} dB at {:.3} bpp ({}) | {:.2} dB | JPEG {} | {} | {} |",
+                p.errors.psnr,
+                p.bpp(),
+                kernel(&p.asset),
+                pp.errors.psnr,
+                jp.map_or("-".into(), |(b, d)| format!("{d:.2} dB at {b:.3} bpp")),
+                j.map_or("-".into(), |(b, d)| format!("{d:.2} dB at {b:.3} bpp")),
+                j.map_or("-".into(), |(_, d)| format!("{:+.2} dB", p.errors.psnr - d)),
+            );
+        }
+    };
+    for (name, r) in &dems {
+        dem_rows(name, r);
     }
     let astronaut = Raster::open(&root.join("testdata/astronaut.png")).expect("astronaut");
-    for ((label, image), bpp) in [("camera 512", camera), ("astronaut 512 RGB", &astronaut)]
-        .into_iter()
-        .flat_map(|i| [0.25, 0.5, 1.0, 2.0].map(|b| (i, b)))
+    image_rows("camera 512", camera);
+    image_rows("astronaut 512 RGB", &astronaut);
+    // Held-out data (not in the repository): `PROJECTED_EXTRA=a.tif:b.png`, 8-bit rasters as
+    // images, the others as DEMs.
+    for path in std::env::var("PROJECTED_EXTRA")
+        .unwrap_or_default()
+        .split(':')
     {
-        let p = encode_projected(image, &rate, Some(bpp)).expect("projected");
-        let pp = encode_projected(image, &pyramid, Some(bpp)).expect("projected");
-        let j = jpeg2000_at(image, p.bpp());
-        let jp = jpeg_at(image, p.bpp());
-        println!(
-            "| {label} | {bpp} bpp | {:.2} dB at {:.3} bpp ({}) | {:.2} dB | JPEG {} | {} | {} |",
-            p.errors.psnr,
-            p.bpp(),
-            kernel(&p.asset),
-            pp.errors.psnr,
-            jp.map_or("-".into(), |(b, d)| format!("{d:.2} dB at {b:.3} bpp")),
-            j.map_or("-".into(), |(b, d)| format!("{d:.2} dB at {b:.3} bpp")),
-            j.map_or("-".into(), |(_, d)| format!("{:+.2} dB", p.errors.psnr - d)),
-        );
+        if path.is_empty() {
+            continue;
+        }
+        let r = Raster::open(Path::new(path)).expect("a PROJECTED_EXTRA raster");
+        let name = Path::new(path)
+            .file_name()
+            .map_or(path.into(), |n| n.to_string_lossy());
+        if r.sample == fractile_proto::SampleFormat::U8 {
+            image_rows(&name, &r);
+        } else {
+            dem_rows(&name, &r);
+        }
     }
     println!("\n## projected --max-error: ratio against JPEG-LS near-lossless at the same bound\n");
     println!("JPEG-LS figures as issue 29 quotes them (NEAR = E); ours measured here.\n");
