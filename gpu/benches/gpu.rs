@@ -1,6 +1,7 @@
 //! GPU against CPU continuous decoding: points per second for a 4096 x 4096 window and for 1M
 //! random points, 10 iterations, on the camera asset (quadtree, 0.48 bpp). The CPU uses every
-//! core (rayon over batches of `decode::points`). `cargo bench -p fractile-gpu --bench gpu`.
+//! core (rayon over batches of `decode::points`). `cargo bench -p fractile-gpu --bench gpu`
+//! (`-- host`: only the host's cost of small dispatches, the tiles' case).
 //! On Mesa's lavapipe (no GPU) the GPU figures are a software rasteriser's; real ones come from
 //! a machine with a GPU.
 
@@ -23,6 +24,13 @@ fn main() {
     let asset = encode(&r, &s, &|_, _| {}).expect("encode").asset;
     let op = &asset.planes[0].operator;
     let n = 10;
+    // `-- host`: the small dispatches alone (the rest takes minutes on a software adapter).
+    if std::env::args().any(|a| a == "host") {
+        let g = Gpu::new().expect("a GPU adapter");
+        eprintln!("adapter: {}", g.adapter());
+        host_cost(&g, &g.upload(&op.pieces()).expect("upload"), n);
+        return;
+    }
     let side = 4096u32;
     let window: Vec<[f32; 2]> = (0..side * side)
         .map(|k| {
@@ -153,6 +161,15 @@ fn main() {
             );
         }
     }
+    // What a small dispatch costs the host (issue 32: a tile's GPU sample must add well under
+    // a millisecond of CPU for tiles to gain): grids of 1 and 256 x 256 points, decoded one
+    // after another on one thread and at once on every thread, wall time and the process's CPU
+    // time a dispatch. On lavapipe the kernel runs on the CPU too, so only the 1-point row is
+    // host cost alone there.
+    if let Ok(g) = &gpu {
+        let dev = g.upload(&op.pieces()).expect("upload");
+        host_cost(g, &dev, n);
+    }
     // 3D: a 256^3 box of a volume (IFS3D), continuous decoding at 10 steps.
     let shared = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/mesh/bunny.off");
     let local = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata/mesh/fandisk.off");
@@ -195,4 +212,56 @@ fn main() {
             tc / tg
         );
     }
+}
+
+/// Wall and CPU time of small grid dispatches, on one thread and on every thread at once.
+fn host_cost(g: &Gpu, dev: &fractile_gpu::GpuOperator, n: u32) {
+    let threads = rayon::current_num_threads();
+    println!();
+    println!(
+        "| small dispatches (values only) | threads | dispatches | wall us each | CPU us each |"
+    );
+    println!("|---|---|---|---|---|");
+    for side in [1usize, 256] {
+        let axis: Vec<f32> = (0..side).map(|i| (i as f32 + 0.5) / side as f32).collect();
+        let grid = Grid::Separable {
+            xs: axis.clone(),
+            ys: axis,
+        };
+        let one = || {
+            g.grid_values(dev, grid.clone(), n, 0.0)
+                .expect("gpu")
+                .values
+                .len()
+        };
+        let _ = one();
+        for t in [1, threads] {
+            let count = if side == 1 { 4000 } else { 200 } * t;
+            let (cpu0, start) = (cpu_seconds(), Instant::now());
+            let got: usize = (0..count)
+                .into_par_iter()
+                .with_min_len(count / t)
+                .map(|_| one())
+                .sum();
+            let wall = start.elapsed().as_secs_f64();
+            let cpu = cpu_seconds().map_or(f64::NAN, |c| c - cpu0.unwrap_or(c));
+            assert_eq!(got, count * side * side);
+            println!(
+                "| {side} x {side} | {t} | {count} | {:.1} | {:.1} |",
+                wall / count as f64 * 1e6,
+                cpu / count as f64 * 1e6
+            );
+        }
+    }
+}
+
+/// This process's CPU time (user and system, all threads), from /proc; `None` elsewhere.
+fn cpu_seconds() -> Option<f64> {
+    let stat = std::fs::read_to_string("/proc/self/stat").ok()?;
+    // Fields after the command's closing parenthesis: utime and stime are the 12th and 13th.
+    let rest = &stat[stat.rfind(')')? + 2..];
+    let f: Vec<&str> = rest.split(' ').collect();
+    let ticks = f.get(11)?.parse::<f64>().ok()? + f.get(12)?.parse::<f64>().ok()?;
+    // USER_HZ is 100 on every Linux this runs on.
+    Some(ticks / 100.0)
 }

@@ -248,11 +248,11 @@ async fn volume_mesh(
     let cost = samples * 16 + (n as u64).pow(2) * 256;
     state
         .lanes
-        .stream(cost, move |_| {
+        .stream(cost, move |cancel| {
             let on_gpu = |lo, hi, dims: [usize; 3], n, t| {
                 gpu.as_deref()
                     .filter(|g| g.takes(choice, dims.iter().product()))
-                    .and_then(|g| g.volume_grid(&a, (lo, hi, dims), n, t))
+                    .and_then(|g| cancel.off_core(|| g.volume_grid(&a, (lo, hi, dims), n, t)))
             };
             let (m, bound) = a
                 .asset

@@ -309,8 +309,10 @@ fn sample_on(
     gpu_for(a, choice)?;
     let tolerance = tolerance.over(a, pixels)?;
     let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
-    let continuous =
-        |k, p: fractile_codec::extract::Sites<'_>, n, t| gpu.and_then(|g| g.points(a, k, p, n, t));
+    // The GPU's round trip runs off the request's core slot (see `work`).
+    let continuous = |k, p: fractile_codec::extract::Sites<'_>, n, t| {
+        gpu.and_then(|g| cancel.off_core(|| g.points(a, k, p, n, t)))
+    };
     let discrete = |w: usize, h: usize, n, t: f32| {
         let result = std::cell::Cell::new("hit");
         let key = |w, h| (a.id.clone(), a.hash, w, h, n, t.to_bits());

@@ -198,13 +198,13 @@ async fn answer_points(
     }
     let gpu = state.gpu.clone();
     let cost = sampling_bytes(coords.len(), a.asset.meta.channels);
-    decode(state, cost, move |_| {
+    decode(state, cost, move |cancel| {
         let inside: Vec<[f32; 2]> = units.iter().map(|u| u.unwrap_or([0.0, 0.0])).collect();
         let gpu = gpu.as_deref().filter(|g| g.takes(choice, inside.len()));
         let samples = a
             .asset
             .try_points_with(&inside, n, tolerance.anywhere(&a), &|k, p, n, t| {
-                gpu.and_then(|g| g.points(&a, k, p, n, t))
+                gpu.and_then(|g| cancel.off_core(|| g.points(&a, k, p, n, t)))
             })
             .map_err(super::chunk_unavailable)?;
         Ok(coords
