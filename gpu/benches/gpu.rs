@@ -237,7 +237,7 @@ fn host_cost(g: &Gpu, dev: &fractile_gpu::GpuOperator, n: u32) {
         let _ = one();
         for t in [1, threads] {
             let count = if side == 1 { 4000 } else { 200 } * t;
-            let (cpu0, start) = (cpu_seconds(), Instant::now());
+            let (cpu0, start, r0) = (cpu_seconds(), Instant::now(), g.rounds());
             let got: usize = (0..count)
                 .into_par_iter()
                 .with_min_len(count / t)
@@ -246,10 +246,12 @@ fn host_cost(g: &Gpu, dev: &fractile_gpu::GpuOperator, n: u32) {
             let wall = start.elapsed().as_secs_f64();
             let cpu = cpu_seconds().map_or(f64::NAN, |c| c - cpu0.unwrap_or(c));
             assert_eq!(got, count * side * side);
+            let r1 = g.rounds();
             println!(
-                "| {side} x {side} | {t} | {count} | {:.1} | {:.1} |",
+                "| {side} x {side} | {t} | {count} | {:.1} | {:.1} | {:.2} |",
                 wall / count as f64 * 1e6,
-                cpu / count as f64 * 1e6
+                cpu / count as f64 * 1e6,
+                (r1.1 - r0.1) as f64 / (r1.0 - r0.0).max(1) as f64
             );
         }
     }

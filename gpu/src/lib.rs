@@ -20,6 +20,8 @@ use fractile_codec::core::operator::Operator;
 use fractile_codec::core::pieces::PieceTable;
 use wgpu::util::DeviceExt;
 
+mod batch;
+
 /// The 2D kernel's source.
 pub const SHADER: &str = include_str!("../../shaders/decode2d.wgsl");
 
@@ -157,9 +159,69 @@ enum Readback<'a> {
 /// A dispatch submitted, its results on their way into a mapped buffer.
 struct Pending {
     readback: wgpu::Buffer,
-    mapped: std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>,
+    mapped: Mapped,
     /// The bytes of values before the summary, for a values-only dispatch.
     values_bytes: Option<u64>,
+}
+
+/// One dispatch: the kernel, the operator, `count` points (`points`: their list or a grid's
+/// axes), the uniform bytes given the points a row of the dispatch grid, and what it reads back.
+#[derive(Clone, Copy)]
+struct Dispatch<'a> {
+    pipeline: &'a wgpu::ComputePipeline,
+    op: &'a GpuOperator,
+    count: usize,
+    uniform: &'a dyn Fn(u32) -> Vec<u8>,
+    points: &'a [u8],
+    read: Read,
+}
+
+/// Where a buffer's mapping callback reports.
+type Mapped = std::sync::mpsc::Receiver<Result<(), wgpu::BufferAsyncError>>;
+
+/// Maps `buffer` for reading once the work submitted before is done.
+fn map_read(buffer: &wgpu::Buffer) -> Mapped {
+    let (tx, mapped) = std::sync::mpsc::channel();
+    buffer.slice(..).map_async(wgpu::MapMode::Read, move |r| {
+        let _ = tx.send(r);
+    });
+    mapped
+}
+
+/// The output buffers of a recorded dispatch.
+struct Recorded {
+    results: wgpu::Buffer,
+    values: wgpu::Buffer,
+    summary: wgpu::Buffer,
+    results_bytes: u64,
+    values_bytes: u64,
+}
+
+impl Recorded {
+    /// Bytes it reads back: four floats a point, or the values then the summary's two words.
+    fn readback_bytes(&self) -> u64 {
+        if self.values_bytes > 0 {
+            self.values_bytes + 8
+        } else {
+            self.results_bytes
+        }
+    }
+
+    /// Records the copy of what it reads back into `readback` at `offset`.
+    fn copy_to(&self, encoder: &mut wgpu::CommandEncoder, readback: &wgpu::Buffer, offset: u64) {
+        if self.values_bytes > 0 {
+            encoder.copy_buffer_to_buffer(&self.values, 0, readback, offset, self.values_bytes);
+            encoder.copy_buffer_to_buffer(
+                &self.summary,
+                0,
+                readback,
+                offset + self.values_bytes,
+                8,
+            );
+        } else {
+            encoder.copy_buffer_to_buffer(&self.results, 0, readback, offset, self.results_bytes);
+        }
+    }
 }
 
 /// A grid's values with one bound for them all ([`Gpu::grid_values`]).
@@ -173,7 +235,9 @@ pub struct GridValues {
     pub iterations: u32,
 }
 
-/// An operator resident on the device (2D pieces, or a 3D octree when `volume` is set).
+/// An operator resident on the device (2D pieces, or a 3D octree when `volume` is set). A
+/// clone names the same device buffers.
+#[derive(Clone)]
 pub struct GpuOperator {
     lut: wgpu::Buffer,
     pieces: wgpu::Buffer,
@@ -199,6 +263,7 @@ pub struct Gpu {
     info: wgpu::AdapterInfo,
     max_binding: u64,
     chunk: usize,
+    batcher: batch::Batcher,
 }
 
 impl Gpu {
@@ -304,6 +369,7 @@ impl Gpu {
             info,
             max_binding,
             chunk: CHUNK,
+            batcher: Default::default(),
         })
     }
 
@@ -318,6 +384,12 @@ impl Gpu {
     /// Whether the adapter is a software rasteriser (lavapipe, llvmpipe, WARP).
     pub fn is_software(&self) -> bool {
         self.info.device_type == wgpu::DeviceType::Cpu
+    }
+
+    /// Rounds of small grids submitted together, and the grids they held, since the device
+    /// was opened ([`Gpu::grid_values`]; a round of one is a grid alone).
+    pub fn rounds(&self) -> (u64, u64) {
+        self.batcher.stats()
     }
 
     /// Points per dispatch (default [`CHUNK`]); smaller values exercise chunking in tests.
@@ -400,14 +472,14 @@ impl Gpu {
                 b: [1.0 / width as f32, 1.0 / height as f32],
                 ..op.params
             };
-            self.run(
-                &self.pipeline,
+            self.run(Dispatch {
+                pipeline: &self.pipeline,
                 op,
                 count,
-                &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
-                &[0u8; 16],
-                Read::Nothing,
-            )?;
+                uniform: &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
+                points: &[0u8; 16],
+                read: Read::Nothing,
+            })?;
             first += count;
         }
         Ok(start.elapsed().as_secs_f64())
@@ -593,6 +665,12 @@ impl Gpu {
     ) -> Result<GridValues, GpuError> {
         let (width, height) = grid.size();
         let total = width as usize * height as usize;
+        // A tile's grid joins the other requests' in one submission (see `batch`).
+        if total > 0 && total <= batch::GRID_POINTS.min(self.chunk) {
+            let (width, _, axes) = grid_axes(&grid);
+            let params = grid_params(op, (total, 0, width), iterations, tolerance, true);
+            return self.grid_values_in_round(op, params, axes);
+        }
         let mut out = GridValues::default();
         // One copy of each chunk, from the mapped buffer into its place in the output, on
         // every core: a single-threaded copy into fresh memory (its page faults included) was
@@ -623,46 +701,19 @@ impl Gpu {
         values_only: bool,
         sink: &mut dyn FnMut(Readback<'_>),
     ) -> Result<(), GpuError> {
-        let (width, height, axes) = match grid {
-            // A window is the separable grid of its pixel centres, made as the CPU makes them
-            // (in f64, rounded once): both must start every chain at the same f32 point.
-            Grid::Window {
-                rect,
-                width,
-                height,
-            } => {
-                let (xs, ys) = fractile_codec::core::decode::window_axes(
-                    *rect,
-                    *width as usize,
-                    *height as usize,
-                );
-                (
-                    *width,
-                    *height,
-                    xs.into_iter().chain(ys).collect::<Vec<f32>>(),
-                )
-            }
-            Grid::Separable { xs, ys } => (
-                xs.len() as u32,
-                ys.len() as u32,
-                xs.iter().chain(ys).copied().collect::<Vec<f32>>(),
-            ),
-        };
+        let (width, height, axes) = grid_axes(grid);
         let total = width as usize * height as usize;
         let mut first = 0usize;
         let mut pending = None;
         while first < total {
             let count = (total - first).min(self.chunk);
-            let params = Params {
-                count: count as u32,
-                first: first as u32,
+            let params = grid_params(
+                op,
+                (count, first, width),
                 iterations,
-                mode: 2,
                 tolerance,
-                width,
-                values_only: u32::from(values_only),
-                ..op.params
-            };
+                values_only,
+            );
             let read = if values_only {
                 Read::Values
             } else {
@@ -670,14 +721,14 @@ impl Gpu {
             };
             // The next chunk is submitted before this one is read: the device computes it
             // while the host copies the last one out.
-            let next = self.submit(
-                &self.pipeline,
+            let next = self.submit(Dispatch {
+                pipeline: &self.pipeline,
                 op,
                 count,
-                &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
-                bytemuck::cast_slice(&axes),
+                uniform: &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
+                points: bytemuck::cast_slice(&axes),
                 read,
-            )?;
+            })?;
             if let Some(done) = std::mem::replace(&mut pending, next) {
                 self.finish(done, sink)?;
             }
@@ -714,22 +765,21 @@ impl Gpu {
         uniform: &dyn Fn(u32) -> Vec<u8>,
         points: &[u8],
     ) -> Result<Vec<PointValue>, GpuError> {
-        self.run(pipeline, op, count, uniform, points, Read::Points)
+        self.run(Dispatch {
+            pipeline,
+            op,
+            count,
+            uniform,
+            points,
+            read: Read::Points,
+        })
     }
 
     /// Records, submits and reads back one dispatch as `read` says. [`Read::Nothing`] waits for
     /// the device to finish and reads nothing: what [`Gpu::kernel_seconds`] times.
-    fn run(
-        &self,
-        pipeline: &wgpu::ComputePipeline,
-        op: &GpuOperator,
-        count: usize,
-        uniform: &dyn Fn(u32) -> Vec<u8>,
-        points: &[u8],
-        read: Read,
-    ) -> Result<Vec<PointValue>, GpuError> {
+    fn run(&self, d: Dispatch<'_>) -> Result<Vec<PointValue>, GpuError> {
         let mut out = Vec::new();
-        if let Some(pending) = self.submit(pipeline, op, count, uniform, points, read)? {
+        if let Some(pending) = self.submit(d)? {
             self.finish(pending, &mut |r| {
                 if let Readback::Points(v) = r {
                     out = v;
@@ -742,18 +792,55 @@ impl Gpu {
     /// Records and submits one dispatch with the copy of its results into a mapped buffer;
     /// [`Gpu::finish`] waits for it and reads it. `None`: nothing to read (no points, or
     /// [`Read::Nothing`], which has waited for the device).
-    fn submit(
-        &self,
-        pipeline: &wgpu::ComputePipeline,
-        op: &GpuOperator,
-        count: usize,
-        uniform: &dyn Fn(u32) -> Vec<u8>,
-        points: &[u8],
-        read: Read,
-    ) -> Result<Option<Pending>, GpuError> {
-        if count == 0 {
+    fn submit(&self, d: Dispatch<'_>) -> Result<Option<Pending>, GpuError> {
+        let read = d.read;
+        if d.count == 0 {
             return Ok(None);
         }
+        let dev = &self.device;
+        let mut encoder = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
+            label: Some("decode2d"),
+        });
+        let out = self.record(&mut encoder, d);
+        if read == Read::Nothing {
+            self.queue.submit([encoder.finish()]);
+            dev.poll(wgpu::PollType::wait_indefinitely())
+                .map_err(|e| GpuError::Readback(e.to_string()))?;
+            return Ok(None);
+        }
+        let values_only = read == Read::Values;
+        let size = out.readback_bytes();
+        let readback = self.readback(size);
+        out.copy_to(&mut encoder, &readback, 0);
+        self.queue.submit([encoder.finish()]);
+        Ok(Some(Pending {
+            mapped: map_read(&readback),
+            readback,
+            values_bytes: values_only.then_some(out.values_bytes),
+        }))
+    }
+
+    /// A buffer of `size` bytes the host maps to read.
+    fn readback(&self, size: u64) -> wgpu::Buffer {
+        self.device.create_buffer(&wgpu::BufferDescriptor {
+            label: Some("readback"),
+            size,
+            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
+            mapped_at_creation: false,
+        })
+    }
+
+    /// Records one dispatch of `count` points into `encoder`: its buffers, bind group and
+    /// workgroups (what [`Gpu::submit`] submits alone and `batch` many to a submission).
+    fn record(&self, encoder: &mut wgpu::CommandEncoder, d: Dispatch<'_>) -> Recorded {
+        let Dispatch {
+            pipeline,
+            op,
+            count,
+            uniform,
+            points,
+            read,
+        } = d;
         let groups = (count as u32).div_ceil(WORKGROUP);
         let gx = groups.min(65_535);
         let gy = groups.div_ceil(gx);
@@ -770,7 +857,6 @@ impl Gpu {
         });
         // The outputs a dispatch does not write are bound as a few bytes (every binding of the
         // layout must be).
-        let values_only = read == Read::Values;
         let output = |label, bytes: u64| {
             dev.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -779,7 +865,7 @@ impl Gpu {
                 mapped_at_creation: false,
             })
         };
-        let (results_bytes, values_bytes) = if values_only {
+        let (results_bytes, values_bytes) = if read == Read::Values {
             (0, count as u64 * 4)
         } else {
             (count as u64 * 16, 0)
@@ -809,9 +895,6 @@ impl Gpu {
                 resource: b.as_entire_binding(),
             }),
         });
-        let mut encoder = dev.create_command_encoder(&wgpu::CommandEncoderDescriptor {
-            label: Some("decode2d"),
-        });
         {
             let mut pass = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
                 label: Some("decode2d"),
@@ -821,54 +904,20 @@ impl Gpu {
             pass.set_bind_group(0, &bind, &[]);
             pass.dispatch_workgroups(gx, gy, 1);
         }
-        if read == Read::Nothing {
-            self.queue.submit([encoder.finish()]);
-            dev.poll(wgpu::PollType::wait_indefinitely())
-                .map_err(|e| GpuError::Readback(e.to_string()))?;
-            return Ok(None);
+        Recorded {
+            results,
+            values,
+            summary,
+            results_bytes,
+            values_bytes,
         }
-        // Values then the summary's two words, or four floats a point.
-        let size = if values_only {
-            values_bytes + 8
-        } else {
-            results_bytes
-        };
-        let readback = dev.create_buffer(&wgpu::BufferDescriptor {
-            label: Some("readback"),
-            size,
-            usage: wgpu::BufferUsages::MAP_READ | wgpu::BufferUsages::COPY_DST,
-            mapped_at_creation: false,
-        });
-        if values_only {
-            encoder.copy_buffer_to_buffer(&values, 0, &readback, 0, values_bytes);
-            encoder.copy_buffer_to_buffer(&summary, 0, &readback, values_bytes, 8);
-        } else {
-            encoder.copy_buffer_to_buffer(&results, 0, &readback, 0, size);
-        }
-        self.queue.submit([encoder.finish()]);
-        let (tx, mapped) = std::sync::mpsc::channel();
-        readback.slice(..).map_async(wgpu::MapMode::Read, move |r| {
-            let _ = tx.send(r);
-        });
-        Ok(Some(Pending {
-            readback,
-            mapped,
-            values_bytes: values_only.then_some(values_bytes),
-        }))
     }
 
-    /// Waits for a submitted dispatch (and no later one) and gives its results to `sink`
-    /// while they are mapped.
-    fn finish(&self, pending: Pending, sink: &mut dyn FnMut(Readback<'_>)) -> Result<(), GpuError> {
-        let Pending {
-            readback,
-            mapped,
-            values_bytes,
-        } = pending;
-        // Waited for by polling without blocking: a blocking poll holds the device's resource
-        // lock for the whole wait, and the submissions and buffer drops of other requests
-        // queue behind it (measured on an H100: a tile sampled in 0.65 ms alone took 1.85 ms
-        // with 16 in flight).
+    /// Waits until `mapped` says its buffer is mapped, by polling without blocking: a blocking
+    /// poll holds the device's resource lock for the whole wait, and the submissions and buffer
+    /// drops of other requests queue behind it (measured on an H100: a tile sampled in 0.65 ms
+    /// alone took 1.85 ms with 16 in flight).
+    fn wait_mapped(&self, mapped: &Mapped) -> Result<(), GpuError> {
         let done = loop {
             self.device
                 .poll(wgpu::PollType::Poll)
@@ -881,7 +930,18 @@ impl Gpu {
                 Err(e) => return Err(GpuError::Readback(e.to_string())),
             }
         };
-        done.map_err(|e| GpuError::Readback(e.to_string()))?;
+        done.map_err(|e| GpuError::Readback(e.to_string()))
+    }
+
+    /// Waits for a submitted dispatch (and no later one) and gives its results to `sink`
+    /// while they are mapped.
+    fn finish(&self, pending: Pending, sink: &mut dyn FnMut(Readback<'_>)) -> Result<(), GpuError> {
+        let Pending {
+            readback,
+            mapped,
+            values_bytes,
+        } = pending;
+        self.wait_mapped(&mapped)?;
         let slice = readback.slice(..);
         let view = slice
             .get_mapped_range()
@@ -913,6 +973,52 @@ impl Gpu {
         drop(view);
         readback.unmap();
         Ok(())
+    }
+}
+
+/// The uniforms of a grid's dispatch of `count` points from point `first`, `width` a row.
+fn grid_params(
+    op: &GpuOperator,
+    (count, first, width): (usize, usize, u32),
+    iterations: u32,
+    tolerance: f32,
+    values_only: bool,
+) -> Params {
+    Params {
+        count: count as u32,
+        first: first as u32,
+        iterations,
+        mode: 2,
+        tolerance,
+        width,
+        values_only: u32::from(values_only),
+        ..op.params
+    }
+}
+
+/// A grid's width, height and axes (unit x of each column, then unit y of each row).
+fn grid_axes(grid: &Grid) -> (u32, u32, Vec<f32>) {
+    match grid {
+        // A window is the separable grid of its pixel centres, made as the CPU makes them
+        // (in f64, rounded once): both must start every chain at the same f32 point.
+        Grid::Window {
+            rect,
+            width,
+            height,
+        } => {
+            let (xs, ys) =
+                fractile_codec::core::decode::window_axes(*rect, *width as usize, *height as usize);
+            (
+                *width,
+                *height,
+                xs.into_iter().chain(ys).collect::<Vec<f32>>(),
+            )
+        }
+        Grid::Separable { xs, ys } => (
+            xs.len() as u32,
+            ys.len() as u32,
+            xs.iter().chain(ys).copied().collect::<Vec<f32>>(),
+        ),
     }
 }
 

@@ -238,6 +238,63 @@ fn values_only_readback_is_the_full_readback_reduced() {
     }
 }
 
+/// Issue 32: small grids asked at once from many threads (a server's tiles) are decoded in
+/// shared rounds, one submission for several, and each answers exactly what it answers alone:
+/// the values of the full read-back, bit for bit, its largest bound and most steps. Two
+/// operators, so that rounds mix them.
+#[test]
+fn concurrent_small_grids_share_rounds_and_answer_as_alone() {
+    let gpu = gpu();
+    let assets = [quadtree("jacksboro.tif", 1.0), quadtree("camera.png", 0.5)];
+    let devs: Vec<_> = assets
+        .iter()
+        .map(|a| gpu.upload(&a.planes[0].operator.pieces()).unwrap())
+        .collect();
+    // Tiles of different sizes and places, each with its operator and tolerance.
+    let jobs: Vec<(usize, Grid, f32)> = (0..12)
+        .map(|k| {
+            let (w, h) = (24 + 7 * k, 40 - 2 * k);
+            let (x0, y0) = (0.05 * k as f32, 0.9 - 0.06 * k as f32);
+            let grid = Grid::Separable {
+                xs: (0..w).map(|i| x0 + i as f32 * 0.004).collect(),
+                ys: (0..h).map(|j| y0 - j as f32 * 0.005).collect(),
+            };
+            (k % 2, grid, if k % 3 == 0 { 1e-3 } else { 0.0 })
+        })
+        .collect();
+    let alone: Vec<_> = jobs
+        .iter()
+        .map(|(a, grid, t)| gpu.grid(&devs[*a], grid.clone(), 12, *t).unwrap())
+        .collect();
+    let (rounds_before, grids_before) = gpu.rounds();
+    std::thread::scope(|s| {
+        for thread in 0..8 {
+            let (gpu, devs, jobs, alone) = (&gpu, &devs, &jobs, &alone);
+            s.spawn(move || {
+                for rep in 0..4 {
+                    let k = (thread * 5 + rep * 3) % jobs.len();
+                    let (a, grid, t) = &jobs[k];
+                    let got = gpu.grid_values(&devs[*a], grid.clone(), 12, *t).unwrap();
+                    let full = &alone[k];
+                    assert_eq!(got.values.len(), full.len());
+                    for (i, (v, p)) in got.values.iter().zip(full).enumerate() {
+                        assert_eq!(v.to_bits(), p.value.to_bits(), "grid {k} point {i}");
+                    }
+                    let bound = full.iter().fold(0.0f32, |m, p| m.max(p.error_bound));
+                    assert_eq!(got.error_bound, bound, "grid {k}");
+                    let steps = full.iter().map(|p| p.iterations).max().unwrap();
+                    assert_eq!(got.iterations, steps, "grid {k}");
+                }
+            });
+        }
+    });
+    let (rounds, grids) = gpu.rounds();
+    let (rounds, grids) = (rounds - rounds_before, grids - grids_before);
+    eprintln!("32 grids from 8 threads: {grids} grids in {rounds} rounds");
+    assert_eq!(grids, 32);
+    assert!(rounds < grids, "no round held two grids: {rounds} rounds");
+}
+
 /// Issue 32: dyadic grids (the source's own size, 2x, 4x, windows aligned with the source's
 /// cells) and points exactly on cell boundaries put chains on range boundaries at some step,
 /// where the last bit of a position's rounding used to send the CPU and the GPU into different
