@@ -51,6 +51,11 @@ impl GpuBackend {
         self.gpu.adapter()
     }
 
+    /// Rounds of small grids the device decoded together, and the grids in them.
+    pub fn rounds(&self) -> (u64, u64) {
+        self.gpu.rounds()
+    }
+
     /// Whether `choice` sends a decode of `points` points here.
     pub fn takes(&self, choice: Backend, points: usize) -> bool {
         match choice {

@@ -116,6 +116,7 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
     telemetry::handle();
     // CesiumJS, when a folder of it is configured (ServeDir refuses paths out of it).
     let cesium = state.cesium_dir.clone();
+    let gpu = state.gpu.clone();
     let router = api::router(state);
     let router = match cesium {
         Some(dir) => {
@@ -126,7 +127,12 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
     router
         .route(
             "/metrics",
-            axum::routing::get(|| async { telemetry::handle().render() }),
+            axum::routing::get(|| async move {
+                if let Some(g) = &gpu {
+                    telemetry::gpu_rounds(g.rounds());
+                }
+                telemetry::handle().render()
+            }),
         )
         .merge(web::routes())
         .fallback(error::no_route)

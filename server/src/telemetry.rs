@@ -1,5 +1,5 @@
 //! Prometheus metrics: requests and latency by route and status, decode time, tile cache hits,
-//! bytes out. The `metrics` facade with its Prometheus exporter (no listener of its own: axum
+//! bytes out, the GPU's shared rounds. The `metrics` facade with its Prometheus exporter (no listener of its own: axum
 //! serves `/metrics`).
 
 use std::sync::OnceLock;
@@ -44,4 +44,12 @@ pub async fn track(req: Request, next: Next) -> Response {
         metrics::counter!("fractile_bytes_out_total").increment(n);
     }
     resp
+}
+
+/// The GPU's rounds of small grids (tiles) decoded together and the grids they held, as counted
+/// by the device (`fractile_gpu_rounds_total`, `fractile_gpu_round_grids_total`; their ratio is
+/// the mean round): set when `/metrics` is read.
+pub fn gpu_rounds((rounds, grids): (u64, u64)) {
+    metrics::counter!("fractile_gpu_rounds_total").absolute(rounds);
+    metrics::counter!("fractile_gpu_round_grids_total").absolute(grids);
 }

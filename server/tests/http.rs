@@ -1320,6 +1320,33 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
         .map(|(p, q)| (p - q).abs())
         .fold(0.0f32, f32::max);
     assert!(worst <= 0.084, "worst difference {worst} m");
+    // The GPU tile went through the device's rounds, which /metrics reports.
+    let resp = fractile_server::app(st.clone())
+        .oneshot(Request::get("/metrics").body(Body::empty()).unwrap())
+        .await
+        .unwrap();
+    let text = String::from_utf8(
+        resp.into_body()
+            .collect()
+            .await
+            .unwrap()
+            .to_bytes()
+            .to_vec(),
+    )
+    .unwrap();
+    let counter = |name: &str| -> u64 {
+        text.lines()
+            .find_map(|l| l.strip_prefix(name)?.trim().parse().ok())
+            .unwrap_or_else(|| panic!("{name} in /metrics"))
+    };
+    let (rounds, grids) = (
+        counter("fractile_gpu_rounds_total"),
+        counter("fractile_gpu_round_grids_total"),
+    );
+    assert!(
+        rounds >= 1 && grids >= rounds,
+        "{rounds} rounds, {grids} grids"
+    );
     // A batch of points, on each backend.
     let pts: Vec<[f64; 2]> = (0..3000)
         .map(|i| {
