@@ -140,6 +140,52 @@ fn bench_dem(path: &std::path::Path) {
             );
         }
     }
+    // Row filters at the server's default (rounded to the bound, zlib 6): the served tiles'
+    // pixels encoded again with each filter (packed heights take Up, see `encoding`).
+    println!("\n| row filter (rounded, zlib 6) | mean bytes | vs adaptive | encode ms a tile |");
+    println!("|---|---|---|---|");
+    let pixels: Vec<image::RgbImage> = tiles
+        .iter()
+        .map(|t| {
+            let rounding = Rounding::for_bound(HeightEncoding::TerrainRgb, t.error_bound);
+            let (_, body) = encode_tile(
+                &stored.asset.meta,
+                std::slice::from_ref(&t.heights),
+                256,
+                format,
+                None,
+                (rounding, Deflate::for_tile(rounding)),
+            );
+            image::load_from_memory(&body).expect("a PNG").to_rgb8()
+        })
+        .collect();
+    let mut adaptive = None;
+    for (name, rows) in [
+        ("adaptive", image::codecs::png::FilterType::Adaptive),
+        ("Up", image::codecs::png::FilterType::Up),
+        ("Paeth", image::codecs::png::FilterType::Paeth),
+    ] {
+        use image::ImageEncoder;
+        let (mut bytes, start, reps) = (0usize, Instant::now(), 3);
+        for _ in 0..reps {
+            bytes = 0;
+            for p in &pixels {
+                let mut out = Vec::new();
+                image::codecs::png::PngEncoder::new_with_quality(
+                    &mut out,
+                    image::codecs::png::CompressionType::Level(6),
+                    rows,
+                )
+                .write_image(p, 256, 256, image::ExtendedColorType::Rgb8)
+                .expect("a PNG");
+                bytes += out.len();
+            }
+        }
+        let ms = start.elapsed().as_secs_f64() * 1e3 / (reps * pixels.len()) as f64;
+        let mean = bytes as f64 / pixels.len() as f64;
+        let base = *adaptive.get_or_insert(mean);
+        println!("| {name} | {mean:.0} | {:.3} | {ms:.2} |", mean / base);
+    }
     // Where the bytes are: by zoom, at the server's default (rounded to the bound, zlib 6).
     println!("\n| zoom | mean X-Error-Bound m | rounding step m | mean bytes |");
     println!("|---|---|---|---|");
