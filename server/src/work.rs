@@ -16,7 +16,9 @@
 //! slot for the wait ([`Cancel::off_core`]) and queues for one again to go on (to encode its
 //! PNG): a slot held through a GPU round trip left the cores idle while every slot waited on
 //! the device (on an H100, 16 slots each held 1.4 ms of GPU wait and 1.3 ms of PNG capped GPU
-//! tiles at about 16 / 2.75 ms, 5,800 a second; measured 5,150-5,300).
+//! tiles at about 16 / 2.75 ms, 5,800 a second; measured 5,150-5,300). The slot is queued for
+//! again behind the requests already waiting (the lane is first come, first served), so under
+//! overload a GPU request waits in the queue twice; its p99 shows it.
 
 use std::io::Write;
 use std::sync::Arc;
