@@ -655,7 +655,8 @@ impl Gpu {
 
     /// [`Gpu::grid`] reading back the values alone (4 bytes a point), with the bounds and step
     /// counts reduced on the device to their largest: what a tile or a window needs (one
-    /// bound for all its pixels), at a quarter of the transfer.
+    /// bound for all its pixels), at a quarter of the transfer. A grid of a tile's size joins
+    /// the grids other threads are asking for in one submission (see [`Gpu::rounds`]).
     pub fn grid_values(
         &self,
         op: &GpuOperator,
