@@ -2,7 +2,8 @@
 # Issue 32's GPU measurements (docs/benchmarks.md, "On an H100"), for a machine with a GPU:
 # the gpu bench (4096 x 4096 window, points, device time, 3D) at 16 CPU threads, then uncached
 # terrarium tiles of etopo20 (the client's cold pyramid walk, 21,845 tiles) with backend=cpu and
-# backend=gpu at 16, 4 and 1 clients, each on a freshly started server. Run from the repository
+# backend=gpu at 16, 32, 4 and 1 clients, each on a freshly started server (32: more tiles in
+# flight than cores, which a GPU request that lends its core slot while it waits can use). Run from the repository
 # root after `cargo build --release` and `cargo bench -p fractile-gpu --bench gpu --no-run`, or
 # with BIN naming a folder holding `fractile`, `fractile-client` and `gpu-bench` built elsewhere.
 set -u
@@ -20,7 +21,7 @@ export RAYON_NUM_THREADS=${THREADS:-16}
 timeout 240 "$BIN/gpu-bench" 2>&1 | tee "$OUT/gpu-bench.txt"
 assets=$(mktemp -d)
 "$BIN/fractile" encode testdata/etopo20.tif -o "$assets/etopo20.fra"
-for run in cpu:16 gpu:16 cpu:16 gpu:16 cpu:4 gpu:4 cpu:1 gpu:1; do
+for run in cpu:16 gpu:16 cpu:16 gpu:16 cpu:32 gpu:32 cpu:4 gpu:4 cpu:1 gpu:1; do
   b=${run%:*}; c=${run#*:}
   "$BIN/fractile" serve --assets "$assets" --bind 127.0.0.1:18080 --backend auto > "$OUT/serve-$b.log" 2>&1 &
   pid=$!
