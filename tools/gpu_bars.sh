@@ -3,9 +3,10 @@
 # the gpu bench (4096 x 4096 window, points, device time, 3D) at 16 CPU threads, then uncached
 # terrarium tiles of etopo20 (the client's cold pyramid walk, 21,845 tiles) with backend=cpu and
 # backend=gpu at 16, 32, 4 and 1 clients, each on a freshly started server (32: more tiles in
-# flight than cores, which a GPU request that lends its core slot while it waits can use). Run from the repository
-# root after `cargo build --release` and `cargo bench -p fractile-gpu --bench gpu --no-run`, or
-# with BIN naming a folder holding `fractile`, `fractile-client` and `gpu-bench` built elsewhere.
+# flight than cores, which a GPU request that lends its core slot while it waits can use).
+# Run from the repository root after `cargo build --release` and `cargo bench -p fractile-gpu
+# --bench gpu --no-run`, or with BIN naming a folder holding `fractile`, `fractile-client` and
+# `gpu-bench` built elsewhere.
 set -u
 D=${DUR:-10}
 OUT=${OUT:-/tmp/gpu-bars}
