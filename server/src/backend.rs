@@ -11,9 +11,8 @@
 
 use std::sync::Arc;
 
-use fractile_codec::core::decode::PointValue;
 use fractile_codec::core::pieces::Flatten;
-use fractile_codec::extract::Sites;
+use fractile_codec::extract::{Answer, Sites};
 use fractile_gpu::{Gpu, GpuOperator};
 
 use crate::store::StoredAsset;
@@ -126,13 +125,17 @@ impl GpuBackend {
         sites: Sites<'_>,
         iterations: u32,
         tolerance: f32,
-    ) -> Option<Vec<PointValue>> {
+    ) -> Option<Answer> {
         let plane_op = &a.asset.planes.get(plane)?.operator;
         let op = self.resident(a, plane, || self.gpu.upload(&plane_op.pieces()))?;
         let answer = match sites {
-            Sites::List(points) => self.gpu.points(&op, points, iterations, tolerance),
+            Sites::List(points) => self
+                .gpu
+                .points(&op, points, iterations, tolerance)
+                .map(Answer::Points),
             // A grid (a tile, a region) answers one bound for all its pixels, the largest: the
-            // device reduces the bounds and sends the values alone, a quarter of the bytes.
+            // device reduces the bounds and sends the values alone, a quarter of the bytes,
+            // which go on as they are.
             Sites::Grid { xs, ys } => self
                 .gpu
                 .grid_values(
@@ -144,15 +147,10 @@ impl GpuBackend {
                     iterations,
                     tolerance,
                 )
-                .map(|g| {
-                    g.values
-                        .into_iter()
-                        .map(|value| PointValue {
-                            value,
-                            error_bound: g.error_bound,
-                            iterations: g.iterations,
-                        })
-                        .collect()
+                .map(|g| Answer::Values {
+                    values: g.values,
+                    error_bound: g.error_bound,
+                    iterations: g.iterations,
                 }),
         };
         match answer {

@@ -1249,6 +1249,13 @@ fn config_files_parse_and_reject_typos() {
     );
 }
 
+/// A response's `X-Convergence-Bound` (NaN when there is none).
+fn convergence_bound(h: &axum::http::HeaderMap) -> f32 {
+    h.get("x-convergence-bound")
+        .and_then(|v| v.to_str().ok()?.parse().ok())
+        .unwrap_or(f32::NAN)
+}
+
 /// The GPU backend (lavapipe in CI) answers tiles like the CPU, per request; a bad or
 /// unavailable backend is a typed 400.
 #[tokio::test]
@@ -1277,6 +1284,7 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
                 .await
                 .unwrap();
             let status = resp.status();
+            let bound = convergence_bound(resp.headers());
             let body = resp
                 .into_body()
                 .collect()
@@ -1284,10 +1292,10 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
                 .unwrap()
                 .to_bytes()
                 .to_vec();
-            (status, body)
+            (status, body, bound)
         }
     };
-    let (s, cpu) = fetch("cpu").await;
+    let (s, cpu, cpu_bound) = fetch("cpu").await;
     assert_eq!(s, StatusCode::OK);
     // The tile cache would answer the second request from the first: a different key is needed,
     // and the tolerance is part of it.
@@ -1299,6 +1307,12 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
         .await
         .unwrap();
     assert_eq!(resp.status(), StatusCode::OK);
+    // The device's one bound for the tile is the CPU's largest point bound (the same chains).
+    let gpu_bound = convergence_bound(resp.headers());
+    assert!(
+        cpu_bound > 0.0 && (gpu_bound - cpu_bound).abs() <= 1e-3 * cpu_bound,
+        "convergence bounds: GPU {gpu_bound} m, CPU {cpu_bound} m"
+    );
     let gpu = resp
         .into_body()
         .collect()
@@ -1379,7 +1393,7 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
         .map(|(a, b)| (a - b).abs())
         .fold(0.0, f64::max);
     assert!(worst <= 0.084, "points: worst difference {worst} m");
-    let (s, body) = fetch("quantum").await;
+    let (s, body, _) = fetch("quantum").await;
     assert_eq!(
         (s, json(&body)["code"].as_str()),
         (StatusCode::BAD_REQUEST, Some("bad_backend"))

@@ -28,8 +28,63 @@ pub const SETTLED_FRACTION: f32 = 0.125;
 
 /// Decodes one plane's point chains elsewhere (a GPU): `(plane, unit points, iterations,
 /// normalised tolerance)`, or `None` to leave them to the CPU.
-pub type ContinuousHook<'a> =
-    dyn Fn(usize, Sites<'_>, u32, f32) -> Option<Vec<decode::PointValue>> + Sync + 'a;
+pub type ContinuousHook<'a> = dyn Fn(usize, Sites<'_>, u32, f32) -> Option<Answer> + Sync + 'a;
+
+/// One plane's chains decoded at a [`ContinuousHook`]'s sites (normalised).
+#[derive(Clone, Debug, PartialEq)]
+pub enum Answer {
+    /// A value, bound and step count a site.
+    Points(Vec<decode::PointValue>),
+    /// The values alone, with the largest bound and the most steps: what a grid (a tile, one
+    /// bound for its pixels) needs, kept as a device reads it back. A record a site, built and
+    /// taken apart again, doubled a 256 x 256 tile's host time from the device's values to
+    /// the tile's heights (134 against 70 us on this project's 2-core machine, 2026-11-26),
+    /// where a GPU tile has about 300 us to spend.
+    Values {
+        /// A value a site.
+        values: Vec<f32>,
+        /// The largest bound.
+        error_bound: f32,
+        /// The most steps.
+        iterations: u32,
+    },
+}
+
+impl Answer {
+    /// A record a site (values share their one bound).
+    pub fn into_points(self) -> Vec<decode::PointValue> {
+        match self {
+            Answer::Points(p) => p,
+            Answer::Values {
+                values,
+                error_bound,
+                iterations,
+            } => values
+                .into_iter()
+                .map(|value| decode::PointValue {
+                    value,
+                    error_bound,
+                    iterations,
+                })
+                .collect(),
+        }
+    }
+
+    /// The values, and the largest bound (`f32::max`'s: a NaN bound is passed over).
+    pub fn into_values(self) -> (Vec<f32>, f32) {
+        match self {
+            Answer::Points(p) => {
+                let worst = p.iter().fold(0.0f32, |m, r| m.max(r.error_bound));
+                (p.into_iter().map(|r| r.value).collect(), worst)
+            }
+            Answer::Values {
+                values,
+                error_bound,
+                ..
+            } => (values, error_bound),
+        }
+    }
+}
 
 /// Hands out the discrete decode of every plane at `(width, height, iterations, tolerance)`
 /// (normalised), as [`Asset::discrete_planes`] computes it: a server keeps recent ones, since
@@ -529,6 +584,7 @@ impl Asset {
             .enumerate()
             .map(|(k, p)| {
                 continuous(k, Sites::List(pts), iterations, tol)
+                    .map(Answer::into_points)
                     .unwrap_or_else(|| p.operator.points(pts, iterations, tol))
             })
             .collect();
@@ -773,16 +829,11 @@ impl Asset {
         } else {
             let mut planes = Vec::with_capacity(self.planes.len());
             for k in 0..self.planes.len() {
-                let values = self.continuous_plane(k, &inside, (iterations, tol), delegates)?;
-                planes.push(
-                    values
-                        .into_iter()
-                        .map(|r| {
-                            worst = worst.max(r.error_bound);
-                            r.value
-                        })
-                        .collect(),
-                );
+                let (values, bound) = self
+                    .continuous_plane(k, &inside, (iterations, tol), delegates)?
+                    .into_values();
+                worst = worst.max(bound);
+                planes.push(values);
             }
             planes
         };
@@ -872,7 +923,7 @@ impl Asset {
         inside: &Inside,
         (iterations, tol): (u32, f32),
         delegates: &Delegates<'_>,
-    ) -> Result<Vec<decode::PointValue>, Cancelled> {
+    ) -> Result<Answer, Cancelled> {
         let stop = || {
             if (delegates.cancelled)() {
                 Err(Cancelled)
@@ -892,7 +943,7 @@ impl Asset {
                             stop()?;
                             v.extend(p.operator.grid(ix, band, iterations, tol));
                         }
-                        v
+                        Answer::Points(v)
                     }
                 }
             }
@@ -923,7 +974,7 @@ impl Asset {
                                 .map(|(r, _)| r),
                         );
                     }
-                    v
+                    Answer::Points(v)
                 }
             },
         })
