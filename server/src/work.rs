@@ -314,7 +314,8 @@ impl Cancel {
         let out = wait();
         if let Some(lane) = lane {
             // On the blocking pool, outside any async context: blocking on the semaphore is
-            // what this thread is for. A closed lane (shutdown) lets the work finish without.
+            // what this thread is for. A closed lane (shutdown), or a thread outside the
+            // runtime (none calls this today), lets the work finish without a slot.
             let permit = tokio::runtime::Handle::try_current()
                 .ok()
                 .and_then(|h| h.block_on(lane.acquire_owned()).ok());
