@@ -116,7 +116,9 @@ impl Gpu {
             !std::mem::replace(&mut q.leading, true)
         };
         loop {
-            if lead {
+            // The lead comes to a grid still queued, which is first in line: the round it
+            // leads holds it.
+            if std::mem::take(&mut lead) {
                 self.round();
             }
             match answer.recv() {
