@@ -1,8 +1,9 @@
 #!/usr/bin/env bash
 # Issue 32's GPU measurements (docs/benchmarks.md, "On an H100"), for a machine with a GPU:
 # the gpu bench (4096 x 4096 window, points, device time, 3D) at 16 CPU threads, then uncached
-# terrarium tiles of etopo20 (the client's cold pyramid walk, 21,845 tiles) with backend=cpu and
-# backend=gpu at 16, 32, 4 and 1 clients, each on a freshly started server (32: more tiles in
+# terrain-RGB tiles (the bar's format; ENCODING=terrarium for the earlier runs') of etopo20 (the
+# client's cold pyramid walk, 21,845 tiles) with backend=cpu and backend=gpu at 16, 32, 4 and 1
+# clients, each on a freshly started server (32: more tiles in
 # flight than cores, which a GPU request that lends its core slot while it waits can use).
 # Run from the repository root after `cargo build --release` and `cargo bench -p fractile-gpu
 # --bench gpu --no-run`, or with BIN naming a folder holding `fractile`, `fractile-client` and
@@ -29,7 +30,8 @@ for run in cpu:16 gpu:16 cpu:16 gpu:16 cpu:32 gpu:32 cpu:4 gpu:4 cpu:1 gpu:1; do
   for _ in $(seq 240); do curl -sf localhost:18080/readyz >/dev/null && break; sleep 0.5; done
   echo "== etopo20 backend=$b clients=$c"
   timeout 60 "$BIN/fractile-client" bench --server http://127.0.0.1:18080 --asset etopo20 \
-    --kinds tiles-cold --backend "$b" --duration "$D" --concurrency "$c" | tail -1
+    --kinds tiles-cold --encoding "${ENCODING:-terrainrgb}" --backend "$b" --duration "$D" \
+    --concurrency "$c" | tail -1
   # Where the tiles' time went (seconds summed over the run, and counts).
   curl -s localhost:18080/metrics | grep -E '^fractile_((tile_stage|request|decode)_seconds_(sum|count)|gpu_round)'
   kill $pid; wait $pid 2>/dev/null

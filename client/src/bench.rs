@@ -94,6 +94,10 @@ pub struct BenchOptions {
     pub kinds: Vec<Kind>,
     /// Points per batch.
     pub batch: usize,
+    /// How the tile kinds ask for a height field's tiles (pictures are always PNGs):
+    /// Terrarium by default, what MapLibre's `raster-dem` sources most often read; issue 32's
+    /// GPU bar is stated for terrain-RGB.
+    pub heights: TileEncoding,
     /// Region side in pixels.
     pub region_side: u32,
     /// Seed of the random points and boxes.
@@ -108,6 +112,7 @@ impl Default for BenchOptions {
             duration: Duration::from_secs(10),
             kinds: Kind::ALL.to_vec(),
             batch: 1000,
+            heights: TileEncoding::Terrarium,
             region_side: 256,
             seed: 1,
         }
@@ -246,11 +251,7 @@ pub async fn run(client: &Client, options: &BenchOptions) -> Result<Vec<KindRepo
     let tj = client.tilejson(&options.asset).await?;
     let bounds = asset.bounds.unwrap_or([0.0, 0.0, 1.0, 1.0]);
     let heights = asset.kind == AssetKind::HeightField;
-    let encoding = if heights {
-        TileEncoding::Terrarium
-    } else {
-        TileEncoding::Visual
-    };
+    let encoding = tile_encoding(asset.kind, options.heights);
     let walk: Arc<Vec<TileAddress>> = Arc::new(pyramid(tj.bounds, tj.maxzoom, 1_000_000));
     let mut cold_done = 0usize;
     let mut reports = Vec::new();
@@ -420,6 +421,16 @@ pub fn table(reports: &[KindReport], concurrency: usize) -> String {
     s
 }
 
+/// How the tile kinds ask for an asset's tiles: a height field's as `heights` says (PNG when
+/// `heights` is not a height encoding), anything else's as a picture.
+fn tile_encoding(kind: AssetKind, heights: TileEncoding) -> TileEncoding {
+    if kind == AssetKind::HeightField && heights.is_heights() {
+        heights
+    } else {
+        TileEncoding::Visual
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -460,6 +471,22 @@ mod tests {
             assert!(tw < b[2] && te > b[0] && ts < b[3] && tn > b[1], "{t}");
         }
         assert_eq!(pyramid(b, 10, 5).len(), 5);
+    }
+
+    #[test]
+    fn tiles_of_height_fields_take_the_chosen_encoding_pictures_png() {
+        for e in [
+            TileEncoding::Terrarium,
+            TileEncoding::TerrainRgb,
+            TileEncoding::F32,
+        ] {
+            assert_eq!(tile_encoding(AssetKind::HeightField, e), e);
+            assert_eq!(tile_encoding(AssetKind::Image, e), TileEncoding::Visual);
+        }
+        assert_eq!(
+            tile_encoding(AssetKind::HeightField, TileEncoding::Visual),
+            TileEncoding::Visual
+        );
     }
 
     #[test]

@@ -262,6 +262,10 @@ struct BenchArgs {
     /// Points per batch.
     #[arg(long, default_value_t = 1000)]
     batch: usize,
+    /// Encoding of a height field's tiles (terrarium, terrainrgb, gray16, f32, png); pictures'
+    /// tiles are PNGs whatever this says.
+    #[arg(long, default_value = "terrarium")]
+    encoding: String,
 }
 
 fn parse_numbers<const N: usize>(s: &str, what: &str) -> Result<[f64; N]> {
@@ -815,6 +819,7 @@ async fn run_bench(client: &Client, json: bool, a: BenchArgs) -> Result<()> {
         duration,
         kinds,
         batch,
+        encoding: heights,
     } = a;
     let kinds = kinds
         .iter()
@@ -829,6 +834,7 @@ async fn run_bench(client: &Client, json: bool, a: BenchArgs) -> Result<()> {
         duration: Duration::from_secs_f64(duration),
         kinds,
         batch,
+        heights: encoding(&heights)?,
         ..Default::default()
     };
     let reports = bench::run(client, &options).await?;
