@@ -4,7 +4,8 @@
 //   phi_a(p) = coef_a * p[perm_a] + c_a, g = offset, s = contrast
 //   value = sum_k g_k prod_{j<k} s_j + seed prod s, bound = |prod s| * half
 // Points come from a list (mode 0: x, y, z unit coordinates) or a box grid (mode 1): grid point
-// (i, j, k) at lo + (i, j, k) * step, corners included, as decode::volume_window samples it.
+// (i, j, k) at (xs[i], ys[j], zs[k]), the axes the host sends (decode::volume_axes, what
+// decode::volume_window samples), so that both decode the same points.
 // Unit coordinates are clamped to [0, 1] as the CPU clamps them.
 
 struct Params {
@@ -22,17 +23,9 @@ struct Params {
     ny: u32,
     nz: u32,
     row: u32,
-    lo_x: f32,
-    lo_y: f32,
-    lo_z: f32,
-    step_x: f32,
-    step_y: f32,
-    step_z: f32,
     // The fixed-point step of positions and its inverse (codec::core::decode::to_frame).
     quantum: f32,
     inv_quantum: f32,
-    _pad0: u32,
-    _pad1: u32,
 };
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -49,11 +42,7 @@ fn unit_point(k: u32) -> vec3<f32> {
     let i = k % params.nx;
     let j = (k / params.nx) % params.ny;
     let l = k / (params.nx * params.ny);
-    return vec3<f32>(
-        params.lo_x + params.step_x * f32(i),
-        params.lo_y + params.step_y * f32(j),
-        params.lo_z + params.step_z * f32(l),
-    );
+    return vec3<f32>(points[i], points[params.nx + j], points[params.nx + params.ny + l]);
 }
 
 @compute @workgroup_size(256)

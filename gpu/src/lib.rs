@@ -97,12 +97,9 @@ struct Params3 {
     valid: f32,
     dims: [u32; 3],
     row: u32,
-    lo: [f32; 3],
-    step: [f32; 3],
     /// The fixed-point step of positions and its inverse, as in 2D.
     quantum: f32,
     inv_quantum: f32,
-    pad: [u32; 2],
 }
 
 /// Where a dispatch's points come from.
@@ -550,8 +547,8 @@ impl Gpu {
     }
 
     /// Continuous decoding of a box `[lo, hi]` of the unit cube at `dims` samples per axis,
-    /// corners included (x fastest), like `decode::volume_window`; the points are made on the
-    /// device.
+    /// corners included (x fastest), like `decode::volume_window`: the device makes the points
+    /// from the CPU's axes (`decode::volume_axes`), so both decode the same points.
     pub fn volume_grid(
         &self,
         op: &GpuOperator,
@@ -564,20 +561,10 @@ impl Gpu {
         let base = op
             .volume
             .ok_or_else(|| GpuError::Device("not a volume operator".into()))?;
-        let step: [f32; 3] = std::array::from_fn(|a| {
-            if dims[a] < 2 {
-                0.0
-            } else {
-                (hi[a] - lo[a]) / (dims[a] - 1) as f32
-            }
-        });
-        let lo: [f32; 3] = std::array::from_fn(|a| {
-            if dims[a] < 2 {
-                0.5 * (lo[a] + hi[a])
-            } else {
-                lo[a]
-            }
-        });
+        let axes = fractile_codec::core::decode::volume_axes(lo, hi, dims.map(|d| d as usize));
+        // x, then y, then z: the kernel reads sample (i, j, k) at `axes[i]`, `axes[nx + j]`,
+        // `axes[nx + ny + k]`.
+        let axes: Vec<f32> = axes.concat();
         let total = dims.iter().map(|&d| d as usize).product::<usize>();
         let mut out = Vec::with_capacity(total);
         let mut first = 0usize;
@@ -590,8 +577,6 @@ impl Gpu {
                 tolerance,
                 mode: 1,
                 dims,
-                lo,
-                step,
                 ..base
             };
             out.extend(self.dispatch_with(
@@ -599,7 +584,7 @@ impl Gpu {
                 op,
                 count,
                 &|row| bytemuck::bytes_of(&Params3 { row, ..params }).to_vec(),
-                &[0u8; 16],
+                bytemuck::cast_slice(&axes),
             )?);
             first += count;
         }

@@ -457,7 +457,70 @@ fn volume_points_and_boxes_agree_with_the_cpu() {
             .fold(0.0f32, f32::max);
         assert!(worst <= 1e-4, "{file} box: worst {worst}");
         assert!(got.iter().all(|g| g.error_bound <= bound + 1e-6));
+        volume_lattices_agree(&gpu, file, op, &dev, grid);
     }
+}
+
+/// A volume on its own lattice: boxes whose samples lie on cell faces, edges and corners (at
+/// 2x the grid, and at 4x over a box whose faces are cell faces) and points on cell corners,
+/// where an inexact position would take the next cell over at some step. The octree's maps (a
+/// scale by 2, a cube isometry, a lattice translation) are exact on fixed-point positions and
+/// the device takes the CPU's axes (`decode::volume_axes`), so both follow the same cells:
+/// the same steps, values within f32 accumulation.
+fn volume_lattices_agree(
+    gpu: &Gpu,
+    file: &str,
+    op: &fractile_codec::codecs::ifs3d::octree::OctreeOperator,
+    dev: &fractile_gpu::GpuOperator,
+    grid: usize,
+) {
+    let g = grid as f32;
+    let cells = |a: usize, b: usize| ([a as f32 / g; 3], [b as f32 / g; 3]);
+    let (half_lo, half_hi) = cells(grid / 4, grid / 4 + grid / 2);
+    let (quarter_lo, quarter_hi) = cells(grid / 8, grid / 8 + grid / 4);
+    for (label, lo, hi, dims) in [
+        ("2x", half_lo, half_hi, [grid + 1; 3]),
+        ("4x on cells", quarter_lo, quarter_hi, [grid + 1; 3]),
+    ] {
+        let [xs, ys, zs] = decode::volume_axes(lo, hi, dims);
+        let pts: Vec<[f32; 3]> = zs
+            .iter()
+            .flat_map(|&z| {
+                let xs = &xs;
+                ys.iter()
+                    .flat_map(move |&y| xs.iter().map(move |&x| [x, y, z]))
+            })
+            .collect();
+        let cpu = decode::points(op, &pts, 12, 0.0);
+        let got = gpu
+            .volume_grid(dev, lo, hi, dims.map(|d| d as u32), 12, 0.0)
+            .unwrap();
+        close(&format!("{file} box {label}"), &cpu, &got);
+        let (values, _) = decode::volume_window(op, lo, hi, dims, 12, 0.0);
+        assert!(
+            values
+                .iter()
+                .zip(&cpu)
+                .all(|(v, c)| v.to_bits() == c.value.to_bits()),
+            "{file} box {label}: volume_window decodes the axes' points"
+        );
+    }
+    let n = 2 * grid as u32;
+    let corners: Vec<[f32; 3]> = (0..20_000u32)
+        .map(|k| {
+            [
+                k * 7919 % (n + 1),
+                k * 104_729 % (n + 1),
+                k * 15_485_863 % (n + 1),
+            ]
+        })
+        .map(|c| c.map(|i| i as f32 / n as f32))
+        .collect();
+    close(
+        &format!("{file} points on cell corners"),
+        &decode::points(op, &corners, 12, 0.0),
+        &gpu.volume_points(dev, &corners, 12, 0.0).unwrap(),
+    );
 }
 
 /// The unit coordinates of the pixel centres of Web Mercator tile z/x/y (`size` pixels a side)

@@ -1146,6 +1146,22 @@ pub fn discrete_volume<O: Operator<3> + ?Sized>(
     (values, report)
 }
 
+/// The unit coordinates of the samples of a box `[lo, hi]` of the unit cube at `dims` samples
+/// per axis: the corners and evenly between them (one sample: the middle). Computed in f64 and
+/// rounded once; the GPU's boxes take the same axes, so both decode the same points.
+pub fn volume_axes(lo: [f32; 3], hi: [f32; 3], dims: [usize; 3]) -> [Vec<f32>; 3] {
+    std::array::from_fn(|a| {
+        let (l, h) = (f64::from(lo[a]), f64::from(hi[a]));
+        match dims[a] {
+            0 => Vec::new(),
+            1 => vec![(0.5 * (l + h)) as f32],
+            n => (0..n)
+                .map(|i| (l + (h - l) * i as f64 / (n - 1) as f64) as f32)
+                .collect(),
+        }
+    })
+}
+
 /// Continuous decoding of a box `[lo, hi]` of the unit cube at `dims` samples per axis (x
 /// fastest), the samples at the corners and evenly between them (what an isosurface wants:
 /// neighbouring boxes share their faces). Returns the values and the largest error bound.
@@ -1157,20 +1173,12 @@ pub fn volume_window<O: Operator<3> + ?Sized>(
     iterations: u32,
     tolerance: f32,
 ) -> (Vec<f32>, f32) {
-    let at = |a: usize, i: usize| {
-        if dims[a] < 2 {
-            0.5 * (lo[a] + hi[a])
-        } else {
-            lo[a] + (hi[a] - lo[a]) * i as f32 / (dims[a] - 1) as f32
-        }
-    };
+    let [xs, ys, zs] = volume_axes(lo, hi, dims);
     let rows: Vec<(Vec<f32>, f32)> = (0..dims[1] * dims[2])
         .into_par_iter()
         .map(|r| {
-            let (y, z) = (r % dims[1], r / dims[1]);
-            let pts: Vec<[f32; 3]> = (0..dims[0])
-                .map(|x| [at(0, x), at(1, y), at(2, z)])
-                .collect();
+            let (y, z) = (ys[r % dims[1]], zs[r / dims[1]]);
+            let pts: Vec<[f32; 3]> = xs.iter().map(|&x| [x, y, z]).collect();
             let pv = points(op, &pts, iterations, tolerance);
             let bound = pv.iter().fold(0.0f32, |m, p| m.max(p.error_bound));
             (pv.into_iter().map(|p| p.value).collect(), bound)
@@ -1197,6 +1205,19 @@ pub fn sample_bilinear(g: &Grid, x: f32, y: f32) -> f32 {
 mod tests {
     use super::*;
     use crate::core::operator::{Step, invariant_interval};
+
+    #[test]
+    fn volume_axes_hold_the_corners_and_even_steps_between() {
+        let [xs, ys, zs] = volume_axes([0.1, 0.25, 0.3], [0.7, 0.75, 0.3], [7, 5, 1]);
+        assert_eq!((xs[0], xs[6]), (0.1, 0.7));
+        assert_eq!(ys, [0.25, 0.375, 0.5, 0.625, 0.75]);
+        // One sample: the middle of the span.
+        assert_eq!(zs, [0.3]);
+        // Evenly spaced to f32 rounding: 0.1 + k * 0.1 for k = 0..6.
+        for (k, x) in xs.iter().enumerate() {
+            assert!((x - (0.1 + 0.1 * k as f32)).abs() <= 1e-7, "{k}: {x}");
+        }
+    }
 
     #[test]
     fn shrink_averages_blocks_and_keeps_nodata() {
