@@ -8,8 +8,17 @@
 //! CPU decoder itself (the GPU bench measures 10x), so `auto` never picks it; `gpu` still can.
 //! Operators are uploaded on first use and stay resident in an LRU cache bounded in bytes
 //! (`gpu_memory_mib`); an asset replaced by upload has a new hash, hence new entries.
+//! Concurrent first requests for one operator wait for one upload rather than each flattening
+//! it: a projected DEM's tables take 320 bytes a sample (195 MB and about 0.1 s of a core for
+//! etopo20), so sixteen tiles arriving together on a fresh server made sixteen copies. An
+//! operator the device refuses (its tables over the adapter's largest binding, or over the
+//! whole cache) is remembered for [`REFUSAL_TTL`], its requests decoded on the CPU meanwhile
+//! without trying again: before, every request flattened the tables again to be refused again,
+//! 110 ms of a core a tile on lavapipe's 128 MiB binding.
 
 use std::sync::Arc;
+use std::sync::atomic::{AtomicU64, Ordering};
+use std::time::Duration;
 
 use fractile_codec::core::pieces::Flatten;
 use fractile_codec::extract::{Answer, Sites};
@@ -23,11 +32,24 @@ pub const AUTO_POINTS: usize = 256 * 256;
 /// A backend choice: the API's own vocabulary (`cpu`, `gpu`, `auto`), from `fractile-proto`.
 pub use fractile_proto::query::Backend;
 
+/// How long an operator the device refused is decoded on the CPU before the device is asked
+/// again: a refusal is mostly for good (the tables' size), but one for memory the cache held
+/// at the time may pass later.
+pub const REFUSAL_TTL: Duration = Duration::from_secs(600);
+
+/// An operator's key: asset id, its hash, the plane (`usize::MAX`: the volume).
+type Key = (String, u32, usize);
+
 /// The server's GPU: the device and its resident operators.
 pub struct GpuBackend {
     gpu: Gpu,
     software: bool,
-    resident: moka::sync::Cache<(String, u32, usize), Arc<GpuOperator>>,
+    resident: moka::sync::Cache<Key, Arc<GpuOperator>>,
+    /// The bytes the resident operators may take.
+    memory: u64,
+    refused: moka::sync::Cache<Key, ()>,
+    /// Operators uploaded, and refused.
+    uploads: [AtomicU64; 2],
 }
 
 impl GpuBackend {
@@ -42,7 +64,22 @@ impl GpuBackend {
                 .weigher(|_k, v: &Arc<GpuOperator>| v.bytes().try_into().unwrap_or(u32::MAX))
                 .max_capacity(memory)
                 .build(),
+            memory,
+            refused: moka::sync::Cache::builder()
+                .max_capacity(4096)
+                .time_to_live(REFUSAL_TTL)
+                .build(),
+            uploads: Default::default(),
         })
+    }
+
+    /// Operators uploaded to the device, and operators it refused, since it was opened.
+    pub fn uploads(&self) -> (u64, u64) {
+        let [done, refused] = &self.uploads;
+        (
+            done.load(Ordering::Relaxed),
+            refused.load(Ordering::Relaxed),
+        )
     }
 
     /// The adapter, in words.
@@ -65,7 +102,8 @@ impl GpuBackend {
     }
 
     /// The resident operator of an asset's plane (`usize::MAX`: its volume), uploaded on first
-    /// use; `None` (logged) when the upload fails.
+    /// use, once for all the requests that want it meanwhile; `None` when the device refused
+    /// it (logged once a refusal), within [`REFUSAL_TTL`] of a refusal.
     fn resident(
         &self,
         a: &StoredAsset,
@@ -73,20 +111,36 @@ impl GpuBackend {
         upload: impl FnOnce() -> Result<GpuOperator, fractile_gpu::GpuError>,
     ) -> Option<Arc<GpuOperator>> {
         let key = (a.id.clone(), a.hash, plane);
-        if let Some(op) = self.resident.get(&key) {
-            return Some(op);
+        if self.refused.contains_key(&key) {
+            return None;
         }
-        match upload() {
-            Ok(op) => {
-                let op = Arc::new(op);
-                self.resident.insert(key, op.clone());
-                Some(op)
+        let made = self.resident.try_get_with(key.clone(), || {
+            let [done, refused] = &self.uploads;
+            // Runs once for the requests that wait on this upload: they share its error.
+            let refuse = |why: String| {
+                self.refused.insert(key.clone(), ());
+                refused.fetch_add(1, Ordering::Relaxed);
+                tracing::warn!(
+                    "GPU upload of {} refused, decoding it on the CPU for the next {} s: {why}",
+                    a.id,
+                    REFUSAL_TTL.as_secs()
+                );
+                why
+            };
+            let op = upload().map_err(|e| refuse(e.to_string()))?;
+            // Tables over the whole cache would be evicted as soon as they are in, and
+            // uploaded again by the next request.
+            if op.bytes() as u64 > self.memory {
+                return Err(refuse(format!(
+                    "its tables of {} MiB exceed gpu_memory_mib ({} MiB)",
+                    op.bytes() >> 20,
+                    self.memory >> 20
+                )));
             }
-            Err(e) => {
-                tracing::warn!("GPU upload of {} failed, decoding on the CPU: {e}", a.id);
-                None
-            }
-        }
+            done.fetch_add(1, Ordering::Relaxed);
+            Ok(Arc::new(op))
+        });
+        made.ok()
     }
 
     /// Continuous decoding of a volume's box (unit coordinates, corners included); `None`

@@ -130,6 +130,7 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
             axum::routing::get(|| async move {
                 if let Some(g) = &gpu {
                     telemetry::gpu_rounds(g.rounds());
+                    telemetry::gpu_uploads(g.uploads());
                 }
                 telemetry::handle().render()
             }),

@@ -53,3 +53,11 @@ pub fn gpu_rounds((rounds, grids): (u64, u64)) {
     metrics::counter!("fractile_gpu_rounds_total").absolute(rounds);
     metrics::counter!("fractile_gpu_round_grids_total").absolute(grids);
 }
+
+/// Operators uploaded to the GPU and operators it refused (their requests decoded on the CPU
+/// for a while: `backend::REFUSAL_TTL`), as `fractile_gpu_uploads_total{result}`: set when
+/// `/metrics` is read.
+pub fn gpu_uploads((resident, refused): (u64, u64)) {
+    metrics::counter!("fractile_gpu_uploads_total", "result" => "resident").absolute(resident);
+    metrics::counter!("fractile_gpu_uploads_total", "result" => "refused").absolute(refused);
+}

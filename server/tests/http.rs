@@ -1361,6 +1361,11 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
         rounds >= 1 && grids >= rounds,
         "{rounds} rounds, {grids} grids"
     );
+    // Its operator was uploaded, once.
+    assert_eq!(
+        counter(r#"fractile_gpu_uploads_total{result="resident"}"#),
+        1
+    );
     // A batch of points, on each backend.
     let pts: Vec<[f64; 2]> = (0..3000)
         .map(|i| {
@@ -1452,6 +1457,59 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
             .fold(0.0f32, f32::max)
     };
     assert!(worst < 1e-3, "vertex difference {worst}");
+}
+
+/// Tiles that want an operator the GPU does not hold yet wait for one upload, and an operator
+/// it refuses (here: tables over the whole `gpu_memory_mib`) is decoded on the CPU without the
+/// device being asked again: each attempt flattens the operator anew (0.1 s of a core for a
+/// projected etopo20).
+#[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+async fn gpu_uploads_happen_once_and_refusals_are_remembered() {
+    state(); // writes the assets
+    let dir = std::env::temp_dir().join(format!("fractile-http-{}", std::process::id()));
+    for (memory, expected) in [(4u64 << 10, (0, 1)), (64 << 20, (1, 0))] {
+        let (store, _) = Store::open(&dir).unwrap();
+        let mut st = AppState::new(store, "http://test".into());
+        let gpu = Arc::new(
+            fractile_server::backend::GpuBackend::open(memory)
+                .unwrap_or_else(|e| panic!("{e} (install mesa-vulkan-drivers)")),
+        );
+        st.gpu = Some(gpu.clone());
+        let st = Arc::new(st);
+        // Twelve zoom-15 tiles of the DEM, none cached: eight at once, then four one by one.
+        let tile = |k: u32| {
+            let st = st.clone();
+            async move {
+                let uri = format!(
+                    "/v1/assets/jacksboro/tiles/15/{}/12810.f32?iterations=12&backend=gpu",
+                    8700 + k
+                );
+                let resp = fractile_server::app(st)
+                    .oneshot(Request::get(uri).body(Body::empty()).unwrap())
+                    .await
+                    .unwrap();
+                let bound = convergence_bound(resp.headers());
+                (resp.status(), bound)
+            }
+        };
+        let mut answers = futures_util::future::join_all((0..8).map(tile)).await;
+        for k in 8..12 {
+            answers.push(tile(k).await);
+        }
+        for (k, (status, bound)) in answers.iter().enumerate() {
+            assert_eq!(
+                *status,
+                StatusCode::OK,
+                "tile {k}, {memory} bytes of GPU memory"
+            );
+            assert!(bound.is_finite(), "tile {k}: a convergence bound");
+        }
+        assert_eq!(
+            gpu.uploads(),
+            expected,
+            "(uploaded, refused) with {memory} bytes of GPU memory"
+        );
+    }
 }
 
 #[tokio::test]
