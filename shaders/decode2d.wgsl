@@ -6,6 +6,9 @@
 //   (u, v) = clamp((p - origin) * inv_size, 0, 1)
 //   g, s bilinear in (u, v); phi(p) = n0 + nu u + nv v per axis
 //   value = sum_k g_k prod_{j<k} s_j + seed prod s, bound = |prod s| * half
+// A table that is a lattice (codec::core::pieces::Lattice, the projected codec's) comes as
+// its offsets alone: the piece is the cell, its origin the cell's, one contrast, phi's x by
+// column and y by row (Lattice::step).
 // Points come from a list (mode 0), a regular grid over a unit-square window (mode 1), or a
 // separable grid (mode 2: the pixels of a Web Mercator tile over a lon/lat-placed asset, whose
 // unit x depends on the column only and unit y on the row only). For mode 2 the host sends the
@@ -40,8 +43,12 @@ struct Params {
     values_only: u32,
     // 1 / lut_cell: a product is exact for power-of-two cells; a WGSL division need not be.
     inv_lut_cell: vec2<f32>,
-    _pad1: u32,
-    _pad2: u32,
+    // 1: the tables are a lattice (codec::core::pieces::Lattice): `pieces` holds each cell's
+    // offset, `lut` the maps of the columns then of the rows (vec4 as u32 bits), `contrast`
+    // the one contrast.
+    lattice: u32,
+    _pad: u32,
+    contrast: vec4<f32>,
 };
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -55,6 +62,53 @@ struct Params {
 @group(0) @binding(6) var<storage, read_write> summary: array<atomic<u32>>;
 
 const SPLIT: u32 = 0x80000000u;
+
+// The maps and coefficients at frame point p: local (u, v), offset g, contrast s, phi's x and
+// y rows.
+struct At {
+    uv: vec2<f32>,
+    g: vec4<f32>,
+    s: vec4<f32>,
+    nx: vec4<f32>,
+    ny: vec4<f32>,
+};
+
+fn lut_vec4(k: u32) -> vec4<f32> {
+    return bitcast<vec4<f32>>(vec4<u32>(lut[4u * k], lut[4u * k + 1u], lut[4u * k + 2u], lut[4u * k + 3u]));
+}
+
+// PieceTable::step's lookups (Lattice::step's for a lattice).
+fn piece_at(p: vec2<f32>) -> At {
+    let cf = floor((p - params.lut_origin) * params.inv_lut_cell);
+    let cx = min(u32(max(cf.x, 0.0)), params.lut_size.x - 1u);
+    let cy = min(u32(max(cf.y, 0.0)), params.lut_size.y - 1u);
+    if (params.lattice != 0u) {
+        // The cell's origin: exact, the cell being a power of two.
+        let origin = params.lut_origin + vec2<f32>(f32(cx), f32(cy)) * params.lut_cell;
+        let uv = clamp((p - origin) * params.inv_lut_cell, vec2<f32>(0.0), vec2<f32>(1.0));
+        return At(
+            uv,
+            pieces[cy * params.lut_size.x + cx],
+            params.contrast,
+            lut_vec4(cx),
+            lut_vec4(params.lut_size.x + cy),
+        );
+    }
+    let entry = lut[cy * params.lut_size.x + cx];
+    var piece = entry & 0x7fffffffu;
+    let head = pieces[piece * 5u];
+    let uv = clamp((p - head.xy) * head.zw, vec2<f32>(0.0), vec2<f32>(1.0));
+    if ((entry & SPLIT) != 0u && uv.x + uv.y > 1.0) {
+        piece = piece + 1u;
+    }
+    return At(
+        uv,
+        pieces[piece * 5u + 1u],
+        pieces[piece * 5u + 2u],
+        pieces[piece * 5u + 3u],
+        pieces[piece * 5u + 4u],
+    );
+}
 
 fn unit_point(k: u32) -> vec2<f32> {
     if (params.mode == 0u) {
@@ -88,22 +142,13 @@ fn decode(k: u32) -> vec4<f32> {
         if (acc_s == 0.0 || abs(acc_s) * params.half <= params.tolerance) {
             break;
         }
-        let cf = floor((p - params.lut_origin) * params.inv_lut_cell);
-        let cx = min(u32(max(cf.x, 0.0)), params.lut_size.x - 1u);
-        let cy = min(u32(max(cf.y, 0.0)), params.lut_size.y - 1u);
-        let entry = lut[cy * params.lut_size.x + cx];
-        var piece = entry & 0x7fffffffu;
-        let head = pieces[piece * 5u];
-        let uv = clamp((p - head.xy) * head.zw, vec2<f32>(0.0), vec2<f32>(1.0));
-        if ((entry & SPLIT) != 0u && uv.x + uv.y > 1.0) {
-            piece = piece + 1u;
-        }
-        let g = pieces[piece * 5u + 1u];
-        let s = pieces[piece * 5u + 2u];
-        let nx = pieces[piece * 5u + 3u];
-        let ny = pieces[piece * 5u + 4u];
-        let u = uv.x;
-        let v = uv.y;
+        let at = piece_at(p);
+        let g = at.g;
+        let s = at.s;
+        let nx = at.nx;
+        let ny = at.ny;
+        let u = at.uv.x;
+        let v = at.uv.y;
         let offset = g.x + g.y * u + g.z * v + g.w * u * v;
         let contrast = s.x + s.y * u + s.z * v + s.w * u * v;
         acc_g = acc_g + acc_s * offset;

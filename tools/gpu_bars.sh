@@ -33,7 +33,7 @@ for run in cpu:16 gpu:16 cpu:16 gpu:16 cpu:32 gpu:32 cpu:4 gpu:4 cpu:1 gpu:1; do
     --kinds tiles-cold --encoding "${ENCODING:-terrainrgb}" --backend "$b" --duration "$D" \
     --concurrency "$c" | tail -1
   # Where the tiles' time went (seconds summed over the run, and counts).
-  curl -s localhost:18080/metrics | grep -E '^fractile_((tile_stage|request|decode)_seconds_(sum|count)|gpu_round)'
+  curl -s localhost:18080/metrics | grep -E '^fractile_((tile_stage|request|decode)_seconds_(sum|count)|gpu_round|gpu_uploads)'
   kill $pid; wait $pid 2>/dev/null
 done 2>&1 | tee "$OUT/tiles.txt"
 grep -h "GPU decoding" "$OUT/serve-gpu.log" | head -1

@@ -17,7 +17,7 @@ use bytemuck::{Pod, Zeroable};
 use fractile_codec::codecs::ifs3d::octree::OctreeOperator;
 use fractile_codec::core::decode::PointValue;
 use fractile_codec::core::operator::Operator;
-use fractile_codec::core::pieces::PieceTable;
+use fractile_codec::core::pieces::{Flat, Lattice, PieceTable};
 use wgpu::util::DeviceExt;
 
 mod batch;
@@ -50,7 +50,7 @@ pub enum GpuError {
     TooLarge(String),
 }
 
-/// Uniforms of one dispatch; the layout of `Params` in the kernel (112 bytes).
+/// Uniforms of one dispatch; the layout of `Params` in the kernel (128 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 struct Params {
@@ -78,7 +78,11 @@ struct Params {
     /// `1 / lut_cell`: the kernel multiplies (exact for the power-of-two cells of the lattice
     /// codecs), where a WGSL division may be off by 2.5 ulp and floor onto the cell before.
     inv_lut_cell: [f32; 2],
-    pad: [u32; 2],
+    /// 1: the tables are a [`fractile_codec::core::pieces::Lattice`]'s.
+    lattice: u32,
+    pad: u32,
+    /// A lattice's one contrast.
+    contrast: [f32; 4],
 }
 
 /// Uniforms of a 3D dispatch; the layout of `Params` in `decode3d.wgsl` (96 bytes).
@@ -100,6 +104,49 @@ struct Params3 {
     /// The fixed-point step of positions and its inverse, as in 2D.
     quantum: f32,
     inv_quantum: f32,
+}
+
+/// What a 2D operator's uniforms take from its tables, whichever form they have.
+struct Shape {
+    frame: [f32; 2],
+    valid: [f32; 2],
+    lut_origin: [f32; 2],
+    lut_cell: [f32; 2],
+    lut_size: [u32; 2],
+    interval: (f32, f32),
+}
+
+impl Shape {
+    /// The operator on the device: its two tables, their bytes, and a lattice's contrast.
+    fn operator(
+        self,
+        (lut, pieces): (wgpu::Buffer, wgpu::Buffer),
+        bytes: usize,
+        lattice: Option<[f32; 4]>,
+    ) -> GpuOperator {
+        let quantum = fractile_codec::core::decode::position_quantum(&self.frame);
+        let (lo, hi) = self.interval;
+        GpuOperator {
+            lut,
+            pieces,
+            params: Params {
+                seed: (lo + hi) * 0.5,
+                half: (hi - lo) * 0.5,
+                lut_origin: self.lut_origin,
+                lut_cell: self.lut_cell,
+                lut_size: self.lut_size,
+                valid: self.valid,
+                quantum,
+                inv_quantum: 1.0 / quantum,
+                inv_lut_cell: self.lut_cell.map(|c| 1.0 / c),
+                lattice: u32::from(lattice.is_some()),
+                contrast: lattice.unwrap_or_default(),
+                ..Params::default()
+            },
+            volume: None,
+            bytes,
+        }
+    }
 }
 
 /// Where a dispatch's points come from.
@@ -414,34 +461,53 @@ impl Gpu {
         Ok((init("lut", lut), init("cells", cells)))
     }
 
-    /// Uploads a flattened operator.
+    /// Uploads a flattened operator (as a lattice when its table is one).
     pub fn upload(&self, table: &PieceTable) -> Result<GpuOperator, GpuError> {
-        let pieces: Vec<f32> = table.pieces.iter().flat_map(|p| p.to_array()).collect();
-        let bytes = table.device_bytes();
-        let (lut, pieces) = self.tables(
-            bytemuck::cast_slice(&table.lut),
-            bytemuck::cast_slice(&pieces),
+        match table.lattice() {
+            Some(l) => self.upload_lattice(&l),
+            None => self.upload_pieces(table),
+        }
+    }
+
+    /// Uploads an operator as [`fractile_codec::core::pieces::Flatten::flat`] gives it.
+    pub fn upload_flat(&self, flat: &Flat) -> Result<GpuOperator, GpuError> {
+        match flat {
+            Flat::Lattice(l) => self.upload_lattice(l),
+            Flat::Pieces(t) => self.upload_pieces(t),
+        }
+    }
+
+    fn upload_pieces(&self, t: &PieceTable) -> Result<GpuOperator, GpuError> {
+        let pieces: Vec<f32> = t.pieces.iter().flat_map(|p| p.to_array()).collect();
+        let tables = self.tables(bytemuck::cast_slice(&t.lut), bytemuck::cast_slice(&pieces))?;
+        let shape = Shape {
+            frame: t.frame,
+            valid: t.valid,
+            lut_origin: t.lut_origin,
+            lut_cell: t.lut_cell,
+            lut_size: t.lut_size,
+            interval: t.interval,
+        };
+        Ok(shape.operator(tables, t.device_bytes(), None))
+    }
+
+    /// A lattice goes as its offsets, with the maps of its columns then rows where the lookup
+    /// table would be (a fifth of the bytes).
+    fn upload_lattice(&self, l: &Lattice) -> Result<GpuOperator, GpuError> {
+        let maps = [l.columns.as_slice(), l.rows.as_slice()].concat();
+        let tables = self.tables(
+            bytemuck::cast_slice(&maps),
+            bytemuck::cast_slice(&l.offsets),
         )?;
-        let (lo, hi) = table.interval;
-        let quantum = fractile_codec::core::decode::position_quantum(&table.frame);
-        Ok(GpuOperator {
-            lut,
-            pieces,
-            params: Params {
-                seed: (lo + hi) * 0.5,
-                half: (hi - lo) * 0.5,
-                lut_origin: table.lut_origin,
-                lut_cell: table.lut_cell,
-                lut_size: table.lut_size,
-                valid: table.valid,
-                quantum,
-                inv_quantum: 1.0 / quantum,
-                inv_lut_cell: table.lut_cell.map(|c| 1.0 / c),
-                ..Params::default()
-            },
-            volume: None,
-            bytes,
-        })
+        let shape = Shape {
+            frame: l.frame,
+            valid: l.valid,
+            lut_origin: l.lut_origin,
+            lut_cell: l.lut_cell,
+            lut_size: l.lut_size,
+            interval: l.interval,
+        };
+        Ok(shape.operator(tables, l.device_bytes(), Some(l.contrast)))
     }
 
     /// Seconds the device takes to decode a `width x height` window of the whole unit square

@@ -346,7 +346,8 @@ fn dyadic_grids_and_points_on_cell_boundaries_agree_with_the_cpu() {
     ];
     for (name, asset, n) in &assets {
         let op = &asset.planes[0].operator;
-        let dev = gpu.upload(&op.pieces()).unwrap();
+        // As the server uploads: the projected codec as a lattice built directly.
+        let dev = gpu.upload_flat(&op.flat()).unwrap();
         let (w, h) = (asset.meta.width as usize, asset.meta.height as usize);
         for (label, rect, (gw, gh)) in [
             ("1x", [0.0f32, 0.0, 1.0, 1.0], (w, h)),

@@ -348,6 +348,15 @@ impl crate::core::pieces::Flatten for PlaneOperator {
             PlaneOperator::Projected(f) => f.pieces(),
         }
     }
+
+    fn flat(&self) -> crate::core::pieces::Flat {
+        match self {
+            PlaneOperator::Quadtree(q) => q.flat(),
+            PlaneOperator::Fis(f) => f.flat(),
+            PlaneOperator::Psa(f) => f.flat(),
+            PlaneOperator::Projected(f) => f.flat(),
+        }
+    }
 }
 
 impl Operator<2> for PlaneOperator {

@@ -727,35 +727,69 @@ impl Operator<2> for ProjectedOperator {
 }
 
 impl crate::core::pieces::Flatten for ProjectedOperator {
-    /// Four pieces per cell, one per quarter (320 bytes a sample: only the GPU path flattens).
+    /// Four pieces per cell, one per quarter (336 bytes a sample as a table; the GPU takes the
+    /// lattice of `flat`, 64).
     fn pieces(&self) -> crate::core::pieces::PieceTable {
-        use crate::core::pieces::{Piece, PieceTable, bilinear};
+        use crate::core::pieces::{Piece, PieceTable};
+        let q = self.quarters();
+        let pieces = (0..q.offsets.len())
+            .map(|k| {
+                let (a, b) = (k % q.columns.len(), k / q.columns.len());
+                Piece {
+                    origin: [0.5 + 0.5 * a as f32, 0.5 + 0.5 * b as f32],
+                    inv_size: [2.0, 2.0],
+                    g: q.offsets[k],
+                    s: q.contrast,
+                    next_x: q.columns[a],
+                    next_y: q.rows[b],
+                }
+            })
+            .collect::<Vec<_>>();
+        PieceTable {
+            frame: q.frame,
+            valid: q.valid,
+            lut_origin: q.lut_origin,
+            lut_cell: q.lut_cell,
+            lut_size: q.lut_size,
+            lut: (0..pieces.len() as u32).collect(),
+            pieces,
+            interval: q.interval,
+        }
+    }
+
+    /// The quarter cells as a lattice, built directly.
+    fn flat(&self) -> crate::core::pieces::Flat {
+        crate::core::pieces::Flat::Lattice(self.quarters())
+    }
+}
+
+impl ProjectedOperator {
+    /// The quarter cells (a lattice on the half-sample grid from the first sample centre): a
+    /// quarter's offset is the bilinear function through its corners' values; its map doubles
+    /// it about the centre of its block.
+    fn quarters(&self) -> crate::core::pieces::Lattice {
+        use crate::core::pieces::bilinear;
         let [nx, ny] = self.size;
         let (lx, ly) = (2 * (nx - 1), 2 * (ny - 1));
-        let mut pieces = Vec::with_capacity(lx * ly);
-        for b in 0..ly {
-            for a in 0..lx {
-                let (i, j, qa, qb) = (a / 2, b / 2, a % 2, b % 2);
-                let (cx, cy) = (block(i, nx) as f32, block(j, ny) as f32);
-                let (x0, y0) = (0.5 * a as f32, 0.5 * b as f32);
-                pieces.push(Piece {
-                    origin: [0.5 + x0, 0.5 + y0],
-                    inv_size: [2.0, 2.0],
-                    g: bilinear(self.quarter(i, j, qa, qb)),
-                    s: [self.rho, 0.0, 0.0, 0.0],
-                    next_x: [2.0 * x0 - cx + 0.5, 1.0, 0.0, 0.0],
-                    next_y: [2.0 * y0 - cy + 0.5, 0.0, 1.0, 0.0],
-                });
-            }
-        }
-        PieceTable {
+        let map = |a: usize, n: usize| {
+            let x0 = 0.5 * a as f32;
+            2.0 * x0 - block(a / 2, n) as f32 + 0.5
+        };
+        crate::core::pieces::Lattice {
             frame: self.frame(),
             valid: self.valid,
             lut_origin: [0.5; 2],
             lut_cell: [0.5; 2],
             lut_size: [lx as u32, ly as u32],
-            lut: (0..pieces.len() as u32).collect(),
-            pieces,
+            contrast: [self.rho, 0.0, 0.0, 0.0],
+            offsets: (0..lx * ly)
+                .map(|k| {
+                    let (a, b) = (k % lx, k / lx);
+                    bilinear(self.quarter(a / 2, b / 2, a % 2, b % 2))
+                })
+                .collect(),
+            columns: (0..lx).map(|a| [map(a, nx), 1.0, 0.0, 0.0]).collect(),
+            rows: (0..ly).map(|b| [map(b, ny), 0.0, 1.0, 0.0]).collect(),
             interval: self.interval,
         }
     }
@@ -901,6 +935,26 @@ mod tests {
             }
             // The GPU's flattening steps as `step` does, seeded by a constant.
             crate::core::pieces::tests::agree(&Stepwise(&op), "projected");
+            // And goes to a device as a lattice: the quarter cells' offsets (16 bytes each
+            // against a piece's 80 and its lookup entry's 4), a map a column and a row.
+            let table = crate::core::pieces::Flatten::pieces(&op);
+            let lattice = table.lattice().expect("the quarter cells are a lattice");
+            // Built directly, the same lattice.
+            assert_eq!(
+                crate::core::pieces::Flatten::flat(&op),
+                crate::core::pieces::Flat::Lattice(lattice.clone())
+            );
+            let [lx, ly] = table.lut_size.map(|n| n as usize);
+            assert_eq!(
+                (
+                    lattice.offsets.len(),
+                    lattice.columns.len(),
+                    lattice.rows.len()
+                ),
+                (lx * ly, lx, ly)
+            );
+            assert_eq!(table.device_bytes(), 84 * lx * ly);
+            assert_eq!(lattice.device_bytes(), 16 * (lx * ly + lx + ly));
             // Chains that end on the bilinear interpolant against chains from a constant seed:
             // within the sum of their bounds, with the tolerance reached in fewer steps.
             let probe: Vec<[f32; 2]> = (0..997)
