@@ -56,10 +56,7 @@ struct Params {
 @group(0) @binding(2) var<storage, read> pieces: array<vec4<f32>>;
 // Mode 0: x0, y0, x1, y1, ...; mode 2: the width unit xs, then the height unit ys.
 @group(0) @binding(3) var<storage, read> points: array<f32>;
-@group(0) @binding(4) var<storage, read_write> results: array<vec4<f32>>;
-// Values-only dispatches: the values, and the largest bound's bits and step count.
-@group(0) @binding(5) var<storage, read_write> values: array<f32>;
-@group(0) @binding(6) var<storage, read_write> summary: array<atomic<u32>>;
+// Bindings 4 to 6, the outputs, and the entry point `main`: shaders/entry.wgsl.
 
 const SPLIT: u32 = 0x80000000u;
 
@@ -157,45 +154,4 @@ fn decode(k: u32) -> vec4<f32> {
         p = vec2<f32>(nx.x + nx.y * u + nx.z * v, ny.x + ny.y * u + ny.z * v);
     }
     return vec4<f32>(acc_g + acc_s * params.seed, abs(acc_s) * params.half, f32(taken), 1.0);
-}
-
-// The largest bound and step count of a workgroup's points (values-only dispatches), before
-// one invocation folds them into `summary`: one global atomic a workgroup, not one a point.
-var<workgroup> group_bound: atomic<u32>;
-var<workgroup> group_taken: atomic<u32>;
-
-@compute @workgroup_size(256)
-fn main(
-    @builtin(global_invocation_id) id: vec3<u32>,
-    @builtin(local_invocation_index) lane: u32,
-) {
-    let idx = id.x + id.y * params.row;
-    let live = idx < params.count;
-    var r = vec4<f32>(0.0);
-    if (live) {
-        r = decode(params.first + idx);
-    }
-    if (params.values_only == 0u) {
-        if (live) {
-            results[idx] = r;
-        }
-        return;
-    }
-    // Values alone (4 bytes a point to read back) and the bounds reduced here: a bound is a
-    // non-negative float, whose bits order as unsigned integers do.
-    if (lane == 0u) {
-        atomicStore(&group_bound, 0u);
-        atomicStore(&group_taken, 0u);
-    }
-    workgroupBarrier();
-    if (live) {
-        values[idx] = r.x;
-        atomicMax(&group_bound, bitcast<u32>(r.y));
-        atomicMax(&group_taken, u32(r.z));
-    }
-    workgroupBarrier();
-    if (lane == 0u) {
-        atomicMax(&summary[0], atomicLoad(&group_bound));
-        atomicMax(&summary[1], atomicLoad(&group_taken));
-    }
 }

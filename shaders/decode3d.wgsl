@@ -26,6 +26,11 @@ struct Params {
     // The fixed-point step of positions and its inverse (codec::core::decode::to_frame).
     quantum: f32,
     inv_quantum: f32,
+    // 1: write `values` and `summary` instead of `results` (as in decode2d.wgsl).
+    values_only: u32,
+    _pad0: u32,
+    _pad1: u32,
+    _pad2: u32,
 };
 
 @group(0) @binding(0) var<uniform> params: Params;
@@ -33,7 +38,7 @@ struct Params {
 // Three vec4 per range: (c.xyz, contrast), (coef.xyz, offset), (perm.xyz as u32 bits, 0).
 @group(0) @binding(2) var<storage, read> cells: array<vec4<f32>>;
 @group(0) @binding(3) var<storage, read> points: array<f32>;
-@group(0) @binding(4) var<storage, read_write> results: array<vec4<f32>>;
+// Bindings 4 to 6, the outputs, and the entry point `main`: shaders/entry.wgsl.
 
 fn unit_point(k: u32) -> vec3<f32> {
     if (params.mode == 0u) {
@@ -45,13 +50,9 @@ fn unit_point(k: u32) -> vec3<f32> {
     return vec3<f32>(points[i], points[params.nx + j], points[params.nx + params.ny + l]);
 }
 
-@compute @workgroup_size(256)
-fn main(@builtin(global_invocation_id) id: vec3<u32>) {
-    let idx = id.x + id.y * params.row;
-    if (idx >= params.count) {
-        return;
-    }
-    let unit = clamp(unit_point(params.first + idx), vec3<f32>(0.0), vec3<f32>(1.0));
+// Value, bound, steps taken and 1 for point k of the dispatch's list or box.
+fn decode(k: u32) -> vec4<f32> {
+    let unit = clamp(unit_point(k), vec3<f32>(0.0), vec3<f32>(1.0));
     var p = floor(unit * params.valid * params.inv_quantum + vec3<f32>(0.5)) * params.quantum;
     var acc_g = 0.0;
     var acc_s = 1.0;
@@ -77,5 +78,5 @@ fn main(@builtin(global_invocation_id) id: vec3<u32>) {
             b.z * p[perm.z] + a.z,
         );
     }
-    results[idx] = vec4<f32>(acc_g + acc_s * params.seed, abs(acc_s) * params.half, f32(taken), 1.0);
+    return vec4<f32>(acc_g + acc_s * params.seed, abs(acc_s) * params.half, f32(taken), 1.0);
 }

@@ -176,11 +176,10 @@ pub(crate) fn run_mesh(a: MeshArgs) -> Result<()> {
     };
     let on_gpu = |lo, hi, dims: [usize; 3], n, t| {
         let (g, op) = device.as_ref()?;
-        let v = g
-            .volume_grid(op, lo, hi, dims.map(|d| d as u32), n, t)
+        let g = g
+            .volume_grid_values(op, lo, hi, dims.map(|d| d as u32), n, t)
             .ok()?;
-        let bound = v.iter().fold(0.0f32, |m, p| m.max(p.error_bound));
-        Some((v.into_iter().map(|p| p.value).collect(), bound))
+        Some((g.values, g.error_bound))
     };
     let (mesh, bound) =
         asset.volume_mesh_with(a.bbox, resolution, a.iterations, 0.0, Some(&on_gpu))?;

@@ -1,7 +1,8 @@
 //! GPU against CPU continuous decoding: points per second for a 4096 x 4096 window and for 1M
 //! random points, 10 iterations, on the camera asset (quadtree, 0.48 bpp). The CPU uses every
 //! core (rayon over batches of `decode::points`). `cargo bench -p fractile-gpu --bench gpu`
-//! (`-- host`: only the host's cost of small dispatches, the tiles' case).
+//! (`-- host`: only the host's cost of small dispatches, the tiles' case; `-- volume`: only the
+//! 3D box).
 //! On Mesa's lavapipe (no GPU) the GPU figures are a software rasteriser's; real ones come from
 //! a machine with a GPU.
 
@@ -25,6 +26,13 @@ fn main() {
     let op = &asset.planes[0].operator;
     let n = 10;
     // `-- host`: the small dispatches alone (the rest takes minutes on a software adapter).
+    // `-- volume`: the 3D box alone.
+    if std::env::args().any(|a| a == "volume") {
+        println!("| work | backend | seconds | points/s | ratio to CPU |");
+        println!("|---|---|---|---|---|");
+        volume_box(&Gpu::new(), n);
+        return;
+    }
     if std::env::args().any(|a| a == "host") {
         let g = Gpu::new().expect("a GPU adapter");
         eprintln!("adapter: {}", g.adapter());
@@ -170,7 +178,12 @@ fn main() {
         let dev = g.upload(&op.pieces()).expect("upload");
         host_cost(g, &dev, n);
     }
-    // 3D: a 256^3 box of a volume (IFS3D), continuous decoding at 10 steps.
+    volume_box(&gpu, n);
+}
+
+/// 3D: a 256^3 box of a volume (IFS3D), continuous decoding at `n` steps, on the CPU and the
+/// GPU (each point's bound read back, and the values alone).
+fn volume_box(gpu: &Result<Gpu, fractile_gpu::GpuError>, n: u32) {
     let shared = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../../shared/data/mesh/bunny.off");
     let local = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata/mesh/fandisk.off");
     let path = if shared.exists() { shared } else { local };
@@ -206,9 +219,22 @@ fn main() {
             .expect("gpu");
         let tg = t.elapsed().as_secs_f64();
         println!(
-            "| {label} | GPU: {} | {tg:.3} | {:.3e} | {:.2} |",
+            "| {label} | GPU: {}, each point's bound read back | {tg:.3} | {:.3e} | {:.2} |",
             g.adapter(),
             got.len() as f64 / tg,
+            tc / tg
+        );
+        // What a mesh asks for: the values, one bound (4 bytes a point read back).
+        let _ = g.volume_grid_values(&dev, [0.0; 3], [1.0; 3], dims.map(|d| d as u32), n, 0.0);
+        let t = Instant::now();
+        let got = g
+            .volume_grid_values(&dev, [0.0; 3], [1.0; 3], dims.map(|d| d as u32), n, 0.0)
+            .expect("gpu");
+        let tg = t.elapsed().as_secs_f64();
+        println!(
+            "| {label} | GPU: {}, values alone | {tg:.3} | {:.3e} | {:.2} |",
+            g.adapter(),
+            got.values.len() as f64 / tg,
             tc / tg
         );
     }

@@ -22,11 +22,18 @@ use wgpu::util::DeviceExt;
 
 mod batch;
 
-/// The 2D kernel's source.
-pub const SHADER: &str = include_str!("../../shaders/decode2d.wgsl");
+/// The 2D kernel's source, with the entry point both kernels share (`shaders/entry.wgsl`:
+/// the outputs, the values-only reduction).
+pub const SHADER: &str = concat!(
+    include_str!("../../shaders/decode2d.wgsl"),
+    include_str!("../../shaders/entry.wgsl")
+);
 
-/// The 3D kernel's source.
-pub const SHADER_3D: &str = include_str!("../../shaders/decode3d.wgsl");
+/// The 3D kernel's source, with the shared entry point.
+pub const SHADER_3D: &str = concat!(
+    include_str!("../../shaders/decode3d.wgsl"),
+    include_str!("../../shaders/entry.wgsl")
+);
 
 /// Most points in one dispatch (16 bytes of result each: 64 MiB).
 pub const CHUNK: usize = 1 << 22;
@@ -85,7 +92,7 @@ struct Params {
     contrast: [f32; 4],
 }
 
-/// Uniforms of a 3D dispatch; the layout of `Params` in `decode3d.wgsl` (96 bytes).
+/// Uniforms of a 3D dispatch; the layout of `Params` in `decode3d.wgsl` (80 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 struct Params3 {
@@ -104,6 +111,9 @@ struct Params3 {
     /// The fixed-point step of positions and its inverse, as in 2D.
     quantum: f32,
     inv_quantum: f32,
+    /// 1: values and a reduced bound ([`Gpu::volume_grid_values`]).
+    values_only: u32,
+    pad: [u32; 3],
 }
 
 /// What a 2D operator's uniforms take from its tables, whichever form they have.
@@ -279,6 +289,26 @@ pub struct GridValues {
     pub iterations: u32,
 }
 
+impl GridValues {
+    /// Adds a values-only chunk: its values after the others, its bound and steps into the
+    /// largest. A NaN bound (a chain whose contrast product is NaN) wins, as it would per
+    /// point.
+    fn absorb(&mut self, r: Readback<'_>) {
+        if let Readback::Values(v, bound, taken) = r {
+            // One copy of each chunk, from the mapped buffer into its place in the output, on
+            // every core: a single-threaded copy into fresh memory (its page faults included)
+            // was most of a 4096 x 4096 window's time on an H100 (56 ms against 1 ms of kernel).
+            append_parallel(&mut self.values, v);
+            self.error_bound = if bound.is_nan() {
+                bound
+            } else {
+                self.error_bound.max(bound)
+            };
+            self.iterations = self.iterations.max(taken);
+        }
+    }
+}
+
 /// An operator resident on the device (2D pieces, or a 3D octree when `volume` is set). A
 /// clone names the same device buffers.
 #[derive(Clone)]
@@ -394,7 +424,7 @@ impl Gpu {
             compilation_options: Default::default(),
             cache: None,
         });
-        // The 3D kernel binds the first five of the same buffers: one layout for both.
+        // The 3D kernel binds the same buffers: one layout for both.
         let pipeline3 = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("decode3d"),
             layout: Some(&pipeline_layout),
@@ -614,7 +644,8 @@ impl Gpu {
 
     /// Continuous decoding of a box `[lo, hi]` of the unit cube at `dims` samples per axis,
     /// corners included (x fastest), like `decode::volume_window`: the device makes the points
-    /// from the CPU's axes (`decode::volume_axes`), so both decode the same points.
+    /// from the CPU's axes (`decode::volume_axes`), so both decode the same points. Each
+    /// point with its bound and steps (16 bytes a point read back).
     pub fn volume_grid(
         &self,
         op: &GpuOperator,
@@ -624,6 +655,52 @@ impl Gpu {
         iterations: u32,
         tolerance: f32,
     ) -> Result<Vec<PointValue>, GpuError> {
+        let mut out = Vec::new();
+        self.volume_box(
+            op,
+            (lo, hi, dims),
+            (iterations, tolerance),
+            Read::Points,
+            &mut |r| {
+                if let Readback::Points(v) = r {
+                    out.extend(v);
+                }
+            },
+        )?;
+        Ok(out)
+    }
+
+    /// [`Gpu::volume_grid`]'s values alone, the bounds and steps reduced on the device to their
+    /// largest (4 bytes a point read back): what a mesh needs.
+    pub fn volume_grid_values(
+        &self,
+        op: &GpuOperator,
+        lo: [f32; 3],
+        hi: [f32; 3],
+        dims: [u32; 3],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Result<GridValues, GpuError> {
+        let mut out = GridValues::default();
+        self.volume_box(
+            op,
+            (lo, hi, dims),
+            (iterations, tolerance),
+            Read::Values,
+            &mut |r| out.absorb(r),
+        )?;
+        Ok(out)
+    }
+
+    /// The chunked dispatches of a box, each read back (as `read` says) into `sink`.
+    fn volume_box(
+        &self,
+        op: &GpuOperator,
+        (lo, hi, dims): ([f32; 3], [f32; 3], [u32; 3]),
+        (iterations, tolerance): (u32, f32),
+        read: Read,
+        sink: &mut dyn FnMut(Readback<'_>),
+    ) -> Result<(), GpuError> {
         let base = op
             .volume
             .ok_or_else(|| GpuError::Device("not a volume operator".into()))?;
@@ -632,10 +709,7 @@ impl Gpu {
         // `axes[nx + ny + k]`.
         let axes: Vec<f32> = axes.concat();
         let total = dims.iter().map(|&d| d as usize).product::<usize>();
-        let mut out = Vec::with_capacity(total);
-        let mut first = 0usize;
-        while first < total {
-            let count = (total - first).min(self.chunk);
+        let mut submit = |count: usize, first: usize| {
             let params = Params3 {
                 count: count as u32,
                 first: first as u32,
@@ -643,18 +717,19 @@ impl Gpu {
                 tolerance,
                 mode: 1,
                 dims,
+                values_only: u32::from(read == Read::Values),
                 ..base
             };
-            out.extend(self.dispatch_with(
-                &self.pipeline3,
+            self.submit(Dispatch {
+                pipeline: &self.pipeline3,
                 op,
                 count,
-                &|row| bytemuck::bytes_of(&Params3 { row, ..params }).to_vec(),
-                bytemuck::cast_slice(&axes),
-            )?);
-            first += count;
-        }
-        Ok(out)
+                uniform: &|row| bytemuck::bytes_of(&Params3 { row, ..params }).to_vec(),
+                points: bytemuck::cast_slice(&axes),
+                read,
+            })
+        };
+        self.pipelined(total, &mut submit, sink)
     }
 
     /// Continuous decoding of points in unit coordinates (normalised values), like
@@ -724,21 +799,9 @@ impl Gpu {
             return self.grid_values_in_round(op, params, axes);
         }
         let mut out = GridValues::default();
-        // One copy of each chunk, from the mapped buffer into its place in the output, on
-        // every core: a single-threaded copy into fresh memory (its page faults included) was
-        // most of a 4096 x 4096 window's time on an H100 (56 ms against 1 ms of kernel).
         out.values.reserve_exact(total);
         self.grid_dispatches(op, &grid, iterations, tolerance, true, &mut |r| {
-            if let Readback::Values(v, bound, taken) = r {
-                append_parallel(&mut out.values, v);
-                // NaN (a chain whose contrast product is NaN) wins, as it would per point.
-                out.error_bound = if bound.is_nan() {
-                    bound
-                } else {
-                    out.error_bound.max(bound)
-                };
-                out.iterations = out.iterations.max(taken);
-            }
+            out.absorb(r)
         })?;
         Ok(out)
     }
@@ -755,10 +818,12 @@ impl Gpu {
     ) -> Result<(), GpuError> {
         let (width, height, axes) = grid_axes(grid);
         let total = width as usize * height as usize;
-        let mut first = 0usize;
-        let mut pending = None;
-        while first < total {
-            let count = (total - first).min(self.chunk);
+        let read = if values_only {
+            Read::Values
+        } else {
+            Read::Points
+        };
+        let mut submit = |count: usize, first: usize| {
             let params = grid_params(
                 op,
                 (count, first, width),
@@ -766,21 +831,31 @@ impl Gpu {
                 tolerance,
                 values_only,
             );
-            let read = if values_only {
-                Read::Values
-            } else {
-                Read::Points
-            };
-            // The next chunk is submitted before this one is read: the device computes it
-            // while the host copies the last one out.
-            let next = self.submit(Dispatch {
+            self.submit(Dispatch {
                 pipeline: &self.pipeline,
                 op,
                 count,
                 uniform: &|row| bytemuck::bytes_of(&Params { row, ..params }).to_vec(),
                 points: bytemuck::cast_slice(&axes),
                 read,
-            })?;
+            })
+        };
+        self.pipelined(total, &mut submit, sink)
+    }
+
+    /// `total` points in chunks, each submitted (`submit(count, first)`) before the last one is
+    /// read into `sink`: the device computes a chunk while the host copies the last one out.
+    fn pipelined(
+        &self,
+        total: usize,
+        submit: &mut dyn FnMut(usize, usize) -> Result<Option<Pending>, GpuError>,
+        sink: &mut dyn FnMut(Readback<'_>),
+    ) -> Result<(), GpuError> {
+        let mut first = 0usize;
+        let mut pending = None;
+        while first < total {
+            let count = (total - first).min(self.chunk);
+            let next = submit(count, first)?;
             if let Some(done) = std::mem::replace(&mut pending, next) {
                 self.finish(done, sink)?;
             }

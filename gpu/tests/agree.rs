@@ -458,6 +458,31 @@ fn volume_points_and_boxes_agree_with_the_cpu() {
             .fold(0.0f32, f32::max);
         assert!(worst <= 1e-4, "{file} box: worst {worst}");
         assert!(got.iter().all(|g| g.error_bound <= bound + 1e-6));
+        // The values alone, the bounds and steps reduced on the device: the full read-back's,
+        // bit for bit (five chunks).
+        for tolerance in [0.0, 1e-3] {
+            let dims = dims.map(|d| d as u32);
+            let full = gpu.volume_grid(&dev, lo, hi, dims, 12, tolerance).unwrap();
+            let reduced = gpu
+                .volume_grid_values(&dev, lo, hi, dims, 12, tolerance)
+                .unwrap();
+            assert_eq!(reduced.values.len(), full.len());
+            assert!(
+                reduced
+                    .values
+                    .iter()
+                    .zip(&full)
+                    .all(|(v, p)| v.to_bits() == p.value.to_bits()),
+                "{file} tol={tolerance}: values-only box"
+            );
+            let largest = full.iter().fold(0.0f32, |m, p| m.max(p.error_bound));
+            let most = full.iter().map(|p| p.iterations).max().unwrap();
+            assert_eq!(
+                (reduced.error_bound.to_bits(), reduced.iterations),
+                (largest.to_bits(), most),
+                "{file} tol={tolerance}: the reduced bound and steps"
+            );
+        }
         volume_lattices_agree(&gpu, file, op, &dev, grid);
     }
 }

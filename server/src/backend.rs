@@ -156,14 +156,13 @@ impl GpuBackend {
         let volume = a.asset.volume.as_ref()?;
         let op = self.resident(a, usize::MAX, || self.gpu.upload_volume(&volume.operator))?;
         let dims = dims.map(|d| d as u32);
+        // A mesh needs the values and one bound: the device reduces the bounds and sends the
+        // values alone.
         match self
             .gpu
-            .volume_grid(&op, lo, hi, dims, iterations, tolerance)
+            .volume_grid_values(&op, lo, hi, dims, iterations, tolerance)
         {
-            Ok(v) => {
-                let bound = v.iter().fold(0.0f32, |m, p| m.max(p.error_bound));
-                Some((v.into_iter().map(|p| p.value).collect(), bound))
-            }
+            Ok(g) => Some((g.values, g.error_bound)),
             Err(e) => {
                 tracing::warn!("GPU decode of {} failed, decoding on the CPU: {e}", a.id);
                 None
