@@ -43,13 +43,17 @@ struct Params {
     values_only: u32,
     // 1 / lut_cell: a product is exact for power-of-two cells; a WGSL division need not be.
     inv_lut_cell: vec2<f32>,
-    // 1: the tables are a lattice (codec::core::pieces::Lattice): `pieces` holds each cell's
-    // offset, `lut` the maps of the columns then of the rows (vec4 as u32 bits), `contrast`
-    // the one contrast.
-    lattice: u32,
-    _pad: u32,
+    _pad1: u32,
+    _pad2: u32,
+    // A lattice's one contrast.
     contrast: vec4<f32>,
 };
+
+// The tables are a lattice (codec::core::pieces::Lattice): `pieces` holds each cell's offset,
+// `lut` the maps of the columns then of the rows (vec4 as u32 bits), `contrast` the one
+// contrast. A pipeline constant, not a uniform: each pipeline then has its own loop (a branch
+// on a uniform cost 40% of the kernel's time on lavapipe).
+override LATTICE: bool = false;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> lut: array<u32>;
@@ -60,51 +64,8 @@ struct Params {
 
 const SPLIT: u32 = 0x80000000u;
 
-// The maps and coefficients at frame point p: local (u, v), offset g, contrast s, phi's x and
-// y rows.
-struct At {
-    uv: vec2<f32>,
-    g: vec4<f32>,
-    s: vec4<f32>,
-    nx: vec4<f32>,
-    ny: vec4<f32>,
-};
-
 fn lut_vec4(k: u32) -> vec4<f32> {
     return bitcast<vec4<f32>>(vec4<u32>(lut[4u * k], lut[4u * k + 1u], lut[4u * k + 2u], lut[4u * k + 3u]));
-}
-
-// PieceTable::step's lookups (Lattice::step's for a lattice).
-fn piece_at(p: vec2<f32>) -> At {
-    let cf = floor((p - params.lut_origin) * params.inv_lut_cell);
-    let cx = min(u32(max(cf.x, 0.0)), params.lut_size.x - 1u);
-    let cy = min(u32(max(cf.y, 0.0)), params.lut_size.y - 1u);
-    if (params.lattice != 0u) {
-        // The cell's origin: exact, the cell being a power of two.
-        let origin = params.lut_origin + vec2<f32>(f32(cx), f32(cy)) * params.lut_cell;
-        let uv = clamp((p - origin) * params.inv_lut_cell, vec2<f32>(0.0), vec2<f32>(1.0));
-        return At(
-            uv,
-            pieces[cy * params.lut_size.x + cx],
-            params.contrast,
-            lut_vec4(cx),
-            lut_vec4(params.lut_size.x + cy),
-        );
-    }
-    let entry = lut[cy * params.lut_size.x + cx];
-    var piece = entry & 0x7fffffffu;
-    let head = pieces[piece * 5u];
-    let uv = clamp((p - head.xy) * head.zw, vec2<f32>(0.0), vec2<f32>(1.0));
-    if ((entry & SPLIT) != 0u && uv.x + uv.y > 1.0) {
-        piece = piece + 1u;
-    }
-    return At(
-        uv,
-        pieces[piece * 5u + 1u],
-        pieces[piece * 5u + 2u],
-        pieces[piece * 5u + 3u],
-        pieces[piece * 5u + 4u],
-    );
 }
 
 fn unit_point(k: u32) -> vec2<f32> {
@@ -139,13 +100,38 @@ fn decode(k: u32) -> vec4<f32> {
         if (acc_s == 0.0 || abs(acc_s) * params.half <= params.tolerance) {
             break;
         }
-        let at = piece_at(p);
-        let g = at.g;
-        let s = at.s;
-        let nx = at.nx;
-        let ny = at.ny;
-        let u = at.uv.x;
-        let v = at.uv.y;
+        // PieceTable::step's lookups (Lattice::step's for a lattice).
+        let cf = floor((p - params.lut_origin) * params.inv_lut_cell);
+        let cx = min(u32(max(cf.x, 0.0)), params.lut_size.x - 1u);
+        let cy = min(u32(max(cf.y, 0.0)), params.lut_size.y - 1u);
+        var uv: vec2<f32>;
+        var g: vec4<f32>;
+        var s: vec4<f32>;
+        var nx: vec4<f32>;
+        var ny: vec4<f32>;
+        if (LATTICE) {
+            // The cell's origin: exact, the cell being a power of two.
+            let origin = params.lut_origin + vec2<f32>(f32(cx), f32(cy)) * params.lut_cell;
+            uv = clamp((p - origin) * params.inv_lut_cell, vec2<f32>(0.0), vec2<f32>(1.0));
+            g = pieces[cy * params.lut_size.x + cx];
+            s = params.contrast;
+            nx = lut_vec4(cx);
+            ny = lut_vec4(params.lut_size.x + cy);
+        } else {
+            let entry = lut[cy * params.lut_size.x + cx];
+            var piece = entry & 0x7fffffffu;
+            let head = pieces[piece * 5u];
+            uv = clamp((p - head.xy) * head.zw, vec2<f32>(0.0), vec2<f32>(1.0));
+            if ((entry & SPLIT) != 0u && uv.x + uv.y > 1.0) {
+                piece = piece + 1u;
+            }
+            g = pieces[piece * 5u + 1u];
+            s = pieces[piece * 5u + 2u];
+            nx = pieces[piece * 5u + 3u];
+            ny = pieces[piece * 5u + 4u];
+        }
+        let u = uv.x;
+        let v = uv.y;
         let offset = g.x + g.y * u + g.z * v + g.w * u * v;
         let contrast = s.x + s.y * u + s.z * v + s.w * u * v;
         acc_g = acc_g + acc_s * offset;

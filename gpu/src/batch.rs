@@ -180,7 +180,7 @@ impl Gpu {
                 self.record(
                     &mut encoder,
                     Dispatch {
-                        pipeline: &self.pipeline,
+                        pipeline: self.kernel2d(&it.op),
                         op: &it.op,
                         count: it.params.count as usize,
                         uniform: &|row| bytemuck::bytes_of(&Params { row, ..it.params }).to_vec(),
