@@ -286,19 +286,14 @@ pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
         MethodArg::Continuous => Method::Continuous,
     };
     // The GPU runs continuous decoding: asked for, or (auto) a continuous-capable request of a
-    // million pixels or more, where the transfer pays for itself.
-    // Chunked assets decode on the CPU, chunk by chunk (the kernels take one operator).
-    if asset.chunks.is_some() && a.backend == BackendArg::Gpu {
-        bail!("a chunked asset decodes on the CPU: use --backend cpu or auto");
-    }
-    let gpu = match asset.chunks {
-        Some(_) => None,
-        None => gpu_for(
-            a.backend,
-            method != Method::Discrete && width * height >= 1 << 20,
-        )?,
-    };
-    let (decoded, used, backend) = if let Some(g) = &gpu {
+    // million pixels or more, where the transfer pays for itself. A chunked asset's pixels
+    // are always continuous (see `Asset::window`).
+    let continuous = method != Method::Discrete || asset.chunks.is_some();
+    let gpu = gpu_for(a.backend, continuous && width * height >= 1 << 20)?;
+    let (decoded, used, backend) = if let (Some(g), Some(_)) = (&gpu, &asset.chunks) {
+        let d = chunks_on(g, &asset, window, (width, height), (a.iterations, method))?;
+        (d, Method::Continuous, g.adapter())
+    } else if let Some(g) = &gpu {
         // As many steps as the CPU's continuous window takes by default.
         let n = a.iterations.unwrap_or(12);
         let mut planes = Vec::new();
@@ -337,6 +332,39 @@ pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
         a.output.display()
     );
     Ok(())
+}
+
+/// A chunked asset's window with each chunk's chains decoded on `gpu`: a window visits each
+/// chunk's planes once, so each operator is uploaded when its chains arrive and dropped after.
+/// The first device error fails the decode rather than leave the rest to the CPU unasked.
+fn chunks_on(
+    gpu: &fractile_gpu::Gpu,
+    asset: &Asset,
+    window: [f32; 4],
+    (width, height): (usize, usize),
+    steps: (Option<u32>, Method),
+) -> Result<fractile_codec::extract::Decoded> {
+    let failed = std::sync::Mutex::new(None);
+    let hook = |p: fractile_codec::extract::PlaneRef<'_>,
+                sites: fractile_codec::extract::Sites<'_>,
+                n,
+                t| {
+        let answer = gpu
+            .upload_flat(&fractile_codec::core::pieces::Flatten::flat(p.operator))
+            .and_then(|op| gpu.answer(&op, sites, n, t));
+        match answer {
+            Ok(a) => Some(a),
+            Err(e) => {
+                failed.lock().unwrap().get_or_insert(e);
+                None
+            }
+        }
+    };
+    let (d, _) = asset.window_with(window, width, height, steps, &hook);
+    match failed.into_inner().unwrap() {
+        Some(e) => Err(e.into()),
+        None => Ok(d),
+    }
 }
 
 pub(crate) fn write_decoded(

@@ -175,7 +175,10 @@ fn a_corrupt_chunk_is_refused_by_name_and_the_other_chunks_still_answer() {
     let mut bytes = enc.bytes.clone();
     bytes[(last.offset + last.length / 2) as usize] ^= 0x40;
     let asset = Asset::read(&file_of(&Encoded { bytes, ..enc }, "corrupt.fra")).unwrap();
-    let hook = |_, _: fractile_codec::extract::Sites<'_>, _, _| None;
+    let hook = |_: fractile_codec::extract::PlaneRef<'_>,
+                _: fractile_codec::extract::Sites<'_>,
+                _,
+                _| None;
     let first = asset
         .try_points_with(&[[0.01, 0.01]], 20, 0.0, &hook)
         .unwrap();

@@ -18,6 +18,7 @@ use fractile_codec::codecs::ifs3d::octree::OctreeOperator;
 use fractile_codec::core::decode::PointValue;
 use fractile_codec::core::operator::Operator;
 use fractile_codec::core::pieces::{Flat, Lattice, PieceTable};
+use fractile_codec::extract::{Answer, Sites};
 use wgpu::util::DeviceExt;
 
 mod batch;
@@ -826,6 +827,33 @@ impl Gpu {
             out.absorb(r)
         })?;
         Ok(out)
+    }
+
+    /// The answer to a codec's continuous hook (`fractile_codec::extract::ContinuousHook`):
+    /// a list of points with a value, bound and step count each, a separable grid (a tile, a
+    /// region) with its values alone and their largest bound and step count.
+    pub fn answer(
+        &self,
+        op: &GpuOperator,
+        sites: Sites<'_>,
+        iterations: u32,
+        tolerance: f32,
+    ) -> Result<Answer, GpuError> {
+        Ok(match sites {
+            Sites::List(points) => Answer::Points(self.points(op, points, iterations, tolerance)?),
+            Sites::Grid { xs, ys } => {
+                let grid = Grid::Separable {
+                    xs: xs.to_vec(),
+                    ys: ys.to_vec(),
+                };
+                let g = self.grid_values(op, grid, iterations, tolerance)?;
+                Answer::Values {
+                    values: g.values,
+                    error_bound: g.error_bound,
+                    iterations: g.iterations,
+                }
+            }
+        })
     }
 
     /// The dispatches of a grid, in chunks, each read back into `sink`.

@@ -22,7 +22,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
 use fractile_codec::core::pieces::Flatten;
-use fractile_codec::extract::{Answer, Sites};
+use fractile_codec::extract::{Answer, PlaneRef, Sites};
 use fractile_gpu::{Gpu, GpuOperator};
 
 use crate::store::StoredAsset;
@@ -38,8 +38,9 @@ pub use fractile_proto::query::Backend;
 /// at the time may pass later.
 pub const REFUSAL_TTL: Duration = Duration::from_secs(600);
 
-/// An operator's key: asset id, its hash, the plane (`usize::MAX`: the volume).
-type Key = (String, u32, usize);
+/// An operator's key: asset id, its hash, the chunk (chunked assets: level and index), the
+/// plane (`usize::MAX`: the volume).
+type Key = (String, u32, Option<(usize, usize)>, usize);
 
 /// The server's GPU: the device and its resident operators.
 pub struct GpuBackend {
@@ -93,25 +94,33 @@ impl GpuBackend {
         self.gpu.rounds()
     }
 
-    /// Whether `choice` sends a decode of `points` points here.
-    pub fn takes(&self, choice: Backend, points: usize) -> bool {
+    /// Whether `choice` sends a decode of `points` points of `a` here. `auto` leaves chunked
+    /// assets on the CPU: each chunk's operator goes up when a request first touches it, at
+    /// 64 bytes a sample for the default DEM codec (12 times what the chunk cache holds of it),
+    /// flattened in 67 ms for a 1025 x 1080 chunk on a 2-core machine where a CPU tile takes
+    /// 2-4 ms; a DEM whose touched chunks overflow `gpu_memory_mib` would upload more than it
+    /// decodes, and no GPU has measured where that pays yet. Asked for (`gpu`), they decode
+    /// there, chunk by chunk. (A one-off window, `fractile decode`, visits each chunk once and
+    /// takes the GPU on `auto` as a whole asset does.)
+    pub fn takes(&self, choice: Backend, a: &StoredAsset, points: usize) -> bool {
         match choice {
             Backend::Cpu => false,
             Backend::Gpu => true,
-            Backend::Auto => !self.software && points >= AUTO_POINTS,
+            Backend::Auto => auto_takes(self.software, a.asset.chunks.is_some(), points),
         }
     }
 
-    /// The resident operator of an asset's plane (`usize::MAX`: its volume), uploaded on first
-    /// use, once for all the requests that want it meanwhile; `None` when the device refused
-    /// it (logged once a refusal), within [`REFUSAL_TTL`] of a refusal.
+    /// The resident operator of an asset's plane (of one of its chunks, for chunked assets;
+    /// `usize::MAX`: its volume), uploaded on first use, once for all the requests that want
+    /// it meanwhile; `None` when the device refused it (logged once a refusal), within
+    /// [`REFUSAL_TTL`] of a refusal.
     fn resident(
         &self,
         a: &StoredAsset,
-        plane: usize,
+        (chunk, plane): (Option<(usize, usize)>, usize),
         upload: impl FnOnce() -> Result<GpuOperator, fractile_gpu::GpuError>,
     ) -> Option<Arc<GpuOperator>> {
-        let key = (a.id.clone(), a.hash, plane);
+        let key = (a.id.clone(), a.hash, chunk, plane);
         if self.refused.contains_key(&key) {
             return None;
         }
@@ -121,8 +130,9 @@ impl GpuBackend {
             let refuse = |why: String| {
                 self.refused.insert(key.clone(), ());
                 refused.fetch_add(1, Ordering::Relaxed);
+                let chunk = chunk.map_or(String::new(), |(l, i)| format!(" (chunk {i} of level {l})"));
                 tracing::warn!(
-                    "GPU upload of {} refused, decoding it on the CPU for the next {} s: {why}",
+                    "GPU upload of {}{chunk} refused, decoding it on the CPU for the next {} s: {why}",
                     a.id,
                     REFUSAL_TTL.as_secs()
                 );
@@ -154,7 +164,9 @@ impl GpuBackend {
         tolerance: f32,
     ) -> Option<(Vec<f32>, f32)> {
         let volume = a.asset.volume.as_ref()?;
-        let op = self.resident(a, usize::MAX, || self.gpu.upload_volume(&volume.operator))?;
+        let op = self.resident(a, (None, usize::MAX), || {
+            self.gpu.upload_volume(&volume.operator)
+        })?;
         let dims = dims.map(|d| d as u32);
         // A mesh needs the values and one bound: the device reduces the bounds and sends the
         // values alone.
@@ -170,49 +182,62 @@ impl GpuBackend {
         }
     }
 
+    /// The resident operator of the plane of `a` (or of one of its chunks) that the codec hands
+    /// its hook, uploaded on first use; `None` when the device refused it. The upload's
+    /// flattening is CPU work, which the caller runs on its core slot (a chunked asset's
+    /// chunks go up as requests first touch them, each 64 bytes a sample for the default DEM
+    /// codec: about 45 ms of a core for a 1024 x 1024 chunk); the decode that follows waits on
+    /// the device and runs off it.
+    pub fn operator(&self, a: &StoredAsset, plane: PlaneRef<'_>) -> Option<Arc<GpuOperator>> {
+        self.resident(a, (plane.chunk, plane.index), || {
+            self.gpu.upload_flat(&plane.operator.flat())
+        })
+    }
+
     /// Continuous decoding of one plane's points (a list, or a separable grid generated on the
-    /// device); `None` (logged) when the device fails, for the caller to use the CPU.
+    /// device) on its resident operator `op` (see [`GpuBackend::operator`]); `None` (logged)
+    /// when the device fails, for the caller to use the CPU.
     pub fn points(
         &self,
         a: &StoredAsset,
-        plane: usize,
+        op: &GpuOperator,
         sites: Sites<'_>,
         iterations: u32,
         tolerance: f32,
     ) -> Option<Answer> {
-        let plane_op = &a.asset.planes.get(plane)?.operator;
-        let op = self.resident(a, plane, || self.gpu.upload_flat(&plane_op.flat()))?;
-        let answer = match sites {
-            Sites::List(points) => self
-                .gpu
-                .points(&op, points, iterations, tolerance)
-                .map(Answer::Points),
-            // A grid (a tile, a region) answers one bound for all its pixels, the largest: the
-            // device reduces the bounds and sends the values alone, a quarter of the bytes,
-            // which go on as they are.
-            Sites::Grid { xs, ys } => self
-                .gpu
-                .grid_values(
-                    &op,
-                    fractile_gpu::Grid::Separable {
-                        xs: xs.to_vec(),
-                        ys: ys.to_vec(),
-                    },
-                    iterations,
-                    tolerance,
-                )
-                .map(|g| Answer::Values {
-                    values: g.values,
-                    error_bound: g.error_bound,
-                    iterations: g.iterations,
-                }),
-        };
-        match answer {
+        // A grid (a tile, a region) answers one bound for all its pixels, the largest: the
+        // device reduces the bounds and sends the values alone, a quarter of the bytes, which
+        // go on as they are.
+        match self.gpu.answer(op, sites, iterations, tolerance) {
             Ok(v) => Some(v),
             Err(e) => {
                 tracing::warn!("GPU decode of {} failed, decoding on the CPU: {e}", a.id);
                 None
             }
         }
+    }
+}
+
+/// `auto`'s choice (see [`GpuBackend::takes`]): a hardware adapter, a whole asset, a tile's
+/// points or more.
+fn auto_takes(software: bool, chunked: bool, points: usize) -> bool {
+    !software && !chunked && points >= AUTO_POINTS
+}
+
+#[cfg(test)]
+mod tests {
+    #[test]
+    fn auto_takes_whole_assets_of_a_tile_or_more_to_a_hardware_adapter_only() {
+        use super::{AUTO_POINTS, auto_takes};
+        assert!(auto_takes(false, false, AUTO_POINTS));
+        assert!(!auto_takes(false, false, AUTO_POINTS - 1));
+        assert!(
+            !auto_takes(true, false, 1 << 24),
+            "never a software adapter"
+        );
+        assert!(
+            !auto_takes(false, true, 1 << 24),
+            "chunked assets stay on the CPU"
+        );
     }
 }

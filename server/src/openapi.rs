@@ -48,7 +48,7 @@ pub fn document() -> Value {
         "backend",
         "query",
         json!({"enum": names::<Backend>()}),
-        "Where continuous decoding runs (default: the server's setting; gpu on a server without an adapter is 400 gpu_unavailable, and on a chunked asset 400 gpu_unsupported: its chunks decode on the CPU)",
+        "Where continuous decoding runs (default: the server's setting; gpu on a server without an adapter is 400 gpu_unavailable)",
     );
     let mut ok_tile = error_responses();
     ok_tile["200"] = json!({"description": "The tile", "headers": {"X-Error-Bound": {"schema": {"type": "number"}, "description": "Bound on |value - source| (the asset's measured source error over the tile plus X-Convergence-Bound), value units; absent for assets encoded before format version 5"}, "X-Convergence-Bound": {"schema": {"type": "number"}, "description": "Bound on the distance to the fractal's attractor (what more iterations shrink), value units"}, "ETag": {"schema": {"type": "string"}}}, "content": {"image/png": {}, "application/octet-stream": {}}});

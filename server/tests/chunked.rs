@@ -144,39 +144,78 @@ fn an_upload_with_a_corrupt_chunk_is_refused_whole() {
     assert!(source.contains("etopo.fra"), "{source}");
 }
 
-/// Asking a server with a GPU (lavapipe in CI) to decode a chunked asset there is refused by
-/// name, not answered on the CPU behind the caller's back; `auto` and `cpu` answer.
+/// A chunked asset decodes on the GPU (lavapipe in CI) chunk by chunk, each chunk's operator
+/// resident under its own key: a tile across a chunk edge agrees with the CPU's within the two
+/// answers' convergence bounds, and so do points in two chunks; one upload a chunk and plane.
 #[tokio::test]
-async fn the_gpu_is_refused_for_chunked_assets_by_name() {
+async fn chunked_assets_decode_on_the_gpu_chunk_by_chunk() {
     let (store, _) = Store::open(dir()).unwrap();
     let mut st = AppState::new(store, "http://test".into());
-    let gpu = fractile_server::backend::GpuBackend::open(64 << 20)
+    let gpu = fractile_server::backend::GpuBackend::open(256 << 20)
         .unwrap_or_else(|e| panic!("{e} (install mesa-vulkan-drivers)"));
-    st.gpu = Some(Arc::new(gpu));
-    let st = Arc::new(st);
-    let tile = "/v1/assets/chunked/tiles/3/2/3.f32";
-    for (backend, want) in [("cpu", 200), ("auto", 200), ("gpu", 400)] {
-        let (s, _, body) = get(&st, &format!("{tile}?backend={backend}")).await;
-        assert_eq!(
-            s.as_u16(),
-            want,
-            "{backend}: {}",
-            String::from_utf8_lossy(&body)
-        );
-        if want == 400 {
-            let e: serde_json::Value = serde_json::from_slice(&body).unwrap();
-            assert_eq!(e["code"], "gpu_unsupported", "{e}");
-        }
+    let gpu = Arc::new(gpu);
+    st.gpu = Some(gpu.clone());
+    // Tiles are cached whatever decoded them: the CPU's answers come from a server of its own.
+    let (on_gpu, on_cpu) = (Arc::new(st), state());
+    // Zoom 3, tile (1, 3), finer than the source, at 12 steps (with the settled tolerance the
+    // chains stop early, each backend within its bound but further apart).
+    let tile = "/v1/assets/chunked/tiles/3/1/3.f32";
+    let mut answers = Vec::new();
+    for (st, backend) in [(&on_cpu, "cpu"), (&on_gpu, "gpu")] {
+        let (s, h, body) = get(st, &format!("{tile}?backend={backend}&iterations=12")).await;
+        assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
+        let bound: f32 = h["x-convergence-bound"].to_str().unwrap().parse().unwrap();
+        answers.push((floats(&body), bound));
     }
-    let req = Request::post("/v1/assets/chunked/points?backend=gpu")
-        .header("content-type", "application/json")
-        .body(Body::from(r#"{"points": [[-100.0, 40.0]]}"#))
-        .unwrap();
-    let r = fractile_server::app(st.clone()).oneshot(req).await.unwrap();
-    assert_eq!(r.status(), StatusCode::BAD_REQUEST);
-    // The whole asset of the same DEM does go to the GPU.
-    let (s, _, _) = get(&st, "/v1/assets/single/tiles/3/2/3.f32?backend=gpu").await;
-    assert_eq!(s, StatusCode::OK);
+    let ((cpu, b_cpu), (gpu_values, b_gpu)) = (&answers[0], &answers[1]);
+    // Four chunks (the edges at -94.67 degrees and at 4.67 degrees north cross the tile), one
+    // plane: four uploads, none refused.
+    assert_eq!(gpu.uploads(), (4, 0));
+    let worst = cpu
+        .iter()
+        .zip(gpu_values)
+        .filter(|(c, _)| c.is_finite())
+        .map(|(c, g)| (c - g).abs())
+        .fold(0.0f32, f32::max);
+    assert!(cpu.iter().filter(|c| c.is_finite()).count() > 60_000);
+    assert!(
+        worst <= b_cpu + b_gpu + 1e-4 * 16_000.0,
+        "GPU against CPU {worst}, bounds {b_cpu} and {b_gpu}"
+    );
+    assert!(worst > 0.0, "the GPU's own answer, not the CPU's");
+    // Points in two chunks of level 0, on the GPU, against the CPU's.
+    let mut points = Vec::new();
+    for (st, backend) in [(&on_cpu, "cpu"), (&on_gpu, "gpu")] {
+        let req = Request::post(format!("/v1/assets/chunked/points?backend={backend}"))
+            .header("content-type", "application/json")
+            .body(Body::from(r#"{"points": [[-100.0, 40.0], [10.0, -20.0]]}"#))
+            .unwrap();
+        let r = fractile_server::app((*st).clone())
+            .oneshot(req)
+            .await
+            .unwrap();
+        assert_eq!(r.status(), StatusCode::OK);
+        let body = r.into_body().collect().await.unwrap().to_bytes();
+        let v: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        points.push(v);
+    }
+    let at = |v: &serde_json::Value, k: usize, f: &str| -> f64 {
+        let p = &v["results"][k];
+        match f {
+            "value" => p["values"][0].as_f64().unwrap(),
+            _ => p[f].as_f64().unwrap(),
+        }
+    };
+    for k in 0..2 {
+        let (c, g) = (at(&points[0], k, "value"), at(&points[1], k, "value"));
+        let b = at(&points[0], k, "convergence_bound") + at(&points[1], k, "convergence_bound");
+        assert!(
+            (c - g).abs() <= b + 1.0,
+            "point {k}: CPU {c}, GPU {g}, bounds {b}"
+        );
+    }
+    assert_eq!(gpu.uploads().1, 0);
+    assert!(gpu.uploads().0 > 4, "the points' chunks uploaded too");
 }
 
 /// Pixels coarser than a chunked asset's top level share its grids through the server's

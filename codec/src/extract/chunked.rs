@@ -9,7 +9,9 @@
 
 use fractile_proto::AssetMeta;
 
-use super::{Delegates, PointSample, SampleError};
+use super::{
+    Answer, ContinuousHook, Delegates, PlaneRef, PointSample, SampleError, Sites as Chains,
+};
 use crate::geo::{Pixels, Sites};
 use crate::io::chunked::Chunked;
 
@@ -174,7 +176,8 @@ impl Chunked {
     }
 
     /// [`crate::Asset::sample_with`] of a chunked asset: each chunk's pixels decoded by the
-    /// chunk (on the CPU: `delegates` only asks whether to stop). Pixels of chunks with no
+    /// chunk, its chains offered to `delegates.continuous` with the chunk named (a device
+    /// keeps each chunk's operator resident under its own key). Pixels of chunks with no
     /// valid cell, and pixels outside, are NaN.
     pub(crate) fn sample(
         &self,
@@ -198,8 +201,9 @@ impl Chunked {
             // them (a server's coarse cache), instead of a decode a tile.
             let discrete = |w, h, n, t| std::sync::Arc::new(chunk.discrete_planes(w, h, n, t));
             let top = level + 1 == self.table.levels.len();
+            let continuous = in_chunk(delegates.continuous, (level, part.index));
             let own = Delegates {
-                continuous: &|_, _, _, _| None,
+                continuous: &continuous,
                 discrete: if top { delegates.discrete } else { &discrete },
                 cancelled: delegates.cancelled,
             };
@@ -263,14 +267,15 @@ impl Chunked {
         Ok(worst)
     }
 
-    /// [`crate::Asset::points`] of a chunked asset: each point by the source level's chunk
-    /// that owns it; points of chunks with no valid cell are NaN.
+    /// [`crate::Asset::points_with`] of a chunked asset: each point by the source level's
+    /// chunk that owns it, its chains offered to `continuous` with the chunk named; points of
+    /// chunks with no valid cell are NaN.
     pub(crate) fn points(
         &self,
         meta: &AssetMeta,
         pts: &[[f32; 2]],
-        iterations: u32,
-        tolerance: f32,
+        (iterations, tolerance): (u32, f32),
+        continuous: &ContinuousHook<'_>,
     ) -> Result<Vec<PointSample>, crate::Error> {
         let [ax, ay] = self.axes(meta, 0);
         let entries = &self.table.levels[0].chunks;
@@ -299,13 +304,29 @@ impl Chunked {
                 continue;
             };
             let local: Vec<[f32; 2]> = group.iter().map(|&(_, p)| p).collect();
+            let hook = in_chunk(continuous, (0, index));
             for ((k, _), answer) in group
                 .iter()
-                .zip(chunk.points(&local, iterations, tolerance))
+                .zip(chunk.points_with(&local, iterations, tolerance, &hook))
             {
                 out[*k] = answer;
             }
         }
         Ok(out)
+    }
+}
+
+/// `continuous` for the planes of chunk `(level, index)`: a chunk is an asset of its own, and
+/// knows not which chunk it is, so its planes are named here on their way to the hook.
+fn in_chunk<'a>(
+    continuous: &'a ContinuousHook<'a>,
+    chunk: (usize, usize),
+) -> impl Fn(PlaneRef<'_>, Chains<'_>, u32, f32) -> Option<Answer> + Sync + 'a {
+    move |plane, sites, n, t| {
+        let plane = PlaneRef {
+            chunk: Some(chunk),
+            ..plane
+        };
+        continuous(plane, sites, n, t)
     }
 }

@@ -28,7 +28,33 @@ pub const SETTLED_FRACTION: f32 = 0.125;
 
 /// Decodes one plane's point chains elsewhere (a GPU): `(plane, unit points, iterations,
 /// normalised tolerance)`, or `None` to leave them to the CPU.
-pub type ContinuousHook<'a> = dyn Fn(usize, Sites<'_>, u32, f32) -> Option<Answer> + Sync + 'a;
+pub type ContinuousHook<'a> =
+    dyn Fn(PlaneRef<'_>, Sites<'_>, u32, f32) -> Option<Answer> + Sync + 'a;
+
+/// The plane a [`ContinuousHook`] is asked to decode: where it is in its asset, and its
+/// operator. A device keeps operators resident by `(chunk, index)` within one asset, so the
+/// hook is handed the operator itself rather than looking it up: a chunk's operator lives in
+/// the chunk, not in the asset the caller holds.
+#[derive(Clone, Copy)]
+pub struct PlaneRef<'a> {
+    /// The plane's index among its asset's (or its chunk's) planes.
+    pub index: usize,
+    /// The chunk, for chunked assets: `(level, index in the level)`; `None` for a whole asset.
+    pub chunk: Option<(usize, usize)>,
+    /// The plane's decoding operator.
+    pub operator: &'a crate::io::asset::PlaneOperator,
+}
+
+impl<'a> PlaneRef<'a> {
+    /// Plane `index` of a whole asset (a chunked asset's chunks name themselves on the way).
+    pub fn whole(index: usize, operator: &'a crate::io::asset::PlaneOperator) -> PlaneRef<'a> {
+        PlaneRef {
+            index,
+            chunk: None,
+            operator,
+        }
+    }
+}
 
 /// One plane's chains decoded at a [`ContinuousHook`]'s sites (normalised).
 #[derive(Clone, Debug, PartialEq)]
@@ -564,7 +590,8 @@ impl Asset {
     }
 
     /// [`Asset::points_with`], with the error of a chunk that cannot be read (chunked assets;
-    /// the others always answer). Chunked assets answer on the CPU: `continuous` is not asked.
+    /// the others always answer). A chunked asset offers each chunk's chains to `continuous`,
+    /// the chunk named in its [`PlaneRef`].
     pub fn try_points_with(
         &self,
         pts: &[[f32; 2]],
@@ -573,7 +600,7 @@ impl Asset {
         continuous: &ContinuousHook<'_>,
     ) -> Result<Vec<PointSample>, crate::Error> {
         if let Some(c) = &self.chunks {
-            return c.points(&self.meta, pts, iterations, tolerance);
+            return c.points(&self.meta, pts, (iterations, tolerance), continuous);
         }
         let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
         let snapped = self.snap_to_samples(pts);
@@ -583,9 +610,14 @@ impl Asset {
             .iter()
             .enumerate()
             .map(|(k, p)| {
-                continuous(k, Sites::List(pts), iterations, tol)
-                    .map(Answer::into_points)
-                    .unwrap_or_else(|| p.operator.points(pts, iterations, tol))
+                continuous(
+                    PlaneRef::whole(k, &p.operator),
+                    Sites::List(pts),
+                    iterations,
+                    tol,
+                )
+                .map(Answer::into_points)
+                .unwrap_or_else(|| p.operator.points(pts, iterations, tol))
             })
             .collect();
         let span = self.span();
@@ -647,6 +679,22 @@ impl Asset {
         iterations: Option<u32>,
         method: Method,
     ) -> (Decoded, Method) {
+        self.window_with(rect, width, height, (iterations, method), &|_, _, _, _| {
+            None
+        })
+    }
+
+    /// [`Asset::window`], a chunked asset's chains offered to `continuous` chunk by chunk (a
+    /// GPU). A whole asset's window is decoded here on the CPU: a device makes its grid
+    /// itself (`fractile_gpu`'s `Grid::Window`), which the caller asks for directly.
+    pub fn window_with(
+        &self,
+        rect: [f32; 4],
+        width: usize,
+        height: usize,
+        (iterations, method): (Option<u32>, Method),
+        continuous: &ContinuousHook<'_>,
+    ) -> (Decoded, Method) {
         if self.chunks.is_some() {
             // Chunks answer continuously (the overview of the pixels' size where they are
             // coarser than the source), whatever the method asked.
@@ -668,7 +716,11 @@ impl Asset {
             } else {
                 self.default_tolerance()
             };
-            let channels = match self.sample_with(&pixels, n, tolerance, &no_delegates()) {
+            let delegates = Delegates {
+                continuous,
+                ..no_delegates()
+            };
+            let channels = match self.sample_with(&pixels, n, tolerance, &delegates) {
                 Ok((c, _)) => c,
                 Err(_) => vec![vec![f32::NAN; width * height]; self.meta.channels as usize],
             };
@@ -934,7 +986,8 @@ impl Asset {
         let p = &self.planes[k];
         Ok(match inside {
             Inside::Grid { ix, iy, .. } => {
-                match (delegates.continuous)(k, Sites::Grid { xs: ix, ys: iy }, iterations, tol) {
+                let at = Sites::Grid { xs: ix, ys: iy };
+                match (delegates.continuous)(PlaneRef::whole(k, &p.operator), at, iterations, tol) {
                     Some(v) => v,
                     None => {
                         let rows = (BAND_POINTS / ix.len().max(1)).max(1);
@@ -952,7 +1005,12 @@ impl Asset {
                 loose,
                 patches,
                 ..
-            } => match (delegates.continuous)(k, Sites::List(points), iterations, tol) {
+            } => match (delegates.continuous)(
+                PlaneRef::whole(k, &p.operator),
+                Sites::List(points),
+                iterations,
+                tol,
+            ) {
                 Some(v) => v,
                 None => {
                     let mut v = Vec::with_capacity(points.len());

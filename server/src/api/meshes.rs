@@ -251,7 +251,7 @@ async fn volume_mesh(
         .stream(cost, move |cancel| {
             let on_gpu = |lo, hi, dims: [usize; 3], n, t| {
                 gpu.as_deref()
-                    .filter(|g| g.takes(choice, dims.iter().product()))
+                    .filter(|g| g.takes(choice, &a, dims.iter().product()))
                     .and_then(|g| cancel.off_core(|| g.volume_grid(&a, (lo, hi, dims), n, t)))
             };
             let (m, bound) = a

@@ -283,19 +283,6 @@ fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppErro
     Ok(b)
 }
 
-/// Refuses `backend=gpu` for a chunked asset: its chunks decode on the CPU (a GPU would need
-/// each chunk's operator resident, which it does not hold yet), and asking for the GPU is not
-/// answered by the CPU behind the caller's back. `auto` goes to the CPU.
-pub(crate) fn gpu_for(a: &StoredAsset, choice: Backend) -> Result<(), AppError> {
-    if choice == Backend::Gpu && a.asset.chunks.is_some() {
-        return Err(AppError::bad_request(
-            "gpu_unsupported",
-            "chunked assets decode on the CPU: use backend=cpu or auto",
-        ));
-    }
-    Ok(())
-}
-
 /// `Asset::sample` of a raster's pixels on the chosen backend, with coarse decodes shared
 /// through `coarse` (runs inside `decode`, on the blocking pool).
 fn sample_on(
@@ -306,13 +293,15 @@ fn sample_on(
     iterations: u32,
     tolerance: Tolerance,
 ) -> Result<(Vec<Vec<f32>>, Bounds), AppError> {
-    gpu_for(a, choice)?;
     let tolerance = tolerance.over(a, pixels)?;
-    let gpu = gpu.filter(|g| g.takes(choice, pixels.len()));
-    // The GPU's round trip runs off the request's core slot (see `work`).
-    let continuous = |k, p: fractile_codec::extract::Sites<'_>, n, t| {
-        gpu.and_then(|g| cancel.off_core(|| g.points(a, k, p, n, t)))
-    };
+    let gpu = gpu.filter(|g| g.takes(choice, a, pixels.len()));
+    // The GPU's round trip runs off the request's core slot (see `work`), the operator's
+    // upload on it.
+    let continuous =
+        |k: fractile_codec::extract::PlaneRef<'_>, p: fractile_codec::extract::Sites<'_>, n, t| {
+            let (g, op) = gpu.and_then(|g| Some((g, g.operator(a, k)?)))?;
+            cancel.off_core(|| g.points(a, &op, p, n, t))
+        };
     let discrete = |w: usize, h: usize, n, t: f32| {
         let result = std::cell::Cell::new("hit");
         let key = |w, h| (a.id.clone(), a.hash, w, h, n, t.to_bits());

@@ -187,7 +187,6 @@ async fn answer_points(
     choice: Backend,
 ) -> Result<Vec<PointResult>, AppError> {
     let a = planar(state.store.get(id)?)?;
-    super::gpu_for(&a, choice)?;
     let (n, tolerance) = iterations_for(state, iterations, tolerance)?;
     let units: Vec<Option<[f32; 2]>> = coords.iter().map(|&c| unit_of(&a, c)).collect();
     if single && units[0].is_none() {
@@ -200,11 +199,12 @@ async fn answer_points(
     let cost = sampling_bytes(coords.len(), a.asset.meta.channels);
     decode(state, cost, move |cancel| {
         let inside: Vec<[f32; 2]> = units.iter().map(|u| u.unwrap_or([0.0, 0.0])).collect();
-        let gpu = gpu.as_deref().filter(|g| g.takes(choice, inside.len()));
+        let gpu = gpu.as_deref().filter(|g| g.takes(choice, &a, inside.len()));
         let samples = a
             .asset
             .try_points_with(&inside, n, tolerance.anywhere(&a), &|k, p, n, t| {
-                gpu.and_then(|g| cancel.off_core(|| g.points(&a, k, p, n, t)))
+                let (g, op) = gpu.and_then(|g| Some((g, g.operator(&a, k)?)))?;
+                cancel.off_core(|| g.points(&a, &op, p, n, t))
             })
             .map_err(super::chunk_unavailable)?;
         Ok(coords

@@ -123,7 +123,6 @@ pub(super) async fn terrain_tile(
     // error: neighbouring tiles share their edge vertices, which must decode alike (no cracks).
     let tolerance = super::Tolerance::Asked(tolerance.anywhere(&a));
     let choice = backend_for(&state, q.backend.as_deref())?;
-    super::gpu_for(&a, choice)?;
     // quantized-mesh is made to be gzipped (about half the bytes): to clients that accept it,
     // as browsers and Cesium do, the tile goes gzipped, as a variant of its own (key and ETag).
     let gzip = accepts_gzip(&headers);

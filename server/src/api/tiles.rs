@@ -145,7 +145,6 @@ pub(super) async fn tile(
     check_inside(&a, z, x, y)?;
     // Checked before the cache, so that a bad parameter is refused even for a cached tile.
     let choice = backend_for(&state, q.backend.as_deref())?;
-    super::gpu_for(&a, choice)?;
     // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
     let key = format!(
         "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{:?}&{}&{:?}&{:?}&{:?}&{}&{}",

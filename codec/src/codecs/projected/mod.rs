@@ -775,6 +775,24 @@ impl ProjectedOperator {
             let x0 = 0.5 * a as f32;
             2.0 * x0 - block(a / 2, n) as f32 + 0.5
         };
+        // An operator that holds records for only part of its cells (a chunk's holds none: a
+        // request builds those of its own cells) has them built for all here, on every core,
+        // from the half lattices: the same bits as `quarter`'s direct evaluation, which took a
+        // 1025 x 1080 chunk 850 ms against 100 ms for a whole 2160 x 1080 asset.
+        let whole = self.region.origin == [0, 0] && self.region.size == [nx - 1, ny - 1];
+        let built = if whole {
+            None
+        } else {
+            Some(self.all_records())
+        };
+        let quarter = |i: usize, j: usize, qa: usize, qb: usize| match &built {
+            Some(records) => {
+                let r = &records[j * (nx - 1) + i];
+                let n = 3 * qb + qa;
+                [r[n], r[n + 1], r[n + 3], r[n + 4]]
+            }
+            None => self.quarter(i, j, qa, qb),
+        };
         crate::core::pieces::Lattice {
             frame: self.frame(),
             valid: self.valid,
@@ -785,7 +803,7 @@ impl ProjectedOperator {
             offsets: (0..lx * ly)
                 .map(|k| {
                     let (a, b) = (k % lx, k / lx);
-                    bilinear(self.quarter(a / 2, b / 2, a % 2, b % 2))
+                    bilinear(quarter(a / 2, b / 2, a % 2, b % 2))
                 })
                 .collect(),
             columns: (0..lx).map(|a| [map(a, nx), 1.0, 0.0, 0.0]).collect(),
@@ -942,6 +960,13 @@ mod tests {
             // Built directly, the same lattice.
             assert_eq!(
                 crate::core::pieces::Flatten::flat(&op),
+                crate::core::pieces::Flat::Lattice(lattice.clone())
+            );
+            // And from an operator holding no records (a chunk's), which builds them all for
+            // its lattice at once rather than cell by cell: the same lattice.
+            let lean = ProjectedOperator::samples_only(&hd, &g).expect("operator");
+            assert_eq!(
+                crate::core::pieces::Flatten::flat(&lean),
                 crate::core::pieces::Flat::Lattice(lattice.clone())
             );
             let [lx, ly] = table.lut_size.map(|n| n as usize);
