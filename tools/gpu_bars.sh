@@ -3,7 +3,7 @@
 # the gpu bench (4096 x 4096 window, points, device time, 3D) at 16 CPU threads, then uncached
 # terrain-RGB tiles (the bar's format; ENCODING=terrarium for the earlier runs') of etopo20 (the
 # client's cold pyramid walk, 21,845 tiles) with backend=cpu and backend=gpu at 16, 32, 4 and 1
-# clients, each on a freshly started server (32: more tiles in
+# clients, and the same DEM in chunks at 16 clients, each on a freshly started server (32: more tiles in
 # flight than cores, which a GPU request that lends its core slot while it waits can use).
 # Run from the repository root after `cargo build --release` and `cargo bench -p fractile-gpu
 # --bench gpu --no-run`, or with BIN naming a folder holding `fractile`, `fractile-client` and
@@ -23,13 +23,17 @@ export RAYON_NUM_THREADS=${THREADS:-16}
 timeout 240 "$BIN/gpu-bench" 2>&1 | tee "$OUT/gpu-bench.txt"
 assets=$(mktemp -d)
 "$BIN/fractile" encode testdata/etopo20.tif -o "$assets/etopo20.fra"
-for run in cpu:16 gpu:16 cpu:16 gpu:16 cpu:32 gpu:32 cpu:4 gpu:4 cpu:1 gpu:1; do
-  b=${run%:*}; c=${run#*:}
+# The same DEM in chunks of 256 (4 x 2, then overviews): whether chunked assets, which `auto`
+# keeps on the CPU, pay on the GPU (each chunk's operator uploaded on first touch).
+"$BIN/fractile" encode testdata/etopo20.tif -o "$assets/etopo20c.fra" --chunk 256
+for run in cpu:16 gpu:16 cpu:16 gpu:16 cpu:32 gpu:32 cpu:4 gpu:4 cpu:1 gpu:1 cpu:16:etopo20c gpu:16:etopo20c; do
+  IFS=: read -r b c asset <<< "$run"
+  asset=${asset:-etopo20}
   "$BIN/fractile" serve --assets "$assets" --bind 127.0.0.1:18080 --backend auto > "$OUT/serve-$b.log" 2>&1 &
   pid=$!
   for _ in $(seq 240); do curl -sf localhost:18080/readyz >/dev/null && break; sleep 0.5; done
-  echo "== etopo20 backend=$b clients=$c"
-  timeout 60 "$BIN/fractile-client" bench --server http://127.0.0.1:18080 --asset etopo20 \
+  echo "== $asset backend=$b clients=$c"
+  timeout 60 "$BIN/fractile-client" bench --server http://127.0.0.1:18080 --asset "$asset" \
     --kinds tiles-cold --encoding "${ENCODING:-terrainrgb}" --backend "$b" --duration "$D" \
     --concurrency "$c" | tail -1
   # Where the tiles' time went (seconds summed over the run, and counts).
