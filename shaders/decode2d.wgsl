@@ -8,7 +8,11 @@
 //   value = sum_k g_k prod_{j<k} s_j + seed prod s, bound = |prod s| * half
 // A table that is a lattice (codec::core::pieces::Lattice, the projected codec's) comes as
 // its offsets alone: the piece is the cell, its origin the cell's, one contrast, phi's x by
-// column and y by row (Lattice::step).
+// column and y by row (Lattice::step). A lattice whose chains end on its samples
+// (codec::core::pieces::Ends, the projected codec's) stops a chain once |prod s| times its cell's
+// residual bound is within the tolerance and answers acc_g + acc_s S(p), S the bilinear
+// interpolant of the samples, within |acc_s| R(p) plus its rounding (ProjectedOperator::
+// run_chains and end_chain), instead of the seed within |acc_s| half.
 // Points come from a list (mode 0), a regular grid over a unit-square window (mode 1), or a
 // separable grid (mode 2: the pixels of a Web Mercator tile over a lon/lat-placed asset, whose
 // unit x depends on the column only and unit y on the row only). For mode 2 the host sends the
@@ -47,6 +51,10 @@ struct Params {
     _pad2: u32,
     // A lattice's one contrast.
     contrast: vec4<f32>,
+    // Samples along x and y of a lattice whose chains end on them; their rounding a step.
+    ends_size: vec2<u32>,
+    ulps: f32,
+    _pad3: u32,
 };
 
 // The tables are a lattice (codec::core::pieces::Lattice): `pieces` holds each cell's offset,
@@ -54,6 +62,9 @@ struct Params {
 // contrast. A pipeline constant, not a uniform: each pipeline then has its own loop (a branch
 // on a uniform cost 40% of the kernel's time on lavapipe).
 override LATTICE: bool = false;
+// The lattice's chains end on its samples: `lut` holds, after the maps, the samples and then
+// each cell's residual bound (f32 as u32 bits).
+override ENDS: bool = false;
 
 @group(0) @binding(0) var<uniform> params: Params;
 @group(0) @binding(1) var<storage, read> lut: array<u32>;
@@ -81,6 +92,41 @@ fn unit_point(k: u32) -> vec2<f32> {
     return params.a + ij * params.b;
 }
 
+// The cell between samples of frame coordinate t on an axis of n samples (at k + 0.5), and the
+// position in it (ProjectedOperator::locate).
+fn locate(t: f32, n: u32) -> vec2<f32> {
+    let s = clamp(t - 0.5, 0.0, f32(n - 1u));
+    let c = min(u32(s), n - 2u);
+    return vec2<f32>(f32(c), s - f32(c));
+}
+
+fn ends_sample(x: u32, y: u32) -> f32 {
+    let base = 4u * (params.lut_size.x + params.lut_size.y);
+    return bitcast<f32>(lut[base + y * params.ends_size.x + x]);
+}
+
+// R(p): the residual bound of p's cell.
+fn residual_at(p: vec2<f32>) -> f32 {
+    let n = params.ends_size;
+    let i = u32(locate(p.x, n.x).x);
+    let j = u32(locate(p.y, n.y).x);
+    let base = 4u * (params.lut_size.x + params.lut_size.y) + n.x * n.y;
+    return bitcast<f32>(lut[base + j * (n.x - 1u) + i]);
+}
+
+// S(p): the bilinear interpolant of the samples (ProjectedOperator::bilinear).
+fn interpolant(p: vec2<f32>) -> f32 {
+    let lx = locate(p.x, params.ends_size.x);
+    let ly = locate(p.y, params.ends_size.y);
+    let i = u32(lx.x);
+    let j = u32(ly.x);
+    let r0 = ends_sample(i, j);
+    let top = r0 + (ends_sample(i + 1u, j) - r0) * lx.y;
+    let r1 = ends_sample(i, j + 1u);
+    let bottom = r1 + (ends_sample(i + 1u, j + 1u) - r1) * lx.y;
+    return top + (bottom - top) * ly.y;
+}
+
 // Value, bound, steps taken and 1 for point k of the dispatch's grid or list.
 fn decode(k: u32) -> vec4<f32> {
     let unit = unit_point(k);
@@ -97,7 +143,12 @@ fn decode(k: u32) -> vec4<f32> {
     var acc_s = 1.0;
     var taken = 0u;
     for (var n = 0u; n < params.iterations; n = n + 1u) {
-        if (acc_s == 0.0 || abs(acc_s) * params.half <= params.tolerance) {
+        // operator::active, whose bound is the cell's residual where chains end on samples.
+        var reach = params.half;
+        if (ENDS) {
+            reach = residual_at(p);
+        }
+        if (!(acc_s != 0.0 && abs(acc_s) * reach > params.tolerance)) {
             break;
         }
         // PieceTable::step's lookups (Lattice::step's for a lattice).
@@ -138,6 +189,10 @@ fn decode(k: u32) -> vec4<f32> {
         acc_s = acc_s * contrast;
         taken = taken + 1u;
         p = vec2<f32>(nx.x + nx.y * u + nx.z * v, ny.x + ny.y * u + ny.z * v);
+    }
+    if (ENDS) {
+        let bound = abs(acc_s) * residual_at(p) + f32(taken + 4u) * params.ulps;
+        return vec4<f32>(acc_g + acc_s * interpolant(p), bound, f32(taken), 1.0);
     }
     return vec4<f32>(acc_g + acc_s * params.seed, abs(acc_s) * params.half, f32(taken), 1.0);
 }

@@ -298,7 +298,7 @@ pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
         let n = a.iterations.unwrap_or(12);
         let mut planes = Vec::new();
         for p in &asset.planes {
-            let dev = g.upload(&fractile_codec::core::pieces::Flatten::pieces(&p.operator))?;
+            let dev = g.upload_flat(&fractile_codec::core::pieces::Flatten::flat(&p.operator))?;
             let grid = fractile_gpu::Grid::Window {
                 rect: window,
                 width: width as u32,

@@ -36,7 +36,7 @@ fn main() {
     if std::env::args().any(|a| a == "host") {
         let g = Gpu::new().expect("a GPU adapter");
         eprintln!("adapter: {}", g.adapter());
-        host_cost(&g, &g.upload(&op.pieces()).expect("upload"), n);
+        host_cost(&g, &g.upload_flat(&op.flat()).expect("upload"), n);
         return;
     }
     let side = 4096u32;
@@ -93,7 +93,7 @@ fn main() {
         );
         match &gpu {
             Ok(g) => {
-                let dev = g.upload(&op.pieces()).expect("upload");
+                let dev = g.upload_flat(&op.flat()).expect("upload");
                 // The same work twice, the second timed: a server decodes request after request,
                 // and the first one pays the pipeline's warm-up and the staging buffers'
                 // first-touch page faults (upload excluded too: assets stay resident).
@@ -134,7 +134,7 @@ fn main() {
     // The same window with the values read back alone and the bounds reduced on the device
     // (issue 32: 4 bytes a point cross instead of 16), against the CPU's time above.
     if let Ok(g) = &gpu {
-        let dev = g.upload(&op.pieces()).expect("upload");
+        let dev = g.upload_flat(&op.flat()).expect("upload");
         let grid = Grid::Window {
             rect: [0.0, 0.0, 1.0, 1.0],
             width: side,
@@ -155,7 +155,7 @@ fn main() {
     // The device's own time for whole windows (results left on the device), best of five:
     // the targets of issue 6 (4096 x 4096 at 10 steps under 5 ms; 1920 x 1080 in real time).
     if let Ok(g) = &gpu {
-        let dev = g.upload(&op.pieces()).expect("upload");
+        let dev = g.upload_flat(&op.flat()).expect("upload");
         for (w, h) in [(4096u32, 4096u32), (1920, 1080)] {
             let _ = g.kernel_seconds(&dev, w, h, n);
             let best = (0..5)
@@ -175,7 +175,7 @@ fn main() {
     // time a dispatch. On lavapipe the kernel runs on the CPU too, so only the 1-point row is
     // host cost alone there.
     if let Ok(g) = &gpu {
-        let dev = g.upload(&op.pieces()).expect("upload");
+        let dev = g.upload_flat(&op.flat()).expect("upload");
         host_cost(g, &dev, n);
     }
     volume_box(&gpu, n);

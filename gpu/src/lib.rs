@@ -17,7 +17,7 @@ use bytemuck::{Pod, Zeroable};
 use fractile_codec::codecs::ifs3d::octree::OctreeOperator;
 use fractile_codec::core::decode::PointValue;
 use fractile_codec::core::operator::Operator;
-use fractile_codec::core::pieces::{Flat, Lattice, PieceTable};
+use fractile_codec::core::pieces::{Ends, Flat, Lattice, PieceTable};
 use fractile_codec::extract::{Answer, Sites};
 use wgpu::util::DeviceExt;
 
@@ -58,7 +58,7 @@ pub enum GpuError {
     TooLarge(String),
 }
 
-/// Uniforms of one dispatch; the layout of `Params` in the kernel (128 bytes).
+/// Uniforms of one dispatch; the layout of `Params` in the kernel (144 bytes).
 #[repr(C)]
 #[derive(Clone, Copy, Debug, Default, Pod, Zeroable)]
 struct Params {
@@ -89,6 +89,11 @@ struct Params {
     pad: [u32; 2],
     /// A lattice's one contrast.
     contrast: [f32; 4],
+    /// Samples along x and y of a lattice whose chains end on them ([`Ends`]), else 0.
+    ends_size: [u32; 2],
+    /// Their chains' f32 rounding a step.
+    ulps: f32,
+    pad_ends: u32,
 }
 
 /// Uniforms of a 3D dispatch; the layout of `Params` in `decode3d.wgsl` (80 bytes).
@@ -126,13 +131,15 @@ struct Shape {
 }
 
 impl Shape {
-    /// The operator on the device: its two tables, their bytes, and a lattice's contrast.
+    /// The operator on the device: its two tables, their bytes, and a lattice's contrast and
+    /// ends.
     fn operator(
         self,
         (lut, pieces): (wgpu::Buffer, wgpu::Buffer),
         bytes: usize,
-        lattice: Option<[f32; 4]>,
+        lattice: Option<([f32; 4], Option<&Ends>)>,
     ) -> GpuOperator {
+        let ends = lattice.and_then(|(_, e)| e);
         let quantum = fractile_codec::core::decode::position_quantum(&self.frame);
         let (lo, hi) = self.interval;
         GpuOperator {
@@ -148,10 +155,13 @@ impl Shape {
                 quantum,
                 inv_quantum: 1.0 / quantum,
                 inv_lut_cell: self.lut_cell.map(|c| 1.0 / c),
-                contrast: lattice.unwrap_or_default(),
+                contrast: lattice.map(|(c, _)| c).unwrap_or_default(),
+                ends_size: ends.map_or([0; 2], |e| e.size),
+                ulps: ends.map_or(0.0, |e| e.ulps),
                 ..Params::default()
             },
             lattice: lattice.is_some(),
+            ends: ends.is_some(),
             volume: None,
             bytes,
         }
@@ -317,6 +327,8 @@ pub struct GpuOperator {
     params: Params,
     /// The tables are a [`Lattice`]'s: the kernel specialised for lattices decodes it.
     lattice: bool,
+    /// The lattice's chains end on its samples ([`Ends`]): the kernel specialised for that.
+    ends: bool,
     volume: Option<Params3>,
     bytes: usize,
 }
@@ -335,6 +347,8 @@ pub struct Gpu {
     pipeline: wgpu::ComputePipeline,
     /// The 2D kernel specialised for lattices (its `LATTICE` constant set).
     pipeline_lattice: wgpu::ComputePipeline,
+    /// The 2D kernel for lattices whose chains end on samples (`LATTICE` and `ENDS`).
+    pipeline_ends: wgpu::ComputePipeline,
     pipeline3: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     info: wgpu::AdapterInfo,
@@ -422,20 +436,24 @@ impl Gpu {
         // Two pipelines of the 2D kernel, for piece tables and for lattices: a branch on a
         // uniform in the loop cost 40% of the kernel's time on lavapipe (a 256 x 256 grid,
         // 7.2 -> 10.0-11.4 ms), where a pipeline constant leaves each its own code.
-        let kernel2d = |lattice: bool| {
+        let kernel2d = |lattice: bool, ends: bool| {
             device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
                 label: Some("decode2d"),
                 layout: Some(&pipeline_layout),
                 module: &module,
                 entry_point: Some("main"),
                 compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &[("LATTICE", f64::from(u8::from(lattice)))],
+                    constants: &[
+                        ("LATTICE", f64::from(u8::from(lattice))),
+                        ("ENDS", f64::from(u8::from(ends))),
+                    ],
                     ..Default::default()
                 },
                 cache: None,
             })
         };
-        let (pipeline, pipeline_lattice) = (kernel2d(false), kernel2d(true));
+        let (pipeline, pipeline_lattice) = (kernel2d(false, false), kernel2d(true, false));
+        let pipeline_ends = kernel2d(true, true);
         // The 3D kernel binds the same buffers: one layout for both.
         let pipeline3 = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("decode3d"),
@@ -451,6 +469,7 @@ impl Gpu {
             queue,
             pipeline,
             pipeline_lattice,
+            pipeline_ends,
             pipeline3,
             layout,
             info,
@@ -462,7 +481,9 @@ impl Gpu {
 
     /// The 2D kernel for `op`'s tables.
     fn kernel2d(&self, op: &GpuOperator) -> &wgpu::ComputePipeline {
-        if op.lattice {
+        if op.ends {
+            &self.pipeline_ends
+        } else if op.lattice {
             &self.pipeline_lattice
         } else {
             &self.pipeline
@@ -547,10 +568,14 @@ impl Gpu {
     /// table would be (a fifth of the bytes).
     fn upload_lattice(&self, l: &Lattice) -> Result<GpuOperator, GpuError> {
         let maps = [l.columns.as_slice(), l.rows.as_slice()].concat();
-        let tables = self.tables(
-            bytemuck::cast_slice(&maps),
-            bytemuck::cast_slice(&l.offsets),
-        )?;
+        // The ends, if any, follow the maps in the same buffer: the samples, then the cells'
+        // residual bounds (a binding of their own would be one more for every kernel).
+        let mut lut: Vec<u8> = bytemuck::cast_slice(&maps).to_vec();
+        if let Some(e) = &l.ends {
+            lut.extend_from_slice(bytemuck::cast_slice(&e.samples));
+            lut.extend_from_slice(bytemuck::cast_slice(&e.residual));
+        }
+        let tables = self.tables(&lut, bytemuck::cast_slice(&l.offsets))?;
         let shape = Shape {
             frame: l.frame,
             valid: l.valid,
@@ -559,7 +584,11 @@ impl Gpu {
             lut_size: l.lut_size,
             interval: l.interval,
         };
-        Ok(shape.operator(tables, l.device_bytes(), Some(l.contrast)))
+        Ok(shape.operator(
+            tables,
+            l.device_bytes(),
+            Some((l.contrast, l.ends.as_ref())),
+        ))
     }
 
     /// Seconds the device takes to decode a `width x height` window of the whole unit square
@@ -619,6 +648,7 @@ impl Gpu {
             pieces: cells,
             params: Params::default(),
             lattice: false,
+            ends: false,
             volume: Some(Params3 {
                 seed: (lo + hi) * 0.5,
                 half: (hi - lo) * 0.5,

@@ -59,6 +59,8 @@ fn close(what: &str, cpu: &[decode::PointValue], gpu: &[decode::PointValue]) {
             (c.error_bound - g.error_bound).abs() <= 1e-4,
             "{what} bound {k}"
         );
+        // The same cells, so the same steps (where a tolerance stops chains early too).
+        assert_eq!(c.iterations, g.iterations, "{what} steps {k}");
         worst = worst.max(d);
     }
     eprintln!("{what}: {} points, worst difference {worst:e}", cpu.len());
@@ -74,6 +76,13 @@ fn points_agree_on_images_and_dems_for_every_codec() {
         (
             "jacksboro quadtree".into(),
             quadtree("jacksboro.tif", 1.0),
+            12,
+        ),
+        (
+            "jacksboro projected".into(),
+            fractile_codec::encode_default(&dem, 0.8, &|_, _| {})
+                .unwrap()
+                .asset,
             12,
         ),
         (
@@ -109,7 +118,8 @@ fn points_agree_on_images_and_dems_for_every_codec() {
     ];
     for (name, asset, n) in &assets {
         let op = &asset.planes[0].operator;
-        let dev = gpu.upload(&op.pieces()).unwrap();
+        // As the server uploads (the projected codec as a lattice that ends on its samples).
+        let dev = gpu.upload_flat(&op.flat()).unwrap();
         // Sizes: a few points, an odd count, and more than one chunk.
         for (count, chunk) in [(7usize, 1 << 22), (10_001, 1 << 22), (70_000, 30_000)] {
             gpu.set_chunk(chunk);
@@ -305,8 +315,18 @@ fn dyadic_grids_and_points_on_cell_boundaries_agree_with_the_cpu() {
     let mut gpu = gpu();
     gpu.set_chunk(1 << 20);
     let dem = Raster::open(&data("jacksboro.tif")).unwrap();
+    let etopo20 = Raster::open(&data("etopo20.tif")).unwrap();
     let assets: Vec<(&str, Asset, u32)> = vec![
         ("etopo20 quadtree", quadtree("etopo20.tif", 1.6), 12),
+        // The default DEM codec on the bar's DEM and rate: its chains end on the samples'
+        // interpolant, on the device as on the CPU (a constant seed's ends were 4 m apart).
+        (
+            "etopo20 projected",
+            fractile_codec::encode_default(&etopo20, 1.6, &|_, _| {})
+                .unwrap()
+                .asset,
+            12,
+        ),
         (
             "jacksboro projected",
             fractile_codec::encode_default(&dem, 0.8, &|_, _| {})

@@ -10,7 +10,7 @@
 //! (`gpu_memory_mib`); an asset replaced by upload has a new hash, hence new entries.
 //! Concurrent first requests for one operator wait for one upload rather than each flattening
 //! it: a projected DEM is flattened at 336 bytes a sample before it goes to the device as a
-//! lattice of 64 (for etopo20, 195 MB and about 0.1 s of a core, then 37 MB on the device), so
+//! lattice of 72 (for etopo20, 195 MB and about 0.1 s of a core, then 42 MB on the device), so
 //! sixteen tiles arriving together on a fresh server made sixteen copies. An
 //! operator the device refuses (its tables over the adapter's largest binding, or over the
 //! whole cache) is remembered for [`REFUSAL_TTL`], its requests decoded on the CPU meanwhile
@@ -96,8 +96,8 @@ impl GpuBackend {
 
     /// Whether `choice` sends a decode of `points` points of `a` here. `auto` leaves chunked
     /// assets on the CPU: each chunk's operator goes up when a request first touches it, at
-    /// 64 bytes a sample for the default DEM codec (12 times what the chunk cache holds of it),
-    /// flattened in 67 ms for a 1025 x 1080 chunk on a 2-core machine where a CPU tile takes
+    /// 72 bytes a sample for the default DEM codec (14 times what the chunk cache holds of it),
+    /// flattened in 68-74 ms for a 1025 x 1080 chunk on a 2-core machine where a CPU tile takes
     /// 2-4 ms; a DEM whose touched chunks overflow `gpu_memory_mib` would upload more than it
     /// decodes, and no GPU has measured where that pays yet. Asked for (`gpu`), they decode
     /// there, chunk by chunk. (A one-off window, `fractile decode`, visits each chunk once and
@@ -185,9 +185,9 @@ impl GpuBackend {
     /// The resident operator of the plane of `a` (or of one of its chunks) that the codec hands
     /// its hook, uploaded on first use; `None` when the device refused it. The upload's
     /// flattening is CPU work, which the caller runs on its core slot (a chunked asset's
-    /// chunks go up as requests first touch them, each 64 bytes a sample for the default DEM
-    /// codec: about 45 ms of a core for a 1024 x 1024 chunk); the decode that follows waits on
-    /// the device and runs off it.
+    /// chunks go up as requests first touch them, each 72 bytes a sample for the default DEM
+    /// codec: 68-74 ms on two cores for a 1025 x 1080 chunk); the decode that follows waits
+    /// on the device and runs off it.
     pub fn operator(&self, a: &StoredAsset, plane: PlaneRef<'_>) -> Option<Arc<GpuOperator>> {
         self.resident(a, (plane.chunk, plane.index), || {
             self.gpu.upload_flat(&plane.operator.flat())

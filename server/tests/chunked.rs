@@ -145,8 +145,9 @@ fn an_upload_with_a_corrupt_chunk_is_refused_whole() {
 }
 
 /// A chunked asset decodes on the GPU (lavapipe in CI) chunk by chunk, each chunk's operator
-/// resident under its own key: a tile across a chunk edge agrees with the CPU's within the two
-/// answers' convergence bounds, and so do points in two chunks; one upload a chunk and plane.
+/// resident under its own key: a tile across chunk edges is the CPU's within 1e-4 of the value
+/// range, with the same bound (chains end on the samples' interpolant on both), and so are
+/// points in two chunks; one upload a chunk and plane.
 #[tokio::test]
 async fn chunked_assets_decode_on_the_gpu_chunk_by_chunk() {
     let (store, _) = Store::open(dir()).unwrap();
@@ -157,12 +158,12 @@ async fn chunked_assets_decode_on_the_gpu_chunk_by_chunk() {
     st.gpu = Some(gpu.clone());
     // Tiles are cached whatever decoded them: the CPU's answers come from a server of its own.
     let (on_gpu, on_cpu) = (Arc::new(st), state());
-    // Zoom 3, tile (1, 3), finer than the source, at 12 steps (with the settled tolerance the
-    // chains stop early, each backend within its bound but further apart).
+    // Zoom 3, tile (1, 3), finer than the source, at the settled tolerance (chains stop on
+    // their cells' residual bounds, on both backends).
     let tile = "/v1/assets/chunked/tiles/3/1/3.f32";
     let mut answers = Vec::new();
     for (st, backend) in [(&on_cpu, "cpu"), (&on_gpu, "gpu")] {
-        let (s, h, body) = get(st, &format!("{tile}?backend={backend}&iterations=12")).await;
+        let (s, h, body) = get(st, &format!("{tile}?backend={backend}")).await;
         assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
         let bound: f32 = h["x-convergence-bound"].to_str().unwrap().parse().unwrap();
         answers.push((floats(&body), bound));
@@ -178,9 +179,11 @@ async fn chunked_assets_decode_on_the_gpu_chunk_by_chunk() {
         .map(|(c, g)| (c - g).abs())
         .fold(0.0f32, f32::max);
     assert!(cpu.iter().filter(|c| c.is_finite()).count() > 60_000);
+    // etopo20's heights span about 16,000 m.
+    assert!(worst <= 1e-4 * 16_000.0, "GPU against CPU: {worst} m");
     assert!(
-        worst <= b_cpu + b_gpu + 1e-4 * 16_000.0,
-        "GPU against CPU {worst}, bounds {b_cpu} and {b_gpu}"
+        (b_cpu - b_gpu).abs() <= 1e-3 * b_cpu,
+        "bounds {b_cpu} and {b_gpu}"
     );
     assert!(worst > 0.0, "the GPU's own answer, not the CPU's");
     // Points in two chunks of level 0, on the GPU, against the CPU's.
@@ -208,10 +211,14 @@ async fn chunked_assets_decode_on_the_gpu_chunk_by_chunk() {
     };
     for k in 0..2 {
         let (c, g) = (at(&points[0], k, "value"), at(&points[1], k, "value"));
-        let b = at(&points[0], k, "convergence_bound") + at(&points[1], k, "convergence_bound");
+        let (bc, bg) = (
+            at(&points[0], k, "convergence_bound"),
+            at(&points[1], k, "convergence_bound"),
+        );
+        assert!((c - g).abs() <= 1.6, "point {k}: CPU {c}, GPU {g}");
         assert!(
-            (c - g).abs() <= b + 1.0,
-            "point {k}: CPU {c}, GPU {g}, bounds {b}"
+            (bc - bg).abs() <= 1e-3 * bc,
+            "point {k}: bounds {bc} and {bg}"
         );
     }
     assert_eq!(gpu.uploads().1, 0);

@@ -141,7 +141,7 @@ impl Operator<2> for PieceTable {
 /// projected codec's quarter cells): what a device needs of it is then each piece's offset,
 /// a map a column and a row, and the contrast. 16 bytes a piece against 84 (80 for the piece
 /// and 4 of lookup): the projected codec's tables take 64 bytes a sample instead of 320
-/// (etopo20's 1080 x 540: 37 MB against 195). [`PieceTable::lattice`] finds it. Its `step`
+/// (etopo20's 1080 x 540: 37 MB against 195), 72 with its [`Ends`]. [`PieceTable::lattice`] finds it. Its `step`
 /// is the table's (the same data, the same arithmetic, bit for bit), written as the kernel's
 /// lattice branch computes it: the origin from the cell, the maps from the column and row.
 #[derive(Clone, Debug, PartialEq)]
@@ -167,12 +167,37 @@ pub struct Lattice {
     pub rows: Vec<[f32; 4]>,
     /// The operator's invariant interval.
     pub interval: (f32, f32),
+    /// Where chains end, for an operator whose chains end on its samples' interpolant rather
+    /// than on a constant seed (the projected codec's); `None`: on the seed.
+    pub ends: Option<Ends>,
+}
+
+/// Chains that end on S, the bilinear interpolant of samples at frame points `k + 0.5`, where
+/// the attractor is S plus a residual within a bound a cell (the projected codec's
+/// `run_chains`): a chain stops once `|prod s|` times its cell's bound is within the
+/// tolerance, and answers `acc_g + acc_s S(q)` within `|acc_s| R(q)` plus its own f32
+/// rounding, `(steps + 4) * ulps`. 8 bytes a sample on a device, for bounds as tight as the
+/// CPU's and the CPU's values, where a constant seed's bound is the whole invariant interval.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Ends {
+    /// Samples along x and y (at least two each).
+    pub size: [u32; 2],
+    /// The samples, normalised, row-major.
+    pub samples: Vec<f32>,
+    /// Each cell's bound on |f - S| (cells between samples, `(size - 1)` a side), row-major.
+    pub residual: Vec<f32>,
+    /// A chain's f32 rounding a step, added to its bound.
+    pub ulps: f32,
 }
 
 impl Lattice {
     /// Bytes the tables take on a device.
     pub fn device_bytes(&self) -> usize {
-        (self.offsets.len() + self.columns.len() + self.rows.len()) * 16
+        let ends = self
+            .ends
+            .as_ref()
+            .map_or(0, |e| 4 * (e.samples.len() + e.residual.len()));
+        (self.offsets.len() + self.columns.len() + self.rows.len()) * 16 + ends
     }
 }
 
@@ -221,6 +246,7 @@ impl PieceTable {
             columns,
             rows,
             interval: self.interval,
+            ends: None,
         })
     }
 }

@@ -573,16 +573,21 @@ impl ProjectedOperator {
         }
     }
 
+    /// The f32 rounding of a chain's sums a step, a few ulps of the largest value: with a bound
+    /// of |acc_s| R the chain's own rounding would no longer hide under it.
+    fn chain_ulps(&self) -> f32 {
+        let (lo, hi) = self.interval;
+        2f32.powi(-21) * lo.abs().max(hi.abs()).max(1.0)
+    }
+
     /// Ends a chain that has stopped on S at its point, folded into the callers' seed form
     /// (see [`Operator::run_chains`]).
     #[inline(always)]
     fn end_chain(&self, c: &mut Chain<2>) {
         let (lo, hi) = self.interval;
         let (mid, half) = (0.5 * (lo + hi), 0.5 * (hi - lo));
-        // The f32 rounding of a chain's sums, a few ulps of the largest value a step: with a
-        // bound of |acc_s| R the chain's own rounding would no longer hide under it.
-        let ulps = 2f32.powi(-21) * lo.abs().max(hi.abs()).max(1.0);
-        let bound = c.acc_s.abs() * self.residual_at(c.q) + (c.taken + 4) as f32 * ulps;
+        let bound =
+            c.acc_s.abs() * self.residual_at(c.q) + (c.taken + 4) as f32 * self.chain_ulps();
         let folded = bound / half;
         c.acc_g += c.acc_s * self.bilinear(c.q) - folded * mid;
         c.acc_s = folded;
@@ -809,6 +814,14 @@ impl ProjectedOperator {
             columns: (0..lx).map(|a| [map(a, nx), 1.0, 0.0, 0.0]).collect(),
             rows: (0..ly).map(|b| [map(b, ny), 0.0, 1.0, 0.0]).collect(),
             interval: self.interval,
+            ends: self.ends_on_samples().then(|| crate::core::pieces::Ends {
+                size: [nx as u32, ny as u32],
+                samples: self.z.to_vec(),
+                residual: (0..(nx - 1) * (ny - 1))
+                    .map(|k| self.residual_of(k % (nx - 1), k / (nx - 1)))
+                    .collect(),
+                ulps: self.chain_ulps(),
+            }),
         }
     }
 }
@@ -957,11 +970,27 @@ mod tests {
             // against a piece's 80 and its lookup entry's 4), a map a column and a row.
             let table = crate::core::pieces::Flatten::pieces(&op);
             let lattice = table.lattice().expect("the quarter cells are a lattice");
-            // Built directly, the same lattice.
+            // Built directly, the same lattice, with where chains end: the samples and each
+            // cell's residual bound, when chains end on them.
+            let crate::core::pieces::Flat::Lattice(direct) =
+                crate::core::pieces::Flatten::flat(&op)
+            else {
+                panic!("the projected codec flattens to a lattice");
+            };
+            let ends = direct.ends.clone();
             assert_eq!(
-                crate::core::pieces::Flatten::flat(&op),
-                crate::core::pieces::Flat::Lattice(lattice.clone())
+                crate::core::pieces::Lattice {
+                    ends: None,
+                    ..direct
+                },
+                lattice
             );
+            assert_eq!(ends.is_some(), op.ends_on_samples());
+            if let Some(e) = ends {
+                assert_eq!(e.samples.as_slice(), op.samples());
+                assert_eq!(e.residual.len(), (w - 1) * (h - 1));
+                assert_eq!(e.residual[w], op.residual_of(w % (w - 1), w / (w - 1)));
+            }
             // And from an operator holding no records (a chunk's), which builds them all for
             // its lattice at once rather than cell by cell: the same lattice.
             let lean = ProjectedOperator::samples_only(&hd, &g).expect("operator");
