@@ -534,7 +534,10 @@ impl Gpu {
         Ok((init("lut", lut), init("cells", cells)))
     }
 
-    /// Uploads a flattened operator (as a lattice when its table is one).
+    /// Uploads a flattened operator (as a lattice when its table is one). A table does not say
+    /// where its chains end: an operator whose chains end on its samples (the projected codec)
+    /// goes up with [`Gpu::upload_flat`] to be decoded as on the CPU; from its table its chains
+    /// end on the constant seed, within a wider bound.
     pub fn upload(&self, table: &PieceTable) -> Result<GpuOperator, GpuError> {
         match table.lattice() {
             Some(l) => self.upload_lattice(&l),
