@@ -50,6 +50,8 @@ pub struct GpuBackend {
     /// The bytes the resident operators may take.
     memory: u64,
     refused: moka::sync::Cache<Key, ()>,
+    /// Held through an upload: one operator is flattened at a time.
+    uploading: std::sync::Mutex<()>,
     /// Operators uploaded, and refused.
     uploads: [AtomicU64; 2],
 }
@@ -72,6 +74,7 @@ impl GpuBackend {
                 .time_to_live(REFUSAL_TTL)
                 .build(),
             uploads: Default::default(),
+            uploading: std::sync::Mutex::new(()),
         })
     }
 
@@ -138,7 +141,13 @@ impl GpuBackend {
                 );
                 why
             };
-            let op = upload().map_err(|e| refuse(e.to_string()))?;
+            // One upload at a time: flattening builds an operator's tables on every core, and
+            // a chunk's also its records, about 115 MB for a 1024 x 1024 chunk before it goes
+            // to the device; first touches of many chunks at once each held theirs.
+            let op = {
+                let _one = self.uploading.lock().unwrap_or_else(|e| e.into_inner());
+                upload().map_err(|e| refuse(e.to_string()))?
+            };
             // Tables over the whole cache would be evicted as soon as they are in, and
             // uploaded again by the next request.
             if op.bytes() as u64 > self.memory {
