@@ -100,7 +100,7 @@ impl GpuBackend {
     /// Whether `choice` sends a decode of `points` points of `a` here. `auto` leaves chunked
     /// assets on the CPU: each chunk's operator goes up when a request first touches it, at
     /// 72 bytes a sample for the default DEM codec (14 times what the chunk cache holds of it),
-    /// flattened in 68-74 ms for a 1025 x 1080 chunk on a 2-core machine where a CPU tile takes
+    /// flattened in 32-37 ms for a 1025 x 1080 chunk on a 2-core machine where a CPU tile takes
     /// 2-4 ms; a DEM whose touched chunks overflow `gpu_memory_mib` would upload more than it
     /// decodes, and no GPU has measured where that pays yet. Asked for (`gpu`), they decode
     /// there, chunk by chunk. (A one-off window, `fractile decode`, visits each chunk once and
@@ -141,9 +141,9 @@ impl GpuBackend {
                 );
                 why
             };
-            // One upload at a time: flattening builds an operator's tables on every core, and
-            // a chunk's also its records, about 115 MB for a 1024 x 1024 chunk before it goes
-            // to the device; first touches of many chunks at once each held theirs.
+            // One upload at a time: flattening builds an operator's tables on every core, 75 MB
+            // for a 1024 x 1024 chunk of the default DEM codec held until they are on the
+            // device; first touches of many chunks at once each held theirs.
             let op = {
                 let _one = self.uploading.lock().unwrap_or_else(|e| e.into_inner());
                 upload().map_err(|e| refuse(e.to_string()))?
@@ -195,7 +195,7 @@ impl GpuBackend {
     /// its hook, uploaded on first use; `None` when the device refused it. The upload's
     /// flattening is CPU work, which the caller runs on its core slot (a chunked asset's
     /// chunks go up as requests first touch them, each 72 bytes a sample for the default DEM
-    /// codec: 68-74 ms on two cores for a 1025 x 1080 chunk); the decode that follows waits
+    /// codec: 32-37 ms on two cores for a 1025 x 1080 chunk); the decode that follows waits
     /// on the device and runs off it.
     pub fn operator(&self, a: &StoredAsset, plane: PlaneRef<'_>) -> Option<Arc<GpuOperator>> {
         self.resident(a, (plane.chunk, plane.index), || {

@@ -152,7 +152,7 @@ impl ResidualCodes {
 }
 
 /// Rows of cells a task of the whole-grid passes takes (records, or their excesses).
-const BAND: usize = 32;
+pub(super) const BAND: usize = 32;
 
 impl ProjectedOperator {
     /// The records of the cells `[i0, i1) x [j0, j1)`, row-major.
