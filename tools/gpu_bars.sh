@@ -4,7 +4,8 @@
 # terrain-RGB tiles (the bar's format; ENCODING=terrarium for the earlier runs') of etopo20 (the
 # client's cold pyramid walk, 21,845 tiles) with backend=cpu and backend=gpu at 16, 32, 4 and 1
 # clients, and the same DEM in chunks at 16 clients, each on a freshly started server (32: more tiles in
-# flight than cores, which a GPU request that lends its core slot while it waits can use).
+# flight than cores, which a GPU request that lends its core slot while it waits can use), and
+# prints the bar's ratio for each (ratios.txt).
 # Run from the repository root after `cargo build --release` and `cargo bench -p fractile-gpu
 # --bench gpu --no-run`, or with BIN naming a folder holding `fractile`, `fractile-client` and
 # `gpu-bench` built elsewhere.
@@ -41,3 +42,10 @@ for run in cpu:16 gpu:16 cpu:16 gpu:16 cpu:32 gpu:32 cpu:4 gpu:4 cpu:1 gpu:1 cpu
   kill $pid; wait $pid 2>/dev/null
 done 2>&1 | tee "$OUT/tiles.txt"
 grep -h "GPU decoding" "$OUT/serve-gpu.log" | head -1
+# The bar's ratio, GPU tiles/s over CPU tiles/s, for each asset and client count (the mean of
+# the runs of each).
+awk '/^== /{split($3,b,"="); split($4,c,"="); key=$2" clients="c[2]; be=b[2]}
+     /tiles, cold/{n=split($0,f,"|"); split(f[5],t," "); s[key,be]+=t[1]; k[key,be]++; keys[key]=1}
+     END{for (x in keys) if (k[x,"cpu"] && k[x,"gpu"])
+       printf "%s: GPU/CPU %.2f (%.0f / %.0f tiles/s)\n", x, (s[x,"gpu"]/k[x,"gpu"])/(s[x,"cpu"]/k[x,"cpu"]), s[x,"gpu"]/k[x,"gpu"], s[x,"cpu"]/k[x,"cpu"]}' \
+  "$OUT/tiles.txt" | sort | tee "$OUT/ratios.txt"
