@@ -16,9 +16,11 @@
 //! slot for the wait ([`Cancel::off_core`]) and queues for one again to go on (to encode its
 //! PNG): a slot held through a GPU round trip left the cores idle while every slot waited on
 //! the device (on an H100, 16 slots each held 1.4 ms of GPU wait and 1.3 ms of PNG capped GPU
-//! tiles at about 16 / 2.75 ms, 5,800 a second; measured 5,150-5,300). The slot is queued for
-//! again behind the requests already waiting (the lane is first come, first served), so under
-//! overload a GPU request waits in the queue twice; its p99 shows it.
+//! tiles at about 16 / 2.75 ms, 5,800 a second; measured 5,150-5,300). Work coming back from
+//! its wait takes the next free slot before new requests do (`work/slots.rs`), so under overload it
+//! does not queue twice.
+
+mod slots;
 
 use std::io::Write;
 use std::sync::Arc;
@@ -28,6 +30,8 @@ use std::time::Duration;
 use axum::body::{Body, Bytes};
 use axum::response::Response;
 use tokio::sync::{OwnedSemaphorePermit, Semaphore, mpsc, oneshot};
+
+use slots::{SlotPermit, Slots};
 
 use crate::error::AppError;
 
@@ -46,7 +50,7 @@ const CHUNK_BYTES: usize = 256 << 10;
 /// The decoding lanes of a server.
 pub struct Lanes {
     /// Light slots: one per core.
-    light: Arc<Semaphore>,
+    light: Arc<Slots>,
     /// Heavy budget, in MiB.
     heavy: Arc<Semaphore>,
     heavy_mib: u32,
@@ -65,7 +69,7 @@ impl Lanes {
             .expect("a rayon pool for heavy decodes");
         let heavy_mib = heavy_mib.clamp(1, Semaphore::MAX_PERMITS as u32);
         Lanes {
-            light: Arc::new(Semaphore::new(cores.max(1))),
+            light: Slots::new(cores.max(1)),
             heavy: Arc::new(Semaphore::new(heavy_mib as usize)),
             heavy_mib,
             pool: Arc::new(pool),
@@ -79,16 +83,17 @@ impl Lanes {
 
     /// Whether a light slot is free now (readiness).
     pub fn light_free(&self) -> bool {
-        self.light.available_permits() > 0
+        self.light.free() > 0
     }
 
     /// Takes the lane that work of `bytes` belongs to (waiting for room), or refuses work
     /// larger than the whole heavy budget.
     async fn admit(&self, bytes: u64) -> Result<Admitted, AppError> {
         if bytes <= LIGHT_BYTES {
-            let permit = self.light.clone().acquire_owned().await.map_err(closed)?;
+            let slot = self.light.arrive().await;
             return Ok(Admitted {
-                permit: Some(permit),
+                _budget: None,
+                slot: Some(slot),
                 light: Some(self.light.clone()),
                 pool: None,
             });
@@ -111,7 +116,8 @@ impl Lanes {
             .await
             .map_err(closed)?;
         Ok(Admitted {
-            permit: Some(permit),
+            _budget: Some(permit),
+            slot: None,
             light: None,
             pool: Some(self.pool.clone()),
         })
@@ -250,10 +256,12 @@ fn closed(_: tokio::sync::AcquireError) -> AppError {
 
 /// A lane taken: its permit, and the pool heavy work runs in.
 struct Admitted {
-    /// A light slot or heavy MiB (`None` only while lent to the work's [`Cancel`]).
-    permit: Option<OwnedSemaphorePermit>,
+    /// Heavy work's MiB, held until the work is done (only its drop matters).
+    _budget: Option<OwnedSemaphorePermit>,
+    /// Light work's slot (`None` while lent to the work's [`Cancel`]).
+    slot: Option<SlotPermit>,
     /// The light lane, for a light slot: what [`Cancel::off_core`] gives back and takes again.
-    light: Option<Arc<Semaphore>>,
+    light: Option<Arc<Slots>>,
     pool: Option<Arc<rayon::ThreadPool>>,
 }
 
@@ -264,7 +272,7 @@ impl Admitted {
         if let Some(lane) = &self.light {
             *cancel.slot() = Some(Slot {
                 lane: lane.clone(),
-                permit: self.permit.take(),
+                permit: self.slot.take(),
             });
         }
         let out = match &self.pool {
@@ -272,7 +280,7 @@ impl Admitted {
             None => f(cancel),
         };
         if let Some(slot) = cancel.slot().take() {
-            self.permit = slot.permit;
+            self.slot = slot.permit;
         }
         out
     }
@@ -290,8 +298,8 @@ struct Work {
 
 /// A light slot held by running work, and its lane.
 struct Slot {
-    lane: Arc<Semaphore>,
-    permit: Option<OwnedSemaphorePermit>,
+    lane: Arc<Slots>,
+    permit: Option<SlotPermit>,
 }
 
 impl Cancel {
@@ -301,9 +309,9 @@ impl Cancel {
     }
 
     /// Runs `wait`, which waits on another device (a GPU decode), with the work's light slot
-    /// given back to its lane, then queues for a slot again: the cores serve other requests
-    /// meanwhile. Heavy work keeps its budget (the memory stays in use); outside a lane (tests)
-    /// it only runs `wait`.
+    /// given back to its lane, then takes one again ahead of new requests: the cores serve
+    /// other requests meanwhile. Blocks the calling thread (a blocking-pool thread). Heavy work
+    /// keeps its budget (the memory stays in use); outside a lane (tests) it only runs `wait`.
     pub fn off_core<T>(&self, wait: impl FnOnce() -> T) -> T {
         let lane = {
             let mut slot = self.slot();
@@ -313,14 +321,9 @@ impl Cancel {
         };
         let out = wait();
         if let Some(lane) = lane {
-            // On the blocking pool, outside any async context: blocking on the semaphore is
-            // what this thread is for. A closed lane (shutdown), or a thread outside the
-            // runtime (none calls this today), lets the work finish without a slot.
-            let permit = tokio::runtime::Handle::try_current()
-                .ok()
-                .and_then(|h| h.block_on(lane.acquire_owned()).ok());
+            let permit = lane.resume();
             if let Some(s) = self.slot().as_mut() {
-                s.permit = permit;
+                s.permit = Some(permit);
             }
         }
         out
@@ -430,6 +433,107 @@ mod tests {
         assert!(waited, "its wait ended by the second request's work");
         assert!(held_after, "it holds a slot again after the wait");
         assert!(lanes.light_free(), "both slots were given back");
+    }
+
+    /// Waits until the light lane's queues hold `queued` (resuming, arriving).
+    async fn until_queued(lanes: &Lanes, queued: (usize, usize)) {
+        for _ in 0..2000 {
+            if lanes.light.queued() == queued {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        panic!(
+            "the lane never queued {queued:?}: {:?}",
+            lanes.light.queued()
+        );
+    }
+
+    /// Work back from a device wait takes the next free slot before a request that arrived
+    /// during its wait (with one first-come queue it would run after it).
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn work_back_from_a_wait_goes_before_new_requests() {
+        let lanes = Arc::new(Lanes::new(1, 64));
+        let order = Arc::new(std::sync::Mutex::new(Vec::new()));
+        let (lent_tx, lent_rx) = oneshot::channel::<()>();
+        let (wait_tx, wait_rx) = std::sync::mpsc::channel::<()>();
+        let (hold_tx, hold_rx) = std::sync::mpsc::channel::<()>();
+        let (held_tx, held_rx) = oneshot::channel::<()>();
+        let spawn = |f: Box<dyn FnOnce(&Cancel) + Send>| {
+            let lanes = lanes.clone();
+            tokio::spawn(async move { lanes.run(0, f).await.unwrap() })
+        };
+        let o = order.clone();
+        let waiting = spawn(Box::new(move |cancel: &Cancel| {
+            cancel.off_core(|| {
+                let _ = lent_tx.send(());
+                wait_rx.recv_timeout(Duration::from_secs(20)).unwrap();
+            });
+            o.lock().unwrap().push("back from the wait");
+        }));
+        lent_rx.await.unwrap();
+        // A second request takes the lent slot and holds it.
+        let holding = spawn(Box::new(move |_: &Cancel| {
+            let _ = held_tx.send(());
+            hold_rx.recv_timeout(Duration::from_secs(20)).unwrap();
+        }));
+        held_rx.await.unwrap();
+        // A third arrives and queues; then the first's wait ends and it queues too.
+        let o = order.clone();
+        let arriving = spawn(Box::new(move |_: &Cancel| {
+            o.lock().unwrap().push("arrived")
+        }));
+        until_queued(&lanes, (0, 1)).await;
+        wait_tx.send(()).unwrap();
+        until_queued(&lanes, (1, 1)).await;
+        hold_tx.send(()).unwrap();
+        for task in [waiting, holding, arriving] {
+            task.await.unwrap();
+        }
+        assert_eq!(
+            *order.lock().unwrap(),
+            ["back from the wait", "arrived"],
+            "the slot freed went to the work in progress first"
+        );
+        assert!(lanes.light_free(), "the slot was given back");
+    }
+
+    /// A request dropped while it queues loses its place, not the lane's slot.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_request_dropped_in_the_queue_gives_its_slot_on() {
+        let lanes = Arc::new(Lanes::new(1, 64));
+        let (hold_tx, hold_rx) = std::sync::mpsc::channel::<()>();
+        let holding = {
+            let lanes = lanes.clone();
+            tokio::spawn(async move {
+                lanes
+                    .run(0, move |_| {
+                        hold_rx.recv_timeout(Duration::from_secs(20)).is_ok()
+                    })
+                    .await
+            })
+        };
+        until_slots_taken(&lanes).await;
+        let dropped = tokio::time::timeout(Duration::from_millis(50), lanes.run(0, |_| ())).await;
+        assert!(
+            dropped.is_err(),
+            "the second request queued behind the first"
+        );
+        hold_tx.send(()).unwrap();
+        assert!(holding.await.unwrap().unwrap());
+        let third = tokio::time::timeout(Duration::from_secs(10), lanes.run(0, |_| 3)).await;
+        assert_eq!(third.expect("the slot was not lost").unwrap(), 3);
+        assert!(lanes.light_free());
+    }
+
+    async fn until_slots_taken(lanes: &Lanes) {
+        for _ in 0..2000 {
+            if !lanes.light_free() {
+                return;
+            }
+            tokio::time::sleep(Duration::from_millis(5)).await;
+        }
+        panic!("the lane's slot was never taken");
     }
 
     /// Outside a lane, `off_core` only runs its closure.
