@@ -82,7 +82,7 @@ pub fn document() -> Value {
                     tolerance.clone(),
                     backend.clone(),
                     param("tilesize", "query", json!({"enum": [256, 512]}), "Tile size"),
-                    param("encoding", "query", json!({"enum": names::<HeightEncoding>()}), "Height packing (MapLibre's formulas)"),
+                    param("encoding", "query", json!({"enum": names::<HeightEncoding>()}), "Height packing of png tiles (MapLibre's formulas); refused with .f32"),
                     param("rescale", "query", json!({"type": "string"}), "min,max for visual PNGs of heights"),
                     param("colormap", "query", json!({"enum": names::<Colormap>()}), "Colour ramp for visual PNGs of heights"),
                     param("hillshade", "query", json!({"type": "boolean"}), "Hillshade visual PNGs of heights (sun at 315 degrees, 45 degrees up)"),

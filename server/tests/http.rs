@@ -386,6 +386,11 @@ async fn bad_requests_get_precise_errors() {
             "bad_encoding",
         ),
         (
+            "/v1/assets/jacksboro/tiles/10/0/0.f32?encoding=terrarium",
+            StatusCode::BAD_REQUEST,
+            "bad_encoding",
+        ),
+        (
             "/v1/assets/jacksboro/point/10,10",
             StatusCode::NOT_FOUND,
             "outside",

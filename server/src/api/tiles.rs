@@ -280,7 +280,14 @@ fn tile_format(
     a: &StoredAsset,
 ) -> Result<encoding::TileFormat, AppError> {
     Ok(match (ext, heights, q.encoding.as_deref()) {
-        ("f32", true, _) => encoding::TileFormat::F32,
+        ("f32", true, None) => encoding::TileFormat::F32,
+        // Refused rather than ignored: the caller expects encoded PNG heights.
+        ("f32", true, Some(e)) => {
+            return Err(AppError::bad_request(
+                "bad_encoding",
+                format!("encoding={e} is for png tiles; an f32 tile is raw float32 heights"),
+            ));
+        }
         ("f32", false, _) => {
             return Err(AppError::bad_request(
                 "bad_format",
