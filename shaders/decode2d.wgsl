@@ -7,8 +7,9 @@
 //   g, s bilinear in (u, v); phi(p) = n0 + nu u + nv v per axis
 //   value = sum_k g_k prod_{j<k} s_j + seed prod s, bound = |prod s| * half
 // A table that is a lattice (codec::core::pieces::Lattice, the projected codec's) comes as
-// its offsets alone: the piece is the cell, its origin the cell's, one contrast, phi's x by
-// column and y by row (Lattice::step). A lattice whose chains end on its samples
+// its offsets alone, a cell's coefficients or (BLOCKS) the corner values that blocks of 2 x 2
+// cells share: the piece is the cell, its origin the cell's, one contrast, phi's x by column
+// and y by row (Lattice::step). A lattice whose chains end on its samples
 // (codec::core::pieces::Ends, the projected codec's) stops a chain once |prod s| times its cell's
 // residual bound is within the tolerance and answers acc_g + acc_s S(p), S the bilinear
 // interpolant of the samples, within |acc_s| R(p) plus its rounding (ProjectedOperator::
@@ -62,6 +63,10 @@ struct Params {
 // contrast. A pipeline constant, not a uniform: each pipeline then has its own loop (a branch
 // on a uniform cost 40% of the kernel's time on lavapipe).
 override LATTICE: bool = false;
+// The lattice's offsets are in blocks of 2 x 2 cells (codec::core::pieces::Offsets::Blocks):
+// `pieces` holds, as consecutive floats, each block's values at its 3 x 3 corners, and a
+// cell's coefficients are computed from its four as `bilinear` does.
+override BLOCKS: bool = false;
 // The lattice's chains end on its samples: `lut` holds, after the maps, the samples and then
 // each cell's residual bound (f32 as u32 bits).
 override ENDS: bool = false;
@@ -77,6 +82,11 @@ const SPLIT: u32 = 0x80000000u;
 
 fn lut_vec4(k: u32) -> vec4<f32> {
     return bitcast<vec4<f32>>(vec4<u32>(lut[4u * k], lut[4u * k + 1u], lut[4u * k + 2u], lut[4u * k + 3u]));
+}
+
+// Value n of a lattice's blocks of offsets, which `pieces` holds as consecutive floats.
+fn block_value(n: u32) -> f32 {
+    return pieces[n / 4u][n % 4u];
 }
 
 fn unit_point(k: u32) -> vec2<f32> {
@@ -164,7 +174,17 @@ fn decode(k: u32) -> vec4<f32> {
             // The cell's origin: exact, the cell being a power of two.
             let origin = params.lut_origin + vec2<f32>(f32(cx), f32(cy)) * params.lut_cell;
             uv = clamp((p - origin) * params.inv_lut_cell, vec2<f32>(0.0), vec2<f32>(1.0));
-            g = pieces[cy * params.lut_size.x + cx];
+            if (BLOCKS) {
+                let n = 9u * ((cy / 2u) * (params.lut_size.x / 2u) + cx / 2u) + 3u * (cy % 2u) + cx % 2u;
+                let c00 = block_value(n);
+                let c10 = block_value(n + 1u);
+                let c01 = block_value(n + 3u);
+                let c11 = block_value(n + 4u);
+                // pieces::bilinear, in its order of operations.
+                g = vec4<f32>(c00, c10 - c00, c01 - c00, c00 - c10 - c01 + c11);
+            } else {
+                g = pieces[cy * params.lut_size.x + cx];
+            }
             s = params.contrast;
             nx = lut_vec4(cx);
             ny = lut_vec4(params.lut_size.x + cy);

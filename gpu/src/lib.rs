@@ -17,7 +17,7 @@ use bytemuck::{Pod, Zeroable};
 use fractile_codec::codecs::ifs3d::octree::OctreeOperator;
 use fractile_codec::core::decode::PointValue;
 use fractile_codec::core::operator::Operator;
-use fractile_codec::core::pieces::{Ends, Flat, Lattice, PieceTable};
+use fractile_codec::core::pieces::{Ends, Flat, Lattice, Offsets, PieceTable};
 use fractile_codec::extract::{Answer, Sites};
 use wgpu::util::DeviceExt;
 
@@ -56,6 +56,9 @@ pub enum GpuError {
     /// A table is over what one binding may hold.
     #[error("GPU: {0}")]
     TooLarge(String),
+    /// Tables whose parts do not fit together (a bug in the codec that flattened them).
+    #[error("GPU tables: {0}")]
+    Tables(String),
 }
 
 /// Uniforms of one dispatch; the layout of `Params` in the kernel (144 bytes).
@@ -131,15 +134,15 @@ struct Shape {
 }
 
 impl Shape {
-    /// The operator on the device: its two tables, their bytes, and a lattice's contrast and
-    /// ends.
+    /// The operator on the device: its two tables, their bytes, and the lattice they are, if
+    /// they are one (its contrast, the form of its offsets and its ends).
     fn operator(
         self,
         (lut, pieces): (wgpu::Buffer, wgpu::Buffer),
         bytes: usize,
-        lattice: Option<([f32; 4], Option<&Ends>)>,
+        lattice: Option<&Lattice>,
     ) -> GpuOperator {
-        let ends = lattice.and_then(|(_, e)| e);
+        let ends: Option<&Ends> = lattice.and_then(|l| l.ends.as_ref());
         let quantum = fractile_codec::core::decode::position_quantum(&self.frame);
         let (lo, hi) = self.interval;
         GpuOperator {
@@ -155,13 +158,16 @@ impl Shape {
                 quantum,
                 inv_quantum: 1.0 / quantum,
                 inv_lut_cell: self.lut_cell.map(|c| 1.0 / c),
-                contrast: lattice.map(|(c, _)| c).unwrap_or_default(),
+                contrast: lattice.map(|l| l.contrast).unwrap_or_default(),
                 ends_size: ends.map_or([0; 2], |e| e.size),
                 ulps: ends.map_or(0.0, |e| e.ulps),
                 ..Params::default()
             },
-            lattice: lattice.is_some(),
-            ends: ends.is_some(),
+            kernel: Kernel2d::of(
+                lattice.is_some(),
+                lattice.is_some_and(|l| matches!(l.offsets, Offsets::Blocks(_))),
+                ends.is_some(),
+            ),
             volume: None,
             bytes,
         }
@@ -318,6 +324,47 @@ impl GridValues {
     }
 }
 
+/// The specialisations of the 2D kernel (its pipeline constants), one a form of tables.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+struct Kernel2d {
+    /// The tables are a [`Lattice`]'s (`LATTICE`).
+    lattice: bool,
+    /// Its offsets are in blocks of cells sharing corners ([`Offsets::Blocks`], `BLOCKS`).
+    blocks: bool,
+    /// Its chains end on its samples ([`Ends`], `ENDS`).
+    ends: bool,
+}
+
+impl Kernel2d {
+    /// Every form a table can take (`blocks` and `ends` only with `lattice`).
+    const ALL: [Kernel2d; 5] = [
+        Kernel2d::of(false, false, false),
+        Kernel2d::of(true, false, false),
+        Kernel2d::of(true, false, true),
+        Kernel2d::of(true, true, false),
+        Kernel2d::of(true, true, true),
+    ];
+
+    const fn of(lattice: bool, blocks: bool, ends: bool) -> Kernel2d {
+        Kernel2d {
+            lattice,
+            blocks,
+            ends,
+        }
+    }
+
+    /// Its place in [`Kernel2d::ALL`].
+    fn index(self) -> usize {
+        match (self.lattice, self.blocks, self.ends) {
+            (false, ..) => 0,
+            (true, false, false) => 1,
+            (true, false, true) => 2,
+            (true, true, false) => 3,
+            (true, true, true) => 4,
+        }
+    }
+}
+
 /// An operator resident on the device (2D pieces, or a 3D octree when `volume` is set). A
 /// clone names the same device buffers.
 #[derive(Clone)]
@@ -325,10 +372,8 @@ pub struct GpuOperator {
     lut: wgpu::Buffer,
     pieces: wgpu::Buffer,
     params: Params,
-    /// The tables are a [`Lattice`]'s: the kernel specialised for lattices decodes it.
-    lattice: bool,
-    /// The lattice's chains end on its samples ([`Ends`]): the kernel specialised for that.
-    ends: bool,
+    /// Which specialisation of the 2D kernel decodes it.
+    kernel: Kernel2d,
     volume: Option<Params3>,
     bytes: usize,
 }
@@ -344,11 +389,8 @@ impl GpuOperator {
 pub struct Gpu {
     device: wgpu::Device,
     queue: wgpu::Queue,
-    pipeline: wgpu::ComputePipeline,
-    /// The 2D kernel specialised for lattices (its `LATTICE` constant set).
-    pipeline_lattice: wgpu::ComputePipeline,
-    /// The 2D kernel for lattices whose chains end on samples (`LATTICE` and `ENDS`).
-    pipeline_ends: wgpu::ComputePipeline,
+    /// The 2D kernel's specialisations, by [`Kernel2d::index`].
+    pipelines2d: Vec<wgpu::ComputePipeline>,
     pipeline3: wgpu::ComputePipeline,
     layout: wgpu::BindGroupLayout,
     info: wgpu::AdapterInfo,
@@ -433,27 +475,29 @@ impl Gpu {
             bind_group_layouts: &[Some(&layout)],
             immediate_size: 0,
         });
-        // Two pipelines of the 2D kernel, for piece tables and for lattices: a branch on a
-        // uniform in the loop cost 40% of the kernel's time on lavapipe (a 256 x 256 grid,
-        // 7.2 -> 10.0-11.4 ms), where a pipeline constant leaves each its own code.
-        let kernel2d = |lattice: bool, ends: bool| {
-            device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
-                label: Some("decode2d"),
-                layout: Some(&pipeline_layout),
-                module: &module,
-                entry_point: Some("main"),
-                compilation_options: wgpu::PipelineCompilationOptions {
-                    constants: &[
-                        ("LATTICE", f64::from(u8::from(lattice))),
-                        ("ENDS", f64::from(u8::from(ends))),
-                    ],
-                    ..Default::default()
-                },
-                cache: None,
+        // A pipeline of the 2D kernel for each form of tables: a branch on a uniform in the
+        // loop cost 40% of the kernel's time on lavapipe (a 256 x 256 grid, 7.2 -> 10.0-11.4
+        // ms), where pipeline constants leave each its own code.
+        let pipelines2d = Kernel2d::ALL
+            .iter()
+            .map(|k| {
+                device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
+                    label: Some("decode2d"),
+                    layout: Some(&pipeline_layout),
+                    module: &module,
+                    entry_point: Some("main"),
+                    compilation_options: wgpu::PipelineCompilationOptions {
+                        constants: &[
+                            ("LATTICE", f64::from(u8::from(k.lattice))),
+                            ("BLOCKS", f64::from(u8::from(k.blocks))),
+                            ("ENDS", f64::from(u8::from(k.ends))),
+                        ],
+                        ..Default::default()
+                    },
+                    cache: None,
+                })
             })
-        };
-        let (pipeline, pipeline_lattice) = (kernel2d(false, false), kernel2d(true, false));
-        let pipeline_ends = kernel2d(true, true);
+            .collect();
         // The 3D kernel binds the same buffers: one layout for both.
         let pipeline3 = device.create_compute_pipeline(&wgpu::ComputePipelineDescriptor {
             label: Some("decode3d"),
@@ -467,9 +511,7 @@ impl Gpu {
         Ok(Gpu {
             device,
             queue,
-            pipeline,
-            pipeline_lattice,
-            pipeline_ends,
+            pipelines2d,
             pipeline3,
             layout,
             info,
@@ -481,13 +523,7 @@ impl Gpu {
 
     /// The 2D kernel for `op`'s tables.
     fn kernel2d(&self, op: &GpuOperator) -> &wgpu::ComputePipeline {
-        if op.ends {
-            &self.pipeline_ends
-        } else if op.lattice {
-            &self.pipeline_lattice
-        } else {
-            &self.pipeline
-        }
+        &self.pipelines2d[op.kernel.index()]
     }
 
     /// The adapter, as "name (backend, device type)".
@@ -578,7 +614,23 @@ impl Gpu {
             lut.extend_from_slice(bytemuck::cast_slice(&e.samples));
             lut.extend_from_slice(bytemuck::cast_slice(&e.residual));
         }
-        let tables = self.tables(&lut, bytemuck::cast_slice(&l.offsets))?;
+        let offsets: Vec<u8> = match &l.offsets {
+            Offsets::Cells(c) => bytemuck::cast_slice(c).to_vec(),
+            Offsets::Blocks(b) => {
+                let [lx, ly] = l.lut_size.map(|n| n as usize);
+                if lx % 2 != 0 || ly % 2 != 0 || 4 * b.len() != lx * ly {
+                    return Err(GpuError::Tables(format!(
+                        "a lattice of {lx} x {ly} cells cannot hold its offsets in {} blocks of 2 x 2",
+                        b.len()
+                    )));
+                }
+                // Whole vec4s: the kernel reads the blocks' values from an array of vec4.
+                let mut v = bytemuck::cast_slice(b).to_vec();
+                v.resize(l.offsets.device_bytes(), 0);
+                v
+            }
+        };
+        let tables = self.tables(&lut, &offsets)?;
         let shape = Shape {
             frame: l.frame,
             valid: l.valid,
@@ -587,11 +639,7 @@ impl Gpu {
             lut_size: l.lut_size,
             interval: l.interval,
         };
-        Ok(shape.operator(
-            tables,
-            l.device_bytes(),
-            Some((l.contrast, l.ends.as_ref())),
-        ))
+        Ok(shape.operator(tables, l.device_bytes(), Some(l)))
     }
 
     /// Seconds the device takes to decode a `width x height` window of the whole unit square
@@ -650,8 +698,7 @@ impl Gpu {
             lut,
             pieces: cells,
             params: Params::default(),
-            lattice: false,
-            ends: false,
+            kernel: Kernel2d::default(),
             volume: Some(Params3 {
                 seed: (lo + hi) * 0.5,
                 half: (hi - lo) * 0.5,

@@ -9,9 +9,10 @@
 //! Operators are uploaded on first use and stay resident in an LRU cache bounded in bytes
 //! (`gpu_memory_mib`); an asset replaced by upload has a new hash, hence new entries.
 //! Concurrent first requests for one operator wait for one upload rather than each flattening
-//! it: a projected DEM is flattened at 336 bytes a sample before it goes to the device as a
-//! lattice of 72 (for etopo20, 195 MB and about 0.1 s of a core, then 42 MB on the device), so
-//! sixteen tiles arriving together on a fresh server made sixteen copies. An
+//! it: a projected DEM was flattened at 336 bytes a sample before it went to the device (for
+//! etopo20, 195 MB and about 0.1 s of a core; it now goes as a lattice of 44 bytes a sample,
+//! 26 MB, built in 3 ms), so sixteen tiles arriving together on a fresh server made sixteen
+//! copies. An
 //! operator the device refuses (its tables over the adapter's largest binding, or over the
 //! whole cache) is remembered for [`REFUSAL_TTL`], its requests decoded on the CPU meanwhile
 //! without trying again: before, every request flattened the tables again to be refused again,
@@ -99,9 +100,9 @@ impl GpuBackend {
 
     /// Whether `choice` sends a decode of `points` points of `a` here. `auto` leaves chunked
     /// assets on the CPU: each chunk's operator goes up when a request first touches it, at
-    /// 72 bytes a sample for the default DEM codec (14 times what the chunk cache holds of it),
-    /// flattened in 32-37 ms for a 1025 x 1080 chunk on a 2-core machine where a CPU tile takes
-    /// 2-4 ms; a DEM whose touched chunks overflow `gpu_memory_mib` would upload more than it
+    /// 44 bytes a sample for the default DEM codec (about 9 times what the chunk cache holds of
+    /// it), flattened in 19 ms for a 1025 x 1080 chunk on a 2-core machine where a CPU tile
+    /// takes 2-4 ms; a DEM whose touched chunks overflow `gpu_memory_mib` would upload more than it
     /// decodes, and no GPU has measured where that pays yet. Asked for (`gpu`), they decode
     /// there, chunk by chunk. (A one-off window, `fractile decode`, visits each chunk once and
     /// takes the GPU on `auto` as a whole asset does.)
@@ -194,8 +195,8 @@ impl GpuBackend {
     /// The resident operator of the plane of `a` (or of one of its chunks) that the codec hands
     /// its hook, uploaded on first use; `None` when the device refused it. The upload's
     /// flattening is CPU work, which the caller runs on its core slot (a chunked asset's
-    /// chunks go up as requests first touch them, each 72 bytes a sample for the default DEM
-    /// codec: 32-37 ms on two cores for a 1025 x 1080 chunk); the decode that follows waits
+    /// chunks go up as requests first touch them, each 44 bytes a sample for the default DEM
+    /// codec: 19 ms on two cores for a 1025 x 1080 chunk); the decode that follows waits
     /// on the device and runs off it.
     pub fn operator(&self, a: &StoredAsset, plane: PlaneRef<'_>) -> Option<Arc<GpuOperator>> {
         self.resident(a, (plane.chunk, plane.index), || {

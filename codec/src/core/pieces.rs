@@ -138,12 +138,13 @@ impl Operator<2> for PieceTable {
 
 /// A [`PieceTable`] whose pieces are its lookup cells, one a cell and none split, with one
 /// contrast for all, each piece's map along x set by its column and along y by its row (the
-/// projected codec's quarter cells): what a device needs of it is then each piece's offset,
-/// a map a column and a row, and the contrast. 16 bytes a piece against 84 (80 for the piece
-/// and 4 of lookup): the projected codec's tables take 64 bytes a sample instead of 320
-/// (etopo20's 1080 x 540: 37 MB against 195), 72 with its [`Ends`]. [`PieceTable::lattice`] finds it. Its `step`
-/// is the table's (the same data, the same arithmetic, bit for bit), written as the kernel's
-/// lattice branch computes it: the origin from the cell, the maps from the column and row.
+/// projected codec's quarter cells): what a device needs of it is then each piece's offset
+/// ([`Offsets`]), a map a column and a row, and the contrast. 16 bytes a piece against 84 (80
+/// for the piece and 4 of lookup), 9 where cells share corners in blocks: the projected
+/// codec's tables take 36 bytes a sample instead of 336 (etopo20's 1080 x 540: 21 MB against
+/// 195), 44 with its [`Ends`]. [`PieceTable::lattice`] finds one in a table. Its `step` is the
+/// table's (the same data, the same arithmetic, bit for bit), written as the kernel's lattice
+/// branch computes it: the origin from the cell, the maps from the column and row.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Lattice {
     /// The operator's frame.
@@ -159,8 +160,8 @@ pub struct Lattice {
     pub lut_size: [u32; 2],
     /// The contrast of every piece: constant, u, v and u v coefficients.
     pub contrast: [f32; 4],
-    /// Each cell's offset (constant, u, v, u v), row-major.
-    pub offsets: Vec<[f32; 4]>,
+    /// Each cell's offset.
+    pub offsets: Offsets,
     /// phi's x (constant, u, v, pad) of each column.
     pub columns: Vec<[f32; 4]>,
     /// phi's y (constant, u, v, pad) of each row.
@@ -190,6 +191,51 @@ pub struct Ends {
     pub ulps: f32,
 }
 
+/// The offsets of a [`Lattice`]'s cells, bilinear in each cell.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Offsets {
+    /// Each cell's coefficients (constant, u, v, u v), row-major: any lattice.
+    Cells(Vec<[f32; 4]>),
+    /// Each block of 2 x 2 cells' values at its 3 x 3 corners (row-major in the block; blocks
+    /// row-major, half the cells a side): cell (x, y)'s offset is [`bilinear`] of the corners
+    /// `(x % 2 + a, y % 2 + b)` of block `(x / 2, y / 2)`, the coefficients `Cells` would hold
+    /// to the bit. The projected codec's quarter cells, whose corners each of its cells
+    /// shares among its four quarters: 36 bytes a block against 64.
+    Blocks(Vec<[f32; 9]>),
+}
+
+impl Offsets {
+    /// Cell `(x, y)`'s coefficients, on a lattice of `columns` cells a row.
+    #[inline]
+    pub fn of(&self, x: usize, y: usize, columns: usize) -> [f32; 4] {
+        match self {
+            Offsets::Cells(c) => c[y * columns + x],
+            Offsets::Blocks(b) => {
+                let r = &b[(y / 2) * (columns / 2) + x / 2];
+                let n = 3 * (y % 2) + x % 2;
+                bilinear([r[n], r[n + 1], r[n + 3], r[n + 4]])
+            }
+        }
+    }
+
+    /// Cells they cover.
+    pub fn cells(&self) -> usize {
+        match self {
+            Offsets::Cells(c) => c.len(),
+            Offsets::Blocks(b) => 4 * b.len(),
+        }
+    }
+
+    /// Their bytes on a device.
+    pub fn device_bytes(&self) -> usize {
+        match self {
+            Offsets::Cells(c) => 16 * c.len(),
+            // Padded to whole vec4s: the kernel reads them from an array of vec4.
+            Offsets::Blocks(b) => (36 * b.len()).next_multiple_of(16),
+        }
+    }
+}
+
 impl Lattice {
     /// Bytes the tables take on a device.
     pub fn device_bytes(&self) -> usize {
@@ -197,7 +243,7 @@ impl Lattice {
             .ends
             .as_ref()
             .map_or(0, |e| 4 * (e.samples.len() + e.residual.len()));
-        (self.offsets.len() + self.columns.len() + self.rows.len()) * 16 + ends
+        self.offsets.device_bytes() + (self.columns.len() + self.rows.len()) * 16 + ends
     }
 }
 
@@ -242,7 +288,7 @@ impl PieceTable {
             lut_cell: self.lut_cell,
             lut_size: self.lut_size,
             contrast,
-            offsets: self.pieces.iter().map(|p| p.g).collect(),
+            offsets: Offsets::Cells(self.pieces.iter().map(|p| p.g).collect()),
             columns,
             rows,
             interval: self.interval,
@@ -275,7 +321,7 @@ impl Operator<2> for Lattice {
         let bil = |c: [f32; 4]| c[0] + c[1] * u + c[2] * v + c[3] * u * v;
         let (nx, ny) = (self.columns[cx], self.rows[cy]);
         Step {
-            offset: bil(self.offsets[cy * self.lut_size[0] as usize + cx]),
+            offset: bil(self.offsets.of(cx, cy, self.lut_size[0] as usize)),
             contrast: bil(self.contrast),
             next: [nx[0] + nx[1] * u + nx[2] * v, ny[0] + ny[1] * u + ny[2] * v],
         }

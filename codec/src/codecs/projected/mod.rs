@@ -733,17 +733,18 @@ impl Operator<2> for ProjectedOperator {
 
 impl crate::core::pieces::Flatten for ProjectedOperator {
     /// Four pieces per cell, one per quarter (336 bytes a sample as a table; the GPU takes the
-    /// lattice of `flat`, 64).
+    /// lattice of `flat`, 36).
     fn pieces(&self) -> crate::core::pieces::PieceTable {
         use crate::core::pieces::{Piece, PieceTable};
         let q = self.quarters();
-        let pieces = (0..q.offsets.len())
+        let lx = q.columns.len();
+        let pieces = (0..q.offsets.cells())
             .map(|k| {
-                let (a, b) = (k % q.columns.len(), k / q.columns.len());
+                let (a, b) = (k % lx, k / lx);
                 Piece {
                     origin: [0.5 + 0.5 * a as f32, 0.5 + 0.5 * b as f32],
                     inv_size: [2.0, 2.0],
-                    g: q.offsets[k],
+                    g: q.offsets.of(a, b, lx),
                     s: q.contrast,
                     next_x: q.columns[a],
                     next_y: q.rows[b],
@@ -770,46 +771,35 @@ impl crate::core::pieces::Flatten for ProjectedOperator {
 
 impl ProjectedOperator {
     /// The quarter cells (a lattice on the half-sample grid from the first sample centre): a
-    /// quarter's offset is the bilinear function through its corners' values; its map doubles
-    /// it about the centre of its block.
+    /// quarter's offset is the bilinear function through its corners' values, which are its
+    /// cell's record (the lattice's offsets in blocks, a block a cell); its map doubles it about
+    /// the centre of its block.
     fn quarters(&self) -> crate::core::pieces::Lattice {
-        use crate::core::pieces::bilinear;
         let [nx, ny] = self.size;
         let (lx, ly) = (2 * (nx - 1), 2 * (ny - 1));
         let map = |a: usize, n: usize| {
             let x0 = 0.5 * a as f32;
             2.0 * x0 - block(a / 2, n) as f32 + 0.5
         };
-        // Rows of quarters on every core. An operator that holds records for only part of its
-        // cells (a chunk's holds none: a request builds those of its own cells) has them built
-        // here from the half lattices a band of cell rows at a time, the same bits as
-        // `quarter`'s direct evaluation, which took a 1025 x 1080 chunk 850 ms against 100 ms
-        // for a whole 2160 x 1080 asset; a band at a time, not all at once, so that the
-        // records (36 bytes a cell) are never all held beside the lattice.
-        use rayon::prelude::*;
         let whole = self.region.origin == [0, 0] && self.region.size == [nx - 1, ny - 1];
-        let corners = |r: &[f32; 9], qa: usize, qb: usize| {
-            let n = 3 * qb + qa;
-            [r[n], r[n + 1], r[n + 3], r[n + 4]]
+        let records = if whole {
+            self.records.clone()
+        } else {
+            // An operator that holds records for only part of its cells (a chunk's holds
+            // none: a request builds those of its own cells) builds them from the half
+            // lattices, a band of cell rows at a time on every core, the same bits as
+            // `quarter`'s direct evaluation (which took a 1025 x 1080 chunk 850 ms).
+            use rayon::prelude::*;
+            let mut all = vec![[0.0f32; 9]; (nx - 1) * (ny - 1)];
+            all.par_chunks_mut(records::BAND * (nx - 1))
+                .enumerate()
+                .for_each(|(band, out)| {
+                    let j0 = band * records::BAND;
+                    let j1 = (j0 + records::BAND).min(ny - 1);
+                    self.records_into([0, j0, nx - 1, j1], out);
+                });
+            all
         };
-        let mut offsets = vec![[0.0f32; 4]; lx * ly];
-        let rows_of_band = 2 * records::BAND * lx;
-        offsets
-            .par_chunks_mut(rows_of_band)
-            .enumerate()
-            .for_each(|(band, out)| {
-                let j0 = band * records::BAND;
-                let built = (!whole)
-                    .then(|| self.records_for([0, j0, nx - 1, (j0 + records::BAND).min(ny - 1)]));
-                for (k, o) in out.iter_mut().enumerate() {
-                    let (a, b) = (k % lx, k / lx);
-                    let (i, j) = (a / 2, j0 + b / 2);
-                    *o = bilinear(match &built {
-                        Some(r) => corners(&r[(b / 2) * (nx - 1) + i], a % 2, b % 2),
-                        None => self.quarter(i, j, a % 2, b % 2),
-                    });
-                }
-            });
         crate::core::pieces::Lattice {
             frame: self.frame(),
             valid: self.valid,
@@ -817,7 +807,7 @@ impl ProjectedOperator {
             lut_cell: [0.5; 2],
             lut_size: [lx as u32, ly as u32],
             contrast: [self.rho, 0.0, 0.0, 0.0],
-            offsets,
+            offsets: crate::core::pieces::Offsets::Blocks(records),
             columns: (0..lx).map(|a| [map(a, nx), 1.0, 0.0, 0.0]).collect(),
             rows: (0..ly).map(|b| [map(b, ny), 0.0, 1.0, 0.0]).collect(),
             interval: self.interval,
@@ -985,10 +975,25 @@ mod tests {
                 panic!("the projected codec flattens to a lattice");
             };
             let ends = direct.ends.clone();
+            let direct = crate::core::pieces::Lattice {
+                ends: None,
+                ..direct
+            };
+            let [lx, ly] = table.lut_size.map(|n| n as usize);
+            // Its offsets in blocks, a cell's record shared by its four quarters, are the
+            // table's coefficients cell by cell.
+            use crate::core::pieces::Offsets;
+            let Offsets::Blocks(blocks) = &direct.offsets else {
+                panic!("the quarter cells' offsets go in blocks");
+            };
+            assert_eq!(blocks.len() * 4, lx * ly);
+            let cells = (0..lx * ly)
+                .map(|k| direct.offsets.of(k % lx, k / lx, lx))
+                .collect();
             assert_eq!(
                 crate::core::pieces::Lattice {
-                    ends: None,
-                    ..direct
+                    offsets: Offsets::Cells(cells),
+                    ..direct.clone()
                 },
                 lattice
             );
@@ -999,23 +1004,21 @@ mod tests {
                 assert_eq!(e.residual[w], op.residual_of(w % (w - 1), w / (w - 1)));
             }
             // And from an operator holding no records (a chunk's), which builds them all for
-            // its lattice at once rather than cell by cell: the same lattice.
+            // its lattice by bands rather than holding them: the same lattice.
             let lean = ProjectedOperator::samples_only(&hd, &g).expect("operator");
-            assert_eq!(
-                crate::core::pieces::Flatten::flat(&lean),
-                crate::core::pieces::Flat::Lattice(lattice.clone())
-            );
-            let [lx, ly] = table.lut_size.map(|n| n as usize);
-            assert_eq!(
-                (
-                    lattice.offsets.len(),
-                    lattice.columns.len(),
-                    lattice.rows.len()
-                ),
-                (lx * ly, lx, ly)
-            );
+            let crate::core::pieces::Flat::Lattice(lean) =
+                crate::core::pieces::Flatten::flat(&lean)
+            else {
+                panic!("the projected codec flattens to a lattice");
+            };
+            assert_eq!(crate::core::pieces::Lattice { ends: None, ..lean }, direct);
+            assert_eq!((direct.columns.len(), direct.rows.len()), (lx, ly));
             assert_eq!(table.device_bytes(), 84 * lx * ly);
             assert_eq!(lattice.device_bytes(), 16 * (lx * ly + lx + ly));
+            assert_eq!(
+                direct.device_bytes(),
+                (9 * lx * ly).next_multiple_of(16) + 16 * (lx + ly)
+            );
             // Chains that end on the bilinear interpolant against chains from a constant seed:
             // within the sum of their bounds, with the tolerance reached in fewer steps.
             let probe: Vec<[f32; 2]> = (0..997)

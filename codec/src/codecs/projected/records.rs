@@ -163,7 +163,7 @@ impl ProjectedOperator {
     }
 
     /// [`Self::records_for`] into `out`.
-    fn records_into(&self, [i0, j0, i1, j1]: [usize; 4], out: &mut [[f32; 9]]) {
+    pub(super) fn records_into(&self, [i0, j0, i1, j1]: [usize; 4], out: &mut [[f32; 9]]) {
         let [nx, ny] = self.size;
         let z = &self.z;
         let fine = HalfLattice::over(self.size, [i0, j0, i1, j1], |x, y| z[y * nx + x]);
