@@ -313,6 +313,12 @@ impl Cancel {
     /// other requests meanwhile. Blocks the calling thread (a blocking-pool thread). Heavy work
     /// keeps its budget (the memory stays in use); outside a lane (tests) it only runs `wait`.
     pub fn off_core<T>(&self, wait: impl FnOnce() -> T) -> T {
+        // On a rayon worker the work keeps its slot: taking one back would block the worker
+        // behind slot holders that may be waiting on the same pool. (Hooks run on the
+        // request's own thread today; this keeps a parallel caller from deadlocking.)
+        if rayon::current_thread_index().is_some() {
+            return wait();
+        }
         let lane = {
             let mut slot = self.slot();
             // Dropping the permit is the giving back.
@@ -534,6 +540,26 @@ mod tests {
             tokio::time::sleep(Duration::from_millis(5)).await;
         }
         panic!("the lane's slot was never taken");
+    }
+
+    /// On a rayon worker, work keeps its slot through a wait rather than block the worker to
+    /// take one back.
+    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
+    async fn a_wait_on_a_rayon_worker_keeps_its_slot() {
+        let lanes = Arc::new(Lanes::new(1, 64));
+        let inner = lanes.clone();
+        let held = lanes
+            .run(0, move |cancel| {
+                let pool = rayon::ThreadPoolBuilder::new()
+                    .num_threads(1)
+                    .build()
+                    .unwrap();
+                pool.install(|| cancel.off_core(|| !inner.light_free()))
+            })
+            .await
+            .unwrap();
+        assert!(held, "the slot stayed held through the wait");
+        assert!(lanes.light_free(), "and was given back after");
     }
 
     /// Outside a lane, `off_core` only runs its closure.
