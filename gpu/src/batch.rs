@@ -18,13 +18,16 @@
 //! against 220 unbatched (129 at completion).
 //!
 //! Each grid's dispatch is the one [`Gpu::grid_values`] records for it alone (same kernel,
-//! same parameters), so answers are bit for bit those of an unbatched dispatch.
+//! same parameters, its own ranges of the round's buffers), so answers are bit for bit those
+//! of an unbatched dispatch.
 
 use std::collections::VecDeque;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::sync::{Mutex, mpsc};
 
-use crate::{Dispatch, Gpu, GpuError, GpuOperator, GridValues, Params, Read, map_read};
+use wgpu::util::DeviceExt;
+
+use crate::{Gpu, GpuError, GpuOperator, GridValues, Params, WORKGROUP, map_read};
 
 /// Largest grid sent through rounds: a 512-pixel tile with a margin and filtering to spare.
 pub(crate) const GRID_POINTS: usize = 1 << 19;
@@ -96,6 +99,24 @@ impl Drop for PassLead<'_> {
     }
 }
 
+/// A round's buffers, shared by its grids, and each grid's share of them.
+struct Round {
+    /// Every grid's values, each at its range.
+    values: wgpu::Buffer,
+    /// Every grid's summary (bound and steps), one `align` apart.
+    summary: wgpu::Buffer,
+    /// The offset alignment of every range.
+    align: u64,
+    /// Each grid's (offset, bytes) in the axes buffer, then in `values`.
+    ranges: Vec<[(u64, u64); 2]>,
+    /// Each grid's workgroups.
+    groups: Vec<(u32, u32)>,
+    /// Each grid's bind group.
+    binds: Vec<wgpu::BindGroup>,
+    /// Uniforms, axes and the unused results binding: held until the round is recorded.
+    _inputs: [wgpu::Buffer; 3],
+}
+
 impl Gpu {
     /// Decodes one grid (`params.count` points, at most [`GRID_POINTS`]) in the next round.
     pub(crate) fn grid_values_in_round(
@@ -163,48 +184,44 @@ impl Gpu {
         }
     }
 
-    /// One submission and one read-back for `items`.
+    /// One submission and one read-back for `items`, their inputs and outputs in buffers
+    /// shared by the round, each grid bound to its own ranges of them.
+    ///
+    /// Why shared: on an H100 a round's period grew by 0.155 ms a grid whatever its size
+    /// (rounds of 4.7, 8.8 and 16.7 grids: 0.73, 1.4 and 2.6 ms), and rounds are led one at a
+    /// time, so uncached tiles stopped near 6,500 a second with a third of the cores idle. A
+    /// grid made five buffers of its own (and dropped them after), each an allocation under
+    /// wgpu's device locks: the serial work that grew with the round. Now a round makes six buffers whatever its size, and a grid
+    /// only its bind group: 5,985-6,149 -> 6,672-7,164 tiles a second at 64 clients
+    /// (docs/benchmarks.md).
     fn decode_round(
         &self,
         items: &[Item],
         pass: PassLead<'_>,
     ) -> Result<Vec<GridValues>, GpuError> {
+        let round = self.round_buffers(items);
         let mut encoder = self
             .device
             .create_command_encoder(&wgpu::CommandEncoderDescriptor {
                 label: Some("decode2d round"),
             });
-        let recorded: Vec<_> = items
-            .iter()
-            .map(|it| {
-                self.record(
-                    &mut encoder,
-                    Dispatch {
-                        pipeline: self.kernel2d(&it.op),
-                        op: &it.op,
-                        count: it.params.count as usize,
-                        uniform: &|row| bytemuck::bytes_of(&Params { row, ..it.params }).to_vec(),
-                        points: bytemuck::cast_slice(&it.axes),
-                        read: Read::Values,
-                    },
-                )
-            })
-            .collect();
-        // Each grid's values then its summary's two words, one after another (all multiples of
-        // four bytes, as copies need).
-        let offsets: Vec<u64> = recorded
-            .iter()
-            .scan(0, |at, r| {
-                let o = *at;
-                *at += r.readback_bytes();
-                Some(o)
-            })
-            .collect();
-        let size = recorded.iter().map(|r| r.readback_bytes()).sum();
-        let readback = self.readback(size);
-        for (r, &o) in recorded.iter().zip(&offsets) {
-            r.copy_to(&mut encoder, &readback, o);
+        {
+            let mut compute = encoder.begin_compute_pass(&wgpu::ComputePassDescriptor {
+                label: Some("decode2d round"),
+                timestamp_writes: None,
+            });
+            for ((it, bind), &(gx, gy)) in items.iter().zip(&round.binds).zip(&round.groups) {
+                compute.set_pipeline(self.kernel2d(&it.op));
+                compute.set_bind_group(0, bind, &[]);
+                compute.dispatch_workgroups(gx, gy, 1);
+            }
         }
+        // The values, then the summaries.
+        let (values_total, align) = (round.values.size(), round.align);
+        let summaries = round.summary.size();
+        let readback = self.readback(values_total + summaries);
+        encoder.copy_buffer_to_buffer(&round.values, 0, &readback, 0, values_total);
+        encoder.copy_buffer_to_buffer(&round.summary, 0, &readback, values_total, summaries);
         self.queue.submit([encoder.finish()]);
         let mapped = map_read(&readback);
         drop(pass);
@@ -213,13 +230,15 @@ impl Gpu {
             .slice(..)
             .get_mapped_range()
             .map_err(|e| GpuError::Readback(e.to_string()))?;
-        let answers = recorded
+        let answers = items
             .iter()
-            .zip(offsets)
-            .map(|(r, o)| {
-                let (o, n) = (o as usize, r.values_bytes as usize);
-                let word = |k: usize| {
-                    u32::from_le_bytes(view[o + n + 4 * k..o + n + 4 * k + 4].try_into().unwrap())
+            .zip(&round.ranges)
+            .enumerate()
+            .map(|(k, (it, &[_, (o, _)]))| {
+                let (o, n) = (o as usize, it.params.count as usize * 4);
+                let s = values_total as usize + k * align as usize;
+                let word = |w: usize| {
+                    u32::from_le_bytes(view[s + 4 * w..s + 4 * w + 4].try_into().unwrap())
                 };
                 let bound = f32::from_bits(word(0));
                 GridValues {
@@ -238,5 +257,110 @@ impl Gpu {
         drop(view);
         readback.unmap();
         Ok(answers)
+    }
+
+    /// The buffers of a round of `items` and each grid's bind group to its ranges of them.
+    fn round_buffers(&self, items: &[Item]) -> Round {
+        let dev = &self.device;
+        let limits = dev.limits();
+        // One alignment for every range: a uniform's and a storage binding's offset alike.
+        let align = u64::from(
+            limits
+                .min_uniform_buffer_offset_alignment
+                .max(limits.min_storage_buffer_offset_alignment),
+        );
+        let up = |n: u64| n.div_ceil(align) * align;
+        let params_bytes = std::mem::size_of::<Params>() as u64;
+        // Each grid's share of the round's buffers: (offset, bytes) of its axes and values.
+        let mut at = (0, 0);
+        let ranges: Vec<[(u64, u64); 2]> = items
+            .iter()
+            .map(|it| {
+                let axes = (it.axes.len() as u64 * 4).max(16);
+                let values = (u64::from(it.params.count) * 4).max(16);
+                let r = [(at.0, axes), (at.1, values)];
+                at = (at.0 + up(axes), at.1 + up(values));
+                r
+            })
+            .collect();
+        let (axes_total, values_total) = at;
+        let n = items.len() as u64;
+        let mut uniforms = vec![0u8; (n * up(params_bytes)) as usize];
+        let mut axes = vec![0u8; axes_total as usize];
+        let mut groups = Vec::with_capacity(items.len());
+        for (k, (it, [(a_at, _), _])) in items.iter().zip(&ranges).enumerate() {
+            let count = it.params.count.div_ceil(WORKGROUP);
+            let gx = count.min(65_535);
+            groups.push((gx, count.div_ceil(gx)));
+            let p = Params {
+                row: gx * WORKGROUP,
+                ..it.params
+            };
+            let u = k * up(params_bytes) as usize;
+            uniforms[u..u + params_bytes as usize].copy_from_slice(bytemuck::bytes_of(&p));
+            let a = *a_at as usize;
+            axes[a..a + it.axes.len() * 4].copy_from_slice(bytemuck::cast_slice(&it.axes));
+        }
+        let init = |label, contents: &[u8], usage| {
+            dev.create_buffer_init(&wgpu::util::BufferInitDescriptor {
+                label: Some(label),
+                contents,
+                usage,
+            })
+        };
+        let storage = wgpu::BufferUsages::STORAGE | wgpu::BufferUsages::COPY_SRC;
+        let uniform = init("round params", &uniforms, wgpu::BufferUsages::UNIFORM);
+        let input = init("round points", &axes, wgpu::BufferUsages::STORAGE);
+        // Zeroed: the kernel takes maxima into a grid's summary.
+        let summary = init("round summaries", &vec![0u8; (n * align) as usize], storage);
+        let output = |label, size| {
+            dev.create_buffer(&wgpu::BufferDescriptor {
+                label: Some(label),
+                size,
+                usage: storage,
+                mapped_at_creation: false,
+            })
+        };
+        let values = output("round values", values_total);
+        // Values-only dispatches do not write the four-float results (bound as a few bytes).
+        let results = output("round results", 16);
+        let range = |buffer, (offset, size): (u64, u64)| {
+            wgpu::BindingResource::Buffer(wgpu::BufferBinding {
+                buffer,
+                offset,
+                size: wgpu::BufferSize::new(size),
+            })
+        };
+        let binds: Vec<wgpu::BindGroup> = items
+            .iter()
+            .zip(&ranges)
+            .enumerate()
+            .map(|(k, (it, &[a, v]))| {
+                let k = k as u64;
+                dev.create_bind_group(&wgpu::BindGroupDescriptor {
+                    label: Some("decode2d round grid"),
+                    layout: &self.layout,
+                    entries: &[
+                        (0, range(&uniform, (k * up(params_bytes), params_bytes))),
+                        (1, it.op.lut.as_entire_binding()),
+                        (2, it.op.pieces.as_entire_binding()),
+                        (3, range(&input, a)),
+                        (4, results.as_entire_binding()),
+                        (5, range(&values, v)),
+                        (6, range(&summary, (k * align, 16))),
+                    ]
+                    .map(|(binding, resource)| wgpu::BindGroupEntry { binding, resource }),
+                })
+            })
+            .collect();
+        Round {
+            values,
+            summary,
+            align,
+            ranges,
+            groups,
+            binds,
+            _inputs: [uniform, input, results],
+        }
     }
 }
