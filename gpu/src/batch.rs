@@ -103,10 +103,9 @@ impl Drop for PassLead<'_> {
 struct Round {
     /// Every grid's values, each at its range.
     values: wgpu::Buffer,
-    /// Every grid's summary (bound and steps), one `align` apart.
+    /// Every grid's summary (bound and steps; 16 bytes bound), one `summary_stride` apart.
     summary: wgpu::Buffer,
-    /// The offset alignment of every range.
-    align: u64,
+    summary_stride: u64,
     /// Each grid's (offset, bytes) in the axes buffer, then in `values`.
     ranges: Vec<[(u64, u64); 2]>,
     /// Each grid's workgroups.
@@ -217,7 +216,7 @@ impl Gpu {
             }
         }
         // The values, then the summaries.
-        let (values_total, align) = (round.values.size(), round.align);
+        let (values_total, stride) = (round.values.size(), round.summary_stride);
         let summaries = round.summary.size();
         let readback = self.readback(values_total + summaries);
         encoder.copy_buffer_to_buffer(&round.values, 0, &readback, 0, values_total);
@@ -236,7 +235,7 @@ impl Gpu {
             .enumerate()
             .map(|(k, (it, &[_, (o, _)]))| {
                 let (o, n) = (o as usize, it.params.count as usize * 4);
-                let s = values_total as usize + k * align as usize;
+                let s = (values_total + k as u64 * stride) as usize;
                 let word = |w: usize| {
                     u32::from_le_bytes(view[s + 4 * w..s + 4 * w + 4].try_into().unwrap())
                 };
@@ -312,7 +311,12 @@ impl Gpu {
         let uniform = init("round params", &uniforms, wgpu::BufferUsages::UNIFORM);
         let input = init("round points", &axes, wgpu::BufferUsages::STORAGE);
         // Zeroed: the kernel takes maxima into a grid's summary.
-        let summary = init("round summaries", &vec![0u8; (n * align) as usize], storage);
+        let summary_stride = up(16);
+        let summary = init(
+            "round summaries",
+            &vec![0u8; (n * summary_stride) as usize],
+            storage,
+        );
         let output = |label, size| {
             dev.create_buffer(&wgpu::BufferDescriptor {
                 label: Some(label),
@@ -347,7 +351,7 @@ impl Gpu {
                         (3, range(&input, a)),
                         (4, results.as_entire_binding()),
                         (5, range(&values, v)),
-                        (6, range(&summary, (k * align, 16))),
+                        (6, range(&summary, (k * summary_stride, 16))),
                     ]
                     .map(|(binding, resource)| wgpu::BindGroupEntry { binding, resource }),
                 })
@@ -356,7 +360,7 @@ impl Gpu {
         Round {
             values,
             summary,
-            align,
+            summary_stride,
             ranges,
             groups,
             binds,
