@@ -4,19 +4,21 @@
 # `cargo run --release -- serve` is started first, in the background, and must answer /healthz;
 # then the blocks that build and use the command line (`B=...`), then the rest (curl, the
 # client) against that server. A command passes when it exits 0 and every file it names with
-# `-o` exists and is not empty.
+# `-o` exists and is not empty, and it printed no line starting with `error:` on stderr (a
+# harmless message from a library, Vulkan's loader say, reads as ours: a command that
+# succeeded must not print one).
 #
 # Adjustments, all on the outside of the commands: the server listens on a free port (through
 # FRACTILE_BIND, the environment variable the README documents) and `localhost:8080` in the
 # commands is pointed at it; the client finds it through FRACTILE_SERVER; curl runs with a
-# curlrc that adds --fail; the demo cache is a fresh folder; the server gets the write token the
-# README's upload line sends (`FRACTILE_WRITE_TOKEN=...`: a server with none takes no writes,
-# as that line's comment says). Lines left out, each said aloud:
+# curlrc that adds --fail; the demo cache is a fresh folder. NODEVICE_SELECT, which CI sets
+# for the test suite, is unset here: a user's shell has none. Lines left out, each said aloud:
 # `cargo test` (this script is part of that run's CI), and `--backend gpu` lines unless a
 # hardware GPU is at hand (README_GPU=1). Files the commands write at the top of the repository
 # are removed at the end. Prints a closing "N passed, N failed" line.
 set -uo pipefail
 cd "$(dirname "$0")/.."
+unset NODEVICE_SELECT
 ROOT=$(pwd)
 PORT=${PORT:-18211}
 # A port nothing listens on (a server left by another run must not answer for ours).
@@ -56,7 +58,7 @@ bad() { fail=$((fail + 1)); echo "FAILED: $1"; }
 
 echo "starting the README's server: $serve_cmd"
 export FRACTILE_BIND=127.0.0.1:$PORT FRACTILE_CACHE=$WORK/cache FRACTILE_BACKEND=cpu RUST_LOG=warn
-FRACTILE_WRITE_TOKEN=... setsid bash -c "exec $serve_cmd" >"$WORK/server.log" 2>&1 &
+setsid bash -c "exec $serve_cmd" >"$WORK/server.log" 2>&1 &
 SERVER_PID=$!
 up=0
 # The command compiles the server package first when it is not built yet (minutes).
@@ -96,7 +98,10 @@ run() {
   local outs
   outs=$(grep -oE '(^| )(-o|--output) [^ ]+' <<<"${cmd%%#*}" | awk '{ print $2 }')
   for o in $outs; do rm -rf -- "$(eval echo "$o")"; done
-  if (eval "$cmd") </dev/null >"$WORK/out" 2>&1; then
+  if (eval "$cmd") </dev/null >"$WORK/out" 2>"$WORK/err"; then
+    if grep -q '^error:' "$WORK/err"; then
+      bad "$line (succeeded, but printed an error: line)"; grep '^error:' "$WORK/err" | head -5; return
+    fi
     for o in $outs; do
       o=$(eval echo "$o")
       if [ -d "$o" ] && [ -n "$(ls -A "$o")" ] || [ -s "$o" ]; then :; else
@@ -105,7 +110,7 @@ run() {
     done
     ok "$line"
   else
-    bad "$line"; head -c 4000 "$WORK/out"
+    bad "$line"; head -c 2000 "$WORK/out"; head -c 2000 "$WORK/err"
   fi
 }
 

@@ -97,7 +97,8 @@ fn gpu_for(backend: BackendArg, big: bool) -> Result<Option<fractile_gpu::Gpu>> 
     match backend {
         BackendArg::Cpu => Ok(None),
         BackendArg::Gpu => Ok(Some(fractile_gpu::Gpu::new()?)),
-        BackendArg::Auto if !big => Ok(None),
+        // No hardware to find: no probe (see `Gpu::hardware_may_exist`).
+        BackendArg::Auto if !big || !fractile_gpu::Gpu::hardware_may_exist() => Ok(None),
         BackendArg::Auto => match fractile_gpu::Gpu::new() {
             Ok(g) if !g.is_software() => Ok(Some(g)),
             Ok(_) => Ok(None),

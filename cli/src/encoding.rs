@@ -5,6 +5,8 @@ use super::*;
 use fractile_codec::encode::chunked::{DEFAULT_CHUNK, Share, encode_chunked_file, wants_chunks};
 use fractile_codec::io::rows::Rows;
 
+use crate::progress::Progress;
+
 mod parts;
 mod shapes;
 use parts::encode_part;
@@ -197,9 +199,13 @@ pub(crate) struct EncodeArgs {
     /// parts into the asset, the same bytes as one encode. Runs N processes or machines.
     #[arg(long, value_name = "I/N")]
     part: Option<String>,
-    /// Print JSON.
+    /// Print JSON (and no progress).
     #[arg(long)]
     json: bool,
+    /// No progress on stderr (by default a bar on a terminal, elsewhere a line every 10 s,
+    /// for any encode that runs over a second).
+    #[arg(long, short)]
+    pub(crate) quiet: bool,
     /// The quadtree-only flags given on the command line (by `main`, from clap's matches: the
     /// flags with defaults cannot tell given from defaulted otherwise).
     #[arg(skip)]
@@ -341,9 +347,17 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     // An s3:// output is written here first, then uploaded.
     let out = crate::remote::Local::output(&a.output)?;
     let enc = match chunk {
-        None => encode_with(&a, &rows.read_all()?, true)?.write(out.path())?,
+        None => {
+            // The quadtree counts its blocks in a bar of its own; the other codecs get one that
+            // shows how long they have run.
+            let quadtree = a.codec() == CodecArg::QuadtreePifs;
+            let mut bar = Progress::start("coding", a.quiet || a.json || quadtree);
+            let enc = encode_with(&a, &rows.read_all()?, true)?;
+            bar.finish();
+            enc.write(out.path())?
+        }
         Some(c) => {
-            let bar = progress_bar("coding chunks", a.json);
+            let mut bar = Progress::start("coding chunks", a.quiet || a.json);
             let progress = |done: u64, total: u64| bar.update(done, total);
             let one = |r: &Raster| {
                 encode_with(&a, r, false)
@@ -392,48 +406,6 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         );
     }
     Ok(())
-}
-
-/// A progress bar on stderr that appears only once its work has run for a second (short
-/// encodes stay quiet), never with `quiet` (`--json`).
-struct Progress {
-    bar: ProgressBar,
-    started: Instant,
-    shown: std::sync::atomic::AtomicBool,
-    quiet: bool,
-}
-
-fn progress_bar(what: &str, quiet: bool) -> Progress {
-    let bar = ProgressBar::with_draw_target(None, ProgressDrawTarget::hidden());
-    bar.set_style(
-        ProgressStyle::with_template(&format!(
-            "{{spinner}} {what} {{bar:30}} {{pos}}/{{len}} {{elapsed}}, about {{eta}} to go"
-        ))
-        .expect("template"),
-    );
-    Progress {
-        bar,
-        started: Instant::now(),
-        shown: false.into(),
-        quiet,
-    }
-}
-
-impl Progress {
-    fn update(&self, done: u64, total: u64) {
-        self.bar.set_length(total);
-        self.bar.set_position(done);
-        if !self.quiet
-            && self.started.elapsed().as_secs_f32() > 1.0
-            && !self.shown.swap(true, std::sync::atomic::Ordering::Relaxed)
-        {
-            self.bar.set_draw_target(ProgressDrawTarget::stderr());
-        }
-    }
-
-    fn finish(&self) {
-        self.bar.finish_and_clear();
-    }
 }
 
 /// `raster` coded by the codec `a` names (chunked or not, the same settings); `bar`: whether a
@@ -525,7 +497,7 @@ pub(crate) fn encode_quadtree(
         attractor_passes: a.attractor_passes.unwrap_or(preset.attractor_passes),
         ..preset
     };
-    let bar = progress_bar("fitting blocks", a.json || !show_bar);
+    let mut bar = Progress::start("fitting blocks", a.quiet || a.json || !show_bar);
     let progress = |done: u64, total: u64| bar.update(done, total);
     let enc = encode(raster, &settings, &progress)?;
     bar.finish();

@@ -7,6 +7,7 @@
 
 mod decoding;
 mod encoding;
+mod progress;
 mod remote;
 
 use decoding::*;
@@ -25,7 +26,6 @@ use fractile_codec::{
 };
 use fractile_codec::{core::metrics, io::raster};
 use fractile_proto::{AssetKind, SampleFormat};
-use indicatif::{ProgressBar, ProgressDrawTarget, ProgressStyle};
 use serde_json::json;
 
 #[derive(Parser)]
@@ -123,6 +123,13 @@ enum Command {
 }
 
 fn main() {
+    // Mesa's Vulkan device-select layer orders adapters for programs that take the first one
+    // (we choose ours), and prints "error: XDG_RUNTIME_DIR is invalid or not set" wherever
+    // that variable is unset, which reads as our error. Off unless the user set it.
+    if std::env::var_os("NODEVICE_SELECT").is_none() {
+        // SAFETY: the first statement of main, before any thread exists (no runtime yet).
+        unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
+    }
     let matches = <Cli as clap::CommandFactory>::command().get_matches();
     let mut cli =
         <Cli as clap::FromArgMatches>::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());

@@ -897,3 +897,71 @@ fn an_encode_split_over_four_processes_assembles_into_the_same_file() {
     assert!(String::from_utf8_lossy(&whole.stderr).contains("--chunk N"));
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// Runs `fractile ARGS` under `script` (a pseudo-terminal, as a user's shell gives it) for at
+/// most `seconds`, and returns when each piece of its terminal output arrived and the output.
+fn on_a_terminal(args: &[&str], seconds: u32) -> (Vec<f32>, String) {
+    use std::io::Read;
+    let command = format!(
+        "timeout {seconds} {} {}",
+        env!("CARGO_BIN_EXE_fractile"),
+        args.join(" ")
+    );
+    let started = std::time::Instant::now();
+    let mut child = Command::new("script")
+        .args(["-qefc", &command, "/dev/null"])
+        .env_remove("NODEVICE_SELECT")
+        .stdin(std::process::Stdio::null())
+        .stdout(std::process::Stdio::piped())
+        .spawn()
+        .expect("script (util-linux) runs");
+    let mut out = child.stdout.take().unwrap();
+    let (mut times, mut text, mut buf) = (Vec::new(), Vec::new(), [0u8; 4096]);
+    while let Ok(n) = out.read(&mut buf) {
+        if n == 0 {
+            break;
+        }
+        times.push(started.elapsed().as_secs_f32());
+        text.extend_from_slice(&buf[..n]);
+    }
+    let _ = child.wait();
+    (times, String::from_utf8_lossy(&text).into_owned())
+}
+
+#[test]
+fn a_long_encode_shows_its_progress_on_a_terminal_every_two_seconds() {
+    // A 4096 x 4096 DEM: topobathy decoded 35 times finer, as a float32 GeoTIFF (64 MB).
+    let dir = tempdir("progress");
+    let (small, big) = (dir.join("small.fra"), dir.join("big.tif"));
+    let run = |c: &mut Command| assert!(c.status().unwrap().success());
+    run(bin()
+        .args(["encode", "--quiet"])
+        .arg(data("topobathy.tif"))
+        .arg("-o")
+        .arg(&small));
+    run(bin()
+        .arg("decode")
+        .arg(&small)
+        .arg("-o")
+        .arg(&big)
+        .args(["--width", "4096", "--height", "4096"]));
+    let out = dir.join("big.fra");
+    let (big, out) = (big.to_str().unwrap(), out.to_str().unwrap());
+    // Watched for 8 s (the whole encode takes minutes on two cores).
+    let (times, text) = on_a_terminal(&["encode", big, "-o", out], 8);
+    assert!(text.contains("coding chunks"), "no progress bar: {text:?}");
+    assert!(text.contains("so far"), "no elapsed time: {text:?}");
+    let mut last = 0.0f32;
+    for &t in times.iter().filter(|&&t| t < 7.5) {
+        assert!(
+            t - last <= 2.0,
+            "nothing printed from {last} s to {t} s: {times:?}"
+        );
+        last = t;
+    }
+    assert!(last > 5.0, "the output stopped at {last} s: {times:?}");
+    // --quiet: nothing.
+    let (_, text) = on_a_terminal(&["encode", big, "-o", out, "--quiet"], 3);
+    assert!(!text.contains("coding"), "{text:?}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

@@ -164,8 +164,19 @@ fn bounds(r: &reqwest::Response) -> Result<(f32, Option<f32>), ClientError> {
 }
 
 impl Client {
-    /// A client of the server at `base` (e.g. `http://127.0.0.1:8080`).
+    /// A client of the server at `base` (e.g. `http://127.0.0.1:8080`; without a scheme,
+    /// `http://` is assumed).
     pub fn new(base: &str) -> Result<Client, ClientError> {
+        // `127.0.0.1:8080` or `localhost:8080`, as the default is often written: plain HTTP,
+        // as curl takes them (`localhost:8080` would otherwise parse as a URL of scheme
+        // `localhost`).
+        let owned;
+        let base = if base.contains("://") {
+            base
+        } else {
+            owned = format!("http://{base}");
+            &owned
+        };
         let url = reqwest::Url::parse(base)
             .map_err(|e| ClientError::malformed("server URL", format!("{base:?}: {e}")))?;
         if !matches!(url.scheme(), "http" | "https") {

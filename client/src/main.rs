@@ -43,6 +43,10 @@ struct Cli {
     /// Print machine-readable JSON (with --refine: one object per step).
     #[arg(long, global = true)]
     json: bool,
+    /// On an error, print its whole chain and a backtrace (where `RUST_BACKTRACE` asks for one)
+    /// instead of the one line that says what went wrong.
+    #[arg(short, long, global = true)]
+    verbose: bool,
     #[command(subcommand)]
     command: Command,
 }
@@ -429,16 +433,38 @@ fn points_csv(resp: &fractile_client::PointsResponse) -> String {
     s
 }
 
-#[tokio::main]
-async fn main() -> Result<()> {
+fn main() -> std::process::ExitCode {
     // Rust ignores SIGPIPE, so `fractile-client ... | head` would panic on the closed pipe; a
     // command-line tool should just stop, as every Unix tool does (rust-lang/rust#62569).
     #[cfg(unix)]
-    // SAFETY: restores the default disposition before any thread or I/O exists.
+    // SAFETY: restores the default disposition before any thread or I/O exists (the runtime
+    // is built below).
     unsafe {
         libc::signal(libc::SIGPIPE, libc::SIG_DFL);
     }
     let cli = Cli::parse();
+    let verbose = cli.verbose;
+    let result = tokio::runtime::Builder::new_multi_thread()
+        .enable_all()
+        .build()
+        .map_err(anyhow::Error::from)
+        .and_then(|rt| rt.block_on(run(cli)));
+    match result {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
+            // One line by default: anyhow's Debug form adds a backtrace whenever
+            // RUST_BACKTRACE is set, as it is in many Rust users' shells.
+            if verbose {
+                eprintln!("fractile-client: {e:?}");
+            } else {
+                eprintln!("fractile-client: {e:#}");
+            }
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+async fn run(cli: Cli) -> Result<()> {
     let client = Client::new(&cli.server)?
         .with_token(cli.token.clone())
         .with_backend(cli.backend);

@@ -406,6 +406,26 @@ impl Gpu {
         pollster::block_on(Self::open())
     }
 
+    /// Whether this machine may have a hardware adapter: on Linux, a DRM render node
+    /// (`/dev/dri/renderD*`), an NVIDIA device (`/dev/nvidia0`) or WSL's (`/dev/dxg`); elsewhere
+    /// always. Without any, only a software adapter could open, which `auto` never decodes on,
+    /// so callers on `auto` skip the probe: it loads the Vulkan loader and its layers, which
+    /// print to stderr (Mesa's device-select layer: "XDG_RUNTIME_DIR is invalid") in the
+    /// middle of our own output, on machines that have no GPU to find.
+    pub fn hardware_may_exist() -> bool {
+        if !cfg!(target_os = "linux") {
+            return true;
+        }
+        let render_node = std::fs::read_dir("/dev/dri").is_ok_and(|d| {
+            d.flatten()
+                .any(|e| e.file_name().to_string_lossy().starts_with("renderD"))
+        });
+        render_node
+            || ["/dev/nvidia0", "/dev/dxg"]
+                .iter()
+                .any(|p| std::path::Path::new(p).exists())
+    }
+
     /// Whether the adapter [`Gpu::new`] would open is a software rasteriser, found without
     /// opening a device (which is what takes memory: Mesa's lavapipe holds 82 MB once open).
     pub fn adapter_is_software() -> Result<bool, GpuError> {

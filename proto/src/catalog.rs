@@ -37,8 +37,9 @@ pub struct AssetSummary {
     pub bounds: Option<[f64; 4]>,
     /// Whether requests take lon/lat (true) or unit coordinates (false).
     pub georeferenced: bool,
-    /// The EPSG code of a projected CRS the asset's grid is in (requests still take lon/lat:
-    /// the server reprojects); absent for geographic and non-georeferenced assets.
+    /// The EPSG code of the CRS the asset's grid is in, as its file names it (4326 for a
+    /// geographic grid; requests take lon/lat whatever it is: the server reprojects); absent
+    /// for non-georeferenced assets and files that name no code.
     #[serde(default)]
     pub epsg: Option<u32>,
     /// `[min, max]` of the valid source values.

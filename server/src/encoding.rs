@@ -290,17 +290,32 @@ fn encode_visual(
         )
     } else if style.colormap.is_some() || style.shade.is_some() {
         let ramp = style.colormap.unwrap_or(Colormap::Gray);
+        // Heights in metres go through the ramp as heights, so that a terrain ramp puts sea
+        // level at 0 m (`Colormap::rgb_height`); anything else as a fraction of its range.
+        let metres = match rescale {
+            Some(r)
+                if ramp == Colormap::Terrain
+                    && m.kind == AssetKind::HeightField
+                    && m.units.as_deref() == Some("m") =>
+            {
+                Some(r)
+            }
+            _ => None,
+        };
+        let colour = |v: f32| match metres {
+            Some(r) if v.is_finite() => ramp.rgb_height(v, r),
+            _ => ramp.rgb(q(v) as f32 / 255.0),
+        };
         let px: Vec<u8> = channels[0]
             .iter()
             .enumerate()
             .flat_map(|(i, &v)| {
-                let t = q(v) as f32 / 255.0;
                 let c = match (style.colormap, &style.shade) {
                     // Hillshade alone: grey shading.
                     (None, Some(s)) => [255.0 * s[i]; 3],
                     // A ramp, darkened by the shading (a quarter of ambient light).
-                    (_, Some(s)) => ramp.rgb(t).map(|c| c * (0.25 + 0.75 * s[i])),
-                    (_, None) => ramp.rgb(t),
+                    (_, Some(s)) => colour(v).map(|c| c * (0.25 + 0.75 * s[i])),
+                    (_, None) => colour(v),
                 };
                 c.map(|v| v.round().clamp(0.0, 255.0) as u8)
             })

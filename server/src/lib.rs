@@ -40,7 +40,7 @@ pub struct FileConfig {
     /// Bearer token for PUT and DELETE.
     pub write_token: Option<String>,
     /// Whether PUT and DELETE are open to anyone when no write token is set (default false:
-    /// they are refused with 403).
+    /// they are refused with 403; true for the built-in demo on a loopback address).
     pub allow_anonymous_writes: Option<bool>,
     /// `Cache-Control` of tiles.
     pub cache_control: Option<String>,
@@ -154,6 +154,24 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
 
 /// Loads the assets and serves until SIGTERM or ctrl-c (in-flight requests finish).
 pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
+    // The address first, before assets load: a port in use should fail at once and say what
+    // to do, not after the start-up log as a bare "os error 98".
+    let listener = tokio::net::TcpListener::bind(opts.bind)
+        .await
+        .map_err(|e| {
+            let hint = match e.kind() {
+                std::io::ErrorKind::AddrInUse => {
+                    "another program (another fractile serve?) listens there: stop it, or \
+                     choose another address with --bind (FRACTILE_BIND), e.g. --bind \
+                     127.0.0.1:8081"
+                }
+                std::io::ErrorKind::PermissionDenied => {
+                    "ports under 1024 need privileges: choose another with --bind (FRACTILE_BIND)"
+                }
+                _ => "choose another address with --bind (FRACTILE_BIND)",
+            };
+            anyhow::anyhow!("cannot listen on {}: {e}; {hint}", opts.bind)
+        })?;
     let decode_mib = opts
         .file
         .max_decode_mib
@@ -192,11 +210,21 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
         .clone()
         .unwrap_or_else(|| format!("http://{}", opts.bind));
     let mut state = api::AppState::new(store, public.trim_end_matches('/').to_string());
+    // The built-in demo (no assets named) on a loopback address takes anonymous writes unless
+    // told otherwise: its assets are a throwaway cache only this machine can reach, and the
+    // README's upload example should work against the server its first command starts.
+    // Anything else refuses writes without a token.
+    let demo_on_loopback = opts.assets.is_none() && opts.bind.ip().is_loopback();
     state.writes = api::Writes::from_options(
         opts.write_token.clone(),
-        opts.file.allow_anonymous_writes.unwrap_or(false),
+        opts.file.allow_anonymous_writes.unwrap_or(demo_on_loopback),
     );
     match &state.writes {
+        api::Writes::Anyone if demo_on_loopback => tracing::info!(
+            "the demo on {} takes uploads from this machine without a token (set \
+             FRACTILE_WRITE_TOKEN to require one)",
+            opts.bind
+        ),
         api::Writes::Anyone => tracing::warn!(
             "anonymous writes allowed: PUT and DELETE are open to anyone who can reach {}",
             opts.bind
@@ -246,7 +274,6 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     if rescan > 0 {
         tokio::spawn(rescan_assets(state.clone(), rescan));
     }
-    let listener = tokio::net::TcpListener::bind(opts.bind).await?;
     tracing::info!("listening on http://{}", listener.local_addr()?);
     let app = app(state).layer(tower::limit::ConcurrencyLimitLayer::new(concurrency));
     run(listener, app, shutdown(), HEADER_READ_TIMEOUT).await;
@@ -341,7 +368,10 @@ async fn open_gpu(
 ) -> anyhow::Result<Option<Arc<backend::GpuBackend>>> {
     let auto = backend == backend::Backend::Auto;
     let opened = tokio::task::spawn_blocking(move || {
-        if auto && fractile_gpu::Gpu::adapter_is_software().unwrap_or(false) {
+        if auto
+            && (!fractile_gpu::Gpu::hardware_may_exist()
+                || fractile_gpu::Gpu::adapter_is_software().unwrap_or(false))
+        {
             return Ok(None);
         }
         backend::GpuBackend::open(memory).map(Some)
@@ -354,7 +384,8 @@ async fn open_gpu(
         }
         Ok(None) => {
             tracing::info!(
-                "only a software adapter: decoding on the CPU (backend = \"gpu\" would use it)"
+                "no hardware GPU: decoding on the CPU (start with --backend gpu to decode on a \
+                 software adapter)"
             );
             None
         }

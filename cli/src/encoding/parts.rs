@@ -24,7 +24,7 @@ pub(super) fn encode_part(
             ..*a
         }
     );
-    let bar = progress_bar("coding chunks", a.json);
+    let mut bar = crate::progress::Progress::start("coding chunks", a.quiet || a.json);
     let progress = |done: u64, total: u64| bar.update(done, total);
     let one = |r: &Raster| {
         encode_with(a, r, false).map_err(|e| fractile_codec::Error::Settings(e.to_string()))

@@ -51,10 +51,13 @@ struct Axis {
 }
 
 impl Axis {
-    /// The owning chunk of `t` and `t` in level cells.
-    fn owner(&self, t: f32) -> (u32, f32) {
-        let x = t * self.source / self.scale;
-        let c = ((x / self.chunk as f32).floor().max(0.0) as u32).min(self.count - 1);
+    /// The owning chunk of `t` and `t` in level cells, in f64: in f32 a position in level
+    /// cells carries 2^-24 of the axis (2.4e-4 of a cell at 4,096 cells), and a chunk's
+    /// continuation moves by a good part of its detail within that of a sample centre, which
+    /// the chunk could then no longer tell it is on (`Asset::snap_to_samples`).
+    fn owner(&self, t: f32) -> (u32, f64) {
+        let x = f64::from(t) * f64::from(self.source) / f64::from(self.scale);
+        let c = ((x / f64::from(self.chunk)).floor().max(0.0) as u32).min(self.count - 1);
         (c, x)
     }
 }
@@ -104,12 +107,12 @@ impl Chunked {
             if top { f } else { f.min(1.0) }
         };
         let (fx, fy) = (fp(pixels.footprint[0], &ax), fp(pixels.footprint[1], &ay));
-        let local = |x: f32, lo: u32, hi: u32| (x - lo as f32) / (hi - lo) as f32;
+        let local = |x: f64, lo: u32, hi: u32| ((x - f64::from(lo)) / f64::from(hi - lo)) as f32;
         let mut parts = Vec::new();
         match &pixels.sites {
             Sites::Grid { xs, ys } => {
                 let group = |ts: &[Option<f32>], axis: &Axis| {
-                    let mut g: Vec<Vec<(usize, f32)>> = vec![Vec::new(); axis.count as usize];
+                    let mut g: Vec<Vec<(usize, f64)>> = vec![Vec::new(); axis.count as usize];
                     for (i, t) in ts.iter().enumerate() {
                         if let Some(t) = t {
                             let (c, x) = axis.owner(*t);
@@ -142,7 +145,7 @@ impl Chunked {
                 }
             }
             Sites::List { points, .. } => {
-                let mut groups: Vec<Vec<(usize, [f32; 2])>> = vec![Vec::new(); entries.len()];
+                let mut groups: Vec<Vec<(usize, [f64; 2])>> = vec![Vec::new(); entries.len()];
                 for (k, p) in points.iter().enumerate() {
                     if let Some([u, v]) = p {
                         let ((cx, x), (cy, y)) = (ax.owner(*u), ay.owner(*v));
@@ -284,8 +287,8 @@ impl Chunked {
             let ((cx, x), (cy, y)) = (ax.owner(u), ay.owner(v));
             let [x0, y0, x1, y1] = entries[(cy * ax.count + cx) as usize].cells;
             let local = [
-                (x - x0 as f32) / (x1 - x0) as f32,
-                (y - y0 as f32) / (y1 - y0) as f32,
+                ((x - f64::from(x0)) / f64::from(x1 - x0)) as f32,
+                ((y - f64::from(y0)) / f64::from(y1 - y0)) as f32,
             ];
             groups[(cy * ax.count + cx) as usize].push((k, local));
         }

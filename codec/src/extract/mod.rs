@@ -16,10 +16,32 @@ use crate::geo::{self, Pixels};
 use crate::io::asset::Asset;
 use crate::render::colour::{rgb_bound, ycbcr_to_rgb};
 
-/// How near a sample centre (in cells) a point counts as on it, for assets with a promise per
-/// sample: far above the rounding of a coordinate (a longitude in f64 to unit coordinates in
-/// f32 is about 1e-6 of a cell on a 1,000-cell grid), far below any real offset.
+/// How near a sample centre (in cells) a point counts as on it at least, for assets whose codec
+/// knows its samples (see [`sample_snap`]): far below any real offset.
 pub const SAMPLE_SNAP: f32 = 1e-4;
+
+/// How near a sample centre (in cells) a point counts as on it, on an axis of `cells` cells:
+/// [`SAMPLE_SNAP`], or eight times the rounding of a unit coordinate in f32 where that is more
+/// (`cells x 2^-25`: 1.3e-4 of a cell on a 4,320-cell axis, 2e-3 on 65,536). Why: a position
+/// that names a centre (a native decode's pixel, a longitude on the georeference's own grid)
+/// reaches the decoder a few roundings off it, and the continuation of a rough surface (rho
+/// 0.9, a Hölder exponent of 0.15) moves by a quarter of its detail amplitude within 2^-12 of
+/// a cell: 100-260 m on a global DEM, where the centre itself is within the coded error.
+pub fn sample_snap(cells: u32) -> f32 {
+    SAMPLE_SNAP.max(cells as f32 * 2f32.powi(-22))
+}
+
+/// `t` (unit coordinates on an axis of `cells` cells) moved onto the sample centre within
+/// [`sample_snap`] of it, if there is one.
+fn snap_axis(t: f32, cells: u32) -> f32 {
+    let n = cells as f64;
+    let x = f64::from(t) * n - 0.5;
+    if (x - x.round()).abs() < f64::from(sample_snap(cells)) {
+        ((x.round() + 0.5) / n) as f32
+    } else {
+        t
+    }
+}
 
 /// The part of an asset's smallest source error that its default tolerance may reach (see
 /// [`Asset::default_tolerance`]): an eighth, so that the convergence adds at most 12.5% to a
@@ -94,6 +116,22 @@ impl Answer {
                 })
                 .collect(),
         }
+    }
+
+    /// The answer kept in the neighbourhood of the data
+    /// ([`crate::io::asset::PlaneOperator::limit_points`]), at the sites it answers.
+    pub fn limited(mut self, op: &crate::io::asset::PlaneOperator, sites: Sites<'_>) -> Answer {
+        match &mut self {
+            Answer::Points(p) => {
+                let mut values: Vec<f32> = p.iter().map(|r| r.value).collect();
+                sites.limit(op, &mut values);
+                for (r, v) in p.iter_mut().zip(values) {
+                    r.value = v;
+                }
+            }
+            Answer::Values { values, .. } => sites.limit(op, values),
+        }
+        self
     }
 
     /// The values, and the largest bound (`f32::max`'s: a NaN bound is passed over).
@@ -171,6 +209,14 @@ pub enum Sites<'a> {
 }
 
 impl Sites<'_> {
+    /// [`crate::io::asset::PlaneOperator::limit_points`] of `values` at these sites.
+    fn limit(&self, op: &crate::io::asset::PlaneOperator, values: &mut [f32]) {
+        match self {
+            Sites::List(points) => op.limit_points(points, values),
+            Sites::Grid { xs, ys } => op.limit_grid(xs, ys, values),
+        }
+    }
+
     /// How many points.
     pub fn len(&self) -> usize {
         match self {
@@ -397,7 +443,18 @@ impl Asset {
                     error_bound: 0.0,
                 },
             ),
-            _ => decode::discrete(op, width, height, opts),
+            _ => {
+                let (mut grid, report) = decode::discrete(op, width, height, opts);
+                let centres = |n: usize| -> Vec<f32> {
+                    (0..n).map(|i| (i as f32 + 0.5) / n as f32).collect()
+                };
+                // Pixels finer than the cells sample the continuation; coarser ones average
+                // cells, whose range their centre's neighbourhood need not hold.
+                if width >= native[0] && height >= native[1] {
+                    op.limit_grid(&centres(width), &centres(height), &mut grid.values);
+                }
+                (grid, report)
+            }
         }
     }
 
@@ -468,7 +525,12 @@ impl Asset {
         let pv: Vec<_> = self
             .planes
             .iter()
-            .map(|p| p.operator.point([u, v], iterations))
+            .map(|p| {
+                let mut r = p.operator.point([u, v], iterations);
+                p.operator
+                    .limit_points(&[[u, v]], std::slice::from_mut(&mut r.value));
+                r
+            })
             .collect();
         let span = self.span();
         let bounds: Vec<f32> = pv.iter().map(|p| p.error_bound * span).collect();
@@ -485,22 +547,51 @@ impl Asset {
         }
     }
 
-    /// Points within [`SAMPLE_SNAP`] of a cell of a sample centre of an asset with a promise
-    /// per sample (projected `--max-error`), moved onto it: a longitude and latitude converted to
-    /// unit coordinates land a rounding away from the centre they name, and the promise (and
-    /// its bound) is the sample's (`None`: no asset with a promise, or nothing to move).
+    /// Points within [`sample_snap`] of a sample centre of an asset whose codec knows its
+    /// samples (the projected codec), moved onto it: a longitude and latitude converted to
+    /// unit coordinates land a rounding away from the centre they name, and the sample is
+    /// what the asset codes there (within its promise, under `--max-error`). `None`: no such
+    /// asset.
     fn snap_to_samples(&self, pts: &[[f32; 2]]) -> Option<Vec<[f32; 2]>> {
-        self.planes.first()?.promise()?;
-        let (w, h) = (self.meta.width as f32, self.meta.height as f32);
-        let snap = |t: f32, n: f32| {
-            let x = t * n - 0.5;
-            if (x - x.round()).abs() < SAMPLE_SNAP {
-                (x.round() + 0.5) / n
-            } else {
-                t
-            }
+        self.planes.first()?.operator.samples()?;
+        let (w, h) = (self.meta.width, self.meta.height);
+        Some(
+            pts.iter()
+                .map(|&[u, v]| [snap_axis(u, w), snap_axis(v, h)])
+                .collect(),
+        )
+    }
+
+    /// [`Self::snap_to_samples`] of a raster's pixels (the points of patches stay as they are:
+    /// they are off the centres of the source's grid).
+    fn snap_pixels(&self, pixels: &Pixels) -> Option<Pixels> {
+        self.planes.first()?.operator.samples()?;
+        let (w, h) = (self.meta.width, self.meta.height);
+        let axis = |ts: &[Option<f32>], n: u32| -> Vec<Option<f32>> {
+            ts.iter().map(|t| t.map(|t| snap_axis(t, n))).collect()
         };
-        Some(pts.iter().map(|&[u, v]| [snap(u, w), snap(v, h)]).collect())
+        let sites = match &pixels.sites {
+            geo::Sites::Grid { xs, ys } => geo::Sites::Grid {
+                xs: axis(xs, w),
+                ys: axis(ys, h),
+            },
+            geo::Sites::List {
+                width,
+                points,
+                patches,
+            } => geo::Sites::List {
+                width: *width,
+                points: points
+                    .iter()
+                    .map(|p| p.map(|[u, v]| [snap_axis(u, w), snap_axis(v, h)]))
+                    .collect(),
+                patches: patches.clone(),
+            },
+        };
+        Some(Pixels {
+            sites,
+            footprint: pixels.footprint,
+        })
     }
 
     /// The tolerance of a request that names neither steps nor a tolerance (value units): the
@@ -551,8 +642,8 @@ impl Asset {
     pub fn source_error_at(&self, u: f32, v: f32) -> Option<f32> {
         let map = self.source_error.as_ref()?.at(u, v);
         let on_sample = |t: f32, n: u32| {
-            let x = t * n as f32 - 0.5;
-            (x - x.round()).abs() < SAMPLE_SNAP
+            let x = f64::from(t) * f64::from(n) - 0.5;
+            (x - x.round()).abs() < f64::from(sample_snap(n))
         };
         let promise = self
             .planes
@@ -616,8 +707,9 @@ impl Asset {
                     iterations,
                     tol,
                 )
-                .map(Answer::into_points)
-                .unwrap_or_else(|| p.operator.points(pts, iterations, tol))
+                .unwrap_or_else(|| Answer::Points(p.operator.points(pts, iterations, tol)))
+                .limited(&p.operator, Sites::List(pts))
+                .into_points()
             })
             .collect();
         let span = self.span();
@@ -644,15 +736,26 @@ impl Asset {
     }
 
     /// Normalised planes of a `width x height` window `[u0, v0, u1, v1]` decoded elsewhere (the
-    /// GPU), brought back to source units as [`Asset::window`] does.
+    /// GPU), kept in the neighbourhood of the data and brought back to source units as
+    /// [`Asset::window`] does.
     pub fn window_from_planes(
         &self,
         rect: [f32; 4],
         width: usize,
         height: usize,
-        planes: Vec<Vec<f32>>,
+        mut planes: Vec<Vec<f32>>,
     ) -> Decoded {
         let [u0, v0, u1, v1] = rect;
+        // Pixels no larger than a cell sample the continuation; coarser ones average cells,
+        // whose range their centre's neighbourhood need not hold.
+        let fine = (u1 - u0).abs() * self.meta.width as f32 <= width as f32
+            && (v1 - v0).abs() * self.meta.height as f32 <= height as f32;
+        if fine {
+            let (xs, ys) = decode::window_axes(rect, width, height);
+            for (p, values) in self.planes.iter().zip(planes.iter_mut()) {
+                p.operator.limit_grid(&xs, &ys, values);
+            }
+        }
         let channels = self.to_source(
             planes,
             |i| {
@@ -856,6 +959,8 @@ impl Asset {
         if let Some(c) = &self.chunks {
             return c.sample(&self.meta, pixels, (iterations, tolerance), delegates);
         }
+        let snapped = self.snap_pixels(pixels);
+        let pixels = snapped.as_ref().unwrap_or(pixels);
         let stop = || {
             if (delegates.cancelled)() {
                 Err(Cancelled)
@@ -987,7 +1092,12 @@ impl Asset {
         Ok(match inside {
             Inside::Grid { ix, iy, .. } => {
                 let at = Sites::Grid { xs: ix, ys: iy };
-                match (delegates.continuous)(PlaneRef::whole(k, &p.operator), at, iterations, tol) {
+                let answer = match (delegates.continuous)(
+                    PlaneRef::whole(k, &p.operator),
+                    at,
+                    iterations,
+                    tol,
+                ) {
                     Some(v) => v,
                     None => {
                         let rows = (BAND_POINTS / ix.len().max(1)).max(1);
@@ -998,7 +1108,8 @@ impl Asset {
                         }
                         Answer::Points(v)
                     }
-                }
+                };
+                answer.limited(&p.operator, at)
             }
             Inside::List {
                 points,
@@ -1010,7 +1121,9 @@ impl Asset {
                 Sites::List(points),
                 iterations,
                 tol,
-            ) {
+            )
+            .map(|a| a.limited(&p.operator, Sites::List(points)))
+            {
                 Some(v) => v,
                 None => {
                     let mut v = Vec::with_capacity(points.len());
@@ -1032,7 +1145,7 @@ impl Asset {
                                 .map(|(r, _)| r),
                         );
                     }
-                    Answer::Points(v)
+                    Answer::Points(v).limited(&p.operator, Sites::List(points))
                 }
             },
         })

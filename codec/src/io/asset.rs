@@ -223,6 +223,29 @@ pub enum PlaneOperator {
     Projected(ProjectedOperator),
 }
 
+/// What a file that does not start with an asset's magic is, and what to do with it: rasters
+/// and meshes are the encoder's input, and uploading one is a common first mistake.
+fn not_an_asset(bytes: &[u8]) -> String {
+    let kind = if bytes.starts_with(b"II*\0") || bytes.starts_with(b"MM\0*") {
+        Some("a TIFF (GeoTIFF) raster")
+    } else if bytes.starts_with(b"\x89PNG") {
+        Some("a PNG image")
+    } else if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
+        Some("a JPEG image")
+    } else if bytes.starts_with(b"OFF") || bytes.starts_with(b"ply") || bytes.starts_with(b"solid")
+    {
+        Some("a mesh")
+    } else {
+        None
+    };
+    match kind {
+        Some(k) => format!(
+            "not a fractile asset (bad magic): this is {k}; encode it with `fractile encode` first"
+        ),
+        None => "not a fractile asset (bad magic): assets are what `fractile encode` writes".into(),
+    }
+}
+
 impl PlaneOperator {
     /// The quadtree's ranges (empty for other codecs).
     pub fn ranges(&self) -> &[RangeMap] {
@@ -312,6 +335,23 @@ impl PlaneOperator {
         match self {
             PlaneOperator::Projected(f) => Some(f.samples()),
             _ => None,
+        }
+    }
+
+    /// Keeps continuous answers `values` (normalised) at unit points `pts` in the neighbourhood
+    /// of the data, for codecs whose continuation could leave it (the projected codec: see
+    /// `codecs::projected::neighbourhood`); the others' answers are left as they are.
+    /// Applied to every continuous answer, the CPU's and a device's alike.
+    pub fn limit_points(&self, pts: &[[f32; 2]], values: &mut [f32]) {
+        if let PlaneOperator::Projected(f) = self {
+            f.limit_points(pts, values);
+        }
+    }
+
+    /// [`Self::limit_points`] on the separable grid `(xs[i], ys[j])`, row-major.
+    pub fn limit_grid(&self, xs: &[f32], ys: &[f32], values: &mut [f32]) {
+        if let PlaneOperator::Projected(f) = self {
+            f.limit_grid(xs, ys, values);
         }
     }
 
@@ -1038,7 +1078,7 @@ impl Asset {
             )));
         }
         if &bytes[..8] != MAGIC {
-            return Err(bad("not a fractile asset (bad magic)".into()));
+            return Err(bad(not_an_asset(bytes)));
         }
         let version = u16::from_le_bytes([bytes[8], bytes[9]]);
         if !(OLDEST_READ_VERSION..=FORMAT_VERSION).contains(&version) {

@@ -148,7 +148,18 @@ fn read_image(path: &Path) -> Result<Raster, Error> {
     let img = image::ImageReader::open(path)
         .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?
         .with_guessed_format()
-        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?
+        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+    // Neither the content nor the name says an image: say what the encoder reads, rather than
+    // the image crate's "The file extension `.\"txt\"` was not recognized".
+    if img.format().is_none() {
+        return Err(Error::Input(format!(
+            "{}: not a raster, mesh or curve the encoder reads: GeoTIFF (.tif, .tiff), PNG \
+             (8- or 16-bit), JPEG, a folder of GeoTIFFs, OFF, OBJ, PLY or STL meshes, or \
+             GeoJSON curves (.geojson, .json)",
+            path.display()
+        )));
+    }
+    let img = img
         .decode()
         .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
     let (w, h) = (img.width() as usize, img.height() as usize);

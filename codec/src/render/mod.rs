@@ -48,20 +48,55 @@ impl Colormap {
 
     /// Colour of `t` (clamped to [0, 1]; NaN is black).
     pub fn rgb(self, t: f32) -> [f32; 3] {
-        if t.is_nan() {
-            return [0.0; 3];
-        }
-        let t = t.clamp(0.0, 1.0);
-        let stops = self.stops();
-        for w in stops.windows(2) {
-            let ((t0, c0), (t1, c1)) = (w[0], w[1]);
-            if t <= t1 {
-                let f = if t1 > t0 { (t - t0) / (t1 - t0) } else { 0.0 };
-                return [0, 1, 2].map(|k| c0[k] + (c1[k] - c0[k]) * f);
-            }
-        }
-        stops[stops.len() - 1].1
+        along(self.stops(), t)
     }
+
+    /// Colour of a height `v` in metres on a ramp from `lo` to `hi`: [`Self::rgb`], except that
+    /// [`Colormap::Terrain`] over a range that crosses sea level puts it at 0 m, with the blues
+    /// of bathymetry from `lo` (deep) to 0 and the land ramp from 0 to `hi`. Without a sea
+    /// level, a global DEM's oceans (most of its range below the shore) took the ramp's greens.
+    pub fn rgb_height(self, v: f32, (lo, hi): (f32, f32)) -> [f32; 3] {
+        if self != Colormap::Terrain || !(lo < 0.0 && hi > 0.0) {
+            return self.rgb((v - lo) / (hi - lo));
+        }
+        if v < 0.0 {
+            along(SEA, 1.0 - v / lo)
+        } else {
+            along(LAND, v / hi)
+        }
+    }
+}
+
+/// Bathymetry, deep to shallow (ColorBrewer's blues).
+const SEA: &[(f32, [f32; 3])] = &[
+    (0.0, [8.0, 48.0, 107.0]),
+    (0.6, [33.0, 113.0, 181.0]),
+    (1.0, [158.0, 202.0, 225.0]),
+];
+
+/// Land from the shore up: the terrain ramp past its blue.
+const LAND: &[(f32, [f32; 3])] = &[
+    (0.0, [0.0, 153.0, 102.0]),
+    (0.24, [153.0, 204.0, 102.0]),
+    (0.53, [204.0, 179.0, 102.0]),
+    (0.76, [153.0, 102.0, 51.0]),
+    (1.0, [255.0, 255.0, 255.0]),
+];
+
+/// The colour at `t` (clamped to [0, 1]; NaN is black) along `stops`.
+fn along(stops: &[(f32, [f32; 3])], t: f32) -> [f32; 3] {
+    if t.is_nan() {
+        return [0.0; 3];
+    }
+    let t = t.clamp(0.0, 1.0);
+    for w in stops.windows(2) {
+        let ((t0, c0), (t1, c1)) = (w[0], w[1]);
+        if t <= t1 {
+            let f = if t1 > t0 { (t - t0) / (t1 - t0) } else { 0.0 };
+            return [0, 1, 2].map(|k| c0[k] + (c1[k] - c0[k]) * f);
+        }
+    }
+    stops[stops.len() - 1].1
 }
 
 /// Hillshade in [0, 1] of the inner `w x h` cells of a `(w + 2) x (h + 2)` height grid (one cell
@@ -125,6 +160,23 @@ mod tests {
             hillshade(&west, 3, 3, [10.0, 10.0], 315.0, 45.0)[4],
         );
         assert!(e > w, "east-rising {e} vs west-rising {w}");
+    }
+
+    #[test]
+    fn terrain_puts_sea_level_at_zero_metres() {
+        let range = (-5000.0, 2000.0);
+        let [r, g, b] = Colormap::Terrain.rgb_height(-10.0, range);
+        assert!(b > r && b > g, "just under the sea is blue: {r} {g} {b}");
+        let [r, g, b] = Colormap::Terrain.rgb_height(10.0, range);
+        assert!(g > b && g > r, "just above it is green: {r} {g} {b}");
+        let deep = Colormap::Terrain.rgb_height(-5000.0, range);
+        let shallow = Colormap::Terrain.rgb_height(-100.0, range);
+        assert!(deep[2] < shallow[2], "deeper is darker");
+        // A land-only range keeps the plain ramp.
+        assert_eq!(
+            Colormap::Terrain.rgb_height(150.0, (100.0, 200.0)),
+            Colormap::Terrain.rgb(0.5)
+        );
     }
 
     #[test]

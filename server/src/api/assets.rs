@@ -13,7 +13,13 @@ pub(super) fn summary(state: &AppState, a: &StoredAsset) -> AssetSummary {
         colour: m.colour,
         bounds: a.placement.as_ref().map(|p| p.bounds()),
         georeferenced: a.placement.is_some(),
-        epsg: a.placement.as_ref().and_then(|p| p.epsg()),
+        // The file's own code, geographic (4326) too, as `fractile info` prints it; the
+        // projected placement's where the file named none.
+        epsg: m
+            .georef
+            .as_ref()
+            .and_then(|g| g.epsg)
+            .or_else(|| a.placement.as_ref().and_then(|p| p.epsg())),
         value_range: [m.value_min, m.value_max],
         units: m.units.clone(),
         nodata: m.nodata,

@@ -265,6 +265,38 @@ fn sampling_bytes(pixels: usize, channels: u8) -> u64 {
     pixels as u64 * (8 + 20 * u64::from(channels.max(1)))
 }
 
+/// A tile's zoom, column and row from their path segments, or a 400 that says which numbers
+/// are tiles (zooms 0 to `max_zoom`, columns up to `columns x 2^z - 1`, rows up to
+/// `2^z - 1`). Numbers that parse but name no tile are the caller's 404.
+fn tile_numbers(
+    z: &str,
+    x: &str,
+    y: &str,
+    max_zoom: u8,
+    columns: u64,
+) -> Result<(u8, u32, u32), AppError> {
+    let z: u8 = z.parse().map_err(|_| {
+        AppError::bad_request(
+            "bad_tile",
+            format!("bad zoom {z:?}: zooms are whole numbers from 0 to {max_zoom}"),
+        )
+    })?;
+    let span = |k: u64| (k << z.min(32)).saturating_sub(1);
+    let number = |t: &str, what: &str, most: u64| {
+        t.parse::<u32>().map_err(|_| {
+            AppError::bad_request(
+                "bad_tile",
+                format!("bad tile {what} {t:?}: at zoom {z} {what}s go from 0 to {most}"),
+            )
+        })
+    };
+    Ok((
+        z,
+        number(x, "column", span(columns))?,
+        number(y, "row", span(1))?,
+    ))
+}
+
 /// The backend of a request: its `backend` parameter, else the server's. Asking for the GPU
 /// of a server without one is an error, not a silent fallback.
 fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppError> {
@@ -277,7 +309,9 @@ fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backend, AppErro
     if b == Backend::Gpu && state.gpu.is_none() {
         return Err(AppError::bad_request(
             "gpu_unavailable",
-            "this server has no GPU adapter: use backend=cpu or auto",
+            "this server decodes on the CPU (it found no hardware GPU, or was started with \
+             backend cpu; `fractile serve --backend gpu` opens any adapter, a software one too): \
+             use backend=cpu or auto",
         ));
     }
     Ok(b)

@@ -94,19 +94,26 @@ pub(super) struct TerrainQuery {
 /// decode's bound plus the mesh's error in `X-Error-Bound`.
 pub(super) async fn terrain_tile(
     State(state): Shared,
-    Path((id, z, x, tile)): Path<(String, u8, u32, String)>,
+    Path((id, z, x, tile)): Path<(String, String, String, String)>,
     Query(q): Query<TerrainQuery>,
     headers: HeaderMap,
 ) -> Result<Response, AppError> {
     let a = terrain_asset(state.store.get(&id)?)?;
-    let y: u32 = tile
+    let y = tile
         .strip_suffix(".terrain")
-        .and_then(|y| y.parse().ok())
         .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.terrain"))?;
-    if z > max_level(&state, &a) || x >= (2u32 << z) || y >= (1u32 << z) {
+    let top = max_level(&state, &a);
+    let (z, x, y) = super::tile_numbers(&z, &x, y, top, 2)?;
+    if z > top || x >= (2u32 << z) || y >= (1u32 << z) {
         return Err(AppError::not_found(
             "no_tile",
-            format!("terrain tile {z}/{x}/{y} does not exist"),
+            format!(
+                "terrain tile {z}/{x}/{y} does not exist: this asset's levels go from 0 to \
+                 {top} (layer.json), and at level {z} columns from 0 to {} and rows from 0 \
+                 to {}",
+                (2u64 << z.min(31)) - 1,
+                (1u64 << z.min(31)) - 1
+            ),
         ));
     }
     let [w, s, e, n] = geographic_bounds(z, x, y);
@@ -238,7 +245,15 @@ fn mesh_tile(
         },
         content_encoding: gzip.then_some("gzip"),
         body: Bytes::from(body),
-        bounds: bound.plus(max_error),
+        // At the tile's 65 x 65 grid points: the decode's bound, plus the mesh's error where
+        // the mesh is simplified. A regular grid passes through every decoded height, so its
+        // bound is the decode's alone (it was the level's geometric error before, 79 km at
+        // level 0: a figure about Cesium's level choice, not about any height).
+        bounds: if z >= ADAPTIVE_FROM {
+            bound.plus(max_error)
+        } else {
+            bound
+        },
     })
 }
 

@@ -135,12 +135,12 @@ struct TileJob {
 
 pub(super) async fn tile(
     State(state): Shared,
-    Path((id, z, x, tile)): Path<(String, u8, u32, String)>,
+    Path((id, z, x, tile)): Path<(String, String, String, String)>,
     Query(q): Query<TileQuery>,
     headers: HeaderMap,
 ) -> Result<Response, AppError> {
     let a = planar(state.store.get(&id)?)?;
-    let (y, ext) = tile_address(&state, z, x, &tile)?;
+    let (z, x, y, ext) = tile_address(&state, &z, &x, &tile)?;
     let job = tile_job(&state, &a, (z, x, y), ext, &q)?;
     check_inside(&a, z, x, y)?;
     // Checked before the cache, so that a bad parameter is refused even for a cached tile.
@@ -180,26 +180,32 @@ pub(super) async fn tile(
     Ok(cached_response(&state, &tag, &cached))
 }
 
-/// The tile row and extension of `{y}.{ext}`, and a 404 for a tile that no zoom level has.
+/// The zoom, column, row and extension of `{z}/{x}/{y}.{ext}`: a 400 that says the valid
+/// numbers for what is not a tile number (a zoom past 255, a column past 2^32: axum's own
+/// rejection would say "Cannot parse value"), and a 404 that says them for a tile that no
+/// zoom level has.
 fn tile_address<'a>(
     state: &AppState,
-    z: u8,
-    x: u32,
+    z: &str,
+    x: &str,
     tile: &'a str,
-) -> Result<(u32, &'a str), AppError> {
+) -> Result<(u8, u32, u32, &'a str), AppError> {
     let (y, ext) = tile
         .split_once('.')
         .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.png or {y}.f32"))?;
-    let y: u32 = y
-        .parse()
-        .map_err(|_| AppError::bad_request("bad_tile", format!("bad tile row {y:?}")))?;
+    let (z, x, y) = super::tile_numbers(z, x, y, state.limits.max_zoom, 1)?;
     if z > state.limits.max_zoom || x >= (1u32 << z) || y >= (1u32 << z) {
         return Err(AppError::not_found(
             "no_tile",
-            format!("tile {z}/{x}/{y} does not exist"),
+            format!(
+                "tile {z}/{x}/{y} does not exist: zooms go from 0 to {}, and at zoom {z} \
+                 columns and rows from 0 to {}",
+                state.limits.max_zoom,
+                (1u64 << z.min(32)) - 1
+            ),
         ));
     }
-    Ok((y, ext))
+    Ok((z, x, y, ext))
 }
 
 /// The query checked against the asset: size, format, style, iterations.

@@ -25,6 +25,7 @@
 
 pub mod grid;
 pub mod lifting;
+mod neighbourhood;
 pub mod pyramid;
 pub mod records;
 
