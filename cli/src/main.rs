@@ -44,6 +44,10 @@ enum Command {
     /// Encode an image (PNG, JPEG), a height field (GeoTIFF, 16-bit PNG), a mesh (OFF, OBJ,
     /// PLY, STL: a signed distance volume, IFS3D) or curves (GeoJSON: projected IFS with
     /// details) into an asset.
+    ///
+    /// How long: the default DEM encode (bounded) takes about half a minute a million cells
+    /// on two cores, an image under a second; an encode over a second shows its progress and
+    /// an estimate of the time left on stderr (--quiet: none).
     Encode(EncodeArgs),
     /// Join the part files of an encode split with `encode --part I/N` into the asset (the
     /// same bytes as the encode in one process).

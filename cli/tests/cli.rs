@@ -965,3 +965,42 @@ fn a_long_encode_shows_its_progress_on_a_terminal_every_two_seconds() {
     assert!(!text.contains("coding"), "{text:?}");
     let _ = std::fs::remove_dir_all(&dir);
 }
+
+#[test]
+fn a_port_in_use_and_an_input_of_another_kind_say_what_to_do() {
+    let dir = tempdir("newcomer");
+    // A port in use: the address and --bind named, before any asset is loaded.
+    let taken = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = taken.local_addr().unwrap().to_string();
+    let o = bin()
+        .args(["serve", "--bind", &addr, "--assets"])
+        .arg(&dir)
+        .env("FRACTILE_BACKEND", "cpu")
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let (out, err) = (
+        String::from_utf8_lossy(&o.stdout),
+        String::from_utf8_lossy(&o.stderr),
+    );
+    assert!(err.contains(&addr) && err.contains("--bind"), "{err}");
+    assert!(
+        !out.contains("serving") && !err.contains("serving"),
+        "{out}"
+    );
+    // A file the encoder does not read: what it reads, not the image crate's words.
+    let txt = dir.join("notes.txt");
+    std::fs::write(&txt, "a text file\n").unwrap();
+    let o = bin()
+        .arg("encode")
+        .arg(&txt)
+        .arg("-o")
+        .arg(dir.join("notes.fra"))
+        .output()
+        .unwrap();
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("GeoTIFF") && err.contains("PNG"), "{err}");
+    assert!(!err.contains("not recognized"), "{err}");
+    let _ = std::fs::remove_dir_all(&dir);
+}

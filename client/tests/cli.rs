@@ -120,3 +120,32 @@ fn errors_exit_non_zero_with_the_servers_detail() {
     assert!(!o.status.success());
     assert!(String::from_utf8_lossy(&o.stderr).contains("unauthorised"));
 }
+
+#[test]
+fn a_server_without_a_scheme_is_plain_http_and_errors_print_one_line() {
+    let base = fractile_e2e::server();
+    let bare = base.strip_prefix("http://").expect("an http URL");
+    let run = |server: &str, args: &[&str], backtrace: &str| {
+        Command::new(env!("CARGO_BIN_EXE_fractile-client"))
+            .arg("--server")
+            .arg(server)
+            .args(args)
+            .env("RUST_BACKTRACE", backtrace)
+            .output()
+            .expect("the binary runs")
+    };
+    // `127.0.0.1:PORT`, as the default is written in the README.
+    let o = run(bare, &["info", "jacksboro"], "0");
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    assert!(stdout(&o).contains("jacksboro"));
+    // An error, with the backtraces many Rust users' shells ask for: one line all the same.
+    let o = run(&base, &["info", "no-such-asset"], "1");
+    assert!(!o.status.success());
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert_eq!(err.trim_end().lines().count(), 1, "{err}");
+    assert!(err.starts_with("fractile-client: ") && err.contains("unknown_asset"));
+    // -v: the error with its backtrace.
+    let o = run(&base, &["-v", "info", "no-such-asset"], "1");
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(err.contains("backtrace"), "{err}");
+}

@@ -152,26 +152,56 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
         .layer(TraceLayer::new_for_http())
 }
 
+/// A listener on `bind`, or an error that names the address and what to do.
+async fn listen(bind: std::net::SocketAddr) -> anyhow::Result<tokio::net::TcpListener> {
+    tokio::net::TcpListener::bind(bind).await.map_err(|e| {
+        let hint = match e.kind() {
+            std::io::ErrorKind::AddrInUse => {
+                "another program (another fractile serve?) listens there: stop it, or choose \
+                 another address with --bind (FRACTILE_BIND), e.g. --bind 127.0.0.1:8081"
+            }
+            std::io::ErrorKind::PermissionDenied => {
+                "ports under 1024 need privileges: choose another with --bind (FRACTILE_BIND)"
+            }
+            _ => "choose another address with --bind (FRACTILE_BIND)",
+        };
+        anyhow::anyhow!("cannot listen on {bind}: {e}; {hint}")
+    })
+}
+
+/// Who may write, logged. The built-in demo (no assets named) on a loopback address takes
+/// anonymous writes unless told otherwise: its assets are a throwaway cache only this machine
+/// can reach, and the README's upload example should work against the server its first
+/// command starts. Anything else refuses writes without a token.
+fn writes(opts: &ServeOptions) -> api::Writes {
+    let demo_on_loopback = opts.assets.is_none() && opts.bind.ip().is_loopback();
+    let writes = api::Writes::from_options(
+        opts.write_token.clone(),
+        opts.file.allow_anonymous_writes.unwrap_or(demo_on_loopback),
+    );
+    match &writes {
+        api::Writes::Anyone if demo_on_loopback => tracing::info!(
+            "the demo on {} takes uploads from this machine without a token (set \
+             FRACTILE_WRITE_TOKEN to require one)",
+            opts.bind
+        ),
+        api::Writes::Anyone => tracing::warn!(
+            "anonymous writes allowed: PUT and DELETE are open to anyone who can reach {}",
+            opts.bind
+        ),
+        api::Writes::Refused => {
+            tracing::info!("no write token configured: PUT and DELETE are refused (403)")
+        }
+        api::Writes::Token(_) => {}
+    }
+    writes
+}
+
 /// Loads the assets and serves until SIGTERM or ctrl-c (in-flight requests finish).
 pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     // The address first, before assets load: a port in use should fail at once and say what
     // to do, not after the start-up log as a bare "os error 98".
-    let listener = tokio::net::TcpListener::bind(opts.bind)
-        .await
-        .map_err(|e| {
-            let hint = match e.kind() {
-                std::io::ErrorKind::AddrInUse => {
-                    "another program (another fractile serve?) listens there: stop it, or \
-                     choose another address with --bind (FRACTILE_BIND), e.g. --bind \
-                     127.0.0.1:8081"
-                }
-                std::io::ErrorKind::PermissionDenied => {
-                    "ports under 1024 need privileges: choose another with --bind (FRACTILE_BIND)"
-                }
-                _ => "choose another address with --bind (FRACTILE_BIND)",
-            };
-            anyhow::anyhow!("cannot listen on {}: {e}; {hint}", opts.bind)
-        })?;
+    let listener = listen(opts.bind).await?;
     let decode_mib = opts
         .file
         .max_decode_mib
@@ -210,30 +240,7 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
         .clone()
         .unwrap_or_else(|| format!("http://{}", opts.bind));
     let mut state = api::AppState::new(store, public.trim_end_matches('/').to_string());
-    // The built-in demo (no assets named) on a loopback address takes anonymous writes unless
-    // told otherwise: its assets are a throwaway cache only this machine can reach, and the
-    // README's upload example should work against the server its first command starts.
-    // Anything else refuses writes without a token.
-    let demo_on_loopback = opts.assets.is_none() && opts.bind.ip().is_loopback();
-    state.writes = api::Writes::from_options(
-        opts.write_token.clone(),
-        opts.file.allow_anonymous_writes.unwrap_or(demo_on_loopback),
-    );
-    match &state.writes {
-        api::Writes::Anyone if demo_on_loopback => tracing::info!(
-            "the demo on {} takes uploads from this machine without a token (set \
-             FRACTILE_WRITE_TOKEN to require one)",
-            opts.bind
-        ),
-        api::Writes::Anyone => tracing::warn!(
-            "anonymous writes allowed: PUT and DELETE are open to anyone who can reach {}",
-            opts.bind
-        ),
-        api::Writes::Refused => {
-            tracing::info!("no write token configured: PUT and DELETE are refused (403)")
-        }
-        api::Writes::Token(_) => {}
-    }
+    state.writes = writes(&opts);
     if let Some(c) = &opts.file.cache_control {
         state.cache_control = c.clone();
     }

@@ -265,8 +265,8 @@ fn sampling_bytes(pixels: usize, channels: u8) -> u64 {
     pixels as u64 * (8 + 20 * u64::from(channels.max(1)))
 }
 
-/// A tile's zoom, column and row from their path segments, or a 400 that says which numbers
-/// are tiles (zooms 0 to `max_zoom`, columns up to `columns x 2^z - 1`, rows up to
+/// A tile's zoom, column and row from their path segments, or a 400 `bad_path` (the code of
+/// every path that does not parse) that says which numbers are tiles (zooms 0 to `max_zoom`, columns up to `columns x 2^z - 1`, rows up to
 /// `2^z - 1`). Numbers that parse but name no tile are the caller's 404.
 fn tile_numbers(
     z: &str,
@@ -277,7 +277,7 @@ fn tile_numbers(
 ) -> Result<(u8, u32, u32), AppError> {
     let z: u8 = z.parse().map_err(|_| {
         AppError::bad_request(
-            "bad_tile",
+            "bad_path",
             format!("bad zoom {z:?}: zooms are whole numbers from 0 to {max_zoom}"),
         )
     })?;
@@ -285,7 +285,7 @@ fn tile_numbers(
     let number = |t: &str, what: &str, most: u64| {
         t.parse::<u32>().map_err(|_| {
             AppError::bad_request(
-                "bad_tile",
+                "bad_path",
                 format!("bad tile {what} {t:?}: at zoom {z} {what}s go from 0 to {most}"),
             )
         })
