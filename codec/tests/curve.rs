@@ -123,6 +123,12 @@ fn levels_past_the_source_keep_its_points_and_add_detail() {
             assert_eq!(deeper[4 * i], *p, "interpolating: source-level points stay");
         }
     }
+    // The deepest level a request can name is the deepest, not level 0 wrapped round (whose
+    // points and bound it answered): refused for its size instead.
+    for ring in &set.rings {
+        assert!(set.ring_level(ring, usize::MAX) > usize::MAX / 2);
+    }
+    assert!(set.points_at(usize::MAX) > set.points_at(l + 20));
 }
 
 #[test]

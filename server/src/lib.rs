@@ -111,6 +111,50 @@ pub struct ServeOptions {
     pub file: FileConfig,
 }
 
+/// CesiumJS's folder as `ServeDir` serves it (which refuses `..`), less what lies behind a
+/// symbolic link, which it follows: the assets folder serves only its own files, and so does
+/// this one (`leak.js -> /etc/hostname` was served).
+fn cesium_files(dir: PathBuf) -> axum::Router {
+    let served = tower_http::services::ServeDir::new(dir.clone());
+    axum::Router::new()
+        .fallback_service(served)
+        .layer(axum::middleware::from_fn(
+            move |req: axum::extract::Request, next: axum::middleware::Next| {
+                let dir = dir.clone();
+                async move {
+                    if through_a_link(&dir, req.uri().path()).await {
+                        let refused = error::AppError::not_found(
+                            "no_file",
+                            "no such file in the CesiumJS folder (links are not followed)",
+                        );
+                        return axum::response::IntoResponse::into_response(refused);
+                    }
+                    next.run(req).await
+                }
+            },
+        ))
+}
+
+/// Whether the request path `path` (percent-encoded, under `dir`) passes through a symbolic
+/// link, or climbs out with `..`. A part that does not exist ends the walk: `ServeDir` answers
+/// 404 for it.
+async fn through_a_link(dir: &std::path::Path, path: &str) -> bool {
+    let decoded = percent_encoding::percent_decode_str(path).decode_utf8_lossy();
+    let mut at = dir.to_path_buf();
+    for part in decoded.split('/').filter(|p| !p.is_empty() && *p != ".") {
+        if part == ".." {
+            return true;
+        }
+        at.push(part);
+        match tokio::fs::symlink_metadata(&at).await {
+            Ok(m) if m.file_type().is_symlink() => return true,
+            Ok(_) => {}
+            Err(_) => return false,
+        }
+    }
+    false
+}
+
 /// The full application: API routes and middleware.
 pub fn app(state: Arc<api::AppState>) -> axum::Router {
     telemetry::handle();
@@ -119,9 +163,7 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
     let gpu = state.gpu.clone();
     let router = api::router(state);
     let router = match cesium {
-        Some(dir) => {
-            router.nest_service("/vendor/cesium", tower_http::services::ServeDir::new(dir))
-        }
+        Some(dir) => router.nest("/vendor/cesium", cesium_files(dir)),
         None => router,
     };
     router

@@ -405,6 +405,20 @@ fn load_from(
         .read(0, source.len().min(12) as usize)
         .map_err(|e| what(&e))?;
     if !fractile_codec::io::chunked::is_chunked(&head) {
+        // Before reading it whole: a file that is no asset, or one larger than any asset that
+        // is not chunked can be (its decoded planes, which `max_decode_bytes` bounds, are
+        // larger than its bytes), is refused from its length and first bytes. A 100 GB sparse
+        // file dropped in the folder took the server down asking for its size in memory, and
+        // a 2 GB junk file was read whole at every rescan to say "bad magic".
+        fractile_codec::io::asset::check_magic(&head).map_err(|e| what(&e))?;
+        if source.len() > limits.max_decode_bytes {
+            return Err(what(&format!(
+                "{} bytes, over any asset that is not chunked (max_decode_mib {}): chunk it \
+                 (fractile encode --chunk N)",
+                source.len(),
+                limits.max_decode_bytes >> 20
+            )));
+        }
         let bytes = source
             .read(0, source.len() as usize)
             .map_err(|e| what(&e))?;

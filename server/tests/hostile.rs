@@ -398,3 +398,62 @@ fn anonymous_writes(store: Store) -> AppState {
     st.writes = fractile_server::api::Writes::Anyone;
     st
 }
+
+#[tokio::test]
+async fn the_cesium_folder_serves_its_own_files_and_no_links() {
+    let assets = fresh_dir("cesium-assets");
+    let cesium = fresh_dir("cesium");
+    let outside = fresh_dir("cesium-outside");
+    std::fs::write(cesium.join("Cesium.js"), "// CesiumJS").unwrap();
+    std::fs::create_dir_all(cesium.join("Workers")).unwrap();
+    std::fs::write(cesium.join("Workers/a.js"), "// a worker").unwrap();
+    std::fs::write(outside.join("secret"), "not to be served").unwrap();
+    std::os::unix::fs::symlink(outside.join("secret"), cesium.join("leak.js")).unwrap();
+    std::os::unix::fs::symlink(&outside, cesium.join("linked")).unwrap();
+    let (store, _) = Store::open(&assets).unwrap();
+    let mut st = AppState::new(store, "http://test".into());
+    st.cesium_dir = Some(cesium);
+    let st = Arc::new(st);
+    let get = |uri: &str| Request::get(uri).body(Body::empty()).unwrap();
+    for (uri, status) in [
+        ("/vendor/cesium/Cesium.js", StatusCode::OK),
+        ("/vendor/cesium/Workers/a.js", StatusCode::OK),
+        ("/vendor/cesium/leak.js", StatusCode::NOT_FOUND),
+        ("/vendor/cesium/%6Ceak.js", StatusCode::NOT_FOUND),
+        ("/vendor/cesium/linked/secret", StatusCode::NOT_FOUND),
+        ("/vendor/cesium/Workers/../leak.js", StatusCode::NOT_FOUND),
+        ("/vendor/cesium/nothing.js", StatusCode::NOT_FOUND),
+    ] {
+        let (s, body) = send(&st, get(uri)).await;
+        assert_eq!(s, status, "{uri}");
+        assert!(
+            !String::from_utf8_lossy(&body).contains("not to be served"),
+            "{uri}"
+        );
+    }
+}
+
+#[test]
+fn huge_and_junk_files_in_the_folder_are_refused_before_they_are_read() {
+    let dir = fresh_dir("huge");
+    let (good, _) = two_assets();
+    std::fs::write(dir.join("camera.fra"), &good).unwrap();
+    // 100 GB, sparse: an asset's magic, then nothing. Read whole, it aborted the process.
+    let huge = std::fs::File::create(dir.join("sparse.fra")).unwrap();
+    std::io::Write::write_all(&mut &huge, b"FRACTILE").unwrap();
+    huge.set_len(100 << 30).unwrap();
+    // Junk of 64 MB with no magic.
+    let junk = std::fs::File::create(dir.join("junk.fra")).unwrap();
+    junk.set_len(64 << 20).unwrap();
+    let (store, skipped) = Store::open(&dir).unwrap();
+    assert!(store.get("camera").is_ok(), "the good asset is served");
+    let said = skipped.join("\n");
+    assert!(
+        said.contains("sparse.fra") && said.contains("chunk it"),
+        "{said}"
+    );
+    assert!(
+        said.contains("junk.fra") && said.contains("not a fractile asset"),
+        "{said}"
+    );
+}

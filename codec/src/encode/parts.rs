@@ -29,7 +29,7 @@ const VERSION: u16 = 1;
 const MAX_HEADER: u32 = 1 << 30;
 
 /// What a part file says of itself.
-#[derive(Debug, Serialize, Deserialize)]
+#[derive(Clone, Debug, Serialize, Deserialize)]
 struct PartHeader {
     share: Share,
     chunk: u32,
@@ -77,19 +77,24 @@ pub fn encode_chunked_part(
         georef: coded.header.georef.clone(),
         records: coded.records().cloned().collect(),
     };
-    let bytes = fractile_proto::encode(&header);
+    let length = write_spilled(output, &part_head(&header), coded.order(), &spill)?;
+    Ok(PartWritten {
+        chunks: header.records.len(),
+        length,
+        seconds: coded.start.elapsed().as_secs_f64(),
+    })
+}
+
+/// A part file's head: magic, version, the header's length, the header, its CRC.
+fn part_head(header: &PartHeader) -> Vec<u8> {
+    let bytes = fractile_proto::encode(header);
     let mut head = Vec::with_capacity(bytes.len() + 18);
     head.extend_from_slice(MAGIC);
     head.extend_from_slice(&VERSION.to_le_bytes());
     head.extend_from_slice(&(bytes.len() as u32).to_le_bytes());
     head.extend_from_slice(&bytes);
     head.extend_from_slice(&crc32fast::hash(&bytes).to_le_bytes());
-    let length = write_spilled(output, &head, coded.order(), &spill)?;
-    Ok(PartWritten {
-        chunks: header.records.len(),
-        length,
-        seconds: coded.start.elapsed().as_secs_f64(),
-    })
+    head
 }
 
 /// The source's header as the parts of one asset must agree on it.
@@ -140,9 +145,14 @@ fn open_part(path: &Path) -> Result<Part, Error> {
     }
     let header: PartHeader =
         fractile_proto::decode(&bytes).map_err(|e| bad(format!("its header: {e}")))?;
+    check_header(&header).map_err(bad)?;
     let body = 14 + u64::from(n) + 4;
-    let total: u64 = header.records.iter().map(|r| r.length).sum();
-    if body + total != len {
+    let total = header
+        .records
+        .iter()
+        .try_fold(0u64, |t, r| t.checked_add(r.length))
+        .ok_or_else(|| bad("its chunk lengths overflow".into()))?;
+    if body.checked_add(total) != Some(len) {
         return Err(bad(format!(
             "{} bytes of chunks after its header, {total} listed (a part cut short?)",
             len - body
@@ -154,6 +164,37 @@ fn open_part(path: &Path) -> Result<Part, Error> {
         file,
         body,
     })
+}
+
+/// Refuses a part header no encoder writes, before anything is allocated for it (a crafted
+/// header claimed share 5 of 2, 2^32 shares, 2^32 cells a side, or chunks of side 0, and
+/// assemble panicked or asked for 100 GB). The raster's size is bounded by its chunk count.
+fn check_header(h: &PartHeader) -> Result<(), String> {
+    let (lo, hi) = chunked::CHUNK_SIDES;
+    if !h.chunk.is_power_of_two() || !(lo..=hi).contains(&h.chunk) {
+        return Err(format!(
+            "chunks of {} cells a side (an encode makes powers of two from {lo} to {hi})",
+            h.chunk
+        ));
+    }
+    if h.width == 0 || h.height == 0 {
+        return Err(format!("a raster of {} x {} cells", h.width, h.height));
+    }
+    let chunks: u64 = chunked::ChunkTable::level_sizes(h.width, h.height, h.chunk)
+        .iter()
+        .map(|&(w, h2)| u64::from(w.div_ceil(h.chunk)) * u64::from(h2.div_ceil(h.chunk)))
+        .sum();
+    if chunks > chunked::MAX_CHUNKS as u64 {
+        return Err(format!("{chunks} chunks (at most {})", chunked::MAX_CHUNKS));
+    }
+    let Share { index, count } = h.share;
+    if count == 0 || u64::from(count) > chunks.max(1) || index >= count {
+        return Err(format!(
+            "share {index}/{count} (shares go from 0 to count - 1, and an encode of {chunks} \
+             chunks has at most {chunks})"
+        ));
+    }
+    Ok(())
 }
 
 /// Every part of one encode is there, once: same sources, settings and count, each share once.
@@ -299,4 +340,79 @@ pub fn assemble(parts: &[PathBuf], output: &Path) -> Result<Written, Error> {
         transforms,
         seconds: start.elapsed().as_secs_f64(),
     })
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A real part (jacksboro in chunks of 64, share 0 of 2) in `dir`, its header rewritten by
+    /// `craft` into `name`.
+    fn crafted(dir: &Path, name: &str, craft: impl Fn(&mut PartHeader)) -> PathBuf {
+        let real = dir.join("real.part");
+        if !real.exists() {
+            let source = Path::new(env!("CARGO_MANIFEST_DIR")).join("../testdata/jacksboro.tif");
+            let mut rows = crate::io::rows::GeoTiff::open(&source).unwrap();
+            let one = |r: &crate::Raster| crate::encode_default(r, 0.8, &|_, _| {});
+            let share = Share { index: 0, count: 2 };
+            encode_chunked_part(&mut rows, (64, share, "s"), &one, &|_, _| {}, &real).unwrap();
+        }
+        let part = open_part(&real).unwrap();
+        let bytes = std::fs::read(&real).unwrap();
+        let mut header = part.header.clone();
+        craft(&mut header);
+        let mut out = part_head(&header);
+        out.extend_from_slice(&bytes[part.body as usize..]);
+        let path = dir.join(name);
+        std::fs::write(&path, out).unwrap();
+        path
+    }
+
+    #[test]
+    fn crafted_part_headers_are_refused_by_name_and_leave_nothing() {
+        let dir = std::env::temp_dir().join(format!("fractile-crafted-{}", std::process::id()));
+        let _ = std::fs::remove_dir_all(&dir);
+        std::fs::create_dir_all(&dir).unwrap();
+        type Case = (&'static str, fn(&mut PartHeader), &'static str);
+        let cases: [Case; 6] = [
+            ("share", |h| h.share.index = 5, "share 5/2"),
+            ("count", |h| h.share.count = u32::MAX, "share 0/4294967295"),
+            (
+                "size",
+                |h| (h.width, h.height) = (u32::MAX, u32::MAX),
+                "chunks (at most",
+            ),
+            ("empty", |h| h.width = 0, "a raster of 0 x"),
+            ("side", |h| h.chunk = 0, "chunks of 0 cells"),
+            (
+                "lengths",
+                |h| {
+                    h.records[0].length = u64::MAX - 8;
+                    h.records[1].length = 64;
+                },
+                "overflow",
+            ),
+        ];
+        for (name, craft, says) in cases {
+            let part = crafted(&dir, name, craft);
+            let out = dir.join(format!("{name}.fra"));
+            let err = match assemble(&[part], &out) {
+                Err(e) => e.to_string(),
+                Ok(_) => panic!("{name}: assembled"),
+            };
+            assert!(err.contains(says), "{name}: {err}");
+            assert!(!out.exists(), "{name}: an output was written");
+        }
+        let left: Vec<String> = std::fs::read_dir(&dir)
+            .unwrap()
+            .flatten()
+            .map(|e| e.file_name().to_string_lossy().into_owned())
+            .filter(|n| {
+                !n.ends_with(".part")
+                    && !["share", "count", "size", "empty", "side", "lengths"].contains(&n.as_str())
+            })
+            .collect();
+        assert!(left.is_empty(), "left behind: {left:?}");
+        let _ = std::fs::remove_dir_all(&dir);
+    }
 }

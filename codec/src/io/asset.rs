@@ -223,6 +223,16 @@ pub enum PlaneOperator {
     Projected(ProjectedOperator),
 }
 
+/// Whether a file's first bytes (8 or more) are an asset's, before the rest is read: the
+/// error says what the file is instead (see [`Asset::from_bytes`]).
+pub fn check_magic(head: &[u8]) -> Result<(), Error> {
+    if head.len() >= 8 && &head[..8] == MAGIC {
+        Ok(())
+    } else {
+        Err(Error::Asset(not_an_asset(head)))
+    }
+}
+
 /// What a file that does not start with an asset's magic is, and what to do with it: rasters
 /// and meshes are the encoder's input, and uploading one is a common first mistake.
 fn not_an_asset(bytes: &[u8]) -> String {

@@ -648,7 +648,10 @@ impl CurveSet {
     /// A ring's own level at asset level `level` (rings align on their finest level; a ring
     /// coarser than that is drawn as its base polygon).
     pub fn ring_level(&self, ring: &Ring, level: usize) -> usize {
-        (level + ring.finest()).saturating_sub(self.finest())
+        // Saturating: a level of usize::MAX wrapped to level 0 (and its bound).
+        level
+            .saturating_add(ring.finest())
+            .saturating_sub(self.finest())
     }
 
     /// Points that asset level `level` would output (to refuse huge requests before work).
