@@ -50,6 +50,16 @@ fn source_at(r: &Raster, x: f64, y: f64) -> (f64, (f32, f32), (f32, f32)) {
     (bilinear, three, four)
 }
 
+/// Uniform draws in [0, 1) from `seed` (xorshift: the same draws every run).
+fn draw(mut seed: u64) -> impl FnMut() -> f64 {
+    move || {
+        seed ^= seed << 13;
+        seed ^= seed >> 7;
+        seed ^= seed << 17;
+        (seed >> 11) as f64 / (1u64 << 53) as f64
+    }
+}
+
 fn main() {
     let mut files: Vec<std::path::PathBuf> = std::env::args()
         .skip(1)
@@ -108,13 +118,8 @@ fn main() {
     }
     println!("\n| DEM | 65,536 random points ms | the clamp alone ms | share |");
     println!("|---|---|---|---|");
-    let mut seed = 0x2545_f491_4f6c_dd1du64;
-    let mut next = move || {
-        seed ^= seed << 13;
-        seed ^= seed >> 7;
-        seed ^= seed << 17;
-        ((seed >> 40) as f32) / (1u64 << 24) as f32
-    };
+    let mut next = draw(0x2545_f491_4f6c_dd1d);
+    let mut next = move || next() as f32;
     for (name, a) in &assets {
         let pts: Vec<[f32; 2]> = (0..65_536).map(|_| [next(), next()]).collect();
         let t = Instant::now();
@@ -142,13 +147,7 @@ fn main() {
     }
     println!("\n| DEM | cells a pixel | tile ms | the clamp alone ms | share |");
     println!("|---|---|---|---|---|");
-    let mut seed = 0x9e37_79b9_7f4a_7c15u64;
-    let mut unit = move || {
-        seed ^= seed << 13;
-        seed ^= seed >> 7;
-        seed ^= seed << 17;
-        (seed >> 11) as f64 / (1u64 << 53) as f64
-    };
+    let mut unit = draw(0x9e37_79b9_7f4a_7c15);
     for (name, a) in &assets {
         let (w, h) = (f64::from(a.meta.width), f64::from(a.meta.height));
         for f in [0.0625, 0.25, 1.0] {
