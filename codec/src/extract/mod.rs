@@ -21,8 +21,8 @@ use crate::render::colour::{rgb_bound, ycbcr_to_rgb};
 pub const SAMPLE_SNAP: f32 = 1e-4;
 
 /// How near a sample centre (in cells) a point counts as on it, on an axis of `cells` cells:
-/// [`SAMPLE_SNAP`], or eight times the rounding of a unit coordinate in f32 where that is more
-/// (`cells x 2^-25`: 1.3e-4 of a cell on a 4,320-cell axis, 2e-3 on 65,536). Why: a position
+/// [`SAMPLE_SNAP`], or eight times the rounding of a unit coordinate in f32 (`cells x 2^-25`)
+/// where that is more (1.0e-3 of a cell on a 4,320-cell axis, 0.016 on 65,536). Why: a position
 /// that names a centre (a native decode's pixel, a longitude on the georeference's own grid)
 /// reaches the decoder a few roundings off it, and the continuation of a rough surface (rho
 /// 0.9, a Hölder exponent of 0.15) moves by a quarter of its detail amplitude within 2^-12 of
