@@ -6,8 +6,8 @@
 //! cache and, optionally, as bytes on local disk ([`DiskCache`]).
 //!
 //! Layout under the prefix:
-//! - `versions/{id}/{crc}-{length}.fra`: an asset file as uploaded, never changed once written
-//!   (its name is its checksum and length);
+//! - `versions/{id}/{sha256}-{length}.fra`: an asset file as uploaded, never changed once
+//!   written (its name is the SHA-256 of its bytes and its length, see [`version_object`]);
 //! - `{id}.ref`: the pointer, a small JSON object naming the version served;
 //! - `{id}.fra`: an asset file put there by another tool (`aws s3 cp`, rclone), served when no
 //!   pointer names the id.
@@ -26,6 +26,8 @@
 //! either: its reads fail (503) until the next listing loads the new version.
 
 use std::path::{Path as FsPath, PathBuf};
+
+use sha2::Digest;
 use std::sync::Arc;
 use std::time::Duration;
 
@@ -303,12 +305,7 @@ impl Backing for Bucket {
     }
 
     fn put(&self, id: &str, bytes: &[u8]) -> std::io::Result<String> {
-        // Named by content: the same upload twice is the same object.
-        let crc = bytes
-            .len()
-            .checked_sub(4)
-            .map_or(0, |n| u32::from_le_bytes(bytes[n..].try_into().expect("4")));
-        let object = format!("versions/{id}/{crc:08x}-{}.fra", bytes.len());
+        let object = version_object(id, bytes);
         let previous = self.pointer(id)?;
         let payload = PutPayload::from(bytes.to_vec());
         self.remote
@@ -490,9 +487,45 @@ impl DiskCache {
     }
 }
 
+/// The object of an upload of `bytes` as `id`: named by a digest of the whole file, so that the
+/// same upload twice is the same object and different bytes never share one. It was named by
+/// the file's last four bytes and length, and a chunked file's last four bytes are only its
+/// last chunk's CRC: two files of one length with two chunks swapped shared a version, which
+/// an upload through another replica then overwrote under the readers of the first. A
+/// content-addressed key needs no check after the PUT: whatever object holds that key holds
+/// those bytes.
+pub fn version_object(id: &str, bytes: &[u8]) -> String {
+    let digest = sha2::Sha256::digest(bytes);
+    let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
+    format!("versions/{id}/{hex}-{}.fra", bytes.len())
+}
+
 #[cfg(test)]
 mod tests {
     use super::DiskCache;
+
+    /// Two files of one length and the same last bytes (as a chunked file with two chunks
+    /// swapped is) are two versions; one file twice is one.
+    #[test]
+    fn versions_are_named_by_the_whole_file() {
+        let a: Vec<u8> = (0..100u8).collect();
+        let mut b = a.clone();
+        b.swap(10, 20);
+        assert_eq!((a.len(), &a[90..]), (b.len(), &b[90..]));
+        let (va, vb) = (
+            super::version_object("x", &a),
+            super::version_object("x", &b),
+        );
+        assert_ne!(va, vb);
+        assert_eq!(va, super::version_object("x", &a.clone()));
+        assert!(
+            va.starts_with("versions/x/") && va.ends_with("-100.fra"),
+            "{va}"
+        );
+        // The SHA-256 of the bytes 0..100 (Python's hashlib).
+        let sha = "bce0aff19cf5aa6a7469a30d61d04e4376e4bbf6381052ee9e7f33925c954d52";
+        assert_eq!(va, format!("versions/x/{sha}-100.fra"));
+    }
 
     fn ranges(dir: &std::path::Path) -> Vec<std::path::PathBuf> {
         std::fs::read_dir(dir)
