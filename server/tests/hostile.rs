@@ -457,3 +457,53 @@ fn huge_and_junk_files_in_the_folder_are_refused_before_they_are_read() {
         "{said}"
     );
 }
+
+#[tokio::test]
+async fn deformation_bodies_over_their_limit_are_413_before_or_as_they_are_read() {
+    let dir = fresh_dir("deform");
+    let text = std::fs::read_to_string(data("curve/coast5.geojson")).unwrap();
+    let lines = fractile_codec::codecs::curve::geojson::read(&text).unwrap();
+    let settings = fractile_codec::codecs::curve::CurveSettings {
+        tolerance: 0.009,
+        ..Default::default()
+    };
+    let c = fractile_codec::encode::curve::encode_asset(&lines, &settings, "coast5").unwrap();
+    std::fs::write(dir.join("coast.fra"), &c.bytes).unwrap();
+    let (store, _) = Store::open(&dir).unwrap();
+    let st = Arc::new(AppState::new(store, "http://test".into()));
+    let uri = "/v1/assets/coast/curve/deform";
+    // Declared 1 GiB, sending nothing: refused from the header, not waited for.
+    let read = Arc::new(AtomicUsize::new(0));
+    let req = Request::post(uri)
+        .header(header::CONTENT_TYPE, "application/json")
+        .header(header::CONTENT_LENGTH, (1u64 << 30).to_string())
+        .body(counted_body(read.clone()))
+        .unwrap();
+    let (s, body) = send(&st, req).await;
+    assert_eq!(
+        s,
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "{}",
+        String::from_utf8_lossy(&body)
+    );
+    assert_eq!(read.load(Ordering::SeqCst), 0, "the body was read");
+    // 17 MB with no declared length: 413 too, as every other body over its limit.
+    let big = format!(
+        "{{\"deformations\": [], \"pad\": \"{}\"}}",
+        "x".repeat(17 << 20)
+    );
+    let req = Request::post(uri)
+        .header(header::CONTENT_TYPE, "application/json")
+        .body(Body::from_stream(futures_util::stream::once(async move {
+            Ok::<_, std::io::Error>(big)
+        })))
+        .unwrap();
+    let (s, body) = send(&st, req).await;
+    assert_eq!(
+        s,
+        StatusCode::PAYLOAD_TOO_LARGE,
+        "{}",
+        String::from_utf8_lossy(&body)
+    );
+    assert!(String::from_utf8_lossy(&body).contains("too_large"));
+}

@@ -14,6 +14,10 @@ pub struct CurveQuery {
     control: bool,
 }
 
+/// Largest deformation body, bytes: refused by its declared length before it is read, and
+/// by the bytes read where it declares none.
+pub(super) const DEFORM_BODY: usize = 16 * 1024 * 1024;
+
 /// Most points one curve answer may hold (each level doubles them).
 const MAX_CURVE_POINTS: u128 = 1 << 22;
 
@@ -86,7 +90,16 @@ pub(super) async fn curve_deform(
     Path(id): Path<String>,
     body: Result<Json<fractile_proto::DeformRequest>, axum::extract::rejection::JsonRejection>,
 ) -> Result<Response, AppError> {
-    let Json(req) = body.map_err(|e| AppError::bad_request("bad_body", e.body_text()))?;
+    // A body over the limit is a 413, as any other over its limit (it was a 400 "length limit
+    // exceeded"); the rest of what the extractor refuses is the body's fault.
+    let Json(req) = body.map_err(|e| match e.status() {
+        StatusCode::PAYLOAD_TOO_LARGE => AppError {
+            status: StatusCode::PAYLOAD_TOO_LARGE,
+            code: "too_large",
+            detail: format!("{} (at most {DEFORM_BODY} bytes)", e.body_text()),
+        },
+        _ => AppError::bad_request("bad_body", e.body_text()),
+    })?;
     let a = state.store.get(&id)?;
     let set = &curves_of(&a)?.set;
     if req.deformations.len() > 1024 {

@@ -206,7 +206,13 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/v1/assets/{id}/curve", get(curve))
         .route(
             "/v1/assets/{id}/curve/deform",
-            post(curve_deform).layer(axum::extract::DefaultBodyLimit::max(16 * 1024 * 1024)),
+            post(curve_deform).layer(
+                tower::ServiceBuilder::new()
+                    .layer(axum::extract::DefaultBodyLimit::max(curves::DEFORM_BODY))
+                    .layer(tower_http::limit::RequestBodyLimitLayer::new(
+                        curves::DEFORM_BODY,
+                    )),
+            ),
         )
         .with_state(state)
 }
