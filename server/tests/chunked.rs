@@ -261,3 +261,72 @@ async fn coarse_pixels_of_a_chunked_asset_share_cached_grids() {
     let grids = st.coarse.iter().filter(|(k, _)| k.0 == "chunked").count();
     assert_eq!(grids, 2, "the chunked asset's grids in the coarse cache");
 }
+
+/// Chunked uploads whose every checksum holds but whose chunks are not what the table says are
+/// refused with 422 at upload (they were stored, then answered 503 at every request): a chunk
+/// of other cells in a chunk's place, a chunked file as a chunk, a level-0 chunk as the
+/// coarsest.
+#[test]
+fn crafted_chunk_tables_are_refused_at_upload() {
+    let sound = std::fs::read(dir().join("chunked.fra")).unwrap();
+    let asset = fractile_codec::Asset::from_bytes(&sound).unwrap();
+    let c = asset.chunks.as_ref().unwrap();
+    // Every chunk's file, by level and index.
+    let files: Vec<Vec<Vec<u8>>> = c
+        .table
+        .levels
+        .iter()
+        .map(|l| {
+            l.chunks
+                .iter()
+                .map(|e| sound[e.offset as usize..(e.offset + e.length) as usize].to_vec())
+                .collect()
+        })
+        .collect();
+    let craft = |edit: &dyn Fn(&mut Vec<Vec<Vec<u8>>>)| {
+        let mut f = files.clone();
+        edit(&mut f);
+        fractile_codec::io::chunked::assemble(&asset.meta, c.table.clone(), &f)
+    };
+    let row = c.table.levels[0].chunks.len();
+    let top = files.len() - 1;
+    let small = encode_chunked(
+        &Raster::open(&data("topobathy.tif")).unwrap(),
+        64,
+        &|r: &Raster| encode_default(r, 0.8, &|_, _| {}),
+        &|_, _| {},
+    )
+    .unwrap()
+    .bytes;
+    // Sealed as a chunk is, so that its checksum holds: its last four bytes the CRC of the rest.
+    let mut small = small;
+    small.extend_from_slice(&crc32fast::hash(&small).to_le_bytes());
+    let cases: Vec<(&str, Vec<u8>, &str)> = vec![
+        (
+            "another chunk's cells",
+            craft(&|f| f[0][0] = f[0][row - 1].clone()),
+            "cells where the table says",
+        ),
+        (
+            "a chunked file as a chunk",
+            craft(&|f| f[0][0] = small.clone()),
+            "a chunked file as a chunk",
+        ),
+        (
+            "a level-0 chunk as the coarsest",
+            craft(&|f| f[top][0] = f[0][0].clone()),
+            "cells where the table says",
+        ),
+    ];
+    let uploads = dir().join("crafted-uploads");
+    std::fs::create_dir_all(&uploads).unwrap();
+    let (store, _) = Store::open(&uploads).unwrap();
+    for (what, bytes, says) in cases {
+        let Err(e) = store.put("crafted", &bytes) else {
+            panic!("{what}: stored")
+        };
+        assert_eq!(e.status, StatusCode::UNPROCESSABLE_ENTITY, "{what}");
+        assert!(e.detail.contains(says), "{what}: {}", e.detail);
+        assert!(!uploads.join("crafted.fra").exists(), "{what}");
+    }
+}

@@ -629,7 +629,46 @@ impl Chunked {
                         "{what}: its checksum does not match (corrupt file)"
                     )));
                 }
+                self.check_chunk_header(&bytes, entry)
+                    .map_err(|e| Error::Asset(format!("{what}: {e}")))?;
             }
+        }
+        Ok(())
+    }
+
+    /// Whether a chunk's own header is what the table says of it, read from its first bytes
+    /// and metadata without decoding its planes: an asset, not itself chunked, of the
+    /// table's codec and of the cells its entry covers. A checksum alone passed a chunk
+    /// replaced by another valid asset, a chunked file as a chunk, and tables that point
+    /// elsewhere: stored, then answered 503 at every request that touched them (what
+    /// [`Chunked::chunk`] finds at serving time, found at upload).
+    fn check_chunk_header(&self, bytes: &[u8], entry: &ChunkEntry) -> Result<(), String> {
+        if is_chunked(bytes) {
+            return Err("a chunked file as a chunk".into());
+        }
+        if bytes.len() < 16 || &bytes[..8] != MAGIC {
+            return Err("not an asset".into());
+        }
+        if bytes[11] != self.table.codec {
+            return Err(format!(
+                "codec {} where the table says {}",
+                bytes[11], self.table.codec
+            ));
+        }
+        let m_len = u32::from_le_bytes(bytes[12..16].try_into().expect("4")) as usize;
+        let meta: AssetMeta = bytes
+            .get(16..16usize.saturating_add(m_len))
+            .ok_or("truncated metadata")
+            .and_then(|m| fractile_proto::decode(m).map_err(|_| "unreadable metadata"))?;
+        let [x0, y0, x1, y1] = entry.cells;
+        if (meta.width, meta.height) != (x1 - x0, y1 - y0) {
+            return Err(format!(
+                "{} x {} cells where the table says {} x {}",
+                meta.width,
+                meta.height,
+                x1 - x0,
+                y1 - y0
+            ));
         }
         Ok(())
     }
