@@ -272,7 +272,8 @@ fn crafted_chunk_tables_are_refused_at_upload() {
     let asset = fractile_codec::Asset::from_bytes(&sound).unwrap();
     let c = asset.chunks.as_ref().unwrap();
     // Every chunk's file, by level and index.
-    let files: Vec<Vec<Vec<u8>>> = c
+    type Files = Vec<Vec<Vec<u8>>>;
+    let files: Files = c
         .table
         .levels
         .iter()
@@ -283,7 +284,7 @@ fn crafted_chunk_tables_are_refused_at_upload() {
                 .collect()
         })
         .collect();
-    let craft = |edit: &dyn Fn(&mut Vec<Vec<Vec<u8>>>)| {
+    let craft = |edit: &dyn Fn(&mut Files)| {
         let mut f = files.clone();
         edit(&mut f);
         fractile_codec::io::chunked::assemble(&asset.meta, c.table.clone(), &f)
