@@ -2,7 +2,10 @@
 //! meshes (IFS3D) and curves.
 
 use super::*;
-use fractile_codec::encode::chunked::{DEFAULT_CHUNK, Share, encode_chunked_file, wants_chunks};
+use fractile_codec::encode::chunked::{
+    DEFAULT_CHUNK, Share, chunk_bpp, encode_chunked_file, encode_chunked_file_at, wants_chunks,
+};
+use fractile_codec::encode::rate::FileRate;
 use fractile_codec::io::rows::Rows;
 
 use crate::progress::Progress;
@@ -91,7 +94,8 @@ pub(crate) struct EncodeArgs {
     /// Output asset file, or object (`s3://bucket/key`, the AWS variables as for `serve`).
     #[arg(short, long)]
     output: PathBuf,
-    /// Largest file size in bits per source pixel (rate control).
+    /// Largest file size in bits per source pixel (rate control): the whole file's, a chunked
+    /// one's overviews and table included.
     #[arg(long, group = "rate")]
     target_bpp: Option<f64>,
     /// projected: the largest |decoded - source| at any valid cell, in source units (metres,
@@ -359,11 +363,22 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         Some(c) => {
             let mut bar = Progress::start("coding chunks", a.quiet || a.json);
             let progress = |done: u64, total: u64| bar.update(done, total);
-            let one = |r: &Raster| {
-                encode_with(&a, r, false)
-                    .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
+            let enc = match file_rate(&a, rows.header().channels) {
+                Some(rate) => {
+                    let at = |r: &Raster, q, trial| {
+                        fractile_codec::encode::projected::encode_at(r, q, trial)
+                    };
+                    encode_chunked_file_at(rows.as_mut(), c, (rate, &at), &progress, out.path())?
+                }
+                None => {
+                    let per_chunk = a.chunk_rate(width, height, c);
+                    let one = |r: &Raster| {
+                        encode_with(&per_chunk, r, false)
+                            .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
+                    };
+                    encode_chunked_file(rows.as_mut(), c, &one, &progress, out.path())?
+                }
             };
-            let enc = encode_chunked_file(rows.as_mut(), c, &one, &progress, out.path())?;
             bar.finish();
             enc
         }
@@ -406,6 +421,33 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// The file's rate of a chunked encode (`fractile_codec::encode::rate`): the projected codec
+/// of one channel under `--target-bpp` (the DEM default among them), whose chunks share one
+/// step or one bound. `None`: each chunk coded on its own ([`EncodeArgs::chunk_rate`]).
+pub(super) fn file_rate(a: &EncodeArgs, channels: usize) -> Option<FileRate> {
+    let projected = a.codec() == CodecArg::Projected && a.max_error.is_none() && channels == 1;
+    a.target_bpp.filter(|_| projected).map(|bpp| FileRate {
+        bpp,
+        bounded: a.bounded,
+    })
+}
+
+impl EncodeArgs {
+    /// These settings with the rate of one chunk of a file coded chunk by chunk, so that the
+    /// whole file, overviews included, is within `--target-bpp` ([`chunk_bpp`]).
+    pub(super) fn chunk_rate(&self, width: usize, height: usize, chunk: u32) -> EncodeArgs {
+        EncodeArgs {
+            inputs: self.inputs.clone(),
+            output: self.output.clone(),
+            quadtree_flags: self.quadtree_flags.clone(),
+            roi: self.roi.clone(),
+            part: self.part.clone(),
+            target_bpp: self.target_bpp.map(|b| chunk_bpp(width, height, chunk, b)),
+            ..*self
+        }
+    }
 }
 
 /// `raster` coded by the codec `a` names (chunked or not, the same settings); `bar`: whether a

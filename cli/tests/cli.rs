@@ -794,7 +794,7 @@ fn an_encode_interrupted_by_ctrl_c_leaves_no_file() {
         .arg(data("etopo20.tif"))
         .arg("-o")
         .arg(dir.join("e.fra"))
-        .args(["--chunk", "64"]);
+        .args(["--chunk", "64", "--target-bpp", "3"]);
     // SIGINT as a terminal delivers it: to a process that has not inherited it ignored (a
     // test run started in the background of a non-interactive shell would hand it down).
     // SAFETY: between fork and exec, only an async-signal-safe call (signal(2)).
@@ -823,7 +823,8 @@ fn an_encode_interrupted_by_ctrl_c_leaves_no_file() {
 }
 
 /// An encode split over 4 processes (`--part I/4`, run at once) and joined by `assemble` is
-/// the file one `encode` writes; assembling without every part fails and writes nothing.
+/// the file one `encode` writes (chunks coded by settings of their own, here a max error);
+/// assembling without every part fails and writes nothing.
 #[test]
 fn an_encode_split_over_four_processes_assembles_into_the_same_file() {
     let dir = tempdir("parts");
@@ -832,7 +833,7 @@ fn an_encode_split_over_four_processes_assembles_into_the_same_file() {
     let out = bin()
         .arg("encode")
         .arg(&input)
-        .args(["--chunk", "64", "--json", "-o"])
+        .args(["--chunk", "64", "--max-error", "2", "--json", "-o"])
         .arg(&single)
         .output()
         .unwrap();
@@ -842,7 +843,16 @@ fn an_encode_split_over_four_processes_assembles_into_the_same_file() {
             bin()
                 .arg("encode")
                 .arg(&input)
-                .args(["--chunk", "64", "--json", "--part", &format!("{i}/4"), "-o"])
+                .args([
+                    "--chunk",
+                    "64",
+                    "--max-error",
+                    "2",
+                    "--json",
+                    "--part",
+                    &format!("{i}/4"),
+                    "-o",
+                ])
                 .arg(dir.join(format!("part{i}")))
                 .stdout(std::process::Stdio::piped())
                 .stderr(std::process::Stdio::piped())
@@ -895,6 +905,50 @@ fn an_encode_split_over_four_processes_assembles_into_the_same_file() {
         .unwrap();
     assert!(!whole.status.success());
     assert!(String::from_utf8_lossy(&whole.stderr).contains("--chunk N"));
+    std::fs::remove_dir_all(&dir).unwrap();
+}
+
+/// The default encode split in parts, under a file's rate: every part finds the same bound on
+/// the same sample (`assemble` refuses parts whose settings differ), and the joined file is
+/// within the rate, each of its cells within the bound the parts agreed on.
+#[test]
+fn a_split_default_encode_keeps_the_files_rate() {
+    let dir = tempdir("parts-rate");
+    let input = data("jacksboro-utm.tif");
+    let mut parts = Vec::new();
+    for i in 0..3 {
+        let part = dir.join(format!("part{i}"));
+        let v = json(
+            &bin()
+                .arg("encode")
+                .arg(&input)
+                .args(["--chunk", "64", "--target-bpp", "3", "--json", "--part"])
+                .arg(format!("{i}/3"))
+                .arg("-o")
+                .arg(&part)
+                .output()
+                .unwrap(),
+        );
+        assert!(v["chunks"].as_u64().unwrap() > 10);
+        parts.push(part);
+    }
+    let joined = dir.join("joined.fra");
+    let v = json(
+        &bin()
+            .arg("assemble")
+            .args(&parts)
+            .arg("--json")
+            .arg("-o")
+            .arg(&joined)
+            .output()
+            .unwrap(),
+    );
+    let bytes = std::fs::metadata(&joined).unwrap().len();
+    let budget = (3.0 * 344.0 * 363.0 / 8.0) as u64;
+    assert!(bytes <= budget, "{bytes} over {budget}");
+    assert!(bytes as f64 > 0.85 * budget as f64, "{bytes} of {budget}");
+    let max = v["max_error"].as_f64().unwrap();
+    assert!(max > 0.0 && max <= 64.0, "{max}");
     std::fs::remove_dir_all(&dir).unwrap();
 }
 

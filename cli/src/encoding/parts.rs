@@ -2,7 +2,7 @@
 //! or machines, and its parts joined (`fractile_codec::encode::parts`).
 
 use super::*;
-use fractile_codec::encode::parts::encode_chunked_part;
+use fractile_codec::encode::parts::{encode_chunked_part, encode_chunked_part_at};
 
 /// `encode --part I/N`: one share of a chunked encode into a part file.
 pub(super) fn encode_part(
@@ -26,12 +26,25 @@ pub(super) fn encode_part(
     );
     let mut bar = crate::progress::Progress::start("coding chunks", a.quiet || a.json);
     let progress = |done: u64, total: u64| bar.update(done, total);
-    let one = |r: &Raster| {
-        encode_with(a, r, false).map_err(|e| fractile_codec::Error::Settings(e.to_string()))
-    };
     // An s3:// part is written here first, then uploaded: the machines share a bucket.
     let out = crate::remote::Local::output(&a.output)?;
-    let w = encode_chunked_part(rows, (chunk, share, &settings), &one, &progress, out.path())?;
+    let (width, height) = (rows.header().width, rows.header().height);
+    let w = match file_rate(a, rows.header().channels) {
+        Some(rate) => {
+            let at =
+                |r: &Raster, q, trial| fractile_codec::encode::projected::encode_at(r, q, trial);
+            let how = (chunk, share, settings.as_str());
+            encode_chunked_part_at(rows, how, (rate, &at), &progress, out.path())?
+        }
+        None => {
+            let per_chunk = a.chunk_rate(width, height, chunk);
+            let one = |r: &Raster| {
+                encode_with(&per_chunk, r, false)
+                    .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
+            };
+            encode_chunked_part(rows, (chunk, share, &settings), &one, &progress, out.path())?
+        }
+    };
     bar.finish();
     out.finish()?;
     let report = json!({

@@ -1,11 +1,14 @@
 //! Rasters in chunks (format version 6, `io::chunked`): the raster and its overviews cut into
 //! chunks, each coded on its own by any 2D codec, on every core.
 //!
-//! Every chunk is coded with the same settings (a rate is a rate per chunk, so the file's rate
-//! is the chunks'; a bounded error is bounded in every chunk). Overviews are the raster
-//! box-averaged by 2 (nodata cells left out of the mean) until a level fits in one chunk: they
-//! add about a third to the cells coded, as a COG's overviews do, and let a coarse tile decode
-//! a few chunks of a coarse level instead of the whole raster.
+//! The rate is the file's, overviews and table included: [`encode_chunked_file_at`] codes every
+//! chunk at one quality (a step, or a bound) found on a sample of them ([`rate`]), the
+//! overviews' scaled by 2 a level; [`encode_chunked_file`] codes each chunk by its own settings
+//! (a codec without a file's rate gets its share of the file, [`chunk_bpp`]). Overviews are the
+//! raster box-averaged by 2 (nodata cells left out of the mean) until a level fits in one
+//! chunk: they add about a third to the cells coded, as a COG's overviews do, and let a coarse
+//! tile decode a few chunks of a coarse level instead of the whole raster. (Coding them once,
+//! as the multiresolution's own coarse levels, is issue 52's next step.)
 
 use std::io::Write;
 use std::path::Path;
@@ -16,6 +19,7 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::pyramid::Pyramid;
+use super::rate::{self, EncodeAt, FileRate, Search};
 use super::{Encoded, Written};
 use crate::Error;
 use crate::core::metrics::Errors;
@@ -37,8 +41,48 @@ pub fn wants_chunks(width: usize, height: usize, chunk: u32) -> bool {
     width > 2 * chunk as usize || height > 2 * chunk as usize
 }
 
+/// The rate each chunk takes so that a file of chunks coded one by one at it (codecs without a
+/// file's rate, [`rate`]) is at most `bpp` bits a source cell: `bpp` times the source's cells
+/// over every level's coded cells (overviews and overlaps included), less 1% for the table.
+pub fn chunk_bpp(width: usize, height: usize, chunk: u32, bpp: f64) -> f64 {
+    let sizes = ChunkTable::level_sizes(width as u32, height as u32, chunk);
+    let table = table_of(chunk, &sizes);
+    let coded: u64 = table
+        .levels
+        .iter()
+        .flat_map(|l| &l.chunks)
+        .map(|e| u64::from(e.cells[2] - e.cells[0]) * u64::from(e.cells[3] - e.cells[1]))
+        .sum();
+    let file = bpp * (width * height) as f64 / 8.0;
+    let chunks = (file - header_allowance(&table) as f64).max(0.0);
+    0.99 * 8.0 * chunks / coded.max(1) as f64
+}
+
+/// A table of every chunk of levels `sizes` (nothing yet of their files).
+fn table_of(chunk: u32, sizes: &[(u32, u32)]) -> ChunkTable {
+    let mut table = new_table(chunk);
+    for (entries, &(w, h)) in blank(&table, sizes).into_iter().zip(sizes) {
+        table.levels.push(chunked::Level {
+            width: w,
+            height: h,
+            chunks: entries,
+        });
+    }
+    table
+}
+
+/// What a chunked file's header may take beside its chunks: the table (its size is fixed by
+/// its entry count), and 512 bytes for the metadata (an encoder line, a georeference: about
+/// 235 bytes measured).
+fn header_allowance(table: &ChunkTable) -> u64 {
+    (fractile_proto::encode(table).len() + 512) as u64
+}
+
 /// Codes one chunk (a raster of its own) by whichever 2D codec and settings the caller chose.
 pub type EncodeOne<'a> = dyn Fn(&Raster) -> Result<Encoded, Error> + Sync + 'a;
+
+/// Codes one chunk of a level (0: the source's cells, l: an overview of 2^l cells a side).
+pub(super) type EncodeLevel<'a> = dyn Fn(usize, &Raster) -> Result<Encoded, Error> + Sync + 'a;
 
 /// Counts chunks coded: `progress(done, total)`.
 pub type Progress<'a> = dyn Fn(u64, u64) + Sync + 'a;
@@ -61,7 +105,7 @@ pub fn encode_chunked(
     let coded = code_streamed(
         &mut InMemory::new(raster),
         (chunk, Share::WHOLE),
-        (encode_one, progress),
+        (&|_, r: &Raster| encode_one(r), progress),
         &mut spill,
     )?;
     let (meta, mut table, errors, transforms) =
@@ -98,7 +142,7 @@ pub fn encode_chunked_file(
     let coded = code_streamed(
         rows,
         (chunk, Share::WHOLE),
-        (encode_one, progress),
+        (&|_, r: &Raster| encode_one(r), progress),
         &mut spill,
     )?;
     let (meta, mut table, errors, transforms) =
@@ -112,6 +156,128 @@ pub fn encode_chunked_file(
         transforms,
         seconds: coded.start.elapsed().as_secs_f64(),
     })
+}
+
+/// Codes `rows` in chunks as [`encode_chunked_file`] does, every chunk at the one quality
+/// ([`rate::Quality`]) whose whole file fits `rate` ([`rate`]: found on a sample of the
+/// chunks, then every chunk coded once; again, coarser, should the file come out over).
+pub fn encode_chunked_file_at(
+    rows: &mut dyn Rows,
+    chunk: u32,
+    (rate, encode_at): (FileRate, &EncodeAt<'_>),
+    progress: &Progress<'_>,
+    output: &Path,
+) -> Result<Written, Error> {
+    let spill = || Spill::beside(output);
+    let at = code_at_rate(rows, chunk, (rate, encode_at), progress, &spill)?;
+    let length = write_spilled(output, &at.head, at.coded.order(), &at.spill)?;
+    Ok(Written {
+        asset: Asset::read(output)?,
+        length,
+        errors: at.errors,
+        transforms: at.transforms,
+        seconds: at.start.elapsed().as_secs_f64(),
+    })
+}
+
+/// [`encode_chunked_file_at`] into memory.
+pub fn encode_chunked_at(
+    raster: &Raster,
+    chunk: u32,
+    (rate, encode_at): (FileRate, &EncodeAt<'_>),
+    progress: &Progress<'_>,
+) -> Result<Encoded, Error> {
+    let spill = || Ok(Spill::Memory(Vec::new()));
+    let at = code_at_rate(
+        &mut InMemory::new(raster),
+        chunk,
+        (rate, encode_at),
+        progress,
+        &spill,
+    )?;
+    let mut bytes = at.head.clone();
+    for (offset, len) in at.coded.order() {
+        at.spill
+            .copy(offset, len, &mut bytes)
+            .map_err(|e| Error::Output(e.to_string()))?;
+    }
+    Ok(Encoded {
+        asset: Asset::from_bytes(&bytes)?,
+        bytes,
+        errors: at.errors,
+        transforms: at.transforms,
+        seconds: at.start.elapsed().as_secs_f64(),
+    })
+}
+
+/// The quality a file of `rows` in chunks of `chunk` is coded at under `rate`, aiming at `aim`
+/// of its budget (what each process of a split encode finds alike: the same sample, the same
+/// search), and the budget.
+pub fn quality_for(
+    rows: &mut dyn Rows,
+    chunk: u32,
+    (rate, encode_at): (FileRate, &EncodeAt<'_>),
+    aim: f64,
+) -> Result<(rate::Quality, u64), Error> {
+    let header = checked_header(rows, chunk)?;
+    let budget = rate.budget((header.width * header.height) as u64)?;
+    let sample = sample_chunks(rows, chunk)?;
+    let quality = Search::new(&sample, rate, budget, encode_at).find(aim)?;
+    Ok((quality, budget))
+}
+
+/// A file coded at its rate: the chunks, where they wait, its header and figures.
+struct AtRate {
+    /// When the encode began (its sample read first).
+    start: Instant,
+    coded: Streamed,
+    spill: Spill,
+    head: Vec<u8>,
+    errors: Errors,
+    transforms: usize,
+}
+
+/// Passes at most: the first at the sample's quality, then coarser ones.
+const RATE_PASSES: usize = 4;
+
+fn code_at_rate(
+    rows: &mut dyn Rows,
+    chunk: u32,
+    (rate, encode_at): (FileRate, &EncodeAt<'_>),
+    progress: &Progress<'_>,
+    spill: &dyn Fn() -> Result<Spill, Error>,
+) -> Result<AtRate, Error> {
+    let start = Instant::now();
+    let header = checked_header(rows, chunk)?;
+    let budget = rate.budget((header.width * header.height) as u64)?;
+    let sample = sample_chunks(rows, chunk)?;
+    let mut search = Search::new(&sample, rate, budget, encode_at);
+    let mut quality = search.find(rate::AIM)?;
+    let mut last = 0;
+    for _ in 0..RATE_PASSES {
+        let mut sp = spill()?;
+        let one = |l: usize, r: &Raster| encode_at(r, quality.at_level(l), false);
+        let coded = code_streamed(rows, (chunk, Share::WHOLE), (&one, progress), &mut sp)?;
+        let (meta, mut table, errors, transforms) =
+            summarise(coded.size(), chunk, &coded.sizes, coded.records())?;
+        let head = chunked::header(&meta, &mut table);
+        last = head.len() as u64 + coded.order().map(|(_, len)| len).sum::<u64>();
+        if last <= budget {
+            return Ok(AtRate {
+                start,
+                coded,
+                spill: sp,
+                head,
+                errors,
+                transforms,
+            });
+        }
+        quality = search.coarser(quality, last)?;
+    }
+    Err(Error::Settings(format!(
+        "--target-bpp {}: the file came out at {last} bytes, over its {budget}, {RATE_PASSES} times",
+        rate.bpp
+    )))
 }
 
 /// Writes `head` then the spilled files at `order` (start, length) to `output`, atomically;
@@ -413,10 +579,95 @@ fn new_table(chunk: u32) -> ChunkTable {
 pub(super) fn code_streamed(
     rows: &mut dyn Rows,
     (chunk, share): (u32, Share),
-    work: (&EncodeOne<'_>, &Progress<'_>),
+    work: (&EncodeLevel<'_>, &Progress<'_>),
     spill: &mut Spill,
 ) -> Result<Streamed, Error> {
     let start = Instant::now();
+    let header = checked_header(rows, chunk)?;
+    let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk);
+    let table = new_table(chunk);
+    let mut pyramid = Pyramid::new(&header, &sizes, &table);
+    let mut tally = Tally::new(&blank(&table, &sizes), share, work, spill);
+    let mut code = |l, i, part| tally.push(l, i, part);
+    read_levels(rows, &header, &mut pyramid, &mut code)?;
+    tally.flush()?;
+    Ok(Streamed {
+        header,
+        sizes,
+        records: tally.records,
+        start,
+    })
+}
+
+/// Every row of `rows`, a band at a time, through the pyramid of levels (which hands each
+/// chunk to `code` as soon as its rows are held).
+fn read_levels(
+    rows: &mut dyn Rows,
+    header: &Header,
+    pyramid: &mut Pyramid,
+    code: &mut dyn FnMut(usize, u32, Raster) -> Result<(), Error>,
+) -> Result<(), Error> {
+    let mut y = 0;
+    while y < header.height {
+        let y1 = (y + READ_ROWS).min(header.height);
+        let band = rows.read(y, y1)?;
+        if band.width != header.width || band.height != y1 - y {
+            return Err(Error::Input(format!(
+                "rows {y}..{y1} read as {}x{}, not {}x{}",
+                band.width,
+                band.height,
+                header.width,
+                y1 - y
+            )));
+        }
+        pyramid.push(0, &band, code)?;
+        y = y1;
+    }
+    Ok(())
+}
+
+/// The sample of chunks a file's rate is found on ([`rate::sample_indices`]), read as the
+/// encode reads them, with every level's valid cells to scale it by.
+pub(super) fn sample_chunks(rows: &mut dyn Rows, chunk: u32) -> Result<rate::Sample, Error> {
+    let header = checked_header(rows, chunk)?;
+    let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk);
+    let table = new_table(chunk);
+    let counts: Vec<u32> = sizes
+        .iter()
+        .map(|&(w, h)| {
+            let (nx, ny) = table.grid(w, h);
+            nx * ny
+        })
+        .collect();
+    let picked = rate::sample_indices(&counts);
+    let mut pyramid = Pyramid::new(&header, &sizes, &table);
+    let (mut chunks, mut all, mut taken) =
+        (Vec::new(), vec![0u64; sizes.len()], vec![0u64; sizes.len()]);
+    let mut keep = |l: usize, i: u32, part: Raster| {
+        let n = rate::valid_cells(&part);
+        all[l] += n;
+        if picked[l].contains(&i) {
+            taken[l] += n;
+            chunks.push((l, part));
+        }
+        Ok(())
+    };
+    read_levels(rows, &header, &mut pyramid, &mut keep)?;
+    let scale = all
+        .iter()
+        .zip(&taken)
+        .map(|(&a, &t)| if t > 0 { a as f64 / t as f64 } else { 0.0 })
+        .collect();
+    let overhead = header_allowance(&table_of(chunk, &sizes));
+    Ok(rate::Sample {
+        chunks,
+        scale,
+        overhead,
+    })
+}
+
+/// `rows`' header, checked for a chunked encode in chunks of `chunk`.
+fn checked_header(rows: &mut dyn Rows, chunk: u32) -> Result<Header, Error> {
     let (lo, hi) = chunked::CHUNK_SIDES;
     if !chunk.is_power_of_two() || !(lo..=hi).contains(&chunk) {
         return Err(Error::Settings(format!(
@@ -435,34 +686,7 @@ pub(super) fn code_streamed(
             mosaic::MAX_WIDTH
         )));
     }
-    let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk);
-    let table = new_table(chunk);
-    let mut pyramid = Pyramid::new(&header, &sizes, &table);
-    let mut tally = Tally::new(&blank(&table, &sizes), share, work, spill);
-    let mut code = |l, i, part| tally.push(l, i, part);
-    let mut y = 0;
-    while y < header.height {
-        let y1 = (y + READ_ROWS).min(header.height);
-        let band = rows.read(y, y1)?;
-        if band.width != header.width || band.height != y1 - y {
-            return Err(Error::Input(format!(
-                "rows {y}..{y1} read as {}x{}, not {}x{}",
-                band.width,
-                band.height,
-                header.width,
-                y1 - y
-            )));
-        }
-        pyramid.push(0, &band, &mut code)?;
-        y = y1;
-    }
-    tally.flush()?;
-    Ok(Streamed {
-        header,
-        sizes,
-        records: tally.records,
-        start,
-    })
+    Ok(header)
 }
 
 /// A table entry (its cells, nothing yet of its file) for every chunk of every level.
@@ -491,7 +715,7 @@ struct Tally<'w, 's> {
     first: Vec<u64>,
     share: Share,
     queue: Vec<(usize, u32, Raster)>,
-    work: (&'w EncodeOne<'w>, &'w Progress<'w>),
+    work: (&'w EncodeLevel<'w>, &'w Progress<'w>),
     spill: &'s mut Spill,
     done: AtomicU64,
     total: u64,
@@ -501,7 +725,7 @@ impl<'w, 's> Tally<'w, 's> {
     fn new(
         entries: &[Vec<ChunkEntry>],
         share: Share,
-        work: (&'w EncodeOne<'w>, &'w Progress<'w>),
+        work: (&'w EncodeLevel<'w>, &'w Progress<'w>),
         spill: &'s mut Spill,
     ) -> Self {
         let first: Vec<u64> = entries
@@ -553,7 +777,7 @@ impl<'w, 's> Tally<'w, 's> {
             .map(|(l, i, part)| {
                 let any_valid = part.valid.as_ref().is_none_or(|v| v.contains(&true));
                 let enc = if any_valid {
-                    let enc = encode_one(&part).map_err(|e| match e {
+                    let enc = encode_one(l, &part).map_err(|e| match e {
                         Error::Input(m) => Error::Input(format!("chunk {i} of level {l}: {m}")),
                         e => e,
                     })?;

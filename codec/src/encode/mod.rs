@@ -12,6 +12,7 @@ pub mod fidelity;
 pub mod parts;
 pub mod projected;
 mod pyramid;
+pub mod rate;
 pub mod volume;
 
 use std::time::Instant;

@@ -23,7 +23,7 @@ use crate::io::chunked;
 use crate::io::rows::{Header, Rows};
 
 const MAGIC: &[u8; 8] = b"FRAPART\0";
-const VERSION: u16 = 1;
+const VERSION: u16 = 2;
 
 /// Most bytes a part file's header may claim: 2^20 chunk records of a few hundred bytes.
 const MAX_HEADER: u32 = 1 << 30;
@@ -37,6 +37,9 @@ struct PartHeader {
     /// asset must agree on both.
     source: String,
     settings: String,
+    /// The file's bytes at most, under a file's rate ([`super::rate`]): `assemble` refuses
+    /// parts that come to more.
+    budget: Option<u64>,
     width: u32,
     height: u32,
     georef: Option<fractile_proto::Georef>,
@@ -66,23 +69,67 @@ pub fn encode_chunked_part(
     output: &Path,
 ) -> Result<PartWritten, Error> {
     let mut spill = Spill::beside(output)?;
-    let coded = code_streamed(rows, (chunk, share), (encode_one, progress), &mut spill)?;
+    let coded = code_streamed(
+        rows,
+        (chunk, share),
+        (&|_, r: &crate::Raster| encode_one(r), progress),
+        &mut spill,
+    )?;
+    write_part((chunk, share, settings, None), coded, &spill, output)
+}
+
+/// A part's chunks, coded, written to its file with its header.
+fn write_part(
+    (chunk, share, settings, budget): (u32, Share, &str, Option<u64>),
+    coded: super::chunked::Streamed,
+    spill: &Spill,
+    output: &Path,
+) -> Result<PartWritten, Error> {
     let header = PartHeader {
         share,
         chunk,
         source: source_text(&coded.header),
         settings: settings.to_string(),
+        budget,
         width: coded.header.width as u32,
         height: coded.header.height as u32,
         georef: coded.header.georef.clone(),
         records: coded.records().cloned().collect(),
     };
-    let length = write_spilled(output, &part_head(&header), coded.order(), &spill)?;
+    let length = write_spilled(output, &part_head(&header), coded.order(), spill)?;
     Ok(PartWritten {
         chunks: header.records.len(),
         length,
         seconds: coded.start.elapsed().as_secs_f64(),
     })
+}
+
+/// [`encode_chunked_part`] under a file's rate ([`super::rate`]): each process finds the
+/// quality on the same sample (the same quality in every process, which goes in the part's
+/// settings, so that [`assemble`] refuses parts that disagree), then codes its share at it.
+/// A single encode codes its file again, coarser, should it come out over the rate; a split
+/// one cannot know the whole file's size until [`assemble`], so its parts aim lower
+/// ([`super::rate::PART_AIM`]; their bytes are then not a single encode's), and `assemble`
+/// refuses a file over the rate, saying what rate to ask for.
+pub fn encode_chunked_part_at(
+    rows: &mut dyn Rows,
+    (chunk, share, settings): (u32, Share, &str),
+    (rate, encode_at): (super::rate::FileRate, &super::rate::EncodeAt<'_>),
+    progress: &Progress<'_>,
+    output: &Path,
+) -> Result<PartWritten, Error> {
+    let aim = super::rate::PART_AIM;
+    let (quality, budget) = super::chunked::quality_for(rows, chunk, (rate, encode_at), aim)?;
+    let settings = format!("{settings} at {}", quality.describe());
+    let mut spill = Spill::beside(output)?;
+    let one = |l: usize, r: &crate::Raster| encode_at(r, quality.at_level(l), false);
+    let coded = code_streamed(rows, (chunk, share), (&one, progress), &mut spill)?;
+    write_part(
+        (chunk, share, &settings, Some(budget)),
+        coded,
+        &spill,
+        output,
+    )
 }
 
 /// A part file's head: magic, version, the header's length, the header, its CRC.
@@ -310,6 +357,16 @@ pub fn assemble(parts: &[PathBuf], output: &Path) -> Result<Written, Error> {
         order.iter().map(|(_, _, r)| *r),
     )?;
     let head = chunked::header(&meta, &mut table);
+    let total = head.len() as u64 + order.iter().map(|(_, _, r)| r.length).sum::<u64>();
+    if let Some(budget) = h0.budget
+        && total > budget
+    {
+        let bpp = 8.0 * budget as f64 / f64::from(h0.width) / f64::from(h0.height);
+        return Err(Error::Settings(format!(
+            "the parts come to {total} bytes, over the rate's {budget} ({bpp:.3} bits a cell): a split encode finds its quality on a sample and cannot code again; encode the parts again with --target-bpp {:.3}",
+            bpp * 0.98 * budget as f64 / total as f64
+        )));
+    }
     let mut length = 0;
     write_atomic_with(output, &mut |f| {
         let mut f = std::io::BufWriter::new(f);

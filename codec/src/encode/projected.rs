@@ -38,7 +38,7 @@ pub fn encode_projected(
     // it is coded once more with the slack given to the streams (the allowance is a guess:
     // jacksboro at 0.2 bpp left 6% of its bytes unused, about 0.4 dB).
     let limit = target_bpp
-        .filter(|_| settings.max_error.is_none())
+        .filter(|_| settings.max_error.is_none() && settings.at_step.is_none())
         .map(|b| (b * (raster.width * raster.height) as f64 / 8.0).floor() as usize);
     let all = designs(settings);
     let Some(limit) = limit else {
@@ -98,6 +98,11 @@ fn encode_within(
         )));
     }
     if raster.channels.len() != 1 {
+        if settings.at_step.is_some() {
+            return Err(Error::Settings(
+                "a fixed step codes one channel (colour takes a rate)".into(),
+            ));
+        }
         return encode_colour(raster, settings, target_bpp, (start, shift, designs));
     }
     let (lo, hi) = coding_range(raster);
@@ -112,6 +117,20 @@ fn encode_within(
     let quantum = source_quantum(raster);
     let mut header = plane_header(w, h, quantum, (lo, span));
     let (stream, grid) = match (settings.max_error, target_bpp) {
+        (None, _) if settings.at_step.is_some() => {
+            let at = settings.at_step.expect("matched");
+            header.growth = settings.growth;
+            header.quantum = 0.0;
+            header.step = at.step;
+            let quantising = (settings.dead_zone, settings.lambda);
+            match at.design {
+                Some(order) => {
+                    header.order = order;
+                    encode_grid(&header, &source, valid, quantising)
+                }
+                None => smaller_order(&mut header, &source, valid, quantising),
+            }
+        }
         (None, Some(bpp)) if settings.bounded => {
             let budget = shifted(bpp, raster, shift)?;
             let (e, coded) = fit_bound(&mut header, (&source, valid), budget, span);
@@ -168,7 +187,42 @@ fn encode_within(
     let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
     let asset = Asset::from_projected_parts(meta, vec![(header, stream)], mask)?;
     let errors = decoded_errors(&asset, raster);
+    if settings.trial {
+        let bytes = asset.to_bytes();
+        let transforms = asset.planes.iter().map(|p| p.operator.transforms()).sum();
+        let seconds = start.elapsed().as_secs_f64();
+        return Ok(Encoded {
+            asset,
+            bytes,
+            errors,
+            transforms,
+            seconds,
+        });
+    }
     Ok(measured(asset, start, errors, raster))
+}
+
+/// One chunk of a file whose rate is the file's ([`super::rate`]) at its quality: a step
+/// (rate mode, no rate control of its own) or a bound (max-error mode); `trial`: a coding
+/// whose file is not kept, without its source-error map.
+pub fn encode_at(
+    raster: &Raster,
+    quality: super::rate::Quality,
+    trial: bool,
+) -> Result<Encoded, Error> {
+    let settings = match quality {
+        super::rate::Quality::Step(at) => ProjectedSettings {
+            at_step: Some(at),
+            trial,
+            ..Default::default()
+        },
+        super::rate::Quality::Bound(e) => ProjectedSettings {
+            max_error: Some(e),
+            trial,
+            ..Default::default()
+        },
+    };
+    encode_projected(raster, &settings, None)
 }
 
 /// The multiresolutions rate mode tries, the best kept (`None` is the closed-loop pyramid): both

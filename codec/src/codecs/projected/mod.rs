@@ -843,6 +843,22 @@ pub struct ProjectedSettings {
     /// max-error quantiser, no dead zone), instead of the best PSNR. Costs 1.8 dB at 0.8 bpp
     /// on etopo20 and jacksboro, and gives a bound that holds at every cell.
     pub bounded: bool,
+    /// Rate mode at this step and design, no rate control of its own: the chunks of a file
+    /// whose rate is the file's ([`crate::encode::rate`]) share one step found for them all.
+    pub at_step: Option<AtStep>,
+    /// A trial coding whose file is not kept (a rate search's): no source-error map is
+    /// measured (the map took most of an encode), the file has none.
+    pub trial: bool,
+}
+
+/// A step (source units) and the multiresolution that codes at it: a lifted kernel
+/// ([`pyramid::Order::Lifted`], [`pyramid::Order::Lifted97`]) or `None`, the pyramid (its order chosen).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct AtStep {
+    /// The quantiser's step, source units.
+    pub step: f64,
+    /// The multiresolution.
+    pub design: Option<pyramid::Order>,
 }
 
 impl Default for ProjectedSettings {
@@ -860,6 +876,8 @@ impl Default for ProjectedSettings {
             dead_zone: 0.15,
             lambda: 0.1,
             bounded: false,
+            at_step: None,
+            trial: false,
         }
     }
 }

@@ -1,0 +1,219 @@
+//! Issue 52's bars on a chunked DEM: the file's rate against OpenJPEG at the same bytes, the
+//! bounded default against JPEG-LS near-lossless at the same max error, and encode times,
+//! side by side in one run (release build):
+//!
+//! `cargo bench -p fractile-codec --bench file_rate -- rates|bounded [COPIES] [old] [FILE.tif]`
+//!
+//! The raster: etopo20 (or FILE.tif) mirrored COPIES x COPIES (odd columns of copies flipped,
+//! odd rows upside down; etopo20 x 4 gives 4320 x 2160, over 4096 cells a side, 9.3 Mpx,
+//! chunked by default; jacksboro x 12, 4128 x 4356); COPIES 1: the file alone. `rates`: `--codec projected
+//! --target-bpp B` at 10:1, 20:1, 40:1 and 80:1 of the int16 bytes (1.6 to 0.2 bpp), and
+//! OpenJPEG's `opj_compress -I` at the file's bytes. `bounded`: the default encode (bounded,
+//! 0.8 bpp), and JPEG-LS with NEAR at its max error (imagecodecs, through python3). `old`:
+//! also the chunked encode before the file's rate (each chunk at the rate, with its own
+//! search), as the baseline.
+
+#[path = "support/baselines.rs"]
+#[allow(dead_code)]
+mod baselines;
+
+use std::time::Instant;
+
+use fractile_codec::encode::chunked::{DEFAULT_CHUNK, encode_chunked, encode_chunked_at};
+use fractile_codec::encode::rate::FileRate;
+use fractile_codec::{Encoded, Raster};
+
+fn raster(copies: usize, file: Option<&str>) -> Raster {
+    let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata");
+    let src = match file {
+        Some(f) => Raster::open(std::path::Path::new(f)).expect("a DEM"),
+        None => Raster::open(&root.join("etopo20.tif")).expect("etopo20"),
+    };
+    if copies <= 1 {
+        return src;
+    }
+    fractile_codec::io::mosaic::mirrored(&src, copies, copies).unwrap()
+}
+
+/// Peak resident memory of this process so far (MB).
+fn peak_mb() -> f64 {
+    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
+    status
+        .lines()
+        .find_map(|l| l.strip_prefix("VmHWM:"))
+        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
+        .map_or(f64::NAN, |kb| kb / 1024.0)
+}
+
+/// The file's rate (new) or a rate a chunk (old), rate mode or bounded.
+fn encode(r: &Raster, bpp: f64, bounded: bool, old: bool) -> (Encoded, f64) {
+    let t = Instant::now();
+    let enc = if old {
+        let settings = fractile_codec::codecs::projected::ProjectedSettings {
+            bounded,
+            ..Default::default()
+        };
+        let one = |part: &Raster| {
+            fractile_codec::encode::projected::encode_projected(part, &settings, Some(bpp))
+        };
+        encode_chunked(r, DEFAULT_CHUNK, &one, &|_, _| {})
+    } else {
+        let at =
+            |part: &Raster, q, trial| fractile_codec::encode::projected::encode_at(part, q, trial);
+        encode_chunked_at(
+            r,
+            DEFAULT_CHUNK,
+            (FileRate { bpp, bounded }, &at),
+            &|_, _| {},
+        )
+    };
+    (enc.expect("encode"), t.elapsed().as_secs_f64())
+}
+
+/// The overviews' share of a chunked file's bytes.
+fn overview_share(enc: &Encoded) -> f64 {
+    let Some(c) = &enc.asset.chunks else {
+        return 0.0;
+    };
+    let level =
+        |l: &fractile_codec::io::chunked::Level| l.chunks.iter().map(|e| e.length).sum::<u64>();
+    let all: u64 = c.table.levels.iter().map(level).sum();
+    let overviews: u64 = c.table.levels.iter().skip(1).map(level).sum();
+    overviews as f64 / all.max(1) as f64
+}
+
+/// OpenJPEG's `opj_compress -I` time on `r` at `bpp` (one run, the PNG it reads written first,
+/// not timed); NaN without the tool.
+fn opj_seconds(r: &Raster, bpp: f64) -> f64 {
+    let dir = std::env::temp_dir().join(format!("fractile-opj-{}", std::process::id()));
+    let _ = std::fs::create_dir_all(&dir);
+    let (png, j2k) = (dir.join("in.png"), dir.join("out.j2k"));
+    let (lo, _) = r.value_range();
+    let px: Vec<u16> = r.channels[0]
+        .iter()
+        .map(|&v| (f64::from(v) - lo).round() as u16)
+        .collect();
+    let img =
+        image::ImageBuffer::<image::Luma<u16>, _>::from_raw(r.width as u32, r.height as u32, px)
+            .expect("a grid");
+    img.save(&png).expect("png");
+    let t = Instant::now();
+    let ok = std::process::Command::new("opj_compress")
+        .args(["-I", "-r", &format!("{:.4}", 16.0 / bpp), "-i"])
+        .arg(&png)
+        .arg("-o")
+        .arg(&j2k)
+        .output()
+        .is_ok_and(|o| o.status.success());
+    let secs = t.elapsed().as_secs_f64();
+    let _ = std::fs::remove_dir_all(&dir);
+    if ok { secs } else { f64::NAN }
+}
+
+/// JPEG-LS near-lossless at NEAR = `e` (whole units): its compression ratio against the int16
+/// bytes, through python3's imagecodecs.
+fn jpegls_ratio(r: &Raster, e: f64) -> Option<f64> {
+    let dir = std::env::temp_dir().join(format!("fractile-jls-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).ok()?;
+    let raw = dir.join("in.raw");
+    let (lo, _) = r.value_range();
+    let bytes: Vec<u8> = r.channels[0]
+        .iter()
+        .flat_map(|&v| ((f64::from(v) - lo).round() as u16).to_le_bytes())
+        .collect();
+    std::fs::write(&raw, &bytes).ok()?;
+    let script = format!(
+        "import numpy, imagecodecs\na = numpy.fromfile('{}', dtype='<u2').reshape({}, {})\nprint(len(imagecodecs.jpegls_encode(a, level={})))",
+        raw.display(),
+        r.height,
+        r.width,
+        e.floor() as i64
+    );
+    let out = std::process::Command::new("python3")
+        .args(["-c", &script])
+        .output()
+        .ok()?;
+    let _ = std::fs::remove_dir_all(&dir);
+    let n: f64 = String::from_utf8_lossy(&out.stdout).trim().parse().ok()?;
+    Some((r.width * r.height * 2) as f64 / n)
+}
+
+fn main() {
+    let args: Vec<String> = std::env::args()
+        .skip(1)
+        .filter(|a| a != "--bench")
+        .collect();
+    let mode = args.first().map_or("rates", String::as_str).to_string();
+    let copies: usize = args.get(1).and_then(|c| c.parse().ok()).unwrap_or(4);
+    let old = args.iter().any(|a| a == "old");
+    let file = args
+        .iter()
+        .find(|a| a.ends_with(".tif"))
+        .map(String::as_str);
+    let r = raster(copies, file);
+    let cells = (r.width * r.height) as f64;
+    println!(
+        "{} x {} ({:.1} Mpx), chunks of {DEFAULT_CHUNK}, {} threads",
+        r.width,
+        r.height,
+        cells / 1e6,
+        rayon::current_num_threads()
+    );
+    if mode == "bounded" {
+        println!(
+            "\n| encode | bytes (bpp) | within 0.8 | max error | PSNR dB | ratio | JPEG-LS ratio at that max error | encode s | peak RSS MB |"
+        );
+        println!("|---|---|---|---|---|---|---|---|---|");
+        for old in [false, true].into_iter().filter(|o| !o || old) {
+            let (enc, secs) = encode(&r, 0.8, true, old);
+            let jls = jpegls_ratio(&r, enc.errors.max_error.ceil());
+            println!(
+                "| {} | {} ({:.3}) | {} | {:.0} | {:.2} | {:.2}:1 | {} | {:.1} | {:.0} |",
+                if old {
+                    "a rate a chunk"
+                } else {
+                    "the file's rate"
+                },
+                enc.bytes.len(),
+                enc.bpp(),
+                enc.bpp() <= 0.8,
+                enc.errors.max_error,
+                enc.errors.psnr,
+                enc.ratio(),
+                jls.map_or("-".into(), |j| format!("{j:.2}:1")),
+                secs,
+                peak_mb()
+            );
+        }
+        return;
+    }
+    println!(
+        "\n| ratio | encode | bytes (bpp) | within | PSNR dB | max error | encode s | OpenJPEG PSNR at those bytes | - OpenJPEG | opj s | overviews' bytes |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    for ratio in [10.0, 20.0, 40.0, 80.0] {
+        let bpp = 16.0 / ratio;
+        for old in [false, true].into_iter().filter(|o| !o || old) {
+            let (enc, secs) = encode(&r, bpp, false, old);
+            let got = enc.bpp();
+            let j2k = baselines::jpeg2000_at(&r, got);
+            let opj = opj_seconds(&r, got);
+            println!(
+                "| {ratio}:1 | {} | {} ({got:.3}) | {} | {:.2} | {:.0} | {secs:.1} | {} | {} | {opj:.1} | {:.1}% |",
+                if old {
+                    "a rate a chunk"
+                } else {
+                    "the file's rate"
+                },
+                enc.bytes.len(),
+                got <= bpp,
+                enc.errors.psnr,
+                enc.errors.max_error,
+                j2k.map_or("-".into(), |(b, p)| format!("{p:.2} at {b:.3}")),
+                j2k.map_or("-".into(), |(_, p)| format!("{:+.2}", enc.errors.psnr - p)),
+                100.0 * overview_share(&enc),
+            );
+        }
+    }
+    println!("\npeak RSS {:.0} MB", peak_mb());
+}
