@@ -14,6 +14,10 @@
 //! rows upside down; 4 gives 4320 x 2160, 9.3 Mpx), encoded by the default DEM encode
 //! (projected, bounded, 0.8 bits a cell) whole or in chunks of CHUNK.
 
+#[path = "support/memory.rs"]
+mod memory;
+use memory::peak_mb;
+
 use std::time::Instant;
 
 use fractile_codec::encode::chunked::encode_chunked;
@@ -66,16 +70,6 @@ fn write_tiffs(dir: &std::path::Path, r: &Raster) {
         (r.width / tw) * (r.height / th),
         dir.display()
     );
-}
-
-/// Peak resident memory of this process so far (MB).
-fn peak_mb() -> f64 {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
-        .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
 /// RMSE against the source of a `side x side` window of cell centres at (x0, y0).

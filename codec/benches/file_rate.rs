@@ -17,6 +17,10 @@
 #[allow(dead_code)]
 mod baselines;
 
+#[path = "support/memory.rs"]
+mod memory;
+use memory::peak_mb;
+
 use std::time::Instant;
 
 use fractile_codec::encode::chunked::{DEFAULT_CHUNK, encode_chunked, encode_chunked_at};
@@ -33,16 +37,6 @@ fn raster(copies: usize, file: Option<&str>) -> Raster {
         return src;
     }
     fractile_codec::io::mosaic::mirrored(&src, copies, copies).unwrap()
-}
-
-/// Peak resident memory of this process so far (MB).
-fn peak_mb() -> f64 {
-    let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
-    status
-        .lines()
-        .find_map(|l| l.strip_prefix("VmHWM:"))
-        .and_then(|v| v.trim().trim_end_matches("kB").trim().parse::<f64>().ok())
-        .map_or(f64::NAN, |kb| kb / 1024.0)
 }
 
 /// The file's rate (new) or a rate a chunk (old), rate mode or bounded.

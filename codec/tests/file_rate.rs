@@ -88,7 +88,10 @@ fn a_bounded_file_has_one_bound_held_everywhere() {
             .find_map(|w| w.strip_prefix("max_error="))
             .and_then(|v| v.parse().ok())
             .unwrap_or_else(|| panic!("{line}"));
-        assert!(file_bound >= e && file_bound <= 2.0 * e, "{name}: {file_bound} {e}");
+        assert!(
+            file_bound >= e && file_bound <= 2.0 * e,
+            "{name}: {file_bound} {e}"
+        );
         assert!(
             enc.errors.max_error <= file_bound + 1e-3,
             "{name}: {} over the bound {file_bound}",
