@@ -86,7 +86,7 @@ pub type EncodeAt<'a> = dyn Fn(&Raster, Quality, bool) -> Result<Encoded, Error>
 /// Most chunks a sample codes (12 Mpx of chunks of 1024).
 pub const SAMPLE_CHUNKS: usize = 12;
 /// The share of the cells a sample takes when that is fewer chunks.
-const SAMPLE_SHARE: f64 = 0.25;
+pub const SAMPLE_SHARE: f64 = 0.25;
 /// What the sample's estimate aims at, of the budget: the estimate's error on the rasters
 /// measured was within 1% (docs/benchmarks.md), and a file over the budget is coded again.
 pub const AIM: f64 = 0.985;
