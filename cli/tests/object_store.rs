@@ -201,6 +201,20 @@ fn replicas_share_one_bucket_and_survive_the_store_going_away() {
         assert!(ok, "fractile {args:?} failed");
     };
     let input = data("etopo20.tif");
+    // Chunks coded by settings of their own (a max error): a split encode is then the single
+    // encode's bytes (under a file's rate its parts aim lower, `encode::parts`).
+    let single = work.join("single.fra");
+    fractile(&[
+        "encode",
+        input.to_str().unwrap(),
+        "--chunk",
+        "128",
+        "--max-error",
+        "20",
+        "-o",
+        single.to_str().unwrap(),
+    ]);
+    let single = std::fs::read(&single).unwrap();
     for part in ["0/2", "1/2"] {
         let out = format!("s3://fractile/parts/part-{}", &part[..1]);
         let input = input.to_str().unwrap();
@@ -209,8 +223,8 @@ fn replicas_share_one_bucket_and_survive_the_store_going_away() {
             input,
             "--chunk",
             "128",
-            "--target-bpp",
-            "1.0",
+            "--max-error",
+            "20",
             "--part",
             part,
             "-o",
@@ -228,13 +242,20 @@ fn replicas_share_one_bucket_and_survive_the_store_going_away() {
     let object = get(weed.s3_port(), "/fractile/assets/split.fra").unwrap();
     assert_eq!(object.0, 200);
     assert!(
-        object.2 == v1,
+        object.2 == single,
         "the assembled asset is not the single encode's bytes"
     );
+    // Both replicas find the assembled asset, and serve it alike.
     let split = "/v1/assets/split/tiles/3/1/3.png";
     assert!(
-        eventually(Duration::from_secs(15), || fetch(pb, split).2 == on_a.2),
-        "B does not serve the assembled asset as v1"
+        eventually(Duration::from_secs(15), || fetch(pa, split).0 == 200),
+        "A does not serve the assembled asset"
+    );
+    let split_on_a = fetch(pa, split);
+    assert!(
+        eventually(Duration::from_secs(15), || fetch(pb, split).2
+            == split_on_a.2),
+        "B does not serve the assembled asset as A does"
     );
 
     // A replica with a disk cache reads every source chunk once (zoom 3's tiles touch them
