@@ -360,28 +360,7 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
             bar.finish();
             enc.write(out.path())?
         }
-        Some(c) => {
-            let mut bar = Progress::start("coding chunks", a.quiet || a.json);
-            let progress = |done: u64, total: u64| bar.update(done, total);
-            let enc = match file_rate(&a, rows.header().channels) {
-                Some(rate) => {
-                    let at = |r: &Raster, q, trial| {
-                        fractile_codec::encode::projected::encode_at(r, q, trial)
-                    };
-                    encode_chunked_file_at(rows.as_mut(), c, (rate, &at), &progress, out.path())?
-                }
-                None => {
-                    let per_chunk = a.chunk_rate(width, height, c);
-                    let one = |r: &Raster| {
-                        encode_with(&per_chunk, r, false)
-                            .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
-                    };
-                    encode_chunked_file(rows.as_mut(), c, &one, &progress, out.path())?
-                }
-            };
-            bar.finish();
-            enc
-        }
+        Some(c) => encode_chunks(&a, rows.as_mut(), c, out.path())?,
     };
     out.finish()?;
     let report = json!({
@@ -421,6 +400,36 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         );
     }
     Ok(())
+}
+
+/// A raster coded in chunks of `c` into `output`: under a file's rate ([`file_rate`]) or each
+/// chunk by the settings of `a` with its share of the rate.
+fn encode_chunks(
+    a: &EncodeArgs,
+    rows: &mut dyn Rows,
+    c: u32,
+    output: &Path,
+) -> Result<fractile_codec::encode::Written> {
+    let (width, height) = (rows.header().width, rows.header().height);
+    let mut bar = Progress::start("coding chunks", a.quiet || a.json);
+    let progress = |done: u64, total: u64| bar.update(done, total);
+    let enc = match file_rate(a, rows.header().channels) {
+        Some(rate) => {
+            let at =
+                |r: &Raster, q, trial| fractile_codec::encode::projected::encode_at(r, q, trial);
+            encode_chunked_file_at(rows, c, (rate, &at), &progress, output)?
+        }
+        None => {
+            let per_chunk = a.chunk_rate(width, height, c);
+            let one = |r: &Raster| {
+                encode_with(&per_chunk, r, false)
+                    .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
+            };
+            encode_chunked_file(rows, c, &one, &progress, output)?
+        }
+    };
+    bar.finish();
+    Ok(enc)
 }
 
 /// The file's rate of a chunked encode (`fractile_codec::encode::rate`): the projected codec
