@@ -227,8 +227,7 @@ pub(crate) fn run_curve(a: CurveArgs) -> Result<()> {
     }
     let decoded = c.set.at_level(level);
     let units = asset.meta.units.clone().unwrap_or_default();
-    let doc = fractile_codec::codecs::curve::geojson::write(&decoded, finest, &units);
-    let text = serde_json::to_vec(&doc)?;
+    let text = fractile_codec::codecs::curve::geojson::write(&decoded, finest, &units);
     fractile_codec::io::asset::write_atomic(&a.output, &text)?;
     let points: usize = decoded.lines.iter().map(Vec::len).sum();
     let report = json!({"output": a.output, "level": level, "finest_level": finest,

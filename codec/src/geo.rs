@@ -81,6 +81,10 @@ pub enum PlacementError {
     /// The projection fails on the asset's own frame.
     #[error("EPSG:{0} does not project the asset's frame")]
     OutsideCrs(u32),
+    /// A lon/lat frame past the poles or wider than the globe (by more than a cell): its
+    /// georeference or its size is wrong.
+    #[error("a lon/lat frame of {0:?} (west, south, east, north) is not on the globe")]
+    OffTheGlobe([f64; 4]),
 }
 
 /// Whether EPSG `code` is a geographic (lon/lat) CRS, as the CRS definitions say; `None` for a
@@ -108,16 +112,29 @@ impl Placement {
             return Err(PlacementError::NotNorthUp(g.pixel_size));
         }
         let [west, north] = g.origin;
-        let geographic = |global| Placement {
-            west,
-            north,
-            width: w,
-            height: h,
-            crs: Crs::Geographic { global },
-            bounds: [west, north - h, west + w, north],
+        let geographic = |global| {
+            let bounds = [west, north - h, west + w, north];
+            // A cell of slack: grids whose cells are centred on the poles or the antimeridian.
+            let (cx, cy) = (g.pixel_size[0], -g.pixel_size[1]);
+            let on_globe = bounds[1] >= -90.0 - cy
+                && bounds[3] <= 90.0 + cy
+                && w <= 360.0 + cx
+                && bounds[0] >= -540.0
+                && bounds[2] <= 540.0;
+            if !on_globe {
+                return Err(PlacementError::OffTheGlobe(bounds));
+            }
+            Ok(Placement {
+                west,
+                north,
+                width: w,
+                height: h,
+                crs: Crs::Geographic { global },
+                bounds,
+            })
         };
         let code = match g.epsg {
-            None | Some(4326) => return Ok(geographic((w - 360.0).abs() < 1e-6 * 360.0)),
+            None | Some(4326) => return geographic((w - 360.0).abs() < 1e-6 * 360.0),
             Some(c) => c,
         };
         let crs = u16::try_from(code)
@@ -125,7 +142,7 @@ impl Placement {
             .and_then(|c| Proj::from_epsg_code(c).ok())
             .ok_or(PlacementError::UnknownCrs(code))?;
         if crs.is_latlong() {
-            return Ok(geographic((w - 360.0).abs() < 1e-6 * 360.0));
+            return geographic((w - 360.0).abs() < 1e-6 * 360.0);
         }
         let wgs84 = Proj::from_epsg_code(4326).expect("EPSG:4326 is in every CRS table");
         let projection = Projection {

@@ -49,4 +49,8 @@ pub enum Error {
     /// An output could not be written.
     #[error("output: {0}")]
     Output(String),
+    /// A chunk's bytes could not be read from where the asset lies (a store that is down, a
+    /// file gone): trying again later may succeed, unlike [`Error::Asset`].
+    #[error("unavailable: {0}")]
+    Unavailable(String),
 }

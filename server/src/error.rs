@@ -16,6 +16,9 @@ pub struct AppError {
     pub code: &'static str,
     /// What went wrong, for people.
     pub detail: String,
+    /// Seconds after which a retry may succeed (`Retry-After`), for refusals that are the
+    /// server's state, not the request's (a full queue, a store that is down).
+    pub retry_after: Option<u32>,
 }
 
 impl AppError {
@@ -25,6 +28,7 @@ impl AppError {
             status: StatusCode::BAD_REQUEST,
             code,
             detail: detail.into(),
+            retry_after: None,
         }
     }
     /// 404 with a code.
@@ -33,6 +37,7 @@ impl AppError {
             status: StatusCode::NOT_FOUND,
             code,
             detail: detail.into(),
+            retry_after: None,
         }
     }
     /// 500: a bug or a lost worker, never the client's fault.
@@ -41,6 +46,7 @@ impl AppError {
             status: StatusCode::INTERNAL_SERVER_ERROR,
             code: "internal",
             detail: detail.into(),
+            retry_after: None,
         }
     }
 }
@@ -51,7 +57,14 @@ impl IntoResponse for AppError {
             detail: self.detail,
             code: self.code.into(),
         });
-        (self.status, body).into_response()
+        let mut response = (self.status, body).into_response();
+        if let Some(secs) = self.retry_after {
+            response.headers_mut().insert(
+                axum::http::header::RETRY_AFTER,
+                axum::http::HeaderValue::from(secs),
+            );
+        }
+        response
     }
 }
 
@@ -95,6 +108,7 @@ where
                 status: e.status(),
                 code: "bad_path",
                 detail: e.body_text(),
+                retry_after: None,
             }),
             Err(e) => Err(AppError::internal(e.body_text())),
         }
@@ -118,6 +132,7 @@ pub async fn method_not_allowed(method: Method, uri: Uri) -> AppError {
         status: StatusCode::METHOD_NOT_ALLOWED,
         code: "method_not_allowed",
         detail: format!("{} does not answer {method}", uri.path()),
+        retry_after: None,
     }
 }
 
@@ -160,6 +175,7 @@ pub async fn json_errors(resp: Response) -> Response {
         status,
         code,
         detail,
+        retry_after: None,
     }
     .into_response();
     for (name, value) in parts.headers.iter() {

@@ -6,6 +6,7 @@ pub mod api;
 pub mod backend;
 pub mod encoding;
 pub mod error;
+pub mod memory;
 pub mod openapi;
 pub mod store;
 pub mod telemetry;
@@ -80,7 +81,8 @@ pub struct FileConfig {
     pub gpu_memory_mib: Option<u64>,
     /// Most samples an asset may claim (width x height; voxels of a volume), default 2^28.
     pub max_asset_pixels: Option<u64>,
-    /// Memory decoding may take, in MiB (default 3072): the most one asset may cost to decode
+    /// Memory decoding may take, in MiB (default: half of the container's or machine's memory
+    /// less 1 GiB, within 256..16384; 3072 where it cannot be read): the most one asset may cost to decode
     /// (its operator and a full-resolution decode), and the total of large requests in flight
     /// (regions, meshes: more wait for room; one larger than this is refused with 413).
     pub max_decode_mib: Option<u32>,
@@ -247,7 +249,7 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     let decode_mib = opts
         .file
         .max_decode_mib
-        .unwrap_or(api::DEFAULT_DECODE_MIB)
+        .unwrap_or_else(memory::default_decode_mib)
         .max(1);
     let limits = fractile_codec::AssetLimits {
         max_pixels: opts
@@ -295,6 +297,15 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
     state.lanes = work::Lanes::new(
         std::thread::available_parallelism().map_or(2, |n| n.get()),
         decode_mib,
+    );
+    tracing::info!(
+        "max_decode_mib {decode_mib}{}, {} large decodes at once",
+        if opts.file.max_decode_mib.is_some() {
+            ""
+        } else {
+            " (from the memory limit)"
+        },
+        state.lanes.heavy_runs()
     );
     if let Some(n) = opts.file.max_iterations {
         state.limits.max_iterations = n.clamp(1, 256);

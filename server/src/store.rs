@@ -40,6 +40,12 @@ pub trait Backing: Send + Sync {
     fn describe(&self) -> String;
     /// Where the file of `id` is, for messages.
     fn locate(&self, id: &str) -> String;
+    /// The version of the file of `id` now, where asking is cheap (a folder's `stat`), to tell
+    /// a file that changed while it was read; `None` where versions cannot change under a
+    /// reader (a bucket's objects are written whole).
+    fn current(&self, _id: &str) -> Option<String> {
+        None
+    }
 }
 
 /// What a [`Backing`] holds.
@@ -78,6 +84,9 @@ pub struct Store {
     writes: std::sync::Mutex<()>,
     /// Each served file's version when it was loaded, for [`Store::refresh`].
     versions: std::sync::Mutex<BTreeMap<String, String>>,
+    /// The version of each file that did not load: it is not read (nor logged) again until it
+    /// changes (a 2 GB junk file was read at every rescan, and every broken file logged).
+    failed: std::sync::Mutex<BTreeMap<String, String>>,
 }
 
 /// What [`Store::refresh`] found changed in the backing.
@@ -114,6 +123,7 @@ fn storage_unavailable(what: &str, id: &str, e: std::io::Error) -> AppError {
         status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
         code: "storage_unavailable",
         detail: format!("the asset store could not be written ({what}); try again"),
+        retry_after: Some(1),
     }
 }
 
@@ -156,13 +166,19 @@ impl Store {
         let mut skipped = listing.skipped;
         let mut assets = BTreeMap::new();
         let mut versions = BTreeMap::new();
+        let mut failed = BTreeMap::new();
         for (id, version) in listing.files {
             match load_from(backing.as_ref(), &id, &version, &limits, &chunks) {
+                // A file that changed while read waits for the first rescan.
+                Ok(_) | Err(_) if changed_under(backing.as_ref(), &id, &version) => {}
                 Ok(a) => {
                     versions.insert(id.clone(), version);
                     assets.insert(id, Arc::new(a));
                 }
-                Err(e) => skipped.push(e),
+                Err(e) => {
+                    failed.insert(id, version);
+                    skipped.push(e);
+                }
             }
         }
         Ok((
@@ -173,6 +189,7 @@ impl Store {
                 chunks,
                 writes: std::sync::Mutex::new(()),
                 versions: std::sync::Mutex::new(versions),
+                failed: std::sync::Mutex::new(failed),
             },
             skipped,
         ))
@@ -193,8 +210,19 @@ impl Store {
             status: axum::http::StatusCode::UNPROCESSABLE_ENTITY,
             code: "bad_asset",
             detail: e.to_string(),
+            retry_after: None,
         };
         let stored = load(id, bytes, &self.limits, &self.chunks).map_err(bad_asset)?;
+        // A georeference that puts the asset off the globe is a wrong file, not one to serve
+        // over the unit square as a folder's file would be: its catalog entry showed a
+        // latitude of -18,683.
+        let meta = &stored.asset.meta;
+        if let Some(g) = &meta.georef
+            && let Err(e @ fractile_codec::geo::PlacementError::OffTheGlobe(_)) =
+                Placement::of(g, meta.width, meta.height)
+        {
+            return Err(bad_asset(fractile_codec::Error::Asset(e.to_string())));
+        }
         // A chunked upload is checked whole: a file is stored only when every chunk is sound.
         if let Some(c) = &stored.asset.chunks {
             c.verify().map_err(bad_asset)?;
@@ -322,10 +350,12 @@ impl Store {
         };
         let changed: Vec<(String, String)> = {
             let versions = self.versions.lock().unwrap_or_else(|e| e.into_inner());
+            let mut failed = self.failed.lock().unwrap_or_else(|e| e.into_inner());
+            failed.retain(|id, _| listing.files.iter().any(|(i, _)| i == id));
             listing
                 .files
                 .iter()
-                .filter(|(id, v)| versions.get(id) != Some(v))
+                .filter(|(id, v)| versions.get(id) != Some(v) && failed.get(id) != Some(v))
                 .cloned()
                 .collect()
         };
@@ -339,7 +369,13 @@ impl Store {
                 &self.limits,
                 &self.chunks,
             ) {
+                // Still being written: read again at the next rescan, whole.
+                Ok(_) | Err(_) if changed_under(self.backing.as_ref(), &id, &version) => {}
                 Ok(a) => {
+                    self.failed
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .remove(&id);
                     self.assets
                         .write()
                         .expect("store lock")
@@ -350,7 +386,13 @@ impl Store {
                         .insert(id.clone(), version);
                     found.loaded.push(id);
                 }
-                Err(e) => found.skipped.push(e),
+                Err(e) => {
+                    self.failed
+                        .lock()
+                        .unwrap_or_else(|e| e.into_inner())
+                        .insert(id, version);
+                    found.skipped.push(e);
+                }
             }
         }
         let gone: Vec<String> = self
@@ -389,6 +431,11 @@ impl Store {
 /// a 37 Mpx mosaic decode each chunk once (measured: docs/benchmarks.md), with the server's
 /// resident memory under 500 MB.
 pub const DEFAULT_CHUNK_CACHE_MIB: u64 = 384;
+
+/// Whether the file of `id`, read as `version`, changed while it was read.
+fn changed_under(backing: &dyn Backing, id: &str, version: &str) -> bool {
+    backing.current(id).is_some_and(|now| now != version)
+}
 
 /// The file of `id` at `version` in `backing`, under `limits`: a chunked one by its header (its
 /// chunks read by range into `chunks` when needed), any other whole. The error names the file.

@@ -100,20 +100,24 @@ async fn tiles_across_chunk_edges_agree_with_the_whole_asset_within_their_bounds
     }
 }
 
+/// A corrupt chunk is a permanent fault, not "try later": 500 `corrupt_chunk` without
+/// `Retry-After`, for the tiles and points that need it alone, and answered again without
+/// decoding the chunk again.
 #[tokio::test]
 async fn a_corrupt_chunk_costs_only_the_tiles_that_need_it() {
     let st = state();
     // The last source chunk is the south-east one: zoom 3's tile (7, 7) lies in it.
-    let (s, _, body) = get(&st, "/v1/assets/corrupt/tiles/3/7/7.png").await;
-    assert_eq!(s, StatusCode::SERVICE_UNAVAILABLE);
+    let (s, h, body) = get(&st, "/v1/assets/corrupt/tiles/3/7/7.png").await;
+    assert_eq!(s, StatusCode::INTERNAL_SERVER_ERROR);
+    assert!(h.get("retry-after").is_none(), "no retry mends it");
     let body = String::from_utf8_lossy(&body);
-    assert!(body.contains("chunk_unavailable"), "{body}");
+    assert!(body.contains("corrupt_chunk"), "{body}");
     assert!(!body.contains("/tmp"), "no path to the client: {body}");
     let (s, _, _) = get(&st, "/v1/assets/corrupt/tiles/3/0/1.png").await;
     assert_eq!(s, StatusCode::OK);
     // Points: the same.
     let (s, _, _) = get(&st, "/v1/assets/corrupt/point/170,-80").await;
-    assert_eq!(s, StatusCode::SERVICE_UNAVAILABLE);
+    assert_eq!(s, StatusCode::INTERNAL_SERVER_ERROR);
     let (s, _, _) = get(&st, "/v1/assets/corrupt/point/-170,80").await;
     assert_eq!(s, StatusCode::OK);
 }
@@ -265,7 +269,9 @@ async fn coarse_pixels_of_a_chunked_asset_share_cached_grids() {
 /// Chunked uploads whose every checksum holds but whose chunks are not what the table says are
 /// refused with 422 at upload (they were stored, then answered 503 at every request): a chunk
 /// of other cells in a chunk's place, a chunked file as a chunk, a level-0 chunk as the
-/// coarsest.
+/// coarsest; and sound chunks under a claim of 16,777,216 x 8,192 cells, under a raster past
+/// the pole, and a table of nothing but empty chunks (each was stored, and showed impossible
+/// bounds in the catalog or held megabytes for nothing).
 #[test]
 fn crafted_chunk_tables_are_refused_at_upload() {
     let sound = std::fs::read(dir().join("chunked.fra")).unwrap();
@@ -319,6 +325,58 @@ fn crafted_chunk_tables_are_refused_at_upload() {
             "cells where the table says",
         ),
     ];
+    let mut cases = cases;
+    // Sound chunks under metadata that claims 16,777,216 x 8,192 cells (over 16 x
+    // max_asset_pixels), and metadata that puts the raster past the north pole.
+    let mut huge = asset.meta.clone();
+    (huge.width, huge.height) = (1 << 24, 8192);
+    cases.push((
+        "16,777,216 x 8,192 cells",
+        fractile_codec::io::chunked::assemble(&huge, c.table.clone(), &files),
+        "for a chunked asset",
+    ));
+    let mut north = asset.meta.clone();
+    north
+        .georef
+        .as_mut()
+        .expect("etopo20 is georeferenced")
+        .origin[1] = 400.0;
+    cases.push((
+        "a raster past the pole",
+        fractile_codec::io::chunked::assemble(&north, c.table.clone(), &files),
+        "not on the globe",
+    ));
+    // A table of 21,845 empty chunks of 64 cells (8192^2 cells of nodata): 1.3 MB of table
+    // for no chunk at all.
+    let mut empty = asset.meta.clone();
+    (empty.width, empty.height) = (8192, 8192);
+    let mut table = c.table.clone();
+    table.chunk = 64;
+    table.levels = fractile_codec::io::chunked::ChunkTable::level_sizes(8192, 8192, 64)
+        .into_iter()
+        .map(|(w, h)| {
+            let (nx, ny) = table.grid(w, h);
+            fractile_codec::io::chunked::Level {
+                width: w,
+                height: h,
+                chunks: (0..nx * ny)
+                    .map(|i| fractile_codec::io::chunked::ChunkEntry {
+                        offset: 0,
+                        length: 0,
+                        cells: table.coded_cells(w, h, i % nx, i / nx),
+                        value_range: [0.0, 0.0],
+                        crc: 0,
+                    })
+                    .collect(),
+            }
+        })
+        .collect();
+    let levels = vec![Vec::new(); table.levels.len()];
+    cases.push((
+        "a table of empty chunks",
+        fractile_codec::io::chunked::assemble(&empty, table, &levels),
+        "bytes of chunks",
+    ));
     let uploads = dir().join("crafted-uploads");
     std::fs::create_dir_all(&uploads).unwrap();
     let (store, _) = Store::open(&uploads).unwrap();

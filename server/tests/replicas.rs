@@ -109,6 +109,19 @@ async fn what_one_replica_stores_the_other_serves_after_a_rescan() {
         "{found:?}"
     );
     assert_eq!(tile(&b, "dem").await, (StatusCode::OK, eb2.clone()));
+    // Reported once per change: the same broken file is not read nor reported again, and a
+    // junk file beside it is reported once too; when it changes, it is read again.
+    std::fs::write(dir.join("junk.fra"), vec![7u8; 4096]).unwrap();
+    let found = b.store.refresh();
+    assert!(
+        found.skipped.len() == 1 && found.skipped[0].contains("junk"),
+        "{found:?}"
+    );
+    assert_eq!(b.store.refresh(), Refreshed::default(), "nothing changed");
+    std::fs::write(dir.join("junk.fra"), vec![7u8; 8192]).unwrap();
+    assert_eq!(b.store.refresh().skipped.len(), 1, "the junk file changed");
+    std::fs::remove_file(dir.join("junk.fra")).unwrap();
+    assert_eq!(b.store.refresh(), Refreshed::default());
 
     // Deleted through one replica: gone from the other after its rescan.
     std::fs::write(dir.join("dem.fra"), &topo).unwrap();

@@ -34,6 +34,10 @@ pub const CHUNKED_CODEC: u8 = 7;
 /// Cells each chunk codes beyond its own on every side (see the module's doc).
 pub const OVERLAP: u32 = 1;
 
+/// How many times `max_asset_pixels` a chunked asset may claim: its cells are decoded a chunk
+/// at a time, never whole (see [`Chunked::open`]).
+pub const CHUNKED_PIXELS_FACTOR: u64 = 16;
+
 /// Most chunks a file may list, over all its levels: 2^20 chunks of 1024^2 cells is a
 /// terapixel, and the table of that many is 64 MiB.
 pub const MAX_CHUNKS: usize = 1 << 20;
@@ -376,6 +380,9 @@ pub struct Chunked {
     key: u64,
     /// CRC-32 of the header (magic to table): names this version of the asset.
     pub header_crc: u32,
+    /// Chunks found corrupt, and why: a corrupt chunk stays corrupt, so it is decoded once and
+    /// its error answered again after (the cache keeps only what loaded).
+    corrupt: std::sync::Mutex<std::collections::HashMap<(usize, usize), Error>>,
 }
 
 impl std::fmt::Debug for Chunked {
@@ -507,6 +514,27 @@ impl Chunked {
                 meta.width, meta.height
             )));
         }
+        // A chunked asset's memory is its table and the chunks a request decodes, not its
+        // cells: it may claim CHUNKED_PIXELS_FACTOR times max_asset_pixels (2^32 cells by
+        // default, 65536^2), and a file claiming 16,777,216 x 8,192 cells is refused.
+        let cells = u64::from(meta.width) * u64::from(meta.height);
+        let most = limits.max_pixels.saturating_mul(CHUNKED_PIXELS_FACTOR);
+        if cells > most {
+            return Err(bad(format!(
+                "{} x {} cells, over this reader's limit of {most} for a chunked asset \
+                 ({CHUNKED_PIXELS_FACTOR} x max_asset_pixels)",
+                meta.width, meta.height
+            )));
+        }
+        // The table indexes chunks: larger than them (and over 1 MiB) it is no table of a
+        // raster but a table for its own sake (a million empty chunks, 54 MB, held 65 MiB of
+        // the server's memory for nothing).
+        let chunk_bytes = file_len - header_end;
+        if t_len > chunk_bytes.max(1 << 20) {
+            return Err(bad(format!(
+                "a chunk table of {t_len} bytes for {chunk_bytes} bytes of chunks"
+            )));
+        }
         let table: ChunkTable =
             fractile_proto::decode(&rest[..t_len as usize]).map_err(|e| bad(e.to_string()))?;
         table.validate(&meta, header_end, file_len).map_err(bad)?;
@@ -525,6 +553,7 @@ impl Chunked {
                 cache,
                 key: NEXT.fetch_add(1, Ordering::Relaxed),
                 header_crc: crc,
+                corrupt: Default::default(),
             },
         ))
     }
@@ -541,12 +570,15 @@ impl Chunked {
         if entry.length == 0 {
             return Ok(None);
         }
+        if let Some(e) = self.corrupt_chunks().get(&(level, index)) {
+            return Err(e.clone());
+        }
         let load = || -> Result<Arc<Asset>, Error> {
             let what = format!("{}: chunk {index} of level {level}", self.source.describe());
             let bytes = self
                 .source
                 .read(entry.offset, entry.length as usize)
-                .map_err(|e| Error::Asset(format!("{what}: {e}")))?;
+                .map_err(|e| Error::Unavailable(format!("{what}: {e}")))?;
             let crc = bytes
                 .len()
                 .checked_sub(4)
@@ -583,7 +615,20 @@ impl Chunked {
             .cache
             .try_get_with((self.key, level as u8, index as u32), load)
             .map(Some)
-            .map_err(|e| (*e).clone())
+            .map_err(|e| {
+                let e = (*e).clone();
+                if matches!(e, Error::Asset(_)) {
+                    self.corrupt_chunks().insert((level, index), e.clone());
+                }
+                e
+            })
+    }
+
+    fn corrupt_chunks(
+        &self,
+    ) -> std::sync::MutexGuard<'_, std::collections::HashMap<(usize, usize), Error>> {
+        // A map of finished entries: a panic elsewhere cannot leave one half-written.
+        self.corrupt.lock().unwrap_or_else(|e| e.into_inner())
     }
 
     /// Decodes chunks into the cache ahead of requests, coarsest level first (a level's chunks

@@ -56,7 +56,8 @@ fn authorise(state: &AppState, headers: &HeaderMap) -> Result<(), AppError> {
                 status: StatusCode::FORBIDDEN,
                 code: "writes_disabled",
                 detail: "this server takes no writes: it was started with no write token (set FRACTILE_WRITE_TOKEN, or pass --allow-anonymous-writes on a private network)".into(),
-            });
+            retry_after: None,
+});
         }
     };
     let given = headers
@@ -78,6 +79,7 @@ fn authorise(state: &AppState, headers: &HeaderMap) -> Result<(), AppError> {
             status: StatusCode::UNAUTHORIZED,
             code: "unauthorised",
             detail: "writes need Authorization: Bearer <token>".into(),
+            retry_after: None,
         })
     }
 }
@@ -96,6 +98,7 @@ pub(super) async fn read_body(
         status: StatusCode::PAYLOAD_TOO_LARGE,
         code: "too_large",
         detail: format!("this request's body is at most {} bytes", limit),
+        retry_after: None,
     };
     let declared = headers
         .get(header::CONTENT_LENGTH)

@@ -46,8 +46,33 @@ fn check_level(
     Ok(())
 }
 
-fn geojson_response(doc: serde_json::Value) -> Response {
-    ([(header::CONTENT_TYPE, "application/geo+json")], Json(doc)).into_response()
+/// A decoded level streamed as GeoJSON (`geojson::write_to` into the body as the client reads
+/// it): the text of a deep level (156 MB for the coastlines' level 18) is never held whole,
+/// only the level's points. `X-Convergence-Bound` is the level's Hausdorff bound.
+fn geojson_body(
+    level: fractile_codec::codecs::curve::CurveLevel,
+    finest: usize,
+    units: String,
+) -> (Head, BodyWriter) {
+    let bound = level.error_bound as f32;
+    let head = Head {
+        content_type: "application/geo+json",
+        bounds: Bounds {
+            attractor: if bound.is_finite() { bound } else { 0.0 },
+            source: None,
+        },
+    };
+    let writer: BodyWriter = Box::new(move |out: &mut dyn std::io::Write| {
+        fractile_codec::codecs::curve::geojson::write_to(&level, finest, &units, out)
+    });
+    (head, writer)
+}
+
+/// What answering `level` of `set` holds at its peak (its points and their GeoJSON text): the
+/// lane it runs in, so that deep levels take from the heavy budget like regions do (8 answers
+/// of the deepest level at once took 2 GB, and kept most of it).
+fn answer_bytes(set: &fractile_codec::codecs::curve::CurveSet, level: usize) -> u64 {
+    fractile_codec::codecs::curve::geojson::write_bytes(set.points_at(level))
 }
 
 /// A curve asset as GeoJSON at any level (deeper than the source: self-similar detail), one
@@ -63,25 +88,25 @@ pub(super) async fn curve(
     check_level(set, level)?;
     let units = a.asset.meta.units.clone().unwrap_or_default();
     let control = q.control;
+    let cost = if control { 0 } else { answer_bytes(set, level) };
     let a2 = a.clone();
-    let doc = decode(&state, 0, move |_| {
-        let c = a2.asset.curve.as_ref().expect("checked above");
-        if control {
-            let lines = c.set.rings.iter().map(|r| r.base.clone()).collect();
-            let closed = c.set.rings.iter().map(|r| r.closed).collect();
-            let level = fractile_codec::codecs::curve::CurveLevel {
-                level: 0,
-                lines,
-                closed,
-                error_bound: f64::NAN,
+    state
+        .lanes
+        .stream(cost, move |_| {
+            let c = a2.asset.curve.as_ref().expect("checked above");
+            let decoded = if control {
+                fractile_codec::codecs::curve::CurveLevel {
+                    level: 0,
+                    lines: c.set.rings.iter().map(|r| r.base.clone()).collect(),
+                    closed: c.set.rings.iter().map(|r| r.closed).collect(),
+                    error_bound: f64::NAN,
+                }
+            } else {
+                c.set.at_level(level)
             };
-            return fractile_codec::codecs::curve::geojson::write(&level, c.set.finest(), &units);
-        }
-        let decoded = c.set.at_level(level);
-        fractile_codec::codecs::curve::geojson::write(&decoded, c.set.finest(), &units)
-    })
-    .await?;
-    Ok(geojson_response(doc))
+            Ok(geojson_body(decoded, c.set.finest(), units))
+        })
+        .await
 }
 
 /// Deforms a curve asset (stateless: the stored asset is unchanged) and answers GeoJSON.
@@ -97,6 +122,7 @@ pub(super) async fn curve_deform(
             status: StatusCode::PAYLOAD_TOO_LARGE,
             code: "too_large",
             detail: format!("{} (at most {DEFORM_BODY} bytes)", e.body_text()),
+            retry_after: None,
         },
         _ => AppError::bad_request("bad_body", e.body_text()),
     })?;
@@ -111,18 +137,19 @@ pub(super) async fn curve_deform(
     let level = req.level.unwrap_or_else(|| set.finest());
     check_level(set, level)?;
     let units = a.asset.meta.units.clone().unwrap_or_default();
+    let cost = answer_bytes(set, level);
     let a2 = a.clone();
-    let doc = decode(&state, 0, move |_| {
-        let c = a2.asset.curve.as_ref().expect("checked above");
-        let deformed = fractile_codec::codecs::curve::deform::apply(&c.set, &req.deformations)?;
-        let decoded = deformed.at_level(level);
-        Ok::<_, String>(fractile_codec::codecs::curve::geojson::write(
-            &decoded,
-            deformed.finest(),
-            &units,
-        ))
-    })
-    .await?
-    .map_err(|e| AppError::bad_request("bad_deformation", e))?;
-    Ok(geojson_response(doc))
+    state
+        .lanes
+        .stream(cost, move |_| {
+            let c = a2.asset.curve.as_ref().expect("checked above");
+            let deformed = fractile_codec::codecs::curve::deform::apply(&c.set, &req.deformations)
+                .map_err(|e| AppError::bad_request("bad_deformation", e))?;
+            Ok(geojson_body(
+                deformed.at_level(level),
+                deformed.finest(),
+                units,
+            ))
+        })
+        .await
 }

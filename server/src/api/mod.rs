@@ -105,10 +105,6 @@ pub struct AppState {
     pub cesium_dir: Option<std::path::PathBuf>,
 }
 
-/// Default of `max_decode_mib`: what the heavy lane may hold at once, and what one asset may
-/// cost to decode ([`fractile_codec::AssetLimits::max_decode_bytes`]).
-pub const DEFAULT_DECODE_MIB: u32 = 3 * 1024;
-
 /// Default of `coarse_cache_mib`: every coarse zoom of a 9.3 Mpx DEM takes 73 MB (its zoom
 /// 4 grid alone 37 MB), and 64 MiB made that grid decode four times over a zoom's tiles
 /// (docs/benchmarks.md, `coarse_zooms`).
@@ -153,7 +149,7 @@ impl AppState {
         AppState {
             store,
             limits: Limits::default(),
-            lanes: Lanes::new(cores, DEFAULT_DECODE_MIB),
+            lanes: Lanes::new(cores, crate::memory::default_decode_mib()),
             uploads: Arc::new(Semaphore::new(2 * 64)),
             uploads_mib: 2 * 64,
             cache: moka::sync::Cache::builder()
@@ -228,6 +224,7 @@ async fn ready(State(state): Shared) -> Result<&'static str, AppError> {
             status: StatusCode::SERVICE_UNAVAILABLE,
             code: "busy",
             detail: "every decode slot is busy".into(),
+            retry_after: None,
         })
     }
 }
@@ -384,6 +381,7 @@ fn sample_on(
                 status: StatusCode::SERVICE_UNAVAILABLE,
                 code: "cancelled",
                 detail: "the request was given up before its decode finished".into(),
+                retry_after: None,
             },
             fractile_codec::extract::SampleError::Chunk(e) => chunk_unavailable(e),
         })?;
@@ -394,14 +392,29 @@ fn sample_on(
     Ok((channels, Bounds { attractor, source }))
 }
 
-/// A chunk of a chunked asset that could not be read or decoded: 503, since a store that
-/// comes back answers again. Where and why go to the log, not to the client.
+/// A chunk of a chunked asset that could not be read or decoded. Read failures (a store that
+/// is down, a file replaced under the reader) are 503 `chunk_unavailable` with `Retry-After`,
+/// since a store that comes back answers again; a chunk whose bytes are not what its table
+/// says is 500 `corrupt_chunk`: no retry mends it (the asset must be uploaded again), and the
+/// chunk is not decoded again for the next request (`Chunked::chunk` remembers it). Where and
+/// why go to the log, not to the client.
 pub(crate) fn chunk_unavailable(e: fractile_codec::Error) -> AppError {
     tracing::error!("{e}");
-    AppError {
-        status: StatusCode::SERVICE_UNAVAILABLE,
-        code: "chunk_unavailable",
-        detail: "a chunk of the asset could not be read or decoded".into(),
+    match e {
+        fractile_codec::Error::Unavailable(_) => AppError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            code: "chunk_unavailable",
+            detail: "a chunk of the asset could not be read; try again".into(),
+            retry_after: Some(1),
+        },
+        _ => AppError {
+            status: StatusCode::INTERNAL_SERVER_ERROR,
+            code: "corrupt_chunk",
+            detail:
+                "a chunk of the asset is corrupt (not what its table says); upload the asset again"
+                    .into(),
+            retry_after: None,
+        },
     }
 }
 

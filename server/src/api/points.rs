@@ -155,6 +155,7 @@ pub(super) async fn points(
                 req.points.len(),
                 state.limits.max_points
             ),
+            retry_after: None,
         });
     }
     let results = answer_points(

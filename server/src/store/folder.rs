@@ -106,6 +106,10 @@ impl Backing for Folder {
         self.dir.display().to_string()
     }
 
+    fn current(&self, id: &str) -> Option<String> {
+        stamp(&self.path(id))
+    }
+
     fn locate(&self, id: &str) -> String {
         self.path(id).display().to_string()
     }

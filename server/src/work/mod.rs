@@ -8,6 +8,15 @@
 //!   threads run at a lower priority (nice 10), so a burst of heavy requests neither starves
 //!   the light lane's threads of their queue nor of the CPU.
 //!
+//! Heavy work is admitted first come first served by what the machine can finish, not only
+//! by memory: at most [`Lanes::heavy_runs`] decode at once (half the cores, at least one; each
+//! decode is parallel in the heavy pool), and a request that finds neither room in the budget
+//! nor a free run within [`HEAVY_QUEUE_WAIT`] is refused at once with 503 `busy` and a
+//! `Retry-After` from the measured length of heavy decodes. Before, every heavy request started
+//! and they shared the cores: 8 regions of 2048^2 that each fit the budget all ran past the
+//! 30 s request timeout and none was served. A streamed body holds its memory until its
+//! reader has it, but not its run: its decode is done.
+//!
 //! The permits travel with the work, not with the request: a request that timed out releases
 //! its budget only when its work has stopped, which it does at the next band (the work asks
 //! [`Cancel::is_set`], which turns true when the request's future is dropped).
@@ -38,6 +47,11 @@ use crate::error::AppError;
 /// Work estimated under this many bytes runs in the light lane.
 pub const LIGHT_BYTES: u64 = 24 << 20;
 
+/// How long heavy work may queue for room (memory and a run) before it is refused with 503
+/// and `Retry-After`: a client learns at once that it must come back, instead of holding a
+/// connection until the request timeout.
+pub const HEAVY_QUEUE_WAIT: Duration = Duration::from_millis(1500);
+
 /// How long a streamed body may wait for its reader to take a chunk before it is abandoned
 /// (a reader that stalls must not hold a heavy budget for ever).
 pub const STALLED_READER: Duration = Duration::from_secs(30);
@@ -54,6 +68,11 @@ pub struct Lanes {
     /// Heavy budget, in MiB.
     heavy: Arc<Semaphore>,
     heavy_mib: u32,
+    /// Heavy decodes running at once (first come, first served).
+    heavy_runs: Arc<Slots>,
+    heavy_run_count: usize,
+    /// A moving average of heavy decodes' wall time, in milliseconds (what `Retry-After` says).
+    heavy_millis: Arc<std::sync::atomic::AtomicU64>,
     /// Threads of heavy work.
     pool: Arc<rayon::ThreadPool>,
 }
@@ -68,11 +87,40 @@ impl Lanes {
             .build()
             .expect("a rayon pool for heavy decodes");
         let heavy_mib = heavy_mib.clamp(1, Semaphore::MAX_PERMITS as u32);
+        let heavy_run_count = (cores / 2).max(1);
         Lanes {
             light: Slots::new(cores.max(1)),
             heavy: Arc::new(Semaphore::new(heavy_mib as usize)),
             heavy_mib,
+            heavy_runs: Slots::new(heavy_run_count),
+            heavy_run_count,
+            heavy_millis: Arc::new(std::sync::atomic::AtomicU64::new(5_000)),
             pool: Arc::new(pool),
+        }
+    }
+
+    /// Heavy decodes that may run at once.
+    pub fn heavy_runs(&self) -> usize {
+        self.heavy_run_count
+    }
+
+    /// The refusal of heavy work that found no room within [`HEAVY_QUEUE_WAIT`]: 503 `busy`,
+    /// retry after about one heavy decode's time.
+    fn busy(&self, mib: u64) -> AppError {
+        let secs = self
+            .heavy_millis
+            .load(Ordering::Relaxed)
+            .div_ceil(1000)
+            .clamp(1, 120);
+        metrics::counter!("fractile_heavy_refused_total").increment(1);
+        AppError {
+            status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
+            code: "busy",
+            detail: format!(
+                "the server is busy with large requests (this one needs about {mib} MiB); \
+                 retry in {secs} s or ask for fewer pixels"
+            ),
+            retry_after: Some(secs as u32),
         }
     }
 
@@ -95,6 +143,7 @@ impl Lanes {
                 _budget: None,
                 slot: Some(slot),
                 light: Some(self.light.clone()),
+                run: None,
                 pool: None,
             });
         }
@@ -107,18 +156,27 @@ impl Lanes {
                     "this request needs about {mib} MiB to decode, over the server's max_decode_mib of {}: ask for fewer pixels",
                     self.heavy_mib
                 ),
+                retry_after: None,
             });
         }
-        let permit = self
-            .heavy
-            .clone()
-            .acquire_many_owned(mib as u32)
-            .await
-            .map_err(closed)?;
+        let queued = std::time::Instant::now();
+        metrics::gauge!("fractile_heavy_queued").increment(1.0);
+        let room = tokio::time::timeout(HEAVY_QUEUE_WAIT, async {
+            let budget = self.heavy.clone().acquire_many_owned(mib as u32).await;
+            let run = self.heavy_runs.arrive().await;
+            (budget, run)
+        })
+        .await;
+        metrics::gauge!("fractile_heavy_queued").decrement(1.0);
+        metrics::histogram!("fractile_heavy_wait_seconds").record(queued.elapsed().as_secs_f64());
+        let Ok((budget, run)) = room else {
+            return Err(self.busy(mib));
+        };
         Ok(Admitted {
-            _budget: Some(permit),
+            _budget: Some(budget.map_err(closed)?),
             slot: None,
             light: None,
+            run: Some(run),
             pool: Some(self.pool.clone()),
         })
     }
@@ -131,16 +189,26 @@ impl Lanes {
         f: impl FnOnce(&Cancel) -> T + Send + 'static,
     ) -> Result<T, AppError> {
         let admitted = self.admit(bytes).await?;
+        let heavy = admitted.run.is_some();
         let guard = CancelOnDrop::default();
         let cancel = guard.0.clone();
         let start = std::time::Instant::now();
+        let (budget, mib) = (self.heavy.clone(), self.heavy_mib);
         let out = tokio::task::spawn_blocking(move || {
             let mut admitted = admitted;
-            admitted.install(&cancel, f)
+            let out = admitted.install(&cancel, f);
+            drop(admitted);
+            if heavy {
+                crate::memory::give_back_when_idle(&budget, mib);
+            }
+            out
         })
         .await
         .map_err(|e| AppError::internal(format!("decoding failed: {e}")));
         metrics::histogram!("fractile_decode_seconds").record(start.elapsed().as_secs_f64());
+        if heavy {
+            heavy_took(&self.heavy_millis, start.elapsed());
+        }
         drop(guard);
         out
     }
@@ -159,9 +227,17 @@ impl Lanes {
         let (head_tx, head_rx) = oneshot::channel();
         let (tx, rx) = mpsc::channel::<Result<Bytes, std::io::Error>>(STREAM_CHUNKS);
         let runtime = tokio::runtime::Handle::current();
+        let millis = self.heavy_millis.clone();
+        let (budget, mib) = (self.heavy.clone(), self.heavy_mib);
         tokio::task::spawn_blocking(move || {
             let mut admitted = admitted;
+            let start = std::time::Instant::now();
             let made = admitted.install(&cancel, f);
+            // The decode is done: its run goes to the next heavy request, while its memory
+            // stays held until the body is read.
+            if admitted.run.take().is_some() {
+                heavy_took(&millis, start.elapsed());
+            }
             let writer = match made {
                 Ok((head, writer)) => {
                     if head_tx.send(Ok(head)).is_err() {
@@ -182,7 +258,11 @@ impl Lanes {
             if writer(&mut out).and_then(|()| out.flush()).is_err() {
                 tracing::debug!("a streamed body ended early (its reader left or stalled)");
             }
+            let heavy = admitted._budget.is_some();
             drop(admitted);
+            if heavy {
+                crate::memory::give_back_when_idle(&budget, mib);
+            }
         });
         let head = head_rx
             .await
@@ -247,6 +327,13 @@ impl Bounds {
     }
 }
 
+/// Records a heavy decode's wall time in the moving average `millis` (weight 1/4).
+fn heavy_took(millis: &std::sync::atomic::AtomicU64, took: Duration) {
+    let ms = took.as_millis().min(u128::from(u32::MAX)) as u64;
+    let old = millis.load(Ordering::Relaxed);
+    millis.store((3 * old + ms) / 4, Ordering::Relaxed);
+}
+
 /// Writes a streamed body.
 pub type BodyWriter = Box<dyn FnOnce(&mut dyn Write) -> std::io::Result<()> + Send>;
 
@@ -262,6 +349,8 @@ struct Admitted {
     slot: Option<SlotPermit>,
     /// The light lane, for a light slot: what [`Cancel::off_core`] gives back and takes again.
     light: Option<Arc<Slots>>,
+    /// Heavy work's run, held while it decodes.
+    run: Option<SlotPermit>,
     pool: Option<Arc<rayon::ThreadPool>>,
 }
 
@@ -400,171 +489,4 @@ fn lower_priority() {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// A GPU-like wait on one lane slot: a second request runs during the wait (it would wait
-    /// for ever if the slot were held), and the first takes a slot again before going on.
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn work_waiting_on_a_device_lends_its_core_slot() {
-        let lanes = Arc::new(Lanes::new(1, 64));
-        let (entered_tx, entered_rx) = oneshot::channel::<()>();
-        let (done_tx, done_rx) = std::sync::mpsc::channel::<()>();
-        let first = {
-            let lanes = lanes.clone();
-            tokio::spawn(async move {
-                let inner = lanes.clone();
-                lanes
-                    .run(0, move |cancel| {
-                        let held_before = !inner.light_free();
-                        let _ = entered_tx.send(());
-                        let waited = cancel
-                            .off_core(|| done_rx.recv_timeout(Duration::from_secs(20)).is_ok());
-                        (held_before, waited, !inner.light_free())
-                    })
-                    .await
-            })
-        };
-        entered_rx.await.expect("the first request runs");
-        let second = tokio::time::timeout(
-            Duration::from_secs(10),
-            lanes.run(0, move |_| done_tx.send(()).is_ok()),
-        )
-        .await
-        .expect("the second request got the lent slot")
-        .expect("it ran");
-        assert!(second);
-        let (held_before, waited, held_after) = first.await.unwrap().unwrap();
-        assert!(held_before, "the first request held the only slot");
-        assert!(waited, "its wait ended by the second request's work");
-        assert!(held_after, "it holds a slot again after the wait");
-        assert!(lanes.light_free(), "both slots were given back");
-    }
-
-    /// Waits until the light lane's queues hold `queued` (resuming, arriving).
-    async fn until_queued(lanes: &Lanes, queued: (usize, usize)) {
-        for _ in 0..2000 {
-            if lanes.light.queued() == queued {
-                return;
-            }
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
-        panic!(
-            "the lane never queued {queued:?}: {:?}",
-            lanes.light.queued()
-        );
-    }
-
-    /// Work back from a device wait takes the next free slot before a request that arrived
-    /// during its wait (with one first-come queue it would run after it).
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn work_back_from_a_wait_goes_before_new_requests() {
-        let lanes = Arc::new(Lanes::new(1, 64));
-        let order = Arc::new(std::sync::Mutex::new(Vec::new()));
-        let (lent_tx, lent_rx) = oneshot::channel::<()>();
-        let (wait_tx, wait_rx) = std::sync::mpsc::channel::<()>();
-        let (hold_tx, hold_rx) = std::sync::mpsc::channel::<()>();
-        let (held_tx, held_rx) = oneshot::channel::<()>();
-        let spawn = |f: Box<dyn FnOnce(&Cancel) + Send>| {
-            let lanes = lanes.clone();
-            tokio::spawn(async move { lanes.run(0, f).await.unwrap() })
-        };
-        let o = order.clone();
-        let waiting = spawn(Box::new(move |cancel: &Cancel| {
-            cancel.off_core(|| {
-                let _ = lent_tx.send(());
-                wait_rx.recv_timeout(Duration::from_secs(20)).unwrap();
-            });
-            o.lock().unwrap().push("back from the wait");
-        }));
-        lent_rx.await.unwrap();
-        // A second request takes the lent slot and holds it.
-        let holding = spawn(Box::new(move |_: &Cancel| {
-            let _ = held_tx.send(());
-            hold_rx.recv_timeout(Duration::from_secs(20)).unwrap();
-        }));
-        held_rx.await.unwrap();
-        // A third arrives and queues; then the first's wait ends and it queues too.
-        let o = order.clone();
-        let arriving = spawn(Box::new(move |_: &Cancel| {
-            o.lock().unwrap().push("arrived")
-        }));
-        until_queued(&lanes, (0, 1)).await;
-        wait_tx.send(()).unwrap();
-        until_queued(&lanes, (1, 1)).await;
-        hold_tx.send(()).unwrap();
-        for task in [waiting, holding, arriving] {
-            task.await.unwrap();
-        }
-        assert_eq!(
-            *order.lock().unwrap(),
-            ["back from the wait", "arrived"],
-            "the slot freed went to the work in progress first"
-        );
-        assert!(lanes.light_free(), "the slot was given back");
-    }
-
-    /// A request dropped while it queues loses its place, not the lane's slot.
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn a_request_dropped_in_the_queue_gives_its_slot_on() {
-        let lanes = Arc::new(Lanes::new(1, 64));
-        let (hold_tx, hold_rx) = std::sync::mpsc::channel::<()>();
-        let holding = {
-            let lanes = lanes.clone();
-            tokio::spawn(async move {
-                lanes
-                    .run(0, move |_| {
-                        hold_rx.recv_timeout(Duration::from_secs(20)).is_ok()
-                    })
-                    .await
-            })
-        };
-        until_slots_taken(&lanes).await;
-        let dropped = tokio::time::timeout(Duration::from_millis(50), lanes.run(0, |_| ())).await;
-        assert!(
-            dropped.is_err(),
-            "the second request queued behind the first"
-        );
-        hold_tx.send(()).unwrap();
-        assert!(holding.await.unwrap().unwrap());
-        let third = tokio::time::timeout(Duration::from_secs(10), lanes.run(0, |_| 3)).await;
-        assert_eq!(third.expect("the slot was not lost").unwrap(), 3);
-        assert!(lanes.light_free());
-    }
-
-    async fn until_slots_taken(lanes: &Lanes) {
-        for _ in 0..2000 {
-            if !lanes.light_free() {
-                return;
-            }
-            tokio::time::sleep(Duration::from_millis(5)).await;
-        }
-        panic!("the lane's slot was never taken");
-    }
-
-    /// On a rayon worker, work keeps its slot through a wait rather than block the worker to
-    /// take one back.
-    #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
-    async fn a_wait_on_a_rayon_worker_keeps_its_slot() {
-        let lanes = Arc::new(Lanes::new(1, 64));
-        let inner = lanes.clone();
-        let held = lanes
-            .run(0, move |cancel| {
-                let pool = rayon::ThreadPoolBuilder::new()
-                    .num_threads(1)
-                    .build()
-                    .unwrap();
-                pool.install(|| cancel.off_core(|| !inner.light_free()))
-            })
-            .await
-            .unwrap();
-        assert!(held, "the slot stayed held through the wait");
-        assert!(lanes.light_free(), "and was given back after");
-    }
-
-    /// Outside a lane, `off_core` only runs its closure.
-    #[test]
-    fn off_core_outside_a_lane_runs_the_wait() {
-        assert_eq!(Cancel::default().off_core(|| 7), 7);
-    }
-}
+mod tests;
