@@ -166,6 +166,106 @@ fn collision_pair_and_race(pa: u16, pb: u16, sound: &[u8]) {
     }
 }
 
+/// The store killed and started again under load (issue 54): clients asking both replicas
+/// for tiles all over zoom 7, whose chunks mostly are not cached (1 MiB of chunk cache). While
+/// the store is up, every answer is 200; while it is away, 200 or 503 (and no request waits
+/// past the retries); from 2 s after it serves reads again, every answer is 200.
+///
+/// `FRACTILE_OUTAGE=CLIENTS,HEALTHY_S,AWAY_S` sets the load and the phases (default 8,5,5; the
+/// issue's bar is 16,60,10).
+fn outage_under_load(pa: u16, pb: u16, weed: &mut Weed) {
+    use std::sync::atomic::{AtomicBool, Ordering};
+    use std::time::Instant;
+    let knobs: Vec<u64> = std::env::var("FRACTILE_OUTAGE")
+        .unwrap_or_default()
+        .split(',')
+        .filter_map(|v| v.parse().ok())
+        .collect();
+    let (load, healthy, away_s) = match knobs[..] {
+        [c, h, a] => (c, h, a),
+        _ => (8, 5, 5),
+    };
+    let start = Instant::now();
+    let stop = std::sync::Arc::new(AtomicBool::new(false));
+    let clients: Vec<_> = (0..load)
+        .map(|k| {
+            let stop = stop.clone();
+            std::thread::spawn(move || {
+                let mut seen = Vec::new();
+                let mut r = k.wrapping_mul(0x9e37_79b9_7f4a_7c15) | 1;
+                while !stop.load(Ordering::Relaxed) {
+                    r ^= r << 13;
+                    r ^= r >> 7;
+                    r ^= r << 17;
+                    let (x, y) = (r % 128, 16 + (r >> 8) % 96);
+                    let port = if r >> 20 & 1 == 0 { pa } else { pb };
+                    let t = Instant::now();
+                    let status = fetch(port, &format!("/v1/assets/etopo/tiles/7/{x}/{y}.png")).0;
+                    seen.push((t, t.elapsed(), status));
+                }
+                seen
+            })
+        })
+        .collect();
+    // An object of its own, to tell when the store serves reads again (its S3 gateway answers
+    // a few seconds before its volumes do, with 500s meanwhile).
+    let s3 = weed.s3_port();
+    let probe = "PUT /fractile/probe HTTP/1.1\r\nHost: test\r\nContent-Length: 5\r\nConnection: close\r\n\r\n";
+    assert_eq!(
+        harness::request(s3, probe, b"probe").map(|r| r.0),
+        Some(200)
+    );
+    std::thread::sleep(Duration::from_secs(healthy));
+    let away = Instant::now();
+    weed.pause();
+    std::thread::sleep(Duration::from_secs(away_s));
+    weed.resume();
+    assert!(
+        eventually(Duration::from_secs(60), || {
+            get(s3, "/fractile/probe").is_some_and(|r| r.0 == 200)
+        }),
+        "SeaweedFS did not come back: {}",
+        weed.log()
+    );
+    let back = Instant::now();
+    std::thread::sleep(Duration::from_secs(6));
+    stop.store(true, Ordering::Relaxed);
+    let seen: Vec<_> = clients
+        .into_iter()
+        .flat_map(|c| c.join().unwrap())
+        .collect();
+    let phase = |from: Instant, to: Instant| {
+        seen.iter()
+            .filter(move |(t, took, _)| *t >= from && *t + *took <= to)
+            .map(|&(_, took, s)| (took, s))
+    };
+    let before: Vec<_> = phase(start, away).collect();
+    let during: Vec<_> = phase(away, back).collect();
+    let after: Vec<_> = phase(back + Duration::from_secs(2), Instant::now()).collect();
+    let statuses = |v: &[(Duration, u16)]| {
+        let mut c = std::collections::BTreeMap::new();
+        for (_, s) in v {
+            *c.entry(*s).or_insert(0) += 1;
+        }
+        c
+    };
+    let last_failure = seen
+        .iter()
+        .filter(|&&(t, _, s)| t >= back && s != 200)
+        .map(|&(t, took, _)| (t + took).duration_since(back))
+        .max();
+    eprintln!(
+        "outage under load, {load} clients, {healthy} s up, {away_s} s away: before {:?}, away {:?}, from 2 s after {:?}; last failure {last_failure:?} after the store answered",
+        statuses(&before),
+        statuses(&during),
+        statuses(&after)
+    );
+    assert!(before.len() > 20 && before.iter().all(|&(_, s)| s == 200));
+    assert!(during.iter().all(|&(_, s)| s == 200 || s == 503));
+    assert!(during.iter().any(|&(_, s)| s == 503), "the outage was seen");
+    assert!(after.len() > 20 && after.iter().all(|&(_, s)| s == 200));
+}
+
 #[test]
 fn replicas_share_one_bucket_and_survive_the_store_going_away() {
     let work = std::env::temp_dir().join(format!("fractile-s3-{}", std::process::id()));
@@ -366,6 +466,15 @@ fn replicas_share_one_bucket_and_survive_the_store_going_away() {
     let (status, headers, body) = get(pa, FAR_TILE).unwrap_or_default();
     assert_eq!((status, code(&body).as_str()), (503, "chunk_unavailable"));
     assert_eq!(header(&headers, "retry-after"), Some("1"), "{headers}");
+    // Asked again, it does not wait through the same retries: the breaker is open.
+    let t = std::time::Instant::now();
+    let Answer(status, _, body) = fetch(pa, FAR_TILE);
+    assert_eq!((status, code(&body).as_str()), (503, "chunk_unavailable"));
+    assert!(
+        t.elapsed() < Duration::from_millis(900),
+        "refused at once while the store is away: {:?}",
+        t.elapsed()
+    );
     let written = harness::request(
         pa,
         &format!(
@@ -410,6 +519,7 @@ fn replicas_share_one_bucket_and_survive_the_store_going_away() {
     // The same bytes as B's under the same ETag: the recovery answered no request from a
     // tolerance settled while a chunk could not be read.
     assert_eq!(fetch(pa, FAR_TILE), fetch(pb, FAR_TILE));
+    outage_under_load(pa, pb, &mut weed);
     drop((a, b, c, weed));
     let _ = std::fs::remove_dir_all(&work);
 }

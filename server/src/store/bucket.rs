@@ -62,6 +62,51 @@ struct Remote {
     /// runtime of the bucket's own, which also works where no runtime is (tests, tools).
     runtime: Option<tokio::runtime::Runtime>,
     disk: Option<DiskCache>,
+    /// Whether chunk reads go to the store (see [`Breaker`]).
+    breaker: Breaker,
+}
+
+/// How long chunk reads fail at once after one found the store unreachable, before the next
+/// one tries it again.
+const BREAK: Duration = Duration::from_secs(1);
+
+/// A circuit breaker over chunk reads. A read that found the store unreachable (after the
+/// client's retries: seconds) opens it: for [`BREAK`] every read that the disk cache cannot
+/// serve fails at once (503 `chunk_unavailable` with `Retry-After: 1`) instead of holding a
+/// decoding slot through the same seconds of retries; then one read goes through as a probe,
+/// the others still failing at once, and its answer closes it or opens it again. A store that
+/// comes back is then read again within a second (plus one read's time).
+#[derive(Default)]
+struct Breaker {
+    /// Until when reads fail at once; `None`: closed.
+    open_until: std::sync::Mutex<Option<std::time::Instant>>,
+    /// A probe is out.
+    probing: std::sync::atomic::AtomicBool,
+}
+
+impl Breaker {
+    /// Whether a read may go to the store now (when half open, this read is the probe).
+    fn admit(&self) -> bool {
+        use std::sync::atomic::Ordering::Relaxed;
+        match *self.state() {
+            None => true,
+            Some(t) if std::time::Instant::now() >= t => !self.probing.swap(true, Relaxed),
+            Some(_) => false,
+        }
+    }
+
+    /// What a read that went to the store found: the store answering (whatever its answer),
+    /// or not.
+    fn found(&self, reachable: bool) {
+        *self.state() = (!reachable).then(|| std::time::Instant::now() + BREAK);
+        self.probing
+            .store(false, std::sync::atomic::Ordering::Relaxed);
+    }
+
+    fn state(&self) -> std::sync::MutexGuard<'_, Option<std::time::Instant>> {
+        // One Option written at once: a poisoned lock is moot.
+        self.open_until.lock().unwrap_or_else(|e| e.into_inner())
+    }
 }
 
 impl Remote {
@@ -109,6 +154,7 @@ impl Bucket {
                 store,
                 runtime: Some(runtime),
                 disk,
+                breaker: Breaker::default(),
             }),
             prefix,
             url: url.to_string(),
@@ -385,17 +431,36 @@ impl ChunkSource for ObjectSource {
         {
             return Ok(bytes);
         }
+        let breaker = &self.remote.breaker;
+        if !breaker.admit() {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::ConnectionRefused,
+                format!(
+                    "{}: the store did not answer a read in the last {BREAK:?}; not tried again yet",
+                    self.url
+                ),
+            ));
+        }
         let options = GetOptions::new()
             .with_range(Some(offset..end))
             .with_if_match(self.if_match.clone());
-        let bytes = self.remote.block(async {
+        let got = self.remote.block(async {
             self.remote
                 .store
                 .get_opts(&self.key, options)
                 .await?
                 .bytes()
                 .await
-        })?;
+        });
+        // An answer that is the object's (gone, replaced) is the store answering.
+        breaker.found(matches!(
+            got,
+            Ok(_)
+                | Err(object_store::Error::NotFound { .. }
+                    | object_store::Error::Precondition { .. }
+                    | object_store::Error::NotModified { .. })
+        ));
+        let bytes = got?;
         if bytes.len() != len {
             return Err(std::io::Error::from(std::io::ErrorKind::UnexpectedEof));
         }
@@ -502,7 +567,8 @@ pub fn version_object(id: &str, bytes: &[u8]) -> String {
 
 #[cfg(test)]
 mod tests {
-    use super::DiskCache;
+    use super::{BREAK, Breaker, DiskCache};
+    use std::time::Duration;
 
     /// Two files of one length and the same last bytes (as a chunked file with two chunks
     /// swapped is) are two versions; one file twice is one.
@@ -533,6 +599,25 @@ mod tests {
             .flatten()
             .map(|e| e.path())
             .collect()
+    }
+
+    /// The breaker: open after a read found no store, reads refused at once for its wait, then
+    /// one probe let through (the others still refused), closed by a probe that found it.
+    #[test]
+    fn the_breaker_refuses_for_its_wait_then_lets_one_probe_through() {
+        let b = Breaker::default();
+        assert!(b.admit() && b.admit(), "closed: every read goes");
+        b.found(false);
+        assert!(!b.admit(), "open: refused at once");
+        std::thread::sleep(BREAK + Duration::from_millis(50));
+        assert!(b.admit(), "half open: one probe");
+        assert!(!b.admit(), "the others wait for it");
+        b.found(false);
+        assert!(!b.admit(), "the probe found no store: open again");
+        std::thread::sleep(BREAK + Duration::from_millis(50));
+        assert!(b.admit());
+        b.found(true);
+        assert!(b.admit() && b.admit(), "the probe found it: closed");
     }
 
     /// Ranges come back as they were put, the bytes on disk stay within the bound (evicted
