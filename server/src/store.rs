@@ -15,6 +15,7 @@ use fractile_codec::{Asset, AssetLimits};
 
 use crate::error::AppError;
 
+mod breaker;
 mod bucket;
 mod demo;
 mod folder;
