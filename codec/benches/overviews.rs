@@ -5,12 +5,16 @@
 //! residual against the decoded coarser one upsampled), the way a COG-like layout would code
 //! "coarse first, fine given coarse".
 //!
-//! `cargo bench -p fractile-codec --bench overviews -- [COPIES] [FILE.tif]` (etopo20 mirrored
-//! 4 x 4 by default). Prints bits per cell and PSNR (peak: the value range) at four steps.
+//! `cargo bench -p fractile-codec --bench overviews -- [COPIES] [FILE.tif] [ends]` (etopo20
+//! mirrored 4 x 4 by default). Prints bits per cell and PSNR (peak: the value range) at three
+//! steps. `ends`: instead, the raster coded in chunks of 1024 that share their edge column and
+//! row, with lines mirrored or point-symmetric past their ends (`lifting::Ends`): bits, PSNR,
+//! and how far two neighbours' coarse samples along their shared column differ at depths 1, 3
+//! and 5 (the seams of coarse zooms read from the chunks' own coarse bands).
 
 use fractile_codec::Raster;
 use fractile_codec::codecs::projected::levels_for;
-use fractile_codec::codecs::projected::lifting::{self, Kernel, Plane};
+use fractile_codec::codecs::projected::lifting::{self, Ends, Kernel, Plane};
 
 /// Overview levels below the source coded in each design.
 const OVERVIEWS: usize = 3;
@@ -81,9 +85,103 @@ impl Grid {
             levels: u32::from(levels_for(self.width, self.height)),
             step,
             kernel: Kernel::Fitted,
+            ends: Ends::Mirror,
         };
         let (stream, decoded) = lifting::encode(&plane, values, 0.1);
         (stream.len(), decoded)
+    }
+}
+
+/// A chunk: its first column, its size, its source cells and its decoded ones.
+type Chunk = (usize, [usize; 2], Vec<f64>, Vec<f64>);
+
+/// The `ends` table (see the file's doc).
+fn ends(source: &Grid) {
+    const CHUNK: usize = 1024;
+    let (w, h) = (source.width, source.height);
+    let (lo, hi) = source
+        .cells
+        .iter()
+        .fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
+    println!(
+        "{w} x {h} in chunks of {CHUNK} sharing an edge\n\n| kernel | ends | step | bits a cell | PSNR dB | seam, depth 1 / 3 / 5 | seam decoded |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for kernel in [Kernel::Cdf97, Kernel::Fitted] {
+        for ends in [Ends::Mirror, Ends::PointSymmetric] {
+            for step in [(hi - lo) / 200.0, (hi - lo) / 800.0] {
+                let plane = |size: [usize; 2]| Plane {
+                    size,
+                    levels: u32::from(levels_for(size[0], size[1])),
+                    step,
+                    kernel,
+                    ends,
+                };
+                let mut bytes = 0;
+                let mut decoded = vec![0.0; w * h];
+                let mut rows: Vec<Vec<Chunk>> = Vec::new();
+                for y0 in (0..h).step_by(CHUNK) {
+                    let mut row = Vec::new();
+                    for x0 in (0..w).step_by(CHUNK) {
+                        let (x1, y1) = ((x0 + CHUNK + 1).min(w), (y0 + CHUNK + 1).min(h));
+                        let size = [x1 - x0, y1 - y0];
+                        let cells: Vec<f64> = (y0..y1)
+                            .flat_map(|y| source.cells[y * w + x0..y * w + x1].iter().copied())
+                            .collect();
+                        let (stream, dec) = lifting::encode(&plane(size), &cells, 0.1);
+                        bytes += stream.len();
+                        for y in y0..y1 {
+                            decoded[y * w + x0..y * w + x1]
+                                .copy_from_slice(&dec[(y - y0) * size[0]..(y - y0 + 1) * size[0]]);
+                        }
+                        row.push((x0, size, cells, dec));
+                    }
+                    rows.push(row);
+                }
+                let sq: f64 = source
+                    .cells
+                    .iter()
+                    .zip(&decoded)
+                    .map(|(a, b)| (a - b).powi(2))
+                    .sum();
+                let psnr = 10.0 * ((hi - lo).powi(2) / (sq / (w * h) as f64)).log10();
+                let seams = |coded: bool| {
+                    let per_depth: Vec<String> = [1u32, 3, 5]
+                        .iter()
+                        .map(|&depth| {
+                            let mut worst = 0.0f64;
+                            // Pairs whose planes both reach the depth (a narrow last chunk
+                            // has fewer levels).
+                            let deep = |c: &Chunk| plane(c.1).levels >= depth;
+                            for pair in rows.iter().flat_map(|r| r.windows(2)) {
+                                let (a, b) = (&pair[0], &pair[1]);
+                                if !(deep(a) && deep(b)) {
+                                    continue;
+                                }
+                                let band = |c: &Chunk| {
+                                    let g = if coded { &c.3 } else { &c.2 };
+                                    lifting::analysis(&plane(c.1), g, depth)
+                                };
+                                let (ba, bb) = (band(a), band(b));
+                                let edge = b.0 - a.0;
+                                for y in (0..a.1[1].min(b.1[1])).step_by(1 << depth) {
+                                    let d = ba[y * a.1[0] + edge] - bb[y * b.1[0]];
+                                    worst = worst.max(d.abs());
+                                }
+                            }
+                            format!("{worst:.1}")
+                        })
+                        .collect();
+                    per_depth.join(" / ")
+                };
+                println!(
+                    "| {kernel:?} | {ends:?} | {step:.1} | {:.3} | {psnr:.2} | {} | {} |",
+                    bytes as f64 * 8.0 / (w * h) as f64,
+                    seams(false),
+                    seams(true)
+                );
+            }
+        }
     }
 }
 
@@ -109,6 +207,10 @@ fn main() {
         width: r.width,
         height: r.height,
     }];
+    if args.iter().any(|a| a == "ends") {
+        ends(&levels[0]);
+        return;
+    }
     for _ in 0..OVERVIEWS {
         let next = levels.last().expect("a level").halved();
         levels.push(next);

@@ -71,12 +71,34 @@ pub enum Kernel {
     Cdf97,
 }
 
-/// A line of the grid: its first index, the stride between samples and their count.
+/// How a line is continued past its ends.
+///
+/// Format 6 and before mirror it. The one multiresolution planned for chunked files (issue 52,
+/// docs/benchmarks.md "What the overviews cost") needs point symmetry,
+/// `f(-k) = 2 f(0) - f(k)`, at an end whose sample is even. There the details are odd about
+/// the end, every update step leaves the end sample as it is, and after any number of levels
+/// the coarse samples along a chunk's edge are the 1-D transform of that edge alone: the
+/// neighbour that shares the edge computes the same ones (with the same prediction weights).
+/// Mirroring makes them one-sided means, off by the slope times the filter's width. At an odd
+/// end (a line of even length) point symmetry would read the sample being changed, so it
+/// mirrors there.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Ends {
+    /// Whole-sample symmetric.
+    #[default]
+    Mirror,
+    /// Point-symmetric about an even end sample.
+    PointSymmetric,
+}
+
+/// A line of the grid: its first index, the stride between samples and their count, and how
+/// it continues past its ends.
 #[derive(Clone, Copy)]
 struct Line {
     base: usize,
     stride: usize,
     n: usize,
+    ends: Ends,
 }
 
 impl Line {
@@ -91,10 +113,30 @@ impl Line {
         self.base + k as usize * self.stride
     }
 
+    /// Sample `k` of the line, continued past its ends: read as a detail (`detail`, an odd
+    /// sample once predicted) or as a value.
+    fn value(&self, g: &[f64], k: isize, detail: bool) -> f64 {
+        let n = self.n as isize;
+        if self.ends == Ends::Mirror || (0..n).contains(&k) {
+            return g[self.at(k)];
+        }
+        let end = if k < 0 { 0 } else { n - 1 };
+        let mirrored = 2 * end - k;
+        if end % 2 != 0 || !(0..n).contains(&mirrored) {
+            return g[self.at(k)];
+        }
+        let x = g[self.base + mirrored as usize * self.stride];
+        if detail {
+            -x
+        } else {
+            2.0 * g[self.base + end as usize * self.stride] - x
+        }
+    }
+
     /// The plain mean of the two nearest samples of odd sample `k`, and that of the next two.
     fn means(&self, g: &[f64], k: isize) -> (f64, f64) {
-        let m12 = 0.5 * (g[self.at(k - 1)] + g[self.at(k + 1)]);
-        let m03 = 0.5 * (g[self.at(k - 3)] + g[self.at(k + 3)]);
+        let m12 = 0.5 * (self.value(g, k - 1, false) + self.value(g, k + 1, false));
+        let m03 = 0.5 * (self.value(g, k - 3, false) + self.value(g, k + 3, false));
         (m12, m03)
     }
 
@@ -109,16 +151,18 @@ impl Line {
     /// Adds `sign` times the (4, 4) update to every even sample.
     fn update(&self, g: &mut [f64], sign: f64) {
         for k in (0..self.n as isize).step_by(2) {
-            let u = UPDATE[0] * (g[self.at(k - 1)] + g[self.at(k + 1)])
-                + UPDATE[1] * (g[self.at(k - 3)] + g[self.at(k + 3)]);
+            let u = UPDATE[0] * (self.value(g, k - 1, true) + self.value(g, k + 1, true))
+                + UPDATE[1] * (self.value(g, k - 3, true) + self.value(g, k + 3, true));
             g[self.at(k)] += sign * u;
         }
     }
 
-    /// Adds `c` times the sum of their two neighbours to the samples of one parity.
+    /// Adds `c` times the sum of their two neighbours to the samples of one parity (the even
+    /// ones read the odd ones, details).
     fn step(&self, g: &mut [f64], (parity, c): (isize, f64)) {
+        let detail = parity == 0;
         for k in (parity..self.n as isize).step_by(2) {
-            let v = c * (g[self.at(k - 1)] + g[self.at(k + 1)]);
+            let v = c * (self.value(g, k - 1, detail) + self.value(g, k + 1, detail));
             g[self.at(k)] += v;
         }
     }
@@ -153,7 +197,7 @@ impl Line {
 }
 
 /// The lines of level `l` along x (`axis` 0, the rows) or y (1) of a `size` grid.
-fn lines(size: [usize; 2], l: u32, axis: usize) -> impl Iterator<Item = Line> + Clone {
+fn lines(size: [usize; 2], l: u32, axis: usize, ends: Ends) -> impl Iterator<Item = Line> + Clone {
     let s = 1usize << l;
     let [w, h] = size;
     let (count, n) = if axis == 0 {
@@ -167,12 +211,14 @@ fn lines(size: [usize; 2], l: u32, axis: usize) -> impl Iterator<Item = Line> + 
                 base: i * s * w,
                 stride: s,
                 n,
+                ends,
             }
         } else {
             Line {
                 base: i * s,
                 stride: s * w,
                 n,
+                ends,
             }
         }
     })
@@ -197,16 +243,21 @@ fn fit(g: &[f64], lines: impl Iterator<Item = Line>) -> i32 {
 
 /// The forward transform in place; returns the fitted weights, two a level (rows, columns;
 /// zeros for CDF 9/7).
-fn forward(g: &mut [f64], size: [usize; 2], levels: u32, kernel: Kernel) -> Vec<i32> {
+fn forward(
+    g: &mut [f64],
+    size: [usize; 2],
+    levels: u32,
+    (kernel, ends): (Kernel, Ends),
+) -> Vec<i32> {
     let mut weights = Vec::with_capacity(2 * levels as usize);
     for l in 0..levels {
         for axis in 0..2 {
             let wq = match kernel {
-                Kernel::Fitted => fit(g, lines(size, l, axis)),
+                Kernel::Fitted => fit(g, lines(size, l, axis, ends)),
                 Kernel::Cdf97 => 0,
             };
             let a = f64::from(wq) / WEIGHT_ONE;
-            for line in lines(size, l, axis) {
+            for line in lines(size, l, axis, ends) {
                 line.forward(g, kernel, a);
             }
             weights.push(wq);
@@ -216,11 +267,17 @@ fn forward(g: &mut [f64], size: [usize; 2], levels: u32, kernel: Kernel) -> Vec<
 }
 
 /// The inverse transform in place.
-fn inverse(g: &mut [f64], size: [usize; 2], levels: u32, kernel: Kernel, weights: &[i32]) {
+fn inverse(
+    g: &mut [f64],
+    size: [usize; 2],
+    levels: u32,
+    (kernel, ends): (Kernel, Ends),
+    weights: &[i32],
+) {
     for l in (0..levels).rev() {
         for axis in [1, 0] {
             let a = f64::from(weights[2 * l as usize + axis]) / WEIGHT_ONE;
-            for line in lines(size, l, axis) {
+            for line in lines(size, l, axis, ends) {
                 line.inverse(g, kernel, a);
             }
         }
@@ -243,6 +300,7 @@ fn gains(kernel: Kernel, weights: &[i32], axis: usize, levels: u32) -> Vec<(f64,
                 base: 0,
                 stride: s,
                 n: (n - 1) / s + 1,
+                ends: Ends::Mirror,
             };
             line.inverse(&mut x, kernel, a);
         }
@@ -479,13 +537,34 @@ pub struct Plane {
     pub step: f64,
     /// The lifting steps.
     pub kernel: Kernel,
+    /// How lines continue past their ends (files of format 6 and before: mirrored).
+    pub ends: Ends,
+}
+
+/// The forward transform of `grid` to depth `depth` (at most `plane.levels`), in place on the
+/// grid's lattice: the coarse samples on multiples of `2^depth`, details elsewhere. What a
+/// reader of a coarse band needs to compare against (benches, tests).
+pub fn analysis(plane: &Plane, grid: &[f64], depth: u32) -> Vec<f64> {
+    let mut g = grid.to_vec();
+    forward(
+        &mut g,
+        plane.size,
+        depth.min(plane.levels),
+        (plane.kernel, plane.ends),
+    );
+    g
 }
 
 /// Codes a grid (source units) with the lifted multiresolution and a rate-distortion weight
 /// `lambda`; returns the stream and the decoded samples.
 pub fn encode(plane: &Plane, source: &[f64], lambda: f64) -> (Vec<u8>, Vec<f64>) {
     let mut coefficients = source.to_vec();
-    let weights = forward(&mut coefficients, plane.size, plane.levels, plane.kernel);
+    let weights = forward(
+        &mut coefficients,
+        plane.size,
+        plane.levels,
+        (plane.kernel, plane.ends),
+    );
     let mut encoder = Encoder::new();
     if plane.kernel == Kernel::Fitted {
         let mut weight_coder = IntCoder::new();
@@ -501,7 +580,13 @@ pub fn encode(plane: &Plane, source: &[f64], lambda: f64) -> (Vec<u8>, Vec<f64>)
         encoder: &mut encoder,
     };
     walk(plane.size, plane.levels, &steps, &mut g, &mut quantiser);
-    inverse(&mut g, plane.size, plane.levels, plane.kernel, &weights);
+    inverse(
+        &mut g,
+        plane.size,
+        plane.levels,
+        (plane.kernel, plane.ends),
+        &weights,
+    );
     (encoder.finish(), g)
 }
 
@@ -525,7 +610,13 @@ pub fn decode(plane: &Plane, decoder: &mut Decoder<'_>) -> Vec<f64> {
         &mut g,
         &mut Reader { decoder },
     );
-    inverse(&mut g, plane.size, plane.levels, plane.kernel, &weights);
+    inverse(
+        &mut g,
+        plane.size,
+        plane.levels,
+        (plane.kernel, plane.ends),
+        &weights,
+    );
     g
 }
 
@@ -549,17 +640,61 @@ mod tests {
                 let source = surface(w, h);
                 let mut g = source.clone();
                 let levels = super::super::levels_for(w, h).into();
-                let weights = forward(&mut g, [w, h], levels, kernel);
+                let weights = forward(&mut g, [w, h], levels, (kernel, Ends::Mirror));
                 if levels > 0 {
                     assert_ne!(g, source, "{w}x{h}: the transform changed nothing");
                 }
-                inverse(&mut g, [w, h], levels, kernel, &weights);
+                inverse(&mut g, [w, h], levels, (kernel, Ends::Mirror), &weights);
                 let worst = g
                     .iter()
                     .zip(&source)
                     .map(|(a, b)| (a - b).abs())
                     .fold(0.0, f64::max);
                 assert!(worst < 1e-9, "{kernel:?} {w}x{h}: off by {worst}");
+            }
+        }
+    }
+
+    /// Point-symmetric ends invert exactly too, and two grids that share a column (the right
+    /// edge of one, the left edge of the other, as chunks of format 7 will) get the same
+    /// coarse samples along it at every depth, which mirrored ends do not.
+    #[test]
+    fn point_symmetric_ends_give_neighbours_the_same_coarse_edge() {
+        let (w, h) = (65, 33);
+        let whole = surface(2 * w - 1, h);
+        let part = |x0: usize| -> Vec<f64> {
+            (0..h)
+                .flat_map(|y| (x0..x0 + w).map(move |x| (y, x)))
+                .map(|(y, x)| whole[y * (2 * w - 1) + x])
+                .collect()
+        };
+        let (left, right) = (part(0), part(w - 1));
+        for ends in [Ends::PointSymmetric, Ends::Mirror] {
+            let plane = Plane {
+                size: [w, h],
+                levels: 3,
+                step: 1.0,
+                kernel: Kernel::Cdf97,
+                ends,
+            };
+            let mut g = left.clone();
+            let weights = forward(&mut g, [w, h], 3, (Kernel::Cdf97, ends));
+            inverse(&mut g, [w, h], 3, (Kernel::Cdf97, ends), &weights);
+            let worst = g.iter().zip(&left).map(|(a, b)| (a - b).abs());
+            assert!(worst.fold(0.0, f64::max) < 1e-9, "{ends:?} inverts");
+            for depth in 1..=3u32 {
+                let (a, b) = (
+                    analysis(&plane, &left, depth),
+                    analysis(&plane, &right, depth),
+                );
+                let seam = (0..h)
+                    .step_by(1 << depth)
+                    .map(|y| (a[y * w + w - 1] - b[y * w]).abs())
+                    .fold(0.0, f64::max);
+                match ends {
+                    Ends::PointSymmetric => assert!(seam < 1e-9, "depth {depth}: {seam}"),
+                    Ends::Mirror => assert!(seam > 1.0, "depth {depth}: mirrored ends agree?"),
+                }
             }
         }
     }
@@ -571,7 +706,7 @@ mod tests {
         let levels = u32::from(super::super::levels_for(w, h));
         for kernel in [Kernel::Fitted, Kernel::Cdf97] {
             let mut g = source.clone();
-            forward(&mut g, [w, h], levels, kernel);
+            forward(&mut g, [w, h], levels, (kernel, Ends::Mirror));
             // The finest HH details of a smooth surface are far below its relief.
             let hh = (1..h)
                 .step_by(2)
@@ -594,7 +729,7 @@ mod tests {
             })
             .collect();
         let mut g = board.clone();
-        forward(&mut g, [w, h], 1, Kernel::Fitted);
+        forward(&mut g, [w, h], 1, (Kernel::Fitted, Ends::Mirror));
         let worst = (0..h)
             .step_by(2)
             .flat_map(|y| (0..w).step_by(2).map(move |x| y * w + x))
@@ -616,6 +751,7 @@ mod tests {
                     levels,
                     step,
                     kernel,
+                    ends: Ends::Mirror,
                 };
                 let (stream, coded) = encode(&plane, &source, 0.1);
                 let decoded = decode(&plane, &mut Decoder::new(&stream));

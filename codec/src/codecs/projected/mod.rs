@@ -177,6 +177,7 @@ fn lifted_plane(layout: &pyramid::Layout, kernel: lifting::Kernel) -> lifting::P
         levels: layout.levels,
         step: layout.step,
         kernel,
+        ends: lifting::Ends::Mirror,
     }
 }
 
