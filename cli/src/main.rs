@@ -280,8 +280,9 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
     if let Some(c) = &asset.chunks {
         let t = &c.table;
         info["chunks"] = json!({"chunk": t.chunk, "overlap": t.overlap,
-            "levels": t.levels.iter().map(|l| json!({"width": l.width, "height": l.height,
-                "chunks": l.chunks.len(), "empty": l.chunks.iter().filter(|e| e.length == 0).count()}))
+            "levels": t.levels.iter().enumerate().map(|(i, l)| json!({"width": l.width, "height": l.height,
+                "chunks": l.chunks.len(), "empty": l.chunks.iter().filter(|e| e.length == 0).count(),
+                "view": t.is_view(i)}))
                 .collect::<Vec<_>>()});
     }
     if let Some(c) = &asset.curve {

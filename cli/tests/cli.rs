@@ -673,7 +673,7 @@ fn auto_never_decodes_on_a_software_adapter() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
-/// `--chunk N` codes a DEM in chunks (format version 6) that `info` describes and `decode`
+/// `--chunk N` codes a DEM in chunks (format version 7) that `info` describes and `decode`
 /// brings back within the error the encoder measured; a chunk side that is not a power of two
 /// in range is refused with no output.
 #[test]
@@ -699,7 +699,7 @@ fn a_dem_coded_in_chunks_is_described_and_decoded_like_any_asset() {
             .output()
             .unwrap(),
     );
-    assert_eq!(info["format_version"], 6);
+    assert_eq!(info["format_version"], 7);
     assert_eq!(info["chunks"]["chunk"], 128);
     let levels = info["chunks"]["levels"].as_array().unwrap();
     // 403 x 344 in chunks of 128: 3 x 3 (the last of each row and column takes the
@@ -717,6 +717,39 @@ fn a_dem_coded_in_chunks_is_described_and_decoded_like_any_asset() {
         [(403, 344, 9), (202, 172, 2), (101, 86, 1)],
         "{info}"
     );
+    // The bounded default codes its overviews; rate mode's first overview is a view of the
+    // source chunks (level 0's grid of chunks, no bytes of its own), and the file is still
+    // within its rate.
+    assert!(levels.iter().all(|l| l["view"] == false), "{info}");
+    let rated = dir.join("r.fra");
+    let st = bin()
+        .arg("encode")
+        .arg(data("jacksboro.tif"))
+        .arg("-o")
+        .arg(&rated)
+        .args([
+            "--chunk",
+            "128",
+            "--codec",
+            "projected",
+            "--target-bpp",
+            "0.8",
+        ])
+        .status()
+        .unwrap();
+    assert!(st.success());
+    let info = json(
+        &bin()
+            .arg("info")
+            .arg(&rated)
+            .arg("--json")
+            .output()
+            .unwrap(),
+    );
+    let levels = info["chunks"]["levels"].as_array().unwrap();
+    assert_eq!(levels[1]["view"], true, "{info}");
+    assert_eq!(levels[1]["chunks"], 9, "{info}");
+    assert!(info["bpp"].as_f64().unwrap() <= 0.8, "{info}");
     let out = dir.join("j.tif");
     let st = bin()
         .arg("decode")

@@ -72,8 +72,11 @@ fn overview_share(enc: &Encoded) -> f64 {
     };
     let level =
         |l: &fractile_codec::io::chunked::Level| l.chunks.iter().map(|e| e.length).sum::<u64>();
-    let all: u64 = c.table.levels.iter().map(level).sum();
-    let overviews: u64 = c.table.levels.iter().skip(1).map(level).sum();
+    // A view level's entries are level 0's bytes (format 7): counted once.
+    let coded = |&(i, _): &(usize, &fractile_codec::io::chunked::Level)| !c.table.is_view(i);
+    let levels = || c.table.levels.iter().enumerate().filter(coded);
+    let all: u64 = levels().map(|(_, l)| level(l)).sum();
+    let overviews: u64 = levels().skip(1).map(|(_, l)| level(l)).sum();
     overviews as f64 / all.max(1) as f64
 }
 

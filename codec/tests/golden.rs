@@ -36,9 +36,9 @@ fn every_format_version_is_read_as_it_was_written() {
     files.sort();
     assert_eq!(
         files.len(),
-        34,
-        "six codecs a version, versions 1 to 5; version 6 chunked; the projected codec's three \
-         multiresolutions in version 5"
+        36,
+        "six codecs a version, versions 1 to 5; version 6 chunked; version 7 chunked, with and \
+         without views; the projected codec's three multiresolutions in version 5"
     );
     let mut versions = std::collections::BTreeSet::new();
     for path in files {
@@ -56,9 +56,20 @@ fn every_format_version_is_read_as_it_was_written() {
         }
         let asset = read.unwrap_or_else(|e| panic!("{name}: {e}"));
         // Version 5 added the source-error map, to rasters only; version 6 is the chunked
-        // container, whose chunks are version-5 files with their maps.
+        // container, whose chunks are version-5 files with their maps; version 7 adds views.
         let raster = matches!(asset.meta.kind, AssetKind::Image | AssetKind::HeightField);
-        assert_eq!(asset.chunks.is_some(), version == 6, "{name}");
+        assert_eq!(asset.chunks.is_some(), version >= 6, "{name}");
+        if let Some(c) = &asset.chunks {
+            let views = usize::from(name.contains("views"));
+            assert_eq!(c.table.views.len(), views, "{name}");
+            // Every level answers: a view decodes from its source chunk's bytes.
+            for level in 0..c.table.levels.len() {
+                let some = (0..c.table.levels[level].chunks.len())
+                    .filter_map(|i| c.chunk(level, i).unwrap())
+                    .count();
+                assert!(some > 0, "{name}: level {level}");
+            }
+        }
         assert_eq!(
             asset.source_error.is_some(),
             version == 5 && raster,
@@ -89,8 +100,13 @@ fn every_format_version_is_read_as_it_was_written() {
                     asset.meta.psnr_peak(),
                 );
                 let written = asset.meta.stats.psnr;
+                // A chunked file's figures are summed over its chunks' coded cells, the
+                // overlaps counted in both neighbours; in rate mode a chunk's edge cells carry
+                // more error than its inside, so the written figure is the lower (by 0.17 dB
+                // for chunks of 128 with an overlap of 4, measured).
+                let over = if asset.chunks.is_some() { 0.25 } else { 0.05 };
                 assert!(
-                    (e.psnr - written).abs() < 0.05,
+                    e.psnr - written > -0.05 && e.psnr - written < over,
                     "{name}: decodes to {:.3} dB, written at {written:.3} dB",
                     e.psnr
                 );
@@ -128,6 +144,6 @@ fn every_format_version_is_read_as_it_was_written() {
     }
     assert_eq!(
         versions.into_iter().collect::<Vec<_>>(),
-        vec![1, 2, 3, 4, 5, 6]
+        vec![1, 2, 3, 4, 5, 6, 7]
     );
 }

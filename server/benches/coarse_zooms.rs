@@ -10,7 +10,10 @@
 //! changing the encoder.
 //!
 //! `cargo bench -p fractile --bench coarse_zooms [-- TILES_PER_ZOOM IN_FLIGHT COARSE_MIB]`
-//! (defaults 256, 8 and the server's `coarse_cache_mib`).
+//! (defaults 256, 8 and the server's `coarse_cache_mib`). `FRACTILE_BENCH_ASSET=FILE` serves
+//! that asset instead (any encode of the same mosaic: `fractile encode` of the GeoTIFFs that
+//! `cargo bench -p fractile-codec --bench chunked -- tiffs DIR 4` writes, by this build or an
+//! older one, to compare formats).
 
 use std::sync::Arc;
 use std::time::{Duration, Instant};
@@ -40,6 +43,9 @@ fn mosaic() -> Raster {
 
 /// The encoded mosaic, from `target/bench-data/` when it is there.
 fn asset() -> Vec<u8> {
+    if let Some(path) = std::env::var_os("FRACTILE_BENCH_ASSET") {
+        return std::fs::read(&path).expect("FRACTILE_BENCH_ASSET");
+    }
     let dir = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../target/bench-data");
     let path = dir.join("etopo20-mosaic-9mpx-default.fra");
     if let Ok(bytes) = std::fs::read(&path) {
@@ -136,7 +142,7 @@ fn main() {
         z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
         ((z ^ (z >> 31)) % n as u64) as u32
     };
-    let mut all_after_first = Vec::new();
+    let (mut all_after_first, mut coarse_after_first) = (Vec::new(), Vec::new());
     for z in 0u8..=7 {
         let side = 1u32 << z;
         let mut tiles: Vec<(u32, u32)> = if (side * side) as usize <= per_zoom {
@@ -182,8 +188,18 @@ fn main() {
             coarse_counts(metrics)[0] - before[0],
             coarse_counts(metrics)[1] - before[1],
         );
+        if z <= 4 {
+            coarse_after_first.extend(rest.iter().copied());
+        }
         all_after_first.extend(rest);
     }
+    coarse_after_first.sort();
+    println!(
+        "zooms 0-4 after each first tile: {} tiles, p50 {:.1} ms, p99 {:.1} ms",
+        coarse_after_first.len(),
+        percentile(&coarse_after_first, 0.5),
+        percentile(&coarse_after_first, 0.99)
+    );
     all_after_first.sort();
     println!(
         "all zooms after each first tile: {} tiles, p50 {:.1} ms, p99 {:.1} ms",

@@ -1040,7 +1040,7 @@ fn coding_plane(s: &SourcePlane, align: usize, supersample: bool) -> CodingPlane
 }
 
 /// Push-pull fill of invalid cells from the valid ones.
-fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
+pub(crate) fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
     if valid.iter().all(|&v| v) {
         return;
     }

@@ -23,7 +23,7 @@ use crate::io::chunked;
 use crate::io::rows::{Header, Rows};
 
 const MAGIC: &[u8; 8] = b"FRAPART\0";
-const VERSION: u16 = 2;
+const VERSION: u16 = 3;
 
 /// Most bytes a part file's header may claim: 2^20 chunk records of a few hundred bytes.
 const MAX_HEADER: u32 = 1 << 30;
@@ -313,6 +313,7 @@ pub fn assemble(parts: &[PathBuf], output: &Path) -> Result<Written, Error> {
                 seed_bound: 0.0,
                 smallest_source_error: None,
                 levels: Vec::new(),
+                views: Vec::new(),
             };
             let (nx, ny) = t.grid(w, h);
             u64::from(nx * ny)

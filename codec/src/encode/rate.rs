@@ -123,6 +123,9 @@ pub struct Sample {
     pub scale: Vec<f64>,
     /// Bytes of the file that are not chunks (header and table).
     pub overhead: u64,
+    /// Overview levels that are views of the source chunks (`io::chunked`): not coded, their
+    /// error maps in the table, a share of their source chunk's map budget each.
+    pub views: usize,
 }
 
 /// Valid cells of a chunk.
@@ -156,6 +159,13 @@ impl Sample {
                     Some(_) => 0,
                     None => crate::core::fidelity::reserve(e.bytes.len()),
                 };
+                let views: usize = match *l {
+                    0 => (1..=self.views)
+                        .map(|d| crate::core::fidelity::reserve(e.bytes.len() >> (2 * d)))
+                        .sum(),
+                    _ => 0,
+                };
+                let map = map + views;
                 Ok((*l, (e.bytes.len() + map) as f64, sq, e.errors.samples))
             })
             .collect::<Result<_, Error>>()?;

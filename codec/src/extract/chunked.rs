@@ -48,6 +48,9 @@ struct Axis {
     chunk: u32,
     /// Chunks on the axis.
     count: u32,
+    /// Level cells a view's samples lie before its cells' centres
+    /// ([`crate::io::chunked::ChunkTable::view_shift`]).
+    shift: f64,
 }
 
 impl Axis {
@@ -58,7 +61,7 @@ impl Axis {
     fn owner(&self, t: f32) -> (u32, f64) {
         let x = f64::from(t) * f64::from(self.source) / f64::from(self.scale);
         let c = ((x / f64::from(self.chunk)).floor().max(0.0) as u32).min(self.count - 1);
-        (c, x)
+        (c, x + self.shift)
     }
 }
 
@@ -73,22 +76,30 @@ impl Chunked {
     }
 
     /// The axes of `level`.
+    /// A view level's chunks are level 0's, each `2^level` times smaller.
     fn axes(&self, meta: &AssetMeta, level: usize) -> [Axis; 2] {
-        let l = &self.table.levels[level];
-        let (nx, ny) = self.table.grid(l.width, l.height);
-        let scale = (1u64 << level) as f32;
+        let t = &self.table;
+        let l = &t.levels[level];
+        let ((nx, ny), chunk) = if t.is_view(level) {
+            (t.grid(meta.width, meta.height), t.chunk >> level)
+        } else {
+            (t.grid(l.width, l.height), t.chunk)
+        };
+        let (scale, shift) = ((1u64 << level) as f32, t.view_shift(level));
         [
             Axis {
                 source: meta.width as f32,
                 scale,
-                chunk: self.table.chunk,
+                chunk,
                 count: nx,
+                shift,
             },
             Axis {
                 source: meta.height as f32,
                 scale,
-                chunk: self.table.chunk,
+                chunk,
                 count: ny,
+                shift,
             },
         ]
     }

@@ -1285,6 +1285,79 @@ impl Asset {
         Asset::from_parts(meta, p.planes, mask)
     }
 
+    /// The coarse view at `depth` of a chunk's file (a single-plane projected height field):
+    /// its multiresolution's coarse samples ([`crate::codecs::projected::decode_coarse`]) as
+    /// an asset of `ceil(w / 2^depth) x ceil(h / 2^depth)` cells, its mask valid where any of
+    /// a cell's `2^depth x 2^depth` source cells is (as the box means of overviews are). No
+    /// source-error map: a chunked file keeps the view's in its table.
+    pub(crate) fn coarse_view(
+        bytes: &[u8],
+        limits: &AssetLimits,
+        depth: u32,
+        build: Build,
+    ) -> Result<Asset, Error> {
+        let (codec, meta, payload, _) = Asset::container(bytes)?;
+        if codec != Codec::Projected as u8 || meta.kind != AssetKind::HeightField {
+            return Err(Error::Asset(
+                "a coarse view of a chunk that is no projected height field".into(),
+            ));
+        }
+        let p: ProjectedPayload =
+            fractile_proto::decode(payload).map_err(|e| Error::Asset(e.to_string()))?;
+        let [(header, stream)] = <[_; 1]>::try_from(p.planes)
+            .map_err(|_| Error::Asset("a coarse view of a chunk of several planes".into()))?;
+        header.validate().map_err(Error::Asset)?;
+        if header.samples != [meta.width, meta.height] {
+            return Err(Error::Asset("sample grid and metadata disagree".into()));
+        }
+        let (w, h) = (meta.width as usize, meta.height as usize);
+        limits.check_pixels("a grid", (w * h) as u64)?;
+        // The source grid as f64 while decoding (the finest band is never read), then the
+        // view's samples.
+        limits.check_cost((w * h) as u64 * 8 + ((w * h) >> (2 * depth)) as u64 * 48)?;
+        let (view, grid) = crate::codecs::projected::decode_coarse(&header, &stream, depth)
+            .map_err(|e| Error::Asset(format!("coarse view: {e}")))?;
+        let [cw, ch] = [view.samples[0] as usize, view.samples[1] as usize];
+        let mask = p
+            .mask
+            .map(|m| Mask::decode(w, h, &m))
+            .transpose()?
+            .map(|m| {
+                let s = 1usize << depth;
+                let mut valid = vec![false; cw * ch];
+                for (i, _) in m.valid().iter().enumerate().filter(|(_, v)| **v) {
+                    valid[(i / w / s) * cw + (i % w) / s] = true;
+                }
+                Mask::new(cw, ch, valid)
+            });
+        let operator = match build {
+            Build::Whole => ProjectedOperator::new(&view, &grid),
+            Build::Lazy => ProjectedOperator::lazy(&view, grid),
+        }
+        .map_err(Error::Asset)?;
+        let asset = Asset {
+            meta: AssetMeta {
+                width: cw as u32,
+                height: ch as u32,
+                ..meta
+            },
+            planes: vec![Plane {
+                coding: Coding::Projected {
+                    header: view,
+                    stream: Vec::new(),
+                },
+                operator: PlaneOperator::Projected(operator),
+            }],
+            mask,
+            volume: None,
+            curve: None,
+            source_error: None,
+            chunks: None,
+        };
+        asset.check()?;
+        Ok(asset)
+    }
+
     /// A chunked container from `source`: its header is read now, its chunks when answers
     /// need them, decoded into `cache`.
     pub fn open_chunked(

@@ -1,9 +1,21 @@
-//! Chunked assets (format version 6): a raster cut into square chunks, each coded on its own as
-//! a whole asset file of version 5, behind a table that says where each chunk lies in the file,
-//! so that a reader fetches and decodes one chunk by byte range without reading the rest
-//! (`docs/asset-format.md`). Coarser levels (overviews: the raster box-averaged by 2, 4, ...)
-//! are chunked the same way, so that a coarse tile of a huge raster decodes a few chunks of a
-//! coarse level instead of the whole raster.
+//! Chunked assets (format version 7; 6 still read): a raster cut into square chunks, each coded
+//! on its own as a whole asset file of version 5, behind a table that says where each chunk
+//! lies in the file, so that a reader fetches and decodes one chunk by byte range without
+//! reading the rest (`docs/asset-format.md`). Coarser levels (overviews: the raster at 2, 4,
+//! ... source cells a cell) let a coarse tile of a huge raster decode a few chunks of a coarse
+//! level instead of the whole raster.
+//!
+//! The first [`VIEW_DEPTH`] overview levels are not coded (format 7, projected height fields):
+//! a level-l chunk is the source chunk's own multiresolution read to depth l, its coarse band
+//! (the *view*, `Asset::coarse_view`), decoded from the coarse part of the same stream. Coded
+//! beside the source, as format 6 did, they took 19-26% of a file's bytes and cost it 1-2 dB
+//! against JPEG 2000 at the same bytes (docs/benchmarks.md, "What the overviews cost"); the
+//! coded overviews that remain, from level 3 on, are 2% of the cells. For the views' lattices
+//! to be the levels' own, chunks start on multiples of `2^VIEW_DEPTH` (the overlap is that), and
+//! a view's sample `k` stands `1/2 - 2^-(l+1)` of a level cell before its box cell's centre (the
+//! low-pass and the pyramid's samples sit on a source cell, the box mean between cells): the
+//! reader places it there ([`ChunkTable::view_shift`]). Each view's source-error map, measured
+//! at encode time against the box means it stands for, is kept in the table.
 //!
 //! Each chunk codes `OVERLAP` cells beyond its own on every side (clamped at the raster's
 //! edges): a point is answered by the chunk that owns it, and every point a chunk owns lies
@@ -26,13 +38,22 @@ use crate::Error;
 
 /// The format version of a chunked container. Single-operator files stay version 5 (their
 /// layout did not change), so readers of version 5 keep reading what they read.
-pub const CHUNKED_VERSION: u16 = 6;
+pub const CHUNKED_VERSION: u16 = 7;
+
+/// The oldest chunked version read (6: every overview level coded, no views).
+pub const OLDEST_CHUNKED_VERSION: u16 = 6;
+
+/// The most overview levels that are views of the source chunks (see the module's doc): level
+/// `l` of a view reads the source chunk's stream to depth `l`, whose coarse part is about
+/// `4^-l` of it; deeper views would read and decode a chunk whole for a few of its cells.
+pub const VIEW_DEPTH: u32 = 2;
 
 /// The codec byte of a chunked container (its chunks name their own codec).
 pub const CHUNKED_CODEC: u8 = 7;
 
-/// Cells each chunk codes beyond its own on every side (see the module's doc).
-pub const OVERLAP: u32 = 1;
+/// Cells each chunk codes beyond its own on every side (see the module's doc): `2^VIEW_DEPTH`,
+/// so that every chunk starts on the lattice of every view level (format 6 files have 1).
+pub const OVERLAP: u32 = 1 << VIEW_DEPTH;
 
 /// How many times `max_asset_pixels` a chunked asset may claim: its cells are decoded a chunk
 /// at a time, never whole (see [`Chunked::open`]).
@@ -71,6 +92,27 @@ pub struct Level {
     pub chunks: Vec<ChunkEntry>,
 }
 
+/// An overview level that is a view of the source chunks (format 7): per chunk, its view's
+/// source-error map ([`crate::core::fidelity::SourceError`]'s encoding; empty for a chunk
+/// with no valid cell).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewLevel {
+    /// The maps, in the level's chunk order (level 0's).
+    pub maps: Vec<Vec<u8>>,
+}
+
+/// The table of a chunked container of version 6.
+#[derive(Deserialize)]
+struct ChunkTableV6 {
+    chunk: u32,
+    overlap: u32,
+    codec: u8,
+    max_contrast: f32,
+    seed_bound: f32,
+    smallest_source_error: Option<f32>,
+    levels: Vec<Level>,
+}
+
 /// The table of a chunked container.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ChunkTable {
@@ -87,11 +129,64 @@ pub struct ChunkTable {
     pub seed_bound: f32,
     /// Smallest source error of any chunk's map (source units), for the default tolerance.
     pub smallest_source_error: Option<f32>,
-    /// Level 0 (the source's cells) first, then each overview.
+    /// Level 0 (the source's cells) first, then each overview. A view level's entries are
+    /// level 0's (the same offsets, lengths and CRCs), with its own cells.
     pub levels: Vec<Level>,
+    /// The overview levels 1 to `views.len()` that are views (format 7; none in format 6).
+    pub views: Vec<ViewLevel>,
 }
 
 impl ChunkTable {
+    /// Whether `level` is a view of the source chunks (see the module's doc).
+    pub fn is_view(&self, level: usize) -> bool {
+        level >= 1 && level <= self.views.len()
+    }
+
+    /// How many overview levels of a file of `levels` levels are views: up to [`VIEW_DEPTH`],
+    /// never the top level (one chunk, decoded discretely for the coarsest pixels).
+    pub fn view_levels(levels: usize) -> usize {
+        (VIEW_DEPTH as usize).min(levels.saturating_sub(2))
+    }
+
+    /// The cells of level `level`'s view of a source chunk coding `cells`.
+    pub fn view_cells(cells: [u32; 4], level: usize) -> [u32; 4] {
+        let up = |v: u32| v.div_ceil(1 << level);
+        [
+            cells[0] >> level,
+            cells[1] >> level,
+            up(cells[2]),
+            up(cells[3]),
+        ]
+    }
+
+    /// Where a view's samples lie, in level cells before its cells' centres (see the
+    /// module's doc); 0 for a coded level.
+    pub fn view_shift(&self, level: usize) -> f64 {
+        if self.is_view(level) {
+            0.5 - 0.5f64.powi(level as i32 + 1)
+        } else {
+            0.0
+        }
+    }
+
+    /// Reads a table of container version `version`.
+    pub(crate) fn decode(bytes: &[u8], version: u16) -> Result<ChunkTable, String> {
+        if version == CHUNKED_VERSION {
+            return fractile_proto::decode(bytes).map_err(|e| e.to_string());
+        }
+        let t: ChunkTableV6 = fractile_proto::decode(bytes).map_err(|e| e.to_string())?;
+        Ok(ChunkTable {
+            chunk: t.chunk,
+            overlap: t.overlap,
+            codec: t.codec,
+            max_contrast: t.max_contrast,
+            seed_bound: t.seed_bound,
+            smallest_source_error: t.smallest_source_error,
+            levels: t.levels,
+            views: Vec::new(),
+        })
+    }
+
     /// Chunks a row and rows of chunks of a level of `width x height` cells: the last chunk of
     /// a row or column takes the remainder (so it is between half a chunk and a chunk and a
     /// half): a sliver of a few cells would pay a chunk's fixed bytes for nothing, and under a
@@ -169,16 +264,42 @@ impl ChunkTable {
         if total > MAX_CHUNKS {
             return Err(format!("{total} chunks, over the limit of {MAX_CHUNKS}"));
         }
+        if self.views.len() > ChunkTable::view_levels(self.levels.len())
+            || (!self.views.is_empty() && !self.overlap.is_multiple_of(1 << self.views.len()))
+        {
+            return Err(format!(
+                "{} view levels of {} levels with an overlap of {}",
+                self.views.len(),
+                self.levels.len(),
+                self.overlap
+            ));
+        }
         for (l, (level, &(w, h))) in self.levels.iter().zip(&sizes).enumerate() {
-            let (nx, ny) = self.grid(w, h);
+            let (nx, ny) = if self.is_view(l) {
+                self.grid(meta.width, meta.height)
+            } else {
+                self.grid(w, h)
+            };
             if (level.width, level.height) != (w, h)
                 || level.chunks.len() != (nx as usize) * (ny as usize)
             {
                 return Err(format!("level {l} does not have the layout's size"));
             }
+            if self.is_view(l) && self.views[l - 1].maps.len() != level.chunks.len() {
+                return Err(format!("level {l} has not a map a chunk"));
+            }
             for (i, e) in level.chunks.iter().enumerate() {
                 let (cx, cy) = (i as u32 % nx, i as u32 / nx);
-                if e.cells != self.coded_cells(w, h, cx, cy) {
+                let cells = if self.is_view(l) {
+                    let source = &self.levels[0].chunks[i];
+                    if (e.offset, e.length, e.crc) != (source.offset, source.length, source.crc) {
+                        return Err(format!("chunk {i} of view level {l} is not level 0's"));
+                    }
+                    ChunkTable::view_cells(source.cells, l)
+                } else {
+                    self.coded_cells(w, h, cx, cy)
+                };
+                if e.cells != cells {
                     return Err(format!("chunk {i} of level {l} claims other cells"));
                 }
                 let end = e.offset.checked_add(e.length);
@@ -399,7 +520,8 @@ impl std::fmt::Debug for Chunked {
 pub fn is_chunked(bytes: &[u8]) -> bool {
     bytes.len() >= 12
         && &bytes[..8] == MAGIC
-        && u16::from_le_bytes([bytes[8], bytes[9]]) == CHUNKED_VERSION
+        && (OLDEST_CHUNKED_VERSION..=CHUNKED_VERSION)
+            .contains(&u16::from_le_bytes([bytes[8], bytes[9]]))
 }
 
 /// The bytes of a chunked container: the header (magic, version, kind, codec, metadata, table,
@@ -436,9 +558,22 @@ pub fn header(meta: &AssetMeta, table: &mut ChunkTable) -> Vec<u8> {
     let table_len = fractile_proto::encode(&*table).len();
     let header_len = 8 + 2 + 2 + 4 + meta_bytes.len() + 4 + table_len + 4;
     let mut offset = header_len as u64;
-    for entry in table.levels.iter_mut().flat_map(|l| &mut l.chunks) {
-        entry.offset = offset;
-        offset += entry.length;
+    let views = table.views.len();
+    for (l, level) in table.levels.iter_mut().enumerate() {
+        if l >= 1 && l <= views {
+            continue;
+        }
+        for entry in &mut level.chunks {
+            entry.offset = offset;
+            offset += entry.length;
+        }
+    }
+    // A view level's chunks are level 0's bytes.
+    let (source, overviews) = table.levels.split_at_mut(1);
+    for level in overviews.iter_mut().take(views) {
+        for (entry, s) in level.chunks.iter_mut().zip(&source[0].chunks) {
+            (entry.offset, entry.length, entry.crc) = (s.offset, s.length, s.crc);
+        }
     }
     let table_bytes = fractile_proto::encode(&*table);
     debug_assert_eq!(table_bytes.len(), table_len);
@@ -535,8 +670,8 @@ impl Chunked {
                 "a chunk table of {t_len} bytes for {chunk_bytes} bytes of chunks"
             )));
         }
-        let table: ChunkTable =
-            fractile_proto::decode(&rest[..t_len as usize]).map_err(|e| bad(e.to_string()))?;
+        let version = u16::from_le_bytes([head[8], head[9]]);
+        let table = ChunkTable::decode(&rest[..t_len as usize], version).map_err(bad)?;
         table.validate(&meta, header_end, file_len).map_err(bad)?;
         // Each chunk is read under the limits as its own asset; the chunk side bounds its
         // grid (a last chunk takes up to half a chunk more), so a chunk over the limits is
@@ -596,7 +731,20 @@ impl Chunked {
             };
             let asset = self
                 .cache
-                .gated(|| Asset::from_bytes_built(&bytes, &self.limits, build))
+                .gated(|| {
+                    if !self.table.is_view(level) {
+                        return Asset::from_bytes_built(&bytes, &self.limits, build);
+                    }
+                    let mut view = Asset::coarse_view(&bytes, &self.limits, level as u32, build)?;
+                    let map = &self.table.views[level - 1].maps[index];
+                    let span = (view.meta.value_max - view.meta.value_min) as f32;
+                    let (w, h) = (view.meta.width as usize, view.meta.height as usize);
+                    view.source_error = Some(
+                        crate::core::fidelity::SourceError::decode(map, w, h, span)
+                            .map_err(|e| Error::Asset(format!("the view's error map: {e}")))?,
+                    );
+                    Ok(view)
+                })
                 .map_err(|e| Error::Asset(format!("{what}: {e}")))?;
             let [x0, y0, x1, y1] = entry.cells;
             if asset.chunks.is_some()
@@ -658,7 +806,9 @@ impl Chunked {
     /// how an upload is validated, so that a file corrupt in any chunk is refused whole rather
     /// than stored and served until a tile reads the bad chunk (about 1 GB/s of CRC-32).
     pub fn verify(&self) -> Result<(), Error> {
-        for (level, l) in self.table.levels.iter().enumerate() {
+        // A view level's bytes are level 0's, checked there.
+        let coded = |&(level, _): &(usize, &Level)| !self.table.is_view(level);
+        for (level, l) in self.table.levels.iter().enumerate().filter(coded) {
             for (index, entry) in l.chunks.iter().enumerate().filter(|(_, e)| e.length > 0) {
                 let what = format!("{}: chunk {index} of level {level}", self.source.describe());
                 let bytes = self

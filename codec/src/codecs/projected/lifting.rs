@@ -266,15 +266,14 @@ fn forward(
     weights
 }
 
-/// The inverse transform in place.
+/// The inverse transform in place, of the levels from `levels` down to `depth` (0: all).
 fn inverse(
     g: &mut [f64],
-    size: [usize; 2],
-    levels: u32,
+    (size, levels, depth): ([usize; 2], u32, u32),
     (kernel, ends): (Kernel, Ends),
     weights: &[i32],
 ) {
-    for l in (0..levels).rev() {
+    for l in (depth..levels).rev() {
         for axis in [1, 0] {
             let a = f64::from(weights[2 * l as usize + axis]) / WEIGHT_ONE;
             for line in lines(size, l, axis, ends) {
@@ -359,9 +358,15 @@ fn parent_bucket(parent: u32) -> usize {
     }
 }
 
-/// One walk over every coefficient, coarsest first, filling `g` with the dequantised
-/// coefficients.
-fn walk(size: [usize; 2], levels: u32, steps: &Steps, g: &mut [f64], side: &mut dyn Indices) {
+/// One walk over the coefficients, coarsest first, filling `g` with the dequantised
+/// coefficients: the coarse grid, then the bands of every level down to `depth + 1` (0: all of
+/// them; a reader of the coarse band at `depth` stops there, the stream's rest unread).
+fn walk(
+    (size, levels, depth): ([usize; 2], u32, u32),
+    steps: &Steps,
+    g: &mut [f64],
+    side: &mut dyn Indices,
+) {
     let [w, h] = size;
     let mut coarse: Vec<IntCoder> = (0..COARSE_CONTEXTS).map(|_| IntCoder::new()).collect();
     let mut bands: Vec<IntCoder> = (0..BAND_CONTEXTS).map(|_| IntCoder::new()).collect();
@@ -376,7 +381,7 @@ fn walk(size: [usize; 2], levels: u32, steps: &Steps, g: &mut [f64], side: &mut 
             g[i] = f64::from(q[i]) * steps.coarse;
         }
     }
-    for j in (1..=levels).rev() {
+    for j in (depth + 1..=levels).rev() {
         let s = 1usize << (j - 1);
         let stride = 2 * s;
         let depth = (j as usize - 1).min(DEPTHS - 1);
@@ -579,11 +584,15 @@ pub fn encode(plane: &Plane, source: &[f64], lambda: f64) -> (Vec<u8>, Vec<f64>)
         lambda,
         encoder: &mut encoder,
     };
-    walk(plane.size, plane.levels, &steps, &mut g, &mut quantiser);
+    walk(
+        (plane.size, plane.levels, 0),
+        &steps,
+        &mut g,
+        &mut quantiser,
+    );
     inverse(
         &mut g,
-        plane.size,
-        plane.levels,
+        (plane.size, plane.levels, 0),
         (plane.kernel, plane.ends),
         &weights,
     );
@@ -592,6 +601,15 @@ pub fn encode(plane: &Plane, source: &[f64], lambda: f64) -> (Vec<u8>, Vec<f64>)
 
 /// Decodes what [`encode`] coded.
 pub fn decode(plane: &Plane, decoder: &mut Decoder<'_>) -> Vec<f64> {
+    decode_to(plane, decoder, 0)
+}
+
+/// The coarse band at `depth` (at most `plane.levels`) of what [`encode`] coded, decoded
+/// from the stream's coarse part alone, in place on the grid's lattice (the band's samples on
+/// multiples of `2^depth`, the rest of `g` meaningless) and in the band's own units (the
+/// source's times [`dc_gain`] to the power `2 depth`).
+pub fn decode_to(plane: &Plane, decoder: &mut Decoder<'_>, depth: u32) -> Vec<f64> {
+    let depth = depth.min(plane.levels);
     let mut weights = vec![0; 2 * plane.levels as usize];
     if plane.kernel == Kernel::Fitted {
         let mut weight_coder = IntCoder::new();
@@ -604,20 +622,35 @@ pub fn decode(plane: &Plane, decoder: &mut Decoder<'_>) -> Vec<f64> {
     let steps = Steps::new(plane, &weights);
     let mut g = vec![0.0; plane.size[0] * plane.size[1]];
     walk(
-        plane.size,
-        plane.levels,
+        (plane.size, plane.levels, depth),
         &steps,
         &mut g,
         &mut Reader { decoder },
     );
     inverse(
         &mut g,
-        plane.size,
-        plane.levels,
+        (plane.size, plane.levels, depth),
         (plane.kernel, plane.ends),
         &weights,
     );
     g
+}
+
+/// What one level of `kernel` multiplies a constant line by in its coarse samples (the
+/// prediction of a constant is exact, so its details are zero and the update adds nothing
+/// but the kernel's own scaling): 1 for the fitted kernel, about 1.23 for CDF 9/7, whose
+/// final scaling the coder leaves out. A coarse band at depth d is the source's local means
+/// times this to the power 2 d (two axes a level).
+pub fn dc_gain(kernel: Kernel) -> f64 {
+    let mut line = vec![1.0; 17];
+    let l = Line {
+        base: 0,
+        stride: 1,
+        n: line.len(),
+        ends: Ends::Mirror,
+    };
+    l.forward(&mut line, kernel, 0.125);
+    line[8]
 }
 
 #[cfg(test)]
@@ -644,7 +677,12 @@ mod tests {
                 if levels > 0 {
                     assert_ne!(g, source, "{w}x{h}: the transform changed nothing");
                 }
-                inverse(&mut g, [w, h], levels, (kernel, Ends::Mirror), &weights);
+                inverse(
+                    &mut g,
+                    ([w, h], levels, 0),
+                    (kernel, Ends::Mirror),
+                    &weights,
+                );
                 let worst = g
                     .iter()
                     .zip(&source)
@@ -679,7 +717,7 @@ mod tests {
             };
             let mut g = left.clone();
             let weights = forward(&mut g, [w, h], 3, (Kernel::Cdf97, ends));
-            inverse(&mut g, [w, h], 3, (Kernel::Cdf97, ends), &weights);
+            inverse(&mut g, ([w, h], 3, 0), (Kernel::Cdf97, ends), &weights);
             let worst = g.iter().zip(&left).map(|(a, b)| (a - b).abs());
             assert!(worst.fold(0.0, f64::max) < 1e-9, "{ends:?} inverts");
             for depth in 1..=3u32 {

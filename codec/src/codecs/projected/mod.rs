@@ -214,6 +214,70 @@ pub fn decode_grid(header: &ProjectedHeader, stream: &[u8]) -> Result<Vec<f64>, 
     Ok(g)
 }
 
+/// The coarse view at `depth` of a coded plane: its multiresolution's samples on multiples of
+/// `2^depth`, decoded from the coarse part of its stream alone, in source units, with the
+/// header of a plane of that grid (no promise: see below). What a chunked file's derived levels
+/// are (`io::chunked`, format 7): the overview of `2^depth` cells a side that no longer needs
+/// coding beside the source.
+///
+/// A lifted plane's coarse samples are the analysis low-pass at that depth (local means of
+/// about `2^depth` cells, divided here by the kernel's gain); the pyramid's are decoded samples
+/// of the source's own lattice (closed loop, so each within the plane's promise of its source
+/// cell). Either stands for the cells around it, not for one cell, so the view's header makes
+/// no per-sample promise: its error is measured against the source's box means at encode time.
+pub fn decode_coarse(
+    header: &ProjectedHeader,
+    stream: &[u8],
+    depth: u32,
+) -> Result<(ProjectedHeader, Vec<f64>), String> {
+    header.validate()?;
+    if depth == 0 || depth > 12 {
+        return Err(format!("no coarse view at depth {depth}"));
+    }
+    // A plane of fewer levels (a thin chunk) is read whole below its coarsest level, and its
+    // samples on multiples of 2^depth taken.
+    let read = depth.min(u32::from(header.levels));
+    let most = crate::core::entropy::most_decisions(stream.len());
+    if (header.cells() >> (2 * depth.min(u32::from(header.levels)))) as u64 > most {
+        return Err("projected stream too short for its grid".into());
+    }
+    let layout = header.layout();
+    let mut decoder = Decoder::new(stream);
+    let (g, gain) = if let Some(kernel) = layout.order.lifting() {
+        let plane = lifted_plane(&layout, kernel);
+        let g = lifting::decode_to(&plane, &mut decoder, read);
+        (g, lifting::dc_gain(kernel).powi(2 * read as i32))
+    } else {
+        let mut g = vec![0.0; header.cells()];
+        let mut r = pyramid::Reader {
+            decoder,
+            coders: pyramid::Coders::new(),
+        };
+        pyramid::walk_to(&layout, &mut g, &mut r, None, read);
+        decoder = r.decoder;
+        (g, 1.0)
+    };
+    let [w, h] = layout.size;
+    let s = 1usize << depth;
+    let (cw, ch) = (w.div_ceil(s), h.div_ceil(s));
+    let mut coarse = Vec::with_capacity(cw * ch);
+    for y in (0..h).step_by(s) {
+        coarse.extend((0..w).step_by(s).map(|x| g[y * w + x] / gain));
+    }
+    if decoder.overrun() || coarse.iter().any(|v| !v.is_finite()) {
+        return Err("projected stream truncated or corrupt".into());
+    }
+    let view = ProjectedHeader {
+        samples: [cw as u32, ch as u32],
+        levels: header.levels - read as u8,
+        max_error: 0.0,
+        quantum: 0.0,
+        ..header.clone()
+    };
+    view.validate()?;
+    Ok((view, coarse))
+}
+
 /// The roughness of the continuation: how much the details of one octave shrink into the next
 /// finer one, measured on the decoded grid as the ratio of the RMS residuals of cubic
 /// (Catmull-Rom) midpoint prediction at spacings 1 and 2 (`2^-H` for a surface of Hurst
@@ -1116,6 +1180,69 @@ mod tests {
             );
             for (a, b) in decoded.iter().zip(&g) {
                 assert!((a - b).abs() <= 0.5 + 1e-9, "{order:?}: {a} for {b}");
+            }
+        }
+    }
+
+    /// A coarse view: the pyramid's samples on multiples of 2^depth, bit for bit the full
+    /// decode's there; a lifted plane's, the low-pass of the decoded grid at that depth (in
+    /// source units: a plane's view of a plane is that plane), and close to the source's own
+    /// low-pass at a fine step.
+    #[test]
+    fn coarse_views_are_the_coarse_samples_of_the_multiresolution() {
+        let (w, h) = (45, 38);
+        let g = grid(w, h);
+        for depth in 1..=3u32 {
+            let s = 1usize << depth;
+            let (cw, ch) = (w.div_ceil(s), h.div_ceil(s));
+            let hd = header(w, h, &g);
+            let (stream, _) = encode_grid(&hd, &g, None, (0.0, 0.0));
+            let full = decode_grid(&hd, &stream).unwrap();
+            let (view, coarse) = decode_coarse(&hd, &stream, depth).unwrap();
+            assert_eq!(view.samples, [cw as u32, ch as u32]);
+            assert_eq!(
+                view.promise(),
+                None,
+                "a view stands for cells, not one cell"
+            );
+            for (k, v) in coarse.iter().enumerate() {
+                assert_eq!(*v, full[(k / cw) * s * w + (k % cw) * s], "pyramid {depth}");
+            }
+            let plane: Vec<f64> = (0..w * h)
+                .map(|i| 100.0 + 3.0 * (i % w) as f64 - 2.0 * (i / w) as f64)
+                .collect();
+            for (order, kernel) in [
+                (pyramid::Order::Lifted, lifting::Kernel::Fitted),
+                (pyramid::Order::Lifted97, lifting::Kernel::Cdf97),
+            ] {
+                for (source, step) in [(&plane, 0.01), (&g, 0.01)] {
+                    let hd = ProjectedHeader {
+                        order,
+                        max_error: 0.0,
+                        step,
+                        ..header(w, h, source)
+                    };
+                    let (stream, _) = encode_grid(&hd, source, None, (0.0, 0.0));
+                    let (_, coarse) = decode_coarse(&hd, &stream, depth).unwrap();
+                    let lp = lifting::analysis(&lifted_plane(&hd.layout(), kernel), source, depth);
+                    // Past the plane's levels (2 here), its coarsest samples are taken.
+                    let read = depth.min(u32::from(hd.levels));
+                    let gain = lifting::dc_gain(kernel).powi(2 * read as i32);
+                    for (k, v) in coarse.iter().enumerate() {
+                        let (x, y) = ((k % cw) * s, (k / cw) * s);
+                        let want = lp[y * w + x] / gain;
+                        assert!(
+                            (v - want).abs() < 0.05,
+                            "{kernel:?} {depth}: {v} for {want}"
+                        );
+                        if std::ptr::eq(source, &plane) {
+                            // Away from the mirrored ends a low-pass of a plane is the plane.
+                            let inside = x >= 8 && y >= 8 && x + 8 < w && y + 8 < h;
+                            let at = source[y * w + x];
+                            assert!(!inside || (v - at).abs() < 0.05, "{kernel:?}: {v} for {at}");
+                        }
+                    }
+                }
             }
         }
     }

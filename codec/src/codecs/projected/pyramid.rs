@@ -344,6 +344,19 @@ pub fn walk(
     details: &mut dyn Details,
     target: Option<&dyn Fn(usize) -> Option<f64>>,
 ) {
+    walk_to(layout, g, details, target, 0);
+}
+
+/// [`walk`] down to the level of spacing `2^depth` only (0: every level): the decoded samples
+/// on multiples of `2^depth` are then final (closed loop: no finer level changes them), and
+/// the stream's rest is left unread.
+pub fn walk_to(
+    layout: &Layout,
+    g: &mut [f64],
+    details: &mut dyn Details,
+    target: Option<&dyn Fn(usize) -> Option<f64>>,
+    depth: u32,
+) {
     assert!(
         layout.order.lifting().is_none(),
         "a lifted plane is not walked by the pyramid"
@@ -367,7 +380,7 @@ pub fn walk(
             });
         }
     }
-    for level in 0..layout.levels {
+    for level in 0..layout.levels.saturating_sub(depth) {
         let s = s0 >> level;
         let half = s / 2;
         let step = layout.step_at(level + 1);
