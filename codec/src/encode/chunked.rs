@@ -24,7 +24,7 @@ use super::{Encoded, Written};
 use crate::Error;
 use crate::core::metrics::Errors;
 use crate::io::asset::{Asset, write_atomic_with};
-use crate::io::chunked::{self, ChunkEntry, ChunkTable, OVERLAP};
+use crate::io::chunked::{self, ChunkEntry, ChunkTable, overlap_for};
 use crate::io::mosaic;
 use crate::io::raster::Raster;
 use crate::io::rows::{Header, InMemory, Rows};
@@ -46,7 +46,7 @@ pub fn wants_chunks(width: usize, height: usize, chunk: u32) -> bool {
 /// over every level's coded cells (overviews and overlaps included), less 1% for the table.
 pub fn chunk_bpp(width: usize, height: usize, chunk: u32, bpp: f64) -> f64 {
     let sizes = ChunkTable::level_sizes(width as u32, height as u32, chunk);
-    let table = table_of(chunk, &sizes);
+    let table = table_of(chunk, &sizes, 0);
     let coded: u64 = table
         .levels
         .iter()
@@ -59,8 +59,8 @@ pub fn chunk_bpp(width: usize, height: usize, chunk: u32, bpp: f64) -> f64 {
 }
 
 /// A table of every chunk of levels `sizes` (nothing yet of their files).
-fn table_of(chunk: u32, sizes: &[(u32, u32)]) -> ChunkTable {
-    let mut table = new_table(chunk);
+fn table_of(chunk: u32, sizes: &[(u32, u32)], views: usize) -> ChunkTable {
+    let mut table = new_table(chunk, views);
     for (entries, &(w, h)) in blank(&table, sizes).into_iter().zip(sizes) {
         table.levels.push(chunked::Level {
             width: w,
@@ -488,7 +488,16 @@ pub(super) fn summarise<'r>(
     sizes: &[(u32, u32)],
     records: impl Iterator<Item = &'r ChunkRecord>,
 ) -> Result<(fractile_proto::AssetMeta, ChunkTable, Errors, usize), Error> {
-    let mut table = new_table(chunk);
+    let records: Vec<&ChunkRecord> = records.collect();
+    // The source chunks' records say how many levels are views (their maps), and so the
+    // overlap they were cut with.
+    let view_count = records
+        .iter()
+        .filter(|c| c.level == 0)
+        .map(|c| c.views.len())
+        .max()
+        .unwrap_or(0);
+    let mut table = new_table(chunk, view_count);
     let mut entries = blank(&table, sizes);
     let mut views: Vec<Vec<Vec<u8>>> = Vec::new();
     let (mut sq, mut abs, mut samples, mut max_error) = (0.0f64, 0.0f64, 0u64, 0.0f64);
@@ -584,10 +593,11 @@ pub(super) fn summarise<'r>(
     Ok((meta, table, errors, transforms as usize))
 }
 
-fn new_table(chunk: u32) -> ChunkTable {
+/// An empty table for chunks of `chunk` cut for `views` view levels.
+fn new_table(chunk: u32, views: usize) -> ChunkTable {
     ChunkTable {
         chunk,
-        overlap: OVERLAP,
+        overlap: overlap_for(views),
         codec: 0,
         max_contrast: 0.0,
         seed_bound: 0.0,
@@ -733,8 +743,8 @@ pub(super) fn code_streamed(
     let start = Instant::now();
     let header = checked_header(rows, chunk)?;
     let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk);
-    let table = new_table(chunk);
     let views = view_levels(&header, &sizes, work.0);
+    let table = new_table(chunk, views);
     let mut pyramid = Pyramid::new(&header, &sizes, &table);
     let mut tally = Tally::new((&blank(&table, &sizes), views), share, work, spill);
     let mut code = |l, i, part| tally.push(l, i, part);
@@ -786,14 +796,6 @@ pub(super) fn sample_chunks(
 ) -> Result<rate::Sample, Error> {
     let header = checked_header(rows, chunk)?;
     let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk);
-    let table = new_table(chunk);
-    let counts: Vec<u32> = sizes
-        .iter()
-        .map(|&(w, h)| {
-            let (nx, ny) = table.grid(w, h);
-            nx * ny
-        })
-        .collect();
     // Lifted chunks of a height field: its first overviews are views, whose bytes are their
     // source chunks' (their maps are counted with those). (Left in the sample, the bounded
     // default's estimate missed its coded overviews' bytes, and its file was coded twice.)
@@ -803,6 +805,14 @@ pub(super) fn sample_chunks(
     } else {
         0
     };
+    let table = new_table(chunk, views);
+    let counts: Vec<u32> = sizes
+        .iter()
+        .map(|&(w, h)| {
+            let (nx, ny) = table.grid(w, h);
+            nx * ny
+        })
+        .collect();
     let mut picked = rate::sample_indices(&counts);
     for p in picked.iter_mut().skip(1).take(views) {
         p.clear();
@@ -825,7 +835,7 @@ pub(super) fn sample_chunks(
         .zip(&taken)
         .map(|(&a, &t)| if t > 0 { a as f64 / t as f64 } else { 0.0 })
         .collect();
-    let overhead = header_allowance(&table_of(chunk, &sizes));
+    let overhead = header_allowance(&table_of(chunk, &sizes, views));
     Ok(rate::Sample {
         chunks,
         scale,

@@ -11,7 +11,7 @@
 //! beside the source, as format 6 did, they took 19-26% of a file's bytes and cost it 1-2 dB
 //! against JPEG 2000 at the same bytes (docs/benchmarks.md, "What the overviews cost"); the
 //! coded overviews that remain, from level 3 on, are 2% of the cells. For the views' lattices
-//! to be the levels' own, chunks start on multiples of `2^VIEW_DEPTH` (the overlap is that), and
+//! to be the levels' own, chunks start on multiples of `2^VIEW_DEPTH` ([`VIEW_OVERLAP`]), and
 //! a view's sample `k` stands `1/2 - 2^-(l+1)` of a level cell before its box cell's centre (the
 //! low-pass and the pyramid's samples sit on a source cell, the box mean between cells): the
 //! reader places it there ([`ChunkTable::view_shift`]). Each view's source-error map, measured
@@ -51,9 +51,19 @@ pub const VIEW_DEPTH: u32 = 2;
 /// The codec byte of a chunked container (its chunks name their own codec).
 pub const CHUNKED_CODEC: u8 = 7;
 
-/// Cells each chunk codes beyond its own on every side (see the module's doc): `2^VIEW_DEPTH`,
-/// so that every chunk starts on the lattice of every view level (format 6 files have 1).
-pub const OVERLAP: u32 = 1 << VIEW_DEPTH;
+/// Cells each chunk codes beyond its own on every side (see the module's doc), in a file whose
+/// overviews are all coded (and in every file of format 6).
+pub const OVERLAP: u32 = 1;
+
+/// The overlap of a file with views: `2^VIEW_DEPTH`, so that every chunk starts on the lattice
+/// of every view level. (Files without views keep 1: 0.6% fewer cells coded at chunks of
+/// 1024.)
+pub const VIEW_OVERLAP: u32 = 1 << VIEW_DEPTH;
+
+/// The overlap of a file with `views` view levels.
+pub fn overlap_for(views: usize) -> u32 {
+    if views > 0 { VIEW_OVERLAP } else { OVERLAP }
+}
 
 /// How many times `max_asset_pixels` a chunked asset may claim: its cells are decoded a chunk
 /// at a time, never whole (see [`Chunked::open`]).
