@@ -292,3 +292,44 @@ fn prefetch_decodes_chunks_coarsest_first_within_its_budget() {
     let (n, _) = asset.chunks.as_ref().unwrap().prefetch(cache.capacity());
     assert_eq!(n, all - 1);
 }
+
+/// A version-7 table is checked against its layout before anything is decoded: a view level
+/// whose cells are not its source chunks', a map missing, more view levels than the file may
+/// have, or views without the overlap that puts chunks on their lattice, are each refused by
+/// name (a reader would otherwise place or decode a view from the wrong chunk).
+#[test]
+fn a_table_whose_views_do_not_match_the_layout_is_refused() {
+    use fractile_codec::io::chunked::{ChunkTable, header};
+    let bytes = std::fs::read(testdata("golden/v7-chunked-views-jacksboro.fra")).unwrap();
+    let asset = Asset::from_bytes(&bytes).unwrap();
+    let table = asset.chunks.as_ref().unwrap().table.clone();
+    assert_eq!(table.views.len(), 1);
+    // The same file with its header written again from a changed table (header() sets the
+    // offsets, a view level's to level 0's, as an encoder does).
+    let with = |change: &dyn Fn(&mut ChunkTable)| {
+        let mut t = table.clone();
+        change(&mut t);
+        let mut t2 = table.clone();
+        let old_len = header(&asset.meta, &mut t2).len();
+        let mut out = header(&asset.meta, &mut t);
+        out.extend_from_slice(&bytes[old_len..]);
+        Asset::from_bytes(&out)
+            .map(|_| ())
+            .map_err(|e| e.to_string())
+    };
+    assert_eq!(with(&|_| {}), Ok(()), "the file as written");
+    let err = with(&|t| t.levels[1].chunks[4].cells[0] += 1).unwrap_err();
+    assert!(
+        err.contains("chunk 4 of level 1 claims other cells"),
+        "{err}"
+    );
+    let err = with(&|t| {
+        t.views[0].maps.pop();
+    })
+    .unwrap_err();
+    assert!(err.contains("not a map a chunk"), "{err}");
+    let err = with(&|t| t.views.push(t.views[0].clone())).unwrap_err();
+    assert!(err.contains("2 view levels of 3 levels"), "{err}");
+    let err = with(&|t| t.overlap = 1).unwrap_err();
+    assert!(err.contains("overlap of 1"), "{err}");
+}
