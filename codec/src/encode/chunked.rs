@@ -1,4 +1,4 @@
-//! Rasters in chunks (format version 6, `io::chunked`): the raster and its overviews cut into
+//! Rasters in chunks (format version 7, `io::chunked`): the raster and its overviews cut into
 //! chunks, each coded on its own by any 2D codec, on every core.
 //!
 //! The rate is the file's, overviews and table included: [`encode_chunked_file_at`] codes every
@@ -6,9 +6,11 @@
 //! overviews' scaled by 2 a level; [`encode_chunked_file`] codes each chunk by its own settings
 //! (a codec without a file's rate gets its share of the file, [`chunk_bpp`]). Overviews are the
 //! raster box-averaged by 2 (nodata cells left out of the mean) until a level fits in one
-//! chunk: they add about a third to the cells coded, as a COG's overviews do, and let a coarse
-//! tile decode a few chunks of a coarse level instead of the whole raster. (Coding them once,
-//! as the multiresolution's own coarse levels, is issue 52's next step.)
+//! chunk, and let a coarse tile decode a few chunks of a coarse level instead of the whole
+//! raster. Coded, they add about a third to the cells, as a COG's overviews do; so where the
+//! chunks are lifted projected planes of a height field (rate mode), levels 1 and 2 are not
+//! coded but are views of the source chunks (their own coarse bands, `io::chunked`), and only
+//! their error maps are measured here (`view_levels`, `view_maps`).
 
 use std::io::Write;
 use std::path::Path;
