@@ -136,6 +136,43 @@ fn jpegls_ratio(r: &Raster, e: f64) -> Option<f64> {
     Some((r.width * r.height * 2) as f64 / n)
 }
 
+/// The `views` table: what share of its source chunk's stream a view of depth 1 and 2 reads
+/// (the coarse bands come first), in rate mode at each ratio: what a view would fetch if each
+/// chunk's coarse part lay apart (resolution-major), against the whole chunk it fetches now.
+fn views(r: &Raster) {
+    use fractile_codec::codecs::projected::decode_coarse;
+    use fractile_codec::io::asset::Coding;
+    println!(
+        "\n| ratio | file bytes | source chunks' streams | a depth-1 view reads | a depth-2 view reads |"
+    );
+    println!("|---|---|---|---|---|");
+    for ratio in [10.0, 20.0, 40.0, 80.0] {
+        let (enc, _) = encode(r, 16.0 / ratio, false, false);
+        let c = enc.asset.chunks.as_ref().expect("chunked");
+        let (mut all, mut read) = (0usize, [0usize; 2]);
+        for i in 0..c.table.levels[0].chunks.len() {
+            let Some(chunk) = c.chunk(0, i).expect("a chunk") else {
+                continue;
+            };
+            let Coding::Projected { header, stream } = &chunk.planes[0].coding else {
+                panic!("not projected");
+            };
+            all += stream.len();
+            for (d, n) in read.iter_mut().enumerate() {
+                *n += decode_coarse(header, stream, d as u32 + 1)
+                    .expect("a view")
+                    .2;
+            }
+        }
+        println!(
+            "| {ratio}:1 | {} | {all} | {:.1}% | {:.1}% |",
+            enc.bytes.len(),
+            100.0 * read[0] as f64 / all as f64,
+            100.0 * read[1] as f64 / all as f64
+        );
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args()
         .skip(1)
@@ -157,6 +194,10 @@ fn main() {
         cells / 1e6,
         rayon::current_num_threads()
     );
+    if mode == "views" {
+        views(&r);
+        return;
+    }
     if mode == "bounded" {
         println!(
             "\n| encode | bytes (bpp) | within 0.8 | max error | PSNR dB | ratio | JPEG-LS ratio at that max error | encode s | peak RSS MB |"

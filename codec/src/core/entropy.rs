@@ -315,6 +315,12 @@ impl<'a> Decoder<'a> {
         self.data.len()
     }
 
+    /// Bytes of the stream read so far: a decoder given only these would have decoded the
+    /// same symbols (what a partial decode needs of a stream).
+    pub fn consumed(&self) -> usize {
+        self.pos
+    }
+
     /// Whether the decoder read past the end of the stream (beyond the flush bytes).
     pub fn overrun(&self) -> bool {
         self.overrun > 4

@@ -1315,7 +1315,7 @@ impl Asset {
         // The source grid as f64 while decoding (the finest band is never read), then the
         // view's samples.
         limits.check_cost((w * h) as u64 * 8 + ((w * h) >> (2 * depth)) as u64 * 48)?;
-        let (view, grid) = crate::codecs::projected::decode_coarse(&header, &stream, depth)
+        let (view, grid, _) = crate::codecs::projected::decode_coarse(&header, &stream, depth)
             .map_err(|e| Error::Asset(format!("coarse view: {e}")))?;
         let [cw, ch] = [view.samples[0] as usize, view.samples[1] as usize];
         let mask = p

@@ -225,11 +225,14 @@ pub fn decode_grid(header: &ProjectedHeader, stream: &[u8]) -> Result<Vec<f64>, 
 /// of the source's own lattice (closed loop, so each within the plane's promise of its source
 /// cell). Either stands for the cells around it, not for one cell, so the view's header makes
 /// no per-sample promise: its error is measured against the source's box means at encode time.
+///
+/// Also returns the bytes of the stream it read: the prefix a reader of that depth needs
+/// (bands are coded coarsest first).
 pub fn decode_coarse(
     header: &ProjectedHeader,
     stream: &[u8],
     depth: u32,
-) -> Result<(ProjectedHeader, Vec<f64>), String> {
+) -> Result<(ProjectedHeader, Vec<f64>, usize), String> {
     header.validate()?;
     if depth == 0 || depth > 12 {
         return Err(format!("no coarse view at depth {depth}"));
@@ -275,7 +278,7 @@ pub fn decode_coarse(
         ..header.clone()
     };
     view.validate()?;
-    Ok((view, coarse))
+    Ok((view, coarse, decoder.consumed()))
 }
 
 /// The roughness of the continuation: how much the details of one octave shrink into the next
@@ -1198,7 +1201,15 @@ mod tests {
             let hd = header(w, h, &g);
             let (stream, _) = encode_grid(&hd, &g, None, (0.0, 0.0));
             let full = decode_grid(&hd, &stream).unwrap();
-            let (view, coarse) = decode_coarse(&hd, &stream, depth).unwrap();
+            let (view, coarse, read) = decode_coarse(&hd, &stream, depth).unwrap();
+            // The bytes it says it read are all it needs.
+            let (_, again, _) = decode_coarse(&hd, &stream[..read], depth).unwrap();
+            assert_eq!(
+                again,
+                coarse,
+                "pyramid {depth}: {read} of {} bytes",
+                stream.len()
+            );
             assert_eq!(view.samples, [cw as u32, ch as u32]);
             assert_eq!(
                 view.promise(),
@@ -1223,7 +1234,12 @@ mod tests {
                         ..header(w, h, source)
                     };
                     let (stream, _) = encode_grid(&hd, source, None, (0.0, 0.0));
-                    let (_, coarse) = decode_coarse(&hd, &stream, depth).unwrap();
+                    let (_, coarse, read) = decode_coarse(&hd, &stream, depth).unwrap();
+                    let (_, again, _) = decode_coarse(&hd, &stream[..read], depth).unwrap();
+                    assert_eq!(
+                        again, coarse,
+                        "{kernel:?} {depth}: a prefix of {read} bytes"
+                    );
                     let lp = lifting::analysis(&lifted_plane(&hd.layout(), kernel), source, depth);
                     // Past the plane's levels (2 here), its coarsest samples are taken.
                     let read = depth.min(u32::from(hd.levels));
