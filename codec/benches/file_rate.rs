@@ -2,7 +2,8 @@
 //! bounded default against JPEG-LS near-lossless at the same max error, and encode times,
 //! side by side in one run (release build):
 //!
-//! `cargo bench -p fractile-codec --bench file_rate -- rates|bounded [COPIES] [old] [FILE.tif]`
+//! `cargo bench -p fractile-codec --bench file_rate -- rates|bounded|views [COPIES] [old] [FILE.tif]`
+//! (FILE.tif absolute, or from the `codec` folder, where the bench runs)
 //!
 //! The raster: etopo20 (or FILE.tif) mirrored COPIES x COPIES (odd columns of copies flipped,
 //! odd rows upside down; etopo20 x 4 gives 4320 x 2160, over 4096 cells a side, 9.3 Mpx,
@@ -13,6 +14,8 @@
 //! also the chunked encode before the file's rate (each chunk at the rate, with its own
 //! search), as the baseline. The last column of `rates` is level 0 alone against OpenJPEG at
 //! level 0's bytes: the gap if the overviews cost nothing (issue 52's one multiresolution).
+//! `views`: in rate mode, the share of its source chunk's stream a view of depth 1 and 2
+//! decodes (format 7), what a layout with coarse bands apart would save it.
 
 #[path = "support/baselines.rs"]
 #[allow(dead_code)]
