@@ -5,17 +5,18 @@
 //! ... source cells a cell) let a coarse tile of a huge raster decode a few chunks of a coarse
 //! level instead of the whole raster.
 //!
-//! The first [`VIEW_DEPTH`] overview levels are not coded (format 7, projected height fields):
-//! a level-l chunk is the source chunk's own multiresolution read to depth l, its coarse band
-//! (the *view*, `Asset::coarse_view`), decoded from the coarse part of the same stream. Coded
-//! beside the source, as format 6 did, they took 19-26% of a file's bytes and cost it 1-2 dB
-//! against JPEG 2000 at the same bytes (docs/benchmarks.md, "What the overviews cost"); the
-//! coded overviews that remain, from level 3 on, are 2% of the cells. For the views' lattices
-//! to be the levels' own, chunks start on multiples of `2^VIEW_DEPTH` ([`VIEW_OVERLAP`]), and
-//! a view's sample `k` stands `1/2 - 2^-(l+1)` of a level cell before its box cell's centre (the
-//! low-pass and the pyramid's samples sit on a source cell, the box mean between cells): the
-//! reader places it there ([`ChunkTable::view_shift`]). Each view's source-error map, measured
-//! at encode time against the box means it stands for, is kept in the table.
+//! The first [`VIEW_DEPTH`] overview levels are not coded in format 7 where a height field's
+//! chunks are lifted projected planes (rate mode): a level-l chunk is the source chunk's own
+//! multiresolution read to depth l, its coarse band (the *view*, `Asset::coarse_view`),
+//! decoded from the coarse part of the same stream. Coded beside the source, as format 6 did,
+//! they took 19-26% of a file's bytes and cost it 1-2 dB against JPEG 2000 at the same bytes
+//! (docs/benchmarks.md, "What the overviews cost"); the coded overviews that remain, from level
+//! 3 on and the top level, are 2-6% of the cells. For the views' lattices to be the levels'
+//! own, chunks start on multiples of `2^VIEW_DEPTH` ([`VIEW_OVERLAP`]), and a view's sample
+//! `k` stands `1/2 - 2^-(l+1)` of a level cell before its box cell's centre (the low-pass sits
+//! on a source cell, the box mean between cells): the reader places it there
+//! ([`ChunkTable::view_shift`]). Each view's source-error map, measured at encode time against
+//! the same analysis of the source (the low-pass it stands for), is kept in the table.
 //!
 //! Each chunk codes `OVERLAP` cells beyond its own on every side (clamped at the raster's
 //! edges): a point is answered by the chunk that owns it, and every point a chunk owns lies
