@@ -4,6 +4,8 @@
 //!
 //! `cargo bench -p fractile --bench tile_png [-- DEM.tif|ASSET.fra ...]` (default:
 //! testdata/jacksboro.tif; an asset file is benched as it is, whatever its codec and rate).
+//! `FRACTILE_BENCH_ZOOMS=0-3` walks other zooms (zooms inside a coarse DEM's source, whose
+//! tiles carry more detail than deep zooms' do).
 
 use std::sync::Arc;
 use std::time::Instant;
@@ -69,6 +71,17 @@ fn asset_bytes(path: &std::path::Path) -> Vec<u8> {
     .bytes
 }
 
+/// The zooms walked: `FRACTILE_BENCH_ZOOMS` (`A-B`), else 10 to 16.
+fn zooms() -> std::ops::RangeInclusive<u8> {
+    std::env::var("FRACTILE_BENCH_ZOOMS")
+        .ok()
+        .and_then(|z| {
+            let (a, b) = z.split_once('-')?;
+            Some(a.parse().ok()?..=b.parse().ok()?)
+        })
+        .unwrap_or(10..=16)
+}
+
 fn bench_dem(path: &std::path::Path) {
     let bytes = asset_bytes(path);
     let dir = std::env::temp_dir().join(format!("fractile-tile-png-{}", std::process::id()));
@@ -81,7 +94,7 @@ fn bench_dem(path: &std::path::Path) {
     let [w, s, e, n] = place.bounds();
     let rt = tokio::runtime::Runtime::new().unwrap();
     let mut tiles = Vec::new();
-    for z in 10u8..=16 {
+    for z in zooms() {
         for k in 0..8 {
             let t = (k as f64 + 0.5) / 8.0;
             let (x, y) = fractile_codec::geo::lonlat_tile(z, w + t * (e - w), n - t * (n - s));
@@ -92,8 +105,9 @@ fn bench_dem(path: &std::path::Path) {
     }
     let name = path.file_name().unwrap().to_string_lossy();
     println!(
-        "\n{name}: {} tiles over zooms 10-16, mean X-Error-Bound {:.1} m",
+        "\n{name}: {} tiles over zooms {:?}, mean X-Error-Bound {:.1} m",
         tiles.len(),
+        zooms(),
         tiles.iter().map(|t| t.error_bound as f64).sum::<f64>() / tiles.len() as f64
     );
     println!("| precision | deflate | mean bytes | vs full, fast | encode ms a tile |");
@@ -105,6 +119,8 @@ fn bench_dem(path: &std::path::Path) {
             Deflate::Fast,
             Deflate::Level(1),
             Deflate::Level(3),
+            Deflate::Level(4),
+            Deflate::Level(5),
             Deflate::Level(6),
             Deflate::Level(9),
         ] {
@@ -189,7 +205,7 @@ fn bench_dem(path: &std::path::Path) {
     // Where the bytes are: by zoom, at the server's default (rounded to the bound, zlib 6).
     println!("\n| zoom | mean X-Error-Bound m | rounding step m | mean bytes |");
     println!("|---|---|---|---|");
-    for z in 10u8..=16 {
+    for z in zooms() {
         let at: Vec<&Decoded> = tiles.iter().filter(|t| t.zoom == z).collect();
         if at.is_empty() {
             continue;

@@ -99,16 +99,19 @@ pub enum Deflate {
 
 impl Deflate {
     /// Deflate of a tile. Tiles are cached, by the server and by CDNs, so bytes count for more
-    /// than encode time. Measured on terrain-RGB tiles of jacksboro over zooms 10-16
-    /// (`cargo bench -p fractile --bench tile_png`, docs/benchmarks.md):
-    /// - rounded tiles: zlib level 6 gives 47% of the fast mode's bytes for 1.8 ms more a
-    ///   tile (about a tenth of a decode). Level 3 gives 56%; level 9 saves another 12% at ten
-    ///   times the time.
+    /// than encode time, but not for any time: measured on terrain-RGB tiles
+    /// (`cargo bench -p fractile --bench tile_png`, docs/benchmarks.md "Serving the projected
+    /// default"):
+    /// - rounded tiles: zlib level 5. Level 6 saves 5% more (5.4% on jacksboro at 2 bits a
+    ///   cell over zooms 10-16, 4.6% on topobathy) for 2.1 times level 5's deflate time on
+    ///   detailed tiles (3.7 against 1.8 ms), which was half an uncached tile's time once
+    ///   projected tiles decode by subdivision; level 3 costs 12% more bytes than level 5;
+    ///   level 9 saves 12% at 27 times the time.
     /// - full-precision tiles vary in every pixel, and level 6 saves only 2% over level 3 at
     ///   2.5 times its time, so they take level 3 (83% of the fast mode's bytes).
     pub fn for_tile(rounding: Rounding) -> Deflate {
         if rounding.shift > 0 {
-            Deflate::Level(6)
+            Deflate::Level(5)
         } else {
             Deflate::Level(3)
         }

@@ -723,6 +723,66 @@ pub struct Grid {
 }
 
 impl Grid {
+    /// The grid resampled to `width x height` (no larger) by area means: each new cell the mean
+    /// of the cells it covers, each weighed by the part of it covered (the cells are boxes on
+    /// the unit square, as pixels are). What a coarser grid of samples is, exactly, without a
+    /// decode: the box filter. NaN cells weigh nothing (NaN where all are).
+    pub fn area_means(&self, width: usize, height: usize) -> Grid {
+        // Per output cell along an axis of n cells onto m: the first cell it covers and the
+        // weights of those it covers.
+        fn weights(n: usize, m: usize) -> Vec<(usize, Vec<f32>)> {
+            let r = n as f64 / m as f64;
+            (0..m)
+                .map(|i| {
+                    let (a, b) = (i as f64 * r, ((i + 1) as f64 * r).min(n as f64));
+                    let first = a.floor() as usize;
+                    let last = (b.ceil() as usize).clamp(first + 1, n);
+                    let w = (first..last)
+                        .map(|k| ((b.min(k as f64 + 1.0) - a.max(k as f64)).max(0.0)) as f32)
+                        .collect();
+                    (first, w)
+                })
+                .collect()
+        }
+        let (wx, wy) = (weights(self.width, width), weights(self.height, height));
+        // Rows first (sums and weights of finite values), then columns.
+        let mut rows = vec![(0.0f32, 0.0f32); width * self.height];
+        for (row, out) in self
+            .values
+            .chunks_exact(self.width)
+            .zip(rows.chunks_exact_mut(width))
+        {
+            for (o, (first, w)) in out.iter_mut().zip(&wx) {
+                for (&v, &w) in row[*first..].iter().zip(w) {
+                    if v.is_finite() {
+                        o.0 += w * v;
+                        o.1 += w;
+                    }
+                }
+            }
+        }
+        let mut values = Vec::with_capacity(width * height);
+        for (first, w) in &wy {
+            let mut acc = vec![(0.0f32, 0.0f32); width];
+            for (k, &w) in w.iter().enumerate() {
+                let src = &rows[(first + k) * width..(first + k + 1) * width];
+                for (a, &(s, n)) in acc.iter_mut().zip(src) {
+                    a.0 += w * s;
+                    a.1 += w * n;
+                }
+            }
+            values.extend(
+                acc.into_iter()
+                    .map(|(s, n)| if n > 0.0 { s / n } else { f32::NAN }),
+            );
+        }
+        Grid {
+            width,
+            height,
+            values,
+        }
+    }
+
     /// The grid `fx` x `fy` times coarser: each cell the mean of the finite values of its block
     /// (NaN where there are none, as nodata stays nodata). `None` unless the factors divide the
     /// size. A discrete decode at a coarser size is itself an approximation of the attractor's
@@ -1205,6 +1265,67 @@ pub fn sample_bilinear(g: &Grid, x: f32, y: f32) -> f32 {
 mod tests {
     use super::*;
     use crate::core::operator::{Step, invariant_interval};
+
+    /// Area means: whole blocks where the sizes divide, weighed parts where they do not (each
+    /// new cell's mean of the box it covers, on a grid that is x + 10 y, whose box means are
+    /// the box centre's value), and NaN cells left out.
+    #[test]
+    fn area_means_are_the_means_of_the_boxes_covered() {
+        let plane = |w: usize, h: usize| Grid {
+            width: w,
+            height: h,
+            values: (0..w * h)
+                .map(|k| (k % w) as f32 + 10.0 * (k / w) as f32)
+                .collect(),
+        };
+        // The grid is separable and linear in the cell index, so a box's mean is the mean
+        // index covered along x plus ten times along y, each cell weighed by its overlap.
+        let mean_index = |i: usize, n: usize, m: usize| {
+            let (a, b) = (
+                i as f64 * n as f64 / m as f64,
+                (i + 1) as f64 * n as f64 / m as f64,
+            );
+            let (mut sum, mut weight) = (0.0, 0.0);
+            for k in 0..n {
+                let o = (b.min(k as f64 + 1.0) - a.max(k as f64)).max(0.0);
+                sum += o * k as f64;
+                weight += o;
+            }
+            sum / weight
+        };
+        for (w, h, nw, nh) in [(8, 6, 4, 3), (7, 5, 3, 2), (9, 9, 4, 4), (5, 3, 5, 1)] {
+            let got = plane(w, h).area_means(nw, nh);
+            for (k, v) in got.values.iter().enumerate() {
+                let want = (mean_index(k % nw, w, nw) + 10.0 * mean_index(k / nw, h, nh)) as f32;
+                if w % nw == 0 && h % nh == 0 {
+                    // Whole blocks: the block's centre.
+                    let (fx, fy) = ((w / nw) as f32, (h / nh) as f32);
+                    let (i, j) = ((k % nw) as f32, (k / nw) as f32);
+                    let centre = (i + 0.5) * fx - 0.5 + 10.0 * ((j + 0.5) * fy - 0.5);
+                    assert!((want - centre).abs() < 1e-4);
+                }
+                assert!(
+                    (v - want).abs() < 1e-4,
+                    "{w}x{h} -> {nw}x{nh} at {k}: {v} {want}"
+                );
+            }
+        }
+        let mut g = plane(4, 2);
+        g.values[0] = f32::NAN;
+        g.values[2] = f32::NAN;
+        g.values[3] = f32::NAN;
+        g.values[7] = f32::NAN;
+        let got = g.area_means(2, 1);
+        // Left box: 1, 10 and 11 remain; right box: 12 alone.
+        assert_eq!(got.values[0], (1.0 + 10.0 + 11.0) / 3.0);
+        assert_eq!(got.values[1], 12.0);
+        let none = Grid {
+            width: 2,
+            height: 1,
+            values: vec![f32::NAN; 2],
+        };
+        assert!(none.area_means(1, 1).values[0].is_nan());
+    }
 
     #[test]
     fn volume_axes_hold_the_corners_and_even_steps_between() {

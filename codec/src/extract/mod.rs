@@ -421,7 +421,10 @@ impl Asset {
 
     /// A plane's discrete decode at `width` x `height`. An operator that knows its attractor at
     /// the source's own sample centres ([`crate::io::asset::PlaneOperator::samples`]) answers
-    /// that size without iterating.
+    /// that size, and any coarser one, without iterating: a coarser grid is the samples' area
+    /// means (the box filter of its cells, exact; a decode at that size would sample the
+    /// continuation between the samples, iterating to a bound, and the filtered taps of
+    /// [`Asset::sample`] would then average those).
     fn discrete(
         &self,
         op: &crate::io::asset::PlaneOperator,
@@ -443,6 +446,25 @@ impl Asset {
                     error_bound: 0.0,
                 },
             ),
+            Some(z)
+                if width <= native[0]
+                    && height <= native[1]
+                    && z.len() == native[0] * native[1] =>
+            {
+                let samples = Grid {
+                    width: native[0],
+                    height: native[1],
+                    values: z.to_vec(),
+                };
+                (
+                    samples.area_means(width, height),
+                    DiscreteReport {
+                        iterations: 0,
+                        last_change: 0.0,
+                        error_bound: 0.0,
+                    },
+                )
+            }
             _ => {
                 let (mut grid, report) = decode::discrete(op, width, height, opts);
                 let centres = |n: usize| -> Vec<f32> {
@@ -1056,6 +1078,9 @@ impl Asset {
         let planes = grids
             .iter()
             .map(|(g, _)| {
+                if let Inside::Grid { ix, iy, .. } = inside {
+                    return filter_separable(g, (ix, iy), [qx, qy]);
+                }
                 (0..inside.len())
                     .map(|k| {
                         let (u, v) = inside.at(k);
@@ -1092,6 +1117,12 @@ impl Asset {
         Ok(match inside {
             Inside::Grid { ix, iy, .. } => {
                 let at = Sites::Grid { xs: ix, ys: iy };
+                // Where the CPU takes the same steps at every pixel (a subdivision), the
+                // device and every band take exactly those, so that all answer alike.
+                let (iterations, tol) = match p.operator.grid_steps(ix, iy, iterations, tol) {
+                    Some(k) => (k, 0.0),
+                    None => (iterations, tol),
+                };
                 let answer = match (delegates.continuous)(
                     PlaneRef::whole(k, &p.operator),
                     at,
@@ -1150,6 +1181,57 @@ impl Asset {
             },
         })
     }
+}
+
+/// [`Asset::sample`]'s filter of a coarse grid at a separable grid of unit points: per point
+/// the mean of four bilinear taps `(x +- qx, y +- qy)` (grid pixels), which is separable: each
+/// axis's two taps are at most four weighed cells, so the grid's rows are filtered along x
+/// once, then the columns along y. The same values as tapping point by point (to f32
+/// rounding), for a pass over the rows the points need instead of sixteen reads a point.
+fn filter_separable(g: &decode::Grid, (xs, ys): (&[f32], &[f32]), [qx, qy]: [f32; 2]) -> Vec<f32> {
+    // Per point of an axis of n cells: its taps' cells and weights (the mean of the two taps
+    // folded in: half each).
+    fn taps(list: &[f32], n: usize, q: f32) -> Vec<[(usize, f32); 4]> {
+        let tap = |x: f32| {
+            let x = x.clamp(0.0, (n - 1) as f32);
+            let x0 = x as usize;
+            let f = x - x0 as f32;
+            [(x0, 0.5 * (1.0 - f)), ((x0 + 1).min(n - 1), 0.5 * f)]
+        };
+        list.iter()
+            .map(|&t| {
+                let x = t * n as f32 - 0.5;
+                let (a, b) = (tap(x - q), tap(x + q));
+                [a[0], a[1], b[0], b[1]]
+            })
+            .collect()
+    }
+    let (tx, ty) = (taps(xs, g.width, qx), taps(ys, g.height, qy));
+    let (lo, hi) = ty
+        .iter()
+        .flatten()
+        .fold((usize::MAX, 0), |(a, b), &(r, _)| (a.min(r), b.max(r)));
+    if ty.is_empty() || tx.is_empty() {
+        return Vec::new();
+    }
+    // The rows the points need, filtered along x.
+    let nx = tx.len();
+    let mut rows = vec![0.0f32; (hi - lo + 1) * nx];
+    for (r, out) in (lo..=hi).zip(rows.chunks_exact_mut(nx)) {
+        let src = &g.values[r * g.width..(r + 1) * g.width];
+        for (o, t) in out.iter_mut().zip(&tx) {
+            *o = t.iter().map(|&(c, w)| w * src[c]).sum();
+        }
+    }
+    let mut out = vec![0.0f32; nx * ty.len()];
+    for (t, o) in ty.iter().zip(out.chunks_exact_mut(nx)) {
+        for &(r, w) in t {
+            for (a, &v) in o.iter_mut().zip(&rows[(r - lo) * nx..(r - lo + 1) * nx]) {
+                *a += w * v;
+            }
+        }
+    }
+    out
 }
 
 /// The pixels of a raster that fall on the asset, as the decoders take them.
@@ -1296,5 +1378,43 @@ impl Inside {
             }
         }
         full
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The separable filter is the four taps a point, as [`Asset::sample`] took them one by
+    /// one, on a grid with values that vary along both axes, points inside, on the edges and
+    /// past them (clamped).
+    #[test]
+    fn separable_filtering_is_the_mean_of_four_bilinear_taps() {
+        let (w, h) = (37, 23);
+        let g = decode::Grid {
+            width: w,
+            height: h,
+            values: (0..w * h)
+                .map(|k| ((k % w) as f32 * 0.37).sin() + ((k / w) as f32 * 0.21).cos() * 2.0)
+                .collect(),
+        };
+        let xs: Vec<f32> = (0..50).map(|i| -0.05 + 1.1 * i as f32 / 49.0).collect();
+        let ys: Vec<f32> = (0..31).map(|j| 0.02 + 0.97 * j as f32 / 30.0).collect();
+        for (qx, qy) in [(0.25, 0.25), (0.6, 0.4), (1.3, 0.9)] {
+            let got = filter_separable(&g, (&xs, &ys), [qx, qy]);
+            assert_eq!(got.len(), xs.len() * ys.len());
+            for (k, v) in got.iter().enumerate() {
+                let (x, y) = (
+                    xs[k % xs.len()] * w as f32 - 0.5,
+                    ys[k / xs.len()] * h as f32 - 0.5,
+                );
+                let want = 0.25
+                    * (decode::sample_bilinear(&g, x - qx, y - qy)
+                        + decode::sample_bilinear(&g, x + qx, y - qy)
+                        + decode::sample_bilinear(&g, x - qx, y + qy)
+                        + decode::sample_bilinear(&g, x + qx, y + qy));
+                assert!((v - want).abs() < 1e-5, "point {k}: {v} against {want}");
+            }
+        }
     }
 }

@@ -306,6 +306,23 @@ impl PlaneOperator {
         }
     }
 
+    /// The steps [`Self::grid`] takes at every point of the separable grid `(xs[i], ys[j])`
+    /// where it takes the same everywhere (the projected continuation's subdivision: see
+    /// `ProjectedOperator::grid_steps`); `None` where each chain takes its own. A device asked
+    /// for the grid is asked for that many steps exactly, so that it answers as the CPU does.
+    pub fn grid_steps(
+        &self,
+        xs: &[f32],
+        ys: &[f32],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Option<u32> {
+        match self {
+            PlaneOperator::Projected(p) => p.grid_steps(xs, ys, iterations, tolerance),
+            _ => None,
+        }
+    }
+
     /// Continuous decoding of a bilinear [`decode::Patch`] of points, row-major:
     /// [`decode::patch`] for the quadtree (whose blocks step together), [`Self::points`] on the
     /// patch's points otherwise.

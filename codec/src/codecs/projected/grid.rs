@@ -97,12 +97,38 @@ impl ProjectedOperator {
         }
     }
 
-    /// Continuous decoding of the separable grid of unit points `(xs[i], ys[j])`, row-major:
-    /// the answers of [`crate::core::decode::points`] on the same points, bit for bit. Blocks of
-    /// points in one quarter cell step together; a block splits as its image crosses quarter
-    /// boundaries (into about four a step, phi doubling lengths), and below [`MIN_BLOCK`] points
-    /// its chains go on one by one.
+    /// Continuous decoding of the separable grid of unit points `(xs[i], ys[j])`, row-major.
+    /// Where the grid is dense in the cells it covers (a tile past the source resolution), by
+    /// [`super::subdivision`]: every answer a chain's of the steps its window needs, to f32
+    /// rounding, within the chain's bound. Elsewhere by chains ([`Self::grid_by_chains`]).
     pub fn grid(&self, xs: &[f32], ys: &[f32], iterations: u32, tolerance: f32) -> Vec<PointValue> {
+        self.grid_with(xs, ys, iterations, tolerance, true)
+    }
+
+    /// Continuous decoding of the separable grid of unit points `(xs[i], ys[j])`, row-major, by
+    /// chains: the answers of [`crate::core::decode::points`] on the same points, bit for bit.
+    /// Blocks of points in one quarter cell step together; a block splits as its image crosses
+    /// quarter boundaries (into about four a step, phi doubling lengths), and below
+    /// [`MIN_BLOCK`] points its chains go on one by one.
+    pub fn grid_by_chains(
+        &self,
+        xs: &[f32],
+        ys: &[f32],
+        iterations: u32,
+        tolerance: f32,
+    ) -> Vec<PointValue> {
+        self.grid_with(xs, ys, iterations, tolerance, false)
+    }
+
+    /// [`Self::grid`], by subdivision where it pays if `subdivide`, else by chains.
+    fn grid_with(
+        &self,
+        xs: &[f32],
+        ys: &[f32],
+        iterations: u32,
+        tolerance: f32,
+        subdivide: bool,
+    ) -> Vec<PointValue> {
         let (nx, ny) = (xs.len(), ys.len());
         let valid = self.valid();
         if self.needs_window() && nx > 0 && ny > 0 {
@@ -116,7 +142,7 @@ impl ProjectedOperator {
             };
             let ((x0, x1), (y0, y1)) = (span(xs, valid[0]), span(ys, valid[1]));
             let window = self.window_over([x0, y0, x1, y1]);
-            return window.grid(xs, ys, iterations, tolerance);
+            return window.grid_with(xs, ys, iterations, tolerance, subdivide);
         }
         let (lo, hi) = self.interval;
         let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
@@ -124,6 +150,12 @@ impl ProjectedOperator {
         let quantum = position_quantum(&self.frame());
         arena.extend(xs.iter().map(|&x| to_frame(x, valid[0], quantum)));
         arena.extend(ys.iter().map(|&y| to_frame(y, valid[1], quantum)));
+        if subdivide
+            && let Some(answers) =
+                self.subdivided(&arena[..nx], &arena[nx..], iterations, tolerance)
+        {
+            return answers;
+        }
         let mut chains: Vec<(usize, Chain<2>)> = Vec::new();
         let mut acc_g = vec![0.0f32; nx * ny];
         let mut todo = Vec::new();
@@ -245,7 +277,7 @@ mod tests {
                         .collect();
                     for (iterations, tol) in [(12, 1e-3), (3, 0.0), (40, 1e-6)] {
                         let by_points = decode::points(&op, &pts, iterations, tol);
-                        let by_blocks = op.grid(&xs, &ys, iterations, tol);
+                        let by_blocks = op.grid_by_chains(&xs, &ys, iterations, tol);
                         assert_eq!(
                             by_points, by_blocks,
                             "{w}x{h}, {n} points over {x0}..{x1} x {y0}..{y1}, {iterations} steps"
