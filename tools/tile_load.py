@@ -3,6 +3,9 @@ uniformly from 0 to ZMAX, CONCURRENCY in flight; prints throughput and latency p
 overall and per zoom. Standard library only.
 
     python3 tools/tile_load.py http://127.0.0.1:8080/v1/assets/ID N CONCURRENCY ZMAX [SEED]
+
+A first argument with `{z}`, `{x}` and `{y}` is a URL template instead (another tile server,
+such as TiTiler: 'http://127.0.0.1:8000/cog/tiles/WebMercatorQuad/{z}/{x}/{y}.png?url=...').
 """
 import random, sys, time, urllib.request, concurrent.futures as cf
 base, n, conc, zmax = sys.argv[1], int(sys.argv[2]), int(sys.argv[3]), int(sys.argv[4])
@@ -15,7 +18,9 @@ tiles = list(tiles); random.shuffle(tiles)
 def get(t):
     z, x, y = t
     t0 = time.perf_counter()
-    with urllib.request.urlopen(f"{base}/tiles/{z}/{x}/{y}.png?encoding=terrainrgb") as r:
+    url = (base.format(z=z, x=x, y=y) if "{z}" in base
+           else f"{base}/tiles/{z}/{x}/{y}.png?encoding=terrainrgb")
+    with urllib.request.urlopen(url) as r:
         body = r.read(); status = r.status
     return z, time.perf_counter() - t0, status, len(body)
 t0 = time.perf_counter()
