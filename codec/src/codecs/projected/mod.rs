@@ -987,6 +987,54 @@ mod tests {
         }
     }
 
+    /// The lanes of `run_chains` answer as one chain at a time does, bit for bit: each stepped
+    /// by `step` while it has steps left and its cell's residual bound times its contrast
+    /// product is over the tolerance, then ended on S.
+    #[test]
+    fn chains_in_lanes_answer_as_one_at_a_time() {
+        use crate::core::decode::{position_quantum, to_frame};
+        use crate::core::operator::active;
+        let (w, h) = (41, 29);
+        let g = grid(w, h);
+        let op = ProjectedOperator::new(&header(w, h, &g), &g).expect("operator");
+        assert!(op.ends_on_samples());
+        let (lo, hi) = op.invariant_interval();
+        let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
+        let quantum = position_quantum(&op.frame());
+        // 1,003 points (a last batch of three), some past the frame's edges.
+        let pts: Vec<[f32; 2]> = (0..1003)
+            .map(|k| {
+                let t = k as f32;
+                [
+                    (t * 0.618_034).fract() * 1.1 - 0.05,
+                    (t * 0.414_214).fract(),
+                ]
+            })
+            .collect();
+        for (iterations, tol) in [(3, 0.0), (40, 1e-3), (40, 2e-2), (0, 0.0)] {
+            let lanes = decode::points(&op, &pts, iterations, tol);
+            for (k, p) in pts.iter().enumerate() {
+                let mut c = Chain::start([
+                    to_frame(p[0], op.valid()[0], quantum),
+                    to_frame(p[1], op.valid()[1], quantum),
+                ]);
+                while c.taken < iterations && active(c.acc_s, op.residual_at(c.q), tol) {
+                    let st = op.step(c.q);
+                    c.taken += 1;
+                    c.acc_g += c.acc_s * st.offset;
+                    c.acc_s *= st.contrast;
+                    c.q = st.next;
+                }
+                op.end_chain(&mut c);
+                assert_eq!(
+                    lanes[k],
+                    c.finish(seed, half),
+                    "point {k}, {iterations} steps"
+                );
+            }
+        }
+    }
+
     /// The records built from the half lattices are the bits the direct tensor-product
     /// evaluation gives, on rough and smooth grids of odd and even sizes and the smallest axes.
     /// (Unit tests read no files: the layout rule keeps `codecs` from importing `io`.)
