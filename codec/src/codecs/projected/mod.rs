@@ -28,7 +28,7 @@ pub mod lifting;
 mod neighbourhood;
 pub mod pyramid;
 pub mod records;
-mod subdivision;
+pub mod subdivision;
 
 use std::sync::Arc;
 
