@@ -1069,17 +1069,37 @@ impl Asset {
             level(footprint[0], self.meta.width),
             level(footprint[1], self.meta.height),
         );
-        let grids = (delegates.discrete)(gw, gh, iterations, tol);
-        let bound = grids.iter().map(|(_, r)| r.error_bound).fold(0.0, f32::max);
         let (qx, qy) = (
             0.25 * footprint[0] * gw as f32,
             0.25 * footprint[1] * gh as f32,
         );
+        // At the source's own size, planes that hold their samples are their grids: a tile's
+        // pixels are filtered from them in place (no copy a tile, nothing for a cache to keep;
+        // a chunk's pixels of one to 1.4 of its cells are all filtered so).
+        let native = [self.meta.width as usize, self.meta.height as usize];
+        if let Inside::Grid { ix, iy, .. } = inside
+            && [gw, gh] == native
+        {
+            let samples: Option<Vec<&[f32]>> = self
+                .planes
+                .iter()
+                .map(|p| p.operator.samples().filter(|z| z.len() == gw * gh))
+                .collect();
+            if let Some(samples) = samples {
+                let planes = samples
+                    .iter()
+                    .map(|z| filter_separable((z, gw, gh), (ix, iy), [qx, qy]))
+                    .collect();
+                return (planes, 0.0);
+            }
+        }
+        let grids = (delegates.discrete)(gw, gh, iterations, tol);
+        let bound = grids.iter().map(|(_, r)| r.error_bound).fold(0.0, f32::max);
         let planes = grids
             .iter()
             .map(|(g, _)| {
                 if let Inside::Grid { ix, iy, .. } = inside {
-                    return filter_separable(g, (ix, iy), [qx, qy]);
+                    return filter_separable((&g.values, g.width, g.height), (ix, iy), [qx, qy]);
                 }
                 (0..inside.len())
                     .map(|k| {
@@ -1183,12 +1203,17 @@ impl Asset {
     }
 }
 
-/// [`Asset::sample`]'s filter of a coarse grid at a separable grid of unit points: per point
+/// [`Asset::sample`]'s filter of a coarse grid (its values, row-major, width and height) at a
+/// separable grid of unit points: per point
 /// the mean of four bilinear taps `(x +- qx, y +- qy)` (grid pixels), which is separable: each
 /// axis's two taps are at most four weighed cells, so the grid's rows are filtered along x
 /// once, then the columns along y. The same values as tapping point by point (to f32
 /// rounding), for a pass over the rows the points need instead of sixteen reads a point.
-fn filter_separable(g: &decode::Grid, (xs, ys): (&[f32], &[f32]), [qx, qy]: [f32; 2]) -> Vec<f32> {
+fn filter_separable(
+    (values, width, height): (&[f32], usize, usize),
+    (xs, ys): (&[f32], &[f32]),
+    [qx, qy]: [f32; 2],
+) -> Vec<f32> {
     // Per point of an axis of n cells: its taps' cells and weights (the mean of the two taps
     // folded in: half each).
     fn taps(list: &[f32], n: usize, q: f32) -> Vec<[(usize, f32); 4]> {
@@ -1206,7 +1231,7 @@ fn filter_separable(g: &decode::Grid, (xs, ys): (&[f32], &[f32]), [qx, qy]: [f32
             })
             .collect()
     }
-    let (tx, ty) = (taps(xs, g.width, qx), taps(ys, g.height, qy));
+    let (tx, ty) = (taps(xs, width, qx), taps(ys, height, qy));
     let (lo, hi) = ty
         .iter()
         .flatten()
@@ -1218,7 +1243,7 @@ fn filter_separable(g: &decode::Grid, (xs, ys): (&[f32], &[f32]), [qx, qy]: [f32
     let nx = tx.len();
     let mut rows = vec![0.0f32; (hi - lo + 1) * nx];
     for (r, out) in (lo..=hi).zip(rows.chunks_exact_mut(nx)) {
-        let src = &g.values[r * g.width..(r + 1) * g.width];
+        let src = &values[r * width..(r + 1) * width];
         for (o, t) in out.iter_mut().zip(&tx) {
             *o = t.iter().map(|&(c, w)| w * src[c]).sum();
         }
@@ -1401,7 +1426,7 @@ mod tests {
         let xs: Vec<f32> = (0..50).map(|i| -0.05 + 1.1 * i as f32 / 49.0).collect();
         let ys: Vec<f32> = (0..31).map(|j| 0.02 + 0.97 * j as f32 / 30.0).collect();
         for (qx, qy) in [(0.25, 0.25), (0.6, 0.4), (1.3, 0.9)] {
-            let got = filter_separable(&g, (&xs, &ys), [qx, qy]);
+            let got = filter_separable((&g.values, w, h), (&xs, &ys), [qx, qy]);
             assert_eq!(got.len(), xs.len() * ys.len());
             for (k, v) in got.iter().enumerate() {
                 let (x, y) = (
