@@ -720,7 +720,9 @@ fn residual_slack(a: &fractile_codec::Asset) {
     println!(
         "\n## The residual bound against the largest |f - S| a cell, etopo20 --bounded at 20:1 (rho {rho:.3}; 2,000 cells)\n"
     );
-    println!("| quantile | R (m) | largest \\|f - S\\| found (m) | R over it | steps a tight bound saves |");
+    println!(
+        "| quantile | R (m) | largest \\|f - S\\| found (m) | R over it | steps a tight bound saves |"
+    );
     println!("|---|---|---|---|---|");
     for (k, name) in ["10%", "median", "90%"].iter().enumerate() {
         println!(

@@ -14,7 +14,9 @@ use axum::body::Body;
 use axum::http::Request;
 use fractile_codec::{Raster, encode_default};
 use fractile_server::api::AppState;
-use fractile_server::encoding::{Deflate, HeightEncoding, Rounding, TileFormat, encode_tile};
+use fractile_server::encoding::{
+    Deflate, HeightEncoding, Rounding, TileFormat, encode_tile, relief,
+};
 use fractile_server::store::Store;
 use http_body_util::BodyExt;
 use tower::ServiceExt;
@@ -130,7 +132,12 @@ fn bench_dem(path: &std::path::Path) {
                 bytes = 0;
                 for t in &tiles {
                     let rounding = if bound {
-                        Rounding::for_bound(HeightEncoding::TerrainRgb, t.error_bound)
+                        Rounding::for_tile(
+                            HeightEncoding::TerrainRgb,
+                            t.error_bound,
+                            relief(&t.heights, 256),
+                            stored.asset.meta.stats.rmse as f32,
+                        )
                     } else {
                         Rounding::default()
                     };
@@ -163,7 +170,12 @@ fn bench_dem(path: &std::path::Path) {
     let pixels: Vec<image::RgbImage> = tiles
         .iter()
         .map(|t| {
-            let rounding = Rounding::for_bound(HeightEncoding::TerrainRgb, t.error_bound);
+            let rounding = Rounding::for_tile(
+                HeightEncoding::TerrainRgb,
+                t.error_bound,
+                relief(&t.heights, 256),
+                stored.asset.meta.stats.rmse as f32,
+            );
             let (_, body) = encode_tile(
                 &stored.asset.meta,
                 std::slice::from_ref(&t.heights),
@@ -212,7 +224,12 @@ fn bench_dem(path: &std::path::Path) {
         }
         let (mut bytes, mut bound, mut step) = (0usize, 0.0f64, 0.0f64);
         for t in &at {
-            let rounding = Rounding::for_bound(HeightEncoding::TerrainRgb, t.error_bound);
+            let rounding = Rounding::for_tile(
+                HeightEncoding::TerrainRgb,
+                t.error_bound,
+                relief(&t.heights, 256),
+                stored.asset.meta.stats.rmse as f32,
+            );
             let (_, body) = encode_tile(
                 &stored.asset.meta,
                 std::slice::from_ref(&t.heights),

@@ -20,7 +20,8 @@ fn data(name: &str) -> std::path::PathBuf {
         .join(name)
 }
 
-/// What TiTiler answers for the same jacksboro tiles (issue 34: 8.4-8.8 KB over zooms 10-16).
+/// What TiTiler answers for the same jacksboro tiles (issue 34: 8.4-8.8 KB over zooms 10-16),
+/// printed beside ours.
 const TITILER_BYTES: f64 = 9_000.0;
 
 struct Answer {
@@ -30,8 +31,17 @@ struct Answer {
 }
 
 async fn tile(state: &Arc<AppState>, z: u8, x: u32, y: u32, precision: &str) -> Answer {
+    tile_of(state, "jacksboro", [z as u32, x, y], precision).await
+}
+
+async fn tile_of(
+    state: &Arc<AppState>,
+    name: &str,
+    [z, x, y]: [u32; 3],
+    precision: &str,
+) -> Answer {
     let uri = format!(
-        "/v1/assets/jacksboro/tiles/{z}/{x}/{y}.png?encoding=terrainrgb&precision={precision}"
+        "/v1/assets/{name}/tiles/{z}/{x}/{y}.png?encoding=terrainrgb&precision={precision}"
     );
     let req = Request::get(&uri).body(Body::empty()).unwrap();
     let resp = fractile_server::app(state.clone())
@@ -152,10 +162,88 @@ async fn height_tiles_carry_the_precision_their_bound_justifies_and_the_bound_ho
         bound_bytes as f64 / tiles as f64,
     );
     println!("mean bytes: full {full:.0}, bound {bound:.0} (TiTiler about {TITILER_BYTES})");
-    assert!(bound < full, "rounded tiles {bound} B, full {full} B");
+    // Rounding still pays for itself: at most 60% of the full tiles' bytes. (It was 1.37x
+    // TiTiler's bytes with steps of up to half the bound; the relief rule of issue 56, which
+    // keeps 256 levels over a tile's relief so that a hillshade has no stairs, takes it to
+    // about 3x: docs/benchmarks.md "Bounds that hold everywhere".)
     assert!(
-        bound <= 1.5 * TITILER_BYTES,
-        "rounded tiles {bound:.0} B a tile, over 1.5x TiTiler's {TITILER_BYTES}"
+        bound <= 0.6 * full,
+        "rounded tiles {bound:.0} B a tile, full {full:.0} B"
     );
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// Distinct heights of a tile, and the step they are all multiples of (metres; terrain-RGB's
+/// 0.1 m units at least).
+fn distinct(heights: &[f64]) -> (usize, f64) {
+    let mut units: Vec<i64> = heights.iter().map(|h| (h * 10.0).round() as i64).collect();
+    units.sort_unstable();
+    units.dedup();
+    let gcd = |mut a: i64, mut b: i64| {
+        while b != 0 {
+            (a, b) = (b, a % b);
+        }
+        a.abs()
+    };
+    let step = units.windows(2).fold(0, |g, w| gcd(g, w[1] - w[0]));
+    (units.len(), 0.1 * step.max(1) as f64)
+}
+
+/// The default tiles of a rough global DEM keep the heights a hillshade needs (issue 56): a
+/// kilometre bound once rounded etopo20's tiles at zooms 0-7 to 8-30 heights. Every tile of
+/// zooms 0-3 and 16 at each of zooms 4-7 (a diagonal walk): the rounded tile keeps at least
+/// 200 distinct heights where the full-precision one has them (all of its own otherwise), or
+/// its step is at most twice the encode's RMSE against the source.
+#[tokio::test]
+async fn rough_tiles_keep_the_heights_a_hillshade_needs() {
+    let src = Raster::open(&data("etopo20.tif")).unwrap();
+    let enc = encode_default(&src, 0.8, &|_, _| {}).unwrap();
+    let rmse = enc.errors.rmse;
+    let dir = std::env::temp_dir().join(format!("fractile-relief-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("etopo20.fra"), &enc.bytes).unwrap();
+    let (store, _) = Store::open(&dir).unwrap();
+    let state = Arc::new(AppState::new(store, "http://test".into()));
+    println!("RMSE {rmse:.1} m");
+    println!(
+        "| zoom | tiles | mean X-Error-Bound | fewest distinct heights (full, bound) | largest step | mean bytes (full, bound) |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for z in 0u32..=7 {
+        let n = 1u32 << z;
+        let walk: Vec<(u32, u32)> = if z <= 3 {
+            (0..n * n).map(|k| (k % n, k / n)).collect()
+        } else {
+            (0..16)
+                .map(|k| ((k * n / 16 + n / 37) % n, (k * n / 16 * 3 / 5 + n / 4) % n))
+                .collect()
+        };
+        let (mut fewest, mut bound, mut bytes, mut largest) =
+            ([usize::MAX; 2], 0.0, [0usize; 2], 0.0f64);
+        for &(x, y) in &walk {
+            let full = tile_of(&state, "etopo20", [z, x, y], "full").await;
+            let rounded = tile_of(&state, "etopo20", [z, x, y], "bound").await;
+            let ((df, _), (dr, step)) = (distinct(&full.heights), distinct(&rounded.heights));
+            assert!(
+                dr >= df.min(200) || step <= 2.0 * rmse,
+                "{z}/{x}/{y}: {dr} distinct heights in steps of {step} m rounded, {df} at full \
+                 precision (bound {}, RMSE {rmse})",
+                rounded.error_bound
+            );
+            largest = largest.max(step);
+            fewest = [fewest[0].min(df), fewest[1].min(dr)];
+            bound += rounded.error_bound / walk.len() as f64;
+            bytes[0] += full.bytes / walk.len();
+            bytes[1] += rounded.bytes / walk.len();
+        }
+        println!(
+            "| {z} | {} | {bound:.0} m | {}, {} | {largest:.1} m | {}, {} |",
+            walk.len(),
+            fewest[0],
+            fewest[1],
+            bytes[0],
+            bytes[1]
+        );
+    }
     std::fs::remove_dir_all(&dir).ok();
 }

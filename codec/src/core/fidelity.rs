@@ -9,9 +9,11 @@
 //! interpolation of its cell centres. The map is measured on the half-cell lattice (every cell
 //! centre, corner and edge midpoint) with the asset's own continuous decoding, run to
 //! convergence; a measured point's error counts for the block of each cell of its bilinear
-//! support. On that lattice the bound holds; between its points it is not proven, and the
-//! attractor can leave the bilinear source further (measured: a window of etopo20 at 1.25x
-//! its bound). The bounds are loose, a block's largest error being far over a typical cell's
+//! support. On that lattice the bound holds; between its points the attractor can leave the
+//! bilinear source further (measured: etopo20 tiles at 1.23x their bound, topobathy's at
+//! 1.31x), so a projected plane's map also takes each cell's proven bound, which holds
+//! everywhere in the cell (see `encode::fidelity`; other codecs keep the lattice's measure).
+//! The bounds are loose, a block's largest error being far over a typical cell's
 //! (mean bound 9x the mean error on jacksboro, 19x on etopo20): see docs/benchmarks.md.
 //!
 //! Bounds are stored as 8-bit codes on a logarithmic scale of the value span (steps of 2^(1/8),

@@ -1,12 +1,13 @@
 //! Measuring an asset's source-error map ([`SourceError`]) at encode time: the decoded asset
 //! against its source on the half-cell lattice (every cell centre, corner and edge midpoint),
-//! through the same continuous decoding that answers requests, run to convergence.
+//! through the same continuous decoding that answers requests, run to convergence; and, for a
+//! projected plane, each cell's proven bound, which holds between the lattice's points too.
 
 use rayon::prelude::*;
 
 use crate::core::fidelity::{BLOCK, SourceError};
 use crate::geo::{Pixels, Sites};
-use crate::io::asset::Asset;
+use crate::io::asset::{Asset, PlaneOperator};
 use crate::io::raster::Raster;
 
 /// Steps at most for a measured point; each stops once within `TOLERANCE` of the span.
@@ -86,6 +87,7 @@ pub fn measure(asset: &Asset, source: &Raster, budget: usize) -> SourceError {
             (r0..r1).map(row).collect::<Vec<_>>()
         })
         .collect();
+    let cells = proven(asset, source);
     let mut block = BLOCK;
     loop {
         let cols = w.div_ceil(block);
@@ -101,10 +103,38 @@ pub fn measure(asset: &Asset, source: &Raster, budget: usize) -> SourceError {
                 }
             }
         }
+        // A cell's proven bound counts for the block of each of its four samples: a point in
+        // the cell is looked up in the block of one of them.
+        if let Some(cells) = &cells {
+            for (k, &e) in cells.iter().enumerate() {
+                let (x, y) = (k % (w - 1), k / (w - 1));
+                for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
+                    put(x + dx, y + dy, e);
+                }
+            }
+        }
         let map = SourceError::from_block_errors(w, h, block, &errors, span);
         if map.encode().len() <= budget || block >= 4096 {
             return map;
         }
         block *= 2;
     }
+}
+
+/// Per cell between samples, the proven bound of a projected plane's answers there
+/// ([`crate::codecs::projected::ProjectedOperator::cell_bounds`]): the lattice's measured errors bound the answers on the
+/// lattice only. `None` for other codecs, whose maps stay measured on the lattice (a quadtree's
+/// answer between lattice points has no closed form), and for colour (a projected image's
+/// planes are luma and chroma, not the source's channels).
+fn proven(asset: &Asset, source: &Raster) -> Option<Vec<f32>> {
+    let [plane] = asset.planes.as_slice() else {
+        return None;
+    };
+    let PlaneOperator::Projected(op) = &plane.operator else {
+        return None;
+    };
+    let lo = asset.meta.value_min as f32;
+    let span = (asset.meta.value_max - asset.meta.value_min) as f32;
+    let cells = op.cell_bounds(&source.channels[0], source.valid.as_deref(), (lo, span));
+    (!cells.is_empty() && source.width >= 2 && source.height >= 2).then_some(cells)
 }

@@ -619,9 +619,11 @@ impl Asset {
     /// The tolerance of a request that names neither steps nor a tolerance (value units): the
     /// larger of half a quantisation step of the source (1 for integer samples, 1/65535 of the
     /// range for floats, 1/254 for 8-bit) and [`SETTLED_FRACTION`] of the smallest bound of its
-    /// source-error map. Iterating past that refines an answer far below its distance to the
-    /// source: a convergence bound under an eighth of the source error adds at most an eighth
-    /// to `error_bound`, and each further step costs as much as the first ones.
+    /// source-error map, or of its codec's promise where that is smaller (the bound at sample
+    /// centres: the map's blocks bound everything between samples too, proven, and are far
+    /// larger on rough DEMs). Iterating past that refines an answer far below its distance to
+    /// the source: a convergence bound under an eighth of the source error adds at most an
+    /// eighth to `error_bound`, and each further step costs as much as the first ones.
     pub fn default_tolerance(&self) -> f32 {
         let m = &self.meta;
         let step = match m.sample {
@@ -634,6 +636,10 @@ impl Asset {
             .as_ref()
             .and_then(|map| map.smallest())
             .or_else(|| self.chunks.as_ref()?.table.smallest_source_error)
+            .map(|e| match self.planes.first().and_then(|p| p.promise()) {
+                Some(p) => e.min(p),
+                None => e,
+            })
             .filter(|e| e.is_finite())
             .map_or(0.0, |e| SETTLED_FRACTION * e);
         (0.5 * step as f32).max(settled)

@@ -417,7 +417,12 @@ fn draw_tile(
     // rounding, so they still hold for the heights as sent.
     let rounding = match (job.format, job.precision, bound.error_bound()) {
         (encoding::TileFormat::Heights(e), Precision::Bound, Some(b)) => {
-            encoding::Rounding::for_bound(e, b)
+            encoding::Rounding::for_tile(
+                e,
+                b,
+                encoding::relief(&channels[0], size),
+                asset.asset.meta.stats.rmse as f32,
+            )
         }
         _ => encoding::Rounding::default(),
     };

@@ -45,48 +45,9 @@ pub struct Style {
     pub shade: Option<Vec<f32>>,
 }
 
-/// What part of a tile's error bound its heights may be rounded by (`precision=bound`): the
-/// step is the largest power-of-two multiple of the encoding's unit not over this fraction of
-/// the bound. A half keeps the rounding (at most half a step) under a quarter of the bound, so
-/// the bound a tile reports grows by at most 25%, and the rounding's RMS (step / sqrt 12, at
-/// most 0.14 of the bound) adds about 6% to the RMS of errors that average 0.4 of the bound
-/// (the default DEM encode's bounds are 2.5-2.7 times its actual errors). A quarter, the first
-/// choice, left the default encode's tiles at 1.9x TiTiler's bytes against 1.37x at a half,
-/// on jacksboro at zooms 10-16 (docs/benchmarks.md).
-pub const ROUNDING_FRACTION: f32 = 0.5;
-
-/// How a height tile is rounded: heights go to multiples of `2^shift` units of the encoding.
-#[derive(Clone, Copy, Debug, Default, PartialEq)]
-pub struct Rounding {
-    /// log2 of the step in the encoding's units (0: its own unit, `precision=full`).
-    pub shift: u32,
-    /// The most a height moves by the rounding beyond the encoding's own unit, in metres (half
-    /// a step; 0 at shift 0): what the tile's bounds grow by.
-    pub error: f32,
-}
-
-impl Rounding {
-    /// The coarsest rounding that a tile whose error bound is `bound` justifies (see
-    /// [`ROUNDING_FRACTION`]); none for `Gray16` (its unit is the asset's range over 65535, not
-    /// a height step map clients know) or a bound that is not a positive number.
-    pub fn for_bound(e: HeightEncoding, bound: f32) -> Rounding {
-        let unit = match e {
-            HeightEncoding::TerrainRgb => 0.1,
-            HeightEncoding::Terrarium => 1.0 / 256.0,
-            HeightEncoding::Gray16 => return Rounding::default(),
-        };
-        let steps = bound * ROUNDING_FRACTION / unit;
-        if steps.is_nan() || steps < 2.0 {
-            return Rounding::default();
-        }
-        // At most 2^20 units (terrain-RGB: 105 km; Terrarium: 4 km), far above any bound.
-        let shift = (steps.log2().floor() as u32).min(20);
-        Rounding {
-            shift,
-            error: unit * (1u32 << shift) as f32 / 2.0,
-        }
-    }
-}
+// Rounding to what a tile's bound and relief allow (`precision=bound`).
+mod rounding;
+pub use rounding::{RELIEF_LEVELS, ROUNDING_FRACTION, Relief, Rounding, relief};
 
 /// The deflate effort of a PNG.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -399,29 +360,6 @@ mod tests {
     }
 
     #[test]
-    fn rounding_takes_the_largest_power_of_two_step_under_half_the_bound() {
-        // 100 m: half is 50 m, 500 units of 0.1 m; 256 units (25.6 m) is the largest power of
-        // two under it. Terrarium: 50 m is 12,800 units of 1/256 m; 8192 (32 m).
-        let r = Rounding::for_bound(HeightEncoding::TerrainRgb, 100.0);
-        assert_eq!(r.shift, 8);
-        assert!((r.error - 12.8).abs() < 1e-5);
-        let t = Rounding::for_bound(HeightEncoding::Terrarium, 100.0);
-        assert_eq!(t.shift, 13);
-        assert!((t.error - 16.0).abs() < 1e-5);
-        // Under two units of the encoding, and where no bound is known: full precision.
-        for b in [0.3, 0.0, f32::NAN, -3.0] {
-            assert_eq!(
-                Rounding::for_bound(HeightEncoding::TerrainRgb, b),
-                Rounding::default()
-            );
-        }
-        assert_eq!(
-            Rounding::for_bound(HeightEncoding::Gray16, 100.0),
-            Rounding::default()
-        );
-    }
-
-    #[test]
     fn rounded_heights_are_multiples_of_the_step_within_half_a_step() {
         let m = AssetMeta {
             kind: AssetKind::HeightField,
@@ -447,7 +385,15 @@ mod tests {
             ),
             (HeightEncoding::Terrarium, decode_terrarium, 32.0),
         ] {
-            let r = Rounding::for_bound(e, 100.0);
+            let r = Rounding::for_tile(
+                e,
+                100.0,
+                Relief {
+                    span: f32::NAN,
+                    gradient: f32::NAN,
+                },
+                f32::NAN,
+            );
             let (_, bytes) = encode_tile(
                 &m,
                 std::slice::from_ref(&heights),
