@@ -90,7 +90,7 @@ pub fn document() -> Value {
                 "responses": ok_tile}},
             "/v1/assets/{id}/layer.json": {"get": {"summary": "Cesium terrain layer (quantized-mesh-1.0, geographic TMS scheme, EPSG:4326) of a georeferenced height field: tile URLs relative to this document, the levels and the tiles available at each", "parameters": [id], "responses": {"200": {"description": "layer.json"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}}}},
             "/v1/assets/{id}/terrain/{z}/{x}/{y}.terrain": {"get": {
-                "summary": "A quantized-mesh-1.0 tile (Cesium terrain; TMS rows from the south, two root tiles): an adaptive mesh of a 65 x 65 grid of decoded heights within the level's geometric error (Cesium's, 77,067 m at level 0, halved each level); X-Convergence-Bound is the decode's bound plus that error, X-Error-Bound adds the source error. 404 wholly outside the asset.",
+                "summary": "A quantized-mesh-1.0 tile (Cesium terrain; TMS rows from the south, two root tiles): an adaptive mesh of a grid of decoded heights (65 x 65, or past the source's resolution as fine as its cells, each vertex the surface filtered over a cell unless iterations or tolerance asks for the continuation's detail) within the level's geometric error (Cesium's, 77,067 m at level 0, halved each level), measured on the globe; X-Convergence-Bound is the decode's bound plus that error, X-Error-Bound adds the source error. 404 wholly outside the asset.",
                 "parameters": [id,
                     param("z", "path", json!({"type": "integer", "minimum": 0}), "Level"),
                     param("x", "path", json!({"type": "integer"}), "Column (from 180 degrees west)"),

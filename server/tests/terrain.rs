@@ -150,13 +150,25 @@ impl ReadTile {
             return on[k][2];
         }
         let (a, b) = (on[k - 1], on[k]);
-        a[2] + (b[2] - a[2]) * (t - a[along]) / (b[along] - a[along])
+        // The flat chord between the two vertices on the globe: straight in the heights over
+        // the edge's arc (the sphere to second order about the edge's middle, as the server
+        // meshes; `Mesh::adaptive_tile`), where it passes over t.
+        let mid = 0.5 * (on[0][along] + on[on.len() - 1][along]);
+        let arc = |t: f64| -0.5 * GLOBE * (t - mid).to_radians().powi(2);
+        let (ha, hb) = (a[2] + arc(a[along]), b[2] + arc(b[along]));
+        ha + (hb - ha) * (t - a[along]) / (b[along] - a[along]) - arc(t)
     }
 }
 
+/// The sphere the edges are drawn on (the WGS84 semi-major axis).
+const GLOBE: f64 = 6_378_137.0;
+
 /// Reads tile (`z`, the one holding `lon`, `lat`) of asset `id` with the independent decoder and
-/// checks it against the asset's decoded heights.
-async fn check_tile(id: &str, z: u8, lon: f64, lat: f64) -> ReadTile {
+/// checks it. With `detail` (`?iterations=64`: the continuation's detail on the 65 x 65 grid)
+/// its vertices and the mesh between them are checked against the asset's point decodes; the
+/// default tiles past the source are the surface filtered over a source cell on a grid as fine
+/// as the cells, which point decodes do not give (`lean_terrain.rs` weighs their triangles).
+async fn check_tile(id: &str, z: u8, lon: f64, lat: f64, detail: bool) -> ReadTile {
     let (s, _, b) = get(&format!("/v1/assets/{id}/layer.json")).await;
     assert_eq!(s, StatusCode::OK, "{id}: {}", String::from_utf8_lossy(&b));
     let layer: Value = serde_json::from_slice(&b).unwrap();
@@ -176,7 +188,11 @@ async fn check_tile(id: &str, z: u8, lon: f64, lat: f64) -> ReadTile {
         );
     }
 
-    let (s, h, body) = get(&format!("/v1/assets/{id}/terrain/{z}/{x}/{y}.terrain")).await;
+    let query = if detail { "?iterations=64" } else { "" };
+    let (s, h, body) = get(&format!(
+        "/v1/assets/{id}/terrain/{z}/{x}/{y}.terrain{query}"
+    ))
+    .await;
     assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
     assert_eq!(h[header::CONTENT_TYPE], "application/vnd.quantized-mesh");
     let bound: f64 = h["x-convergence-bound"].to_str().unwrap().parse().unwrap();
@@ -207,6 +223,43 @@ async fn check_tile(id: &str, z: u8, lon: f64, lat: f64) -> ReadTile {
     // Heights travel as 15-bit steps of the tile's range.
     let step = (hi - lo) / 32767.0;
 
+    let edges: Vec<Vec<usize>> = serde_json::from_value(tile["edges"].clone()).unwrap();
+    if detail {
+        check_heights(id, &vertices, &triangles, &edges, (bounds, bound, step)).await;
+    }
+    // Every edge vertex lies on its edge.
+    let on = [
+        (0, bounds[0]),
+        (1, bounds[1]),
+        (0, bounds[2]),
+        (1, bounds[3]),
+    ];
+    for (edge, (axis, value)) in edges.iter().zip(on) {
+        assert!(!edge.is_empty());
+        for &k in edge {
+            assert!(
+                (vertices[k][axis] - value).abs() < 1e-9,
+                "{:?} not on {value}",
+                vertices[k]
+            );
+        }
+    }
+    ReadTile {
+        vertices,
+        edges,
+        step,
+    }
+}
+
+/// The checks of [`check_tile`] with `detail`: every vertex is a decoded height at its own
+/// position, and the mesh between them within the tile's bound of the decoded heights.
+async fn check_heights(
+    id: &str,
+    vertices: &[[f64; 3]],
+    triangles: &[[usize; 3]],
+    edges: &[Vec<usize>],
+    (bounds, bound, step): ([f64; 4], f64, f64),
+) {
     // Every vertex is a decoded height at its own position (within the quantisation).
     // Vertices sit on the tile's 65 x 65 grid; the format stores their positions in steps of
     // 1/32767 of the tile, so the decoder's positions are snapped back to the grid (they are
@@ -232,7 +285,6 @@ async fn check_tile(id: &str, z: u8, lon: f64, lat: f64) -> ReadTile {
     // their own bound of the attractor (chains from slightly different frame coordinates), so
     // they may differ by twice the bound. Edge vertices may instead lie on their edge's chord,
     // where the neighbour's mesh passes (no cracks), within the tile's bound.
-    let edges: Vec<Vec<usize>> = serde_json::from_value(tile["edges"].clone()).unwrap();
     let on_edge: std::collections::HashSet<usize> = edges.iter().flatten().copied().collect();
     for (k, (v, d)) in vertices.iter().zip(decoded(id, &at).await).enumerate() {
         let (d, b) = d.unwrap_or((0.0, 0.0));
@@ -260,16 +312,27 @@ async fn check_tile(id: &str, z: u8, lon: f64, lat: f64) -> ReadTile {
         .collect();
     let heights = decoded(id, &grid).await;
     let mut checked = 0;
+    // The mesh's flat triangles, on the globe: straight in the heights over the sphere's
+    // second-order arc (about the tile's centre; any point gives the same), as it is meshed.
+    let centre = [0.5 * (bounds[0] + bounds[2]), 0.5 * (bounds[1] + bounds[3])];
+    let arc = |v: [f64; 2]| {
+        -0.5 * GLOBE
+            * ((v[0] - centre[0]).to_radians().powi(2) + (v[1] - centre[1]).to_radians().powi(2))
+    };
     for (p, d) in grid.iter().zip(heights) {
         let Some((d, b)) = d else { continue };
         let mesh = triangles.iter().find_map(|t| {
-            let [a, b, c] = t.map(|k| vertices[k]);
+            let [a, b, c] = t.map(|k| {
+                let v = vertices[k];
+                [v[0], v[1], v[2] + arc([v[0], v[1]])]
+            });
             let det = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1]);
             let l1 = ((b[1] - c[1]) * (p[0] - c[0]) + (c[0] - b[0]) * (p[1] - c[1])) / det;
             let l2 = ((c[1] - a[1]) * (p[0] - c[0]) + (a[0] - c[0]) * (p[1] - c[1])) / det;
             let l3 = 1.0 - l1 - l2;
             let eps = -1e-9;
-            (l1 >= eps && l2 >= eps && l3 >= eps).then(|| l1 * a[2] + l2 * b[2] + l3 * c[2])
+            (l1 >= eps && l2 >= eps && l3 >= eps)
+                .then(|| l1 * a[2] + l2 * b[2] + l3 * c[2] - arc(*p))
         });
         let mesh = mesh.expect("every grid point of a tile inside the asset is in a triangle");
         assert!(
@@ -279,28 +342,6 @@ async fn check_tile(id: &str, z: u8, lon: f64, lat: f64) -> ReadTile {
         checked += 1;
     }
     assert!(checked > 1000, "{id}: {checked}");
-    // Every edge vertex lies on its edge.
-    let on = [
-        (0, bounds[0]),
-        (1, bounds[1]),
-        (0, bounds[2]),
-        (1, bounds[3]),
-    ];
-    for (edge, (axis, value)) in edges.iter().zip(on) {
-        assert!(!edge.is_empty());
-        for &k in edge {
-            assert!(
-                (vertices[k][axis] - value).abs() < 1e-9,
-                "{:?} not on {value}",
-                vertices[k]
-            );
-        }
-    }
-    ReadTile {
-        vertices,
-        edges,
-        step,
-    }
 }
 
 #[tokio::test]
@@ -315,49 +356,51 @@ async fn terrain_tiles_read_back_by_an_independent_decoder_match_the_decoded_hei
         ("etopo20", 8, -70.0, -33.0),
         ("etopo20", 5, 179.9, -20.0),
     ] {
-        // Each of these tiles lies over relief: a real mesh, not two flat triangles.
-        let tile = check_tile(id, z, lon, lat).await;
-        assert!(
-            tile.vertices.len() > 100,
-            "{id} {z}: {}",
-            tile.vertices.len()
-        );
+        // Each of these tiles lies over relief (or the globe's curvature): a real mesh, not
+        // two flat triangles.
+        let tile = check_tile(id, z, lon, lat, true).await;
+        assert!(tile.vertices.len() > 8, "{id} {z}: {}", tile.vertices.len());
     }
 }
 
 #[tokio::test]
 async fn neighbouring_terrain_tiles_meet_without_cracks() {
     // Adaptive tiles (jacksboro at level 12, etopo20 at level 8) and their east and north
-    // neighbours: every vertex on a shared edge lies on the other tile's edge polyline, to the
-    // two tiles' height quanta. Meshed each on its own, these edges were up to the level's
+    // neighbours, as served by default and with the continuation's detail: every vertex on a
+    // shared edge lies on the other tile's edge (as drawn on the globe), to the two tiles'
+    // height quanta. Meshed each on its own, these edges were up to the level's
     // error apart (cracks that Cesium's skirts hide only from above).
     for (id, z, lon, lat) in [
         ("jacksboro", 12, -84.25, 36.6),
         ("etopo20", 8, -70.0, -33.0),
     ] {
-        let d = 180.0 / f64::from(1u32 << z);
-        let here = check_tile(id, z, lon, lat).await;
-        let east = check_tile(id, z, lon + d, lat).await;
-        let north = check_tile(id, z, lon, lat + d).await;
-        let mut compared = 0;
-        for (a, side, b, other) in [
-            (&here, 2usize, &east, 0),
-            (&east, 0, &here, 2),
-            (&here, 3, &north, 1),
-            (&north, 1, &here, 3),
-        ] {
-            let along = usize::from(side.is_multiple_of(2));
-            for &k in &a.edges[side] {
-                let v = a.vertices[k];
-                let across = b.edge_height(other, v[along]);
-                assert!(
-                    (v[2] - across).abs() <= a.step + b.step + 1e-3,
-                    "{id} {z}: {v:?} on edge {side}, the neighbour's edge at {across}"
-                );
-                compared += 1;
+        for detail in [false, true] {
+            let d = 180.0 / f64::from(1u32 << z);
+            let here = check_tile(id, z, lon, lat, detail).await;
+            let east = check_tile(id, z, lon + d, lat, detail).await;
+            let north = check_tile(id, z, lon, lat + d, detail).await;
+            let mut compared = 0;
+            for (a, side, b, other) in [
+                (&here, 2usize, &east, 0),
+                (&east, 0, &here, 2),
+                (&here, 3, &north, 1),
+                (&north, 1, &here, 3),
+            ] {
+                let along = usize::from(side.is_multiple_of(2));
+                for &k in &a.edges[side] {
+                    let v = a.vertices[k];
+                    let across = b.edge_height(other, v[along]);
+                    assert!(
+                        (v[2] - across).abs() <= a.step + b.step + 1e-3,
+                        "{id} {z} (detail {detail}): {v:?} on edge {side}, the neighbour's edge at {across}"
+                    );
+                    compared += 1;
+                }
             }
+            // The default tiles past the source have a vertex a source cell at most.
+            let least = if detail { 20 } else { 4 };
+            assert!(compared > least, "{id}: {compared} edge vertices");
         }
-        assert!(compared > 20, "{id}: {compared} edge vertices");
     }
 }
 

@@ -92,7 +92,7 @@ impl Mesh {
         max_error: f32,
     ) -> Result<Mesh, Error> {
         check_rtin(heights, n, max_error)?;
-        Ok(Self::rtin(heights, n, (origin, spacing), max_error, &[]))
+        Ok(Self::rtin((heights, heights), n, (origin, spacing), max_error, &[]).0)
     }
 
     /// [`Mesh::adaptive`] for meshes that tile the plane with their neighbours (terrain tiles):
@@ -106,14 +106,32 @@ impl Mesh {
     /// built. Where the interior asks for an extra edge vertex, that vertex then lies on the
     /// chord, which is where the neighbour's mesh passes. The surface stays within `max_error`
     /// of every height (edges through the chords, the interior through the network).
+    ///
+    /// `bend` is the curvature of the surface the heights stand on, as the sagitta of a span of
+    /// one grid unit times 4 (a flat chord of L units falls `bend L^2 / 4` below the middle of
+    /// its arc; 0 for a plane): on a globe of radius R with `u` radians a grid unit, `R u^2 /
+    /// 2`. Errors are then measured on the heights plus `-bend |p - q|^2` (the sphere to second
+    /// order about a point q): a flat triangle's distance to the curved surface, where a long
+    /// triangle over flat heights can fall below the ground by its sagitta. Any q gives the same
+    /// errors (two such paraboloids differ by an affine function, which linear interpolation
+    /// reproduces); an edge takes its own middle, so that both tiles on it compute the same bits.
+    ///
+    /// Returns the mesh and the largest distance between it and the heights (on the globe, at
+    /// the grid's points), at most `max_error`: what a tile's bound adds.
     pub fn adaptive_tile(
         heights: &[f32],
         n: usize,
         origin: [f32; 2],
         spacing: [f32; 2],
         max_error: f32,
-    ) -> Result<Mesh, Error> {
+        bend: f32,
+    ) -> Result<(Mesh, f32), Error> {
         check_rtin(heights, n, max_error)?;
+        if !(bend.is_finite() && bend >= 0.0) {
+            return Err(Error::Input(format!(
+                "bend must be a finite number >= 0, got {bend}"
+            )));
+        }
         let mut stitched = heights.to_vec();
         let mut forced = Vec::new();
         let last = n - 1;
@@ -125,34 +143,63 @@ impl Mesh {
             2 => k,
             _ => last * n + k,
         };
+        // The edge's own arc about its middle: the same on both tiles that share the edge.
+        let middle = last as f32 / 2.0;
+        let arc = |k: usize| -bend * (k as f32 - middle).powi(2);
+        // The largest distance of an edge's chords from its heights (NaN: nodata, no bound).
+        let mut edge_error = 0.0f32;
         for edge in 0..4 {
-            let samples: Vec<f32> = (0..n).map(|k| heights[at(edge, k)]).collect();
+            let samples: Vec<f32> = (0..n).map(|k| heights[at(edge, k)] + arc(k)).collect();
             let (kept, chords) = edge_chords(&samples, max_error);
+            for (c, h) in chords.iter().zip(&samples) {
+                edge_error = edge_error.max((c - h).abs());
+            }
             for k in 0..n {
-                stitched[at(edge, k)] = chords[k];
+                // Back to heights: off the kept vertices, where the flat chord passes.
+                stitched[at(edge, k)] = if kept[k] {
+                    heights[at(edge, k)]
+                } else {
+                    chords[k] - arc(k)
+                };
                 if kept[k] {
                     forced.push(at(edge, k));
                 }
             }
         }
-        Ok(Self::rtin(
-            &stitched,
+        // The network measures its errors on the heights over the tile's arc about its centre.
+        let measured: Vec<f32> = if bend > 0.0 {
+            stitched
+                .iter()
+                .enumerate()
+                .map(|(g, &h)| {
+                    let (x, y) = ((g % n) as f32 - middle, (g / n) as f32 - middle);
+                    h - bend * (x * x + y * y)
+                })
+                .collect()
+        } else {
+            stitched.clone()
+        };
+        let (mesh, inside) = Self::rtin(
+            (&measured, &stitched),
             n,
             (origin, spacing),
             max_error,
             &forced,
-        ))
+        );
+        // Rounded up past the f32 sums that compared them with the bound.
+        Ok((mesh, edge_error.max(inside).min(max_error).next_up()))
     }
 
     /// The network of [`Mesh::adaptive`] over checked inputs, with the grid points `forced`
-    /// always vertices.
+    /// always vertices: errors measured on `measured`, vertices at `heights`; and the largest
+    /// error of its triangles (at most `max_error`).
     fn rtin(
-        heights: &[f32],
+        (measured, heights): (&[f32], &[f32]),
         n: usize,
         (origin, spacing): ([f32; 2], [f32; 2]),
         max_error: f32,
         forced: &[usize],
-    ) -> Mesh {
+    ) -> (Mesh, f32) {
         let tile = n - 1;
         // Each splittable triangle's error, kept at the middle of its long edge, where the
         // triangle beyond that edge keeps its own too: the two split together (no cracks), and
@@ -169,7 +216,7 @@ impl Mesh {
             }
             let (mx, my) = ((ax + bx) / 2, (ay + by) / 2);
             let mid = my * n + mx;
-            errors[mid] = errors[mid].max(rtin_error(heights, n, t));
+            errors[mid] = errors[mid].max(rtin_error(measured, n, t));
             stack.push([cx, cy, ax, ay, mx, my]);
             stack.push([bx, by, cx, cy, mx, my]);
         }
@@ -193,13 +240,20 @@ impl Mesh {
             normals: Vec::new(),
         };
         let mut vertex = vec![u32::MAX; n * n];
+        // The largest error of a triangle kept (its own, or its pair's over the shared long
+        // edge: a bound on it).
+        let mut worst = 0.0f32;
         stack.extend([[0, 0, tile, tile, tile, 0], [tile, tile, 0, 0, 0, tile]]);
         while let Some([ax, ay, bx, by, cx, cy]) = stack.pop() {
             let (mx, my) = ((ax + bx) / 2, (ay + by) / 2);
-            if ax.abs_diff(cx) + ay.abs_diff(cy) > 1 && errors[my * n + mx] > max_error {
+            let splittable = ax.abs_diff(cx) + ay.abs_diff(cy) > 1;
+            if splittable && errors[my * n + mx] > max_error {
                 stack.push([cx, cy, ax, ay, mx, my]);
                 stack.push([bx, by, cx, cy, mx, my]);
                 continue;
+            }
+            if splittable {
+                worst = worst.max(errors[my * n + mx]);
             }
             let corners = [ay * n + ax, by * n + bx, cy * n + cx];
             if corners.iter().any(|&g| !heights[g].is_finite()) {
@@ -223,7 +277,7 @@ impl Mesh {
             }
             mesh.triangles.push(tri);
         }
-        mesh
+        (mesh, worst)
     }
 
     /// Reads a triangle mesh from an OFF, OBJ, PLY or STL file (chosen by extension). Polygons

@@ -1,7 +1,8 @@
 //! Cesium terrain: `layer.json` and quantized-mesh-1.0 tiles of a georeferenced height field, in
 //! the geographic tiling scheme CesiumJS uses by default (EPSG:4326, TMS rows from the south,
 //! two root tiles). Each tile is an adaptive mesh (right-triangulated irregular network) of a
-//! 65 x 65 grid of decoded heights, within the level's geometric error of them. Terrain has no
+//! grid of decoded heights (65 x 65, or past the source's resolution as fine as its cells),
+//! within the level's geometric error of them on the globe. Terrain has no
 //! holes: off the asset and at nodata the surface is the ellipsoid (height 0), and both root
 //! tiles exist whatever the asset covers, since Cesium draws nothing until they are in.
 
@@ -20,9 +21,9 @@ const GRID: usize = 65;
 /// choose the tiles it would for its own terrain.
 const LEVEL_ZERO_ERROR: f64 = 6_378_137.0 * std::f64::consts::TAU * 0.25 / (65.0 * 2.0);
 
-/// First level whose tiles are adaptive meshes (see `terrain_tile`): the sagitta of a tile,
-/// 6378137 m x (pi / 2^z)^2 / 8, is within half of `LEVEL_ZERO_ERROR` / 2^z from 2^z >= 204.
-const ADAPTIVE_FROM: u8 = 8;
+/// The globe's radius for the curvature a tile's mesh must follow: the WGS84 semi-major axis,
+/// the largest (a chord of a given angle falls furthest below the larger circle).
+const GLOBE_RADIUS: f64 = 6_378_137.0;
 
 /// The asset as Cesium terrain: a georeferenced height field.
 fn terrain_asset(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> {
@@ -159,22 +160,15 @@ pub(super) async fn terrain_tile(
     if let Some(c) = state.cache.get(&key) {
         return Ok(vary(cached_response(&state, &tag, &c)));
     }
-    // Vertex (i, j): i east, j south, the tile's edges included, so that neighbours share
-    // their edge vertices' positions and therefore their decoded heights (no cracks).
-    let frac = |k: usize| k as f64 / (GRID - 1) as f64;
-    let grid = box_pixels(
-        &a,
-        (GRID, |i| w + frac(i) * (e - w)),
-        (GRID, |j| n - frac(j) * (n - s)),
-        cell_size([w, s, e, n], GRID - 1, GRID - 1),
-    );
+    let detail = q.iterations.is_some() || q.tolerance.is_some();
+    let (grid, side) = tile_grid(&a, z, [w, s, e, n], detail);
     let (gpu, coarse) = (state.gpu.clone(), state.coarse.clone());
     let asset = a.clone();
-    let cost = sampling_bytes(GRID * GRID, 1) + (GRID * GRID) as u64 * 64;
+    let cost = sampling_bytes(side * side, 1) + (side * side) as u64 * 64;
     let drawn = decode(&state, cost, move |cancel| {
         let (heights, bound) = if grid.is_outside() {
             (
-                vec![f32::NAN; GRID * GRID],
+                vec![f32::NAN; side * side],
                 // Nothing of the source in it: no error against it (where the asset
                 // measured its error at all).
                 Bounds {
@@ -193,7 +187,7 @@ pub(super) async fn terrain_tile(
             )?;
             (channels.into_iter().next().unwrap_or_default(), bound)
         };
-        mesh_tile(heights, (z, [w, s, e, n]), (normals, gzip), bound)
+        mesh_tile((heights, side), (z, [w, s, e, n]), (normals, gzip), bound)
     })
     .await??;
     let cached = Arc::new(drawn);
@@ -202,36 +196,45 @@ pub(super) async fn terrain_tile(
 }
 
 /// The quantized-mesh tile of a grid of decoded heights (NaN off the asset) over `bounds` at
-/// level `z`, with normals and gzipped as asked; `bound` is the decode's.
+/// level `z`, `side` vertices a side, with normals and gzipped as asked; `bound` is the
+/// decode's.
 fn mesh_tile(
-    heights: Vec<f32>,
+    (heights, side): (Vec<f32>, usize),
     (z, [w, s, e, n]): (u8, [f64; 4]),
     (normals, gzip): (bool, bool),
     bound: Bounds,
 ) -> Result<Cached, AppError> {
     let max_error = (LEVEL_ZERO_ERROR / f64::from(1u32 << z)) as f32;
+    // Cesium places each vertex on the ellipsoid and draws flat triangles between them: a
+    // triangle across a wide tile falls below the ground by its sagitta, so the mesh measures
+    // its errors on the globe (to second order, `Mesh::adaptive_tile`'s bend). A grid unit
+    // spans (e - w) / 64 degrees of longitude and as many of latitude; taken as arcs of a
+    // great circle (longitude's are shorter away from the equator: a bound, not the value).
+    let unit = ((e - w) / (side - 1) as f64).to_radians();
+    let bend = (GLOBE_RADIUS * unit * unit / 2.0) as f32;
     // Terrain has no holes: off the asset (and at nodata) the surface is the ellipsoid.
     let heights: Vec<f32> = heights
         .into_iter()
         .map(|h| if h.is_finite() { h } else { 0.0 })
         .collect();
-    // A flat triangle between far vertices falls below the curved surface by its sagitta
-    // (span^2 / 8R): the adaptive mesh measures heights only, so it is used from the level
-    // where a whole tile's sagitta is within half the level's error; coarser levels are
-    // the regular grid, as Cesium's own heightmap tiles.
     // Adaptive tiles are stitched: each edge is meshed from its own heights, so neighbours
-    // meet on the same polyline (no cracks).
-    let mesh = if z >= ADAPTIVE_FROM {
-        fractile_codec::mesh::Mesh::adaptive_tile(&heights, GRID, [0.0, 0.0], [1.0, 1.0], max_error)
-            .map_err(|e| AppError::internal(e.to_string()))?
-    } else {
-        fractile_codec::mesh::Mesh::grid(&heights, GRID, GRID, [0.0, 0.0], [1.0, 1.0])
-    };
+    // meet on the same polyline (no cracks). At every level: the wide tiles of levels 0-7 were
+    // the regular 65 x 65 grid (8,192 triangles) before their errors took the curvature in
+    // (docs/benchmarks.md "Cesium meshes against Delatin").
+    let (mesh, mesh_error) = fractile_codec::mesh::Mesh::adaptive_tile(
+        &heights,
+        side,
+        [0.0, 0.0],
+        [1.0, 1.0],
+        max_error,
+        bend,
+    )
+    .map_err(|e| AppError::internal(e.to_string()))?;
     let grid_normals = normals
-        .then(|| fractile_codec::mesh::quantized::grid_normals(&heights, GRID, [w, s, e, n]));
+        .then(|| fractile_codec::mesh::quantized::grid_normals(&heights, side, [w, s, e, n]));
     let body = fractile_codec::mesh::quantized::TerrainTile {
         mesh: &mesh,
-        n: GRID,
+        n: side,
         bounds: [w, s, e, n],
         normals: grid_normals.as_deref(),
     }
@@ -245,16 +248,62 @@ fn mesh_tile(
         },
         content_encoding: gzip.then_some("gzip"),
         body: Bytes::from(body),
-        // At the tile's 65 x 65 grid points: the decode's bound, plus the mesh's error where
-        // the mesh is simplified. A regular grid passes through every decoded height, so its
-        // bound is the decode's alone (it was the level's geometric error before, 79 km at
-        // level 0: a figure about Cesium's level choice, not about any height).
-        bounds: if z >= ADAPTIVE_FROM {
-            bound.plus(max_error)
-        } else {
-            bound
-        },
+        // At the tile's grid points: the decode's bound, plus the mesh's own error there (at
+        // most the level's geometric error; on the globe: a wide flat triangle's sagitta).
+        bounds: bound.plus(mesh_error),
     })
+}
+
+/// The vertices of terrain tile `z` over `[w, s, e, n]` as pixels of the asset, and their side
+/// (see below); `detail`: the request asked for steps or a tolerance.
+fn tile_grid(a: &StoredAsset, z: u8, [w, s, e, n]: [f64; 4], detail: bool) -> (geo::Pixels, usize) {
+    // The grid's side: 65 vertices (Cesium's heightmap tiles'), or past the source's
+    // resolution the fewest 2^k + 1 whose spacing is no wider than a source cell, unless
+    // `detail` (`iterations` or `tolerance` asked) wants the continuation's below the cells.
+    // Why: a mesh is held to its level's geometric error at its grid's points, and 65 points over a
+    // tile of a few source cells held it to the continuation's synthetic detail (and, filtered
+    // over a cell, to the kinks between cells), which took jacksboro's tiles at levels 13-16 to
+    // 2-30x the triangles of Delatin on the source cells (issue 56). A grid as fine as the
+    // cells samples all the data holds; the mesh interpolates between its points, as a mesh of
+    // the cells does. The side depends on the level alone, so neighbours share their edges'
+    // points.
+    let side = if detail { GRID } else { grid_side(a, z) };
+    // Vertex (i, j): i east, j south, the tile's edges included, so that neighbours share
+    // their edge vertices' positions and therefore their decoded heights (no cracks).
+    let frac = |k: usize| k as f64 / (side - 1) as f64;
+    let mut grid = box_pixels(
+        a,
+        (side, |i| w + frac(i) * (e - w)),
+        (side, |j| n - frac(j) * (n - s)),
+        cell_size([w, s, e, n], side - 1, side - 1),
+    );
+    // A vertex of a projected asset (the DEM default) is then its decoded samples filtered
+    // over (at least) one source cell around it, which is bounded against the source filtered
+    // the same way; the same footprint for every tile of the level, so shared edge vertices
+    // decode alike. Other codecs keep point decodes at the vertices: their filtered pixels
+    // come through the server's cache of discrete decodes, and with other requests alongside
+    // (the terrain tests), neighbours' shared edge vertices came out up to 1.5 m apart.
+    if !detail && a.asset.codec_name() == fractile_codec::codecs::projected::CODEC_NAME {
+        let (cw, ch) = (a.asset.meta.width.max(1), a.asset.meta.height.max(1));
+        let cell = [1.0001 / cw as f32, 1.0001 / ch as f32];
+        grid.footprint = [
+            grid.footprint[0].max(cell[0]),
+            grid.footprint[1].max(cell[1]),
+        ];
+    }
+    (grid, side)
+}
+
+/// The side of level `z`'s grids past the source's resolution: the fewest 2^k + 1 vertices
+/// (at most [`GRID`]) whose spacing is no wider than a source cell, the cell taken as the
+/// asset's width in degrees over its columns (as [`max_level`] takes it: the same for every
+/// tile of the level).
+fn grid_side(a: &StoredAsset, z: u8) -> usize {
+    let [w, _, e, _] = asset_bounds(a);
+    let pixel = (e - w).max(1e-12) / f64::from(a.asset.meta.width.max(1));
+    let cells = 180.0 / f64::from(1u32 << z.min(31)) / pixel;
+    let units = (cells.ceil().max(1.0) as usize).next_power_of_two();
+    units.min(GRID - 1) + 1
 }
 
 /// Whether `Accept-Encoding` allows gzip (with a non-zero weight).
