@@ -322,10 +322,9 @@ async fn check_heights(
     for (p, d) in grid.iter().zip(heights) {
         let Some((d, b)) = d else { continue };
         let mesh = triangles.iter().find_map(|t| {
-            let [a, b, c] = t.map(|k| {
-                let v = vertices[k];
-                [v[0], v[1], v[2] + arc([v[0], v[1]])]
-            });
+            // Each vertex at its grid point (the format quantises positions to 1/32767 of the
+            // tile, which on a wide tile moves the arc, kilometres deep, by metres).
+            let [a, b, c] = t.map(|k| [at[k][0], at[k][1], vertices[k][2] + arc(at[k])]);
             let det = (b[1] - c[1]) * (a[0] - c[0]) + (c[0] - b[0]) * (a[1] - c[1]);
             let l1 = ((b[1] - c[1]) * (p[0] - c[0]) + (c[0] - b[0]) * (p[1] - c[1])) / det;
             let l2 = ((c[1] - a[1]) * (p[0] - c[0]) + (a[0] - c[0]) * (p[1] - c[1])) / det;
