@@ -13,7 +13,8 @@
 //! | operator, decode | [`core`] (the operator form, its decoders, entropy coder) | nothing |
 //! | output | [`extract`] (tiles, points, regions, distances), [`render`] | `io`, `codecs`, `core` |
 //!
-//! No module imports one that imports it back (`tests/layout.sh` checks).
+//! No module imports one that imports it back, in this crate or any other of the workspace
+//! (`codec/tests/layout.rs` checks, resolving paths as the compiler does).
 //!
 //! No HTTP and no async here: the server calls these functions.
 

@@ -10,53 +10,20 @@ use std::path::Path;
 use std::sync::{Arc, RwLock};
 
 use fractile_codec::geo::Placement;
-use fractile_codec::io::chunked::{ChunkCache, ChunkSource};
+use fractile_codec::io::chunked::ChunkCache;
 use fractile_codec::{Asset, AssetLimits};
 
 use crate::error::AppError;
 
+mod backing;
 mod breaker;
 mod bucket;
 mod demo;
 mod folder;
+pub use backing::{Backing, Listing, validate_id};
 pub use bucket::{Bucket, DiskCache, s3_store};
 pub use demo::ensure_demo_assets;
 pub use folder::Folder;
-
-/// Where the asset files are kept. The catalog ([`Store`]) is the same over every backing: it
-/// lists, opens by range, and replaces through these calls only, all blocking (call them off
-/// the async executor).
-pub trait Backing: Send + Sync {
-    /// The asset files there now, each with its version (an opaque text that changes when the
-    /// file does); an error when the backing cannot be read.
-    fn list(&self) -> std::io::Result<Listing>;
-    /// The file of `id`, as listed at `version`, read by range.
-    fn open(&self, id: &str, version: &str) -> std::io::Result<Box<dyn ChunkSource>>;
-    /// Stores `bytes` as the file of `id` so that readers see the old file or the new one
-    /// whole, never a mix; returns the new version.
-    fn put(&self, id: &str, bytes: &[u8]) -> std::io::Result<String>;
-    /// Removes the file of `id`.
-    fn delete(&self, id: &str) -> std::io::Result<()>;
-    /// Where, for messages.
-    fn describe(&self) -> String;
-    /// Where the file of `id` is, for messages.
-    fn locate(&self, id: &str) -> String;
-    /// The version of the file of `id` now, where asking is cheap (a folder's `stat`), to tell
-    /// a file that changed while it was read; `None` where versions cannot change under a
-    /// reader (a bucket's objects are written whole).
-    fn current(&self, _id: &str) -> Option<String> {
-        None
-    }
-}
-
-/// What a [`Backing`] holds.
-#[derive(Debug, Default)]
-pub struct Listing {
-    /// `(id, version)` of each asset file, by id.
-    pub files: Vec<(String, String)>,
-    /// Entries that are not served, one message each (a symbolic link, a bad id).
-    pub skipped: Vec<String>,
-}
 
 /// An asset with what the server derives from it once.
 pub struct StoredAsset {
@@ -101,19 +68,6 @@ pub struct Refreshed {
     pub skipped: Vec<String>,
     /// Why the backing could not be listed, if it could not (the catalog is left as it was).
     pub unreachable: Option<String>,
-}
-
-/// Checks an asset id: 1-64 characters of letters, digits, `-` and `_`, not starting with `-`
-/// or `_` (so no paths, no `..`, no hidden files).
-pub fn validate_id(id: &str) -> Result<(), AppError> {
-    if fractile_proto::valid_asset_id(id) {
-        Ok(())
-    } else {
-        Err(AppError::bad_request(
-            "bad_id",
-            format!("asset id {id:?} must be 1-64 letters, digits, '-' or '_'"),
-        ))
-    }
 }
 
 /// A backing that failed on a write: 503, since a store that comes back takes writes again.

@@ -1,7 +1,16 @@
 //! `fractile encode --part I/N` and `fractile assemble`: a chunked encode split over processes
 //! or machines, and its parts joined (`fractile_codec::encode::parts`).
 
-use super::*;
+use std::path::{Path, PathBuf};
+
+use anyhow::Result;
+use fractile_codec::Raster;
+use fractile_codec::encode::chunked::Share;
+use fractile_codec::io::rows::Rows;
+use serde_json::json;
+
+use super::args::{EncodeArgs, file_rate};
+use super::raster::encode_with;
 use fractile_codec::encode::parts::{encode_chunked_part, encode_chunked_part_at};
 
 /// `encode --part I/N`: one share of a chunked encode into a part file.

@@ -1,7 +1,12 @@
 //! `fractile encode` of the inputs that are not rasters: meshes (IFS3D on a signed distance
 //! volume) and GeoJSON curves (projected IFS with details).
 
-use super::*;
+use std::path::Path;
+
+use anyhow::{Context, Result, bail};
+use serde_json::json;
+
+use super::args::{CodecArg, EncodeArgs};
 /// Whether a path names a mesh (by extension).
 pub(crate) fn is_mesh(p: &Path) -> bool {
     p.extension()

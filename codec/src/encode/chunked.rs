@@ -22,7 +22,7 @@ use serde::{Deserialize, Serialize};
 
 use super::pyramid::Pyramid;
 use super::rate::{self, EncodeAt, FileRate, Search};
-use super::{Encoded, Written};
+use super::source::{Encoded, Written};
 use crate::Error;
 use crate::core::metrics::Errors;
 use crate::io::asset::{Asset, write_atomic_with};
@@ -685,7 +685,7 @@ fn view_maps(enc: &Encoded, part: &Raster, views: usize) -> Result<Vec<Vec<u8>>,
     let (w, h) = (part.width, part.height);
     let mut filled = part.channels[0].clone();
     if let Some(valid) = &part.valid {
-        super::fill_invalid(&mut filled, valid, w, h);
+        super::source::fill_invalid(&mut filled, valid, w, h);
     }
     let grid: Vec<f64> = filled.iter().map(|&v| f64::from(v)).collect();
     let plane = lifting::Plane {

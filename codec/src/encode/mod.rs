@@ -13,11 +13,18 @@ pub mod parts;
 pub mod projected;
 mod pyramid;
 pub mod rate;
+mod source;
 pub mod volume;
+
+pub use source::{Encoded, Written};
+use source::{
+    SourcePlane, coding_range, decoded_errors, fill_invalid, measured, source_meta, source_planes,
+    without_map,
+};
 
 use std::time::Instant;
 
-use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
+use fractile_proto::{AssetKind, AssetMeta, ColourModel, SampleFormat};
 
 use crate::Error;
 use crate::codecs::fis::{FisHeader, FisSettings};
@@ -28,11 +35,10 @@ use crate::codecs::quadtree::partition::{
 use crate::codecs::quadtree::search::{CodingPlane, SearchMode};
 use crate::codecs::quadtree::stream::{PlaneHeader, encode_plane};
 use crate::core::decode::{self, DiscreteOptions};
-use crate::core::metrics::{Errors, compare};
+use crate::core::metrics::Errors;
 use crate::core::transform::Quantiser;
 use crate::io::asset::{Asset, Mask, PlaneOperator};
 use crate::io::raster::Raster;
-use crate::render::colour::rgb_to_ycbcr;
 
 /// What decides how many ranges the encoder spends.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -318,78 +324,6 @@ impl EncodeSettings {
     }
 }
 
-/// What an encode produced and measured.
-#[derive(Clone, Debug)]
-pub struct Encoded {
-    /// The asset (also holds the stats in its metadata).
-    pub asset: Asset,
-    /// The file's bytes.
-    pub bytes: Vec<u8>,
-    /// Errors of the decoded asset against the source (valid cells, source units).
-    pub errors: Errors,
-    /// Ranges over all planes.
-    pub transforms: usize,
-    /// Wall time in seconds.
-    pub seconds: f64,
-}
-
-impl Encoded {
-    /// Bits per source pixel of the whole file.
-    pub fn bpp(&self) -> f64 {
-        bpp(&self.asset.meta, self.bytes.len() as u64)
-    }
-
-    /// Source bytes (at the source's sample type) over file bytes.
-    pub fn ratio(&self) -> f64 {
-        self.asset.meta.source_bytes() as f64 / self.bytes.len() as f64
-    }
-
-    /// Writes the file to `path` atomically; keeps what was measured.
-    pub fn write(self, path: &std::path::Path) -> Result<Written, Error> {
-        crate::io::asset::write_atomic(path, &self.bytes)?;
-        Ok(Written {
-            length: self.bytes.len() as u64,
-            asset: self.asset,
-            errors: self.errors,
-            transforms: self.transforms,
-            seconds: self.seconds,
-        })
-    }
-}
-
-/// What an encode wrote to a file and measured: [`Encoded::write`], or a chunked encode
-/// streamed to disk ([`chunked::encode_chunked_file`]), whose bytes were never all in memory.
-#[derive(Clone, Debug)]
-pub struct Written {
-    /// The asset (a chunked one as opened from the file: its header, chunks on demand).
-    pub asset: Asset,
-    /// The file's length in bytes.
-    pub length: u64,
-    /// Errors of the decoded asset against the source (a chunked one's: its source level's
-    /// chunks over their coded cells).
-    pub errors: Errors,
-    /// Ranges over all planes (a chunked one's: over its source level's chunks).
-    pub transforms: usize,
-    /// Wall time in seconds.
-    pub seconds: f64,
-}
-
-impl Written {
-    /// Bits per source pixel of the whole file.
-    pub fn bpp(&self) -> f64 {
-        bpp(&self.asset.meta, self.length)
-    }
-
-    /// Source bytes (at the source's sample type) over file bytes.
-    pub fn ratio(&self) -> f64 {
-        self.asset.meta.source_bytes() as f64 / self.length as f64
-    }
-}
-
-fn bpp(meta: &fractile_proto::AssetMeta, length: u64) -> f64 {
-    length as f64 * 8.0 / (f64::from(meta.width) * f64::from(meta.height))
-}
-
 /// The rate of a height field's default encode: 0.8 bits a cell (20:1 against 16-bit samples),
 /// where issue 34's measurements put every bar (bound within 2.7x of the actual error, tiles
 /// within 1.4x of TiTiler's bytes).
@@ -421,17 +355,6 @@ pub fn encode_default(
     settings.quantiser_choices =
         EncodeSettings::default_quantiser_choices(raster.kind, settings.quantiser);
     encode(raster, &settings, progress)
-}
-
-/// A source channel, normalised, before padding: values, validity, and its extent in source
-/// pixels per plane sample (1 for full resolution, 2 for chroma).
-struct SourcePlane {
-    width: usize,
-    height: usize,
-    values: Vec<f32>,
-    valid: Vec<bool>,
-    /// The source's extent in plane samples (w / 2 for chroma: odd sizes end mid-sample).
-    extent: [f32; 2],
 }
 
 /// Owned form of [`Limits`].
@@ -697,56 +620,6 @@ fn search_planes(
     pyramids_by_quantiser
 }
 
-/// The value range coded as [0, 1]: the sample type's for images, the data's for height fields
-/// (widened to 1 unit when flat).
-fn coding_range(raster: &Raster) -> (f64, f64) {
-    match (raster.kind, raster.sample) {
-        (AssetKind::Image, SampleFormat::U8) => (0.0, 255.0),
-        (AssetKind::Image, SampleFormat::U16) => (0.0, 65535.0),
-        _ => {
-            let (lo, hi) = raster.value_range();
-            (lo, if hi > lo { hi } else { lo + 1.0 })
-        }
-    }
-}
-
-/// The raster's planes normalised to [0, 1] over its value range (luma and half-resolution
-/// chroma for colour), with the range and the colour model.
-fn source_planes(raster: &Raster) -> (f64, f64, ColourModel, Vec<SourcePlane>) {
-    let (w, h) = (raster.width, raster.height);
-    let (lo, hi) = coding_range(raster);
-    let span = (hi - lo) as f32;
-    let valid = raster.valid.clone().unwrap_or_else(|| vec![true; w * h]);
-    let norm = |v: &[f32]| -> Vec<f32> {
-        v.iter()
-            .map(|&x| ((x - lo as f32) / span).clamp(0.0, 1.0))
-            .collect()
-    };
-    let colour = raster.colour();
-    let sources: Vec<SourcePlane> = match colour {
-        ColourModel::Grey => vec![SourcePlane {
-            width: w,
-            height: h,
-            values: norm(&raster.channels[0]),
-            valid: valid.clone(),
-            extent: [w as f32, h as f32],
-        }],
-        ColourModel::YCbCr => {
-            let [y, cb, cr] = rgb_to_ycbcr(&raster.channels, hi as f32);
-            let full = SourcePlane {
-                width: w,
-                height: h,
-                values: norm(&y),
-                valid: valid.clone(),
-                extent: [w as f32, h as f32],
-            };
-            let half = |c: &[f32]| halve(&norm(c), &valid, w, h);
-            vec![full, half(&cb), half(&cr)]
-        }
-    };
-    (lo, hi, colour, sources)
-}
-
 /// The smallest range, the number of range sizes, whether to supersample (quasi-lossless), and
 /// the largest power of two that fits half the raster's short side.
 fn frame_levels(settings: &EncodeSettings, w: usize, h: usize) -> (u32, u32, bool, u32) {
@@ -825,31 +698,6 @@ fn plane_limits(
         .collect()
 }
 
-/// The asset's metadata, before the encoder's measurements.
-fn source_meta(
-    raster: &Raster,
-    encoder: String,
-    (lo, hi): (f64, f64),
-    colour: ColourModel,
-) -> AssetMeta {
-    let (w, h) = (raster.width, raster.height);
-    AssetMeta {
-        kind: raster.kind,
-        width: w as u32,
-        height: h as u32,
-        channels: raster.channels.len() as u8,
-        colour,
-        sample: raster.sample,
-        units: raster.units.clone(),
-        value_min: lo,
-        value_max: hi,
-        nodata: raster.nodata,
-        georef: raster.georef.clone(),
-        encoder,
-        stats: EncodeStats::default(),
-    }
-}
-
 /// The smallest lambda (best quality) whose file fits `max_bytes`: bisection on log(lambda);
 /// the size falls as lambda grows.
 fn smallest_lambda(
@@ -891,19 +739,6 @@ fn attractor(plane: &CodingPlane, op: &PlaneOperator) -> Vec<f32> {
     frame.average2()
 }
 
-/// The asset decoded at the source size, compared with the source (valid cells, source units).
-fn decoded_errors(asset: &Asset, raster: &Raster) -> Errors {
-    let (decoded, _) = asset.decode_native();
-    compare(
-        &raster.channels,
-        &decoded.channels,
-        raster.valid.as_deref(),
-        asset.meta.psnr_peak(),
-    )
-}
-
-/// The encoder's report: the asset's `errors` ([`decoded_errors`]), the figures stored in its
-/// metadata, and its bytes.
 /// Whether `candidate` beats `best` under a target size: an asset within the target beats one
 /// over it (rate control returns its smallest where nothing fits); then the smaller mean square
 /// error (what PSNR ranks by), or between two over the target, the smaller file.
@@ -914,66 +749,6 @@ fn preferred(candidate: (&Asset, &Errors), best: (&Asset, &Errors), target: Opti
         (false, true) => false,
         (true, true) => candidate.1.rmse < best.1.rmse,
         (false, false) => candidate.0.file_size() < best.0.file_size(),
-    }
-}
-
-/// Of a target of `bytes`, what the operator may take: the rest is the source-error map's
-/// (whose budget, a share of the operator's size, then fits in it).
-fn without_map(bytes: usize) -> usize {
-    (bytes as f64 / (1.0 + crate::core::fidelity::SHARE)).floor() as usize
-        - crate::core::fidelity::reserve(0).min(bytes / 64)
-}
-
-fn measured(mut asset: Asset, start: Instant, errors: Errors, source: &Raster) -> Encoded {
-    let transforms: usize = asset.planes.iter().map(|p| p.operator.transforms()).sum();
-    // Its share of the operator's bytes (set aside under a target size, see `encode`).
-    let budget = crate::core::fidelity::reserve(asset.file_size());
-    asset.source_error = Some(fidelity::measure(&asset, source, budget));
-    let seconds = start.elapsed().as_secs_f64();
-    asset.meta.stats = EncodeStats {
-        transforms: transforms as u64,
-        rmse: errors.rmse,
-        psnr: errors.psnr,
-        max_error: errors.max_error,
-        seconds,
-    };
-    let bytes = asset.to_bytes();
-    Encoded {
-        asset,
-        bytes,
-        errors,
-        transforms,
-        seconds,
-    }
-}
-
-/// Halves a normalised plane (box average of valid cells) for chroma.
-fn halve(values: &[f32], valid: &[bool], w: usize, h: usize) -> SourcePlane {
-    let (hw, hh) = (w.div_ceil(2), h.div_ceil(2));
-    let mut out = vec![0.0f32; hw * hh];
-    let mut ok = vec![false; hw * hh];
-    for y in 0..hh {
-        for x in 0..hw {
-            let (mut s, mut n) = (0.0, 0.0);
-            for (dx, dy) in [(0, 0), (1, 0), (0, 1), (1, 1)] {
-                let (sx, sy) = (2 * x + dx, 2 * y + dy);
-                if sx < w && sy < h && valid[sy * w + sx] {
-                    s += values[sy * w + sx];
-                    n += 1.0;
-                }
-            }
-            if n > 0.0 {
-                out[y * hw + x] = s / n;
-                ok[y * hw + x] = true;
-            }
-        }
-    }
-    SourcePlane {
-        width: hw,
-        height: hh,
-        values: out,
-        valid: ok,
-        extent: [w as f32 / 2.0, h as f32 / 2.0],
     }
 }
 
@@ -1036,61 +811,6 @@ fn coding_plane(s: &SourcePlane, align: usize, supersample: bool) -> CodingPlane
         values: pv,
         weights: pw,
         valid,
-    }
-}
-
-/// Push-pull fill of invalid cells from the valid ones.
-pub(crate) fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usize) {
-    if valid.iter().all(|&v| v) {
-        return;
-    }
-    // Level 0: (sum, weight) per cell; each coarser level sums 2x2 children.
-    // (width, height, (sum, weight) per cell) per level.
-    type Level = (usize, usize, Vec<(f32, f32)>);
-    let mut levels: Vec<Level> = vec![(
-        w,
-        h,
-        values
-            .iter()
-            .zip(valid)
-            .map(|(&v, &ok)| if ok { (v, 1.0) } else { (0.0, 0.0) })
-            .collect(),
-    )];
-    while levels.last().is_some_and(|(lw, lh, _)| *lw > 1 || *lh > 1) {
-        let (lw, lh, cells) = levels.last().expect("non-empty");
-        let (nw, nh) = (lw.div_ceil(2), lh.div_ceil(2));
-        let mut next = vec![(0.0f32, 0.0f32); nw * nh];
-        for y in 0..*lh {
-            for x in 0..*lw {
-                let c = cells[y * lw + x];
-                let n = &mut next[(y / 2) * nw + x / 2];
-                n.0 += c.0;
-                n.1 += c.1;
-            }
-        }
-        levels.push((nw, nh, next));
-    }
-    // Pull: every cell without weight takes its parent's mean.
-    for li in (0..levels.len() - 1).rev() {
-        let (upper, lower) = levels.split_at_mut(li + 1);
-        let (lw, lh, cells) = &mut upper[li];
-        let (pw, _, parents) = &lower[0];
-        for y in 0..*lh {
-            for x in 0..*lw {
-                let c = &mut cells[y * *lw + x];
-                if c.1 == 0.0 {
-                    let p = parents[(y / 2) * pw + x / 2];
-                    *c = (p.0 / p.1.max(1e-20), 1.0);
-                } else {
-                    *c = (c.0 / c.1, 1.0);
-                }
-            }
-        }
-    }
-    for (i, v) in values.iter_mut().enumerate() {
-        if !valid[i] {
-            *v = levels[0].2[i].0;
-        }
     }
 }
 

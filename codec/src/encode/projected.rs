@@ -8,9 +8,9 @@ use rayon::prelude::*;
 
 use fractile_proto::{ColourModel, SampleFormat};
 
-use super::{
-    Encoded, coding_range, decoded_errors, fill_invalid, measured, rgb_to_ycbcr, source_meta,
-    source_planes, without_map,
+use super::source::{
+    Encoded, coding_range, decoded_errors, fill_invalid, measured, source_meta, source_planes,
+    without_map,
 };
 use crate::Error;
 use crate::codecs::projected::pyramid::Order;
@@ -19,6 +19,7 @@ use crate::codecs::projected::{
 };
 use crate::io::asset::{Asset, Mask};
 use crate::io::raster::Raster;
+use crate::render::colour::rgb_to_ycbcr;
 
 /// Rate control's bisection steps on log(step): 2^-14 of the range of steps tried, far finer than
 /// a byte of difference.
@@ -502,7 +503,7 @@ fn encode_colour(
         .flat_map(|planes| designs.iter().map(move |&d| (planes.clone(), d)))
         .collect();
     // Each resolution and design on its own core.
-    let coded: Vec<(Asset, super::Errors)> = tries
+    let coded: Vec<(Asset, crate::core::metrics::Errors)> = tries
         .into_par_iter()
         .map(|(planes, lifted)| {
             let sources: Vec<Vec<f64>> = planes

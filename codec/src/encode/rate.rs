@@ -16,7 +16,7 @@
 
 use rayon::prelude::*;
 
-use super::Encoded;
+use super::source::Encoded;
 use crate::Error;
 use crate::codecs::projected::AtStep;
 use crate::codecs::projected::pyramid::Order;

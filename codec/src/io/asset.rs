@@ -26,6 +26,7 @@ use std::sync::Arc;
 use fractile_proto::{AssetKind, AssetMeta};
 use serde::{Deserialize, Serialize};
 
+use super::layout::{ChunkSource, ChunkTable, FileSource, InMemory, MAGIC, is_chunked, kind_byte};
 use crate::Error;
 use crate::codecs::fis::{FisHeader, FisOperator};
 use crate::codecs::projected::{ProjectedHeader, ProjectedOperator};
@@ -37,8 +38,6 @@ use crate::core::entropy::{Bit, Decoder, Encoder};
 use crate::core::fidelity::SourceError;
 use crate::core::operator::{Operator, Step};
 
-/// File magic.
-pub const MAGIC: &[u8; 8] = b"FRACTILE";
 /// The format version this build writes. Versions 2 to 4 changed only the curve payload
 /// (codec 5; version 3: hexagonal lattice for details, shared coarse contexts, an `f32`
 /// tolerance and one stored bound, no length fields; version 4: a ring may carry its
@@ -693,16 +692,38 @@ pub struct Asset {
     pub source_error: Option<SourceError>,
     /// The chunks of a chunked asset (format version 6), read and decoded on demand; such an
     /// asset has no planes of its own, and its answers are its chunks' (`extract::chunked`).
-    pub chunks: Option<Arc<super::chunked::Chunked>>,
+    pub chunks: Option<Arc<Chunked>>,
 }
 
-pub(crate) fn kind_byte(k: AssetKind) -> u8 {
-    match k {
-        AssetKind::Image => 0,
-        AssetKind::HeightField => 1,
-        AssetKind::Volume => 2,
-        AssetKind::Curve => 3,
-    }
+// The chunked container's own state and the cache of its decoded chunks are declared here,
+// beside the asset that holds them and that they hold (an asset's chunks are assets); their
+// behaviour is in `chunked`.
+/// Decoded chunks of every chunked asset of a process, bounded in bytes (their estimated
+/// resident size: operators and masks), least recently used out first. moka's cache also makes
+/// concurrent requests for one chunk decode it once.
+#[derive(Clone)]
+pub struct ChunkCache {
+    pub(crate) cache: moka::sync::Cache<(u64, u8, u32), Arc<Asset>>,
+    /// Chunks being decoded now, and the most at once.
+    pub(crate) decoding: Arc<(std::sync::Mutex<usize>, std::sync::Condvar)>,
+    pub(crate) most_decoding: usize,
+}
+
+/// A chunked container opened for reading: its table, its bytes by range, and the cache its
+/// decoded chunks go to.
+pub struct Chunked {
+    /// The chunk table.
+    pub table: ChunkTable,
+    pub(crate) source: Box<dyn ChunkSource>,
+    pub(crate) limits: AssetLimits,
+    pub(crate) cache: ChunkCache,
+    /// This container's key in the shared cache.
+    pub(crate) key: u64,
+    /// CRC-32 of the header (magic to table): names this version of the asset.
+    pub header_crc: u32,
+    /// Chunks found corrupt, and why: a corrupt chunk stays corrupt, so it is decoded once and
+    /// its error answered again after (the cache keeps only what loaded).
+    pub(crate) corrupt: std::sync::Mutex<std::collections::HashMap<(usize, usize), Error>>,
 }
 
 impl Asset {
@@ -1190,13 +1211,9 @@ impl Asset {
         limits: &AssetLimits,
         build: Build,
     ) -> Result<Asset, Error> {
-        if super::chunked::is_chunked(bytes) {
-            let source = super::chunked::InMemory(bytes.into());
-            return Asset::open_chunked(
-                Box::new(source),
-                limits,
-                super::chunked::ChunkCache::shared(),
-            );
+        if is_chunked(bytes) {
+            let source = InMemory(bytes.into());
+            return Asset::open_chunked(Box::new(source), limits, ChunkCache::shared());
         }
         let (codec, meta, payload, section) = Asset::container(bytes)?;
         let (w, h) = (meta.width as usize, meta.height as usize);
@@ -1378,11 +1395,11 @@ impl Asset {
     /// A chunked container from `source`: its header is read now, its chunks when answers
     /// need them, decoded into `cache`.
     pub fn open_chunked(
-        source: Box<dyn super::chunked::ChunkSource>,
+        source: Box<dyn ChunkSource>,
         limits: &AssetLimits,
-        cache: super::chunked::ChunkCache,
+        cache: ChunkCache,
     ) -> Result<Asset, Error> {
-        let (meta, chunked) = super::chunked::Chunked::open(source, limits, cache)?;
+        let (meta, chunked) = Chunked::open(source, limits, cache)?;
         Ok(Asset {
             meta,
             planes: Vec::new(),
@@ -1396,11 +1413,7 @@ impl Asset {
 
     /// Opens an asset file under `limits`: a chunked one by its header alone (its chunks are
     /// read by range when needed, decoded into `cache`), any other whole.
-    pub fn open(
-        path: &Path,
-        limits: &AssetLimits,
-        cache: super::chunked::ChunkCache,
-    ) -> Result<Asset, Error> {
+    pub fn open(path: &Path, limits: &AssetLimits, cache: ChunkCache) -> Result<Asset, Error> {
         let input = |e: std::io::Error| Error::Input(format!("{}: {e}", path.display()));
         let mut head = [0u8; 12];
         let n = {
@@ -1415,8 +1428,8 @@ impl Asset {
             }
             n
         };
-        if super::chunked::is_chunked(&head[..n]) {
-            let source = super::chunked::FileSource::open(path).map_err(input)?;
+        if is_chunked(&head[..n]) {
+            let source = FileSource::open(path).map_err(input)?;
             return Asset::open_chunked(Box::new(source), limits, cache);
         }
         let bytes = std::fs::read(path).map_err(input)?;
@@ -1429,11 +1442,7 @@ impl Asset {
     /// Reads an asset file under the default limits (a chunked one by its header; its chunks
     /// go to the process's shared cache).
     pub fn read(path: &Path) -> Result<Asset, Error> {
-        Asset::open(
-            path,
-            &AssetLimits::default(),
-            super::chunked::ChunkCache::shared(),
-        )
+        Asset::open(path, &AssetLimits::default(), ChunkCache::shared())
     }
 
     /// Writes the file atomically: a temporary file beside it, synced, then renamed over it.

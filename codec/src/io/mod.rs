@@ -4,6 +4,7 @@
 
 pub mod asset;
 pub mod chunked;
+mod layout;
 pub mod mosaic;
 pub mod raster;
 pub mod rows;

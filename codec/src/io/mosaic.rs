@@ -14,7 +14,7 @@ use fractile_proto::{Georef, SampleFormat};
 
 use crate::Error;
 use crate::io::raster::Raster;
-use crate::io::rows::{GeoTiff, Header, Rows};
+use crate::io::rows::{GeoTiff, Header, InMemory, Rows, is_tiff};
 
 /// How far (in pixels) two origins may be from a whole number of pixels apart, or two pixel
 /// sizes apart relative to their size, and still count as one grid: far above the rounding of
@@ -62,9 +62,21 @@ pub fn input_files(paths: &[PathBuf]) -> Result<Vec<PathBuf>, Error> {
 }
 
 /// Reads `paths` (see [`input_files`]) as one raster: the one file itself, or the mosaic of
-/// several, whole (a chunked encode reads them by bands instead: [`super::rows::open`]).
+/// several, whole (a chunked encode reads them by bands instead: [`open_rows`]).
 pub fn open(paths: &[PathBuf]) -> Result<Raster, Error> {
-    super::rows::open(paths)?.read_all()
+    open_rows(paths)?.read_all()
+}
+
+/// The raster `paths` name (see [`input_files`]) as bands of rows: one GeoTIFF
+/// read by its strips or tiles, a mosaic of several read band by band from each, any other
+/// file (PNG, JPEG) decoded whole.
+pub fn open_rows(paths: &[PathBuf]) -> Result<Box<dyn Rows>, Error> {
+    let files = input_files(paths)?;
+    match files.as_slice() {
+        [one] if is_tiff(one) => Ok(Box::new(GeoTiff::open(one)?)),
+        [one] => Ok(Box::new(InMemory::owned(Raster::open(one)?))),
+        _ => Ok(Box::new(Mosaic::open(&files)?)),
+    }
 }
 
 /// A mosaic of GeoTIFFs read by bands of rows: each band gathered from the inputs it crosses,
@@ -80,7 +92,7 @@ impl Mosaic {
     pub fn open(files: &[PathBuf]) -> Result<Mosaic, Error> {
         let mut parts = Vec::with_capacity(files.len());
         for f in files {
-            if !super::rows::is_tiff(f) {
+            if !is_tiff(f) {
                 return Err(Error::Input(format!(
                     "{}: a mosaic's inputs are GeoTIFFs (.tif, .tiff)",
                     f.display()

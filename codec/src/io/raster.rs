@@ -31,6 +31,7 @@ pub struct Raster {
     pub georef: Option<Georef>,
 }
 
+// `Raster::open` (a file by its extension) is in `rows`, beside the GeoTIFF reader it uses.
 impl Raster {
     /// A single-channel raster from values (NaN marks nodata).
     pub fn from_values(
@@ -57,21 +58,6 @@ impl Raster {
             georef: None,
         };
         r.mask_invalid();
-        r.check()?;
-        Ok(r)
-    }
-
-    /// Reads an image (PNG, JPEG) or a height field (GeoTIFF, 16-bit grey PNG) by file extension.
-    pub fn open(path: &Path) -> Result<Raster, Error> {
-        let ext = path
-            .extension()
-            .and_then(|e| e.to_str())
-            .unwrap_or("")
-            .to_ascii_lowercase();
-        let r = match ext.as_str() {
-            "tif" | "tiff" => read_geotiff(path)?,
-            _ => read_image(path)?,
-        };
         r.check()?;
         Ok(r)
     }
@@ -143,7 +129,7 @@ impl Raster {
     }
 }
 
-fn read_image(path: &Path) -> Result<Raster, Error> {
+pub(crate) fn read_image(path: &Path) -> Result<Raster, Error> {
     use image::DynamicImage as D;
     let img = image::ImageReader::open(path)
         .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?
@@ -228,14 +214,6 @@ fn split_rgb<T: Copy + Into<f64>>(px: &[T]) -> Vec<Vec<f32>> {
                 .collect()
         })
         .collect()
-}
-
-/// A GeoTIFF whole: every row of [`super::rows::GeoTiff`] (one reader of the format).
-fn read_geotiff(path: &Path) -> Result<Raster, Error> {
-    use super::rows::Rows;
-    let mut file = super::rows::GeoTiff::open(path)?;
-    let h = file.header().height;
-    file.read(0, h)
 }
 
 /// The EPSG code in a GeoKeyDirectory: ProjectedCSTypeGeoKey (3072) or GeographicTypeGeoKey (2048).

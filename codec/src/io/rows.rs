@@ -348,16 +348,29 @@ fn values_of(data: tiff::decoder::DecodingResult) -> Vec<f32> {
     }
 }
 
-/// The raster `paths` name (see [`super::mosaic::input_files`]) as bands of rows: one GeoTIFF
-/// read by its strips or tiles, a mosaic of several read band by band from each, any other
-/// file (PNG, JPEG) decoded whole.
-pub fn open(paths: &[PathBuf]) -> Result<Box<dyn Rows>, Error> {
-    let files = super::mosaic::input_files(paths)?;
-    match files.as_slice() {
-        [one] if is_tiff(one) => Ok(Box::new(GeoTiff::open(one)?)),
-        [one] => Ok(Box::new(InMemory::owned(Raster::open(one)?))),
-        _ => Ok(Box::new(super::mosaic::Mosaic::open(&files)?)),
+/// Files opened whole: here rather than in `raster`, beside the GeoTIFF reader they use.
+impl Raster {
+    /// Reads an image (PNG, JPEG) or a height field (GeoTIFF, 16-bit grey PNG) by file extension.
+    pub fn open(path: &Path) -> Result<Raster, Error> {
+        let ext = path
+            .extension()
+            .and_then(|e| e.to_str())
+            .unwrap_or("")
+            .to_ascii_lowercase();
+        let r = match ext.as_str() {
+            "tif" | "tiff" => read_geotiff(path)?,
+            _ => super::raster::read_image(path)?,
+        };
+        r.check()?;
+        Ok(r)
     }
+}
+
+/// A GeoTIFF whole: every row of [`GeoTiff`] (one reader of the format).
+fn read_geotiff(path: &Path) -> Result<Raster, Error> {
+    let mut file = GeoTiff::open(path)?;
+    let h = file.header().height;
+    file.read(0, h)
 }
 
 /// Whether `path` names a TIFF by its extension.

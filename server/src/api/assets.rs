@@ -1,6 +1,18 @@
 //! The catalog and its writes: list, describe, upload (authorised before its body is read), delete.
 
-use super::*;
+use super::request::*;
+use super::state::*;
+
+use crate::error::Path;
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::State;
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use fractile_proto::{AssetKind, AssetSummary, Catalog};
+
+use crate::error::AppError;
+use crate::store::StoredAsset;
 
 pub(super) fn summary(state: &AppState, a: &StoredAsset) -> AssetSummary {
     let m = &a.asset.meta;
@@ -49,9 +61,9 @@ pub(super) async fn list_assets(State(state): Shared) -> Json<Catalog> {
 
 fn authorise(state: &AppState, headers: &HeaderMap) -> Result<(), AppError> {
     let token = match &state.writes {
-        super::Writes::Token(t) => t,
-        super::Writes::Anyone => return Ok(()),
-        super::Writes::Refused => {
+        super::state::Writes::Token(t) => t,
+        super::state::Writes::Anyone => return Ok(()),
+        super::state::Writes::Refused => {
             return Err(AppError {
                 status: StatusCode::FORBIDDEN,
                 code: "writes_disabled",

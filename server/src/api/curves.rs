@@ -1,6 +1,17 @@
 //! Curve assets as GeoJSON at any level, and their stateless deformations.
 
-use super::*;
+use super::state::*;
+
+use crate::error::{Path, Query};
+use axum::Json;
+use axum::extract::State;
+use axum::http::StatusCode;
+use axum::response::Response;
+use serde::Deserialize;
+
+use crate::error::AppError;
+use crate::store::StoredAsset;
+use crate::work::{BodyWriter, Bounds, Head};
 
 /// Query of `GET /v1/assets/{id}/curve`.
 #[derive(Deserialize)]

@@ -2,7 +2,20 @@
 
 use fractile_proto::query::MeshFormat;
 
-use super::*;
+use super::request::*;
+use super::state::*;
+use std::sync::Arc;
+
+use crate::error::{Path, Query};
+use axum::extract::State;
+use axum::response::Response;
+use fractile_codec::geo;
+use fractile_proto::AssetKind;
+use serde::Deserialize;
+
+use crate::error::AppError;
+use crate::store::StoredAsset;
+use crate::work::{BodyWriter, Bounds, Head};
 
 #[derive(Deserialize)]
 pub(super) struct MeshQuery {

@@ -1,6 +1,23 @@
 //! Values at points: one unit point, one lon/lat, or a batch; signed distances of volumes.
 
-use super::*;
+use super::assets::read_body;
+use super::request::*;
+use super::state::*;
+use std::sync::Arc;
+
+use crate::error::{Path, Query};
+use axum::Json;
+use axum::extract::State;
+use axum::http::{HeaderMap, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use fractile_proto::{
+    AssetKind, BINARY_MEDIA_TYPE, DistanceResult, PointResult, PointsRequest, PointsResponse,
+};
+use serde::Deserialize;
+
+use crate::backend::Backend;
+use crate::error::AppError;
+use crate::store::StoredAsset;
 
 #[derive(Deserialize)]
 pub(super) struct PointQuery {
@@ -207,7 +224,7 @@ async fn answer_points(
                 let (g, op) = gpu.and_then(|g| Some((g, g.operator(&a, k)?)))?;
                 cancel.off_core(|| g.points(&a, &op, p, n, t))
             })
-            .map_err(super::chunk_unavailable)?;
+            .map_err(super::request::chunk_unavailable)?;
         Ok(coords
             .iter()
             .zip(&units)

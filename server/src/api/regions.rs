@@ -2,7 +2,19 @@
 
 use fractile_proto::query::RegionFormat;
 
-use super::*;
+use super::request::*;
+use super::state::*;
+
+use crate::error::{Path, Query};
+use axum::extract::State;
+use axum::response::Response;
+use fractile_proto::AssetKind;
+use serde::Deserialize;
+
+use crate::encoding::{self};
+use crate::error::AppError;
+use crate::store::StoredAsset;
+use crate::work::{BodyWriter, Head};
 
 #[derive(Deserialize)]
 pub(super) struct RegionQuery {

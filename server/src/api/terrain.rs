@@ -9,7 +9,24 @@
 use fractile_proto::LayerJson;
 use fractile_proto::tiles::{geographic_available, geographic_bounds};
 
-use super::*;
+use super::request::*;
+use super::state::*;
+use super::tiles::{cached_response, etag, not_modified};
+use std::sync::Arc;
+
+use crate::error::{Path, Query};
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::State;
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use fractile_codec::geo;
+use fractile_proto::AssetKind;
+use serde::Deserialize;
+
+use crate::error::AppError;
+use crate::store::StoredAsset;
+use crate::work::Bounds;
 
 /// Vertices a side of a terrain tile's grid (Cesium's own heightmap tiles use 65).
 const GRID: usize = 65;
@@ -104,7 +121,7 @@ pub(super) async fn terrain_tile(
         .strip_suffix(".terrain")
         .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.terrain"))?;
     let top = max_level(&state, &a);
-    let (z, x, y) = super::tile_numbers(&z, &x, y, top, 2)?;
+    let (z, x, y) = super::request::tile_numbers(&z, &x, y, top, 2)?;
     if z > top || x >= (2u32 << z) || y >= (1u32 << z) {
         return Err(AppError::not_found(
             "no_tile",
@@ -129,7 +146,7 @@ pub(super) async fn terrain_tile(
     let (iterations, tolerance) = iterations_for(&state, q.iterations, q.tolerance)?;
     // One tolerance for every tile of the asset, not one settled by each tile's own source
     // error: neighbouring tiles share their edge vertices, which must decode alike (no cracks).
-    let tolerance = super::Tolerance::Asked(tolerance.anywhere(&a));
+    let tolerance = super::request::Tolerance::Asked(tolerance.anywhere(&a));
     let choice = backend_for(&state, q.backend.as_deref())?;
     // quantized-mesh is made to be gzipped (about half the bytes): to clients that accept it,
     // as browsers and Cesium do, the tile goes gzipped, as a variant of its own (key and ETag).

@@ -2,7 +2,26 @@
 
 use fractile_proto::query::{Colormap, Precision};
 
-use super::*;
+use super::request::*;
+use super::state::*;
+use std::hash::{Hash, Hasher};
+use std::sync::Arc;
+
+use crate::error::{Path, Query};
+use axum::Json;
+use axum::body::Bytes;
+use axum::extract::State;
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
+use axum::response::{IntoResponse, Response};
+use fractile_codec::geo;
+use fractile_proto::{AssetKind, TileJson};
+use serde::Deserialize;
+
+use crate::backend::{Backend, GpuBackend};
+use crate::encoding::{self, HeightEncoding};
+use crate::error::AppError;
+use crate::store::StoredAsset;
+use crate::work::{Bounds, Cancel};
 
 /// Zoom at which a tile pixel is about the size of a source cell (deeper zooms decode detail the
 /// source never had: the point of a fractal codec, hence `maxzoom` goes 4 levels further).
@@ -130,7 +149,7 @@ struct TileJob {
     shade: bool,
     precision: Precision,
     iterations: u32,
-    tolerance: super::Tolerance,
+    tolerance: super::request::Tolerance,
 }
 
 pub(super) async fn tile(
@@ -193,7 +212,7 @@ fn tile_address<'a>(
     let (y, ext) = tile
         .split_once('.')
         .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.png or {y}.f32"))?;
-    let (z, x, y) = super::tile_numbers(z, x, y, state.limits.max_zoom, 1)?;
+    let (z, x, y) = super::request::tile_numbers(z, x, y, state.limits.max_zoom, 1)?;
     if z > state.limits.max_zoom || x >= (1u32 << z) || y >= (1u32 << z) {
         return Err(AppError::not_found(
             "no_tile",

@@ -1,7 +1,7 @@
 //! How far a height tile's heights may be rounded (`precision=bound`): what its error bound
 //! justifies and what its relief needs to shade without stairs.
 
-use super::HeightEncoding;
+use fractile_proto::query::HeightEncoding;
 
 /// What part of a tile's error bound its heights may be rounded by (`precision=bound`): the
 /// step is the largest power-of-two multiple of the encoding's unit not over this fraction of

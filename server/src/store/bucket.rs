@@ -35,8 +35,8 @@ use fractile_codec::io::chunked::ChunkSource;
 use object_store::path::Path;
 use object_store::{GetOptions, ObjectStore, ObjectStoreExt, PutPayload};
 
+use super::backing::{Backing, Listing, validate_id};
 use super::breaker::{BREAK, Breaker};
-use super::{Backing, Listing, validate_id};
 
 /// How long an old version is kept after it stopped being served: longer than replicas take to
 /// notice a new pointer (`rescan_seconds`, default 10) and finish the requests begun on it.

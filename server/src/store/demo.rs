@@ -1,7 +1,7 @@
 //! The built-in demo assets: small real files shipped in the binary, encoded into a folder
 //! at first start.
 
-use super::*;
+use std::path::Path;
 
 /// The demo assets: real data shipped in the binary, with the rate each is encoded at (bits a
 /// source cell), by the codec `fractile encode` picks when none is named.

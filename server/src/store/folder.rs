@@ -7,7 +7,7 @@ use std::path::{Path, PathBuf};
 
 use fractile_codec::io::chunked::{ChunkSource, FileSource};
 
-use super::{Backing, Listing, validate_id};
+use super::backing::{Backing, Listing, validate_id};
 
 /// A folder of asset files.
 pub struct Folder {

@@ -24,7 +24,7 @@
 //! Symbols go through the adaptive binary range coder of [`crate::core::entropy`], with
 //! fast-learning contexts ([`crate::core::entropy::CountedBit`]) by level counted from the finest.
 
-use super::{
+use super::model::{
     CurveSet, Frame, Metric, Prepared, Pt, Ring, Scheme, SeamCrossing, point_segment_scaled,
     span_deviation,
 };
@@ -322,7 +322,7 @@ impl CurveHeader {
         }
         let mut total = 0u64;
         for (i, r) in self.rings.iter().enumerate() {
-            if r.pieces == 0 || r.levels as usize > super::MAX_LEVELS {
+            if r.pieces == 0 || r.levels as usize > super::model::MAX_LEVELS {
                 return Err(format!(
                     "ring {i}: {} pieces, {} levels",
                     r.pieces, r.levels

@@ -14,7 +14,7 @@
 //! The solver is the `levenberg-marquardt` crate (MINPACK's algorithm); the Jacobians are
 //! central differences: 4 and 8 parameters against tens of thousands of residuals.
 
-use super::{MAX_DETAIL_GAIN, Prepared, Ring, Scheme};
+use super::model::{MAX_DETAIL_GAIN, Prepared, Ring, Scheme};
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 

@@ -37,7 +37,7 @@
 use crate::codecs::fis::{IntCoder, med};
 use crate::core::entropy::{Decoder, Encoder};
 
-use super::pyramid::{WEIGHT_ONE, causal_neighbours};
+use super::pyramid::{Order, WEIGHT_ONE, causal_neighbours};
 
 /// The (4, 4) update after the fitted prediction: `u1 (d-1 + d+1) + u3 (d-3 + d+3)`.
 const UPDATE: [f64; 2] = [9.0 / 32.0, -1.0 / 32.0];
@@ -653,6 +653,18 @@ pub fn dc_gain(kernel: Kernel) -> f64 {
     line[8]
 }
 
+// Here rather than in `pyramid`, which the lifting builds on (the kernels are this module's).
+impl Order {
+    /// The kernel of a lifted plane; `None` for the pyramid's orders.
+    pub fn lifting(self) -> Option<Kernel> {
+        match self {
+            Order::Separable | Order::Quincunx => None,
+            Order::Lifted => Some(Kernel::Fitted),
+            Order::Lifted97 => Some(Kernel::Cdf97),
+        }
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -672,7 +684,7 @@ mod tests {
             for (w, h) in [(37, 29), (64, 64), (17, 100), (2, 9)] {
                 let source = surface(w, h);
                 let mut g = source.clone();
-                let levels = super::super::levels_for(w, h).into();
+                let levels = super::super::pyramid::levels_for(w, h).into();
                 let weights = forward(&mut g, [w, h], levels, (kernel, Ends::Mirror));
                 if levels > 0 {
                     assert_ne!(g, source, "{w}x{h}: the transform changed nothing");
@@ -741,7 +753,7 @@ mod tests {
     fn details_of_a_smooth_grid_are_small_and_coarse_samples_are_local_means() {
         let (w, h) = (96, 80);
         let source = surface(w, h);
-        let levels = u32::from(super::super::levels_for(w, h));
+        let levels = u32::from(super::super::pyramid::levels_for(w, h));
         for kernel in [Kernel::Fitted, Kernel::Cdf97] {
             let mut g = source.clone();
             forward(&mut g, [w, h], levels, (kernel, Ends::Mirror));
@@ -780,7 +792,7 @@ mod tests {
     fn a_grid_decodes_as_coded_and_the_error_follows_the_step() {
         let (w, h) = (96, 80);
         let source = surface(w, h);
-        let levels = u32::from(super::super::levels_for(w, h));
+        let levels = u32::from(super::super::pyramid::levels_for(w, h));
         for kernel in [Kernel::Fitted, Kernel::Cdf97] {
             let mut last = 0.0;
             for step in [0.05, 0.5, 5.0] {

@@ -28,6 +28,7 @@ pub mod lifting;
 mod neighbourhood;
 pub mod pyramid;
 pub mod records;
+mod residual;
 pub mod subdivision;
 
 use std::sync::Arc;
@@ -127,15 +128,7 @@ impl ProjectedHeader {
 /// The codec's name (`fractile encode --codec projected`).
 pub const CODEC_NAME: &str = "projected";
 
-/// Levels for a grid: the control grid keeps about 8 samples on its shorter side (its samples
-/// are coded by a causal predictor, the levels below by interpolation, which predicts better).
-pub fn levels_for(w: usize, h: usize) -> u8 {
-    let mut l = 0u8;
-    while l < 12 && (w.min(h) >> (l + 1)) >= 8 {
-        l += 1;
-    }
-    l
-}
+pub use pyramid::levels_for;
 
 /// Codes a grid (source units, invalid cells filled) under `header` with a dead zone (the
 /// pyramid's) and a rate-distortion weight (rate mode only); returns the stream and the decoded
@@ -349,7 +342,7 @@ pub struct ProjectedOperator {
     /// tolerance.
     residual: Vec<f32>,
     /// Of a lazily built operator: every cell's residual bound, coded in a byte.
-    coded: Option<Arc<records::ResidualCodes>>,
+    coded: Option<Arc<residual::ResidualCodes>>,
     /// The largest residual bound.
     residual_max: f32,
     /// The part of the frame unit coordinates map onto (the frame, or for half-resolution
@@ -861,11 +854,11 @@ impl ProjectedOperator {
             // `quarter`'s direct evaluation (which took a 1025 x 1080 chunk 850 ms).
             use rayon::prelude::*;
             let mut all = vec![[0.0f32; 9]; (nx - 1) * (ny - 1)];
-            all.par_chunks_mut(records::BAND * (nx - 1))
+            all.par_chunks_mut(residual::BAND * (nx - 1))
                 .enumerate()
                 .for_each(|(band, out)| {
-                    let j0 = band * records::BAND;
-                    let j1 = (j0 + records::BAND).min(ny - 1);
+                    let j0 = band * residual::BAND;
+                    let j1 = (j0 + residual::BAND).min(ny - 1);
                     self.records_into([0, j0, nx - 1, j1], out);
                 });
             all

@@ -174,15 +174,14 @@ pub enum Order {
     Lifted97,
 }
 
-impl Order {
-    /// The kernel of a lifted plane; `None` for the pyramid's orders.
-    pub fn lifting(self) -> Option<super::lifting::Kernel> {
-        match self {
-            Order::Separable | Order::Quincunx => None,
-            Order::Lifted => Some(super::lifting::Kernel::Fitted),
-            Order::Lifted97 => Some(super::lifting::Kernel::Cdf97),
-        }
+/// Levels for a grid: the control grid keeps about 8 samples on its shorter side (its samples
+/// are coded by a causal predictor, the levels below by interpolation, which predicts better).
+pub fn levels_for(w: usize, h: usize) -> u8 {
+    let mut l = 0u8;
+    while l < 12 && (w.min(h) >> (l + 1)) >= 8 {
+        l += 1;
     }
+    l
 }
 
 /// Relief bucket of a spread over a step.

@@ -1,0 +1,469 @@
+//! The layout of a chunked file (`docs/asset-format.md`), below the assets it holds: the magic
+//! and the versions, the chunk table and its checks, the sources a file is read from by range,
+//! and a file's header and assembly. What reads a chunk into an asset is `chunked`.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use fractile_proto::{AssetKind, AssetMeta};
+use serde::{Deserialize, Serialize};
+
+/// File magic.
+pub const MAGIC: &[u8; 8] = b"FRACTILE";
+
+/// The byte of an asset kind in a file's header.
+pub(crate) fn kind_byte(k: AssetKind) -> u8 {
+    match k {
+        AssetKind::Image => 0,
+        AssetKind::HeightField => 1,
+        AssetKind::Volume => 2,
+        AssetKind::Curve => 3,
+    }
+}
+
+/// The format version of a chunked container. Single-operator files stay version 5 (their
+/// layout did not change), so readers of version 5 keep reading what they read.
+pub const CHUNKED_VERSION: u16 = 7;
+
+/// The oldest chunked version read (6: every overview level coded, no views).
+pub const OLDEST_CHUNKED_VERSION: u16 = 6;
+
+/// The most overview levels that are views of the source chunks (see the module's doc): level
+/// `l` of a view reads the source chunk's stream to depth `l`, whose coarse part is about
+/// `4^-l` of it; deeper views would read and decode a chunk whole for a few of its cells.
+pub const VIEW_DEPTH: u32 = 2;
+
+/// The codec byte of a chunked container (its chunks name their own codec).
+pub const CHUNKED_CODEC: u8 = 7;
+
+/// Cells each chunk codes beyond its own on every side (see the module's doc), in a file whose
+/// overviews are all coded (and in every file of format 6).
+pub const OVERLAP: u32 = 1;
+
+/// The overlap of a file with views: `2^VIEW_DEPTH`, so that every chunk starts on the lattice
+/// of every view level. (Files without views keep 1: 0.6% fewer cells coded at chunks of
+/// 1024.)
+pub const VIEW_OVERLAP: u32 = 1 << VIEW_DEPTH;
+
+/// The overlap of a file with `views` view levels.
+pub fn overlap_for(views: usize) -> u32 {
+    if views > 0 { VIEW_OVERLAP } else { OVERLAP }
+}
+
+/// How many times `max_asset_pixels` a chunked asset may claim: its cells are decoded a chunk
+/// at a time, never whole (see [`crate::io::chunked::Chunked::open`]).
+pub const CHUNKED_PIXELS_FACTOR: u64 = 16;
+
+/// Most chunks a file may list, over all its levels: 2^20 chunks of 1024^2 cells is a
+/// terapixel, and the table of that many is 64 MiB.
+pub const MAX_CHUNKS: usize = 1 << 20;
+
+/// Smallest and largest chunk sides (powers of two).
+pub const CHUNK_SIDES: (u32, u32) = (64, 1 << 14);
+
+/// One chunk of a level: where its file lies and what it covers.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChunkEntry {
+    /// Offset of the chunk's file from the container's start.
+    pub offset: u64,
+    /// Length of the chunk's file; 0 for a chunk with no valid cell (nodata everywhere).
+    pub length: u64,
+    /// The cells it codes, `[x0, y0, x1, y1)` in its level's cells (its own and the overlap).
+    pub cells: [u32; 4],
+    /// Smallest and largest value of its valid cells (source units).
+    pub value_range: [f64; 2],
+    /// The chunk file's own CRC-32 (its last four bytes), checked against the bytes read.
+    pub crc: u32,
+}
+
+/// One level of the pyramid: level `l` has cells of `2^l` source cells.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct Level {
+    /// Cells a row: `ceil(width / 2^l)`.
+    pub width: u32,
+    /// Rows: `ceil(height / 2^l)`.
+    pub height: u32,
+    /// The chunks in row order, `ceil(width / chunk)` a row.
+    pub chunks: Vec<ChunkEntry>,
+}
+
+/// An overview level that is a view of the source chunks (format 7): per chunk, its view's
+/// source-error map ([`crate::core::fidelity::SourceError`]'s encoding; empty for a chunk
+/// with no valid cell).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ViewLevel {
+    /// The maps, in the level's chunk order (level 0's).
+    pub maps: Vec<Vec<u8>>,
+}
+
+/// The table of a chunked container of version 6.
+#[derive(Deserialize)]
+struct ChunkTableV6 {
+    chunk: u32,
+    overlap: u32,
+    codec: u8,
+    max_contrast: f32,
+    seed_bound: f32,
+    smallest_source_error: Option<f32>,
+    levels: Vec<Level>,
+}
+
+/// The table of a chunked container.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct ChunkTable {
+    /// Side of a chunk in cells (a power of two), the overlap aside.
+    pub chunk: u32,
+    /// Cells each chunk codes beyond its own on every side.
+    pub overlap: u32,
+    /// The codec byte of the chunks (one codec for the whole asset).
+    pub codec: u8,
+    /// Largest |s| over every chunk.
+    pub max_contrast: f32,
+    /// Largest a-priori bound before any step over every chunk (source units):
+    /// `bound_after(n)` is at most `max_contrast^n` times it.
+    pub seed_bound: f32,
+    /// Smallest source error of any chunk's map (source units), for the default tolerance.
+    pub smallest_source_error: Option<f32>,
+    /// Level 0 (the source's cells) first, then each overview. A view level's entries are
+    /// level 0's (the same offsets, lengths and CRCs), with its own cells.
+    pub levels: Vec<Level>,
+    /// The overview levels 1 to `views.len()` that are views (format 7; none in format 6).
+    pub views: Vec<ViewLevel>,
+}
+
+impl ChunkTable {
+    /// Whether `level` is a view of the source chunks (see the module's doc).
+    pub fn is_view(&self, level: usize) -> bool {
+        level >= 1 && level <= self.views.len()
+    }
+
+    /// How many overview levels of a file of `levels` levels are views: up to [`VIEW_DEPTH`],
+    /// never the top level (one chunk, decoded discretely for the coarsest pixels).
+    pub fn view_levels(levels: usize) -> usize {
+        (VIEW_DEPTH as usize).min(levels.saturating_sub(2))
+    }
+
+    /// The cells of level `level`'s view of a source chunk coding `cells`.
+    pub fn view_cells(cells: [u32; 4], level: usize) -> [u32; 4] {
+        let up = |v: u32| v.div_ceil(1 << level);
+        [
+            cells[0] >> level,
+            cells[1] >> level,
+            up(cells[2]),
+            up(cells[3]),
+        ]
+    }
+
+    /// Where a view's samples lie, in level cells before its cells' centres (see the
+    /// module's doc); 0 for a coded level.
+    pub fn view_shift(&self, level: usize) -> f64 {
+        if self.is_view(level) {
+            0.5 - 0.5f64.powi(level as i32 + 1)
+        } else {
+            0.0
+        }
+    }
+
+    /// Reads a table of container version `version`.
+    pub(crate) fn decode(bytes: &[u8], version: u16) -> Result<ChunkTable, String> {
+        if version == CHUNKED_VERSION {
+            return fractile_proto::decode(bytes).map_err(|e| e.to_string());
+        }
+        let t: ChunkTableV6 = fractile_proto::decode(bytes).map_err(|e| e.to_string())?;
+        Ok(ChunkTable {
+            chunk: t.chunk,
+            overlap: t.overlap,
+            codec: t.codec,
+            max_contrast: t.max_contrast,
+            seed_bound: t.seed_bound,
+            smallest_source_error: t.smallest_source_error,
+            levels: t.levels,
+            views: Vec::new(),
+        })
+    }
+
+    /// Chunks a row and rows of chunks of a level of `width x height` cells: the last chunk of
+    /// a row or column takes the remainder (so it is between half a chunk and a chunk and a
+    /// half): a sliver of a few cells would pay a chunk's fixed bytes for nothing, and under a
+    /// rate would be coded far worse than its neighbours.
+    pub fn grid(&self, width: u32, height: u32) -> (u32, u32) {
+        let count = |n: u32| (n.saturating_add(self.chunk / 2) / self.chunk).max(1);
+        (count(width), count(height))
+    }
+
+    /// The cells chunk `(cx, cy)` of a level of `width x height` codes: its own and the
+    /// overlap, clamped to the level.
+    pub fn coded_cells(&self, width: u32, height: u32, cx: u32, cy: u32) -> [u32; 4] {
+        let (c, o) = (self.chunk, self.overlap);
+        let (nx, ny) = self.grid(width, height);
+        let end = |i: u32, n: u32, size: u32| {
+            if i + 1 == n {
+                size
+            } else {
+                ((i + 1) * c + o).min(size)
+            }
+        };
+        [
+            (cx * c).saturating_sub(o),
+            (cy * c).saturating_sub(o),
+            end(cx, nx, width),
+            end(cy, ny, height),
+        ]
+    }
+
+    /// The levels' sizes for a source of `width x height` and chunks of `chunk`: halved
+    /// (rounding up) until a level fits in one chunk.
+    pub fn level_sizes(width: u32, height: u32, chunk: u32) -> Vec<(u32, u32)> {
+        let mut sizes = vec![(width, height)];
+        let one = |n: u32| n < chunk + chunk / 2;
+        while let Some(&(w, h)) = sizes.last() {
+            if (one(w) && one(h)) || sizes.len() >= 32 {
+                break;
+            }
+            sizes.push((w.div_ceil(2), h.div_ceil(2)));
+        }
+        sizes
+    }
+
+    /// Checks the table against the metadata and the file's length: every size and range is
+    /// the one the layout implies, every chunk lies in the file after the header.
+    pub(crate) fn validate(
+        &self,
+        meta: &AssetMeta,
+        header_end: u64,
+        file_len: u64,
+    ) -> Result<(), String> {
+        let (lo, hi) = CHUNK_SIDES;
+        if !self.chunk.is_power_of_two() || self.chunk < lo || self.chunk > hi {
+            return Err(format!(
+                "chunk side {} is not a power of two in {lo}..={hi}",
+                self.chunk
+            ));
+        }
+        if self.overlap > self.chunk / 4 {
+            return Err(format!("overlap {} is over a quarter chunk", self.overlap));
+        }
+        if !(1..=6).contains(&self.codec) || self.codec == 4 || self.codec == 5 {
+            return Err(format!("chunks of codec {} are not rasters", self.codec));
+        }
+        if !(self.max_contrast.is_finite() && self.seed_bound.is_finite()) {
+            return Err("non-finite contrast or bound".into());
+        }
+        let sizes = ChunkTable::level_sizes(meta.width, meta.height, self.chunk);
+        if sizes.len() != self.levels.len() {
+            return Err(format!(
+                "{} levels where a {}x{} raster in chunks of {} has {}",
+                self.levels.len(),
+                meta.width,
+                meta.height,
+                self.chunk,
+                sizes.len()
+            ));
+        }
+        let total: usize = self.levels.iter().map(|l| l.chunks.len()).sum();
+        if total > MAX_CHUNKS {
+            return Err(format!("{total} chunks, over the limit of {MAX_CHUNKS}"));
+        }
+        if self.views.len() > ChunkTable::view_levels(self.levels.len())
+            || (!self.views.is_empty() && !self.overlap.is_multiple_of(1 << self.views.len()))
+        {
+            return Err(format!(
+                "{} view levels of {} levels with an overlap of {}",
+                self.views.len(),
+                self.levels.len(),
+                self.overlap
+            ));
+        }
+        for (l, (level, &(w, h))) in self.levels.iter().zip(&sizes).enumerate() {
+            let (nx, ny) = if self.is_view(l) {
+                self.grid(meta.width, meta.height)
+            } else {
+                self.grid(w, h)
+            };
+            if (level.width, level.height) != (w, h)
+                || level.chunks.len() != (nx as usize) * (ny as usize)
+            {
+                return Err(format!("level {l} does not have the layout's size"));
+            }
+            if self.is_view(l) && self.views[l - 1].maps.len() != level.chunks.len() {
+                return Err(format!("level {l} has not a map a chunk"));
+            }
+            for (i, e) in level.chunks.iter().enumerate() {
+                let (cx, cy) = (i as u32 % nx, i as u32 / nx);
+                let cells = if self.is_view(l) {
+                    let source = &self.levels[0].chunks[i];
+                    if (e.offset, e.length, e.crc) != (source.offset, source.length, source.crc) {
+                        return Err(format!("chunk {i} of view level {l} is not level 0's"));
+                    }
+                    ChunkTable::view_cells(source.cells, l)
+                } else {
+                    self.coded_cells(w, h, cx, cy)
+                };
+                if e.cells != cells {
+                    return Err(format!("chunk {i} of level {l} claims other cells"));
+                }
+                let end = e.offset.checked_add(e.length);
+                if e.length > 0 && (e.offset < header_end || end.is_none_or(|e| e > file_len)) {
+                    return Err(format!("chunk {i} of level {l} lies outside the file"));
+                }
+                if e.length > 0
+                    && e.value_range[0]
+                        .partial_cmp(&e.value_range[1])
+                        .is_none_or(|o| o.is_gt())
+                {
+                    return Err(format!("chunk {i} of level {l} has a bad value range"));
+                }
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Where a chunked container's bytes come from: read by range, so that only the chunks a
+/// request touches are read (a file now; object storage next).
+pub trait ChunkSource: Send + Sync {
+    /// Length of the container in bytes.
+    fn len(&self) -> u64;
+    /// Whether it is empty.
+    fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    /// `len` bytes from `offset`.
+    fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>>;
+    /// Where the bytes are, for messages.
+    fn describe(&self) -> String;
+}
+
+/// A container held in memory (an upload, a file read whole).
+pub struct InMemory(pub Arc<[u8]>);
+
+impl ChunkSource for InMemory {
+    fn len(&self) -> u64 {
+        self.0.len() as u64
+    }
+
+    fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>> {
+        usize::try_from(offset)
+            .ok()
+            .and_then(|o| self.0.get(o..o.checked_add(len)?))
+            .map(<[u8]>::to_vec)
+            .ok_or_else(|| std::io::Error::from(std::io::ErrorKind::UnexpectedEof))
+    }
+
+    fn describe(&self) -> String {
+        "an asset in memory".into()
+    }
+}
+
+/// A container in a file, read by positioned reads (no shared cursor, so concurrent chunk
+/// reads need no lock).
+pub struct FileSource {
+    file: std::fs::File,
+    len: u64,
+    path: PathBuf,
+}
+
+impl FileSource {
+    /// Opens `path` for reading by range.
+    pub fn open(path: &Path) -> std::io::Result<FileSource> {
+        let file = std::fs::File::open(path)?;
+        let len = file.metadata()?.len();
+        Ok(FileSource {
+            file,
+            len,
+            path: path.to_path_buf(),
+        })
+    }
+}
+
+impl ChunkSource for FileSource {
+    fn len(&self) -> u64 {
+        self.len
+    }
+
+    fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>> {
+        use std::os::unix::fs::FileExt;
+        let mut buf = vec![0u8; len];
+        self.file.read_exact_at(&mut buf, offset)?;
+        Ok(buf)
+    }
+
+    fn describe(&self) -> String {
+        self.path.display().to_string()
+    }
+}
+
+/// Whether `bytes` (at least the first 12 of a file) start a chunked container.
+pub fn is_chunked(bytes: &[u8]) -> bool {
+    bytes.len() >= 12
+        && &bytes[..8] == MAGIC
+        && (OLDEST_CHUNKED_VERSION..=CHUNKED_VERSION)
+            .contains(&u16::from_le_bytes([bytes[8], bytes[9]]))
+}
+
+/// The bytes of a chunked container: the header (magic, version, kind, codec, metadata, table,
+/// CRC) then the chunk files in the order given. `chunks[l][i]` is level `l`'s chunk `i`'s
+/// file, empty for a chunk with no valid cell; the table's offsets, lengths and CRCs are
+/// filled in here.
+pub fn assemble(meta: &AssetMeta, mut table: ChunkTable, chunks: &[Vec<Vec<u8>>]) -> Vec<u8> {
+    for (level, files) in table.levels.iter_mut().zip(chunks) {
+        for (entry, file) in level.chunks.iter_mut().zip(files) {
+            entry.length = file.len() as u64;
+            entry.crc = file_crc(file);
+        }
+    }
+    let mut out = header(meta, &mut table);
+    for file in chunks.iter().flatten() {
+        out.extend_from_slice(file);
+    }
+    out
+}
+
+/// The CRC a chunk's file ends with (0 for an empty file): what its table entry repeats.
+pub fn file_crc(file: &[u8]) -> u32 {
+    file.len()
+        .checked_sub(4)
+        .map_or(0, |n| u32::from_le_bytes(file[n..].try_into().expect("4")))
+}
+
+/// The header of a chunked container (magic, version, kind, codec, metadata, table, CRC) whose
+/// chunk files follow it in the table's order, level by level: every entry's offset is set
+/// here from the lengths before it (its length and CRC are the caller's).
+pub fn header(meta: &AssetMeta, table: &mut ChunkTable) -> Vec<u8> {
+    let meta_bytes = fractile_proto::encode(meta);
+    // The table's size does not depend on the offsets' values (fixed-width integers).
+    let table_len = fractile_proto::encode(&*table).len();
+    let header_len = 8 + 2 + 2 + 4 + meta_bytes.len() + 4 + table_len + 4;
+    let mut offset = header_len as u64;
+    let views = table.views.len();
+    for (l, level) in table.levels.iter_mut().enumerate() {
+        if l >= 1 && l <= views {
+            continue;
+        }
+        for entry in &mut level.chunks {
+            entry.offset = offset;
+            offset += entry.length;
+        }
+    }
+    // A view level's chunks are level 0's bytes.
+    let (source, overviews) = table.levels.split_at_mut(1);
+    for level in overviews.iter_mut().take(views) {
+        for (entry, s) in level.chunks.iter_mut().zip(&source[0].chunks) {
+            (entry.offset, entry.length, entry.crc) = (s.offset, s.length, s.crc);
+        }
+    }
+    let table_bytes = fractile_proto::encode(&*table);
+    debug_assert_eq!(table_bytes.len(), table_len);
+    let mut out = Vec::with_capacity(header_len);
+    out.extend_from_slice(MAGIC);
+    out.extend_from_slice(&CHUNKED_VERSION.to_le_bytes());
+    out.push(kind_byte(meta.kind));
+    out.push(CHUNKED_CODEC);
+    out.extend_from_slice(&(meta_bytes.len() as u32).to_le_bytes());
+    out.extend_from_slice(&meta_bytes);
+    out.extend_from_slice(&(table_bytes.len() as u32).to_le_bytes());
+    out.extend_from_slice(&table_bytes);
+    let crc = crc32fast::hash(&out);
+    out.extend_from_slice(&crc.to_le_bytes());
+    out
+}
