@@ -34,24 +34,144 @@ pub use encode::{EncodeSettings, Encoded, RateMode, Roi, encode, encode_default}
 pub use io::asset::{Asset, AssetLimits};
 pub use io::raster::Raster;
 
-/// Everything that can go wrong, by whose fault: the input, the settings, an asset file, or
-/// writing the output. Messages name the file and the problem.
+/// The error beneath an [`Error`] (an I/O, TIFF or image error), shared so that an error stays
+/// `Clone` (a corrupt chunk's error is kept and answered again).
+pub type Cause = std::sync::Arc<dyn std::error::Error + Send + Sync + 'static>;
+
+/// Everything that can go wrong, by whose fault: the input, the settings, an asset file,
+/// writing the output, or a store that cannot be read now. Each kind carries its message for
+/// people, the file it concerns where one does ([`Error::path`]), and the error beneath
+/// ([`std::error::Error::source`]). Built with [`Error::input`] and its siblings, then
+/// [`Error::at`] and [`Error::caused_by`].
 #[derive(Clone, Debug, thiserror::Error)]
+#[non_exhaustive]
 pub enum Error {
     /// The input file or grid cannot be encoded.
-    #[error("input: {0}")]
-    Input(String),
+    #[error("input: {message}")]
+    #[non_exhaustive]
+    Input {
+        /// What is wrong, for people.
+        message: String,
+        /// The file it concerns.
+        path: Option<std::path::PathBuf>,
+        /// The error beneath.
+        #[source]
+        source: Option<Cause>,
+    },
     /// The encoder settings are inconsistent.
-    #[error("settings: {0}")]
-    Settings(String),
+    #[error("settings: {message}")]
+    #[non_exhaustive]
+    Settings {
+        /// What is wrong, for people.
+        message: String,
+        /// The file it concerns.
+        path: Option<std::path::PathBuf>,
+        /// The error beneath.
+        #[source]
+        source: Option<Cause>,
+    },
     /// An asset file is corrupt, truncated, or of an unknown version or codec.
-    #[error("asset: {0}")]
-    Asset(String),
+    #[error("asset: {message}")]
+    #[non_exhaustive]
+    Asset {
+        /// What is wrong, for people.
+        message: String,
+        /// The file it concerns.
+        path: Option<std::path::PathBuf>,
+        /// The error beneath.
+        #[source]
+        source: Option<Cause>,
+    },
     /// An output could not be written.
-    #[error("output: {0}")]
-    Output(String),
+    #[error("output: {message}")]
+    #[non_exhaustive]
+    Output {
+        /// What is wrong, for people.
+        message: String,
+        /// The file it concerns.
+        path: Option<std::path::PathBuf>,
+        /// The error beneath.
+        #[source]
+        source: Option<Cause>,
+    },
     /// A chunk's bytes could not be read from where the asset lies (a store that is down, a
-    /// file gone): trying again later may succeed, unlike [`Error::Asset`].
-    #[error("unavailable: {0}")]
-    Unavailable(String),
+    /// file gone): trying again later may succeed, unlike [`Error::asset`].
+    #[error("unavailable: {message}")]
+    #[non_exhaustive]
+    Unavailable {
+        /// What is wrong, for people.
+        message: String,
+        /// The file it concerns.
+        path: Option<std::path::PathBuf>,
+        /// The error beneath.
+        #[source]
+        source: Option<Cause>,
+    },
+}
+
+/// The fields every kind of [`Error`] carries, by kind.
+macro_rules! error_kinds {
+    ($($kind:ident => $make:ident,)*) => {
+        impl Error {
+            $(
+                #[doc = concat!("An [`Error::", stringify!($kind), "`] saying `message`.")]
+                pub fn $make(message: impl Into<String>) -> Error {
+                    Error::$kind { message: message.into(), path: None, source: None }
+                }
+            )*
+
+            fn parts(&self) -> (&String, &Option<std::path::PathBuf>, &Option<Cause>) {
+                match self {
+                    $(Error::$kind { message, path, source } => (message, path, source),)*
+                }
+            }
+
+            fn parts_mut(
+                &mut self,
+            ) -> (&mut String, &mut Option<std::path::PathBuf>, &mut Option<Cause>) {
+                match self {
+                    $(Error::$kind { message, path, source } => (message, path, source),)*
+                }
+            }
+        }
+    };
+}
+
+error_kinds! {
+    Input => input,
+    Settings => settings,
+    Asset => asset,
+    Output => output,
+    Unavailable => unavailable,
+}
+
+impl Error {
+    /// This error, concerning the file at `path` (its message unchanged).
+    pub fn at(mut self, path: impl Into<std::path::PathBuf>) -> Error {
+        *self.parts_mut().1 = Some(path.into());
+        self
+    }
+
+    /// This error, caused by `cause` (kept as its [`std::error::Error::source`]).
+    pub fn caused_by(mut self, cause: impl std::error::Error + Send + Sync + 'static) -> Error {
+        *self.parts_mut().2 = Some(std::sync::Arc::new(cause));
+        self
+    }
+
+    /// The same kind, path and cause, its message put after `context` (`chunk 3: ...`).
+    pub fn within(mut self, context: impl std::fmt::Display) -> Error {
+        let message = self.parts_mut().0;
+        *message = format!("{context}: {message}");
+        self
+    }
+
+    /// The message, for people, without the kind.
+    pub fn message(&self) -> &str {
+        self.parts().0
+    }
+
+    /// The file the error concerns, where it names one.
+    pub fn path(&self) -> Option<&std::path::Path> {
+        self.parts().1.as_deref()
+    }
 }

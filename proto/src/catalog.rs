@@ -165,6 +165,114 @@ pub struct TileRange {
 pub struct ErrorBody {
     /// What went wrong, for people.
     pub detail: String,
-    /// A stable machine code (`unknown_asset`, `bad_tile`, `too_many_points`, ...).
+    /// A stable machine code, one of [`ErrorCode`]'s (`unknown_asset`, `bad_tile`,
+    /// `too_many_points`, ...); a string here so that a client reads codes newer than it.
     pub code: String,
+}
+
+/// Declares [`ErrorCode`] from one list, so that its variants, [`ErrorCode::ALL`] and the
+/// wire names cannot drift apart.
+macro_rules! error_codes {
+    ($($variant:ident => $name:literal,)*) => {
+        /// Every machine code an error answer carries ([`ErrorBody::code`]): one list, which
+        /// the server answers with and its OpenAPI document names. Written as snake case on
+        /// the wire.
+        #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+        #[serde(rename_all = "snake_case")]
+        #[non_exhaustive]
+        pub enum ErrorCode {
+            $(#[doc = concat!("`", $name, "`.")] $variant,)*
+        }
+
+        impl ErrorCode {
+            /// Every code, in the order of their names.
+            pub const ALL: &'static [ErrorCode] = &[$(ErrorCode::$variant,)*];
+
+            /// The code as the wire writes it.
+            pub fn as_str(self) -> &'static str {
+                match self {
+                    $(ErrorCode::$variant => $name,)*
+                }
+            }
+        }
+    };
+}
+
+error_codes! {
+    BadAsset => "bad_asset",
+    BadBackend => "bad_backend",
+    BadBbox => "bad_bbox",
+    BadBody => "bad_body",
+    BadColormap => "bad_colormap",
+    BadDeformation => "bad_deformation",
+    BadEncoding => "bad_encoding",
+    BadFormat => "bad_format",
+    BadHillshade => "bad_hillshade",
+    BadId => "bad_id",
+    BadIterations => "bad_iterations",
+    BadMaxError => "bad_max_error",
+    BadMediaType => "bad_media_type",
+    BadPath => "bad_path",
+    BadPoint => "bad_point",
+    BadPrecision => "bad_precision",
+    BadQuery => "bad_query",
+    BadRequest => "bad_request",
+    BadRescale => "bad_rescale",
+    BadResolution => "bad_resolution",
+    BadSize => "bad_size",
+    BadTile => "bad_tile",
+    BadTilesize => "bad_tilesize",
+    BadTolerance => "bad_tolerance",
+    Busy => "busy",
+    Cancelled => "cancelled",
+    ChunkUnavailable => "chunk_unavailable",
+    CorruptChunk => "corrupt_chunk",
+    CurveAsset => "curve_asset",
+    GpuUnavailable => "gpu_unavailable",
+    Internal => "internal",
+    MethodNotAllowed => "method_not_allowed",
+    NoFile => "no_file",
+    NoRoute => "no_route",
+    NoTile => "no_tile",
+    NotCurve => "not_curve",
+    NotTerrain => "not_terrain",
+    Outside => "outside",
+    StorageUnavailable => "storage_unavailable",
+    TooExpensive => "too_expensive",
+    TooLarge => "too_large",
+    TooManyPoints => "too_many_points",
+    TooManySamples => "too_many_samples",
+    Unauthorised => "unauthorised",
+    Unavailable => "unavailable",
+    UnknownAsset => "unknown_asset",
+    VolumeAsset => "volume_asset",
+    WritesDisabled => "writes_disabled",
+}
+
+impl std::fmt::Display for ErrorCode {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(self.as_str())
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::ErrorCode;
+
+    #[test]
+    fn error_codes_are_written_as_their_names_once_each() {
+        let mut seen = std::collections::BTreeSet::new();
+        for &code in ErrorCode::ALL {
+            let wire = serde_json::to_string(&code).unwrap();
+            assert_eq!(wire, format!("\"{}\"", code.as_str()));
+            assert!(seen.insert(code.as_str()), "{code} twice");
+            let back: ErrorCode = serde_json::from_str(&wire).unwrap();
+            assert_eq!(back, code);
+        }
+        // The names are sorted: a new code goes where a reader looks for it.
+        let names: Vec<&str> = ErrorCode::ALL.iter().map(|c| c.as_str()).collect();
+        let mut sorted = names.clone();
+        sorted.sort_unstable();
+        assert_eq!(names, sorted);
+    }
 }

@@ -6,14 +6,15 @@ use axum::extract::FromRequestParts;
 use axum::http::request::Parts;
 use axum::http::{Method, StatusCode, Uri};
 use axum::response::{IntoResponse, Response};
+use fractile_proto::ErrorCode;
 
 /// An error answered to an HTTP client.
 #[derive(Debug)]
 pub struct AppError {
     /// HTTP status.
     pub status: StatusCode,
-    /// Stable code clients can match on.
-    pub code: &'static str,
+    /// Stable code clients can match on (one list: [`ErrorCode`]).
+    pub code: ErrorCode,
     /// What went wrong, for people.
     pub detail: String,
     /// Seconds after which a retry may succeed (`Retry-After`), for refusals that are the
@@ -23,7 +24,7 @@ pub struct AppError {
 
 impl AppError {
     /// 400 with a code.
-    pub fn bad_request(code: &'static str, detail: impl Into<String>) -> Self {
+    pub fn bad_request(code: ErrorCode, detail: impl Into<String>) -> Self {
         AppError {
             status: StatusCode::BAD_REQUEST,
             code,
@@ -32,7 +33,7 @@ impl AppError {
         }
     }
     /// 404 with a code.
-    pub fn not_found(code: &'static str, detail: impl Into<String>) -> Self {
+    pub fn not_found(code: ErrorCode, detail: impl Into<String>) -> Self {
         AppError {
             status: StatusCode::NOT_FOUND,
             code,
@@ -44,7 +45,7 @@ impl AppError {
     pub fn internal(detail: impl Into<String>) -> Self {
         AppError {
             status: StatusCode::INTERNAL_SERVER_ERROR,
-            code: "internal",
+            code: ErrorCode::Internal,
             detail: detail.into(),
             retry_after: None,
         }
@@ -55,7 +56,7 @@ impl IntoResponse for AppError {
     fn into_response(self) -> Response {
         let body = Json(fractile_proto::ErrorBody {
             detail: self.detail,
-            code: self.code.into(),
+            code: self.code.as_str().into(),
         });
         let mut response = (self.status, body).into_response();
         if let Some(secs) = self.retry_after {
@@ -84,7 +85,7 @@ where
     async fn from_request_parts(parts: &mut Parts, state: &S) -> Result<Self, Self::Rejection> {
         match axum::extract::Query::<T>::from_request_parts(parts, state).await {
             Ok(axum::extract::Query(v)) => Ok(Query(v)),
-            Err(e) => Err(AppError::bad_request("bad_query", e.body_text())),
+            Err(e) => Err(AppError::bad_request(ErrorCode::BadQuery, e.body_text())),
         }
     }
 }
@@ -106,7 +107,7 @@ where
             Ok(axum::extract::Path(v)) => Ok(Path(v)),
             Err(e) if e.status().is_client_error() => Err(AppError {
                 status: e.status(),
-                code: "bad_path",
+                code: ErrorCode::BadPath,
                 detail: e.body_text(),
                 retry_after: None,
             }),
@@ -118,7 +119,7 @@ where
 /// The answer to a path no route serves (the router's fallback).
 pub async fn no_route(method: Method, uri: Uri) -> AppError {
     AppError::not_found(
-        "no_route",
+        ErrorCode::NoRoute,
         format!(
             "no route for {method} {} (see /v1/openapi.json)",
             uri.path()
@@ -130,7 +131,7 @@ pub async fn no_route(method: Method, uri: Uri) -> AppError {
 pub async fn method_not_allowed(method: Method, uri: Uri) -> AppError {
     AppError {
         status: StatusCode::METHOD_NOT_ALLOWED,
-        code: "method_not_allowed",
+        code: ErrorCode::MethodNotAllowed,
         detail: format!("{} does not answer {method}", uri.path()),
         retry_after: None,
     }
@@ -161,13 +162,13 @@ pub async fn json_errors(resp: Response) -> Response {
         text
     };
     let code = match status {
-        StatusCode::PAYLOAD_TOO_LARGE => "too_large",
-        StatusCode::SERVICE_UNAVAILABLE => "unavailable",
-        StatusCode::UNSUPPORTED_MEDIA_TYPE => "bad_media_type",
-        StatusCode::METHOD_NOT_ALLOWED => "method_not_allowed",
-        StatusCode::NOT_FOUND => "no_route",
-        s if s.is_client_error() => "bad_request",
-        _ => "internal",
+        StatusCode::PAYLOAD_TOO_LARGE => ErrorCode::TooLarge,
+        StatusCode::SERVICE_UNAVAILABLE => ErrorCode::Unavailable,
+        StatusCode::UNSUPPORTED_MEDIA_TYPE => ErrorCode::BadMediaType,
+        StatusCode::METHOD_NOT_ALLOWED => ErrorCode::MethodNotAllowed,
+        StatusCode::NOT_FOUND => ErrorCode::NoRoute,
+        s if s.is_client_error() => ErrorCode::BadRequest,
+        _ => ErrorCode::Internal,
     };
     parts.headers.remove(axum::http::header::CONTENT_TYPE);
     parts.headers.remove(axum::http::header::CONTENT_LENGTH);

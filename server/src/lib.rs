@@ -13,6 +13,7 @@ pub mod telemetry;
 pub mod web;
 pub mod work;
 
+use fractile_proto::ErrorCode;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -126,7 +127,7 @@ fn cesium_files(dir: PathBuf) -> axum::Router {
                 async move {
                     if through_a_link(&dir, req.uri().path()).await {
                         let refused = error::AppError::not_found(
-                            "no_file",
+                            ErrorCode::NoFile,
                             "no such file in the CesiumJS folder (links are not followed)",
                         );
                         return axum::response::IntoResponse::into_response(refused);

@@ -3,6 +3,7 @@
 //! keep it and the router in step both ways: every documented path is requested, and every
 //! route of `api::router` must be documented; closed choices come from `fractile-proto`.
 
+use fractile_proto::ErrorCode;
 use fractile_proto::query::{
     Backend, Choice, Colormap, HeightEncoding, MeshFormat, Precision, RegionFormat,
 };
@@ -26,6 +27,8 @@ fn names<C: Choice>() -> Vec<&'static str> {
 
 /// The document.
 pub fn document() -> Value {
+    // Every error code, from the one list in `fractile-proto`.
+    let codes: Vec<&str> = ErrorCode::ALL.iter().map(|c| c.as_str()).collect();
     let id = param(
         "id",
         "path",
@@ -125,7 +128,7 @@ pub fn document() -> Value {
         },
         "components": {
             "securitySchemes": {"bearer": {"type": "http", "scheme": "bearer"}},
-            "responses": {"Error": {"description": "An error", "content": {"application/json": {"schema": {"type": "object", "required": ["detail", "code"], "properties": {"detail": {"type": "string"}, "code": {"type": "string"}}}}}}},
+            "responses": {"Error": {"description": "An error", "content": {"application/json": {"schema": {"type": "object", "required": ["detail", "code"], "properties": {"detail": {"type": "string"}, "code": {"type": "string", "enum": codes}}}}}}},
             "schemas": {
                 "AssetSummary": {"type": "object", "properties": {"id": {"type": "string"}, "kind": {"enum": ["Image", "HeightField", "Volume", "Curve"]}, "width": {"type": "integer"}, "height": {"type": "integer"}, "bounds": {"type": ["array", "null"]}, "epsg": {"type": ["integer", "null"], "description": "EPSG code of the grid's CRS as its file names it, 4326 for geographic grids (requests take lon/lat whatever it is)"}, "value_range": {"type": "array"}, "units": {"type": ["string", "null"]}, "codec": {"type": "string"}, "bytes": {"type": "integer"}, "ratio": {"type": "number"}}},
                 "PointsRequest": {"type": "object", "required": ["points"], "properties": {"points": {"type": "array", "items": {"type": "array", "minItems": 2, "maxItems": 2}}, "iterations": {"type": ["integer", "null"]}, "tolerance": {"type": ["number", "null"]}}},

@@ -5,6 +5,7 @@
 //! built-in demo assets, encoded from small real files shipped in the binary at first start and
 //! cached on disk afterwards.
 
+use fractile_proto::ErrorCode;
 use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::{Arc, RwLock};
@@ -76,7 +77,7 @@ fn storage_unavailable(what: &str, id: &str, e: std::io::Error) -> AppError {
     tracing::error!("{what} asset {id}: {e}");
     AppError {
         status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
-        code: "storage_unavailable",
+        code: ErrorCode::StorageUnavailable,
         detail: format!("the asset store could not be written ({what}); try again"),
         retry_after: Some(1),
     }
@@ -163,7 +164,7 @@ impl Store {
         validate_id(id)?;
         let bad_asset = |e: fractile_codec::Error| AppError {
             status: axum::http::StatusCode::UNPROCESSABLE_ENTITY,
-            code: "bad_asset",
+            code: ErrorCode::BadAsset,
             detail: e.to_string(),
             retry_after: None,
         };
@@ -176,7 +177,7 @@ impl Store {
             && let Err(e @ fractile_codec::geo::PlacementError::OffTheGlobe(_)) =
                 Placement::of(g, meta.width, meta.height)
         {
-            return Err(bad_asset(fractile_codec::Error::Asset(e.to_string())));
+            return Err(bad_asset(fractile_codec::Error::asset(e.to_string())));
         }
         // A chunked upload is checked whole: a file is stored only when every chunk is sound.
         if let Some(c) = &stored.asset.chunks {
@@ -224,7 +225,7 @@ impl Store {
         let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
         if !self.assets.read().expect("store lock").contains_key(id) {
             return Err(AppError::not_found(
-                "unknown_asset",
+                ErrorCode::UnknownAsset,
                 format!("no asset {id:?}"),
             ));
         }
@@ -248,7 +249,7 @@ impl Store {
             .expect("store lock")
             .get(id)
             .cloned()
-            .ok_or_else(|| AppError::not_found("unknown_asset", format!("no asset {id:?}")))
+            .ok_or_else(|| AppError::not_found(ErrorCode::UnknownAsset, format!("no asset {id:?}")))
     }
 
     /// Decodes the chunked assets' chunks into the chunk cache on a thread of its own, until

@@ -864,6 +864,35 @@ async fn terrain_meshes_in_three_formats() {
     }
 }
 
+/// The document lists every error code (the one list in `fractile-proto`), and a few that
+/// answers carry here are among them.
+#[tokio::test]
+async fn the_document_lists_every_error_code() {
+    let (_, _, b) = get("/v1/openapi.json").await;
+    let doc = json(&b);
+    let listed: Vec<&str> = doc["components"]["responses"]["Error"]["content"]["application/json"]
+        ["schema"]["properties"]["code"]["enum"]
+        .as_array()
+        .expect("the codes")
+        .iter()
+        .map(|c| c.as_str().unwrap())
+        .collect();
+    let all: Vec<&str> = fractile_proto::ErrorCode::ALL
+        .iter()
+        .map(|c| c.as_str())
+        .collect();
+    assert_eq!(listed, all);
+    for uri in [
+        "/v1/assets/nope",
+        "/v1/assets/camera/tiles/0/0/0.png?encoding=nope",
+        "/nowhere",
+    ] {
+        let (_, _, b) = get(uri).await;
+        let code = json(&b)["code"].as_str().unwrap().to_string();
+        assert!(listed.contains(&code.as_str()), "{uri}: {code}");
+    }
+}
+
 #[tokio::test]
 async fn every_documented_path_is_routed() {
     let (s, _, b) = get("/v1/openapi.json").await;
@@ -955,6 +984,30 @@ async fn every_route_is_documented() {
             "{name}: {s}"
         );
     }
+}
+
+/// A tile is cached and tagged by the request as checked, not as spelt: two spellings of the
+/// same parameters are one ETag; other parameters another.
+#[tokio::test]
+async fn spellings_of_one_tile_share_its_etag() {
+    let (x, y) = geo::lonlat_tile(12, -84.25, 36.6);
+    let base = format!("/v1/assets/jacksboro/tiles/12/{x}/{y}.png");
+    let tag = |h: &axum::http::HeaderMap| h[header::ETAG].to_str().unwrap().to_string();
+    let mut tags = Vec::new();
+    for q in [
+        "colormap=gray&rescale=300,900&tolerance=1",
+        "colormap=grey&rescale=300.0,900&tolerance=1.0",
+    ] {
+        let (s, h, _) = get(&format!("{base}?{q}")).await;
+        assert_eq!(s, StatusCode::OK, "{q}");
+        tags.push(tag(&h));
+    }
+    assert_eq!(tags[0], tags[1]);
+    let (_, h, _) = get(&format!(
+        "{base}?colormap=terrain&rescale=300,900&tolerance=1"
+    ))
+    .await;
+    assert_ne!(tag(&h), tags[0]);
 }
 
 #[tokio::test]

@@ -49,7 +49,7 @@ pub(super) fn encode_part(
             let per_chunk = a.chunk_rate(width, height, chunk);
             let one = |r: &Raster| {
                 encode_with(&per_chunk, r, false)
-                    .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
+                    .map_err(|e| fractile_codec::Error::settings(e.to_string()))
             };
             encode_chunked_part(rows, (chunk, share, &settings), &one, &progress, out.path())?
         }

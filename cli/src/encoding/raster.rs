@@ -33,7 +33,7 @@ pub(super) fn encode_chunks(
             let per_chunk = a.chunk_rate(width, height, c);
             let one = |r: &Raster| {
                 encode_with(&per_chunk, r, false)
-                    .map_err(|e| fractile_codec::Error::Settings(e.to_string()))
+                    .map_err(|e| fractile_codec::Error::settings(e.to_string()))
             };
             encode_chunked_file(rows, c, &one, &progress, output)?
         }

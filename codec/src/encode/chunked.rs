@@ -116,7 +116,7 @@ pub fn encode_chunked(
     for (at, len) in coded.order() {
         spill
             .copy(at, len, &mut bytes)
-            .map_err(|e| Error::Output(e.to_string()))?;
+            .map_err(|e| Error::output(e.to_string()))?;
     }
     let asset = Asset::from_bytes(&bytes)?;
     Ok(Encoded {
@@ -201,7 +201,7 @@ pub fn encode_chunked_at(
     for (offset, len) in at.coded.order() {
         at.spill
             .copy(offset, len, &mut bytes)
-            .map_err(|e| Error::Output(e.to_string()))?;
+            .map_err(|e| Error::output(e.to_string()))?;
     }
     Ok(Encoded {
         asset: Asset::from_bytes(&bytes)?,
@@ -276,7 +276,7 @@ fn code_at_rate(
         }
         quality = search.coarser(quality, last)?;
     }
-    Err(Error::Settings(format!(
+    Err(Error::settings(format!(
         "--target-bpp {}: the file came out at {last} bytes, over its {budget}, {RATE_PASSES} times",
         rate.bpp
     )))
@@ -319,8 +319,11 @@ impl Spill {
             .parent()
             .filter(|p| !p.as_os_str().is_empty())
             .unwrap_or(Path::new("."));
-        let file = tempfile::tempfile_in(dir)
-            .map_err(|e| Error::Output(format!("{}: {e}", output.display())))?;
+        let file = tempfile::tempfile_in(dir).map_err(|e| {
+            Error::output(format!("{}: {e}", output.display()))
+                .at(output)
+                .caused_by(e)
+        })?;
         Ok(Spill::File(file, 0))
     }
 
@@ -405,7 +408,7 @@ impl Share {
 
     /// `I/N` as the command line writes it.
     pub fn parse(text: &str) -> Result<Share, Error> {
-        let bad = || Error::Settings(format!("--part {text}: I/N with 0 <= I < N <= 4096"));
+        let bad = || Error::settings(format!("--part {text}: I/N with 0 <= I < N <= 4096"));
         let (i, n) = text.split_once('/').ok_or_else(bad)?;
         let (index, count) = (
             i.trim().parse().map_err(|_| bad())?,
@@ -507,7 +510,7 @@ pub(super) fn summarise<'r>(
     let mut value_range = [f64::INFINITY, f64::NEG_INFINITY];
     for c in records {
         if table.codec != 0 && table.codec != c.codec {
-            return Err(Error::Settings("chunks coded by different codecs".into()));
+            return Err(Error::settings("chunks coded by different codecs"));
         }
         table.codec = c.codec;
         table.max_contrast = table.max_contrast.max(c.max_contrast);
@@ -538,13 +541,13 @@ pub(super) fn summarise<'r>(
         let entry = entries
             .get_mut(c.level as usize)
             .and_then(|l| l.get_mut(c.index as usize))
-            .ok_or_else(|| Error::Input(format!("no chunk {} of level {}", c.index, c.level)))?;
+            .ok_or_else(|| Error::input(format!("no chunk {} of level {}", c.index, c.level)))?;
         entry.value_range = [c.meta.value_min, c.meta.value_max];
         entry.length = c.length;
         entry.crc = c.crc;
     }
     let Some(mut meta) = template.cloned() else {
-        return Err(Error::Input("no cell of the raster has data".into()));
+        return Err(Error::input("no cell of the raster has data"));
     };
     // A view level's entries: level 0's (value ranges too), with the view's cells; their
     // offsets are level 0's, set by `chunked::header`.
@@ -773,7 +776,7 @@ fn read_levels(
         let y1 = (y + READ_ROWS).min(header.height);
         let band = rows.read(y, y1)?;
         if band.width != header.width || band.height != y1 - y {
-            return Err(Error::Input(format!(
+            return Err(Error::input(format!(
                 "rows {y}..{y1} read as {}x{}, not {}x{}",
                 band.width,
                 band.height,
@@ -850,16 +853,16 @@ pub(super) fn sample_chunks(
 fn checked_header(rows: &mut dyn Rows, chunk: u32) -> Result<Header, Error> {
     let (lo, hi) = chunked::CHUNK_SIDES;
     if !chunk.is_power_of_two() || !(lo..=hi).contains(&chunk) {
-        return Err(Error::Settings(format!(
+        return Err(Error::settings(format!(
             "--chunk {chunk}: a power of two from {lo} to {hi}"
         )));
     }
     let header = rows.header().clone();
     if header.width == 0 || header.height == 0 {
-        return Err(Error::Input("the grid is empty (0 samples)".into()));
+        return Err(Error::input("the grid is empty (0 samples)"));
     }
     if header.width > mosaic::MAX_WIDTH || header.height > 1 << 24 {
-        return Err(Error::Input(format!(
+        return Err(Error::input(format!(
             "{}x{}: a chunked raster is at most {} cells wide (a band of its rows is held in memory) and 2^24 high",
             header.width,
             header.height,
@@ -968,12 +971,12 @@ impl<'w, 's> Tally<'w, 's> {
                 let any_valid = part.valid.as_ref().is_none_or(|v| v.contains(&true));
                 let enc = if any_valid {
                     let enc = encode_one(l, &part).map_err(|e| match e {
-                        Error::Input(m) => Error::Input(format!("chunk {i} of level {l}: {m}")),
+                        Error::Input { .. } => e.within(format_args!("chunk {i} of level {l}")),
                         e => e,
                     })?;
                     let maps = if l == 0 && views > 0 {
                         view_maps(&enc, &part, views)
-                            .map_err(|e| Error::Input(format!("the views of chunk {i}: {e}")))?
+                            .map_err(|e| Error::input(format!("the views of chunk {i}: {e}")))?
                     } else {
                         Vec::new()
                     };
@@ -990,7 +993,7 @@ impl<'w, 's> Tally<'w, 's> {
                 let at = self
                     .spill
                     .push(&c.bytes)
-                    .map_err(|e| Error::Output(format!("spilling a chunk: {e}")))?;
+                    .map_err(|e| Error::output(format!("spilling a chunk: {e}")))?;
                 self.records[l][i as usize] = Some((c.record, at));
             }
         }

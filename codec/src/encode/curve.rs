@@ -56,7 +56,7 @@ pub fn encode_asset(
         width: u32::try_from(points)
             .ok()
             .filter(|&n| n <= 1 << 26)
-            .ok_or_else(|| crate::Error::Input(format!("{points} vertices is too many")))?,
+            .ok_or_else(|| crate::Error::input(format!("{points} vertices is too many")))?,
         height: 1,
         channels: 2,
         colour: fractile_proto::ColourModel::Grey,

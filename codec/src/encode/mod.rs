@@ -189,7 +189,7 @@ impl EncodeSettings {
     /// search's candidates and the attractor passes change.
     pub fn at_speed(speed: u8) -> Result<EncodeSettings, Error> {
         let p = SPEEDS.get(speed as usize).ok_or_else(|| {
-            Error::Settings(format!(
+            Error::settings(format!(
                 "speed {speed} is not a preset: 0 (slowest, best) to {} (fastest)",
                 SPEEDS.len() - 1
             ))
@@ -209,23 +209,23 @@ impl EncodeSettings {
             || self.min_range > self.max_range
             || self.max_range > 256
         {
-            return Err(Error::Settings(format!(
+            return Err(Error::settings(format!(
                 "range sizes must be powers of two with min <= max <= 256 (min {}, max {})",
                 self.min_range, self.max_range
             )));
         }
         if !(self.domain_step > 0.0 && self.domain_step <= 8.0) {
-            return Err(Error::Settings(format!(
+            return Err(Error::settings(format!(
                 "domain step {} must be in (0, 8]",
                 self.domain_step
             )));
         }
-        self.quantiser.validate().map_err(Error::Settings)?;
+        self.quantiser.validate().map_err(Error::settings)?;
         for q in &self.quantiser_choices {
-            q.validate().map_err(Error::Settings)?;
+            q.validate().map_err(Error::settings)?;
             // One search serves every quantiser, and its domain features differ with slopes.
             if (q.slope_bits > 0) != (self.quantiser.slope_bits > 0) {
-                return Err(Error::Settings(format!(
+                return Err(Error::settings(format!(
                     "quantiser choice {q:?} and the quantiser {:?} must both have slopes or both \
                      not",
                     self.quantiser
@@ -233,7 +233,7 @@ impl EncodeSettings {
             }
         }
         if self.attractor_passes > MAX_ATTRACTOR_PASSES {
-            return Err(Error::Settings(format!(
+            return Err(Error::settings(format!(
                 "attractor passes {} must be at most {MAX_ATTRACTOR_PASSES} (each costs a search; \
                  gains stop after a few)",
                 self.attractor_passes
@@ -241,16 +241,16 @@ impl EncodeSettings {
         }
         match self.rate {
             RateMode::Tolerance(t) if t < 0.0 => {
-                return Err(Error::Settings("tolerance must be >= 0".into()));
+                return Err(Error::settings("tolerance must be >= 0"));
             }
             RateMode::Transforms(0) => {
-                return Err(Error::Settings("at least one transform".into()));
+                return Err(Error::settings("at least one transform"));
             }
             RateMode::ConstRange(r) if r == 0 || r > 256 => {
-                return Err(Error::Settings("const range must be in 1..=256".into()));
+                return Err(Error::settings("const range must be in 1..=256"));
             }
             RateMode::TargetBpp(b) if b.is_nan() || b <= 0.0 => {
-                return Err(Error::Settings("target bpp must be > 0".into()));
+                return Err(Error::settings("target bpp must be > 0"));
             }
             _ => {}
         }
@@ -261,12 +261,12 @@ impl EncodeSettings {
                 || r.rect[2] <= r.rect[0]
                 || r.rect[3] <= r.rect[1]
             {
-                return Err(Error::Settings(format!("bad region of interest {r:?}")));
+                return Err(Error::settings(format!("bad region of interest {r:?}")));
             }
         }
         if let (RateMode::ConstRange(_), false) = (self.rate, self.rois.is_empty()) {
-            return Err(Error::Settings(
-                "regions of interest need a quadtree mode, not const range".into(),
+            return Err(Error::settings(
+                "regions of interest need a quadtree mode, not const range",
             ));
         }
         Ok(())
@@ -823,14 +823,13 @@ pub fn encode_fis(
     target_bpp: Option<f64>,
 ) -> Result<Encoded, Error> {
     if raster.kind != AssetKind::HeightField {
-        return Err(Error::Settings(
+        return Err(Error::settings(
             "fractal interpolation surfaces code height fields (use quadtree-pifs or psa2d for \
-             images)"
-                .into(),
+             images)",
         ));
     }
     if !(settings.max_scaling > 0.0 && settings.max_scaling < 1.0) {
-        return Err(Error::Settings("max scaling must be in (0, 1)".into()));
+        return Err(Error::settings("max scaling must be in (0, 1)"));
     }
     let lattice = Lattice {
         spacing: settings.spacing,
@@ -918,7 +917,7 @@ pub fn encode_psa(
     target_bpp: Option<f64>,
 ) -> Result<Encoded, Error> {
     if !(settings.max_scaling > 0.0 && settings.max_scaling < 1.0) {
-        return Err(Error::Settings("max scaling must be in (0, 1)".into()));
+        return Err(Error::settings("max scaling must be in (0, 1)"));
     }
     let lattice = Lattice {
         spacing: settings.region,
@@ -1001,14 +1000,14 @@ fn encode_lattice(
 ) -> Result<Encoded, Error> {
     let start = Instant::now();
     if raster.channels.len() != 1 {
-        return Err(Error::Settings(format!(
+        return Err(Error::settings(format!(
             "this codec codes one grey channel; the input has {} (use quadtree-pifs for colour)",
             raster.channels.len()
         )));
     }
     let (w, h) = (raster.width, raster.height);
     if w < 2 || h < 2 {
-        return Err(Error::Input(format!(
+        return Err(Error::input(format!(
             "a {w}x{h} grid is too small for a vertex lattice (2x2 at least)"
         )));
     }
@@ -1064,7 +1063,7 @@ fn encode_lattice(
                 }
             }
             let Some((k, a)) = found else {
-                return Err(Error::Settings(format!(
+                return Err(Error::settings(format!(
                     "nothing fits in {bpp} bits per pixel (the coarsest lattice takes more)"
                 )));
             };

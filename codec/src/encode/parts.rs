@@ -161,8 +161,12 @@ struct Part {
 }
 
 fn open_part(path: &Path) -> Result<Part, Error> {
-    let bad = |m: String| Error::Input(format!("{}: {m}", path.display()));
-    let io = |e: std::io::Error| Error::Input(format!("{}: {e}", path.display()));
+    let bad = |m: String| Error::input(format!("{}: {m}", path.display()));
+    let io = |e: std::io::Error| {
+        Error::input(format!("{}: {e}", path.display()))
+            .at(path)
+            .caused_by(e)
+    };
     let file = std::fs::File::open(path).map_err(io)?;
     let mut head = [0u8; 14];
     file.read_exact_at(&mut head, 0)
@@ -253,7 +257,7 @@ fn check_shares(parts: &[Part]) -> Result<(), Error> {
     for p in parts {
         let h = &p.header;
         let differs = |what: &str| {
-            Error::Input(format!(
+            Error::input(format!(
                 "{} and {} are parts of different encodes ({what} differ)",
                 p.path.display(),
                 first.path.display()
@@ -269,7 +273,7 @@ fn check_shares(parts: &[Part]) -> Result<(), Error> {
             return Err(differs("their settings"));
         }
         if let Some(other) = seen[h.share.index as usize].replace(&p.path) {
-            return Err(Error::Input(format!(
+            return Err(Error::input(format!(
                 "{} and {} are both part {}/{count}",
                 p.path.display(),
                 other.display(),
@@ -278,7 +282,7 @@ fn check_shares(parts: &[Part]) -> Result<(), Error> {
         }
     }
     if let Some(missing) = seen.iter().position(Option::is_none) {
-        return Err(Error::Input(format!(
+        return Err(Error::input(format!(
             "part {missing}/{count} is missing: assemble takes every part of an encode"
         )));
     }
@@ -296,7 +300,7 @@ pub fn assemble(parts: &[PathBuf], output: &Path) -> Result<Written, Error> {
         .map(|p| open_part(p))
         .collect::<Result<Vec<_>, _>>()?;
     let Some(first) = parts.first() else {
-        return Err(Error::Input("assemble: no part files given".into()));
+        return Err(Error::input("assemble: no part files given"));
     };
     let h0 = &first.header;
     let count = h0.share.count;
@@ -330,7 +334,7 @@ pub fn assemble(parts: &[PathBuf], output: &Path) -> Result<Written, Error> {
                 .get_mut(r.level as usize)
                 .and_then(|l| l.get_mut(r.index as usize))
                 .ok_or_else(|| {
-                    Error::Input(format!(
+                    Error::input(format!(
                         "{}: chunk {} of level {} is not in the raster",
                         p.path.display(),
                         r.index,
@@ -339,7 +343,7 @@ pub fn assemble(parts: &[PathBuf], output: &Path) -> Result<Written, Error> {
                 })?;
             let number = first_of_level + u64::from(r.index);
             if number % u64::from(count) != u64::from(p.header.share.index) || slot.is_some() {
-                return Err(Error::Input(format!(
+                return Err(Error::input(format!(
                     "{}: chunk {} of level {} is not of its share",
                     p.path.display(),
                     r.index,
@@ -363,7 +367,7 @@ pub fn assemble(parts: &[PathBuf], output: &Path) -> Result<Written, Error> {
         && total > budget
     {
         let bpp = 8.0 * budget as f64 / f64::from(h0.width) / f64::from(h0.height);
-        return Err(Error::Settings(format!(
+        return Err(Error::settings(format!(
             "the parts come to {total} bytes, over the rate's {budget} ({bpp:.3} bits a cell): a split encode finds its quality on a sample and cannot code again; encode the parts again with --target-bpp {:.3}",
             bpp * 0.98 * budget as f64 / total as f64
         )));

@@ -94,14 +94,14 @@ fn encode_within(
     let start = Instant::now();
     let (w, h) = (raster.width, raster.height);
     if w < 2 || h < 2 {
-        return Err(Error::Input(format!(
+        return Err(Error::input(format!(
             "a {w}x{h} grid is too small (2x2 at least)"
         )));
     }
     if raster.channels.len() != 1 {
         if settings.at_step.is_some() {
-            return Err(Error::Settings(
-                "a fixed step codes one channel (colour takes a rate)".into(),
+            return Err(Error::settings(
+                "a fixed step codes one channel (colour takes a rate)",
             ));
         }
         return encode_colour(raster, settings, target_bpp, (start, shift, designs));
@@ -169,8 +169,8 @@ fn encode_within(
             coded
         }
         (None, None) => {
-            return Err(Error::Settings(
-                "projected takes --max-error (source units) or --target-bpp".into(),
+            return Err(Error::settings(
+                "projected takes --max-error (source units) or --target-bpp",
             ));
         }
     };
@@ -276,7 +276,7 @@ fn source_quantum(raster: &Raster) -> f64 {
 /// quantum)` on quantised data (JPEG-LS's near-lossless step), `2 e` on continuous data.
 fn max_error_step(e: f64, quantum: f64) -> Result<f64, Error> {
     if !(e.is_finite() && e >= 0.0) {
-        return Err(Error::Settings(format!(
+        return Err(Error::settings(format!(
             "--max-error {e} must be a distance >= 0"
         )));
     }
@@ -285,9 +285,8 @@ fn max_error_step(e: f64, quantum: f64) -> Result<f64, Error> {
     } else if e > 0.0 {
         Ok(2.0 * e)
     } else {
-        Err(Error::Settings(
-            "--max-error 0 needs a source on a quantum (integer samples); this one is continuous"
-                .into(),
+        Err(Error::settings(
+            "--max-error 0 needs a source on a quantum (integer samples); this one is continuous",
         ))
     }
 }
@@ -311,7 +310,7 @@ fn check_bound(
         .map(|(_, (g, s))| (g - s).abs())
         .fold(0.0f64, f64::max);
     if worst > e + slack {
-        return Err(Error::Settings(format!(
+        return Err(Error::settings(format!(
             "internal: a decoded sample is {worst} from its source, over the bound {e}"
         )));
     }
@@ -478,8 +477,8 @@ fn encode_colour(
     (start, shift, designs): (Instant, i64, &[Option<Order>]),
 ) -> Result<Encoded, Error> {
     let Some(bpp) = target_bpp.filter(|_| settings.max_error.is_none()) else {
-        return Err(Error::Settings(
-            "--max-error bounds one channel: projected codes colour under --target-bpp".into(),
+        return Err(Error::settings(
+            "--max-error bounds one channel: projected codes colour under --target-bpp",
         ));
     };
     let budget = shifted(bpp, raster, shift)?;
@@ -570,7 +569,7 @@ fn plane_header(w: usize, h: usize, quantum: f64, (lo, span): (f64, f64)) -> Pro
 /// what the metadata and mask take.
 fn rate_budget(bpp: f64, raster: &Raster) -> Result<usize, Error> {
     if !(bpp.is_finite() && bpp > 0.0) {
-        return Err(Error::Settings(format!(
+        return Err(Error::settings(format!(
             "--target-bpp {bpp} must be positive"
         )));
     }

@@ -70,7 +70,7 @@ impl FileRate {
     /// The file's budget in bytes for a raster of `cells`.
     pub fn budget(&self, cells: u64) -> Result<u64, Error> {
         if !(self.bpp.is_finite() && self.bpp > 0.0) {
-            return Err(Error::Settings(format!(
+            return Err(Error::settings(format!(
                 "--target-bpp {} must be positive",
                 self.bpp
             )));
@@ -382,7 +382,7 @@ impl<'a> Search<'a> {
         let (q, _) = self.quality(coarsest);
         let floor = self.sample.code(q, self.encode_at)?.bytes;
         if floor > target {
-            return Err(Error::Settings(format!(
+            return Err(Error::settings(format!(
                 "--target-bpp {}: the file's {} bytes are less than its chunks take at the coarsest quality (about {:.0} bytes, most of it each chunk's own header and maps): give larger chunks (--chunk) or a higher rate",
                 self.rate.bpp, self.budget, floor
             )));

@@ -32,7 +32,7 @@ impl Asset {
     fn volume_or_err(&self) -> Result<&Volume, Error> {
         self.volume
             .as_ref()
-            .ok_or_else(|| Error::Settings("this asset is not a volume".into()))
+            .ok_or_else(|| Error::settings("this asset is not a volume"))
     }
 
     /// Signed distances at world points (continuous decoding, `iterations` steps, each chain
@@ -82,7 +82,7 @@ impl Asset {
     ) -> Result<(Vec<f32>, f32), Error> {
         let v = self.volume_or_err()?;
         if dims.iter().any(|&d| d < 2) || dims.iter().product::<usize>() > MAX_SAMPLES {
-            return Err(Error::Settings(format!(
+            return Err(Error::settings(format!(
                 "{dims:?} samples: each side at least 2, at most {MAX_SAMPLES} in all"
             )));
         }
@@ -139,9 +139,7 @@ impl Asset {
         let v = self.volume_or_err()?;
         let (lo, hi) = bbox.unwrap_or_else(|| v.bounds());
         if (0..3).any(|a| !lo[a].is_finite() || !hi[a].is_finite() || hi[a] <= lo[a]) {
-            return Err(Error::Settings(
-                "bbox must have max > min on every axis".into(),
-            ));
+            return Err(Error::settings("bbox must have max > min on every axis"));
         }
         let longest = (0..3).map(|a| hi[a] - lo[a]).fold(0.0, f64::max);
         let step = longest / (resolution.max(2) - 1) as f64;

@@ -17,7 +17,7 @@
 //! | end-4 | 4 | CRC-32 (IEEE) of every byte before it |
 //!
 //! Reading checks all of it before any decoding: a truncated, corrupt or newer file is an
-//! [`Error::Asset`] naming what is wrong, never a panic.
+//! [`Error::asset`] naming what is wrong, never a panic.
 
 use std::io::Write;
 use std::path::Path;
@@ -89,7 +89,7 @@ impl AssetLimits {
     /// Checks the grid a file claims.
     pub(crate) fn check_pixels(&self, what: &str, pixels: u64) -> Result<(), Error> {
         if pixels > self.max_pixels {
-            return Err(Error::Asset(format!(
+            return Err(Error::asset(format!(
                 "{what} of {pixels} samples is over this reader's limit of {} (max_asset_pixels)",
                 self.max_pixels
             )));
@@ -100,7 +100,7 @@ impl AssetLimits {
     /// Checks the estimated cost of decoding.
     fn check_cost(&self, bytes: u64) -> Result<(), Error> {
         if bytes > self.max_decode_bytes {
-            return Err(Error::Asset(format!(
+            return Err(Error::asset(format!(
                 "decoding it would take about {} MiB, over this reader's limit of {} MiB (max_decode_mib)",
                 bytes >> 20,
                 self.max_decode_bytes >> 20
@@ -136,7 +136,7 @@ fn lattice_nodes<H>(
 ) -> Result<u64, Error> {
     let mut total = 0u64;
     for (i, (header, _)) in planes.iter().enumerate() {
-        validate(header).map_err(|e| Error::Asset(format!("plane {i}: {e}")))?;
+        validate(header).map_err(|e| Error::asset(format!("plane {i}: {e}")))?;
         total += nodes(header).iter().map(|&n| n as u64).product::<u64>();
     }
     Ok(total)
@@ -228,7 +228,7 @@ pub fn check_magic(head: &[u8]) -> Result<(), Error> {
     if head.len() >= 8 && &head[..8] == MAGIC {
         Ok(())
     } else {
-        Err(Error::Asset(not_an_asset(head)))
+        Err(Error::asset(not_an_asset(head)))
     }
 }
 
@@ -612,7 +612,7 @@ impl Mask {
     fn decode(width: usize, height: usize, bytes: &[u8]) -> Result<Mask, Error> {
         // A decision per cell: a mask larger than its stream can hold is refused unallocated.
         if (width as u64) * (height as u64) > crate::core::entropy::most_decisions(bytes.len()) {
-            return Err(Error::Asset(format!(
+            return Err(Error::asset(format!(
                 "a nodata mask of {width}x{height} needs more than its {} bytes",
                 bytes.len()
             )));
@@ -630,7 +630,7 @@ impl Mask {
             }
         }
         if dec.overrun() {
-            return Err(Error::Asset("the nodata mask is truncated".into()));
+            return Err(Error::asset("the nodata mask is truncated"));
         }
         Ok(Mask::new(width, height, valid))
     }
@@ -766,8 +766,8 @@ impl Asset {
         mask: Option<Mask>,
     ) -> Result<Asset, Error> {
         if meta.kind != AssetKind::HeightField {
-            return Err(Error::Asset(
-                "fractal interpolation surfaces code height fields only".into(),
+            return Err(Error::asset(
+                "fractal interpolation surfaces code height fields only",
             ));
         }
         Asset::assemble(meta, planes, mask, |meta, header, stream| {
@@ -852,7 +852,7 @@ impl Asset {
             .into_iter()
             .enumerate()
             .map(|(i, (header, stream))| {
-                plane(&meta, header, stream).map_err(|e| Error::Asset(format!("plane {i}: {e}")))
+                plane(&meta, header, stream).map_err(|e| Error::asset(format!("plane {i}: {e}")))
             })
             .collect::<Result<Vec<_>, Error>>()?;
         let asset = Asset {
@@ -875,7 +875,7 @@ impl Asset {
         stream: Vec<u8>,
         placement: crate::codecs::ifs3d::volume::Placement,
     ) -> Result<Asset, Error> {
-        let bad = |m: String| Error::Asset(format!("volume: {m}"));
+        let bad = |m: String| Error::asset(format!("volume: {m}"));
         if meta.kind != AssetKind::Volume || meta.channels != 1 || meta.width != meta.height {
             return Err(bad(
                 "metadata is not that of a cubic one-channel volume".into()
@@ -912,7 +912,7 @@ impl Asset {
         header: crate::codecs::curve::code::CurveHeader,
         stream: Vec<u8>,
     ) -> Result<Asset, Error> {
-        let bad = |m: String| Error::Asset(format!("curve: {m}"));
+        let bad = |m: String| Error::asset(format!("curve: {m}"));
         if meta.kind != AssetKind::Curve {
             return Err(bad("metadata is not that of a curve asset".into()));
         }
@@ -986,14 +986,12 @@ impl Asset {
     fn check(&self) -> Result<(), Error> {
         let m = &self.meta;
         if (m.kind == AssetKind::Volume) != self.volume.is_some() {
-            return Err(Error::Asset(
-                "a volume asset must hold a volume, and only it".into(),
+            return Err(Error::asset(
+                "a volume asset must hold a volume, and only it",
             ));
         }
         if (m.kind == AssetKind::Curve) != self.curve.is_some() {
-            return Err(Error::Asset(
-                "a curve asset must hold curves, and only it".into(),
-            ));
+            return Err(Error::asset("a curve asset must hold curves, and only it"));
         }
         let expected = match m.colour {
             _ if self.volume.is_some() || self.curve.is_some() => 0,
@@ -1004,7 +1002,7 @@ impl Asset {
             || (expected > 0 && m.channels as usize != expected)
             || (self.curve.is_some() && m.channels != 2)
         {
-            return Err(Error::Asset(format!(
+            return Err(Error::asset(format!(
                 "{} planes and {} channels for colour model {:?}",
                 self.planes.len(),
                 m.channels,
@@ -1017,9 +1015,7 @@ impl Asset {
             || !m.value_min.is_finite()
             || !m.value_max.is_finite()
         {
-            return Err(Error::Asset(
-                "bad size or value range in the metadata".into(),
-            ));
+            return Err(Error::asset("bad size or value range in the metadata"));
         }
         Ok(())
     }
@@ -1118,7 +1114,7 @@ impl Asset {
     /// The container's frame: magic, version, checksum, codec, metadata (checked against the
     /// kind byte and the size limits of a grid) and the codec's payload.
     fn container(bytes: &[u8]) -> Result<Container<'_>, Error> {
-        let bad = |m: String| Error::Asset(m);
+        let bad = |m: String| Error::asset(m);
         if bytes.len() < 24 {
             return Err(bad(format!(
                 "{} bytes is too short for an asset",
@@ -1221,12 +1217,12 @@ impl Asset {
         let mut asset = Asset::from_payload(codec, meta, payload, limits, build)?;
         if !section.is_empty() {
             if asset.planes.is_empty() {
-                return Err(Error::Asset(
-                    "a source-error map in an asset without planes".into(),
+                return Err(Error::asset(
+                    "a source-error map in an asset without planes",
                 ));
             }
             let map = SourceError::decode(section, w, h, span)
-                .map_err(|e| Error::Asset(format!("source-error map: {e}")))?;
+                .map_err(|e| Error::asset(format!("source-error map: {e}")))?;
             asset.source_error = Some(map);
         }
         Ok(asset)
@@ -1240,7 +1236,7 @@ impl Asset {
         limits: &AssetLimits,
         build: Build,
     ) -> Result<Asset, Error> {
-        let bad = |m: String| Error::Asset(m);
+        let bad = |m: String| Error::asset(m);
         let (w, h) = (u64::from(meta.width), u64::from(meta.height));
         let mask = |m: Option<Vec<u8>>| -> Result<Option<Mask>, Error> {
             m.map(|m| Mask::decode(meta.width as usize, meta.height as usize, &m))
@@ -1332,17 +1328,17 @@ impl Asset {
     ) -> Result<Asset, Error> {
         let (codec, meta, payload, _) = Asset::container(bytes)?;
         if codec != Codec::Projected as u8 || meta.kind != AssetKind::HeightField {
-            return Err(Error::Asset(
-                "a coarse view of a chunk that is no projected height field".into(),
+            return Err(Error::asset(
+                "a coarse view of a chunk that is no projected height field",
             ));
         }
         let p: ProjectedPayload =
-            fractile_proto::decode(payload).map_err(|e| Error::Asset(e.to_string()))?;
+            fractile_proto::decode(payload).map_err(|e| Error::asset(e.to_string()))?;
         let [(header, stream)] = <[_; 1]>::try_from(p.planes)
-            .map_err(|_| Error::Asset("a coarse view of a chunk of several planes".into()))?;
-        header.validate().map_err(Error::Asset)?;
+            .map_err(|_| Error::asset("a coarse view of a chunk of several planes"))?;
+        header.validate().map_err(Error::asset)?;
         if header.samples != [meta.width, meta.height] {
-            return Err(Error::Asset("sample grid and metadata disagree".into()));
+            return Err(Error::asset("sample grid and metadata disagree"));
         }
         let (w, h) = (meta.width as usize, meta.height as usize);
         limits.check_pixels("a grid", (w * h) as u64)?;
@@ -1350,7 +1346,7 @@ impl Asset {
         // view's samples.
         limits.check_cost((w * h) as u64 * 8 + ((w * h) >> (2 * depth)) as u64 * 48)?;
         let (view, grid, _) = crate::codecs::projected::decode_coarse(&header, &stream, depth)
-            .map_err(|e| Error::Asset(format!("coarse view: {e}")))?;
+            .map_err(|e| Error::asset(format!("coarse view: {e}")))?;
         let [cw, ch] = [view.samples[0] as usize, view.samples[1] as usize];
         let mask = p
             .mask
@@ -1368,7 +1364,7 @@ impl Asset {
             Build::Whole => ProjectedOperator::new(&view, &grid),
             Build::Lazy => ProjectedOperator::lazy(&view, grid),
         }
-        .map_err(Error::Asset)?;
+        .map_err(Error::asset)?;
         let asset = Asset {
             meta: AssetMeta {
                 width: cw as u32,
@@ -1414,7 +1410,11 @@ impl Asset {
     /// Opens an asset file under `limits`: a chunked one by its header alone (its chunks are
     /// read by range when needed, decoded into `cache`), any other whole.
     pub fn open(path: &Path, limits: &AssetLimits, cache: ChunkCache) -> Result<Asset, Error> {
-        let input = |e: std::io::Error| Error::Input(format!("{}: {e}", path.display()));
+        let input = |e: std::io::Error| {
+            Error::input(format!("{}: {e}", path.display()))
+                .at(path)
+                .caused_by(e)
+        };
         let mut head = [0u8; 12];
         let n = {
             use std::io::Read;
@@ -1434,7 +1434,7 @@ impl Asset {
         }
         let bytes = std::fs::read(path).map_err(input)?;
         Asset::from_bytes_limited(&bytes, limits).map_err(|e| match e {
-            Error::Asset(m) => Error::Asset(format!("{}: {m}", path.display())),
+            Error::Asset { .. } => e.within(path.display()).at(path),
             e => e,
         })
     }
@@ -1500,14 +1500,18 @@ pub fn write_atomic_with(
     path: &Path,
     write: &mut dyn FnMut(&mut std::fs::File) -> std::io::Result<()>,
 ) -> Result<(), Error> {
-    let err = |e: std::io::Error| Error::Output(format!("{}: {e}", path.display()));
+    let err = |e: std::io::Error| {
+        Error::output(format!("{}: {e}", path.display()))
+            .at(path)
+            .caused_by(e)
+    };
     let dir = path
         .parent()
         .filter(|p| !p.as_os_str().is_empty())
         .unwrap_or(Path::new("."));
     let name = path
         .file_name()
-        .ok_or_else(|| Error::Output(format!("{}: not a file path", path.display())))?;
+        .ok_or_else(|| Error::output(format!("{}: not a file path", path.display())))?;
     // A name of its own per write (process and a counter): concurrent writers of one path
     // each rename a whole file, and never write into another's.
     static WRITES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);

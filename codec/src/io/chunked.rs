@@ -140,8 +140,8 @@ impl Chunked {
         limits: &AssetLimits,
         cache: ChunkCache,
     ) -> Result<(AssetMeta, Chunked), Error> {
-        let bad = |m: String| Error::Asset(format!("{}: {m}", source.describe()));
-        let io = |e: std::io::Error| Error::Asset(format!("{}: {e}", source.describe()));
+        let bad = |m: String| Error::asset(format!("{}: {m}", source.describe()));
+        let io = |e: std::io::Error| Error::asset(format!("{}: {e}", source.describe()));
         let file_len = source.len();
         if file_len < 24 {
             return Err(bad(format!("{file_len} bytes is too short for an asset")));
@@ -242,7 +242,7 @@ impl Chunked {
             .levels
             .get(level)
             .and_then(|l| l.chunks.get(index))
-            .ok_or_else(|| Error::Asset(format!("no chunk {index} in level {level}")))?;
+            .ok_or_else(|| Error::asset(format!("no chunk {index} in level {level}")))?;
         if entry.length == 0 {
             return Ok(None);
         }
@@ -254,13 +254,13 @@ impl Chunked {
             let bytes = self
                 .source
                 .read(entry.offset, entry.length as usize)
-                .map_err(|e| Error::Unavailable(format!("{what}: {e}")))?;
+                .map_err(|e| Error::unavailable(format!("{what}: {e}")))?;
             let crc = bytes
                 .len()
                 .checked_sub(4)
                 .map(|n| u32::from_le_bytes(bytes[n..].try_into().expect("4")));
             if crc != Some(entry.crc) {
-                return Err(Error::Asset(format!(
+                return Err(Error::asset(format!(
                     "{what}: its checksum is not the table's (corrupt file)"
                 )));
             }
@@ -282,17 +282,17 @@ impl Chunked {
                     let (w, h) = (view.meta.width as usize, view.meta.height as usize);
                     view.source_error = Some(
                         crate::core::fidelity::SourceError::decode(map, w, h, span)
-                            .map_err(|e| Error::Asset(format!("the view's error map: {e}")))?,
+                            .map_err(|e| Error::asset(format!("the view's error map: {e}")))?,
                     );
                     Ok(view)
                 })
-                .map_err(|e| Error::Asset(format!("{what}: {e}")))?;
+                .map_err(|e| Error::asset(format!("{what}: {e}")))?;
             let [x0, y0, x1, y1] = entry.cells;
             if asset.chunks.is_some()
                 || (asset.meta.width, asset.meta.height) != (x1 - x0, y1 - y0)
                 || asset.codec() as u8 != self.table.codec
             {
-                return Err(Error::Asset(format!(
+                return Err(Error::asset(format!(
                     "{what}: not the {}x{} raster of the table's codec",
                     x1 - x0,
                     y1 - y0
@@ -306,7 +306,7 @@ impl Chunked {
             .map(Some)
             .map_err(|e| {
                 let e = (*e).clone();
-                if matches!(e, Error::Asset(_)) {
+                if matches!(e, Error::Asset { .. }) {
                     self.corrupt_chunks().insert((level, index), e.clone());
                 }
                 e
@@ -355,18 +355,18 @@ impl Chunked {
                 let bytes = self
                     .source
                     .read(entry.offset, entry.length as usize)
-                    .map_err(|e| Error::Asset(format!("{what}: {e}")))?;
+                    .map_err(|e| Error::asset(format!("{what}: {e}")))?;
                 let body = bytes.len().saturating_sub(4);
                 if bytes.len() < 4
                     || file_crc(&bytes) != entry.crc
                     || crc32fast::hash(&bytes[..body]) != entry.crc
                 {
-                    return Err(Error::Asset(format!(
+                    return Err(Error::asset(format!(
                         "{what}: its checksum does not match (corrupt file)"
                     )));
                 }
                 self.check_chunk_header(&bytes, entry)
-                    .map_err(|e| Error::Asset(format!("{what}: {e}")))?;
+                    .map_err(|e| Error::asset(format!("{what}: {e}")))?;
             }
         }
         Ok(())
@@ -413,6 +413,6 @@ impl Chunked {
     pub fn bytes(&self) -> Result<Vec<u8>, Error> {
         self.source
             .read(0, self.source.len() as usize)
-            .map_err(|e| Error::Asset(format!("{}: {e}", self.source.describe())))
+            .map_err(|e| Error::asset(format!("{}: {e}", self.source.describe())))
     }
 }

@@ -37,7 +37,11 @@ pub fn input_files(paths: &[PathBuf]) -> Result<Vec<PathBuf>, Error> {
     for p in paths {
         if p.is_dir() {
             let mut in_dir: Vec<PathBuf> = std::fs::read_dir(p)
-                .map_err(|e| Error::Input(format!("{}: {e}", p.display())))?
+                .map_err(|e| {
+                    Error::input(format!("{}: {e}", p.display()))
+                        .at(p)
+                        .caused_by(e)
+                })?
                 .filter_map(|e| e.ok().map(|e| e.path()))
                 .filter(|f| {
                     f.is_file()
@@ -47,7 +51,7 @@ pub fn input_files(paths: &[PathBuf]) -> Result<Vec<PathBuf>, Error> {
                 })
                 .collect();
             if in_dir.is_empty() {
-                return Err(Error::Input(format!(
+                return Err(Error::input(format!(
                     "{}: a folder with no GeoTIFF (.tif, .tiff) in it",
                     p.display()
                 )));
@@ -93,7 +97,7 @@ impl Mosaic {
         let mut parts = Vec::with_capacity(files.len());
         for f in files {
             if !is_tiff(f) {
-                return Err(Error::Input(format!(
+                return Err(Error::input(format!(
                     "{}: a mosaic's inputs are GeoTIFFs (.tif, .tiff)",
                     f.display()
                 )));
@@ -152,7 +156,7 @@ impl Rows for Mosaic {
 fn offset(first: (&Path, &Georef), part: (&Path, &Georef)) -> Result<[i64; 2], Error> {
     let ((f, g0), (p, g)) = (first, part);
     if g.epsg != g0.epsg {
-        return Err(Error::Input(format!(
+        return Err(Error::input(format!(
             "{} is in {} and {} in {}: a mosaic's inputs share one CRS (reproject them first)",
             p.display(),
             crs_name(g.epsg),
@@ -164,7 +168,7 @@ fn offset(first: (&Path, &Georef), part: (&Path, &Georef)) -> Result<[i64; 2], E
         // A NaN (a zero or non-finite pixel size) is refused too.
         let apart = ((g.pixel_size[k] - g0.pixel_size[k]) / g0.pixel_size[k]).abs();
         if apart.is_nan() || apart > SAME_GRID {
-            return Err(Error::Input(format!(
+            return Err(Error::input(format!(
                 "{} has pixels of {:?} and {} of {:?}: a mosaic's inputs share one resolution (resample them first)",
                 p.display(),
                 g.pixel_size,
@@ -178,7 +182,7 @@ fn offset(first: (&Path, &Georef), part: (&Path, &Georef)) -> Result<[i64; 2], E
         let cells = (g.origin[k] - g0.origin[k]) / g0.pixel_size[k];
         let off = (cells - cells.round()).abs();
         if off.is_nan() || off > SAME_GRID {
-            return Err(Error::Input(format!(
+            return Err(Error::input(format!(
                 "{} is {:.3} pixels off the grid of {} (not a whole number): a mosaic's inputs share one grid",
                 p.display(),
                 cells - cells.round(),
@@ -199,11 +203,11 @@ fn crs_name(epsg: Option<u32>) -> String {
 /// documentation).
 fn place(parts: &[(&Path, &Header)]) -> Result<(Header, Vec<[usize; 2]>), Error> {
     let Some(&(first_path, first)) = parts.first() else {
-        return Err(Error::Input("a mosaic of no rasters".into()));
+        return Err(Error::input("a mosaic of no rasters"));
     };
     let georef = |(p, r): (&Path, &Header)| {
         r.georef.clone().ok_or_else(|| {
-            Error::Input(format!(
+            Error::input(format!(
                 "{} has no georeference: a mosaic places its inputs by theirs",
                 p.display()
             ))
@@ -213,7 +217,7 @@ fn place(parts: &[(&Path, &Header)]) -> Result<(Header, Vec<[usize; 2]>), Error>
     let mut placed = Vec::with_capacity(parts.len());
     for &(p, r) in parts {
         if r.kind != first.kind || r.channels != first.channels {
-            return Err(Error::Input(format!(
+            return Err(Error::input(format!(
                 "{} and {} hold different kinds of data (a height field and an image, or different channels)",
                 p.display(),
                 first_path.display()
@@ -234,7 +238,7 @@ fn place(parts: &[(&Path, &Header)]) -> Result<(Header, Vec<[usize; 2]>), Error>
     let (x0, y0) = (lo(0), lo(1));
     let (w, h) = ((hi(0) - x0) as usize, (hi(1) - y0) as usize);
     if w > MAX_WIDTH || h > MAX_HEIGHT {
-        return Err(Error::Input(format!(
+        return Err(Error::input(format!(
             "the mosaic of these inputs is {w}x{h}, larger than the {MAX_WIDTH} samples wide and {MAX_HEIGHT} high this version encodes (are they of one area?)"
         )));
     }

@@ -41,7 +41,7 @@ impl Raster {
         kind: AssetKind,
     ) -> Result<Raster, Error> {
         if values.len() != width * height {
-            return Err(Error::Input(format!(
+            return Err(Error::input(format!(
                 "{} values for a {width}x{height} grid",
                 values.len()
             )));
@@ -95,11 +95,11 @@ impl Raster {
 
     pub(crate) fn check(&self) -> Result<(), Error> {
         if self.width == 0 || self.height == 0 {
-            return Err(Error::Input("the grid is empty (0 samples)".into()));
+            return Err(Error::input("the grid is empty (0 samples)"));
         }
         const MAX_SIDE: usize = 1 << 15;
         if self.width > MAX_SIDE || self.height > MAX_SIDE {
-            return Err(Error::Input(format!(
+            return Err(Error::input(format!(
                 "{}x{} is larger than the {MAX_SIDE} samples a side this version encodes",
                 self.width, self.height
             )));
@@ -107,9 +107,7 @@ impl Raster {
         if let Some(v) = &self.valid
             && !v.iter().any(|&b| b)
         {
-            return Err(Error::Input(
-                "every cell is nodata: nothing to encode".into(),
-            ));
+            return Err(Error::input("every cell is nodata: nothing to encode"));
         }
         Ok(())
     }
@@ -132,22 +130,32 @@ impl Raster {
 pub(crate) fn read_image(path: &Path) -> Result<Raster, Error> {
     use image::DynamicImage as D;
     let img = image::ImageReader::open(path)
-        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?
+        .map_err(|e| {
+            Error::input(format!("{}: {e}", path.display()))
+                .at(path)
+                .caused_by(e)
+        })?
         .with_guessed_format()
-        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+        .map_err(|e| {
+            Error::input(format!("{}: {e}", path.display()))
+                .at(path)
+                .caused_by(e)
+        })?;
     // Neither the content nor the name says an image: say what the encoder reads, rather than
     // the image crate's "The file extension `.\"txt\"` was not recognized".
     if img.format().is_none() {
-        return Err(Error::Input(format!(
+        return Err(Error::input(format!(
             "{}: not a raster, mesh or curve the encoder reads: GeoTIFF (.tif, .tiff), PNG \
              (8- or 16-bit), JPEG, a folder of GeoTIFFs, OFF, OBJ, PLY or STL meshes, or \
              GeoJSON curves (.geojson, .json)",
             path.display()
         )));
     }
-    let img = img
-        .decode()
-        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+    let img = img.decode().map_err(|e| {
+        Error::input(format!("{}: {e}", path.display()))
+            .at(path)
+            .caused_by(e)
+    })?;
     let (w, h) = (img.width() as usize, img.height() as usize);
     let (channels, kind, sample) = match &img {
         D::ImageLuma8(_) | D::ImageLumaA8(_) => (
@@ -253,8 +261,11 @@ pub fn write_png8(
             image::GrayImage::from_raw(width as u32, height as u32, px).expect("size"),
         )
     };
-    img.save(path)
-        .map_err(|e| Error::Output(format!("{}: {e}", path.display())))
+    img.save(path).map_err(|e| {
+        Error::output(format!("{}: {e}", path.display()))
+            .at(path)
+            .caused_by(e)
+    })
 }
 
 /// Writes a 16-bit grey PNG of values already mapped to 0..=65535.
@@ -265,8 +276,11 @@ pub fn write_png16(path: &Path, width: usize, height: usize, values: &[f32]) -> 
         .collect();
     let img: image::ImageBuffer<image::Luma<u16>, Vec<u16>> =
         image::ImageBuffer::from_raw(width as u32, height as u32, px).expect("size");
-    img.save(path)
-        .map_err(|e| Error::Output(format!("{}: {e}", path.display())))
+    img.save(path).map_err(|e| {
+        Error::output(format!("{}: {e}", path.display()))
+            .at(path)
+            .caused_by(e)
+    })
 }
 
 /// Writes a float32 GeoTIFF, with georeference and nodata tags when given (atomically).
@@ -279,7 +293,7 @@ pub fn write_geotiff_f32(
     nodata: Option<f64>,
 ) -> Result<(), Error> {
     let bytes = geotiff_f32(width, height, values, georef, nodata).map_err(|e| match e {
-        Error::Output(m) => Error::Output(format!("{}: {m}", path.display())),
+        Error::Output { .. } => e.within(path.display()).at(path),
         e => e,
     })?;
     crate::io::asset::write_atomic(path, &bytes)
@@ -295,7 +309,7 @@ pub fn geotiff_f32(
 ) -> Result<Vec<u8>, Error> {
     use tiff::encoder::{TiffEncoder, colortype::Gray32Float};
     use tiff::tags::Tag;
-    let err = |e: tiff::TiffError| Error::Output(format!("GeoTIFF: {e}"));
+    let err = |e: tiff::TiffError| Error::output(format!("GeoTIFF: {e}"));
     let mut out = std::io::Cursor::new(Vec::new());
     let mut enc = TiffEncoder::new(&mut out).map_err(err)?;
     let mut img = enc

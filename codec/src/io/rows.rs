@@ -166,7 +166,11 @@ impl GeoTiff {
     pub fn open(path: &Path) -> Result<GeoTiff, Error> {
         use tiff::tags::Tag;
         let mut dec = decoder(path)?;
-        let bad = |e: tiff::TiffError| Error::Input(format!("{}: {e}", path.display()));
+        let bad = |e: tiff::TiffError| {
+            Error::input(format!("{}: {e}", path.display()))
+                .at(path)
+                .caused_by(e)
+        };
         let (w, h) = dec.dimensions().map_err(bad)?;
         let nodata = dec
             .find_tag(Tag::GdalNodata)
@@ -183,13 +187,13 @@ impl GeoTiff {
             .flatten()
             .unwrap_or(1);
         if samples != 1 {
-            return Err(Error::Input(format!(
+            return Err(Error::input(format!(
                 "{}: {samples} samples a pixel: only single-band GeoTIFFs are supported",
                 path.display()
             )));
         }
         let sample = sample_format(&mut dec)
-            .ok_or_else(|| Error::Input(format!("{}: unsupported sample type", path.display())))?;
+            .ok_or_else(|| Error::input(format!("{}: unsupported sample type", path.display())))?;
         let georef = match (tie, scale) {
             (Some(t), Some(s)) if t.len() >= 6 && s.len() >= 2 => Some(Georef {
                 epsg: keys.as_deref().and_then(super::raster::epsg_of),
@@ -229,7 +233,11 @@ impl GeoTiff {
 
     fn decode_chunk_row(&self, dec: &mut Decoder, row: usize) -> Result<Vec<f32>, Error> {
         let path = &self.path;
-        let bad = |e: tiff::TiffError| Error::Input(format!("{}: {e}", path.display()));
+        let bad = |e: tiff::TiffError| {
+            Error::input(format!("{}: {e}", path.display()))
+                .at(path)
+                .caused_by(e)
+        };
         let w = self.header.width;
         let (tw, _) = dec.chunk_dimensions();
         let across = match dec.get_chunk_type() {
@@ -248,7 +256,7 @@ impl GeoTiff {
             let (cw, ch) = (cw as usize, ch as usize);
             let values = values_of(data);
             if values.len() != cw * ch || ch != rows || x0 + cw > w {
-                return Err(Error::Input(format!(
+                return Err(Error::input(format!(
                     "{}: chunk {index} holds {} samples for {cw}x{ch}: only single-band GeoTIFFs are supported",
                     path.display(),
                     values.len()
@@ -299,12 +307,18 @@ impl Rows for GeoTiff {
 }
 
 fn decoder(path: &Path) -> Result<Decoder, Error> {
-    let file =
-        std::fs::File::open(path).map_err(|e| Error::Input(format!("{}: {e}", path.display())))?;
+    let file = std::fs::File::open(path).map_err(|e| {
+        Error::input(format!("{}: {e}", path.display()))
+            .at(path)
+            .caused_by(e)
+    })?;
     // The decoder's default limits stay: they bound one strip or tile (256 MiB), not the
     // raster, since nothing here reads a whole image at once.
-    tiff::decoder::Decoder::new(std::io::BufReader::new(file))
-        .map_err(|e| Error::Input(format!("{}: {e}", path.display())))
+    tiff::decoder::Decoder::new(std::io::BufReader::new(file)).map_err(|e| {
+        Error::input(format!("{}: {e}", path.display()))
+            .at(path)
+            .caused_by(e)
+    })
 }
 
 /// The sample type a GeoTIFF's tags announce, as [`values_of`] converts it: integers of up to

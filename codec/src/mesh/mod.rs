@@ -138,7 +138,7 @@ impl Mesh {
             check_rtin(heights, n, max_error)?;
         }
         if !(bend.is_finite() && bend >= 0.0) {
-            return Err(Error::Input(format!(
+            return Err(Error::input(format!(
                 "bend must be a finite number >= 0, got {bend}"
             )));
         }
@@ -341,7 +341,7 @@ impl Mesh {
             .and_then(|e| e.to_str())
             .map(str::to_ascii_lowercase)
             .unwrap_or_default();
-        let named = |e: String| Error::Input(format!("{}: {e}", path.display()));
+        let named = |e: String| Error::input(format!("{}: {e}", path.display())).at(path);
         let mesh = match ext.as_str() {
             "off" => {
                 let text = std::fs::read_to_string(path).map_err(|e| named(e.to_string()))?;
@@ -766,13 +766,13 @@ pub(crate) fn norm(a: [f64; 3]) -> f64 {
 /// The inputs of an adaptive mesh: `2^k + 1` heights a side and a finite `max_error >= 0`.
 fn check_rtin(heights: &[f32], n: usize, max_error: f32) -> Result<(), Error> {
     if n < 2 || !(n - 1).is_power_of_two() || heights.len() != n * n {
-        return Err(Error::Input(format!(
+        return Err(Error::input(format!(
             "an adaptive mesh needs 2^k + 1 heights a side, got {n} ({} heights)",
             heights.len()
         )));
     }
     if !(max_error.is_finite() && max_error >= 0.0) {
-        return Err(Error::Input(format!(
+        return Err(Error::input(format!(
             "max_error must be a finite number >= 0, got {max_error}"
         )));
     }

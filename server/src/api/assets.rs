@@ -2,6 +2,7 @@
 
 use super::request::*;
 use super::state::*;
+use fractile_proto::ErrorCode;
 
 use crate::error::Path;
 use axum::Json;
@@ -66,7 +67,7 @@ fn authorise(state: &AppState, headers: &HeaderMap) -> Result<(), AppError> {
         super::state::Writes::Refused => {
             return Err(AppError {
                 status: StatusCode::FORBIDDEN,
-                code: "writes_disabled",
+                code: ErrorCode::WritesDisabled,
                 detail: "this server takes no writes: it was started with no write token (set FRACTILE_WRITE_TOKEN, or pass --allow-anonymous-writes on a private network)".into(),
             retry_after: None,
 });
@@ -89,7 +90,7 @@ fn authorise(state: &AppState, headers: &HeaderMap) -> Result<(), AppError> {
     } else {
         Err(AppError {
             status: StatusCode::UNAUTHORIZED,
-            code: "unauthorised",
+            code: ErrorCode::Unauthorised,
             detail: "writes need Authorization: Bearer <token>".into(),
             retry_after: None,
         })
@@ -108,7 +109,7 @@ pub(super) async fn read_body(
 ) -> Result<(Bytes, tokio::sync::OwnedSemaphorePermit), AppError> {
     let too_large = || AppError {
         status: StatusCode::PAYLOAD_TOO_LARGE,
-        code: "too_large",
+        code: ErrorCode::TooLarge,
         detail: format!("this request's body is at most {} bytes", limit),
         retry_after: None,
     };
@@ -128,13 +129,13 @@ pub(super) async fn read_body(
         .await
         .map_err(|_| AppError::internal("the body budget is closed"))?;
     let bytes = axum::body::to_bytes(body, limit).await.map_err(|e| {
-        let over = std::error::Error::source(&e)
-            .is_some_and(|s| s.is::<http_body_util::LengthLimitError>())
-            || e.to_string().contains("length limit");
+        // The limit's own error type, wherever it sits in the chain (axum wraps it).
+        let over = std::iter::successors(std::error::Error::source(&e), |s| s.source())
+            .any(|s| s.is::<http_body_util::LengthLimitError>());
         if over {
             too_large()
         } else {
-            AppError::bad_request("bad_body", format!("reading the body: {e}"))
+            AppError::bad_request(ErrorCode::BadBody, format!("reading the body: {e}"))
         }
     })?;
     Ok((bytes, room))

@@ -1,6 +1,7 @@
 //! Curve assets as GeoJSON at any level, and their stateless deformations.
 
 use super::state::*;
+use fractile_proto::ErrorCode;
 
 use crate::error::{Path, Query};
 use axum::Json;
@@ -35,7 +36,7 @@ const MAX_CURVE_POINTS: u128 = 1 << 22;
 fn curves_of(a: &StoredAsset) -> Result<&fractile_codec::codecs::curve::Curves, AppError> {
     a.asset.curve.as_ref().ok_or_else(|| {
         AppError::bad_request(
-            "not_curve",
+            ErrorCode::NotCurve,
             format!("{} is not a curve asset ({:?})", a.id, a.asset.meta.kind),
         )
     })
@@ -47,7 +48,7 @@ fn check_level(
 ) -> Result<(), AppError> {
     if set.points_at(level) > MAX_CURVE_POINTS {
         return Err(AppError::bad_request(
-            "too_many_points",
+            ErrorCode::TooManyPoints,
             format!(
                 "level {level} would answer over {MAX_CURVE_POINTS} points (the finest level is {})",
                 set.finest()
@@ -131,17 +132,17 @@ pub(super) async fn curve_deform(
     let Json(req) = body.map_err(|e| match e.status() {
         StatusCode::PAYLOAD_TOO_LARGE => AppError {
             status: StatusCode::PAYLOAD_TOO_LARGE,
-            code: "too_large",
+            code: ErrorCode::TooLarge,
             detail: format!("{} (at most {DEFORM_BODY} bytes)", e.body_text()),
             retry_after: None,
         },
-        _ => AppError::bad_request("bad_body", e.body_text()),
+        _ => AppError::bad_request(ErrorCode::BadBody, e.body_text()),
     })?;
     let a = state.store.get(&id)?;
     let set = &curves_of(&a)?.set;
     if req.deformations.len() > 1024 {
         return Err(AppError::bad_request(
-            "bad_body",
+            ErrorCode::BadBody,
             "at most 1024 deformations per request",
         ));
     }
@@ -155,7 +156,7 @@ pub(super) async fn curve_deform(
         .stream(cost, move |_| {
             let c = a2.asset.curve.as_ref().expect("checked above");
             let deformed = fractile_codec::codecs::curve::deform::apply(&c.set, &req.deformations)
-                .map_err(|e| AppError::bad_request("bad_deformation", e))?;
+                .map_err(|e| AppError::bad_request(ErrorCode::BadDeformation, e))?;
             Ok(geojson_body(
                 deformed.at_level(level),
                 deformed.finest(),

@@ -1,5 +1,6 @@
 //! Meshes: a terrain grid or adaptive triangulation of a region, or the surface of a volume in a box.
 
+use fractile_proto::ErrorCode;
 use fractile_proto::query::MeshFormat;
 
 use super::request::*;
@@ -47,21 +48,21 @@ pub(super) async fn mesh(
     }
     if a.asset.meta.kind != AssetKind::HeightField {
         return Err(AppError::bad_request(
-            "not_terrain",
+            ErrorCode::NotTerrain,
             "meshes are made of height fields and volumes",
         ));
     }
     let n = q.resolution.unwrap_or(256);
     if !(2..=2048).contains(&n) {
         return Err(AppError::bad_request(
-            "bad_resolution",
+            ErrorCode::BadResolution,
             "resolution must be 2..=2048 vertices a side",
         ));
     }
     let max_error = q.max_error;
     if max_error.is_some_and(|e| !(e.is_finite() && e >= 0.0)) {
         return Err(AppError::bad_request(
-            "bad_max_error",
+            ErrorCode::BadMaxError,
             "max_error must be a number >= 0 (height units)",
         ));
     }
@@ -96,7 +97,7 @@ pub(super) async fn mesh(
     );
     if grid.is_outside() {
         return Err(AppError::not_found(
-            "outside",
+            ErrorCode::Outside,
             "the box is outside the asset",
         ));
     }
@@ -150,7 +151,9 @@ fn mesh_format(format: Option<&str>) -> Result<MeshFormat, AppError> {
     format
         .map(str::parse)
         .unwrap_or(Ok(MeshFormat::default()))
-        .map_err(|_: String| AppError::bad_request("bad_format", "format must be obj, ply or glb"))
+        .map_err(|_: String| {
+            AppError::bad_request(ErrorCode::BadFormat, "format must be obj, ply or glb")
+        })
 }
 
 /// The head and writer of a mesh answer in `format` (obj, ply or glb): text and PLY are
@@ -193,7 +196,7 @@ async fn volume_mesh(
 ) -> Result<Response, AppError> {
     if q.max_error.is_some() {
         return Err(AppError::bad_request(
-            "bad_max_error",
+            ErrorCode::BadMaxError,
             "max_error (an adaptive triangulation) is for height fields",
         ));
     }
@@ -201,7 +204,7 @@ async fn volume_mesh(
     let n = q.resolution.unwrap_or(grid);
     if !(2..=512).contains(&n) {
         return Err(AppError::bad_request(
-            "bad_resolution",
+            ErrorCode::BadResolution,
             "resolution must be 2..=512 samples along the box's longest side",
         ));
     }
@@ -218,7 +221,7 @@ async fn volume_mesh(
                 }
                 _ => {
                     return Err(AppError::bad_request(
-                        "bad_bbox",
+                        ErrorCode::BadBbox,
                         "a volume's bbox is x0,y0,z0,x1,y1,z1 with max > min on every axis",
                     ));
                 }
@@ -233,13 +236,13 @@ async fn volume_mesh(
             .product();
         if samples > MAX_VOLUME_SAMPLES as f64 {
             return Err(AppError::bad_request(
-                "too_many_samples",
+                ErrorCode::TooManySamples,
                 format!("the box takes {samples} samples, over {MAX_VOLUME_SAMPLES}"),
             ));
         }
     } else if n.pow(3) > MAX_VOLUME_SAMPLES {
         return Err(AppError::bad_request(
-            "too_many_samples",
+            ErrorCode::TooManySamples,
             format!(
                 "resolution {n} takes {} samples, over {MAX_VOLUME_SAMPLES}",
                 n.pow(3)
@@ -270,7 +273,7 @@ async fn volume_mesh(
             let (m, bound) = a
                 .asset
                 .volume_mesh_with(bbox, n, iterations, tolerance.anywhere(&a), Some(&on_gpu))
-                .map_err(|e| AppError::bad_request("bad_request", e.to_string()))?;
+                .map_err(|e| AppError::bad_request(ErrorCode::BadRequest, e.to_string()))?;
             // Volumes hold no source-error map.
             let bounds = Bounds {
                 attractor: bound,

@@ -17,6 +17,7 @@ mod tiles;
 use assets::*;
 pub use curves::CurveQuery;
 use curves::*;
+use fractile_proto::ErrorCode;
 use meshes::*;
 use points::*;
 use regions::*;
@@ -90,7 +91,7 @@ async fn ready(State(state): Shared) -> Result<&'static str, AppError> {
     } else {
         Err(AppError {
             status: StatusCode::SERVICE_UNAVAILABLE,
-            code: "busy",
+            code: ErrorCode::Busy,
             detail: "every decode slot is busy".into(),
             retry_after: None,
         })

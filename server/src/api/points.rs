@@ -3,6 +3,7 @@
 use super::assets::read_body;
 use super::request::*;
 use super::state::*;
+use fractile_proto::ErrorCode;
 use std::sync::Arc;
 
 use crate::error::{Path, Query};
@@ -45,13 +46,13 @@ pub(super) async fn point_unit(
     }
     if q.z.is_some() {
         return Err(AppError::bad_request(
-            "bad_point",
+            ErrorCode::BadPoint,
             "z is for volume assets; this one is 2D",
         ));
     }
     let (Some(x), Some(y)) = (q.x, q.y) else {
         return Err(AppError::bad_request(
-            "bad_point",
+            ErrorCode::BadPoint,
             "give ?x=&y= in unit coordinates (or /point/{lon},{lat})",
         ));
     };
@@ -75,14 +76,14 @@ async fn volume_point(
 ) -> Result<DistanceResult, AppError> {
     let (Some(x), Some(y), Some(z)) = (q.x, q.y, q.z) else {
         return Err(AppError::bad_request(
-            "bad_point",
+            ErrorCode::BadPoint,
             "give ?x=&y=&z= in the mesh's units for a volume asset",
         ));
     };
     let p = [x, y, z];
     if p.iter().any(|v| !v.is_finite()) {
         return Err(AppError::bad_request(
-            "bad_point",
+            ErrorCode::BadPoint,
             "coordinates must be finite",
         ));
     }
@@ -102,7 +103,7 @@ async fn volume_point(
             outside: false,
         }),
         None => Err(AppError::not_found(
-            "outside",
+            ErrorCode::Outside,
             format!("point {p:?} is outside the volume's grid"),
         )),
     }
@@ -119,7 +120,7 @@ pub(super) async fn point_lonlat(
         .collect();
     let [lon, lat] = c[..] else {
         return Err(AppError::bad_request(
-            "bad_point",
+            ErrorCode::BadPoint,
             format!("expected lon,lat, got {coords:?}"),
         ));
     };
@@ -158,15 +159,15 @@ pub(super) async fn points(
         .is_some_and(|v| v.starts_with(BINARY_MEDIA_TYPE));
     let req: PointsRequest = if binary {
         fractile_proto::decode(&body)
-            .map_err(|e| AppError::bad_request("bad_body", e.to_string()))?
+            .map_err(|e| AppError::bad_request(ErrorCode::BadBody, e.to_string()))?
     } else {
         serde_json::from_slice(&body)
-            .map_err(|e| AppError::bad_request("bad_body", e.to_string()))?
+            .map_err(|e| AppError::bad_request(ErrorCode::BadBody, e.to_string()))?
     };
     if req.points.len() > state.limits.max_points {
         return Err(AppError {
             status: StatusCode::PAYLOAD_TOO_LARGE,
-            code: "too_many_points",
+            code: ErrorCode::TooManyPoints,
             detail: format!(
                 "{} points over the limit {}",
                 req.points.len(),
@@ -209,7 +210,7 @@ async fn answer_points(
     let units: Vec<Option<[f32; 2]>> = coords.iter().map(|&c| unit_of(&a, c)).collect();
     if single && units[0].is_none() {
         return Err(AppError::not_found(
-            "outside",
+            ErrorCode::Outside,
             format!("point {:?} is outside the asset", coords[0]),
         ));
     }

@@ -1,5 +1,6 @@
 //! Regions: a window of an asset at any resolution, as PNG, float32 or GeoTIFF.
 
+use fractile_proto::ErrorCode;
 use fractile_proto::query::RegionFormat;
 
 use super::request::*;
@@ -39,7 +40,7 @@ pub(super) async fn region(
         || q.width.saturating_mul(q.height) > state.limits.max_region_pixels
     {
         return Err(AppError::bad_request(
-            "bad_size",
+            ErrorCode::BadSize,
             format!(
                 "width x height must be 1..={} pixels",
                 state.limits.max_region_pixels
@@ -104,13 +105,13 @@ fn region_format(a: &StoredAsset, format: Option<&str>) -> Result<RegionFormat, 
     {
         Ok(RegionFormat::Tif) if a.asset.meta.kind != AssetKind::HeightField => {
             Err(AppError::bad_request(
-                "bad_format",
+                ErrorCode::BadFormat,
                 "GeoTIFF regions are for height fields (use png)",
             ))
         }
         Ok(f) => Ok(f),
         Err(_) => Err(AppError::bad_request(
-            "bad_format",
+            ErrorCode::BadFormat,
             "format must be png, f32 or tif",
         )),
     }

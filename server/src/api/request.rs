@@ -2,6 +2,7 @@
 //! asset and its backend, tile numbers and boxes, tolerance and iterations, and decoding in a
 //! lane off the async executor.
 
+use fractile_proto::ErrorCode;
 use std::sync::Arc;
 
 use axum::http::StatusCode;
@@ -20,7 +21,7 @@ use super::state::{AppState, CoarseCache, CoarsePlane};
 pub(super) fn planar(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> {
     if a.asset.meta.kind == AssetKind::Curve {
         return Err(AppError::bad_request(
-            "curve_asset",
+            ErrorCode::CurveAsset,
             format!(
                 "{} is a curve asset: ask /curve?level=N (GeoJSON) or POST /curve/deform",
                 a.id
@@ -29,7 +30,7 @@ pub(super) fn planar(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> 
     }
     if a.asset.meta.kind == AssetKind::Volume {
         return Err(AppError::bad_request(
-            "volume_asset",
+            ErrorCode::VolumeAsset,
             format!(
                 "{} is a volume: ask /mesh?bbox=x0,y0,z0,x1,y1,z1 or /point?x=&y=&z=",
                 a.id
@@ -66,7 +67,7 @@ pub(super) fn tile_numbers(
 ) -> Result<(u8, u32, u32), AppError> {
     let z: u8 = z.parse().map_err(|_| {
         AppError::bad_request(
-            "bad_path",
+            ErrorCode::BadPath,
             format!("bad zoom {z:?}: zooms are whole numbers from 0 to {max_zoom}"),
         )
     })?;
@@ -74,7 +75,7 @@ pub(super) fn tile_numbers(
     let number = |t: &str, what: &str, most: u64| {
         t.parse::<u32>().map_err(|_| {
             AppError::bad_request(
-                "bad_path",
+                ErrorCode::BadPath,
                 format!("bad tile {what} {t:?}: at zoom {z} {what}s go from 0 to {most}"),
             )
         })
@@ -92,12 +93,12 @@ pub(super) fn backend_for(state: &AppState, asked: Option<&str>) -> Result<Backe
     let b = match asked {
         Some(s) => s
             .parse::<Backend>()
-            .map_err(|e| AppError::bad_request("bad_backend", e))?,
+            .map_err(|e| AppError::bad_request(ErrorCode::BadBackend, e))?,
         None => state.backend,
     };
     if b == Backend::Gpu && state.gpu.is_none() {
         return Err(AppError::bad_request(
-            "gpu_unavailable",
+            ErrorCode::GpuUnavailable,
             "this server decodes on the CPU (it found no hardware GPU, or was started with \
              backend cpu; `fractile serve --backend gpu` opens any adapter, a software one too): \
              use backend=cpu or auto",
@@ -165,7 +166,7 @@ pub(super) fn sample_on(
         .map_err(|e| match e {
             fractile_codec::extract::SampleError::Cancelled => AppError {
                 status: StatusCode::SERVICE_UNAVAILABLE,
-                code: "cancelled",
+                code: ErrorCode::Cancelled,
                 detail: "the request was given up before its decode finished".into(),
                 retry_after: None,
             },
@@ -187,15 +188,15 @@ pub(super) fn sample_on(
 pub(crate) fn chunk_unavailable(e: fractile_codec::Error) -> AppError {
     tracing::error!("{e}");
     match e {
-        fractile_codec::Error::Unavailable(_) => AppError {
+        fractile_codec::Error::Unavailable { .. } => AppError {
             status: StatusCode::SERVICE_UNAVAILABLE,
-            code: "chunk_unavailable",
+            code: ErrorCode::ChunkUnavailable,
             detail: "a chunk of the asset could not be read; try again".into(),
             retry_after: Some(1),
         },
         _ => AppError {
             status: StatusCode::INTERNAL_SERVER_ERROR,
-            code: "corrupt_chunk",
+            code: ErrorCode::CorruptChunk,
             detail:
                 "a chunk of the asset is corrupt (not what its table says); upload the asset again"
                     .into(),
@@ -248,13 +249,13 @@ pub(super) fn iterations_for(
     let n = match asked {
         Some(0) => {
             return Err(AppError::bad_request(
-                "bad_iterations",
+                ErrorCode::BadIterations,
                 "iterations must be at least 1",
             ));
         }
         Some(n) if n > max => {
             return Err(AppError::bad_request(
-                "bad_iterations",
+                ErrorCode::BadIterations,
                 format!("iterations {n} over the limit {max}"),
             ));
         }
@@ -263,7 +264,7 @@ pub(super) fn iterations_for(
     };
     match (asked, tolerance) {
         (_, Some(t)) if !(t.is_finite() && t > 0.0) => Err(AppError::bad_request(
-            "bad_tolerance",
+            ErrorCode::BadTolerance,
             "tolerance must be a positive number (value units)",
         )),
         (_, Some(t)) => Ok((n, Tolerance::Asked(t))),
@@ -317,7 +318,7 @@ pub(super) fn parse_bbox(b: &str) -> Result<[f64; 4], AppError> {
     match v[..] {
         [x0, y0, x1, y1] if x1 > x0 && y1 > y0 => Ok([x0, y0, x1, y1]),
         _ => Err(AppError::bad_request(
-            "bad_bbox",
+            ErrorCode::BadBbox,
             "bbox must be minx,miny,maxx,maxy with max > min",
         )),
     }

@@ -6,6 +6,7 @@
 //! holes: off the asset and at nodata the surface is the ellipsoid (height 0), and both root
 //! tiles exist whatever the asset covers, since Cesium draws nothing until they are in.
 
+use fractile_proto::ErrorCode;
 use fractile_proto::LayerJson;
 use fractile_proto::tiles::{geographic_available, geographic_bounds};
 
@@ -46,7 +47,7 @@ const GLOBE_RADIUS: f64 = 6_378_137.0;
 fn terrain_asset(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> {
     if a.asset.meta.kind != AssetKind::HeightField || a.placement.is_none() {
         return Err(AppError::bad_request(
-            "not_terrain",
+            ErrorCode::NotTerrain,
             format!(
                 "{} is not a georeferenced height field: Cesium terrain is for DEMs",
                 a.id
@@ -119,12 +120,12 @@ pub(super) async fn terrain_tile(
     let a = terrain_asset(state.store.get(&id)?)?;
     let y = tile
         .strip_suffix(".terrain")
-        .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.terrain"))?;
+        .ok_or_else(|| AppError::bad_request(ErrorCode::BadTile, "expected {y}.terrain"))?;
     let top = max_level(&state, &a);
     let (z, x, y) = super::request::tile_numbers(&z, &x, y, top, 2)?;
     if z > top || x >= (2u32 << z) || y >= (1u32 << z) {
         return Err(AppError::not_found(
-            "no_tile",
+            ErrorCode::NoTile,
             format!(
                 "terrain tile {z}/{x}/{y} does not exist: this asset's levels go from 0 to \
                  {top} (layer.json), and at level {z} columns from 0 to {} and rows from 0 \
@@ -139,7 +140,7 @@ pub(super) async fn terrain_tile(
     // Cesium draws nothing until both root tiles are in: they always exist (flat outside).
     if z > 0 && (e <= aw || w >= ae || n <= as_ || s >= an) {
         return Err(AppError::not_found(
-            "outside",
+            ErrorCode::Outside,
             format!("terrain tile {z}/{x}/{y} is outside the asset"),
         ));
     }

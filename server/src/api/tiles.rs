@@ -1,5 +1,6 @@
 //! TileJSON and tiles: Web Mercator (or unit-square) tiles by continuous extraction, cached by ETag.
 
+use fractile_proto::ErrorCode;
 use fractile_proto::query::{Colormap, Precision};
 
 use super::request::*;
@@ -164,16 +165,17 @@ pub(super) async fn tile(
     check_inside(&a, z, x, y)?;
     // Checked before the cache, so that a bad parameter is refused even for a cached tile.
     let choice = backend_for(&state, q.backend.as_deref())?;
-    // The asset's checksum is part of the key: a replaced asset never serves stale tiles.
+    // The asset's checksum is part of the key: a replaced asset never serves stale tiles. The
+    // rest is the request as checked, not as spelt (`colormap=grey` and `gray`, `rescale=0,1`
+    // and `0.0,1.0` are one tile, one cache entry and one ETag).
     let key = format!(
-        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{:?}&{:?}&{}&{:?}&{:?}&{:?}&{}&{}",
+        "{id}@{:08x}/{z}/{x}/{y}.{ext}?{}&{:?}&{}&{:?}&{:?}&{}&{}",
         a.hash,
-        q.iterations,
-        q.tolerance,
+        job.iterations,
+        job.tolerance,
         job.size,
-        q.encoding,
-        q.rescale,
-        q.colormap,
+        job.format,
+        job.colormap,
         job.shade,
         job.precision
     );
@@ -211,11 +213,11 @@ fn tile_address<'a>(
 ) -> Result<(u8, u32, u32, &'a str), AppError> {
     let (y, ext) = tile
         .split_once('.')
-        .ok_or_else(|| AppError::bad_request("bad_tile", "expected {y}.png or {y}.f32"))?;
+        .ok_or_else(|| AppError::bad_request(ErrorCode::BadTile, "expected {y}.png or {y}.f32"))?;
     let (z, x, y) = super::request::tile_numbers(z, x, y, state.limits.max_zoom, 1)?;
     if z > state.limits.max_zoom || x >= (1u32 << z) || y >= (1u32 << z) {
         return Err(AppError::not_found(
-            "no_tile",
+            ErrorCode::NoTile,
             format!(
                 "tile {z}/{x}/{y} does not exist: zooms go from 0 to {}, and at zoom {z} \
                  columns and rows from 0 to {}",
@@ -238,7 +240,7 @@ fn tile_job(
     let size = q.tilesize.unwrap_or(256);
     if size != 256 && size != 512 {
         return Err(AppError::bad_request(
-            "bad_tilesize",
+            ErrorCode::BadTilesize,
             "tilesize must be 256 or 512",
         ));
     }
@@ -250,13 +252,13 @@ fn tile_job(
         None => None,
         Some(name) if visual_heights => Some(ramp(name.parse().map_err(|_| {
             AppError::bad_request(
-                "bad_colormap",
+                ErrorCode::BadColormap,
                 format!("unknown colormap {name:?} (gray, terrain, viridis)"),
             )
         })?)),
         Some(_) => {
             return Err(AppError::bad_request(
-                "bad_colormap",
+                ErrorCode::BadColormap,
                 "colormap is for visual PNG tiles of height fields",
             ));
         }
@@ -264,7 +266,7 @@ fn tile_job(
     let shade = q.hillshade.unwrap_or(false);
     if shade && !visual_heights {
         return Err(AppError::bad_request(
-            "bad_hillshade",
+            ErrorCode::BadHillshade,
             "hillshade is for visual PNG tiles of height fields",
         ));
     }
@@ -272,7 +274,7 @@ fn tile_job(
         None => Precision::default(),
         Some(p) => p
             .parse()
-            .map_err(|e: String| AppError::bad_request("bad_precision", e))?,
+            .map_err(|e: String| AppError::bad_request(ErrorCode::BadPrecision, e))?,
     };
     Ok(TileJob {
         z,
@@ -309,13 +311,13 @@ fn tile_format(
         // Refused rather than ignored: the caller expects encoded PNG heights.
         ("f32", true, Some(e)) => {
             return Err(AppError::bad_request(
-                "bad_encoding",
+                ErrorCode::BadEncoding,
                 format!("encoding={e} is for png tiles; an f32 tile is raw float32 heights"),
             ));
         }
         ("f32", false, _) => {
             return Err(AppError::bad_request(
-                "bad_format",
+                ErrorCode::BadFormat,
                 "f32 tiles are for height fields",
             ));
         }
@@ -326,13 +328,13 @@ fn tile_format(
         ("png", false, None) => encoding::TileFormat::Visual(None),
         ("png", _, Some(e)) => {
             return Err(AppError::bad_request(
-                "bad_encoding",
+                ErrorCode::BadEncoding,
                 format!("unknown encoding {e:?} (terrainrgb, terrarium, gray16)"),
             ));
         }
         (e, ..) => {
             return Err(AppError::bad_request(
-                "bad_format",
+                ErrorCode::BadFormat,
                 format!("unknown tile format {e:?} (png, f32)"),
             ));
         }
@@ -348,7 +350,7 @@ fn check_inside(a: &StoredAsset, z: u8, x: u32, y: u32) -> Result<(), AppError> 
         let global = ae - aw >= 360.0 - 1e-9;
         if (!global && (e <= aw || w >= ae)) || n <= as_ || s >= an {
             return Err(AppError::not_found(
-                "outside",
+                ErrorCode::Outside,
                 format!("tile {z}/{x}/{y} is outside the asset"),
             ));
         }
@@ -473,7 +475,7 @@ fn parse_rescale(r: &Option<String>, a: &StoredAsset) -> Result<Option<(f32, f32
     match v[..] {
         [lo, hi] if hi > lo => Ok(Some((lo, hi))),
         _ => Err(AppError::bad_request(
-            "bad_rescale",
+            ErrorCode::BadRescale,
             "rescale must be min,max with max > min",
         )),
     }

@@ -2,6 +2,7 @@
 //! folder, a bucket), and the ids they may hold.
 
 use fractile_codec::io::chunked::ChunkSource;
+use fractile_proto::ErrorCode;
 
 use crate::error::AppError;
 
@@ -47,7 +48,7 @@ pub fn validate_id(id: &str) -> Result<(), AppError> {
         Ok(())
     } else {
         Err(AppError::bad_request(
-            "bad_id",
+            ErrorCode::BadId,
             format!("asset id {id:?} must be 1-64 letters, digits, '-' or '_'"),
         ))
     }

@@ -73,15 +73,15 @@ fn older_format(path: &Path) -> bool {
 /// Encodes the demo assets into `dir` unless they are there already (a progress line each).
 pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
     std::fs::create_dir_all(dir)
-        .map_err(|e| fractile_codec::Error::Output(format!("{}: {e}", dir.display())))?;
+        .map_err(|e| fractile_codec::Error::output(format!("{}: {e}", dir.display())))?;
     let (id, name, bytes) = DEMO_VOLUME;
     let out = dir.join(format!("{id}.fra"));
     if !out.exists() {
         tracing::info!("encoding demo volume {id} from {name} (first start only)");
         let text = std::str::from_utf8(bytes)
-            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
+            .map_err(|e| fractile_codec::Error::input(format!("{name}: {e}")))?;
         let mesh = fractile_codec::mesh::Mesh::parse_off(text)
-            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
+            .map_err(|e| fractile_codec::Error::input(format!("{name}: {e}")))?;
         let enc = fractile_codec::encode::volume::encode_mesh(
             &mesh,
             &fractile_codec::encode::volume::MeshSettings::default(),
@@ -99,9 +99,9 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
     let out = dir.join(format!("{id}.fra"));
     if !out.exists() {
         let text = std::str::from_utf8(bytes)
-            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
+            .map_err(|e| fractile_codec::Error::input(format!("{name}: {e}")))?;
         let lines = fractile_codec::codecs::curve::geojson::read(text)
-            .map_err(|e| fractile_codec::Error::Input(format!("{name}: {e}")))?;
+            .map_err(|e| fractile_codec::Error::input(format!("{name}: {e}")))?;
         let settings = fractile_codec::codecs::curve::CurveSettings {
             tolerance,
             ..Default::default()

@@ -31,6 +31,7 @@
 
 mod slots;
 
+use fractile_proto::ErrorCode;
 use std::io::Write;
 use std::sync::Arc;
 use std::sync::atomic::{AtomicBool, Ordering};
@@ -115,7 +116,7 @@ impl Lanes {
         metrics::counter!("fractile_heavy_refused_total").increment(1);
         AppError {
             status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
-            code: "busy",
+            code: ErrorCode::Busy,
             detail: format!(
                 "the server is busy with large requests (this one needs about {mib} MiB); \
                  retry in {secs} s or ask for fewer pixels"
@@ -151,7 +152,7 @@ impl Lanes {
         if mib > u64::from(self.heavy_mib) {
             return Err(AppError {
                 status: axum::http::StatusCode::PAYLOAD_TOO_LARGE,
-                code: "too_expensive",
+                code: ErrorCode::TooExpensive,
                 detail: format!(
                     "this request needs about {mib} MiB to decode, over the server's max_decode_mib of {}: ask for fewer pixels",
                     self.heavy_mib

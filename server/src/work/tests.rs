@@ -194,7 +194,7 @@ async fn heavy_work_past_the_queue_wait_is_refused_at_once() {
     for task in later {
         let refused = task.await.unwrap().expect_err("no run is free");
         assert_eq!(refused.status, axum::http::StatusCode::SERVICE_UNAVAILABLE);
-        assert_eq!(refused.code, "busy");
+        assert_eq!(refused.code, fractile_proto::ErrorCode::Busy);
         assert!(refused.retry_after.is_some_and(|s| s >= 1));
     }
     let waited = t.elapsed();

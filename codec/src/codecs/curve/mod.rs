@@ -100,7 +100,7 @@ pub fn encode(
     settings: &CurveSettings,
 ) -> Result<(Curves, fit::FitReport), crate::Error> {
     if !(settings.tolerance.is_finite() && settings.tolerance >= 0.0) {
-        return Err(crate::Error::Settings(format!(
+        return Err(crate::Error::settings(format!(
             "tolerance {} must be a finite distance >= 0",
             settings.tolerance
         )));
@@ -163,7 +163,7 @@ pub fn encode(
             Ok((p, frame))
         })
         .collect::<Result<Vec<_>, String>>()
-        .map_err(crate::Error::Input)?
+        .map_err(crate::Error::input)?
         .into_iter()
         .unzip();
     let coded = |scheme: &Scheme| {
@@ -174,7 +174,7 @@ pub fn encode(
             &prepared,
             &frames,
         )
-        .map_err(crate::Error::Input)
+        .map_err(crate::Error::input)
     };
     let mut best = coded(&Scheme::default())?;
     let mut report = fit::FitReport::default();

@@ -661,7 +661,7 @@ struct Sample {
 /// Fits a surface to a normalised source: node heights by subsampling (rounded by
 /// `round_to_surface`), s by least squares.
 pub fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Error> {
-    header.validate().map_err(Error::Settings)?;
+    header.validate().map_err(Error::settings)?;
     let [nx, ny] = header.nodes();
     let k = header.spacing as usize;
     let heights: Vec<i32> = (0..ny)
@@ -674,7 +674,7 @@ pub fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Error> {
         heights: heights.clone(),
         scalings: vec![0; header.parameters()],
     };
-    let op = FisOperator::new(header, &flat).map_err(Error::Settings)?;
+    let op = FisOperator::new(header, &flat).map_err(Error::settings)?;
     let samples: Vec<Sample> = {
         use rayon::prelude::*;
         (0..source.width * source.height)

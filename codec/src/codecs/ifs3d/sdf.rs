@@ -47,15 +47,15 @@ pub struct DistanceField {
 impl DistanceField {
     /// The field of `mesh` on an `n^3` grid with distances clamped to `band_voxels` voxels.
     pub fn from_mesh(mesh: &Mesh, n: usize, band_voxels: f64) -> Result<DistanceField, Error> {
-        mesh.check().map_err(Error::Input)?;
+        mesh.check().map_err(Error::input)?;
         if !(1.0..=32.0).contains(&band_voxels) {
-            return Err(Error::Settings(format!(
+            return Err(Error::settings(format!(
                 "band {band_voxels} voxels is not in 1..=32"
             )));
         }
         let margin = band_voxels.ceil() + 1.0;
         if !(n as f64 > 2.0 * margin + 4.0 && n <= 1024) {
-            return Err(Error::Settings(format!(
+            return Err(Error::settings(format!(
                 "grid {n} must exceed {} (the band's margin on both sides) and be at most 1024",
                 2.0 * margin + 4.0
             )));
@@ -63,7 +63,7 @@ impl DistanceField {
         let (lo, hi) = mesh.bounds();
         let extent = (0..3).map(|k| (hi[k] - lo[k]) as f64).fold(0.0, f64::max);
         if extent.is_nan() || extent <= 0.0 {
-            return Err(Error::Input("the mesh has no extent".into()));
+            return Err(Error::input("the mesh has no extent"));
         }
         let voxel = extent / (n as f64 - 2.0 * margin);
         let origin: [f64; 3] =

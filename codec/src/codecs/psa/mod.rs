@@ -592,7 +592,7 @@ pub fn codec_name(tiling: Tiling) -> &'static str {
 /// search (least squared error of the collage over the region's samples), against the bilinear
 /// patch (kept when no domain beats it).
 pub fn fit(source: &Source, header: &PsaHeader) -> Result<PsaParams, Error> {
-    header.validate().map_err(Error::Settings)?;
+    header.validate().map_err(Error::settings)?;
     let [nx, ny] = header.vertices();
     let d = header.region as usize;
     let a = header.ratio as usize;
