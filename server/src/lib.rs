@@ -2,6 +2,11 @@
 //! runs it with logging, timeouts, CORS and graceful shutdown. The binary `fractile` adds the
 //! command line (encode, decode, info, compare, serve).
 
+// A server answers bad input with an error, never a panic: no unwrap or expect outside tests,
+// and each invariant that stays an expect says why where it is (`#[expect(..., reason)]`).
+#![warn(clippy::unwrap_used, clippy::expect_used)]
+#![cfg_attr(test, allow(clippy::unwrap_used, clippy::expect_used))]
+
 pub mod api;
 pub mod backend;
 pub mod encoding;

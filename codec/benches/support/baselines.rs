@@ -5,7 +5,7 @@ use fractile_codec::Raster;
 use fractile_codec::core::metrics;
 
 /// JPEG (image crate, baseline) at the highest quality whose size is at most `bpp`.
-pub fn jpeg_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
+pub(crate) fn jpeg_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
     if r.sample != fractile_proto::SampleFormat::U8 {
         return None;
     }
@@ -61,7 +61,7 @@ pub fn jpeg_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
 /// this one reproduces the figures (29.93 against 29.88 dB, 47.20 against 47.22 dB).
 /// Height fields are shifted to start at 0 and written as 16-bit PNG; PSNR's peak is then the
 /// value range, as for our own rows.
-pub fn jpeg2000_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
+pub(crate) fn jpeg2000_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
     if r.valid.is_some() {
         return None;
     }

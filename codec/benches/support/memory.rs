@@ -1,7 +1,7 @@
 //! The benches' memory figure: the peak resident memory of their process.
 
 /// Peak resident memory of this process so far (MB), from `/proc/self/status`; NaN elsewhere.
-pub fn peak_mb() -> f64 {
+pub(crate) fn peak_mb() -> f64 {
     let status = std::fs::read_to_string("/proc/self/status").unwrap_or_default();
     status
         .lines()

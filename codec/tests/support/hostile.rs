@@ -13,14 +13,14 @@ use fractile_codec::{Asset, EncodeSettings, Quantiser, Raster, RateMode, encode}
 use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
 
 /// A file of `testdata/`.
-pub fn data(name: &str) -> PathBuf {
+pub(crate) fn data(name: &str) -> PathBuf {
     PathBuf::from(env!("CARGO_MANIFEST_DIR"))
         .join("../testdata")
         .join(name)
 }
 
 /// A w x h crop of a real raster at (x, y).
-pub fn crop(r: &Raster, x: usize, y: usize, w: usize, h: usize) -> Raster {
+pub(crate) fn crop(r: &Raster, x: usize, y: usize, w: usize, h: usize) -> Raster {
     let mut c = r.clone();
     c.width = w;
     c.height = h;
@@ -40,7 +40,7 @@ pub fn crop(r: &Raster, x: usize, y: usize, w: usize, h: usize) -> Raster {
 }
 
 /// The container around a payload, as docs/asset-format.md lays it out, with its CRC.
-pub fn container(version: u16, kind: u8, codec: u8, meta: &[u8], payload: &[u8]) -> Vec<u8> {
+pub(crate) fn container(version: u16, kind: u8, codec: u8, meta: &[u8], payload: &[u8]) -> Vec<u8> {
     let mut out = Vec::new();
     out.extend_from_slice(b"FRACTILE");
     out.extend_from_slice(&version.to_le_bytes());
@@ -62,7 +62,7 @@ fn reseal_append(out: &mut Vec<u8>) {
 /// Writes a valid checksum over a mutated file (its last four bytes), as an attacker would. A
 /// chunked container (version 6, from the spec) gets its header's checksum written instead,
 /// so that mutations of its table reach the reader's checks of the layout.
-pub fn reseal(bytes: &mut Vec<u8>) {
+pub(crate) fn reseal(bytes: &mut Vec<u8>) {
     if bytes.len() < 4 {
         return;
     }
@@ -86,7 +86,7 @@ pub fn reseal(bytes: &mut Vec<u8>) {
 }
 
 /// Metadata of a grey image of `w x h`.
-pub fn grey_meta(w: u32, h: u32) -> AssetMeta {
+pub(crate) fn grey_meta(w: u32, h: u32) -> AssetMeta {
     AssetMeta {
         kind: AssetKind::Image,
         width: w,
@@ -106,7 +106,7 @@ pub fn grey_meta(w: u32, h: u32) -> AssetMeta {
 
 /// A quadtree file claiming a `side x side` frame (and grid) whose transform stream is
 /// `stream`: with an empty stream, the frame bomb of issue 35.
-pub fn frame_bomb(side: u32, min_size: u32, levels: u32, stream: Vec<u8>) -> Vec<u8> {
+pub(crate) fn frame_bomb(side: u32, min_size: u32, levels: u32, stream: Vec<u8>) -> Vec<u8> {
     let header = PlaneHeader {
         frame: [side, side],
         valid: [side as f32, side as f32],
@@ -127,7 +127,7 @@ pub fn frame_bomb(side: u32, min_size: u32, levels: u32, stream: Vec<u8>) -> Vec
 
 /// A real asset whose metadata claims a `w x h` grid its planes do not code: the metadata
 /// bomb of issue 35.
-pub fn metadata_bomb(real: &[u8], w: u32, h: u32) -> Vec<u8> {
+pub(crate) fn metadata_bomb(real: &[u8], w: u32, h: u32) -> Vec<u8> {
     let asset = Asset::from_bytes(real).expect("a valid asset");
     let mut meta = asset.meta.clone();
     meta.width = w;
@@ -145,7 +145,7 @@ pub fn metadata_bomb(real: &[u8], w: u32, h: u32) -> Vec<u8> {
 
 /// Small valid assets of every codec, with a name: quadtree grey, colour and height field with
 /// nodata, FIS, psa2d, IFS3D, a chunked container and curves.
-pub fn sources() -> Vec<(&'static str, Vec<u8>)> {
+pub(crate) fn sources() -> Vec<(&'static str, Vec<u8>)> {
     let quick = |r: &Raster, bpp: f64| {
         let settings = EncodeSettings {
             rate: RateMode::TargetBpp(bpp),
@@ -226,7 +226,7 @@ pub fn sources() -> Vec<(&'static str, Vec<u8>)> {
 
 /// One change a fuzzer makes to a file.
 #[derive(Clone, Debug)]
-pub enum Mutation {
+pub(crate) enum Mutation {
     /// Sets the byte at (position modulo length) to a value.
     Byte(usize, u8),
     /// Writes a little-endian u32 at a position (a length, a size, a count).
@@ -238,7 +238,7 @@ pub enum Mutation {
 }
 
 /// Words that make sizes and lengths interesting.
-pub const WORDS: [u32; 8] = [
+pub(crate) const WORDS: [u32; 8] = [
     0,
     1,
     2,
@@ -250,7 +250,7 @@ pub const WORDS: [u32; 8] = [
 ];
 
 /// Applies mutations, then writes a valid checksum.
-pub fn mutate(source: &[u8], mutations: &[Mutation]) -> Vec<u8> {
+pub(crate) fn mutate(source: &[u8], mutations: &[Mutation]) -> Vec<u8> {
     let mut b = source.to_vec();
     for m in mutations {
         let n = b.len().max(1);
@@ -280,7 +280,7 @@ pub fn mutate(source: &[u8], mutations: &[Mutation]) -> Vec<u8> {
 }
 
 /// Limits a fuzzer reads under: small enough that an accepted mutant stays cheap.
-pub fn fuzz_limits() -> fractile_codec::AssetLimits {
+pub(crate) fn fuzz_limits() -> fractile_codec::AssetLimits {
     fractile_codec::AssetLimits {
         max_pixels: 1 << 22,
         max_decode_bytes: 256 << 20,
@@ -290,7 +290,7 @@ pub fn fuzz_limits() -> fractile_codec::AssetLimits {
 /// Reads a (mutated) file and, if it is accepted, decodes a little of it every way a server
 /// would: points, a small raster, a volume's distances, a curve's levels. Returns whether it
 /// was accepted. Panics (a test failure) only if the code under test panics.
-pub fn exercise(bytes: &[u8]) -> bool {
+pub(crate) fn exercise(bytes: &[u8]) -> bool {
     let Ok(asset) = Asset::from_bytes_limited(bytes, &fuzz_limits()) else {
         return false;
     };

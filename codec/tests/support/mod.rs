@@ -1,1 +1,1 @@
-pub mod hostile;
+pub(crate) mod hostile;

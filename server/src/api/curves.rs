@@ -105,7 +105,9 @@ pub(super) async fn curve(
     state
         .lanes
         .stream(cost, move |_| {
-            let c = a2.asset.curve.as_ref().expect("checked above");
+            let Some(c) = a2.asset.curve.as_ref() else {
+                return Err(AppError::internal("a curve asset without its curves"));
+            };
             let decoded = if control {
                 fractile_codec::codecs::curve::CurveLevel {
                     level: 0,
@@ -154,7 +156,9 @@ pub(super) async fn curve_deform(
     state
         .lanes
         .stream(cost, move |_| {
-            let c = a2.asset.curve.as_ref().expect("checked above");
+            let Some(c) = a2.asset.curve.as_ref() else {
+                return Err(AppError::internal("a curve asset without its curves"));
+            };
             let deformed = fractile_codec::codecs::curve::deform::apply(&c.set, &req.deformations)
                 .map_err(|e| AppError::bad_request(ErrorCode::BadDeformation, e))?;
             Ok(geojson_body(

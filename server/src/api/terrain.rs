@@ -59,7 +59,11 @@ fn terrain_asset(a: Arc<StoredAsset>) -> Result<Arc<StoredAsset>, AppError> {
 
 /// The asset's bounds in lon/lat, clipped to the globe.
 fn asset_bounds(a: &StoredAsset) -> [f64; 4] {
-    let [w, s, e, n] = a.placement.as_ref().expect("checked").bounds();
+    // `terrain_asset` admits placed assets only; the globe otherwise.
+    let [w, s, e, n] = a
+        .placement
+        .as_ref()
+        .map_or([-180.0, -90.0, 180.0, 90.0], |p| p.bounds());
     [w.max(-180.0), s.max(-90.0), e.min(180.0), n.min(90.0)]
 }
 

@@ -121,7 +121,9 @@ pub(super) fn cached_response(state: &AppState, tag: &str, c: &Cached) -> Respon
         header::CONTENT_TYPE,
         HeaderValue::from_static(c.content_type),
     );
-    h.insert(header::ETAG, HeaderValue::from_str(tag).expect("hex etag"));
+    if let Ok(v) = HeaderValue::from_str(tag) {
+        h.insert(header::ETAG, v);
+    }
     if let Some(e) = c.content_encoding {
         h.insert(header::CONTENT_ENCODING, HeaderValue::from_static(e));
     }
@@ -321,8 +323,8 @@ fn tile_format(
                 "f32 tiles are for height fields",
             ));
         }
-        ("png", true, Some(e)) if e.parse::<HeightEncoding>().is_ok() => {
-            encoding::TileFormat::Heights(e.parse().expect("checked"))
+        ("png", true, Some(e)) if let Ok(h) = e.parse::<HeightEncoding>() => {
+            encoding::TileFormat::Heights(h)
         }
         ("png", true, None) => encoding::TileFormat::Visual(parse_rescale(&q.rescale, a)?),
         ("png", false, None) => encoding::TileFormat::Visual(None),

@@ -312,6 +312,10 @@ impl Png {
     }
 
     /// A PNG, with an alpha channel added (0 where `holes` says so) when there are holes.
+    #[expect(
+        clippy::expect_used,
+        reason = "a PNG of a buffer whose size matches its width, height and colour cannot fail to encode into memory"
+    )]
     fn write_with_holes(
         self,
         colour: image::ExtendedColorType,

@@ -40,7 +40,7 @@ use super::breaker::{BREAK, Breaker};
 
 /// How long an old version is kept after it stopped being served: longer than replicas take to
 /// notice a new pointer (`rescan_seconds`, default 10) and finish the requests begun on it.
-pub const GRACE: Duration = Duration::from_secs(120);
+pub(super) const GRACE: Duration = Duration::from_secs(120);
 
 /// A bucket (and prefix) of an object store holding asset files.
 pub struct Bucket {
@@ -68,6 +68,10 @@ struct Remote {
 }
 
 impl Remote {
+    #[expect(
+        clippy::expect_used,
+        reason = "the runtime is taken only in drop, after which no call is made"
+    )]
     fn block<F: std::future::Future>(&self, f: F) -> F::Output {
         self.runtime
             .as_ref()
@@ -517,7 +521,7 @@ impl DiskCache {
 /// an upload through another replica then overwrote under the readers of the first. A
 /// content-addressed key needs no check after the PUT: whatever object holds that key holds
 /// those bytes.
-pub fn version_object(id: &str, bytes: &[u8]) -> String {
+pub(super) fn version_object(id: &str, bytes: &[u8]) -> String {
     let digest = sha2::Sha256::digest(bytes);
     let hex: String = digest.iter().map(|b| format!("{b:02x}")).collect();
     format!("versions/{id}/{hex}-{}.fra", bytes.len())

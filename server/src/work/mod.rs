@@ -80,6 +80,10 @@ pub struct Lanes {
 
 impl Lanes {
     /// Lanes with `cores` light slots and a heavy budget of `heavy_mib` MiB.
+    #[expect(
+        clippy::expect_used,
+        reason = "a thread pool that cannot start at launch leaves nothing to serve with"
+    )]
     pub fn new(cores: usize, heavy_mib: u32) -> Lanes {
         let pool = rayon::ThreadPoolBuilder::new()
             .num_threads(cores.max(1))

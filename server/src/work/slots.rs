@@ -59,6 +59,10 @@ impl Slots {
 
     /// A slot for a new request, after every waiter ahead of it. A request dropped while it
     /// waits loses nothing: a slot sent to it is dropped with its channel, which gives it on.
+    #[expect(
+        clippy::expect_used,
+        reason = "a queued waiter's sender is kept in the state until it sends: the channel never closes unsent"
+    )]
     pub(super) async fn arrive(self: &Arc<Slots>) -> SlotPermit {
         let rx = {
             let mut s = self.state();
@@ -79,6 +83,10 @@ impl Slots {
 
     /// A slot for work coming back from a wait, ahead of new requests. Blocks the calling
     /// thread (a blocking-pool thread, which is what it is for).
+    #[expect(
+        clippy::expect_used,
+        reason = "a queued waiter's sender is kept in the state until it sends: the channel never closes unsent"
+    )]
     pub(super) fn resume(self: &Arc<Slots>) -> SlotPermit {
         let rx = {
             let mut s = self.state();

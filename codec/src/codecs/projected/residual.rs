@@ -5,7 +5,7 @@
 /// `largest 2^(-k/8)`, each bound rounded up to the next code (at most 9% over it; bounds
 /// under 2^-32 of the largest read as that).
 #[derive(Clone, Debug)]
-pub struct ResidualCodes {
+pub(super) struct ResidualCodes {
     /// The bound of each code.
     table: Box<[f32; 256]>,
     /// Row-major, a code a cell.
