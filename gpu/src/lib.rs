@@ -13,7 +13,6 @@
 //! Work is cut into dispatches of at most [`CHUNK`] points: a storage binding may hold 128 MiB
 //! and a dispatch dimension 65,535 workgroups (a 2D grid of groups covers more).
 
-
 mod batch;
 mod dispatch;
 mod readback;
