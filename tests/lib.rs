@@ -5,7 +5,7 @@
 use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};
 
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
 use fractile_server::api::AppState;
 use fractile_server::store::Store;
 
@@ -28,11 +28,11 @@ pub fn data(name: &str) -> PathBuf {
 /// Encodes a test-data file as the demo server would.
 pub fn encode_file(name: &str, bpp: f64) -> Vec<u8> {
     let r = Raster::open(&data(name)).expect("test data reads");
-    let mut s = EncodeSettings {
+    let mut s = QuadtreeSettings {
         rate: RateMode::TargetBpp(bpp),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
-    s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+    s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(r.kind);
     encode(&r, &s, &|_, _| {}).expect("test data encodes").bytes
 }
 

@@ -20,7 +20,7 @@ use std::time::{Duration, Instant};
 #[path = "../tests/harness/mod.rs"]
 mod harness;
 
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
 use harness::{Server, binary, data, get, header, percentile, put};
 
 const TOKEN: &str = "bench-secret";
@@ -105,11 +105,11 @@ fn main() {
     // Real assets: camera at two rates (told apart by size), jacksboro for points.
     let enc = |file: &str, bpp: f64| {
         let r = Raster::open(&data(file)).unwrap();
-        let mut s = EncodeSettings {
+        let mut s = QuadtreeSettings {
             rate: RateMode::TargetBpp(bpp),
-            ..EncodeSettings::default()
+            ..QuadtreeSettings::default()
         };
-        s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+        s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(r.kind);
         encode(&r, &s, &|_, _| {}).unwrap().bytes
     };
     let (cam_a, cam_b) = (enc("camera.png", 0.2), enc("camera.png", 0.48));

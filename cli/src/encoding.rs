@@ -28,30 +28,8 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     let mut rows = fractile_codec::io::mosaic::open_rows(&a.inputs)?;
     let (width, height) = (rows.header().width, rows.header().height);
     let a = a.with_default_codec(rows.header().kind);
-    let lattice = |a: &EncodeArgs| {
-        if a.tolerance.is_some() || a.transforms.is_some() || a.const_range.is_some() {
-            bail!(
-                "--codec {} takes --spacing, --max-error or --target-bpp",
-                a.codec().name()
-            );
-        }
-        Ok(())
-    };
-    if (a.max_error.is_some() || a.bounded) && a.codec() != CodecArg::Projected {
-        bail!("--max-error and --bounded are for --codec projected");
-    }
-    if a.bounded && a.target_bpp.is_none() {
-        bail!("--bounded bounds the error under --target-bpp B");
-    }
-    if a.codec() == CodecArg::Projected && a.max_error.is_none() && a.target_bpp.is_none() {
-        bail!("--codec projected takes --max-error E (source units) or --target-bpp B");
-    }
-    if a.codec() == CodecArg::Curve {
-        bail!("--codec curve is for GeoJSON input");
-    }
-    if a.codec() != CodecArg::QuadtreePifs {
-        lattice(&a)?;
-    }
+    // The flags checked against the codec before anything is read.
+    a.codec_settings(rows.header().kind)?;
     let chunk = match a.chunk {
         Some(0) => None,
         Some(c) => Some(c),

@@ -7,12 +7,12 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
+use fractile_codec::codecs::quadtree::settings::{DEFAULT_SPEED, SPEEDS};
 use fractile_codec::core::decode::{self, DiscreteOptions};
 use fractile_codec::core::metrics;
 use fractile_codec::core::operator;
 use fractile_codec::core::operator::Operator;
-use fractile_codec::encode::{DEFAULT_SPEED, SPEEDS};
-use fractile_codec::{EncodeSettings, Raster, RateMode, SearchMode, encode};
+use fractile_codec::{QuadtreeSettings, Raster, RateMode, SearchMode, encode};
 
 #[path = "support/baselines.rs"]
 mod baselines;
@@ -39,7 +39,7 @@ fn median_ms(reps: usize, mut f: impl FnMut()) -> f64 {
     times[times.len() / 2]
 }
 
-fn row(name: &str, setting: &str, r: &Raster, s: &EncodeSettings, jpeg_bpp: bool) {
+fn row(name: &str, setting: &str, r: &Raster, s: &QuadtreeSettings, jpeg_bpp: bool) {
     let enc = encode(r, s, &quiet).expect("encode");
     let t = Instant::now();
     let (_d, rep) = enc.asset.decode_native();
@@ -80,22 +80,22 @@ fn main() {
     );
     println!("|---|---|---|---|---|---|---|---|---|---|");
     let camera = Raster::open(&root().join("testdata/camera.png")).expect("camera");
-    let bpp = |b| EncodeSettings {
+    let bpp = |b| QuadtreeSettings {
         rate: RateMode::TargetBpp(b),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
     // Height fields with a planar offset term at the default 6-bit offsets and slopes, and as
     // the CLI encodes them by default: also weighing 5, 7 and 8 bits and keeping the best.
     let dem = |b| {
         let mut s = bpp(b);
         s.quantiser.slope_bits =
-            EncodeSettings::default_slope_bits(fractile_proto::AssetKind::HeightField);
+            QuadtreeSettings::default_slope_bits(fractile_proto::AssetKind::HeightField);
         s
     };
     let dem_weighed = |b| {
         let s = dem(b);
-        EncodeSettings {
-            quantiser_choices: EncodeSettings::default_quantiser_choices(
+        QuadtreeSettings {
+            quantiser_choices: QuadtreeSettings::default_quantiser_choices(
                 fractile_proto::AssetKind::HeightField,
                 s.quantiser,
             ),
@@ -111,7 +111,7 @@ fn main() {
                 &bpp(b),
                 true,
             );
-            let s = EncodeSettings {
+            let s = QuadtreeSettings {
                 search: SearchMode::Classified,
                 ..bpp(b)
             };
@@ -186,15 +186,16 @@ fn main() {
         }
         for (name, r, b, height) in cases {
             for speed in 0..SPEEDS.len() as u8 {
-                let mut s = EncodeSettings {
+                let mut s = QuadtreeSettings {
                     rate: RateMode::TargetBpp(b),
-                    ..EncodeSettings::at_speed(speed).expect("preset")
+                    ..QuadtreeSettings::at_speed(speed).expect("preset")
                 };
                 // One quantiser (no `quantiser_choices`): the presets are compared on the
                 // search alone.
                 if height {
-                    s.quantiser.slope_bits =
-                        EncodeSettings::default_slope_bits(fractile_proto::AssetKind::HeightField);
+                    s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(
+                        fractile_proto::AssetKind::HeightField,
+                    );
                 }
                 let enc = encode(r, &s, &quiet).expect("encode");
                 let p = SPEEDS[speed as usize];
@@ -401,7 +402,7 @@ fn main() {
 /// Issue 30's scaling: the default DEM encode (0.8 bpp, as the CLI encodes DEMs) of mosaics of
 /// k x k mirrored copies of etopo20 (a real DEM; mirrors keep it continuous across the seams),
 /// time a megapixel against one copy's, and PSNR.
-fn scale(root: &Path, dem: &dyn Fn(f64) -> EncodeSettings) {
+fn scale(root: &Path, dem: &dyn Fn(f64) -> QuadtreeSettings) {
     let e = Raster::open(&root.join("testdata/etopo20.tif")).expect("testdata");
     println!(
         "\n## Encode time against raster size (mirrored etopo20, 0.8 bpp, {} threads)\n",
@@ -442,9 +443,9 @@ fn scale(root: &Path, dem: &dyn Fn(f64) -> EncodeSettings) {
 
 /// Issue 29's tables: the projected codec beside the quadtree and JPEG 2000 at the same bytes
 /// on both DEMs and on camera, its max-error ratios, and point decoding beside the quadtree's.
-fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSettings) {
+fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
     use fractile_codec::codecs::projected::ProjectedSettings;
-    use fractile_codec::encode::projected::encode_projected;
+    use fractile_codec::codecs::projected::encode::encode_projected;
     let rate = ProjectedSettings::default();
     let pyramid = ProjectedSettings {
         pyramid: true,
@@ -468,8 +469,22 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
     let dem_rows = |name: &str, r: &Raster| {
         for ratio in [10.0, 20.0, 40.0, 80.0] {
             let bpp = 16.0 / ratio;
-            let p = encode_projected(r, &rate, Some(bpp)).expect("projected");
-            let pp = encode_projected(r, &pyramid, Some(bpp)).expect("projected");
+            let p = encode_projected(
+                r,
+                &ProjectedSettings {
+                    target_bpp: Some(bpp),
+                    ..rate.clone()
+                },
+            )
+            .expect("projected");
+            let pp = encode_projected(
+                r,
+                &ProjectedSettings {
+                    target_bpp: Some(bpp),
+                    ..pyramid.clone()
+                },
+            )
+            .expect("projected");
             let q = encode(r, &quadtree(bpp), &quiet).expect("quadtree");
             let j = jpeg2000_at(r, p.bpp());
             println!(
@@ -489,8 +504,22 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
     };
     let image_rows = |label: &str, image: &Raster| {
         for bpp in [0.25, 0.5, 1.0, 2.0] {
-            let p = encode_projected(image, &rate, Some(bpp)).expect("projected");
-            let pp = encode_projected(image, &pyramid, Some(bpp)).expect("projected");
+            let p = encode_projected(
+                image,
+                &ProjectedSettings {
+                    target_bpp: Some(bpp),
+                    ..rate.clone()
+                },
+            )
+            .expect("projected");
+            let pp = encode_projected(
+                image,
+                &ProjectedSettings {
+                    target_bpp: Some(bpp),
+                    ..pyramid.clone()
+                },
+            )
+            .expect("projected");
             let j = jpeg2000_at(image, p.bpp());
             let jp = jpeg_at(image, p.bpp());
             println!(
@@ -540,7 +569,7 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> EncodeSetti
                 max_error: Some(e),
                 ..ProjectedSettings::default()
             };
-            let p = encode_projected(r, &s, None).expect("projected");
+            let p = encode_projected(r, &s).expect("projected");
             let anchor = match (*name, e) {
                 ("etopo20.tif", 10.0) => "4.45:1",
                 ("jacksboro.tif", 10.0) => "10.6:1",
@@ -570,16 +599,30 @@ fn kernel(asset: &fractile_codec::io::asset::Asset) -> String {
 /// Point decoding of projected assets beside the quadtree's, both at 20:1 on etopo20: 256 x
 /// 256 points, batched, one core; ten steps each, and to the server's default tolerance (half
 /// a metre), where projected chains end on the bilinear interpolant and stop sooner.
-fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> EncodeSettings) {
+fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
     use fractile_codec::codecs::projected::ProjectedSettings;
-    use fractile_codec::encode::projected::encode_projected;
+    use fractile_codec::codecs::projected::encode::encode_projected;
     let e = Raster::open(&root.join("testdata/etopo20.tif")).expect("testdata");
     let bounded = ProjectedSettings {
         bounded: true,
         ..Default::default()
     };
-    let p = encode_projected(&e, &ProjectedSettings::default(), Some(0.8)).expect("projected");
-    let b = encode_projected(&e, &bounded, Some(0.8)).expect("projected");
+    let p = encode_projected(
+        &e,
+        &ProjectedSettings {
+            target_bpp: Some(0.8),
+            ..ProjectedSettings::default()
+        },
+    )
+    .expect("projected");
+    let b = encode_projected(
+        &e,
+        &ProjectedSettings {
+            target_bpp: Some(0.8),
+            ..bounded.clone()
+        },
+    )
+    .expect("projected");
     let q = encode(&e, &quadtree(0.8), &quiet).expect("quadtree");
     let pts: Vec<[f32; 2]> = (0..256 * 256)
         .map(|k| {

@@ -52,12 +52,19 @@ fn encode(r: &Raster, bpp: f64, bounded: bool, old: bool) -> (Encoded, f64) {
             ..Default::default()
         };
         let one = |part: &Raster| {
-            fractile_codec::encode::projected::encode_projected(part, &settings, Some(bpp))
+            fractile_codec::codecs::projected::encode::encode_projected(
+                part,
+                &fractile_codec::codecs::projected::ProjectedSettings {
+                    target_bpp: Some(bpp),
+                    ..settings.clone()
+                },
+            )
         };
         encode_chunked(r, DEFAULT_CHUNK, &one, &|_, _| {})
     } else {
-        let at =
-            |part: &Raster, q, trial| fractile_codec::encode::projected::encode_at(part, q, trial);
+        let at = |part: &Raster, q, trial| {
+            fractile_codec::codecs::projected::encode::encode_at(part, q, trial)
+        };
         encode_chunked_at(
             r,
             DEFAULT_CHUNK,

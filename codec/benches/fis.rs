@@ -7,8 +7,8 @@ use std::time::Instant;
 
 use fractile_codec::codecs::fis::{FisSettings, Scaling, codec_name};
 use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
-use fractile_codec::encode::{encode_fis, encode_psa};
-use fractile_codec::{EncodeSettings, Encoded, Raster, RateMode, encode};
+use fractile_codec::codecs::{fis::encode::encode_fis, psa::encode::encode_psa};
+use fractile_codec::{Encoded, QuadtreeSettings, Raster, RateMode, encode};
 use rustfft::FftPlanner;
 use rustfft::num_complex::Complex;
 
@@ -114,12 +114,12 @@ fn spectrum_slope(v: &[f32], w: usize, h: usize, band: (f64, f64)) -> f64 {
 }
 
 /// The quadtree settings `fractile encode --target-bpp` uses for this kind of data.
-fn quadtree(r: &Raster, bpp: f64) -> EncodeSettings {
-    let mut s = EncodeSettings {
+fn quadtree(r: &Raster, bpp: f64) -> QuadtreeSettings {
+    let mut s = QuadtreeSettings {
         rate: RateMode::TargetBpp(bpp),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
-    s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+    s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(r.kind);
     s
 }
 
@@ -159,7 +159,13 @@ fn main() {
                         fractile_codec::codecs::psa::codec_name(tiling),
                         format!("{domains:?}").to_lowercase()
                     );
-                    match encode_psa(&r, &s, Some(bpp)) {
+                    match encode_psa(
+                        &r,
+                        &PsaSettings {
+                            target_bpp: Some(bpp),
+                            ..s.clone()
+                        },
+                    ) {
                         Ok(e) => row(name, &label, &e),
                         Err(e) => println!("| {name} | {label} | - | {ratio}:1 | {e} | | | |"),
                     }
@@ -172,9 +178,9 @@ fn main() {
                         &r,
                         &FisSettings {
                             scaling: s,
+                            target_bpp: Some(bpp),
                             ..FisSettings::default()
                         },
-                        Some(bpp),
                     ) {
                         Ok(e) => row(name, codec_name(s), &e),
                         Err(e) => {
@@ -243,7 +249,6 @@ fn main() {
                         spacing: 4,
                         ..FisSettings::default()
                     },
-                    None,
                 )
                 .expect("fis"),
             ),
@@ -256,7 +261,6 @@ fn main() {
                         spacing: 4,
                         ..FisSettings::default()
                     },
-                    None,
                 )
                 .expect("fis"),
             ),

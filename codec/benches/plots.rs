@@ -8,7 +8,7 @@
 
 use std::path::{Path, PathBuf};
 
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
 use plotters::prelude::*;
 
 #[path = "support/baselines.rs"]
@@ -28,33 +28,40 @@ struct Curve {
 
 /// The settings `fractile encode` uses for this kind of input at a target rate (for height
 /// fields: planar offsets, weighing the quantisers, as the command line does by default).
-fn settings(r: &Raster, bpp: f64) -> EncodeSettings {
-    let s = EncodeSettings {
+fn settings(r: &Raster, bpp: f64) -> QuadtreeSettings {
+    let s = QuadtreeSettings {
         rate: RateMode::TargetBpp(bpp),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
     if r.sample == fractile_proto::SampleFormat::U8 {
         return s;
     }
     let kind = fractile_proto::AssetKind::HeightField;
     let mut s = s;
-    s.quantiser.slope_bits = EncodeSettings::default_slope_bits(kind);
-    EncodeSettings {
-        quantiser_choices: EncodeSettings::default_quantiser_choices(kind, s.quantiser),
+    s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(kind);
+    QuadtreeSettings {
+        quantiser_choices: QuadtreeSettings::default_quantiser_choices(kind, s.quantiser),
         ..s
     }
 }
 
 fn curves(r: &Raster, rates: &[f64], with_jpeg: bool) -> Vec<Curve> {
     use fractile_codec::codecs::projected::ProjectedSettings;
-    use fractile_codec::encode::projected::encode_projected;
+    use fractile_codec::codecs::projected::encode::encode_projected;
     let mut fractile = Vec::new();
     let mut projected = Vec::new();
     let (mut jpeg, mut j2k) = (Vec::new(), Vec::new());
     for &bpp in rates {
         let enc = encode(r, &settings(r, bpp), &|_, _| {}).expect("encode");
         fractile.push((enc.bpp(), enc.errors.psnr));
-        let p = encode_projected(r, &ProjectedSettings::default(), Some(bpp)).expect("projected");
+        let p = encode_projected(
+            r,
+            &ProjectedSettings {
+                target_bpp: Some(bpp),
+                ..ProjectedSettings::default()
+            },
+        )
+        .expect("projected");
         projected.push((p.bpp(), p.errors.psnr));
         if with_jpeg {
             jpeg.extend(jpeg_at(r, bpp));

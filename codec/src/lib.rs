@@ -18,6 +18,7 @@
 //!
 //! No HTTP and no async here: the server calls these functions.
 
+#[macro_use]
 pub mod codecs;
 pub mod core;
 pub mod encode;
@@ -30,7 +31,8 @@ pub mod render;
 pub use crate::core::decode::{DiscreteOptions, Method};
 pub use crate::core::transform::Quantiser;
 pub use codecs::quadtree::search::SearchMode;
-pub use encode::{EncodeSettings, Encoded, RateMode, Roi, encode, encode_default};
+pub use codecs::quadtree::settings::{QuadtreeSettings, RateMode, Roi};
+pub use encode::{CodecSettings, Encoded, PlaneEncoder, encode, encode_default};
 pub use io::asset::{Asset, AssetLimits};
 pub use io::raster::Raster;
 

@@ -6,7 +6,7 @@ use fractile_codec::core::decode::{self, DiscreteOptions};
 use fractile_codec::core::metrics;
 use fractile_codec::core::operator;
 use fractile_codec::core::operator::Operator;
-use fractile_codec::{Asset, EncodeSettings, Raster, RateMode, Roi, SearchMode, encode};
+use fractile_codec::{Asset, QuadtreeSettings, Raster, RateMode, Roi, SearchMode, encode};
 use fractile_proto::AssetKind;
 use proptest::prelude::*;
 
@@ -45,10 +45,10 @@ fn camera() -> Raster {
     Raster::open(&data("camera.png")).unwrap()
 }
 
-fn tolerance(t: f32) -> EncodeSettings {
-    EncodeSettings {
+fn tolerance(t: f32) -> QuadtreeSettings {
+    QuadtreeSettings {
         rate: RateMode::Tolerance(t),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     }
 }
 
@@ -322,9 +322,9 @@ fn planar_offsets_improve_terrain_at_the_same_rate() {
         256,
         256,
     );
-    let mut s = EncodeSettings {
+    let mut s = QuadtreeSettings {
         rate: RateMode::TargetBpp(0.8),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
     let flat = encode(&src, &s, &quiet).unwrap();
     s.quantiser.slope_bits = 6;
@@ -404,10 +404,10 @@ fn continuous_decoding_at_pixel_centres_is_close_to_discrete() {
 #[test]
 fn nearest_search_is_within_reach_of_full_search_on_real_data() {
     let src = crop(&camera(), 180, 120, 64, 64);
-    let mut s = EncodeSettings {
+    let mut s = QuadtreeSettings {
         rate: RateMode::ConstRange(8),
         search: SearchMode::Full,
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
     let full = encode(&src, &s, &quiet).unwrap();
     s.search = SearchMode::Nearest(24);
@@ -435,9 +435,9 @@ fn more_transforms_give_less_error_and_rate_control_lands_under_target() {
     let at = |n| {
         encode(
             &src,
-            &EncodeSettings {
+            &QuadtreeSettings {
                 rate: RateMode::Transforms(n),
-                ..EncodeSettings::default()
+                ..QuadtreeSettings::default()
             },
             &quiet,
         )
@@ -449,9 +449,9 @@ fn more_transforms_give_less_error_and_rate_control_lands_under_target() {
     for target in [0.3, 0.8] {
         let e = encode(
             &src,
-            &EncodeSettings {
+            &QuadtreeSettings {
                 rate: RateMode::TargetBpp(target),
-                ..EncodeSettings::default()
+                ..QuadtreeSettings::default()
             },
             &quiet,
         )
@@ -470,9 +470,9 @@ fn const_range_one_is_quasi_lossless() {
     let src = crop(&camera(), 240, 60, 48, 40);
     let e = encode(
         &src,
-        &EncodeSettings {
+        &QuadtreeSettings {
             rate: RateMode::ConstRange(1),
-            ..EncodeSettings::default()
+            ..QuadtreeSettings::default()
         },
         &quiet,
     )
@@ -573,9 +573,9 @@ fn colour_images_code_in_ycbcr_and_decode_to_rgb() {
     );
     let enc = encode(
         &src,
-        &EncodeSettings {
+        &QuadtreeSettings {
             rate: RateMode::TargetBpp(1.0),
-            ..EncodeSettings::default()
+            ..QuadtreeSettings::default()
         },
         &quiet,
     )
@@ -639,9 +639,9 @@ fn awkward_and_bad_inputs() {
     let err = q(4, 4, vec![f32::NAN; 16]).unwrap_err().to_string();
     assert!(err.contains("nodata"), "{err}");
     // Bad settings are named.
-    let bad = EncodeSettings {
+    let bad = QuadtreeSettings {
         min_range: 3,
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
     assert!(
         encode(&camera(), &bad, &quiet)
@@ -675,8 +675,8 @@ fn window_methods_agree_on_smooth_terrain() {
 /// height step), and the fractal detail beats plain bilinear interpolation of the same nodes.
 #[test]
 fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
+    use fractile_codec::codecs::fis::encode::encode_fis;
     use fractile_codec::codecs::fis::{FisSettings, Scaling};
-    use fractile_codec::encode::encode_fis;
     let r = Raster::open(&data("jacksboro.tif")).unwrap();
     let (w, h) = (r.width, r.height);
     for scaling in [Scaling::Global, Scaling::PerCell, Scaling::PerNode] {
@@ -685,7 +685,7 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
             spacing: 6,
             ..FisSettings::default()
         };
-        let enc = encode_fis(&r, &settings, None).unwrap();
+        let enc = encode_fis(&r, &settings).unwrap();
         let back = Asset::from_bytes(&enc.bytes).unwrap();
         assert_eq!(back.to_bytes(), enc.bytes);
         assert_eq!(
@@ -735,7 +735,7 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
             max_scaling,
             ..FisSettings::default()
         };
-        encode_fis(&r, &s, None).unwrap().errors.psnr
+        encode_fis(&r, &s).unwrap().errors.psnr
     };
     let (flat, fitted) = (psnr(Scaling::Global, 1e-4), psnr(Scaling::PerCell, 0.9));
     assert!(
@@ -748,7 +748,7 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
 fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
     use fractile_codec::codecs::fis::FisSettings;
     use fractile_codec::codecs::fis::Scaling;
-    use fractile_codec::encode::encode_fis;
+    use fractile_codec::codecs::fis::encode::encode_fis;
     for (file, bpp, scaling) in [
         ("topobathy.tif", 0.5, Scaling::PerNode),
         ("topobathy.tif", 1.0, Scaling::PerNode),
@@ -759,7 +759,14 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
             scaling,
             ..FisSettings::default()
         };
-        let enc = encode_fis(&r, &settings, Some(bpp)).unwrap();
+        let enc = encode_fis(
+            &r,
+            &FisSettings {
+                target_bpp: Some(bpp),
+                ..settings.clone()
+            },
+        )
+        .unwrap();
         assert!(enc.bpp() <= bpp, "{file}: {} > {bpp}", enc.bpp());
         // Never worse than the plain choice, the smallest spacing that fits at its own height
         // step; on etopo20 a finer spacing with coarser heights is far better, and the
@@ -771,7 +778,7 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
                     spacing: k,
                     ..settings.clone()
                 };
-                encode_fis(&r, &s, None).unwrap()
+                encode_fis(&r, &s).unwrap()
             })
             .find(|e| e.bpp() <= bpp)
             .unwrap();
@@ -783,7 +790,7 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
         }
     }
     let camera = Raster::open(&data("camera.png")).unwrap();
-    let e = encode_fis(&camera, &FisSettings::default(), None).unwrap_err();
+    let e = encode_fis(&camera, &FisSettings::default()).unwrap_err();
     assert!(e.to_string().contains("height fields"), "{e}");
 }
 
@@ -791,8 +798,8 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
 /// through every vertex, and the domain maps beat the bilinear patches of the same vertices.
 #[test]
 fn piecewise_self_affine_surfaces_interpolate_real_data() {
+    use fractile_codec::codecs::psa::encode::encode_psa;
     use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
-    use fractile_codec::encode::encode_psa;
     let dem = Raster::open(&data("jacksboro.tif")).unwrap();
     let camera = crop(
         &Raster::open(&data("camera.png")).unwrap(),
@@ -812,7 +819,7 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
             region: 6,
             ..PsaSettings::default()
         };
-        let enc = encode_psa(r, &s, None).unwrap();
+        let enc = encode_psa(r, &s).unwrap();
         let back = Asset::from_bytes(&enc.bytes).unwrap();
         assert_eq!(back.to_bytes(), enc.bytes);
         assert_eq!(
@@ -1013,21 +1020,21 @@ fn adaptive_terrain_meshes_stay_within_their_error_without_cracks() {
 
 #[test]
 fn slower_speed_presets_buy_quality_at_the_same_rate() {
-    use fractile_codec::encode::{DEFAULT_SPEED, SPEEDS};
-    let d = EncodeSettings::default();
-    let p = EncodeSettings::at_speed(DEFAULT_SPEED).unwrap();
+    use fractile_codec::codecs::quadtree::settings::{DEFAULT_SPEED, SPEEDS};
+    let d = QuadtreeSettings::default();
+    let p = QuadtreeSettings::at_speed(DEFAULT_SPEED).unwrap();
     assert_eq!(
         (p.domain_step, p.search, p.attractor_passes),
         (d.domain_step, d.search, d.attractor_passes)
     );
-    let err = EncodeSettings::at_speed(SPEEDS.len() as u8).unwrap_err();
+    let err = QuadtreeSettings::at_speed(SPEEDS.len() as u8).unwrap_err();
     assert!(err.to_string().contains("not a preset"), "{err}");
 
     let src = crop(&camera(), 128, 128, 192, 192);
     let psnr = |speed: u8| {
-        let s = EncodeSettings {
+        let s = QuadtreeSettings {
             rate: RateMode::TargetBpp(0.48),
-            ..EncodeSettings::at_speed(speed).unwrap()
+            ..QuadtreeSettings::at_speed(speed).unwrap()
         };
         let e = encode(&src, &s, &quiet).unwrap();
         assert!(e.bpp() <= 0.48);
@@ -1058,9 +1065,9 @@ fn rate_control_sizes_are_the_sizes_of_the_files() {
     for src in [dem, colour] {
         let e = encode(
             &src,
-            &EncodeSettings {
+            &QuadtreeSettings {
                 rate: RateMode::TargetBpp(1.0),
-                ..EncodeSettings::default()
+                ..QuadtreeSettings::default()
             },
             &quiet,
         )
@@ -1074,7 +1081,7 @@ fn rate_control_sizes_are_the_sizes_of_the_files() {
                 _ => panic!("a quadtree asset"),
             })
             .collect();
-        let size = Asset::quadtree_file_size(&e.asset.meta, planes, e.asset.mask.as_ref());
+        let size = Asset::coded_file_size(&e.asset.meta, planes, e.asset.mask.as_ref());
         // The source-error map comes after what rate control sized.
         let map = e.asset.source_error.as_ref().unwrap().encode().len();
         assert_eq!(size + map, e.bytes.len());
@@ -1118,12 +1125,12 @@ fn attractor_passes_lower_the_decoded_error_at_the_same_rate() {
     ];
     for (name, src, bpp) in cases {
         let at = |passes: u32| {
-            let mut s = EncodeSettings {
+            let mut s = QuadtreeSettings {
                 rate: RateMode::TargetBpp(bpp),
                 attractor_passes: passes,
-                ..EncodeSettings::default()
+                ..QuadtreeSettings::default()
             };
-            s.quantiser.slope_bits = EncodeSettings::default_slope_bits(src.kind);
+            s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(src.kind);
             encode(&src, &s, &quiet).unwrap()
         };
         let (plain, refined) = (at(0), at(3));
@@ -1138,9 +1145,9 @@ fn attractor_passes_lower_the_decoded_error_at_the_same_rate() {
         );
         assert!(refined.errors.psnr > plain.errors.psnr + 0.01, "{name}");
     }
-    let too_many = EncodeSettings {
-        attractor_passes: fractile_codec::encode::MAX_ATTRACTOR_PASSES + 1,
-        ..EncodeSettings::default()
+    let too_many = QuadtreeSettings {
+        attractor_passes: fractile_codec::codecs::quadtree::settings::MAX_ATTRACTOR_PASSES + 1,
+        ..QuadtreeSettings::default()
     };
     let err = encode(&camera(), &too_many, &quiet).unwrap_err();
     assert!(err.to_string().contains("attractor passes"), "{err}");
@@ -1152,18 +1159,18 @@ fn weighing_quantisers_keeps_the_closest_asset_within_the_target() {
     // are far from the best step, and jacksboro at a middle rate, where a finer one wins.
     for (name, bpp) in [("topobathy.tif", 0.4), ("jacksboro.tif", 0.8)] {
         let src = Raster::open(&data(name)).unwrap();
-        let mut base = EncodeSettings {
+        let mut base = QuadtreeSettings {
             rate: RateMode::TargetBpp(bpp),
-            ..EncodeSettings::default()
+            ..QuadtreeSettings::default()
         };
-        base.quantiser.slope_bits = EncodeSettings::default_slope_bits(src.kind);
-        let choices = EncodeSettings::default_quantiser_choices(src.kind, base.quantiser);
+        base.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(src.kind);
+        let choices = QuadtreeSettings::default_quantiser_choices(src.kind, base.quantiser);
         assert_eq!(choices.len(), 3, "{name}");
         // Each quantiser alone, then all weighed in one encode.
         let alone: Vec<_> = std::iter::once(base.quantiser)
             .chain(choices.iter().copied())
             .map(|q| {
-                let s = EncodeSettings {
+                let s = QuadtreeSettings {
                     quantiser: q,
                     ..base.clone()
                 };
@@ -1180,7 +1187,7 @@ fn weighing_quantisers_keeps_the_closest_asset_within_the_target() {
             .collect();
         let weighed = encode(
             &src,
-            &EncodeSettings {
+            &QuadtreeSettings {
                 quantiser_choices: choices,
                 ..base.clone()
             },
@@ -1216,9 +1223,9 @@ fn weighing_quantisers_keeps_the_closest_asset_within_the_target() {
         );
     }
     // A bad choice is refused like a bad quantiser.
-    let mut bad = EncodeSettings {
+    let mut bad = QuadtreeSettings {
         rate: RateMode::TargetBpp(0.5),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
     bad.quantiser_choices = vec![fractile_codec::Quantiser {
         offset_bits: 40,
@@ -1254,7 +1261,7 @@ fn one_search_fits_every_quantiser_as_its_own_search_would() {
         };
         let base = fractile_codec::Quantiser {
             slope_bits,
-            ..EncodeSettings::default().quantiser
+            ..QuadtreeSettings::default().quantiser
         };
         let headers: Vec<PlaneHeader> = [(6, 4), (5, 4), (8, 3), (7, 5)]
             .into_iter()
@@ -1412,9 +1419,9 @@ fn error_bounds_hold_against_the_source_at_random_pixel_centres() {
     // answers them.
     for name in ["jacksboro.tif", "etopo20.tif"] {
         let src = Raster::open(&data(name)).unwrap();
-        let settings = EncodeSettings {
+        let settings = QuadtreeSettings {
             rate: RateMode::TargetBpp(0.8),
-            ..EncodeSettings::default()
+            ..QuadtreeSettings::default()
         };
         let encoded = encode(&src, &settings, &quiet).unwrap();
         // The map comes within the target size and survives the file.

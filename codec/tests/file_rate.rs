@@ -4,8 +4,8 @@
 
 use std::path::Path;
 
+use fractile_codec::codecs::projected::encode::{encode_at, encode_projected};
 use fractile_codec::encode::chunked::{chunk_bpp, encode_chunked, encode_chunked_at, quality_for};
-use fractile_codec::encode::projected::{encode_at, encode_projected};
 use fractile_codec::encode::rate::{AIM, FileRate, Quality};
 use fractile_codec::io::rows::InMemory;
 use fractile_codec::{Encoded, Raster};
@@ -49,8 +49,11 @@ fn the_files_rate_is_a_ceiling_and_one_step_beats_a_rate_a_chunk() {
         );
         assert!(ours.bytes.len() as f64 > 0.9 * budget(&r, bpp) as f64);
         let per_chunk = chunk_bpp(r.width, r.height, 256, bpp);
-        let settings = Default::default();
-        let one = |part: &Raster| encode_projected(part, &settings, Some(per_chunk));
+        let settings = fractile_codec::codecs::projected::ProjectedSettings {
+            target_bpp: Some(per_chunk),
+            ..Default::default()
+        };
+        let one = |part: &Raster| encode_projected(part, &settings);
         let theirs = encode_chunked(&r, 256, &one, &|_, _| {}).unwrap();
         assert!(theirs.bytes.len() <= budget(&r, bpp));
         assert!(

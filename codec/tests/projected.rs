@@ -4,8 +4,8 @@
 //! PSNR against bicubic, and the power of the finest octave against the real finer DEM's).
 
 use fractile_codec::Method;
+use fractile_codec::codecs::projected::encode::encode_projected;
 use fractile_codec::codecs::projected::{ProjectedHeader, ProjectedSettings};
-use fractile_codec::encode::projected::encode_projected;
 use fractile_codec::io::asset::{Asset, Coding};
 use fractile_codec::io::raster::Raster;
 use fractile_proto::AssetKind;
@@ -36,7 +36,7 @@ fn max_error_holds_at_every_cell_of_real_dems_read_back_from_their_bytes() {
                 max_error: Some(e),
                 ..Default::default()
             };
-            let enc = encode_projected(&r, &s, None).expect("encode");
+            let enc = encode_projected(&r, &s).expect("encode");
             let asset = Asset::from_bytes(&enc.bytes).expect("read back");
             assert_eq!(asset.codec_name(), "projected");
             let (d, _) = asset.decode_native();
@@ -77,7 +77,7 @@ fn max_error_10_codes_smaller_than_jpeg_ls_near_lossless() {
             max_error: Some(10.0),
             ..Default::default()
         };
-        let enc = encode_projected(&r, &s, None).expect("encode");
+        let enc = encode_projected(&r, &s).expect("encode");
         println!("{name}: {:.2}:1 against JPEG-LS {jpeg_ls}:1", enc.ratio());
         assert!(
             enc.ratio() >= jpeg_ls,
@@ -96,14 +96,20 @@ fn a_corrupt_or_truncated_stream_is_an_error() {
     };
     // The pyramid (max error) and the lifted levels (rate).
     for (settings, bpp) in [(bounded, None), (ProjectedSettings::default(), Some(0.8))] {
-        let enc = encode_projected(&r, &settings, bpp).expect("encode");
+        let enc = encode_projected(
+            &r,
+            &ProjectedSettings {
+                target_bpp: bpp,
+                ..settings.clone()
+            },
+        )
+        .expect("encode");
         let Coding::Projected { header, stream } = &enc.asset.planes[0].coding else {
             panic!("a projected plane");
         };
         let meta = enc.asset.meta.clone();
-        let part = |h: ProjectedHeader, s: Vec<u8>| {
-            Asset::from_projected_parts(meta.clone(), vec![(h, s)], None)
-        };
+        let part =
+            |h: ProjectedHeader, s: Vec<u8>| Asset::from_coded(meta.clone(), vec![(h, s)], None);
         assert!(part(header.clone(), stream.clone()).is_ok());
         for cut in [0, 10, stream.len() / 2] {
             let e = part(header.clone(), stream[..cut].to_vec()).expect_err("truncated");
@@ -201,7 +207,7 @@ fn zoom(name: &str) -> Zoom {
         max_error: Some(0.5),
         ..Default::default()
     };
-    let enc = encode_projected(&c, &s, None).expect("encode");
+    let enc = encode_projected(&c, &s).expect("encode");
     let (d, _) = enc
         .asset
         .window([0.0, 0.0, 1.0, 1.0], w, h, Some(40), Method::Continuous);
@@ -285,7 +291,14 @@ fn rate_control_fits_its_target_and_reaches_jpeg_2000_on_etopo20() {
     // Issue 29's bar: JPEG 2000 (OpenJPEG) gives 47.2 dB on etopo20 at 20:1 (0.8 bpp); the
     // quadtree 43.2 dB.
     let r = Raster::open(&testdata("etopo20.tif")).expect("testdata");
-    let enc = encode_projected(&r, &ProjectedSettings::default(), Some(0.8)).expect("encode");
+    let enc = encode_projected(
+        &r,
+        &ProjectedSettings {
+            target_bpp: Some(0.8),
+            ..ProjectedSettings::default()
+        },
+    )
+    .expect("encode");
     println!(
         "etopo20 at 0.8 bpp: {:.3} bpp, {:.2} dB",
         enc.bpp(),
@@ -307,13 +320,26 @@ fn lifted_levels_beat_the_closed_loop_pyramid_at_low_rates() {
     // the lifted levels local means (measured 1.0-1.2 dB apart on both DEMs).
     for name in ["jacksboro.tif", "etopo20.tif"] {
         let r = Raster::open(&testdata(name)).expect("testdata");
-        let lifted =
-            encode_projected(&r, &ProjectedSettings::default(), Some(0.2)).expect("lifted");
+        let lifted = encode_projected(
+            &r,
+            &ProjectedSettings {
+                target_bpp: Some(0.2),
+                ..ProjectedSettings::default()
+            },
+        )
+        .expect("lifted");
         let pyramid = ProjectedSettings {
             pyramid: true,
             ..Default::default()
         };
-        let pyramid = encode_projected(&r, &pyramid, Some(0.2)).expect("pyramid");
+        let pyramid = encode_projected(
+            &r,
+            &ProjectedSettings {
+                target_bpp: Some(0.2),
+                ..pyramid.clone()
+            },
+        )
+        .expect("pyramid");
         println!(
             "{name} at 0.2 bpp: lifted {:.2} dB at {:.3} bpp, pyramid {:.2} dB at {:.3} bpp",
             lifted.errors.psnr,
@@ -361,7 +387,14 @@ fn error_bounds_hold_and_are_tight_at_random_cell_centres() {
                 Some(0.8),
             ),
         ] {
-            let enc = encode_projected(&src, &settings, bpp).expect("encode");
+            let enc = encode_projected(
+                &src,
+                &ProjectedSettings {
+                    target_bpp: bpp,
+                    ..settings.clone()
+                },
+            )
+            .expect("encode");
             let asset = Asset::from_bytes(&enc.bytes).expect("read back");
             let (w, h) = (src.width, src.height);
             let mut state = 34u64;
@@ -455,7 +488,14 @@ fn colour_images_code_as_luma_and_chroma_at_the_resolution_that_codes_better() {
     // JPEG at these rates gives 27.7 and 36.99 dB on it (the codec bench at 0.5 and 2 bpp; it
     // cannot reach 0.25), JPEG 2000 28.65 and 40.70; a broken chroma path is far under.
     for (bpp, chroma, floor) in [(0.25, 256, 27.0), (2.0, 512, 40.0)] {
-        let enc = encode_projected(&r, &ProjectedSettings::default(), Some(bpp)).expect("encode");
+        let enc = encode_projected(
+            &r,
+            &ProjectedSettings {
+                target_bpp: Some(bpp),
+                ..ProjectedSettings::default()
+            },
+        )
+        .expect("encode");
         let asset = Asset::from_bytes(&enc.bytes).expect("read back");
         assert_eq!(asset.planes.len(), 3);
         let Coding::Projected { header, .. } = &asset.planes[1].coding else {
@@ -485,7 +525,7 @@ fn colour_images_code_as_luma_and_chroma_at_the_resolution_that_codes_better() {
         ..Default::default()
     };
     assert!(
-        encode_projected(&r, &settings, None).is_err(),
+        encode_projected(&r, &settings).is_err(),
         "a bound on colour is refused"
     );
 }

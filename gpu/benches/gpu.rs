@@ -11,16 +11,16 @@ use std::time::Instant;
 
 use fractile_codec::core::decode;
 use fractile_codec::core::pieces::Flatten;
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
 use fractile_gpu::{Gpu, Grid};
 use rayon::prelude::*;
 
 fn main() {
     let path = PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata/camera.png");
     let r = Raster::open(&path).expect("testdata");
-    let s = EncodeSettings {
+    let s = QuadtreeSettings {
         rate: RateMode::TargetBpp(0.48),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
     let asset = encode(&r, &s, &|_, _| {}).expect("encode").asset;
     let op = &asset.planes[0].operator;

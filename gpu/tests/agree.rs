@@ -5,10 +5,10 @@ use std::path::PathBuf;
 
 use fractile_codec::codecs::fis::{FisSettings, Scaling};
 use fractile_codec::codecs::psa::{PsaSettings, Tiling};
+use fractile_codec::codecs::{fis::encode::encode_fis, psa::encode::encode_psa};
 use fractile_codec::core::decode;
 use fractile_codec::core::pieces::Flatten;
-use fractile_codec::encode::{encode_fis, encode_psa};
-use fractile_codec::{Asset, EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{Asset, QuadtreeSettings, Raster, RateMode, encode};
 use fractile_gpu::{Gpu, Grid};
 
 fn data(name: &str) -> PathBuf {
@@ -24,11 +24,11 @@ fn gpu() -> Gpu {
 
 fn quadtree(file: &str, bpp: f64) -> Asset {
     let r = Raster::open(&data(file)).unwrap();
-    let mut s = EncodeSettings {
+    let mut s = QuadtreeSettings {
         rate: RateMode::TargetBpp(bpp),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
-    s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+    s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(r.kind);
     encode(&r, &s, &|_, _| {}).unwrap().asset
 }
 
@@ -93,7 +93,6 @@ fn points_agree_on_images_and_dems_for_every_codec() {
                     scaling: Scaling::PerCell,
                     ..FisSettings::default()
                 },
-                None,
             )
             .unwrap()
             .asset,
@@ -109,7 +108,6 @@ fn points_agree_on_images_and_dems_for_every_codec() {
                     tiling: Tiling::Triangular,
                     ..PsaSettings::default()
                 },
-                None,
             )
             .unwrap()
             .asset,
@@ -342,7 +340,6 @@ fn dyadic_grids_and_points_on_cell_boundaries_agree_with_the_cpu() {
                     tiling: Tiling::Triangular,
                     ..PsaSettings::default()
                 },
-                None,
             )
             .unwrap()
             .asset,
@@ -356,7 +353,6 @@ fn dyadic_grids_and_points_on_cell_boundaries_agree_with_the_cpu() {
                     scaling: Scaling::PerCell,
                     ..FisSettings::default()
                 },
-                None,
             )
             .unwrap()
             .asset,

@@ -9,7 +9,7 @@ use std::time::Duration;
 
 use axum::body::{Body, Bytes};
 use axum::http::{Request, StatusCode, header};
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
 use fractile_server::api::AppState;
 use fractile_server::store::Store;
 use http_body_util::BodyExt;
@@ -32,9 +32,9 @@ fn fresh_dir(tag: &str) -> std::path::PathBuf {
 fn two_assets() -> (Vec<u8>, Vec<u8>) {
     let r = Raster::open(&data("camera.png")).unwrap();
     let at = |bpp| {
-        let s = EncodeSettings {
+        let s = QuadtreeSettings {
             rate: RateMode::TargetBpp(bpp),
-            ..EncodeSettings::at_speed(4).unwrap()
+            ..QuadtreeSettings::at_speed(4).unwrap()
         };
         encode(&r, &s, &|_, _| {}).unwrap().bytes
     };

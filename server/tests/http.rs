@@ -5,7 +5,7 @@ use std::sync::{Arc, OnceLock};
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
 use fractile_codec::geo::{self, Placement};
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
 use fractile_server::api::AppState;
 use fractile_server::store::Store;
 use http_body_util::BodyExt;
@@ -33,11 +33,11 @@ fn state() -> Arc<AppState> {
                 ("camera", "camera.png", 0.48),
             ] {
                 let r = Raster::open(&data(file)).unwrap();
-                let mut s = EncodeSettings {
+                let mut s = QuadtreeSettings {
                     rate: RateMode::TargetBpp(bpp),
-                    ..EncodeSettings::default()
+                    ..QuadtreeSettings::default()
                 };
-                s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+                s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(r.kind);
                 let enc = encode(&r, &s, &|_, _| {}).unwrap();
                 if id == "jacksboro" {
                     JACKSBORO_RMSE.set(enc.errors.rmse).unwrap();
@@ -473,9 +473,9 @@ fn writable(token: Option<&str>, max_upload: usize) -> (Arc<AppState>, Vec<u8>) 
     let r = Raster::open(&data("topobathy.tif")).unwrap();
     let enc = encode(
         &r,
-        &EncodeSettings {
+        &QuadtreeSettings {
             rate: RateMode::TargetBpp(1.0),
-            ..EncodeSettings::default()
+            ..QuadtreeSettings::default()
         },
         &|_, _| {},
     )
@@ -1156,11 +1156,11 @@ fn etopo20_state() -> Arc<AppState> {
         let dir = std::env::temp_dir().join(format!("fractile-http-etopo-{}", std::process::id()));
         std::fs::create_dir_all(&dir).unwrap();
         let r = Raster::open(&data("etopo20.tif")).unwrap();
-        let mut s = EncodeSettings {
+        let mut s = QuadtreeSettings {
             rate: RateMode::TargetBpp(0.8),
-            ..EncodeSettings::default()
+            ..QuadtreeSettings::default()
         };
-        s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+        s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(r.kind);
         let bytes = encode(&r, &s, &|_, _| {}).unwrap().bytes;
         std::fs::write(dir.join("etopo20.fra"), bytes).unwrap();
         dir
@@ -2018,7 +2018,7 @@ async fn projected_assets_serve_points_within_their_promise_and_tiles() {
         max_error: Some(5.0),
         ..Default::default()
     };
-    let enc = fractile_codec::encode::projected::encode_projected(&src, &settings, None).unwrap();
+    let enc = fractile_codec::codecs::projected::encode::encode_projected(&src, &settings).unwrap();
     let put = Request::put("/v1/assets/jp")
         .header(header::AUTHORIZATION, "Bearer p")
         .body(Body::from(enc.bytes.clone()))

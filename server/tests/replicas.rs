@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
 use fractile_server::api::{AppState, Writes};
 use fractile_server::store::{Refreshed, Store};
 use tower::ServiceExt;
@@ -19,9 +19,9 @@ fn data(name: &str) -> std::path::PathBuf {
 
 fn asset_bytes(name: &str) -> Vec<u8> {
     let r = Raster::open(&data(name)).unwrap();
-    let settings = EncodeSettings {
+    let settings = QuadtreeSettings {
         rate: RateMode::TargetBpp(1.0),
-        ..EncodeSettings::default()
+        ..QuadtreeSettings::default()
     };
     encode(&r, &settings, &|_, _| {}).unwrap().bytes
 }

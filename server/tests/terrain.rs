@@ -7,7 +7,7 @@ use std::sync::{Arc, OnceLock};
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
-use fractile_codec::{EncodeSettings, Raster, RateMode, encode};
+use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
 use fractile_server::api::AppState;
 use fractile_server::store::Store;
 use http_body_util::BodyExt;
@@ -30,11 +30,11 @@ fn state() -> Arc<AppState> {
                 ("camera", "camera.png", 0.48),
             ] {
                 let r = Raster::open(&root().join("testdata").join(file)).unwrap();
-                let mut s = EncodeSettings {
+                let mut s = QuadtreeSettings {
                     rate: RateMode::TargetBpp(bpp),
-                    ..EncodeSettings::default()
+                    ..QuadtreeSettings::default()
                 };
-                s.quantiser.slope_bits = EncodeSettings::default_slope_bits(r.kind);
+                s.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(r.kind);
                 let enc = encode(&r, &s, &|_, _| {}).unwrap();
                 std::fs::write(dir.join(format!("{id}.fra")), &enc.bytes).unwrap();
             }

@@ -6,10 +6,11 @@ use std::path::PathBuf;
 use anyhow::{Result, bail};
 use clap::ValueEnum;
 use fractile_codec::codecs::fis::FisSettings;
-use fractile_codec::codecs::psa::Tiling;
+use fractile_codec::codecs::projected::ProjectedSettings;
+use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
 use fractile_codec::encode::chunked::chunk_bpp;
 use fractile_codec::encode::rate::FileRate;
-use fractile_codec::{EncodeSettings, Roi};
+use fractile_codec::{CodecSettings, QuadtreeSettings, Quantiser, RateMode, Roi, SearchMode};
 use fractile_proto::AssetKind;
 
 #[derive(Clone, Copy, Debug, ValueEnum)]
@@ -118,21 +119,21 @@ pub(crate) struct EncodeArgs {
     #[arg(long, value_parser = parse_roi)]
     pub(crate) roi: Vec<Roi>,
     /// Smallest range side (power of two).
-    #[arg(long, default_value_t = EncodeSettings::default().min_range)]
+    #[arg(long, default_value_t = QuadtreeSettings::default().min_range)]
     pub(crate) min_range: u32,
     /// Largest range side (power of two).
-    #[arg(long, default_value_t = EncodeSettings::default().max_range)]
+    #[arg(long, default_value_t = QuadtreeSettings::default().max_range)]
     pub(crate) max_range: u32,
     /// quadtree-pifs: encoder speed preset, 0 (slowest, best) to 4 (fastest). Sets the domain
     /// lattice, the search's candidates and the attractor passes (`--domain-step`,
     /// `--candidates` and `--attractor-passes` override it).
-    #[arg(long, default_value_t = fractile_codec::encode::DEFAULT_SPEED)]
+    #[arg(long, default_value_t = fractile_codec::codecs::quadtree::settings::DEFAULT_SPEED)]
     pub(crate) speed: u8,
     /// Domain lattice step, as a fraction of the range side [default: from --speed, 2].
     #[arg(long)]
     pub(crate) domain_step: Option<f32>,
     /// Bits of the contrast index.
-    #[arg(long, default_value_t = EncodeSettings::default().quantiser.contrast_bits)]
+    #[arg(long, default_value_t = QuadtreeSettings::default().quantiser.contrast_bits)]
     pub(crate) contrast_bits: u8,
     /// Bits of the offset index [default: 6]. Height fields under --target-bpp without this or
     /// --slope-bits: offsets and slopes are coded at 5, 6, 7 and 8 bits and the best kept.
@@ -143,7 +144,7 @@ pub(crate) struct EncodeArgs {
     #[arg(long)]
     pub(crate) slope_bits: Option<u8>,
     /// Largest |contrast| (< 1).
-    #[arg(long, default_value_t = EncodeSettings::default().quantiser.max_contrast)]
+    #[arg(long, default_value_t = QuadtreeSettings::default().quantiser.max_contrast)]
     pub(crate) max_contrast: f32,
     /// Domain search.
     #[arg(long, value_enum, default_value_t = Search::Nearest)]
@@ -294,6 +295,121 @@ impl EncodeArgs {
             [one] => Ok(one),
             _ => bail!("only GeoTIFFs make a mosaic: give one mesh or GeoJSON file"),
         }
+    }
+}
+
+impl EncodeArgs {
+    /// The settings of the codec named (decided by [`Self::with_default_codec`] for rasters)
+    /// from its flags, for a raster of `kind`; another codec's flags are refused by name.
+    pub(crate) fn codec_settings(&self, kind: AssetKind) -> Result<CodecSettings> {
+        let codec = self.codec();
+        if (self.max_error.is_some() || self.bounded) && codec != CodecArg::Projected {
+            bail!("--max-error and --bounded are for --codec projected");
+        }
+        if self.bounded && self.target_bpp.is_none() {
+            bail!("--bounded bounds the error under --target-bpp B");
+        }
+        let quadtree_rate =
+            self.tolerance.is_some() || self.transforms.is_some() || self.const_range.is_some();
+        if codec != CodecArg::QuadtreePifs && quadtree_rate {
+            bail!(
+                "--codec {} takes --spacing, --max-error or --target-bpp",
+                codec.name()
+            );
+        }
+        let domains = match self.domains {
+            DomainsArg::Touching => Domains::Touching,
+            DomainsArg::Overlapping => Domains::Overlapping,
+        };
+        Ok(match codec {
+            CodecArg::QuadtreePifs => self.quadtree_settings(kind)?.into(),
+            CodecArg::Projected => {
+                if self.max_error.is_none() && self.target_bpp.is_none() {
+                    bail!("--codec projected takes --max-error E (source units) or --target-bpp B");
+                }
+                ProjectedSettings {
+                    max_error: self.max_error,
+                    bounded: self.bounded,
+                    target_bpp: self.target_bpp,
+                    ..Default::default()
+                }
+                .into()
+            }
+            CodecArg::Psa2dRect | CodecArg::Psa2dTri => PsaSettings {
+                tiling: codec.psa_tiling().unwrap_or(Tiling::Rectangular),
+                domains,
+                region: self.spacing,
+                ratio: self.domain_ratio,
+                radius: self.radius,
+                max_scaling: self.max_contrast,
+                target_bpp: self.target_bpp,
+                ..PsaSettings::default()
+            }
+            .into(),
+            CodecArg::FisBilinear | CodecArg::FisRect | CodecArg::FisRectGlobal => FisSettings {
+                scaling: codec
+                    .fis_scaling()
+                    .unwrap_or(fractile_codec::codecs::fis::Scaling::PerNode),
+                spacing: self.spacing,
+                height_step: self.height_step,
+                scaling_bits: self.scaling_bits,
+                max_scaling: self.max_contrast,
+                target_bpp: self.target_bpp,
+            }
+            .into(),
+            CodecArg::Curve => bail!("--codec curve is for GeoJSON input"),
+        })
+    }
+
+    /// The quadtree's settings: the speed preset's, with the flags given over it.
+    fn quadtree_settings(&self, kind: AssetKind) -> Result<QuadtreeSettings> {
+        let rate = match (
+            self.target_bpp,
+            self.tolerance,
+            self.transforms,
+            self.const_range,
+        ) {
+            (Some(b), ..) => RateMode::TargetBpp(b),
+            (_, Some(t), ..) => RateMode::Tolerance(t),
+            (_, _, Some(n), _) => RateMode::Transforms(n),
+            (.., Some(r)) => RateMode::ConstRange(r),
+            _ => RateMode::Tolerance(f32::NAN),
+        };
+        let preset = QuadtreeSettings::at_speed(self.speed)?;
+        let candidates = match preset.search {
+            SearchMode::Nearest(k) => self.candidates.unwrap_or(k),
+            _ => self.candidates.unwrap_or(32),
+        };
+        let quantiser = Quantiser {
+            contrast_bits: self.contrast_bits,
+            offset_bits: self.offset_bits.unwrap_or(preset.quantiser.offset_bits),
+            max_contrast: self.max_contrast,
+            slope_bits: self
+                .slope_bits
+                .unwrap_or(QuadtreeSettings::default_slope_bits(kind)),
+        };
+        // Bits the user gave are kept as given; otherwise the encoder weighs the kind's choices.
+        let quantiser_choices = if self.offset_bits.is_none() && self.slope_bits.is_none() {
+            QuadtreeSettings::default_quantiser_choices(kind, quantiser)
+        } else {
+            Vec::new()
+        };
+        Ok(QuadtreeSettings {
+            rate,
+            min_range: self.min_range,
+            max_range: self.max_range,
+            domain_step: self.domain_step.unwrap_or(preset.domain_step),
+            quantiser,
+            quantiser_choices,
+            search: match self.search {
+                Search::Full => SearchMode::Full,
+                Search::Classified => SearchMode::Classified,
+                Search::Nearest => SearchMode::Nearest(candidates.max(1)),
+            },
+            rois: self.roi.clone(),
+            attractor_passes: self.attractor_passes.unwrap_or(preset.attractor_passes),
+            ..preset
+        })
     }
 }
 

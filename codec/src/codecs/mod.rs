@@ -11,9 +11,42 @@
 //! | projected IFS with details on curves (codec 5) | curves | [`curve`] |
 //! | projected IFS with details on grids (codec 6) | height fields, grey images | [`projected`] |
 
+//!
+//! A codec of planes (images, height fields) implements [`plane::PlaneCodec`] on its header,
+//! [`plane::PlaneDecoder`] on its operator and `encode::PlaneEncoder` on its settings, in its
+//! folder, and adds one line to `plane_codecs!` (below); the container, the decoders, the encoder's
+//! entry (`encode::encode`) and the GPU take it from there.
+
+/// The plane codecs, one line each: the variant's name (in [`registry::Codec`],
+/// [`registry::Coding`], [`registry::PlaneOperator`] and `encode::CodecSettings`), its header
+/// (a [`plane::PlaneCodec`]) and its settings (an `encode::PlaneEncoder`). Hands the list to
+/// `$then!`, so that the registry and the encoder's entry are made from this one list.
+macro_rules! plane_codecs {
+    ($then:ident) => {
+        $then! {
+            /// Quadtree partitioned IFS (images and height fields).
+            Quadtree(
+                crate::codecs::quadtree::stream::PlaneHeader,
+                crate::codecs::quadtree::settings::QuadtreeSettings
+            ),
+            /// Fractal interpolation surface (height fields), any layout of the vertical scaling.
+            Fis(crate::codecs::fis::FisHeader, crate::codecs::fis::FisSettings),
+            /// Piecewise self-affine model (psa2d), grey images and heights.
+            Psa(crate::codecs::psa::PsaHeader, crate::codecs::psa::PsaSettings),
+            /// Projected IFS with details on a grid (height fields, grey and colour images).
+            Projected(
+                crate::codecs::projected::ProjectedHeader,
+                crate::codecs::projected::ProjectedSettings
+            ),
+        }
+    };
+}
+
 pub mod curve;
 pub mod fis;
 pub mod ifs3d;
+pub mod plane;
 pub mod projected;
 pub mod psa;
 pub mod quadtree;
+pub mod registry;

@@ -4,6 +4,7 @@
 pub mod decode;
 pub mod entropy;
 pub mod fidelity;
+pub mod lattice;
 pub mod metrics;
 pub mod operator;
 pub mod pieces;

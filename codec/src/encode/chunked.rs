@@ -469,7 +469,7 @@ impl Coded {
                 index,
                 length: bytes.len() as u64,
                 crc: chunked::file_crc(&bytes),
-                codec: a.codec() as u8,
+                codec: a.codec().byte(),
                 max_contrast: a.max_contrast(),
                 seed_bound: a.bound_after(0),
                 smallest_source_error: a.source_error.as_ref().and_then(|m| m.smallest()),
@@ -702,7 +702,7 @@ fn view_maps(enc: &Encoded, part: &Raster, views: usize) -> Result<Vec<Vec<u8>>,
     (1..=views)
         .map(|l| {
             let view =
-                Asset::coarse_view(&bytes, &limits, l as u32, crate::io::asset::Build::Lazy)?;
+                Asset::coarse_view(&bytes, &limits, l as u32, crate::codecs::plane::Build::Lazy)?;
             let read = (l as u32).min(plane.levels);
             let band = lifting::analysis(&plane, &grid, read);
             let gain = lifting::dc_gain(kernel).powi(2 * read as i32);

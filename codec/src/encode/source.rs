@@ -81,24 +81,36 @@ impl Written {
     }
 }
 
-pub(super) fn bpp(meta: &fractile_proto::AssetMeta, length: u64) -> f64 {
+pub(crate) fn bpp(meta: &fractile_proto::AssetMeta, length: u64) -> f64 {
     length as f64 * 8.0 / (f64::from(meta.width) * f64::from(meta.height))
+}
+
+/// A plane codec's encoder, implemented by its settings: what the entry point
+/// ([`crate::encode::encode`]) runs for the codec the settings name.
+pub trait PlaneEncoder {
+    /// Codes `raster`; `progress(done, total)` is called as work is done, where the codec
+    /// counts it.
+    fn encode(
+        &self,
+        raster: &Raster,
+        progress: &(dyn Fn(u64, u64) + Sync),
+    ) -> Result<Encoded, crate::Error>;
 }
 
 /// A source channel, normalised, before padding: values, validity, and its extent in source
 /// pixels per plane sample (1 for full resolution, 2 for chroma).
-pub(super) struct SourcePlane {
-    pub(super) width: usize,
-    pub(super) height: usize,
-    pub(super) values: Vec<f32>,
-    pub(super) valid: Vec<bool>,
+pub(crate) struct SourcePlane {
+    pub(crate) width: usize,
+    pub(crate) height: usize,
+    pub(crate) values: Vec<f32>,
+    pub(crate) valid: Vec<bool>,
     /// The source's extent in plane samples (w / 2 for chroma: odd sizes end mid-sample).
-    pub(super) extent: [f32; 2],
+    pub(crate) extent: [f32; 2],
 }
 
 /// The value range coded as [0, 1]: the sample type's for images, the data's for height fields
 /// (widened to 1 unit when flat).
-pub(super) fn coding_range(raster: &Raster) -> (f64, f64) {
+pub(crate) fn coding_range(raster: &Raster) -> (f64, f64) {
     match (raster.kind, raster.sample) {
         (AssetKind::Image, SampleFormat::U8) => (0.0, 255.0),
         (AssetKind::Image, SampleFormat::U16) => (0.0, 65535.0),
@@ -111,7 +123,7 @@ pub(super) fn coding_range(raster: &Raster) -> (f64, f64) {
 
 /// The raster's planes normalised to [0, 1] over its value range (luma and half-resolution
 /// chroma for colour), with the range and the colour model.
-pub(super) fn source_planes(raster: &Raster) -> (f64, f64, ColourModel, Vec<SourcePlane>) {
+pub(crate) fn source_planes(raster: &Raster) -> (f64, f64, ColourModel, Vec<SourcePlane>) {
     let (w, h) = (raster.width, raster.height);
     let (lo, hi) = coding_range(raster);
     let span = (hi - lo) as f32;
@@ -147,7 +159,7 @@ pub(super) fn source_planes(raster: &Raster) -> (f64, f64, ColourModel, Vec<Sour
 }
 
 /// Halves a normalised plane (box average of valid cells) for chroma.
-pub(super) fn halve(values: &[f32], valid: &[bool], w: usize, h: usize) -> SourcePlane {
+pub(crate) fn halve(values: &[f32], valid: &[bool], w: usize, h: usize) -> SourcePlane {
     let (hw, hh) = (w.div_ceil(2), h.div_ceil(2));
     let mut out = vec![0.0f32; hw * hh];
     let mut ok = vec![false; hw * hh];
@@ -177,7 +189,7 @@ pub(super) fn halve(values: &[f32], valid: &[bool], w: usize, h: usize) -> Sourc
 }
 
 /// The asset's metadata, before the encoder's measurements.
-pub(super) fn source_meta(
+pub(crate) fn source_meta(
     raster: &Raster,
     encoder: String,
     (lo, hi): (f64, f64),
@@ -202,7 +214,7 @@ pub(super) fn source_meta(
 }
 
 /// The asset decoded at the source size, compared with the source (valid cells, source units).
-pub(super) fn decoded_errors(asset: &Asset, raster: &Raster) -> Errors {
+pub(crate) fn decoded_errors(asset: &Asset, raster: &Raster) -> Errors {
     let (decoded, _) = asset.decode_native();
     compare(
         &raster.channels,
@@ -214,14 +226,14 @@ pub(super) fn decoded_errors(asset: &Asset, raster: &Raster) -> Errors {
 
 /// Of a target of `bytes`, what the operator may take: the rest is the source-error map's
 /// (whose budget, a share of the operator's size, then fits in it).
-pub(super) fn without_map(bytes: usize) -> usize {
+pub(crate) fn without_map(bytes: usize) -> usize {
     (bytes as f64 / (1.0 + crate::core::fidelity::SHARE)).floor() as usize
         - crate::core::fidelity::reserve(0).min(bytes / 64)
 }
 
 /// The encoder's report: the asset's `errors` ([`decoded_errors`]), the figures stored in its
 /// metadata, and its bytes.
-pub(super) fn measured(
+pub(crate) fn measured(
     mut asset: Asset,
     start: Instant,
     errors: Errors,
@@ -300,6 +312,26 @@ pub(crate) fn fill_invalid(values: &mut [f32], valid: &[bool], w: usize, h: usiz
     for (i, v) in values.iter_mut().enumerate() {
         if !valid[i] {
             *v = levels[0].2[i].0;
+        }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn fill_invalid_interpolates_from_neighbours() {
+        let (w, h) = (8, 8);
+        let mut v: Vec<f32> = (0..64).map(|i| (i % 8) as f32).collect();
+        let mut valid = vec![true; 64];
+        for i in [9, 10, 17, 18, 63] {
+            valid[i] = false;
+            v[i] = 1000.0;
+        }
+        fill_invalid(&mut v, &valid, w, h);
+        for i in [9, 10, 17, 18, 63] {
+            assert!((0.0..=7.0).contains(&v[i]), "cell {i} filled with {}", v[i]);
         }
     }
 }

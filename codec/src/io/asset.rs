@@ -28,15 +28,13 @@ use serde::{Deserialize, Serialize};
 
 use super::layout::{ChunkSource, ChunkTable, FileSource, InMemory, MAGIC, is_chunked, kind_byte};
 use crate::Error;
-use crate::codecs::fis::{FisHeader, FisOperator};
+use crate::codecs::plane::{Build, PlaneCodec};
 use crate::codecs::projected::{ProjectedHeader, ProjectedOperator};
-use crate::codecs::psa::{PsaHeader, PsaOperator};
-use crate::codecs::quadtree::operator::{QuadtreeOperator, RangeMap};
-use crate::codecs::quadtree::stream::{self, PlaneHeader};
-use crate::core::decode;
+use crate::codecs::quadtree::stream::PlaneHeader;
+use crate::codecs::registry::{self, Registered, Visit};
+pub use crate::codecs::registry::{Codec, Coding, PlaneOperator};
 use crate::core::entropy::{Bit, Decoder, Encoder};
 use crate::core::fidelity::SourceError;
-use crate::core::operator::{Operator, Step};
 
 /// The format version this build writes. Versions 2 to 4 changed only the curve payload
 /// (codec 5; version 3: hexagonal lattice for details, shared coarse contexts, an `f32`
@@ -62,16 +60,6 @@ pub struct AssetLimits {
     /// is served, plus one full-resolution discrete decode (what `fractile decode` and a
     /// server's coarse tiles run), estimated from the headers before anything is decoded.
     pub max_decode_bytes: u64,
-}
-
-/// How an asset's operators are built when it is read.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub(crate) enum Build {
-    /// Whole: everything an answer reads, made once (every asset but chunks).
-    Whole,
-    /// Lazily where the codec can (projected: [`ProjectedOperator::lazy`]): chunks of chunked
-    /// assets, which a server keeps by the hundred.
-    Lazy,
 }
 
 impl Default for AssetLimits {
@@ -110,118 +98,6 @@ impl AssetLimits {
     }
 }
 
-/// Checks that a plane's coded extent is the metadata's grid (chroma: half of it; a
-/// supersampled plane: twice): a file may not claim a grid its planes do not code.
-fn check_extent(meta: &AssetMeta, valid: [f32; 2]) -> Result<(), String> {
-    let (w, h) = (meta.width as f32, meta.height as f32);
-    let fits = [0.5f32, 1.0, 2.0]
-        .iter()
-        .any(|&k| (valid[0] - k * w).abs() <= 0.5 * k && (valid[1] - k * h).abs() <= 0.5 * k);
-    if fits {
-        Ok(())
-    } else {
-        Err(format!(
-            "the plane codes an extent of {}x{} where the metadata says {}x{}",
-            valid[0], valid[1], meta.width, meta.height
-        ))
-    }
-}
-
-/// Validates the header of every plane of a lattice codec and counts their nodes (before any
-/// node grid is allocated).
-fn lattice_nodes<H>(
-    planes: &[(H, Vec<u8>)],
-    validate: impl Fn(&H) -> Result<(), String>,
-    nodes: impl Fn(&H) -> [usize; 2],
-) -> Result<u64, Error> {
-    let mut total = 0u64;
-    for (i, (header, _)) in planes.iter().enumerate() {
-        validate(header).map_err(|e| Error::asset(format!("plane {i}: {e}")))?;
-        total += nodes(header).iter().map(|&n| n as u64).product::<u64>();
-    }
-    Ok(total)
-}
-
-/// Codec identifiers of the payload.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-#[repr(u8)]
-pub enum Codec {
-    /// Quadtree partitioned IFS, 2D (images and height fields).
-    QuadtreePifs = 1,
-    /// Fractal interpolation surfaces (height fields), any layout of the vertical scaling.
-    Fis = 2,
-    /// Piecewise self-affine model on a rectangular lattice (psa2d), grey images and heights.
-    Psa = 3,
-    /// Octree partitioned IFS of a signed distance volume (IFS3D).
-    Octree = 4,
-    /// Projected IFS with details of a set of curves.
-    Curve = 5,
-    /// Projected IFS with details on a grid (height fields, grey images).
-    Projected = 6,
-}
-
-impl Codec {
-    /// The codec of a codec byte.
-    pub fn from_byte(b: u8) -> Option<Codec> {
-        Some(match b {
-            1 => Codec::QuadtreePifs,
-            2 => Codec::Fis,
-            3 => Codec::Psa,
-            4 => Codec::Octree,
-            5 => Codec::Curve,
-            6 => Codec::Projected,
-            _ => return None,
-        })
-    }
-}
-
-/// How a plane is coded: the header a reader needs and the entropy-coded stream.
-#[derive(Clone, Debug)]
-pub enum Coding {
-    /// Quadtree PIFS: partition and maps.
-    Quadtree {
-        /// Frame, sizes, quantiser.
-        header: PlaneHeader,
-        /// The transform stream.
-        stream: Vec<u8>,
-    },
-    /// Fractal interpolation surface: node heights and vertical scalings.
-    Fis {
-        /// Node grid, layout of s, quantisers.
-        header: FisHeader,
-        /// The parameter stream.
-        stream: Vec<u8>,
-    },
-    /// Piecewise self-affine model: vertex heights and region codes.
-    Psa {
-        /// Lattice, tiling, domains, quantisers.
-        header: PsaHeader,
-        /// The parameter stream.
-        stream: Vec<u8>,
-    },
-    /// Projected IFS with details: control grid, fitted masks and details.
-    Projected {
-        /// Grid, levels, quantiser, roughness.
-        header: ProjectedHeader,
-        /// The detail stream.
-        stream: Vec<u8>,
-    },
-}
-
-/// The decoding operator of a plane, whichever codec made it. Decoders see only
-/// [`Operator`]; the match costs one predictable branch a step.
-#[derive(Clone, Debug)]
-pub enum PlaneOperator {
-    /// A quadtree PIFS.
-    Quadtree(QuadtreeOperator),
-    /// A fractal interpolation surface.
-    Fis(FisOperator),
-    /// A piecewise self-affine surface.
-    Psa(PsaOperator),
-    /// A projected IFS with details, continued past its finest level.
-    Projected(ProjectedOperator),
-}
-
 /// Whether a file's first bytes (8 or more) are an asset's, before the rest is read: the
 /// error says what the file is instead (see [`Asset::from_bytes`]).
 pub fn check_magic(head: &[u8]) -> Result<(), Error> {
@@ -255,233 +131,6 @@ fn not_an_asset(bytes: &[u8]) -> String {
     }
 }
 
-impl PlaneOperator {
-    /// The quadtree's ranges (empty for other codecs).
-    pub fn ranges(&self) -> &[RangeMap] {
-        match self {
-            PlaneOperator::Quadtree(q) => q.ranges(),
-            PlaneOperator::Fis(_) | PlaneOperator::Psa(_) | PlaneOperator::Projected(_) => &[],
-        }
-    }
-
-    /// [`decode::points`] with the codec resolved once per batch rather than once per inverse
-    /// step: through the enum, `step` is a match that the compiler does not inline into the
-    /// chain loop (measured: 37% of an uncached tile's time in the out-of-line `step`).
-    pub fn points(
-        &self,
-        pts: &[[f32; 2]],
-        iterations: u32,
-        tolerance: f32,
-    ) -> Vec<decode::PointValue> {
-        match self {
-            PlaneOperator::Quadtree(q) => decode::points(q, pts, iterations, tolerance),
-            PlaneOperator::Fis(f) => decode::points(f, pts, iterations, tolerance),
-            PlaneOperator::Psa(f) => decode::points(f, pts, iterations, tolerance),
-            PlaneOperator::Projected(f) => f.points(pts, iterations, tolerance),
-        }
-    }
-
-    /// Continuous decoding of the separable grid `(xs[i], ys[j])`, row-major: [`decode::grid`]
-    /// for the quadtree and [`ProjectedOperator::grid`] for the projected continuation (whose
-    /// blocks of points step together), [`Self::points`] on the listed points for codecs whose
-    /// cells are not axis-aligned boxes. Same answers either way.
-    pub fn grid(
-        &self,
-        xs: &[f32],
-        ys: &[f32],
-        iterations: u32,
-        tolerance: f32,
-    ) -> Vec<decode::PointValue> {
-        match self {
-            PlaneOperator::Quadtree(q) => decode::grid(q, xs, ys, iterations, tolerance),
-            PlaneOperator::Projected(p) => p.grid(xs, ys, iterations, tolerance),
-            _ => {
-                let pts: Vec<[f32; 2]> = ys
-                    .iter()
-                    .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
-                    .collect();
-                self.points(&pts, iterations, tolerance)
-            }
-        }
-    }
-
-    /// The steps [`Self::grid`] takes at every point of the separable grid `(xs[i], ys[j])`
-    /// where it takes the same everywhere (the projected continuation's subdivision: see
-    /// `ProjectedOperator::grid_steps`); `None` where each chain takes its own. A device asked
-    /// for the grid is asked for that many steps exactly, so that it answers as the CPU does.
-    pub fn grid_steps(
-        &self,
-        xs: &[f32],
-        ys: &[f32],
-        iterations: u32,
-        tolerance: f32,
-    ) -> Option<u32> {
-        match self {
-            PlaneOperator::Projected(p) => p.grid_steps(xs, ys, iterations, tolerance),
-            _ => None,
-        }
-    }
-
-    /// Continuous decoding of a bilinear [`decode::Patch`] of points, row-major:
-    /// [`decode::patch`] for the quadtree (whose blocks step together), [`Self::points`] on the
-    /// patch's points otherwise.
-    pub fn patch(
-        &self,
-        patch: &decode::Patch,
-        iterations: u32,
-        tolerance: f32,
-    ) -> Vec<decode::PointValue> {
-        match self {
-            PlaneOperator::Quadtree(q) => decode::patch(q, patch, iterations, tolerance),
-            _ => {
-                let pts: Vec<[f32; 2]> = (0..patch.height)
-                    .flat_map(|j| (0..patch.width).map(move |i| patch.at(i, j).map(|t| t as f32)))
-                    .collect();
-                self.points(&pts, iterations, tolerance)
-            }
-        }
-    }
-
-    /// [`decode::point`] with the codec resolved once (see [`Self::points`]).
-    pub fn point(&self, p: [f32; 2], iterations: u32) -> decode::PointValue {
-        match self {
-            PlaneOperator::Quadtree(q) => decode::point(q, p, iterations),
-            PlaneOperator::Fis(f) => decode::point(f, p, iterations),
-            PlaneOperator::Psa(f) => decode::point(f, p, iterations),
-            // Through its own chains, which end on the bilinear interpolant (see
-            // `ProjectedOperator::run_chains`), so that one point and a batch agree.
-            PlaneOperator::Projected(f) => f.points(&[p], iterations, 0.0)[0],
-        }
-    }
-
-    /// The attractor's values at the source's own sample centres where the codec knows them
-    /// without iterating (the projected codec's decoded samples, which its continuation passes
-    /// through), normalised and row-major.
-    pub fn samples(&self) -> Option<&[f32]> {
-        match self {
-            PlaneOperator::Projected(f) => Some(f.samples()),
-            _ => None,
-        }
-    }
-
-    /// Keeps continuous answers `values` (normalised) at unit points `pts` in the neighbourhood
-    /// of the data, for codecs whose continuation could leave it (the projected codec: see
-    /// `codecs::projected::neighbourhood`); the others' answers are left as they are.
-    /// Applied to every continuous answer, the CPU's and a device's alike.
-    pub fn limit_points(&self, pts: &[[f32; 2]], values: &mut [f32]) {
-        if let PlaneOperator::Projected(f) = self {
-            f.limit_points(pts, values);
-        }
-    }
-
-    /// [`Self::limit_points`] on the separable grid `(xs[i], ys[j])`, row-major.
-    pub fn limit_grid(&self, xs: &[f32], ys: &[f32], values: &mut [f32]) {
-        if let PlaneOperator::Projected(f) = self {
-            f.limit_grid(xs, ys, values);
-        }
-    }
-
-    /// Largest |s| anywhere.
-    pub fn max_contrast(&self) -> f32 {
-        match self {
-            PlaneOperator::Quadtree(q) => q
-                .ranges()
-                .iter()
-                .fold(0.0f32, |m, r| m.max(r.contrast.abs())),
-            PlaneOperator::Fis(f) => f.max_scaling(),
-            PlaneOperator::Psa(f) => f.max_scaling(),
-            PlaneOperator::Projected(f) => f.roughness(),
-        }
-    }
-
-    /// Maps of the operator: ranges, or cells of the node grid.
-    pub fn transforms(&self) -> usize {
-        match self {
-            PlaneOperator::Quadtree(q) => q.ranges().len(),
-            PlaneOperator::Fis(f) => f.cells(),
-            PlaneOperator::Psa(f) => f.regions(),
-            PlaneOperator::Projected(f) => f.cells(),
-        }
-    }
-}
-
-impl crate::core::pieces::Flatten for PlaneOperator {
-    fn pieces(&self) -> crate::core::pieces::PieceTable {
-        match self {
-            PlaneOperator::Quadtree(q) => q.pieces(),
-            PlaneOperator::Fis(f) => f.pieces(),
-            PlaneOperator::Psa(f) => f.pieces(),
-            PlaneOperator::Projected(f) => f.pieces(),
-        }
-    }
-
-    fn flat(&self) -> crate::core::pieces::Flat {
-        match self {
-            PlaneOperator::Quadtree(q) => q.flat(),
-            PlaneOperator::Fis(f) => f.flat(),
-            PlaneOperator::Psa(f) => f.flat(),
-            PlaneOperator::Projected(f) => f.flat(),
-        }
-    }
-}
-
-impl Operator<2> for PlaneOperator {
-    fn frame(&self) -> [f32; 2] {
-        match self {
-            PlaneOperator::Quadtree(q) => q.frame(),
-            PlaneOperator::Fis(f) => f.frame(),
-            PlaneOperator::Psa(f) => f.frame(),
-            PlaneOperator::Projected(f) => f.frame(),
-        }
-    }
-    fn valid(&self) -> [f32; 2] {
-        match self {
-            PlaneOperator::Quadtree(q) => q.valid(),
-            PlaneOperator::Fis(f) => f.valid(),
-            PlaneOperator::Psa(f) => f.valid(),
-            PlaneOperator::Projected(f) => f.valid(),
-        }
-    }
-    fn expansion(&self) -> u32 {
-        match self {
-            PlaneOperator::Quadtree(q) => q.expansion(),
-            PlaneOperator::Fis(f) => f.expansion(),
-            PlaneOperator::Psa(f) => f.expansion(),
-            PlaneOperator::Projected(f) => f.expansion(),
-        }
-    }
-    #[inline]
-    fn step(&self, p: [f32; 2]) -> Step<2> {
-        match self {
-            PlaneOperator::Quadtree(q) => q.step(p),
-            PlaneOperator::Fis(f) => f.step(p),
-            PlaneOperator::Psa(f) => f.step(p),
-            PlaneOperator::Projected(f) => f.step(p),
-        }
-    }
-    fn invariant_interval(&self) -> (f32, f32) {
-        match self {
-            PlaneOperator::Quadtree(q) => q.invariant_interval(),
-            PlaneOperator::Fis(f) => f.invariant_interval(),
-            PlaneOperator::Psa(f) => f.invariant_interval(),
-            PlaneOperator::Projected(f) => f.invariant_interval(),
-        }
-    }
-    fn run_chains(
-        &self,
-        chains: &mut [crate::core::operator::Chain<2>],
-        iterations: u32,
-        tolerance: f32,
-    ) {
-        match self {
-            PlaneOperator::Quadtree(q) => q.run_chains(chains, iterations, tolerance),
-            PlaneOperator::Fis(f) => f.run_chains(chains, iterations, tolerance),
-            PlaneOperator::Psa(f) => f.run_chains(chains, iterations, tolerance),
-            PlaneOperator::Projected(f) => f.run_chains(chains, iterations, tolerance),
-        }
-    }
-}
-
 /// A coded plane: how it is coded and the operator decoded from that.
 #[derive(Clone, Debug)]
 pub struct Plane {
@@ -505,7 +154,7 @@ impl Plane {
     pub fn header(&self) -> Option<&PlaneHeader> {
         match &self.coding {
             Coding::Quadtree { header, .. } => Some(header),
-            Coding::Fis { .. } | Coding::Psa { .. } | Coding::Projected { .. } => None,
+            _ => None,
         }
     }
 }
@@ -643,21 +292,12 @@ fn context(valid: &[bool], width: usize, x: usize, y: usize) -> usize {
     usize::from(left) | usize::from(up) << 1
 }
 
+/// The payload of a plane codec: its planes (header and stream) and the mask. One generic
+/// struct for every codec: bincode writes a struct as its fields, so every codec's payload
+/// has this layout.
 #[derive(Serialize, Deserialize)]
-struct Payload {
-    planes: Vec<(PlaneHeader, Vec<u8>)>,
-    mask: Option<Vec<u8>>,
-}
-
-#[derive(Serialize, Deserialize)]
-struct PsaPayload {
-    planes: Vec<(PsaHeader, Vec<u8>)>,
-    mask: Option<Vec<u8>>,
-}
-
-#[derive(Serialize, Deserialize)]
-struct ProjectedPayload {
-    planes: Vec<(ProjectedHeader, Vec<u8>)>,
+struct Payload<H> {
+    planes: Vec<(H, Vec<u8>)>,
     mask: Option<Vec<u8>>,
 }
 
@@ -666,12 +306,6 @@ struct VolumePayload {
     header: crate::codecs::ifs3d::octree::OctreeHeader,
     stream: Vec<u8>,
     placement: crate::codecs::ifs3d::volume::Placement,
-}
-
-#[derive(Serialize, Deserialize)]
-struct FisPayload {
-    planes: Vec<(FisHeader, Vec<u8>)>,
-    mask: Option<Vec<u8>>,
 }
 
 /// A decoded asset file: metadata, planes with their operators, and the nodata mask.
@@ -727,118 +361,46 @@ pub struct Chunked {
 }
 
 impl Asset {
-    /// Builds an asset from coded planes, decoding each stream (so that what is served is exactly
-    /// what a reader of the file gets).
-    pub fn from_parts(
+    /// Builds an asset from coded planes of the codec whose header is `H`, decoding each
+    /// stream (so that what is served is exactly what a reader of the file gets).
+    pub fn from_coded<H: Registered>(
         meta: AssetMeta,
-        planes: Vec<(PlaneHeader, Vec<u8>)>,
+        planes: Vec<(H, Vec<u8>)>,
         mask: Option<Mask>,
     ) -> Result<Asset, Error> {
-        Asset::assemble(meta, planes, mask, |_, header, stream| {
-            let leaves = stream::decode_plane(&header, &stream)?;
-            let operator = stream::operator(&header, &leaves)?;
+        Asset::from_coded_built(meta, planes, mask, Build::Whole)
+    }
+
+    /// [`Asset::from_coded`], the operators built as `build` says.
+    fn from_coded_built<H: Registered>(
+        meta: AssetMeta,
+        planes: Vec<(H, Vec<u8>)>,
+        mask: Option<Mask>,
+        build: Build,
+    ) -> Result<Asset, Error> {
+        H::accepts(&meta)?;
+        Asset::assemble(meta, planes, mask, |meta, header, stream| {
+            let operator = H::plane_operator(header.operator(meta, &stream, build)?);
             Ok(Plane {
-                coding: Coding::Quadtree { header, stream },
-                operator: PlaneOperator::Quadtree(operator),
+                coding: header.coding(stream),
+                operator,
             })
         })
     }
 
-    /// Size in bytes of the file [`Asset::from_parts`] would build from the same parts, without
+    /// Size in bytes of the file [`Asset::from_coded`] would build from the same parts, without
     /// decoding the streams or building operators: rate control asks it of every trial
     /// partition and builds the asset once, for the one it keeps.
-    pub fn quadtree_file_size(
+    pub fn coded_file_size<H: PlaneCodec>(
         meta: &AssetMeta,
-        planes: Vec<(PlaneHeader, Vec<u8>)>,
+        planes: Vec<(H, Vec<u8>)>,
         mask: Option<&Mask>,
     ) -> usize {
         let payload = fractile_proto::encode(&Payload {
             planes,
             mask: mask.map(Mask::encode),
         });
-        assemble(meta, Codec::QuadtreePifs, &payload, &[]).len()
-    }
-
-    /// Builds an asset of fractal interpolation surfaces from coded planes (height fields).
-    pub fn from_fis_parts(
-        meta: AssetMeta,
-        planes: Vec<(FisHeader, Vec<u8>)>,
-        mask: Option<Mask>,
-    ) -> Result<Asset, Error> {
-        if meta.kind != AssetKind::HeightField {
-            return Err(Error::asset(
-                "fractal interpolation surfaces code height fields only",
-            ));
-        }
-        Asset::assemble(meta, planes, mask, |meta, header, stream| {
-            if header.samples != [meta.width, meta.height] {
-                return Err("sample grid and metadata disagree".into());
-            }
-            let params = crate::codecs::fis::decode_params(&header, &stream)?;
-            let operator = FisOperator::new(&header, &params)?;
-            Ok(Plane {
-                coding: Coding::Fis { header, stream },
-                operator: PlaneOperator::Fis(operator),
-            })
-        })
-    }
-
-    /// Builds a piecewise self-affine asset from coded planes (one grey plane).
-    pub fn from_psa_parts(
-        meta: AssetMeta,
-        planes: Vec<(PsaHeader, Vec<u8>)>,
-        mask: Option<Mask>,
-    ) -> Result<Asset, Error> {
-        Asset::assemble(meta, planes, mask, |meta, header, stream| {
-            if header.samples != [meta.width, meta.height] {
-                return Err("sample grid and metadata disagree".into());
-            }
-            let params = crate::codecs::psa::decode_params(&header, &stream)?;
-            let operator = PsaOperator::new(&header, &params)?;
-            Ok(Plane {
-                coding: Coding::Psa { header, stream },
-                operator: PlaneOperator::Psa(operator),
-            })
-        })
-    }
-
-    /// Builds a projected asset from coded planes (one grey plane), decoding each stream.
-    pub fn from_projected_parts(
-        meta: AssetMeta,
-        planes: Vec<(ProjectedHeader, Vec<u8>)>,
-        mask: Option<Mask>,
-    ) -> Result<Asset, Error> {
-        Asset::from_projected_built(meta, planes, mask, Build::Whole)
-    }
-
-    /// [`Asset::from_projected_parts`], the operators built as `build` says.
-    fn from_projected_built(
-        meta: AssetMeta,
-        planes: Vec<(ProjectedHeader, Vec<u8>)>,
-        mask: Option<Mask>,
-        build: Build,
-    ) -> Result<Asset, Error> {
-        Asset::assemble(meta, planes, mask, |meta, header, stream| {
-            let (w, h) = (meta.width, meta.height);
-            // Chroma of a colour asset is coded at half resolution (as the quadtree's).
-            let chroma = meta.colour == fractile_proto::ColourModel::YCbCr
-                && header.samples == [w.div_ceil(2), h.div_ceil(2)];
-            if header.samples != [w, h] && !chroma {
-                return Err("sample grid and metadata disagree".into());
-            }
-            let grid = crate::codecs::projected::decode_grid(&header, &stream)?;
-            let mut operator = match build {
-                Build::Whole => ProjectedOperator::new(&header, &grid)?,
-                Build::Lazy => ProjectedOperator::lazy(&header, grid)?,
-            };
-            if chroma && header.samples != [w, h] {
-                operator = operator.with_valid([w as f32 / 2.0, h as f32 / 2.0]);
-            }
-            Ok(Plane {
-                coding: Coding::Projected { header, stream },
-                operator: PlaneOperator::Projected(operator),
-            })
-        })
+        assemble(meta, H::BYTE, &payload, &[]).len()
     }
 
     /// Decodes every coded plane with `plane` (errors name the plane) and checks the whole.
@@ -937,7 +499,7 @@ impl Asset {
     /// The codec of the planes.
     pub fn codec(&self) -> Codec {
         if let Some(c) = &self.chunks {
-            return Codec::from_byte(c.table.codec).unwrap_or(Codec::QuadtreePifs);
+            return Codec::from_byte(c.table.codec).unwrap_or(Codec::Quadtree);
         }
         if self.curve.is_some() {
             return Codec::Curve;
@@ -945,12 +507,9 @@ impl Asset {
         if self.volume.is_some() {
             return Codec::Octree;
         }
-        match self.planes.first().map(|p| &p.coding) {
-            Some(Coding::Fis { .. }) => Codec::Fis,
-            Some(Coding::Psa { .. }) => Codec::Psa,
-            Some(Coding::Projected { .. }) => Codec::Projected,
-            _ => Codec::QuadtreePifs,
-        }
+        self.planes
+            .first()
+            .map_or(Codec::Quadtree, |p| p.coding.codec())
     }
 
     /// The codec's name as the CLI and the API spell it.
@@ -958,10 +517,8 @@ impl Asset {
         if let Some(c) = &self.chunks {
             // The chunks' codec: by its byte, or (a FIS or psa2d name needs a chunk's header)
             // from the first chunk with data.
-            match Codec::from_byte(c.table.codec) {
-                Some(Codec::QuadtreePifs) => return "quadtree-pifs",
-                Some(Codec::Projected) => return crate::codecs::projected::CODEC_NAME,
-                _ => {}
+            if let Some(name) = Codec::from_byte(c.table.codec).and_then(Codec::name) {
+                return name;
             }
             let first = c.table.levels[0].chunks.iter().position(|e| e.length > 0);
             return match first.map(|i| c.chunk(0, i)) {
@@ -969,18 +526,12 @@ impl Asset {
                 _ => "chunked",
             };
         }
-        if self.curve.is_some() {
-            return "curve-pifs";
+        if self.curve.is_some() || self.volume.is_some() {
+            return self.codec().name().unwrap_or("chunked");
         }
-        if self.volume.is_some() {
-            return "ifs3d-octree";
-        }
-        match self.planes.first().map(|p| &p.coding) {
-            Some(Coding::Fis { header, .. }) => crate::codecs::fis::codec_name(header.scaling),
-            Some(Coding::Psa { header, .. }) => crate::codecs::psa::codec_name(header.tiling),
-            Some(Coding::Projected { .. }) => crate::codecs::projected::CODEC_NAME,
-            _ => "quadtree-pifs",
-        }
+        self.planes
+            .first()
+            .map_or("quadtree-pifs", |p| p.coding.name())
     }
 
     fn check(&self) -> Result<(), Error> {
@@ -1027,31 +578,8 @@ impl Asset {
             return c.bytes().unwrap_or_default();
         }
         let mask = self.mask.as_ref().map(Mask::encode);
-        let payload = match self.codec() {
-            Codec::QuadtreePifs => fractile_proto::encode(&Payload {
-                planes: self
-                    .planes
-                    .iter()
-                    .filter_map(|p| match &p.coding {
-                        Coding::Quadtree { header, stream } => {
-                            Some((header.clone(), stream.clone()))
-                        }
-                        _ => None,
-                    })
-                    .collect(),
-                mask,
-            }),
-            Codec::Fis => fractile_proto::encode(&FisPayload {
-                planes: self
-                    .planes
-                    .iter()
-                    .filter_map(|p| match &p.coding {
-                        Coding::Fis { header, stream } => Some((header.clone(), stream.clone())),
-                        _ => None,
-                    })
-                    .collect(),
-                mask,
-            }),
+        let codec = self.codec();
+        let payload = match codec {
             Codec::Octree => {
                 let v = self
                     .volume
@@ -1068,37 +596,21 @@ impl Asset {
                 .as_ref()
                 .expect("a curve asset holds curves")
                 .payload(),
-            Codec::Psa => fractile_proto::encode(&PsaPayload {
-                planes: self
-                    .planes
-                    .iter()
-                    .filter_map(|p| match &p.coding {
-                        Coding::Psa { header, stream } => Some((header.clone(), stream.clone())),
-                        _ => None,
-                    })
-                    .collect(),
-                mask,
-            }),
-            Codec::Projected => fractile_proto::encode(&ProjectedPayload {
-                planes: self
-                    .planes
-                    .iter()
-                    .filter_map(|p| match &p.coding {
-                        Coding::Projected { header, stream } => {
-                            Some((header.clone(), stream.clone()))
-                        }
-                        _ => None,
-                    })
-                    .collect(),
-                mask,
-            }),
+            _ => registry::visit(
+                codec,
+                WritePayload {
+                    planes: &self.planes,
+                    mask,
+                },
+            )
+            .expect("a codec of planes"),
         };
         let section = self
             .source_error
             .as_ref()
             .map(SourceError::encode)
             .unwrap_or_default();
-        assemble(&self.meta, self.codec(), &payload, &section)
+        assemble(&self.meta, codec.byte(), &payload, &section)
     }
 
     /// Size of the file in bytes.
@@ -1138,12 +650,19 @@ impl Asset {
             ));
         }
         let (kind, codec) = (bytes[10], bytes[11]);
-        if !(1..=6).contains(&codec) {
+        if Codec::from_byte(codec).is_none() {
+            let mut known: Vec<Codec> = Codec::ALL.to_vec();
+            known.sort_by_key(|c| c.byte());
+            let known: Vec<String> = known
+                .iter()
+                .map(|c| format!("{} {}", c.byte(), c.label()))
+                .collect();
             return Err(bad(format!(
-                "unknown codec {codec} (this build reads 1 quadtree PIFS, 2 FIS, 3 psa2d, 4 IFS3D, 5 curves, 6 projected)"
+                "unknown codec {codec} (this build reads {})",
+                known.join(", ")
             )));
         }
-        if codec == Codec::Curve as u8 && version < OLDEST_CURVE_VERSION {
+        if codec == Codec::Curve.byte() && version < OLDEST_CURVE_VERSION {
             return Err(bad(format!(
                 "a curve asset of format version {version} is not read by this build (its curve coding changed in version {OLDEST_CURVE_VERSION}): encode the source again"
             )));
@@ -1238,15 +757,7 @@ impl Asset {
     ) -> Result<Asset, Error> {
         let bad = |m: String| Error::asset(m);
         let (w, h) = (u64::from(meta.width), u64::from(meta.height));
-        let mask = |m: Option<Vec<u8>>| -> Result<Option<Mask>, Error> {
-            m.map(|m| Mask::decode(meta.width as usize, meta.height as usize, &m))
-                .transpose()
-        };
-        // A mask is a byte per cell and a small summary; a full-resolution discrete decode
-        // holds two f32 grids per plane.
-        let mask_bytes = |m: &Option<Vec<u8>>| m.as_ref().map_or(0, |_| w * h + w * h / 64);
-        let discrete = |planes: usize| 8 * w * h * planes as u64;
-        if codec == Codec::Curve as u8 {
+        if codec == Codec::Curve.byte() {
             // The header delimits itself and the stream runs to the payload's end.
             let (header, stream) = crate::codecs::curve::code::compact::read(payload)
                 .map_err(|e| bad(format!("curve: {e}")))?;
@@ -1261,7 +772,7 @@ impl Asset {
             limits.check_cost(points.saturating_mul(64))?;
             return Asset::from_curve_parts(meta, header, stream.to_vec());
         }
-        if codec == Codec::Octree as u8 {
+        if codec == Codec::Octree.byte() {
             let p: VolumePayload =
                 fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
             limits.check_pixels("a volume", w * w * w)?;
@@ -1270,49 +781,14 @@ impl Asset {
             return Asset::from_volume_parts(meta, p.header, p.stream, p.placement);
         }
         limits.check_pixels("a grid", w * h)?;
-        if codec == Codec::Psa as u8 {
-            let p: PsaPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
-            // Vertex heights and region maps, about 64 bytes a vertex.
-            let vertices = lattice_nodes(&p.planes, PsaHeader::validate, PsaHeader::vertices)?;
-            limits.check_cost(vertices * 64 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
-            let mask = mask(p.mask)?;
-            return Asset::from_psa_parts(meta, p.planes, mask);
-        }
-        if codec == Codec::Projected as u8 {
-            let p: ProjectedPayload =
-                fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
-            // The decoded grid as f64 while decoding, then the samples as f32 and g at nine
-            // half-lattice points a cell: about 48 bytes a sample.
-            let cells = lattice_nodes(&p.planes, ProjectedHeader::validate, |h| {
-                [h.samples[0] as usize, h.samples[1] as usize]
-            })?;
-            limits.check_cost(cells * 48 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
-            let mask = mask(p.mask)?;
-            return Asset::from_projected_built(meta, p.planes, mask, build);
-        }
-        if codec == Codec::Fis as u8 {
-            let p: FisPayload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
-            // Node heights, scalings and a piece per cell, about 64 bytes a node.
-            let nodes = lattice_nodes(&p.planes, FisHeader::validate, FisHeader::nodes)?;
-            limits.check_cost(nodes * 64 + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
-            let mask = mask(p.mask)?;
-            return Asset::from_fis_parts(meta, p.planes, mask);
-        }
-        let p: Payload = fractile_proto::decode(payload).map_err(|e| bad(e.to_string()))?;
-        for (i, (header, _)) in p.planes.iter().enumerate() {
-            header
-                .validate()
-                .and_then(|()| check_extent(&meta, header.valid))
-                .map_err(|e| bad(format!("plane {i}: {e}")))?;
-        }
-        let operators: u64 = p
-            .planes
-            .iter()
-            .map(|(hd, stream)| hd.operator_bytes(stream.len()))
-            .sum();
-        limits.check_cost(operators + mask_bytes(&p.mask) + discrete(p.planes.len()))?;
-        let mask = mask(p.mask)?;
-        Asset::from_parts(meta, p.planes, mask)
+        let codec = Codec::from_byte(codec).ok_or_else(|| bad(format!("unknown codec {codec}")))?;
+        let read = ReadPayload {
+            meta,
+            payload,
+            limits,
+            build,
+        };
+        registry::visit(codec, read).ok_or_else(|| bad(format!("codec {codec:?} has no planes")))?
     }
 
     /// The coarse view at `depth` of a chunk's file (a single-plane projected height field):
@@ -1327,12 +803,12 @@ impl Asset {
         build: Build,
     ) -> Result<Asset, Error> {
         let (codec, meta, payload, _) = Asset::container(bytes)?;
-        if codec != Codec::Projected as u8 || meta.kind != AssetKind::HeightField {
+        if codec != Codec::Projected.byte() || meta.kind != AssetKind::HeightField {
             return Err(Error::asset(
                 "a coarse view of a chunk that is no projected height field",
             ));
         }
-        let p: ProjectedPayload =
+        let p: Payload<ProjectedHeader> =
             fractile_proto::decode(payload).map_err(|e| Error::asset(e.to_string()))?;
         let [(header, stream)] = <[_; 1]>::try_from(p.planes)
             .map_err(|_| Error::asset("a coarse view of a chunk of several planes"))?;
@@ -1457,13 +933,77 @@ impl Asset {
 /// A file's frame, read: codec byte, metadata, payload and source-error map bytes.
 type Container<'a> = (u8, AssetMeta, &'a [u8], &'a [u8]);
 
-fn assemble(meta: &AssetMeta, codec: Codec, payload: &[u8], section: &[u8]) -> Vec<u8> {
+/// Reads the planes of a plane codec's payload: headers checked and the cost estimated
+/// before anything is decoded, then every stream decoded.
+struct ReadPayload<'a> {
+    meta: AssetMeta,
+    payload: &'a [u8],
+    limits: &'a AssetLimits,
+    build: Build,
+}
+
+impl Visit for ReadPayload<'_> {
+    type Output = Result<Asset, Error>;
+
+    fn visit<H: Registered>(self) -> Result<Asset, Error> {
+        let ReadPayload {
+            meta,
+            payload,
+            limits,
+            build,
+        } = self;
+        let (w, h) = (u64::from(meta.width), u64::from(meta.height));
+        let p: Payload<H> =
+            fractile_proto::decode(payload).map_err(|e| Error::asset(e.to_string()))?;
+        let mut operators = 0u64;
+        for (i, (header, stream)) in p.planes.iter().enumerate() {
+            let bytes = header
+                .cost(&meta, stream)
+                .map_err(|e| Error::asset(format!("plane {i}: {e}")))?;
+            operators = operators.saturating_add(bytes);
+        }
+        // A mask is a byte per cell and a small summary; a full-resolution discrete decode
+        // holds two f32 grids per plane.
+        let mask_bytes = p.mask.as_ref().map_or(0, |_| w * h + w * h / 64);
+        let discrete = 8 * w * h * p.planes.len() as u64;
+        limits.check_cost(operators.saturating_add(mask_bytes + discrete))?;
+        let mask = p
+            .mask
+            .map(|m| Mask::decode(meta.width as usize, meta.height as usize, &m))
+            .transpose()?;
+        Asset::from_coded_built(meta, p.planes, mask, build)
+    }
+}
+
+/// Writes the planes of a plane codec's asset as its payload.
+struct WritePayload<'a> {
+    planes: &'a [Plane],
+    mask: Option<Vec<u8>>,
+}
+
+impl Visit for WritePayload<'_> {
+    type Output = Vec<u8>;
+
+    fn visit<H: Registered>(self) -> Vec<u8> {
+        fractile_proto::encode(&Payload {
+            planes: self
+                .planes
+                .iter()
+                .filter_map(|p| H::of(&p.coding))
+                .map(|(header, stream)| (header.clone(), stream.to_vec()))
+                .collect(),
+            mask: self.mask,
+        })
+    }
+}
+
+fn assemble(meta: &AssetMeta, codec: u8, payload: &[u8], section: &[u8]) -> Vec<u8> {
     let meta_bytes = fractile_proto::encode(meta);
     let mut out = Vec::with_capacity(28 + meta_bytes.len() + payload.len() + section.len());
     out.extend_from_slice(MAGIC);
     out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
     out.push(kind_byte(meta.kind));
-    out.push(codec as u8);
+    out.push(codec);
     out.extend_from_slice(&(meta_bytes.len() as u32).to_le_bytes());
     out.extend_from_slice(&meta_bytes);
     out.extend_from_slice(&(payload.len() as u32).to_le_bytes());

@@ -99,26 +99,13 @@ impl ChunkCache {
 /// the quadtree's measured 13 B a sample on the 9.3 Mpx mosaic, counted 16), its mask and its
 /// coded streams.
 fn resident_bytes(a: &Asset) -> u64 {
-    use super::asset::Coding;
     let cells = u64::from(a.meta.width) * u64::from(a.meta.height);
     let operators: u64 = a
         .planes
         .iter()
-        .map(|p| match &p.operator {
-            super::asset::PlaneOperator::Projected(op) => op.resident_bytes(),
-            _ => cells * 16,
-        })
+        .map(|p| p.operator.resident_bytes(cells))
         .sum();
-    let streams: usize = a
-        .planes
-        .iter()
-        .map(|p| match &p.coding {
-            Coding::Quadtree { stream, .. }
-            | Coding::Fis { stream, .. }
-            | Coding::Psa { stream, .. }
-            | Coding::Projected { stream, .. } => stream.len(),
-        })
-        .sum();
+    let streams: usize = a.planes.iter().map(|p| p.coding.stream().len()).sum();
     operators + a.mask.as_ref().map_or(0, |_| cells) + streams as u64 + 4096
 }
 
@@ -266,9 +253,9 @@ impl Chunked {
             }
             // The top level is one chunk, which coarse pixels decode discretely: whole.
             let build = if level + 1 == self.table.levels.len() {
-                super::asset::Build::Whole
+                crate::codecs::plane::Build::Whole
             } else {
-                super::asset::Build::Lazy
+                crate::codecs::plane::Build::Lazy
             };
             let asset = self
                 .cache
@@ -290,7 +277,7 @@ impl Chunked {
             let [x0, y0, x1, y1] = entry.cells;
             if asset.chunks.is_some()
                 || (asset.meta.width, asset.meta.height) != (x1 - x0, y1 - y0)
-                || asset.codec() as u8 != self.table.codec
+                || asset.codec().byte() != self.table.codec
             {
                 return Err(Error::asset(format!(
                     "{what}: not the {}x{} raster of the table's codec",

@@ -9,7 +9,7 @@ use std::path::PathBuf;
 
 use fractile_codec::codecs::psa::PsaSettings;
 use fractile_codec::codecs::quadtree::stream::PlaneHeader;
-use fractile_codec::{Asset, EncodeSettings, Quantiser, Raster, RateMode, encode};
+use fractile_codec::{Asset, QuadtreeSettings, Quantiser, Raster, RateMode, encode};
 use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
 
 /// A file of `testdata/`.
@@ -147,9 +147,9 @@ pub(crate) fn metadata_bomb(real: &[u8], w: u32, h: u32) -> Vec<u8> {
 /// nodata, FIS, psa2d, IFS3D, a chunked container and curves.
 pub(crate) fn sources() -> Vec<(&'static str, Vec<u8>)> {
     let quick = |r: &Raster, bpp: f64| {
-        let settings = EncodeSettings {
+        let settings = QuadtreeSettings {
             rate: RateMode::TargetBpp(bpp),
-            ..EncodeSettings::default()
+            ..QuadtreeSettings::default()
         };
         encode(r, &settings, &|_, _| {}).expect("encodes").bytes
     };
@@ -175,7 +175,7 @@ pub(crate) fn sources() -> Vec<(&'static str, Vec<u8>)> {
     };
     out.push((
         "fis",
-        fractile_codec::encode::encode_fis(&crop(&jacksboro, 10, 10, 33, 29), &fis, None)
+        fractile_codec::codecs::fis::encode::encode_fis(&crop(&jacksboro, 10, 10, 33, 29), &fis)
             .unwrap()
             .bytes,
     ));
@@ -185,7 +185,7 @@ pub(crate) fn sources() -> Vec<(&'static str, Vec<u8>)> {
     };
     out.push((
         "psa2d",
-        fractile_codec::encode::encode_psa(&crop(&camera, 60, 60, 40, 40), &psa, None)
+        fractile_codec::codecs::psa::encode::encode_psa(&crop(&camera, 60, 60, 40, 40), &psa)
             .unwrap()
             .bytes,
     ));

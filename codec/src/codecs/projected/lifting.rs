@@ -34,8 +34,8 @@
 //! coarsest, each in a context of its band's orientation and depth, its coded neighbours, its
 //! sibling bands at the same place and its parent (as EBCOT and SPIHT use them).
 
-use crate::codecs::fis::{IntCoder, med};
 use crate::core::entropy::{Decoder, Encoder};
+use crate::core::lattice::{IntCoder, med};
 
 use super::pyramid::{Order, WEIGHT_ONE, causal_neighbours};
 

@@ -23,9 +23,11 @@
 //! so on down every octave: the roughness of the source continues self-similarly. rho is
 //! fitted per asset as the ratio of the finest two octaves' detail amplitudes.
 
+pub mod encode;
 pub mod grid;
 pub mod lifting;
 mod neighbourhood;
+pub mod plane;
 pub mod pyramid;
 pub mod records;
 mod residual;
@@ -911,6 +913,9 @@ pub struct ProjectedSettings {
     /// A trial coding whose file is not kept (a rate search's): no source-error map is
     /// measured (the map took most of an encode), the file has none.
     pub trial: bool,
+    /// A size: the file at most this many bits a source cell (with `bounded`, or alone:
+    /// the best PSNR that fits); `None` with `max_error`.
+    pub target_bpp: Option<f64>,
 }
 
 /// A step (source units) and the multiresolution that codes at it: a lifted kernel
@@ -940,6 +945,7 @@ impl Default for ProjectedSettings {
             bounded: false,
             at_step: None,
             trial: false,
+            target_bpp: None,
         }
     }
 }

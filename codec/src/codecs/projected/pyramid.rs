@@ -24,8 +24,8 @@
 //! [`walk`], which asks a [`Details`] for each sample's decoded value: the encoder quantises
 //! and codes, the decoder reads. One walk, so the two cannot drift apart.
 
-use crate::codecs::fis::{IntCoder, med};
 use crate::core::entropy::{Decoder, Encoder};
+use crate::core::lattice::{IntCoder, med};
 
 /// Contexts of the detail coder per pass: local relief over the step (8 buckets) times the
 /// magnitudes of the pass's details already coded west and north (5 buckets).

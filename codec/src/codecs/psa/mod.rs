@@ -28,14 +28,17 @@
 //! - Domains: touching (domains tile the lattice: addresses on multiples of the ratio) or
 //!   overlapping (any vertex may start a domain), searched within `radius` of the region.
 
+pub mod encode;
+pub mod plane;
+
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use crate::Error;
-use crate::codecs::fis::{
+use crate::core::entropy::{Bit, Decoder, Encoder};
+use crate::core::lattice::{
     IntCoder, Source, get_grid, lattice_frame, lattice_locate, put_grid, top_index,
 };
-use crate::core::entropy::{Bit, Decoder, Encoder};
 use crate::core::operator::{Operator, Step};
 
 /// How regions are split.
@@ -563,6 +566,9 @@ pub struct PsaSettings {
     pub scaling_bits: u8,
     /// Largest |s|.
     pub max_scaling: f32,
+    /// Rate control: at most this many bits a source cell, picking the region size (see
+    /// `encode::lattice`).
+    pub target_bpp: Option<f64>,
 }
 
 impl Default for PsaSettings {
@@ -576,6 +582,7 @@ impl Default for PsaSettings {
             radius: 8,
             scaling_bits: 5,
             max_scaling: 0.9,
+            target_bpp: None,
         }
     }
 }
@@ -821,7 +828,7 @@ mod tests {
                         + 0.1 * ((i * 31) % 7) as f32 / 7.0
                 })
                 .collect();
-            let source = crate::codecs::fis::Source {
+            let source = Source {
                 width: 41,
                 height: 33,
                 values: &src,

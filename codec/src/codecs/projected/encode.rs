@@ -8,14 +8,14 @@ use rayon::prelude::*;
 
 use fractile_proto::{ColourModel, SampleFormat};
 
-use super::source::{
-    Encoded, coding_range, decoded_errors, fill_invalid, measured, source_meta, source_planes,
-    without_map,
-};
 use crate::Error;
 use crate::codecs::projected::pyramid::Order;
 use crate::codecs::projected::{
     self, CODEC_NAME, ProjectedHeader, ProjectedSettings, encode_grid, levels_for,
+};
+use crate::encode::source::{
+    Encoded, PlaneEncoder, coding_range, decoded_errors, fill_invalid, measured, source_meta,
+    source_planes, without_map,
 };
 use crate::io::asset::{Asset, Mask};
 use crate::io::raster::Raster;
@@ -27,12 +27,9 @@ const BISECTIONS: u32 = 18;
 
 /// Encodes a grey image or a height field with the projected IFS with details: under
 /// `settings.max_error` every valid decoded sample is within it of the source; under
-/// `target_bpp` the finest step whose file fits is kept.
-pub fn encode_projected(
-    raster: &Raster,
-    settings: &ProjectedSettings,
-    target_bpp: Option<f64>,
-) -> Result<Encoded, Error> {
+/// `settings.target_bpp` the finest step whose file fits is kept.
+pub fn encode_projected(raster: &Raster, settings: &ProjectedSettings) -> Result<Encoded, Error> {
+    let target_bpp = settings.target_bpp;
     // The streams get the rate less an allowance for the rest of the file, which a nodata
     // mask can overrun (a warped DEM's mask took 1.8% of its 0.8 bpp): a file over the rate
     // is coded again with the streams' budget less the excess. And a file more than 1% under
@@ -186,7 +183,7 @@ fn encode_within(
         header.roughness
     );
     let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
-    let asset = Asset::from_projected_parts(meta, vec![(header, stream)], mask)?;
+    let asset = Asset::from_coded(meta, vec![(header, stream)], mask)?;
     let errors = decoded_errors(&asset, raster);
     if settings.trial {
         let bytes = asset.to_bytes();
@@ -203,27 +200,27 @@ fn encode_within(
     Ok(measured(asset, start, errors, raster))
 }
 
-/// One chunk of a file whose rate is the file's ([`super::rate`]) at its quality: a step
+/// One chunk of a file whose rate is the file's ([`crate::encode::rate`]) at its quality: a step
 /// (rate mode, no rate control of its own) or a bound (max-error mode); `trial`: a coding
 /// whose file is not kept, without its source-error map.
 pub fn encode_at(
     raster: &Raster,
-    quality: super::rate::Quality,
+    quality: crate::encode::rate::Quality,
     trial: bool,
 ) -> Result<Encoded, Error> {
     let settings = match quality {
-        super::rate::Quality::Step(at) => ProjectedSettings {
+        crate::encode::rate::Quality::Step(at) => ProjectedSettings {
             at_step: Some(at),
             trial,
             ..Default::default()
         },
-        super::rate::Quality::Bound(e) => ProjectedSettings {
+        crate::encode::rate::Quality::Bound(e) => ProjectedSettings {
             max_error: Some(e),
             trial,
             ..Default::default()
         },
     };
-    encode_projected(raster, &settings, None)
+    encode_projected(raster, &settings)
 }
 
 /// The multiresolutions rate mode tries, the best kept (`None` is the closed-loop pyramid): both
@@ -536,7 +533,7 @@ fn encode_colour(
                 "{CODEC_NAME} colour step={} chroma={}x{}",
                 parts[0].0.step, parts[1].0.samples[0], parts[1].0.samples[1]
             );
-            let asset = Asset::from_projected_parts(meta, parts, None)?;
+            let asset = Asset::from_coded(meta, parts, None)?;
             let errors = decoded_errors(&asset, raster);
             Ok((asset, errors))
         })
@@ -575,4 +572,14 @@ fn rate_budget(bpp: f64, raster: &Raster) -> Result<usize, Error> {
     }
     let cells = (raster.width * raster.height) as f64;
     Ok(without_map((bpp * cells / 8.0).floor() as usize).saturating_sub(512))
+}
+
+impl PlaneEncoder for ProjectedSettings {
+    fn encode(
+        &self,
+        raster: &Raster,
+        _progress: &(dyn Fn(u64, u64) + Sync),
+    ) -> Result<Encoded, Error> {
+        encode_projected(raster, self)
+    }
 }
