@@ -10,6 +10,7 @@
 pub mod bench;
 mod error;
 pub mod refine;
+mod request;
 pub mod tile;
 pub mod view;
 
@@ -21,6 +22,9 @@ pub use fractile_proto::{
     AssetKind, AssetSummary, BINARY_MEDIA_TYPE, Catalog, DistanceResult, ErrorBody, LayerJson,
     PointResult, PointsRequest, PointsResponse, TileJson, TileRange,
 };
+pub use request::{
+    MeshFile, MeshRequest, PointsEncoding, Region, RegionRequest, Uploaded, VolumeMeshRequest,
+};
 use reqwest::header;
 pub use tile::{Tile, TileAddress, TileEncoding, TileRequest};
 
@@ -31,108 +35,6 @@ pub struct Client {
     base: String,
     token: Option<String>,
     backend: Option<Backend>,
-}
-
-/// How a points batch travels: JSON (readable) or proto's binary encoding (about 3x smaller and
-/// faster to parse for large batches).
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
-pub enum PointsEncoding {
-    /// `application/json`.
-    #[default]
-    Json,
-    /// `application/x-bincode`.
-    Binary,
-}
-
-/// A window of an asset sampled on a `width x height` grid of pixel centres.
-#[derive(Clone, Debug, PartialEq)]
-pub struct RegionRequest {
-    /// `[minx, miny, maxx, maxy]`: lon/lat for georeferenced assets, unit coordinates otherwise.
-    pub bbox: [f64; 4],
-    /// Columns.
-    pub width: u32,
-    /// Rows.
-    pub height: u32,
-    /// Exactly this many steps (`None`: the server's default).
-    pub iterations: Option<u32>,
-    /// Per-point stopping tolerance in value units.
-    pub tolerance: Option<f32>,
-    /// Answer format.
-    pub format: RegionFormat,
-}
-
-/// A region as answered.
-#[derive(Clone, Debug)]
-pub struct Region {
-    /// Columns.
-    pub width: u32,
-    /// Rows.
-    pub height: u32,
-    /// The body as the server sent it (PNG, float32 or GeoTIFF bytes).
-    pub body: Vec<u8>,
-    /// Per channel, `width * height` values, for [`RegionFormat::F32`] answers.
-    pub values: Option<Vec<Vec<f32>>>,
-    /// The server's convergence bound (`X-Convergence-Bound`, value units).
-    pub convergence_bound: f32,
-    /// The server's bound against the source (`X-Error-Bound`, value units; `None` for assets
-    /// without a source-error map).
-    pub error_bound: Option<f32>,
-}
-
-/// A terrain mesh request: a regular grid of `resolution x resolution` vertices.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct MeshRequest {
-    /// The box (`None`: the whole asset).
-    pub bbox: Option<[f64; 4]>,
-    /// Vertices a side (server default 256).
-    pub resolution: Option<u32>,
-    /// Exactly this many steps.
-    pub iterations: Option<u32>,
-    /// Per-point stopping tolerance in value units.
-    pub tolerance: Option<f32>,
-    /// An adaptive triangulation within this many height units of the decoded grid (`None`:
-    /// the regular grid).
-    pub max_error: Option<f32>,
-    /// File format.
-    pub format: MeshFormat,
-}
-
-/// A mesh of a volume asset (IFS3D): `GET /v1/assets/{id}/mesh` with a 3D box.
-#[derive(Clone, Debug, Default)]
-pub struct VolumeMeshRequest {
-    /// `[x0, y0, z0, x1, y1, z1]` in the mesh's units (`None`: the whole grid).
-    pub bbox: Option<[f64; 6]>,
-    /// Samples along the box's longest side (server default: the encoded grid).
-    pub resolution: Option<u32>,
-    /// Exactly this many steps.
-    pub iterations: Option<u32>,
-    /// Per-sample stopping tolerance, world units.
-    pub tolerance: Option<f32>,
-    /// File format.
-    pub format: MeshFormat,
-}
-
-/// A mesh as answered.
-#[derive(Clone, Debug)]
-pub struct MeshFile {
-    /// The file's bytes.
-    pub body: Vec<u8>,
-    /// Its media type.
-    pub content_type: String,
-    /// The server's bound on the heights against the attractor (decoding, plus `max_error`
-    /// for adaptive meshes).
-    pub convergence_bound: f32,
-    /// The same against the source (`None` for assets without a source-error map).
-    pub error_bound: Option<f32>,
-}
-
-/// Result of an upload.
-#[derive(Clone, Debug)]
-pub struct Uploaded {
-    /// The asset as the catalog now lists it.
-    pub summary: AssetSummary,
-    /// Whether the id was new (201) rather than replaced (200).
-    pub created: bool,
 }
 
 /// Appends `?a=b&c=d` for the parameters that are set.
@@ -604,144 +506,6 @@ impl Client {
             convergence_bound,
             error_bound,
         })
-    }
-}
-
-/// Value range the change criterion is a fraction of: 255 for pictures, the asset's span for
-/// heights.
-fn change_range(a: &AssetSummary, heights: bool) -> f32 {
-    if heights {
-        (a.value_range[1] - a.value_range[0]).max(f64::MIN_POSITIVE) as f32
-    } else {
-        255.0
-    }
-}
-
-impl Client {
-    /// Refines one tile (see [`refine`]); `req.iterations` is replaced by the schedule's.
-    pub async fn refine_tile(
-        &self,
-        id: &str,
-        req: &TileRequest,
-        options: &refine::RefineOptions,
-        on_step: impl FnMut(&refine::Step<Tile>),
-    ) -> Result<refine::Refined<Tile>, ClientError> {
-        let a = self.asset(id).await?;
-        let range = change_range(&a, req.encoding.is_heights());
-        refine::refine(
-            options,
-            range,
-            |n| {
-                let req = TileRequest {
-                    iterations: Some(n),
-                    tolerance: None,
-                    // Refinement compares steps and stops on the convergence bound: heights
-                    // rounded to the error bound would hide changes under a step and keep the
-                    // bound from falling under half of one.
-                    precision: Some(fractile_proto::query::Precision::Full),
-                    ..*req
-                };
-                async move { self.tile(id, &req).await }
-            },
-            on_step,
-        )
-        .await
-    }
-
-    /// Refines a region; a float32 region compares values, other formats compare nothing and
-    /// stop on the bound, the budget or the schedule.
-    pub async fn refine_region(
-        &self,
-        id: &str,
-        req: &RegionRequest,
-        options: &refine::RefineOptions,
-        on_step: impl FnMut(&refine::Step<Region>),
-    ) -> Result<refine::Refined<Region>, ClientError> {
-        let a = self.asset(id).await?;
-        let range = change_range(&a, a.kind == AssetKind::HeightField);
-        refine::refine(
-            options,
-            range,
-            |n| {
-                let req = RegionRequest {
-                    iterations: Some(n),
-                    tolerance: None,
-                    ..req.clone()
-                };
-                async move { self.region(id, &req).await }
-            },
-            on_step,
-        )
-        .await
-    }
-
-    /// Refines a set of points.
-    pub async fn refine_points(
-        &self,
-        id: &str,
-        points: &[[f64; 2]],
-        encoding: PointsEncoding,
-        options: &refine::RefineOptions,
-        on_step: impl FnMut(&refine::Step<PointsResponse>),
-    ) -> Result<refine::Refined<PointsResponse>, ClientError> {
-        let a = self.asset(id).await?;
-        let range = change_range(&a, a.kind == AssetKind::HeightField);
-        refine::refine(
-            options,
-            range,
-            |n| {
-                let req = PointsRequest {
-                    points: points.to_vec(),
-                    iterations: Some(n),
-                    tolerance: None,
-                };
-                async move { self.points(id, &req, encoding).await }
-            },
-            on_step,
-        )
-        .await
-    }
-
-    /// Fetches the tiles of a view plan ([`view::plan`]) nearest first, `concurrency` at a time,
-    /// each at its planned steps and tolerance. `on_tile` sees each answer as it arrives;
-    /// all come back in plan order.
-    pub async fn fetch_view(
-        &self,
-        id: &str,
-        plan: &[view::PlannedTile],
-        encoding: TileEncoding,
-        concurrency: usize,
-        mut on_tile: impl FnMut(&view::PlannedTile, &Result<Tile, ClientError>),
-    ) -> Vec<Result<Tile, ClientError>> {
-        let mut set = tokio::task::JoinSet::new();
-        let mut out: Vec<Option<Result<Tile, ClientError>>> =
-            (0..plan.len()).map(|_| None).collect();
-        let mut next = 0;
-        loop {
-            while next < plan.len() && set.len() < concurrency.max(1) {
-                let p = plan[next];
-                let (client, id) = (self.clone(), id.to_string());
-                set.spawn(async move {
-                    let req = TileRequest {
-                        iterations: Some(p.iterations),
-                        tolerance: Some(p.tolerance),
-                        ..TileRequest::new(p.address, encoding)
-                    };
-                    (next, client.tile(&id, &req).await)
-                });
-                next += 1;
-            }
-            let Some(done) = set.join_next().await else {
-                break;
-            };
-            // Tasks are never cancelled, so a join error is a panic: pass it on.
-            let (k, r) = done.unwrap_or_else(|e| std::panic::resume_unwind(e.into_panic()));
-            on_tile(&plan[k], &r);
-            out[k] = Some(r);
-        }
-        out.into_iter()
-            .map(|r| r.expect("every planned tile was fetched"))
-            .collect()
     }
 }
 

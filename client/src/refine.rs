@@ -12,7 +12,11 @@
 use std::future::Future;
 use std::time::{Duration, Instant};
 
-use crate::{ClientError, PointsResponse, Region, Tile};
+use crate::view;
+use crate::{
+    AssetKind, AssetSummary, Client, ClientError, PointsEncoding, PointsRequest, PointsResponse,
+    Region, RegionRequest, Tile, TileEncoding, TileRequest,
+};
 
 /// When refinement stops.
 #[derive(Clone, Debug, PartialEq)]
@@ -203,6 +207,144 @@ where
         previous = Some(values);
     }
     unreachable!("the last step of a non-empty schedule always stops")
+}
+
+/// Value range the change criterion is a fraction of: 255 for pictures, the asset's span for
+/// heights.
+fn change_range(a: &AssetSummary, heights: bool) -> f32 {
+    if heights {
+        (a.value_range[1] - a.value_range[0]).max(f64::MIN_POSITIVE) as f32
+    } else {
+        255.0
+    }
+}
+
+impl Client {
+    /// Refines one tile (see [`refine`]); `req.iterations` is replaced by the schedule's.
+    pub async fn refine_tile(
+        &self,
+        id: &str,
+        req: &TileRequest,
+        options: &RefineOptions,
+        on_step: impl FnMut(&Step<Tile>),
+    ) -> Result<Refined<Tile>, ClientError> {
+        let a = self.asset(id).await?;
+        let range = change_range(&a, req.encoding.is_heights());
+        refine(
+            options,
+            range,
+            |n| {
+                let req = TileRequest {
+                    iterations: Some(n),
+                    tolerance: None,
+                    // Refinement compares steps and stops on the convergence bound: heights
+                    // rounded to the error bound would hide changes under a step and keep the
+                    // bound from falling under half of one.
+                    precision: Some(fractile_proto::query::Precision::Full),
+                    ..*req
+                };
+                async move { self.tile(id, &req).await }
+            },
+            on_step,
+        )
+        .await
+    }
+
+    /// Refines a region; a float32 region compares values, other formats compare nothing and
+    /// stop on the bound, the budget or the schedule.
+    pub async fn refine_region(
+        &self,
+        id: &str,
+        req: &RegionRequest,
+        options: &RefineOptions,
+        on_step: impl FnMut(&Step<Region>),
+    ) -> Result<Refined<Region>, ClientError> {
+        let a = self.asset(id).await?;
+        let range = change_range(&a, a.kind == AssetKind::HeightField);
+        refine(
+            options,
+            range,
+            |n| {
+                let req = RegionRequest {
+                    iterations: Some(n),
+                    tolerance: None,
+                    ..req.clone()
+                };
+                async move { self.region(id, &req).await }
+            },
+            on_step,
+        )
+        .await
+    }
+
+    /// Refines a set of points.
+    pub async fn refine_points(
+        &self,
+        id: &str,
+        points: &[[f64; 2]],
+        encoding: PointsEncoding,
+        options: &RefineOptions,
+        on_step: impl FnMut(&Step<PointsResponse>),
+    ) -> Result<Refined<PointsResponse>, ClientError> {
+        let a = self.asset(id).await?;
+        let range = change_range(&a, a.kind == AssetKind::HeightField);
+        refine(
+            options,
+            range,
+            |n| {
+                let req = PointsRequest {
+                    points: points.to_vec(),
+                    iterations: Some(n),
+                    tolerance: None,
+                };
+                async move { self.points(id, &req, encoding).await }
+            },
+            on_step,
+        )
+        .await
+    }
+
+    /// Fetches the tiles of a view plan ([`view::plan`]) nearest first, `concurrency` at a time,
+    /// each at its planned steps and tolerance. `on_tile` sees each answer as it arrives;
+    /// all come back in plan order.
+    pub async fn fetch_view(
+        &self,
+        id: &str,
+        plan: &[view::PlannedTile],
+        encoding: TileEncoding,
+        concurrency: usize,
+        mut on_tile: impl FnMut(&view::PlannedTile, &Result<Tile, ClientError>),
+    ) -> Vec<Result<Tile, ClientError>> {
+        let mut set = tokio::task::JoinSet::new();
+        let mut out: Vec<Option<Result<Tile, ClientError>>> =
+            (0..plan.len()).map(|_| None).collect();
+        let mut next = 0;
+        loop {
+            while next < plan.len() && set.len() < concurrency.max(1) {
+                let p = plan[next];
+                let (client, id) = (self.clone(), id.to_string());
+                set.spawn(async move {
+                    let req = TileRequest {
+                        iterations: Some(p.iterations),
+                        tolerance: Some(p.tolerance),
+                        ..TileRequest::new(p.address, encoding)
+                    };
+                    (next, client.tile(&id, &req).await)
+                });
+                next += 1;
+            }
+            let Some(done) = set.join_next().await else {
+                break;
+            };
+            // Tasks are never cancelled, so a join error is a panic: pass it on.
+            let (k, r) = done.unwrap_or_else(|e| std::panic::resume_unwind(e.into_panic()));
+            on_tile(&plan[k], &r);
+            out[k] = Some(r);
+        }
+        out.into_iter()
+            .map(|r| r.expect("every planned tile was fetched"))
+            .collect()
+    }
 }
 
 #[cfg(test)]

@@ -1,7 +1,7 @@
 //! The layout rules of issues 28 and 57, checked on the sources: no module of any crate imports
 //! one that imports it back (library code and unit tests alike; paths through `crate::`,
 //! `self::`, `super::`, grouped use trees and a parent's bare child paths, resolved as the
-//! compiler resolves them), no file of `server/src` or `cli/src` over 600 lines, and no
+//! compiler resolves them), no file of any crate over 600 lines (but a listed few, none to grow), and no
 //! function over 120 lines outside tests except those listed in `LONG_FUNCTIONS`, each with why
 //! it stays whole.
 //!
@@ -553,9 +553,76 @@ fn the_checker_sees_circles_written_every_way_a_path_can_be() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Files over 600 lines not yet split, each with the most lines it may have (a ratchet: the
+/// test fails when one grows, and when one is split under 600 and still listed) and where it
+/// splits. Issue 57 split the others; these are the codec's largest concepts.
+const LONG_FILES: &[(&str, usize, &str)] = &[
+    (
+        "codec/src/codecs/curve/model.rs",
+        815,
+        "rings and Hausdorff distances apart",
+    ),
+    (
+        "codec/src/codecs/projected/lifting.rs",
+        825,
+        "kernels apart from the walk",
+    ),
+    (
+        "codec/src/codecs/psa/mod.rs",
+        842,
+        "the fit and domain search apart",
+    ),
+    (
+        "codec/src/mesh/mod.rs",
+        979,
+        "readers and writers apart from the mesh",
+    ),
+    (
+        "codec/src/codecs/quadtree/search.rs",
+        985,
+        "domain pools apart from the searches",
+    ),
+    (
+        "codec/src/codecs/ifs3d/octree.rs",
+        1037,
+        "encoder and stream apart from the operator",
+    ),
+    (
+        "codec/src/encode/chunked.rs",
+        1105,
+        "the row pyramid and the spill apart",
+    ),
+    (
+        "codec/src/io/asset.rs",
+        1114,
+        "the mask and the volume/curve parts apart",
+    ),
+    (
+        "codec/src/codecs/projected/mod.rs",
+        1325,
+        "the operator apart from the header and grid",
+    ),
+    (
+        "codec/src/codecs/curve/code.rs",
+        1335,
+        "the walk apart from the header's compact form",
+    ),
+    (
+        "codec/src/extract/mod.rs",
+        1451,
+        "tiles, regions and points apart",
+    ),
+    (
+        "codec/src/core/decode.rs",
+        1490,
+        "discrete, continuous and grid decoders apart",
+    ),
+];
+
 #[test]
-fn no_file_of_the_server_or_the_command_line_is_over_600_lines() {
-    for dir in ["server/src", "cli/src"] {
+fn no_file_of_any_crate_is_over_600_lines() {
+    let mut over = Vec::new();
+    for dir in CRATES {
         let mut files = Vec::new();
         rust_files(&root().join(dir), &mut files);
         assert!(!files.is_empty(), "{dir}");
@@ -564,9 +631,24 @@ fn no_file_of_the_server_or_the_command_line_is_over_600_lines() {
                 .expect("readable")
                 .lines()
                 .count();
-            assert!(n <= 600, "{}: {n} lines", f.display());
+            let rel = f
+                .strip_prefix(root())
+                .unwrap_or(&f)
+                .to_string_lossy()
+                .replace("../", "");
+            match LONG_FILES.iter().find(|(lf, ..)| rel.ends_with(lf)) {
+                Some((_, most, _)) if n > *most => {
+                    over.push(format!("{rel}: {n} lines, over its {most}"))
+                }
+                Some(_) if n <= 600 => {
+                    over.push(format!("{rel}: {n} lines, no longer long: unlist it"))
+                }
+                None if n > 600 => over.push(format!("{rel}: {n} lines")),
+                _ => {}
+            }
         }
     }
+    assert!(over.is_empty(), "{over:#?}");
 }
 
 /// Functions over 120 lines that stay whole, and why.

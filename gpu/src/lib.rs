@@ -15,11 +15,13 @@
 
 mod batch;
 mod dispatch;
+mod grid;
 mod readback;
 mod upload;
 
-pub use dispatch::Grid;
 use dispatch::*;
+pub use grid::Grid;
+use grid::*;
 pub use readback::GridValues;
 use readback::*;
 pub use upload::GpuOperator;

@@ -4,7 +4,8 @@
 use fractile_proto::AssetKind;
 
 use crate::Error;
-use crate::codecs::fis::{FisHeader, FisParams, FisSettings, codec_name, encode_params, fit};
+use crate::codecs::fis::fit::fit;
+use crate::codecs::fis::{FisHeader, FisParams, FisSettings, codec_name, encode_params};
 use crate::encode::lattice::{Lattice, encode_lattice};
 use crate::encode::source::{Encoded, PlaneEncoder};
 use crate::io::asset::Asset;

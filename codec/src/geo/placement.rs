@@ -1,40 +1,37 @@
-//! Where tile pixels fall on an asset: Web Mercator (EPSG:3857, XYZ scheme, y down from the
-//! north) tile geometry, and the mapping from longitude/latitude to an asset's unit square
-//! through its georeference. Assets without a georeference are tiled over the unit square.
-
-use std::f64::consts::PI;
+//! How a georeferenced asset's unit square sits on the Earth ([`Placement`]): its CRS
+//! (proj4rs for projected ones), longitude/latitude to unit points and back, reprojected
+//! patches of points by an interpolated lattice.
 
 use std::sync::Arc;
 
 use fractile_proto::Georef;
+use fractile_proto::tiles::{tile_bounds, tile_lonlat};
 use proj4rs::proj::Proj;
 
 use crate::core::decode::Patch;
-
-// Tile addresses are the wire's vocabulary: one copy of the Web Mercator formulas, in proto.
-pub use fractile_proto::tiles::{MAX_LATITUDE, lonlat_tile, tile_bounds, tile_lonlat};
+use crate::geo::pixels::{PatchAt, Pixels, Sites};
 
 /// How an asset's unit square sits on the Earth: its grid's frame in its own CRS, and that CRS.
 /// Requests speak longitude/latitude (WGS84 degrees) whatever the asset's CRS.
 #[derive(Clone, Debug)]
 pub struct Placement {
     /// West edge, in CRS units (degrees or metres).
-    west: f64,
+    pub(super) west: f64,
     /// North edge, in CRS units.
-    north: f64,
+    pub(super) north: f64,
     /// Width of the grid in CRS units.
-    width: f64,
+    pub(super) width: f64,
     /// Height of the grid in CRS units.
-    height: f64,
-    crs: Crs,
+    pub(super) height: f64,
+    pub(super) crs: Crs,
     /// `[west, south, east, north]` in degrees: the frame itself for geographic assets, the
     /// smallest lon/lat box around the projected frame otherwise.
-    bounds: [f64; 4],
+    pub(super) bounds: [f64; 4],
 }
 
 /// The CRS of an asset's grid.
 #[derive(Clone, Debug)]
-enum Crs {
+pub(super) enum Crs {
     /// Longitude/latitude degrees (EPSG:4326, or no code with degree-like numbers): u depends
     /// on longitude alone and v on latitude alone. `global`: the asset spans all longitudes
     /// (then u wraps around at +-180).
@@ -45,7 +42,7 @@ enum Crs {
 
 /// The two ends of a reprojection (proj4rs: pure Rust, the PROJ.4 pipeline through WGS84).
 #[derive(Debug)]
-struct Projection {
+pub(super) struct Projection {
     epsg: u32,
     crs: Proj,
     wgs84: Proj,
@@ -53,14 +50,14 @@ struct Projection {
 
 impl Projection {
     /// The CRS coordinates of (lon, lat) degrees; `None` where the projection fails.
-    fn forward(&self, lon: f64, lat: f64) -> Option<[f64; 2]> {
+    pub(super) fn forward(&self, lon: f64, lat: f64) -> Option<[f64; 2]> {
         let mut p = (lon.to_radians(), lat.to_radians(), 0.0);
         proj4rs::transform::transform(&self.wgs84, &self.crs, &mut p).ok()?;
         (p.0.is_finite() && p.1.is_finite()).then_some([p.0, p.1])
     }
 
     /// The (lon, lat) degrees of CRS coordinates; `None` where the projection fails.
-    fn inverse(&self, x: f64, y: f64) -> Option<[f64; 2]> {
+    pub(super) fn inverse(&self, x: f64, y: f64) -> Option<[f64; 2]> {
         let mut p = (x, y, 0.0);
         proj4rs::transform::transform(&self.crs, &self.wgs84, &mut p).ok()?;
         let (lon, lat) = (p.0.to_degrees(), p.1.to_degrees());
@@ -199,7 +196,7 @@ impl Placement {
     /// Unit coordinates of (lon, lat), not clipped to the unit square; `None` far outside the
     /// asset (outside its lon/lat box, where a projection may fold distant points onto it) or
     /// where the projection fails.
-    fn unit_f64(&self, lon: f64, lat: f64) -> Option<[f64; 2]> {
+    pub(super) fn unit_f64(&self, lon: f64, lat: f64) -> Option<[f64; 2]> {
         match &self.crs {
             Crs::Geographic { global } => {
                 let mut u = (lon - self.west) / self.width;
@@ -389,13 +386,6 @@ const LATTICE: usize = 16;
 /// threshold for approximate warping is 0.125 pixel).
 const LATTICE_TOLERANCE: f64 = 0.125;
 
-/// Metres per degree of longitude and of latitude at latitude `lat` (spherical Earth of the
-/// WGS84 equatorial radius; good to about 0.5% for local meshes).
-pub fn metres_per_degree(lat: f64) -> [f64; 2] {
-    let m = 6_378_137.0 * PI / 180.0;
-    [m * lat.to_radians().cos(), m]
-}
-
 /// The unit point and footprint (size of one pixel in unit coordinates) of each pixel centre of a
 /// tile, row-major; `None` for pixels outside the asset. Non-georeferenced assets tile the unit
 /// square.
@@ -408,103 +398,6 @@ pub fn tile_points(
 ) -> (Vec<Option<[f32; 2]>>, [f32; 2]) {
     let g = tile_pixels(placement, z, x, y, size, 0);
     (g.points(), g.footprint)
-}
-
-/// Where the pixels of a raster (a tile, a region, a mesh's vertices) fall on an asset.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Pixels {
-    /// The unit points.
-    pub sites: Sites,
-    /// Size of one pixel in unit coordinates (at the raster's centre: Mercator stretches
-    /// latitude away from it).
-    pub footprint: [f32; 2],
-}
-
-/// The unit points of a raster's pixels, row-major.
-#[derive(Clone, Debug, PartialEq)]
-pub enum Sites {
-    /// Pixel (i, j) at `(xs[i], ys[j])`: the asset's u depends on the column alone and v on the
-    /// row alone (geographic assets, non-georeferenced ones). Decoders use the structure
-    /// ([`crate::core::decode::grid`]). `None`: the column or row is outside the asset.
-    Grid {
-        /// Unit x of each column.
-        xs: Vec<Option<f32>>,
-        /// Unit y of each row.
-        ys: Vec<Option<f32>>,
-    },
-    /// A point per pixel (projected assets); `None` outside the asset.
-    List {
-        /// Pixels a row.
-        width: usize,
-        /// The points, row-major.
-        points: Vec<Option<[f32; 2]>>,
-        /// Disjoint blocks of pixels whose points are bilinear patches (the same points as in
-        /// `points`, in a form decoders step together); pixels in none are decoded one by one.
-        patches: Vec<PatchAt>,
-    },
-}
-
-/// A [`Patch`] of a raster's pixels: pixel `(col + i, row + j)` is the patch's point (i, j).
-#[derive(Clone, Debug, PartialEq)]
-pub struct PatchAt {
-    /// The raster column of the patch's first column.
-    pub col: usize,
-    /// The raster row of the patch's first row.
-    pub row: usize,
-    /// The points.
-    pub patch: Patch,
-}
-
-impl Pixels {
-    /// The separable grid of columns `xs` and rows `ys`.
-    pub fn grid(xs: Vec<Option<f32>>, ys: Vec<Option<f32>>, footprint: [f32; 2]) -> Pixels {
-        Pixels {
-            sites: Sites::Grid { xs, ys },
-            footprint,
-        }
-    }
-
-    /// Pixels a row.
-    pub fn width(&self) -> usize {
-        match &self.sites {
-            Sites::Grid { xs, .. } => xs.len(),
-            Sites::List { width, .. } => *width,
-        }
-    }
-
-    /// How many pixels.
-    pub fn len(&self) -> usize {
-        match &self.sites {
-            Sites::Grid { xs, ys } => xs.len() * ys.len(),
-            Sites::List { points, .. } => points.len(),
-        }
-    }
-
-    /// Whether there are none.
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
-    }
-
-    /// Whether no pixel falls on the asset.
-    pub fn is_outside(&self) -> bool {
-        match &self.sites {
-            Sites::Grid { xs, ys } => {
-                xs.iter().all(Option::is_none) || ys.iter().all(Option::is_none)
-            }
-            Sites::List { points, .. } => points.iter().all(Option::is_none),
-        }
-    }
-
-    /// The points, row-major; `None` outside the asset.
-    pub fn points(&self) -> Vec<Option<[f32; 2]>> {
-        match &self.sites {
-            Sites::Grid { xs, ys } => ys
-                .iter()
-                .flat_map(|&v| xs.iter().map(move |&u| Some([u?, v?])))
-                .collect(),
-            Sites::List { points, .. } => points.clone(),
-        }
-    }
 }
 
 /// The pixel centres of tile z/x/y (see [`tile_points`]), on a `(size + 2 margin)` square
@@ -543,210 +436,6 @@ pub fn tile_pixels(
             };
             let f = (1.0 / (n * size as f64)) as f32;
             Pixels::grid(axis(x), axis(y), [f, f])
-        }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::*;
-
-    /// The EPSG registry's own kinds (not a number range): 4087 is projected though it lies in
-    /// 4000-4999.
-    #[test]
-    fn geographic_crs_are_told_by_their_definition() {
-        assert_eq!(epsg_is_geographic(4326), Some(true));
-        assert_eq!(epsg_is_geographic(4269), Some(true));
-        assert_eq!(epsg_is_geographic(4087), Some(false));
-        assert_eq!(epsg_is_geographic(32616), Some(false));
-        assert_eq!(epsg_is_geographic(3857), Some(false));
-        assert_eq!(epsg_is_geographic(99999), None);
-    }
-
-    #[test]
-    fn tile_geometry_matches_the_web_mercator_definition() {
-        // Zoom 0 covers the whole world; its centre is (0, 0).
-        let (lon, lat) = tile_lonlat(0, 0, 0, 0.5, 0.5);
-        assert!(lon.abs() < 1e-9 && lat.abs() < 1e-9);
-        let [w, s, e, n] = tile_bounds(0, 0, 0);
-        assert!((w + 180.0).abs() < 1e-9 && (e - 180.0).abs() < 1e-9);
-        assert!((n - MAX_LATITUDE).abs() < 1e-9 && (s + MAX_LATITUDE).abs() < 1e-9);
-        // Round trip through the tile index at zoom 12 (Jacksboro, Tennessee).
-        let (x, y) = lonlat_tile(12, -84.2, 36.4);
-        let [w, s, e, n] = tile_bounds(12, x, y);
-        assert!(w <= -84.2 && -84.2 < e && s < 36.4 && 36.4 <= n);
-    }
-
-    #[test]
-    fn global_assets_wrap_at_the_antimeridian() {
-        let g = Georef {
-            epsg: Some(4326),
-            origin: [-180.0, 90.0],
-            pixel_size: [1.0 / 3.0, -1.0 / 3.0],
-        };
-        let p = Placement::of(&g, 1080, 540).unwrap();
-        let a = p.unit(179.999, 0.0).unwrap();
-        let b = p.unit(-179.999, 0.0).unwrap();
-        assert!(a[0] > 0.999 && b[0] < 0.001);
-        assert!(p.unit(0.0, 91.0).is_none());
-        // Codes outside the EPSG registry are refused (the server then tiles the unit square).
-        let unknown = Georef {
-            epsg: Some(99_999),
-            ..g
-        };
-        assert_eq!(
-            Placement::of(&unknown, 10, 10).unwrap_err(),
-            PlacementError::UnknownCrs(99_999)
-        );
-    }
-
-    /// A frame of 1,000 x 1,000 cells of `cell` CRS units whose south-west corner is at
-    /// `(east, north)` minus half the frame.
-    fn frame(epsg: u32, centre: [f64; 2], cell: f64) -> Placement {
-        let g = Georef {
-            epsg: Some(epsg),
-            origin: [centre[0] - 500.0 * cell, centre[1] + 500.0 * cell],
-            pixel_size: [cell, -cell],
-        };
-        Placement::of(&g, 1000, 1000).unwrap()
-    }
-
-    #[test]
-    fn projected_placements_agree_with_proj() {
-        // Reference coordinates from PROJ 9 (`cs2cs EPSG:4326 EPSG:32616` and `EPSG:2154`),
-        // an implementation independent of ours.
-        for (epsg, (lon, lat), (x, y)) in [
-            (32616, (-84.2, 36.4), (751106.6077, 4031958.4991)),
-            (2154, (2.35, 49.0), (652438.8715, 6877982.4576)),
-        ] {
-            // A 30 km frame whose centre is 1 km south-west of the point.
-            let p = frame(epsg, [x - 1000.0, y - 1000.0], 30.0);
-            assert_eq!(p.epsg(), Some(epsg));
-            let [u, v] = p.unit(lon, lat).unwrap();
-            // 0.5 + 1000 m / 30,000 m east; 0.5 - 1000 / 30,000 south (v grows southwards).
-            let (eu, ev) = (0.5 + 1.0 / 30.0, 0.5 - 1.0 / 30.0);
-            assert!(
-                (u as f64 - eu).abs() * 30_000.0 < 0.01 && (v as f64 - ev).abs() * 30_000.0 < 0.01,
-                "EPSG:{epsg}: ({u}, {v}) against ({eu}, {ev})"
-            );
-            // Its lon/lat box holds the point and is about 30 km across.
-            let [w, s, e, n] = p.bounds();
-            assert!(w < lon && lon < e && s < lat && lat < n);
-            let km_ns = (n - s) * metres_per_degree(lat)[1] / 1000.0;
-            assert!((29.5..31.5).contains(&km_ns), "{km_ns} km");
-            // Far points are outside, not folded onto the frame by the projection.
-            assert!(p.unit(lon + 180.0, -lat).is_none());
-            assert!(p.unit(lon + 1.0, lat).is_none());
-        }
-    }
-
-    #[test]
-    fn interpolated_reprojection_is_within_an_eighth_of_a_pixel() {
-        // UTM 16N around Jacksboro, 30 m cells, and a 1,000 km frame of the north polar
-        // stereographic CRS (EPSG:3413) at 75N, 0E, where meridians fan out and parallels bend:
-        // low zooms there need the per-pixel fallback. Tiles from a zoom that holds the whole
-        // frame in a few pixels down to deeper than its cells, centred on the frame and on its
-        // north-west corner (so some pixels are outside).
-        let utm = frame(32616, [751_106.6, 4_031_958.5], 30.0);
-        let polar = Placement::of(
-            &Georef {
-                epsg: Some(3413),
-                origin: [0.0, 0.0],
-                pixel_size: [1.0, -1.0],
-            },
-            1,
-            1,
-        )
-        .unwrap();
-        let Crs::Projected(stereo) = &polar.crs else {
-            panic!("EPSG:3413 is projected");
-        };
-        let centre = stereo.forward(0.0, 75.0).unwrap();
-        let polar = frame(3413, centre, 1000.0);
-        for (p, zooms) in [
-            (&utm, &[4u8, 8, 10, 12, 15, 17][..]),
-            (&polar, &[2, 3, 4, 5, 8, 11][..]),
-        ] {
-            check_tiles(p, zooms);
-        }
-    }
-
-    fn check_tiles(p: &Placement, zooms: &[u8]) {
-        let [w, s, e, n] = p.bounds();
-        let Crs::Projected(projection) = &p.crs else {
-            panic!("UTM is projected");
-        };
-        let [cw, cn] = projection.inverse(p.west, p.north).unwrap();
-        for &z in zooms {
-            for (lon, lat) in [(0.5 * (w + e), 0.5 * (s + n)), (cw, cn)] {
-                let (x, y) = lonlat_tile(z, lon, lat);
-                let px = tile_pixels(Some(p), z, x, y, 256, 0);
-                let Sites::List {
-                    width,
-                    points,
-                    patches,
-                } = &px.sites
-                else {
-                    panic!("projected assets give a point per pixel");
-                };
-                assert_eq!((*width, points.len()), (256, 256 * 256));
-                // Patches are disjoint, inside the tile, and give the listed points.
-                let mut covered = vec![false; points.len()];
-                for pa in patches {
-                    for j in 0..pa.patch.height {
-                        for i in 0..pa.patch.width {
-                            let k = (pa.row + j) * 256 + pa.col + i;
-                            assert!(pa.col + i < 256 && !covered[k], "z{z}: pixel {k} twice");
-                            covered[k] = true;
-                            if let Some(q) = points[k] {
-                                let at = pa.patch.at(i, j);
-                                assert!(
-                                    (q[0] as f64 - at[0]).abs() < 1e-6
-                                        && (q[1] as f64 - at[1]).abs() < 1e-6
-                                );
-                            }
-                        }
-                    }
-                }
-                // Where the reprojection is smooth at the tile's scale (and lattice cells are
-                // small beside the frame), every pixel on the asset is in one.
-                if p.epsg() == Some(32616) && z >= 12 {
-                    let loose = (0..covered.len()).filter(|&k| points[k].is_some() && !covered[k]);
-                    assert_eq!(loose.count(), 0, "z{z}: pixels decoded one by one");
-                }
-                let f = px.footprint;
-                assert!(f[0] > 0.0 && f[1] > 0.0);
-                let mut inside = 0;
-                for (k, got) in points.iter().enumerate() {
-                    let (fx, fy) = ((k % 256) as f64 + 0.5, (k / 256) as f64 + 0.5);
-                    let (plon, plat) = tile_lonlat(z, x, y, fx / 256.0, fy / 256.0);
-                    let Some(exact) = p.unit_f64(plon, plat) else {
-                        assert!(got.is_none(), "z{z} pixel {k}: far away, yet inside");
-                        continue;
-                    };
-                    let near_edge = exact
-                        .iter()
-                        .zip(f)
-                        .any(|(&t, f)| t.abs() < f as f64 || (t - 1.0).abs() < f as f64);
-                    match got {
-                        Some(g) => {
-                            inside += 1;
-                            let (du, dv) = (g[0] as f64 - exact[0], g[1] as f64 - exact[1]);
-                            // An eighth of a pixel, plus f32 rounding of unit coordinates.
-                            assert!(
-                                du.abs() <= 0.125 * f[0] as f64 + 1e-7
-                                    && dv.abs() <= 0.125 * f[1] as f64 + 1e-7,
-                                "z{z} pixel {k}: ({du}, {dv}) against footprint {f:?}"
-                            );
-                        }
-                        None => assert!(
-                            near_edge || p.unit(plon, plat).is_none(),
-                            "z{z} pixel {k} is inside"
-                        ),
-                    }
-                }
-                assert!(inside > 0, "z{z}: tile {x}/{y} misses the frame");
-            }
         }
     }
 }
