@@ -568,11 +568,6 @@ const LONG_FILES: &[(&str, usize, &str)] = &[
         "kernels apart from the walk",
     ),
     (
-        "codec/src/codecs/psa/mod.rs",
-        842,
-        "the fit and domain search apart",
-    ),
-    (
         "codec/src/mesh/mod.rs",
         979,
         "readers and writers apart from the mesh",
@@ -591,11 +586,6 @@ const LONG_FILES: &[(&str, usize, &str)] = &[
         "codec/src/encode/chunked.rs",
         1105,
         "the row pyramid and the spill apart",
-    ),
-    (
-        "codec/src/io/asset.rs",
-        1114,
-        "the mask and the volume/curve parts apart",
     ),
     (
         "codec/src/codecs/projected/mod.rs",

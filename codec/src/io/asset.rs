@@ -19,117 +19,25 @@
 //! Reading checks all of it before any decoding: a truncated, corrupt or newer file is an
 //! [`Error::asset`] naming what is wrong, never a panic.
 
-use std::io::Write;
 use std::path::Path;
 use std::sync::Arc;
 
 use fractile_proto::{AssetKind, AssetMeta};
 use serde::{Deserialize, Serialize};
 
-use super::layout::{ChunkSource, ChunkTable, FileSource, InMemory, MAGIC, is_chunked, kind_byte};
+pub use super::atomic::{temporary_owner, write_atomic, write_atomic_with};
+pub use super::container::{
+    AssetLimits, FORMAT_VERSION, OLDEST_CURVE_VERSION, OLDEST_READ_VERSION, check_magic,
+};
+use super::container::{Payload, assemble, container};
+use super::layout::{ChunkSource, ChunkTable, FileSource, InMemory, is_chunked};
+pub use super::mask::Mask;
 use crate::Error;
 use crate::codecs::plane::{Build, PlaneCodec};
-use crate::codecs::projected::{ProjectedHeader, ProjectedOperator};
 use crate::codecs::quadtree::stream::PlaneHeader;
 use crate::codecs::registry::{self, Registered, Visit};
 pub use crate::codecs::registry::{Codec, Coding, PlaneOperator};
-use crate::core::entropy::{Bit, Decoder, Encoder};
 use crate::core::fidelity::SourceError;
-
-/// The format version this build writes. Versions 2 to 4 changed only the curve payload
-/// (codec 5; version 3: hexagonal lattice for details, shared coarse contexts, an `f32`
-/// tolerance and one stored bound, no length fields; version 4: a ring may carry its
-/// antimeridian crossings and start vertex, which a version-3 reader would misread as levels);
-/// the other payloads are the same in all four, so version-1 to -3 files of codecs 1-4 are
-/// still read, version-3 curve assets too (they hold neither), and an older curve asset is
-/// refused by name (re-encode its GeoJSON).
-pub const FORMAT_VERSION: u16 = 5;
-/// The oldest format version this build reads (codecs 1-4 only).
-pub const OLDEST_READ_VERSION: u16 = 1;
-/// The oldest format version of curve assets this build reads.
-pub const OLDEST_CURVE_VERSION: u16 = 3;
-
-/// What a reader lets one asset file cost before it allocates anything: sizes the file claims
-/// are checked against these (and against what its bytes can hold) first, so that a small
-/// hostile file cannot make a reader allocate gigabytes or decode for minutes.
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
-pub struct AssetLimits {
-    /// Most samples of the source grid (width x height; voxels of a volume; vertices of curves).
-    pub max_pixels: u64,
-    /// Most bytes that decoding the asset may take: its operators and mask, resident while it
-    /// is served, plus one full-resolution discrete decode (what `fractile decode` and a
-    /// server's coarse tiles run), estimated from the headers before anything is decoded.
-    pub max_decode_bytes: u64,
-}
-
-impl Default for AssetLimits {
-    /// 2^28 samples (16384 x 16384) and 3 GiB: every asset of the demo and the benches, and a
-    /// 16384^2 DEM, fit; anything larger is the chunked assets' job.
-    fn default() -> Self {
-        AssetLimits {
-            max_pixels: 1 << 28,
-            max_decode_bytes: 3 << 30,
-        }
-    }
-}
-
-impl AssetLimits {
-    /// Checks the grid a file claims.
-    pub(crate) fn check_pixels(&self, what: &str, pixels: u64) -> Result<(), Error> {
-        if pixels > self.max_pixels {
-            return Err(Error::asset(format!(
-                "{what} of {pixels} samples is over this reader's limit of {} (max_asset_pixels)",
-                self.max_pixels
-            )));
-        }
-        Ok(())
-    }
-
-    /// Checks the estimated cost of decoding.
-    fn check_cost(&self, bytes: u64) -> Result<(), Error> {
-        if bytes > self.max_decode_bytes {
-            return Err(Error::asset(format!(
-                "decoding it would take about {} MiB, over this reader's limit of {} MiB (max_decode_mib)",
-                bytes >> 20,
-                self.max_decode_bytes >> 20
-            )));
-        }
-        Ok(())
-    }
-}
-
-/// Whether a file's first bytes (8 or more) are an asset's, before the rest is read: the
-/// error says what the file is instead (see [`Asset::from_bytes`]).
-pub fn check_magic(head: &[u8]) -> Result<(), Error> {
-    if head.len() >= 8 && &head[..8] == MAGIC {
-        Ok(())
-    } else {
-        Err(Error::asset(not_an_asset(head)))
-    }
-}
-
-/// What a file that does not start with an asset's magic is, and what to do with it: rasters
-/// and meshes are the encoder's input, and uploading one is a common first mistake.
-fn not_an_asset(bytes: &[u8]) -> String {
-    let kind = if bytes.starts_with(b"II*\0") || bytes.starts_with(b"MM\0*") {
-        Some("a TIFF (GeoTIFF) raster")
-    } else if bytes.starts_with(b"\x89PNG") {
-        Some("a PNG image")
-    } else if bytes.starts_with(&[0xFF, 0xD8, 0xFF]) {
-        Some("a JPEG image")
-    } else if bytes.starts_with(b"OFF") || bytes.starts_with(b"ply") || bytes.starts_with(b"solid")
-    {
-        Some("a mesh")
-    } else {
-        None
-    };
-    match kind {
-        Some(k) => format!(
-            "not a fractile asset (bad magic): this is {k}; encode it with `fractile encode` first"
-        ),
-        None => "not a fractile asset (bad magic): assets are what `fractile encode` writes".into(),
-    }
-}
 
 /// A coded plane: how it is coded and the operator decoded from that.
 #[derive(Clone, Debug)]
@@ -157,148 +65,6 @@ impl Plane {
             _ => None,
         }
     }
-}
-
-/// Which source cells held data (height fields with nodata).
-#[derive(Clone, Debug, PartialEq)]
-pub struct Mask {
-    width: usize,
-    height: usize,
-    valid: Vec<bool>,
-    /// Summed-area table over blocks of `BLOCK x BLOCK` cells of "holds a nodata cell", so
-    /// that a tile whose footprint has none skips the per-pixel lookups in O(1) (they were a
-    /// tenth of a reprojected tile's time); 4 bytes per block.
-    gaps: Vec<u32>,
-}
-
-/// Side of a block of [`Mask`]'s summary, in cells.
-const BLOCK: usize = 16;
-
-impl Mask {
-    /// The mask of a `width x height` grid from its row-major validity.
-    pub fn new(width: usize, height: usize, valid: Vec<bool>) -> Mask {
-        assert_eq!(valid.len(), width * height, "a validity per cell");
-        let (bw, bh) = (width.div_ceil(BLOCK), height.div_ceil(BLOCK));
-        let mut gap = vec![0u32; bw * bh];
-        for (i, &ok) in valid.iter().enumerate() {
-            if !ok {
-                gap[(i / width / BLOCK) * bw + (i % width) / BLOCK] = 1;
-            }
-        }
-        let mut gaps = vec![0u32; (bw + 1) * (bh + 1)];
-        for by in 0..bh {
-            for bx in 0..bw {
-                gaps[(by + 1) * (bw + 1) + bx + 1] = gap[by * bw + bx]
-                    + gaps[by * (bw + 1) + bx + 1]
-                    + gaps[(by + 1) * (bw + 1) + bx]
-                    - gaps[by * (bw + 1) + bx];
-            }
-        }
-        Mask {
-            width,
-            height,
-            valid,
-            gaps,
-        }
-    }
-
-    /// Width of the source grid.
-    pub fn width(&self) -> usize {
-        self.width
-    }
-
-    /// Height of the source grid.
-    pub fn height(&self) -> usize {
-        self.height
-    }
-
-    /// Row-major validity of the source cells.
-    pub fn valid(&self) -> &[bool] {
-        &self.valid
-    }
-
-    /// The source cell (column, row) under unit point (u, v): monotonic in each coordinate.
-    fn cell(&self, u: f32, v: f32) -> (usize, usize) {
-        (
-            ((u * self.width as f32) as usize).min(self.width - 1),
-            ((v * self.height as f32) as usize).min(self.height - 1),
-        )
-    }
-
-    /// Validity of the source cell under unit point (u, v).
-    pub fn at(&self, u: f32, v: f32) -> bool {
-        let (x, y) = self.cell(u, v);
-        self.valid[y * self.width + x]
-    }
-
-    /// Whether every point of the unit box `[u0, u1] x [v0, v1]` is known valid (`at` is true
-    /// there: a point maps to a cell between those of the box's corners). Conservative: true
-    /// when no nodata cell lies in the blocks of `BLOCK x BLOCK` cells under the box.
-    pub fn all_valid(&self, [u0, v0, u1, v1]: [f32; 4]) -> bool {
-        let ((x0, y0), (x1, y1)) = (self.cell(u0, v0), self.cell(u1, v1));
-        let (bx0, by0, bx1, by1) = (x0 / BLOCK, y0 / BLOCK, x1 / BLOCK + 1, y1 / BLOCK + 1);
-        if bx1 <= bx0 || by1 <= by0 {
-            return false; // a box given backwards: no claim
-        }
-        let row = self.width.div_ceil(BLOCK) + 1;
-        let at = |bx: usize, by: usize| self.gaps[by * row + bx];
-        at(bx1, by1) + at(bx0, by0) == at(bx0, by1) + at(bx1, by0)
-    }
-
-    fn encode(&self) -> Vec<u8> {
-        // Context: the left and upper neighbours; runs of nodata cost almost nothing.
-        let mut enc = Encoder::new();
-        let mut ctx = [Bit::default(); 4];
-        for y in 0..self.height {
-            for x in 0..self.width {
-                let c = context(&self.valid, self.width, x, y);
-                enc.bit(&mut ctx[c], self.valid[y * self.width + x]);
-            }
-        }
-        enc.finish()
-    }
-
-    fn decode(width: usize, height: usize, bytes: &[u8]) -> Result<Mask, Error> {
-        // A decision per cell: a mask larger than its stream can hold is refused unallocated.
-        if (width as u64) * (height as u64) > crate::core::entropy::most_decisions(bytes.len()) {
-            return Err(Error::asset(format!(
-                "a nodata mask of {width}x{height} needs more than its {} bytes",
-                bytes.len()
-            )));
-        }
-        let mut valid = vec![false; width * height];
-        let mut dec = Decoder::new(bytes);
-        let mut ctx = [Bit::default(); 4];
-        for y in 0..height {
-            for x in 0..width {
-                let c = context(&valid, width, x, y);
-                valid[y * width + x] = dec.bit(&mut ctx[c]);
-            }
-            if dec.overrun() {
-                break;
-            }
-        }
-        if dec.overrun() {
-            return Err(Error::asset("the nodata mask is truncated"));
-        }
-        Ok(Mask::new(width, height, valid))
-    }
-}
-
-/// The coding context of cell (x, y): validity of its left and upper neighbours.
-fn context(valid: &[bool], width: usize, x: usize, y: usize) -> usize {
-    let left = x > 0 && valid[y * width + x - 1];
-    let up = y > 0 && valid[(y - 1) * width + x];
-    usize::from(left) | usize::from(up) << 1
-}
-
-/// The payload of a plane codec: its planes (header and stream) and the mask. One generic
-/// struct for every codec: bincode writes a struct as its fields, so every codec's payload
-/// has this layout.
-#[derive(Serialize, Deserialize)]
-struct Payload<H> {
-    planes: Vec<(H, Vec<u8>)>,
-    mask: Option<Vec<u8>>,
 }
 
 #[derive(Serialize, Deserialize)]
@@ -534,7 +300,7 @@ impl Asset {
             .map_or("quadtree-pifs", |p| p.coding.name())
     }
 
-    fn check(&self) -> Result<(), Error> {
+    pub(crate) fn check(&self) -> Result<(), Error> {
         let m = &self.meta;
         if (m.kind == AssetKind::Volume) != self.volume.is_some() {
             return Err(Error::asset(
@@ -623,97 +389,6 @@ impl Asset {
         Asset::from_bytes_limited(bytes, &AssetLimits::default())
     }
 
-    /// The container's frame: magic, version, checksum, codec, metadata (checked against the
-    /// kind byte and the size limits of a grid) and the codec's payload.
-    fn container(bytes: &[u8]) -> Result<Container<'_>, Error> {
-        let bad = |m: String| Error::asset(m);
-        if bytes.len() < 24 {
-            return Err(bad(format!(
-                "{} bytes is too short for an asset",
-                bytes.len()
-            )));
-        }
-        if &bytes[..8] != MAGIC {
-            return Err(bad(not_an_asset(bytes)));
-        }
-        let version = u16::from_le_bytes([bytes[8], bytes[9]]);
-        if !(OLDEST_READ_VERSION..=FORMAT_VERSION).contains(&version) {
-            return Err(bad(format!(
-                "format version {version} is not supported by this build (reads versions {OLDEST_READ_VERSION} to {FORMAT_VERSION})"
-            )));
-        }
-        let body = bytes.len() - 4;
-        let crc = u32::from_le_bytes(bytes[body..].try_into().expect("4 bytes"));
-        if crc32fast::hash(&bytes[..body]) != crc {
-            return Err(bad(
-                "checksum mismatch: the file is corrupt or truncated".into()
-            ));
-        }
-        let (kind, codec) = (bytes[10], bytes[11]);
-        if Codec::from_byte(codec).is_none() {
-            let mut known: Vec<Codec> = Codec::ALL.to_vec();
-            known.sort_by_key(|c| c.byte());
-            let known: Vec<String> = known
-                .iter()
-                .map(|c| format!("{} {}", c.byte(), c.label()))
-                .collect();
-            return Err(bad(format!(
-                "unknown codec {codec} (this build reads {})",
-                known.join(", ")
-            )));
-        }
-        if codec == Codec::Curve.byte() && version < OLDEST_CURVE_VERSION {
-            return Err(bad(format!(
-                "a curve asset of format version {version} is not read by this build (its curve coding changed in version {OLDEST_CURVE_VERSION}): encode the source again"
-            )));
-        }
-        let read_len = |at: usize| -> Result<usize, Error> {
-            let b = bytes
-                .get(at..at + 4)
-                .ok_or_else(|| bad("truncated length field".into()))?;
-            Ok(u32::from_le_bytes(b.try_into().expect("4 bytes")) as usize)
-        };
-        let m_len = read_len(12)?;
-        let meta_bytes = bytes
-            .get(16..16 + m_len)
-            .ok_or_else(|| bad("truncated metadata".into()))?;
-        let p_len = read_len(16 + m_len)?;
-        let p_start = 20 + m_len;
-        let p_end = p_start
-            .checked_add(p_len)
-            .filter(|&e| e <= body)
-            .ok_or_else(|| bad("payload length does not match the file size".into()))?;
-        // Version 5 on: the source-error map after the payload.
-        let section = if version >= 5 {
-            let s_len = read_len(p_end)?;
-            bytes
-                .get(p_end + 4..p_end + 4 + s_len)
-                .filter(|_| p_end + 4 + s_len == body)
-                .ok_or_else(|| bad("source-error map length does not match the file size".into()))?
-        } else if p_end == body {
-            &[][..]
-        } else {
-            return Err(bad("payload length does not match the file size".into()));
-        };
-        let meta: AssetMeta = fractile_proto::decode(meta_bytes).map_err(|e| bad(e.to_string()))?;
-        if kind_byte(meta.kind) != kind {
-            return Err(bad("kind byte and metadata disagree".into()));
-        }
-        // Curves count vertices in `width` (one row); grids are at most 2^16 a side.
-        let max_width = if meta.kind == AssetKind::Curve {
-            1 << 26
-        } else {
-            1 << 16
-        };
-        if meta.width == 0 || meta.height == 0 || meta.width > max_width || meta.height > 1 << 16 {
-            return Err(bad(format!(
-                "bad size {}x{} in the metadata",
-                meta.width, meta.height
-            )));
-        }
-        Ok((codec, meta, &bytes[p_start..p_end], section))
-    }
-
     /// Parses and checks a file's bytes; the sizes it claims are checked against `limits` and
     /// against what its streams can hold before anything is allocated for them.
     pub fn from_bytes_limited(bytes: &[u8], limits: &AssetLimits) -> Result<Asset, Error> {
@@ -730,7 +405,7 @@ impl Asset {
             let source = InMemory(bytes.into());
             return Asset::open_chunked(Box::new(source), limits, ChunkCache::shared());
         }
-        let (codec, meta, payload, section) = Asset::container(bytes)?;
+        let (codec, meta, payload, section) = container(bytes)?;
         let (w, h) = (meta.width as usize, meta.height as usize);
         let span = (meta.value_max - meta.value_min) as f32;
         let mut asset = Asset::from_payload(codec, meta, payload, limits, build)?;
@@ -789,79 +464,6 @@ impl Asset {
             build,
         };
         registry::visit(codec, read).ok_or_else(|| bad(format!("codec {codec:?} has no planes")))?
-    }
-
-    /// The coarse view at `depth` of a chunk's file (a single-plane projected height field):
-    /// its multiresolution's coarse samples ([`crate::codecs::projected::decode_coarse`]) as
-    /// an asset of `ceil(w / 2^depth) x ceil(h / 2^depth)` cells, its mask valid where any of
-    /// a cell's `2^depth x 2^depth` source cells is (as the box means of overviews are). No
-    /// source-error map: a chunked file keeps the view's in its table.
-    pub(crate) fn coarse_view(
-        bytes: &[u8],
-        limits: &AssetLimits,
-        depth: u32,
-        build: Build,
-    ) -> Result<Asset, Error> {
-        let (codec, meta, payload, _) = Asset::container(bytes)?;
-        if codec != Codec::Projected.byte() || meta.kind != AssetKind::HeightField {
-            return Err(Error::asset(
-                "a coarse view of a chunk that is no projected height field",
-            ));
-        }
-        let p: Payload<ProjectedHeader> =
-            fractile_proto::decode(payload).map_err(|e| Error::asset(e.to_string()))?;
-        let [(header, stream)] = <[_; 1]>::try_from(p.planes)
-            .map_err(|_| Error::asset("a coarse view of a chunk of several planes"))?;
-        header.validate().map_err(Error::asset)?;
-        if header.samples != [meta.width, meta.height] {
-            return Err(Error::asset("sample grid and metadata disagree"));
-        }
-        let (w, h) = (meta.width as usize, meta.height as usize);
-        limits.check_pixels("a grid", (w * h) as u64)?;
-        // The source grid as f64 while decoding (the finest band is never read), then the
-        // view's samples.
-        limits.check_cost((w * h) as u64 * 8 + ((w * h) >> (2 * depth)) as u64 * 48)?;
-        let (view, grid, _) = crate::codecs::projected::decode_coarse(&header, &stream, depth)
-            .map_err(|e| Error::asset(format!("coarse view: {e}")))?;
-        let [cw, ch] = [view.samples[0] as usize, view.samples[1] as usize];
-        let mask = p
-            .mask
-            .map(|m| Mask::decode(w, h, &m))
-            .transpose()?
-            .map(|m| {
-                let s = 1usize << depth;
-                let mut valid = vec![false; cw * ch];
-                for (i, _) in m.valid().iter().enumerate().filter(|(_, v)| **v) {
-                    valid[(i / w / s) * cw + (i % w) / s] = true;
-                }
-                Mask::new(cw, ch, valid)
-            });
-        let operator = match build {
-            Build::Whole => ProjectedOperator::new(&view, &grid),
-            Build::Lazy => ProjectedOperator::lazy(&view, grid),
-        }
-        .map_err(Error::asset)?;
-        let asset = Asset {
-            meta: AssetMeta {
-                width: cw as u32,
-                height: ch as u32,
-                ..meta
-            },
-            planes: vec![Plane {
-                coding: Coding::Projected {
-                    header: view,
-                    stream: Vec::new(),
-                },
-                operator: PlaneOperator::Projected(operator),
-            }],
-            mask,
-            volume: None,
-            curve: None,
-            source_error: None,
-            chunks: None,
-        };
-        asset.check()?;
-        Ok(asset)
     }
 
     /// A chunked container from `source`: its header is read now, its chunks when answers
@@ -930,9 +532,6 @@ impl Asset {
     }
 }
 
-/// A file's frame, read: codec byte, metadata, payload and source-error map bytes.
-type Container<'a> = (u8, AssetMeta, &'a [u8], &'a [u8]);
-
 /// Reads the planes of a plane codec's payload: headers checked and the cost estimated
 /// before anything is decoded, then every stream decoded.
 struct ReadPayload<'a> {
@@ -994,121 +593,5 @@ impl Visit for WritePayload<'_> {
                 .collect(),
             mask: self.mask,
         })
-    }
-}
-
-fn assemble(meta: &AssetMeta, codec: u8, payload: &[u8], section: &[u8]) -> Vec<u8> {
-    let meta_bytes = fractile_proto::encode(meta);
-    let mut out = Vec::with_capacity(28 + meta_bytes.len() + payload.len() + section.len());
-    out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-    out.push(kind_byte(meta.kind));
-    out.push(codec);
-    out.extend_from_slice(&(meta_bytes.len() as u32).to_le_bytes());
-    out.extend_from_slice(&meta_bytes);
-    out.extend_from_slice(&(payload.len() as u32).to_le_bytes());
-    out.extend_from_slice(payload);
-    out.extend_from_slice(&(section.len() as u32).to_le_bytes());
-    out.extend_from_slice(section);
-    let crc = crc32fast::hash(&out);
-    out.extend_from_slice(&crc.to_le_bytes());
-    out
-}
-
-/// What names a temporary file of [`write_atomic`]: `.{name}.tmp-{pid}-{n}`.
-const TEMPORARY: &str = ".tmp-";
-
-/// The process that writes the temporary file named `name`, if `name` is one of
-/// [`write_atomic`]'s (so that a reader of the folder can remove those a crash left behind).
-pub fn temporary_owner(name: &str) -> Option<u32> {
-    let rest = name.strip_prefix('.')?;
-    let (_, tail) = rest.rsplit_once(TEMPORARY)?;
-    let (pid, n) = tail.split_once('-')?;
-    n.parse::<u64>().ok()?;
-    pid.parse().ok()
-}
-
-/// Writes bytes to `path` atomically (temporary file in the same directory, fsync, rename).
-pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<(), Error> {
-    write_atomic_with(path, &mut |f| f.write_all(bytes))
-}
-
-/// Writes to `path` atomically what `write` writes into the temporary file (a file too large
-/// to hold in memory is written in parts): the temporary file is synced, then renamed over
-/// `path`, or removed if `write` fails.
-pub fn write_atomic_with(
-    path: &Path,
-    write: &mut dyn FnMut(&mut std::fs::File) -> std::io::Result<()>,
-) -> Result<(), Error> {
-    let err = |e: std::io::Error| {
-        Error::output(format!("{}: {e}", path.display()))
-            .at(path)
-            .caused_by(e)
-    };
-    let dir = path
-        .parent()
-        .filter(|p| !p.as_os_str().is_empty())
-        .unwrap_or(Path::new("."));
-    let name = path
-        .file_name()
-        .ok_or_else(|| Error::output(format!("{}: not a file path", path.display())))?;
-    // A name of its own per write (process and a counter): concurrent writers of one path
-    // each rename a whole file, and never write into another's.
-    static WRITES: std::sync::atomic::AtomicU64 = std::sync::atomic::AtomicU64::new(0);
-    let n = WRITES.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
-    let tmp = dir.join(format!(
-        ".{}{TEMPORARY}{}-{n}",
-        name.to_string_lossy(),
-        std::process::id()
-    ));
-    let result = (|| {
-        let mut f = std::fs::File::create(&tmp)?;
-        write(&mut f)?;
-        f.sync_all()?;
-        std::fs::rename(&tmp, path)
-    })();
-    if result.is_err() {
-        let _ = std::fs::remove_file(&tmp);
-    }
-    result.map_err(err)
-}
-
-#[cfg(test)]
-mod tests {
-    use super::Mask;
-    use proptest::prelude::*;
-
-    proptest! {
-        /// The block summary answers what looking at every cell under the box answers.
-        #[test]
-        fn mask_summary_agrees_with_the_cells(
-            w in 1usize..80,
-            h in 1usize..80,
-            holes in proptest::collection::vec((0usize..80, 0usize..80), 0..4),
-            b in (-0.1f32..1.1, -0.1f32..1.1, 0.0f32..0.6, 0.0f32..0.6),
-        ) {
-            let mut valid = vec![true; w * h];
-            for (x, y) in holes {
-                valid[(y % h) * w + x % w] = false;
-            }
-            let m = Mask::new(w, h, valid);
-            let bx = [b.0, b.1, b.0 + b.2, b.1 + b.3];
-            let ((x0, y0), (x1, y1)) = (m.cell(bx[0], bx[1]), m.cell(bx[2], bx[3]));
-            let cells_valid = (y0..=y1).all(|y| (x0..=x1).all(|x| m.valid[y * w + x]));
-            // The blocks under the box, cell by cell.
-            let (bx0, by0) = (x0 / super::BLOCK * super::BLOCK, y0 / super::BLOCK * super::BLOCK);
-            let (bx1, by1) = (((x1 / super::BLOCK + 1) * super::BLOCK).min(w), ((y1 / super::BLOCK + 1) * super::BLOCK).min(h));
-            let blocks_valid = (by0..by1).all(|y| (bx0..bx1).all(|x| m.valid[y * w + x]));
-            let got = m.all_valid(bx);
-            prop_assert_eq!(got, blocks_valid);
-            prop_assert!(!got || cells_valid);
-            // And every point of the box is then valid.
-            if got {
-                for k in 0..=16 {
-                    let t = k as f32 / 16.0;
-                    prop_assert!(m.at(bx[0] + t * b.2, bx[1] + (1.0 - t) * b.3));
-                }
-            }
-        }
     }
 }

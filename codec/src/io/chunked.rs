@@ -30,12 +30,17 @@
 use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 
-use fractile_proto::AssetMeta;
+use fractile_proto::{AssetKind, AssetMeta};
 
-use super::asset::{Asset, AssetLimits};
+use super::asset::{Asset, AssetLimits, Plane};
 pub use super::asset::{ChunkCache, Chunked};
+use super::container::{Payload, container};
 pub use super::layout::*;
+use super::mask::Mask;
 use crate::Error;
+use crate::codecs::plane::Build;
+use crate::codecs::projected::{ProjectedHeader, ProjectedOperator};
+use crate::codecs::registry::{Codec, Coding, PlaneOperator};
 
 impl ChunkCache {
     /// A cache of at most `bytes` of decoded chunks.
@@ -401,5 +406,80 @@ impl Chunked {
         self.source
             .read(0, self.source.len() as usize)
             .map_err(|e| Error::asset(format!("{}: {e}", self.source.describe())))
+    }
+}
+
+impl Asset {
+    /// The coarse view at `depth` of a chunk's file (a single-plane projected height field):
+    /// its multiresolution's coarse samples ([`crate::codecs::projected::decode_coarse`]) as
+    /// an asset of `ceil(w / 2^depth) x ceil(h / 2^depth)` cells, its mask valid where any of
+    /// a cell's `2^depth x 2^depth` source cells is (as the box means of overviews are). No
+    /// source-error map: a chunked file keeps the view's in its table.
+    pub(crate) fn coarse_view(
+        bytes: &[u8],
+        limits: &AssetLimits,
+        depth: u32,
+        build: Build,
+    ) -> Result<Asset, Error> {
+        let (codec, meta, payload, _) = container(bytes)?;
+        if codec != Codec::Projected.byte() || meta.kind != AssetKind::HeightField {
+            return Err(Error::asset(
+                "a coarse view of a chunk that is no projected height field",
+            ));
+        }
+        let p: Payload<ProjectedHeader> =
+            fractile_proto::decode(payload).map_err(|e| Error::asset(e.to_string()))?;
+        let [(header, stream)] = <[_; 1]>::try_from(p.planes)
+            .map_err(|_| Error::asset("a coarse view of a chunk of several planes"))?;
+        header.validate().map_err(Error::asset)?;
+        if header.samples != [meta.width, meta.height] {
+            return Err(Error::asset("sample grid and metadata disagree"));
+        }
+        let (w, h) = (meta.width as usize, meta.height as usize);
+        limits.check_pixels("a grid", (w * h) as u64)?;
+        // The source grid as f64 while decoding (the finest band is never read), then the
+        // view's samples.
+        limits.check_cost((w * h) as u64 * 8 + ((w * h) >> (2 * depth)) as u64 * 48)?;
+        let (view, grid, _) = crate::codecs::projected::decode_coarse(&header, &stream, depth)
+            .map_err(|e| Error::asset(format!("coarse view: {e}")))?;
+        let [cw, ch] = [view.samples[0] as usize, view.samples[1] as usize];
+        let mask = p
+            .mask
+            .map(|m| Mask::decode(w, h, &m))
+            .transpose()?
+            .map(|m| {
+                let s = 1usize << depth;
+                let mut valid = vec![false; cw * ch];
+                for (i, _) in m.valid().iter().enumerate().filter(|(_, v)| **v) {
+                    valid[(i / w / s) * cw + (i % w) / s] = true;
+                }
+                Mask::new(cw, ch, valid)
+            });
+        let operator = match build {
+            Build::Whole => ProjectedOperator::new(&view, &grid),
+            Build::Lazy => ProjectedOperator::lazy(&view, grid),
+        }
+        .map_err(Error::asset)?;
+        let asset = Asset {
+            meta: AssetMeta {
+                width: cw as u32,
+                height: ch as u32,
+                ..meta
+            },
+            planes: vec![Plane {
+                coding: Coding::Projected {
+                    header: view,
+                    stream: Vec::new(),
+                },
+                operator: PlaneOperator::Projected(operator),
+            }],
+            mask,
+            volume: None,
+            curve: None,
+            source_error: None,
+            chunks: None,
+        };
+        asset.check()?;
+        Ok(asset)
     }
 }

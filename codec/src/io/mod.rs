@@ -3,8 +3,11 @@
 //! works on, are [`crate::mesh`].)
 
 pub mod asset;
+mod atomic;
 pub mod chunked;
+mod container;
 mod layout;
+mod mask;
 pub mod mosaic;
 pub mod raster;
 pub mod rows;

@@ -2,7 +2,8 @@
 //! its domain search and fit.
 
 use crate::Error;
-use crate::codecs::psa::{PsaHeader, PsaSettings, codec_name, encode_params, fit};
+use crate::codecs::psa::fit::fit;
+use crate::codecs::psa::{PsaHeader, PsaSettings, codec_name, encode_params};
 use crate::encode::lattice::{Lattice, encode_lattice};
 use crate::encode::source::{Encoded, PlaneEncoder};
 use crate::io::asset::Asset;
