@@ -568,19 +568,9 @@ const LONG_FILES: &[(&str, usize, &str)] = &[
         "kernels apart from the walk",
     ),
     (
-        "codec/src/mesh/mod.rs",
-        979,
-        "readers and writers apart from the mesh",
-    ),
-    (
         "codec/src/codecs/quadtree/search.rs",
         985,
         "domain pools apart from the searches",
-    ),
-    (
-        "codec/src/codecs/ifs3d/octree.rs",
-        1037,
-        "encoder and stream apart from the operator",
     ),
     (
         "codec/src/encode/chunked.rs",

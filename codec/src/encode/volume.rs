@@ -4,7 +4,7 @@
 use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
 
 use crate::Error;
-use crate::codecs::ifs3d::octree::VolumeSettings;
+use crate::codecs::ifs3d::fit::VolumeSettings;
 use crate::codecs::ifs3d::sdf::DistanceField;
 use crate::codecs::ifs3d::volume::Placement;
 use crate::core::decode::{self, DiscreteOptions};
@@ -71,7 +71,7 @@ pub fn encode_mesh(mesh: &Mesh, s: &MeshSettings, source: &str) -> Result<Encode
     let field_seconds = start.elapsed().as_secs_f64();
     let n = field.size;
     let (header, stream, operator) =
-        crate::codecs::ifs3d::octree::encode_field(&field.normalised(), n, &s.codec)
+        crate::codecs::ifs3d::fit::encode_field(&field.normalised(), n, &s.codec)
             .map_err(Error::settings)?;
     let transforms = operator.leaves().len();
     // Measure what a reader decodes: the native grid, discrete, as the encoder fitted it.

@@ -2,6 +2,7 @@
 //! ([`octree`]); surfaces come back by marching cubes ([`isosurface`]); [`volume`] holds the
 //! decoded volume's placement in the world.
 
+pub mod fit;
 pub mod isosurface;
 pub mod octree;
 pub mod sdf;
