@@ -558,11 +558,6 @@ fn the_checker_sees_circles_written_every_way_a_path_can_be() {
 /// splits. Issue 57 split the others; these are the codec's largest concepts.
 const LONG_FILES: &[(&str, usize, &str)] = &[
     (
-        "codec/src/codecs/curve/model.rs",
-        815,
-        "rings and Hausdorff distances apart",
-    ),
-    (
         "codec/src/codecs/projected/lifting.rs",
         825,
         "kernels apart from the walk",

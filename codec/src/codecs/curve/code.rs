@@ -24,10 +24,9 @@
 //! Symbols go through the adaptive binary range coder of [`crate::core::entropy`], with
 //! fast-learning contexts ([`crate::core::entropy::CountedBit`]) by level counted from the finest.
 
-use super::model::{
-    CurveSet, Frame, Metric, Prepared, Pt, Ring, Scheme, SeamCrossing, point_segment_scaled,
-    span_deviation,
-};
+use super::distance::{Metric, Pt, point_segment_scaled, span_deviation};
+use super::model::{CurveSet, Frame, Ring, Scheme, SeamCrossing};
+use super::prepare::Prepared;
 use crate::core::entropy::{BitTree, CountedBit as Bit, Decoder, Dir, Encoder, Model};
 
 /// What the stream needs to be read: the scheme and the shape of every ring. Stored in the
@@ -322,7 +321,7 @@ impl CurveHeader {
         }
         let mut total = 0u64;
         for (i, r) in self.rings.iter().enumerate() {
-            if r.pieces == 0 || r.levels as usize > super::model::MAX_LEVELS {
+            if r.pieces == 0 || r.levels as usize > super::prepare::MAX_LEVELS {
                 return Err(format!(
                     "ring {i}: {} pieces, {} levels",
                     r.pieces, r.levels

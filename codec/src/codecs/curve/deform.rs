@@ -1,7 +1,8 @@
 //! Deforming a curve through its model (what the paper is for): move control points, reshape
 //! the details, or edit one level locally. Each works on a copy of the [`CurveSet`].
 
-use super::model::{CurveSet, Pt, Ring};
+use super::distance::Pt;
+use super::model::{CurveSet, Ring};
 use fractile_proto::Deformation;
 use nalgebra::{DMatrix, Matrix2, Vector2};
 

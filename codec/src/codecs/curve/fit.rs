@@ -14,7 +14,8 @@
 //! The solver is the `levenberg-marquardt` crate (MINPACK's algorithm); the Jacobians are
 //! central differences: 4 and 8 parameters against tens of thousands of residuals.
 
-use super::model::{MAX_DETAIL_GAIN, Prepared, Ring, Scheme};
+use super::model::{MAX_DETAIL_GAIN, Ring, Scheme};
+use super::prepare::Prepared;
 use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 

@@ -6,7 +6,8 @@
 //! Altitudes are dropped (curves are 2D); other properties are not kept (the asset stores
 //! geometry only). Output is one Feature per polyline, in the same order.
 
-use super::model::{CurveLevel, Pt};
+use super::distance::Pt;
+use super::model::CurveLevel;
 use geojson::{GeoJson, Geometry, GeometryValue};
 
 /// One input polyline.

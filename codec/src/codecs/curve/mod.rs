@@ -35,13 +35,17 @@
 
 pub mod code;
 pub mod deform;
+mod distance;
 pub mod fit;
 pub mod geojson;
 mod model;
+mod prepare;
 
 // The model (points, schemes, rings, levels, distances) is the codec's vocabulary: its
 // parts (`code`, `fit`, `geojson`, `deform`) import it from `model`; users find it here.
+pub use distance::*;
 pub use model::*;
+pub use prepare::*;
 
 use rayon::prelude::*;
 

@@ -1,64 +1,9 @@
 //! The curve model: points and metrics, the subdivision scheme, rings and their levels, a
-//! prepared polyline, a set of curves by level, and the distances between polylines (see the
-//! parent module for the model's maths).
+//! prepared polyline, a set of curves by level (see the parent module for the model's maths).
 
 use serde::{Deserialize, Serialize};
 
-/// A point of the plane (x, y), or (longitude, latitude) in degrees.
-pub type Pt = [f64; 2];
-
-/// How distances (the tolerance, the error bounds) are measured.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Metric {
-    /// Euclidean in the curve's own units.
-    Plane,
-    /// Longitude and latitude in degrees; distances in degrees of arc (one degree is 111.195
-    /// km), with longitude differences shrunk by the cosine of the latitude. GeoJSON is
-    /// always this (RFC 7946): a tolerance of 0.009° then means about 1 km everywhere, not 1 km
-    /// at the equator and 330 m at 70°N.
-    Sphere,
-}
-
-/// Metres in one degree of arc on the mean Earth sphere (radius 6,371,008.8 m).
-pub const METRES_PER_DEGREE: f64 = 6_371_008.8 * std::f64::consts::PI / 180.0;
-
-impl Metric {
-    /// How much one unit of x is worth at latitude `y`, relative to a unit of y.
-    pub fn x_scale(self, y: f64) -> f64 {
-        match self {
-            Metric::Plane => 1.0,
-            // Clamped so that points at the poles (Antarctica's outline runs along -90°) keep a
-            // finite quantiser step.
-            Metric::Sphere => y.to_radians().cos().abs().max(1.0 / 64.0),
-        }
-    }
-
-    /// Distance from `p` to the segment `[a, b]`, in the metric's units, measured in the plane
-    /// tangent at `p` (exact for Plane, accurate to well under 0.1% for the short distances the
-    /// bounds care about on the sphere).
-    pub fn point_segment(self, p: Pt, a: Pt, b: Pt) -> f64 {
-        point_segment_scaled(p, a, b, self.x_scale(p[1]))
-    }
-
-    /// Distance between two points.
-    pub fn distance(self, a: Pt, b: Pt) -> f64 {
-        self.point_segment(a, b, b)
-    }
-}
-
-/// [`Metric::point_segment`] with the x scale at `p` given (one cosine for many segments).
-pub(crate) fn point_segment_scaled(p: Pt, a: Pt, b: Pt, sx: f64) -> f64 {
-    let (ax, ay) = ((a[0] - p[0]) * sx, a[1] - p[1]);
-    let (bx, by) = ((b[0] - p[0]) * sx, b[1] - p[1]);
-    let (dx, dy) = (bx - ax, by - ay);
-    let len2 = dx * dx + dy * dy;
-    let t = if len2 > 0.0 {
-        (-(ax * dx + ay * dy) / len2).clamp(0.0, 1.0)
-    } else {
-        0.0
-    };
-    ((ax + t * dx).powi(2) + (ay + t * dy).powi(2)).sqrt()
-}
+use crate::codecs::curve::distance::{Metric, Pt, span_deviation};
 
 /// The subdivision scheme shared by all rings of an asset: the subdivision matrices `T_i` (as
 /// barycentric weights) and the detail matrices `U_i`.
@@ -433,107 +378,12 @@ impl Ring {
     }
 }
 
-/// Points the encoder needs: the fine polygon of an input polyline, with the number of base
-/// pieces and the indices of inserted points.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Prepared {
-    /// Closed ring or open polyline.
-    pub closed: bool,
-    /// Base pieces `K`.
-    pub pieces: usize,
-    /// `K·2^(L+1)` (+1 open) points: the input vertices in order, with points inserted on the
-    /// input's own segments.
-    pub fine: Vec<Pt>,
-    /// Indices of the inserted points in `fine`, ascending.
-    pub inserted: Vec<u32>,
-}
-
-/// Most levels a ring may have (2^25 points per base piece is far beyond any polyline).
-pub const MAX_LEVELS: usize = 24;
-
-/// Cuts a polyline into base pieces and inserts points on its longest segments until the
-/// count fits `K·2^(L+1)`. Input vertices are never moved or dropped. `points` of a ring need
-/// not repeat the first point at the end (a repeated one is removed).
-pub fn prepare(points: &[Pt], closed: bool) -> Result<Prepared, String> {
-    if let Some(p) = points
-        .iter()
-        .find(|p| !p[0].is_finite() || !p[1].is_finite())
-    {
-        return Err(format!("a vertex is not finite: {p:?}"));
-    }
-    let mut pts = points.to_vec();
-    if closed && pts.len() > 1 && pts.first() == pts.last() {
-        pts.pop();
-    }
-    let min = if closed { 3 } else { 2 };
-    if pts.len() < min {
-        return Err(format!(
-            "a {} needs at least {min} vertices, this one has {}",
-            if closed { "ring" } else { "polyline" },
-            pts.len()
-        ));
-    }
-    // Segments to fill: n for a ring, n - 1 for an open polyline. Pick the levels L and pieces K
-    // with K·2^(L+1) >= segments that cost least: an inserted point costs about one coded
-    // point (~1 byte), a base piece about two coarsely coded points (~8 bytes).
-    let segments = if closed { pts.len() } else { pts.len() - 1 };
-    let mut best = (f64::INFINITY, 0, 1);
-    for levels in 0..=MAX_LEVELS {
-        let per = 2usize << levels;
-        let pieces = segments.div_ceil(per).max(if closed { 2 } else { 1 });
-        let inserted = pieces * per - segments;
-        let cost = inserted as f64 + 8.0 * pieces as f64;
-        if cost < best.0 {
-            best = (cost, levels, pieces);
-        }
-        if per > segments {
-            break;
-        }
-    }
-    let (_, levels, pieces) = best;
-    let extra = pieces * (2 << levels) - segments;
-    // Split the longest segments: each input segment s gets k_s extra points, evenly spaced
-    // on it, chosen greedily by the length of its sub-segments (a heap of segments).
-    let seg_len = |i: usize| {
-        let (a, b) = (pts[i], pts[(i + 1) % pts.len()]);
-        ((a[0] - b[0]).powi(2) + (a[1] - b[1]).powi(2)).sqrt()
-    };
-    let mut splits = vec![0usize; segments];
-    let mut heap: std::collections::BinaryHeap<(OrdF64, usize)> =
-        (0..segments).map(|i| (OrdF64(seg_len(i)), i)).collect();
-    for _ in 0..extra {
-        let (_, i) = heap.pop().expect("segments is non-empty");
-        splits[i] += 1;
-        heap.push((OrdF64(seg_len(i) / (splits[i] + 1) as f64), i));
-    }
-    let mut fine = Vec::with_capacity(pieces * (2 << levels) + 1);
-    let mut inserted = Vec::with_capacity(extra);
-    for (i, &k) in splits.iter().enumerate() {
-        let (a, b) = (pts[i], pts[(i + 1) % pts.len()]);
-        fine.push(a);
-        for j in 1..=k {
-            let t = j as f64 / (k + 1) as f64;
-            inserted.push(fine.len() as u32);
-            fine.push([a[0] + t * (b[0] - a[0]), a[1] + t * (b[1] - a[1])]);
-        }
-    }
-    if !closed {
-        fine.push(*pts.last().expect("non-empty"));
-    }
-    Ok(Prepared {
-        closed,
-        pieces,
-        fine,
-        inserted,
-    })
-}
-
 /// How a ring's coded points relate to its input: where it crosses the antimeridian (fine
 /// indices) and the input vertex it starts at ([`Ring::start`]).
 pub type Frame = (Vec<SeamCrossing>, Option<u32>);
 
 /// The fine index of input vertex `i`: `i` plus the inserted points before it.
-fn fine_index(inserted: &[u32], i: usize) -> usize {
+pub(super) fn fine_index(inserted: &[u32], i: usize) -> usize {
     let mut f = i;
     for &k in inserted {
         if k as usize <= f {
@@ -541,36 +391,6 @@ fn fine_index(inserted: &[u32], i: usize) -> usize {
         }
     }
     f
-}
-
-/// The seam of input vertex indices as fine indices of `p` (inserted points shift them).
-pub(super) fn seam_to_fine(seam: &[SeamCrossing], p: &Prepared) -> Vec<SeamCrossing> {
-    seam.iter()
-        .map(|c| SeamCrossing {
-            at: fine_index(&p.inserted, c.at as usize) as u32,
-            turns: c.turns,
-        })
-        .collect()
-}
-
-/// Total order on lengths for the heap (lengths are finite: vertices were checked).
-#[derive(Clone, Copy)]
-struct OrdF64(f64);
-impl PartialEq for OrdF64 {
-    fn eq(&self, o: &Self) -> bool {
-        self.cmp(o).is_eq()
-    }
-}
-impl Eq for OrdF64 {}
-impl PartialOrd for OrdF64 {
-    fn partial_cmp(&self, o: &Self) -> Option<std::cmp::Ordering> {
-        Some(self.cmp(o))
-    }
-}
-impl Ord for OrdF64 {
-    fn cmp(&self, o: &Self) -> std::cmp::Ordering {
-        self.0.total_cmp(&o.0)
-    }
 }
 
 /// A set of rings under one scheme: what a curve asset decodes to.
@@ -672,144 +492,5 @@ impl CurveSet {
         let coarse = r.framed(&self.scheme, r.finest());
         let fine = r.framed(&self.scheme, level);
         span_deviation(self.metric, &coarse, &fine, r.closed)
-    }
-}
-
-/// Largest distance from a point of `fine` to the segment of `coarse` whose span holds it
-/// (`fine` refines `coarse` by a power of two per segment).
-pub fn span_deviation(metric: Metric, coarse: &[Pt], fine: &[Pt], closed: bool) -> f64 {
-    let segs = coarse.len() - usize::from(!closed);
-    let fsegs = fine.len() - usize::from(!closed);
-    if segs == 0 {
-        return 0.0;
-    }
-    let per = fsegs / segs;
-    let mut worst = 0.0f64;
-    for (j, &p) in fine.iter().enumerate() {
-        let s = (j / per).min(segs - 1);
-        let (a, b) = (coarse[s], coarse[(s + 1) % coarse.len()]);
-        worst = worst.max(metric.point_segment(p, a, b));
-    }
-    worst
-}
-
-/// The Hausdorff distance between two polylines, both ways, in the metric's units (for figures
-/// and tests): from every vertex and from points every `spacing` along every segment to the
-/// other polyline (exact to within `spacing / 2`, since distance to a polyline is
-/// 1-Lipschitz; `spacing = 0` measures from vertices only).
-pub fn hausdorff(metric: Metric, a: &[Pt], b: &[Pt], spacing: f64) -> f64 {
-    directed(metric, a, b, spacing).max(directed(metric, b, a, spacing))
-}
-
-fn directed(metric: Metric, from: &[Pt], to: &[Pt], spacing: f64) -> f64 {
-    if from.is_empty() || to.is_empty() {
-        return f64::INFINITY;
-    }
-    let grid = SegmentGrid::new(to);
-    let mut worst = 0.0f64;
-    for (k, &p) in from.iter().enumerate() {
-        worst = worst.max(grid.distance(metric, p));
-        let Some(&q) = from.get(k + 1) else { continue };
-        if spacing > 0.0 {
-            let n = (metric.distance(p, q) / spacing).ceil().min(1e6) as usize;
-            for j in 1..n {
-                let t = j as f64 / n as f64;
-                let s = [p[0] + t * (q[0] - p[0]), p[1] + t * (q[1] - p[1])];
-                worst = worst.max(grid.distance(metric, s));
-            }
-        }
-    }
-    worst
-}
-
-/// The segments of a polyline bucketed on a regular grid of lon/lat cells, for nearest-segment
-/// queries. Hand-written: the metric scales x by the cosine at the query point, which the
-/// spatial-index crates' fixed metrics do not express, and a grid is a dozen lines.
-pub(crate) struct SegmentGrid {
-    segs: Vec<(Pt, Pt)>,
-    origin: Pt,
-    cell: f64,
-    size: [i64; 2],
-    cells: Vec<Vec<u32>>,
-}
-
-impl SegmentGrid {
-    pub(crate) fn new(line: &[Pt]) -> Self {
-        let segs: Vec<(Pt, Pt)> = if line.len() == 1 {
-            vec![(line[0], line[0])]
-        } else {
-            line.windows(2).map(|w| (w[0], w[1])).collect()
-        };
-        let (mut lo, mut hi) = ([f64::INFINITY; 2], [f64::NEG_INFINITY; 2]);
-        let mut total = 0.0;
-        for &(a, b) in &segs {
-            for k in 0..2 {
-                lo[k] = lo[k].min(a[k]).min(b[k]);
-                hi[k] = hi[k].max(a[k]).max(b[k]);
-            }
-            total += (a[0] - b[0]).abs().max((a[1] - b[1]).abs());
-        }
-        // Cells about twice a mean segment, at most ~1M of them.
-        let span = (hi[0] - lo[0]).max(hi[1] - lo[1]).max(1e-12);
-        let cell = (2.0 * total / segs.len() as f64)
-            .max(span / 1024.0)
-            .max(1e-12);
-        let size = [
-            ((hi[0] - lo[0]) / cell) as i64 + 1,
-            ((hi[1] - lo[1]) / cell) as i64 + 1,
-        ];
-        let mut cells = vec![Vec::new(); (size[0] * size[1]) as usize];
-        for (i, &(a, b)) in segs.iter().enumerate() {
-            let c0 = |k: usize| ((a[k].min(b[k]) - lo[k]) / cell) as i64;
-            let c1 = |k: usize| (((a[k].max(b[k]) - lo[k]) / cell) as i64).min(size[k] - 1);
-            for y in c0(1)..=c1(1) {
-                for x in c0(0)..=c1(0) {
-                    cells[(y * size[0] + x) as usize].push(i as u32);
-                }
-            }
-        }
-        SegmentGrid {
-            segs,
-            origin: lo,
-            cell,
-            size,
-            cells,
-        }
-    }
-
-    /// Distance from `p` to the nearest segment: rings of cells outward from `p`'s cell until
-    /// the next ring cannot hold anything nearer (a cell `r` rings away is at least
-    /// `(r - 1)·cell` away in x or in y, and the metric scales x by at most 1).
-    pub(crate) fn distance(&self, metric: Metric, p: Pt) -> f64 {
-        let c = [0, 1].map(|k| ((p[k] - self.origin[k]) / self.cell).floor() as i64);
-        let scale = metric.x_scale(p[1]).min(1.0);
-        let reach = (0..2)
-            .map(|k| (c[k]).abs().max((c[k] - self.size[k] + 1).abs()))
-            .max()
-            .unwrap_or(0);
-        let mut best = f64::INFINITY;
-        for r in 0..=reach {
-            if best <= (r - 1) as f64 * self.cell * scale {
-                break;
-            }
-            for y in (c[1] - r)..=(c[1] + r) {
-                if y < 0 || y >= self.size[1] {
-                    continue;
-                }
-                let edge = y == c[1] - r || y == c[1] + r;
-                let mut x = c[0] - r;
-                while x <= c[0] + r {
-                    if x >= 0 && x < self.size[0] {
-                        for &i in &self.cells[(y * self.size[0] + x) as usize] {
-                            let (a, b) = self.segs[i as usize];
-                            best = best.min(metric.point_segment(p, a, b));
-                        }
-                    }
-                    // Inner rows only visit the ring's two end cells.
-                    x += if edge || r == 0 { 1 } else { 2 * r };
-                }
-            }
-        }
-        best
     }
 }
