@@ -13,8 +13,9 @@
 //! and 5 (the seams of coarse zooms read from the chunks' own coarse bands).
 
 use fractile_codec::Raster;
+use fractile_codec::codecs::projected::kernel::{Ends, Kernel};
 use fractile_codec::codecs::projected::levels_for;
-use fractile_codec::codecs::projected::lifting::{self, Ends, Kernel, Plane};
+use fractile_codec::codecs::projected::lifting::{self, Plane};
 
 /// Overview levels below the source coded in each design.
 const OVERVIEWS: usize = 3;

@@ -696,7 +696,7 @@ fn view_maps(enc: &Encoded, part: &Raster, views: usize) -> Result<Vec<Vec<u8>>,
         levels: u32::from(header.levels),
         step: header.step,
         kernel,
-        ends: lifting::Ends::Mirror,
+        ends: crate::codecs::projected::kernel::Ends::Mirror,
     };
     let limits = crate::io::asset::AssetLimits::default();
     (1..=views)
@@ -705,7 +705,7 @@ fn view_maps(enc: &Encoded, part: &Raster, views: usize) -> Result<Vec<Vec<u8>>,
                 Asset::coarse_view(&bytes, &limits, l as u32, crate::codecs::plane::Build::Lazy)?;
             let read = (l as u32).min(plane.levels);
             let band = lifting::analysis(&plane, &grid, read);
-            let gain = lifting::dc_gain(kernel).powi(2 * read as i32);
+            let gain = crate::codecs::projected::kernel::dc_gain(kernel).powi(2 * read as i32);
             let s = 1usize << l;
             let (cw, ch) = (w.div_ceil(s), h.div_ceil(s));
             let mut values = Vec::with_capacity(cw * ch);

@@ -74,7 +74,7 @@ impl AssetLimits {
 }
 
 /// Whether a file's first bytes (8 or more) are an asset's, before the rest is read: the
-/// error says what the file is instead (see [`Asset::from_bytes`]).
+/// error says what the file is instead (see [`crate::io::asset::Asset::from_bytes`]).
 pub fn check_magic(head: &[u8]) -> Result<(), Error> {
     if head.len() >= 8 && &head[..8] == MAGIC {
         Ok(())

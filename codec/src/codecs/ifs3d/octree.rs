@@ -9,7 +9,7 @@
 //!
 //! * [`OctreeOperator`]: the decoding form (a cell-index map at the smallest range size, one
 //!   affine cell per range).
-//! * [`encode_field`]: the encoder: fits of every block at every size (Saupe's nearest-neighbour
+//! * [`crate::codecs::ifs3d::fit::encode_field`]: the encoder: fits of every block at every size (Saupe's nearest-neighbour
 //!   search on 2x2x2 octant features, the 48 orientations of every domain in one k-d tree),
 //!   then a partition by collage tolerance or by a budget of maps, then the stream.
 //! * `code`: one walk for the stream, shared by encoder and decoder, as in [`crate::codecs::quadtree::stream`].

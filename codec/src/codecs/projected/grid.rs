@@ -15,7 +15,7 @@
 use crate::core::decode::{Block, MIN_BLOCK, PointValue, position_quantum, to_frame};
 use crate::core::operator::{Chain, Operator, active};
 
-use super::{ProjectedOperator, block};
+use super::operator::{ProjectedOperator, block};
 
 /// What a step does along one axis at frame coordinate t: the quarter of the lattice it is in
 /// (`2 cell + half`), its local coordinate in that quarter, and phi's image.

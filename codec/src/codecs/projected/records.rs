@@ -15,8 +15,8 @@
 
 use std::sync::Arc;
 
+use super::operator::{ProjectedOperator, Region, block, catmull_rom};
 use super::residual::{BAND, ResidualCodes};
-use super::{ProjectedOperator, block, catmull_rom};
 
 /// A Catmull-Rom interpolant (edges replicated) on its half lattice over a rectangle of
 /// samples: at the samples, halfway between two along either axis, and at cell centres, by
@@ -230,7 +230,7 @@ impl ProjectedOperator {
         std::borrow::Cow::Owned(ProjectedOperator {
             records,
             residual,
-            region: super::Region {
+            region: Region {
                 origin: [i0, j0],
                 size: [i1 - i0, j1 - j0],
             },

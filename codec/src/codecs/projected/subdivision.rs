@@ -30,7 +30,7 @@
 use crate::core::decode::{PointValue, position_quantum, to_frame};
 use crate::core::operator::Operator;
 
-use super::{ProjectedOperator, block};
+use super::operator::{ProjectedOperator, block};
 
 /// Levels past which chains answer instead (subcell indices must fit, and a bound that needs
 /// more steps is one no request reaches: rho^30 is under 1e-9 for any fitted roughness but
