@@ -558,11 +558,6 @@ fn the_checker_sees_circles_written_every_way_a_path_can_be() {
 /// splits. Issue 57 split the others; these are the codec's largest concepts.
 const LONG_FILES: &[(&str, usize, &str)] = &[
     (
-        "codec/src/codecs/quadtree/search.rs",
-        985,
-        "domain pools apart from the searches",
-    ),
-    (
         "codec/src/encode/chunked.rs",
         1105,
         "the row pyramid and the spill apart",

@@ -7,6 +7,7 @@ pub mod encode;
 pub mod operator;
 pub mod partition;
 pub mod plane;
+pub mod pool;
 pub mod search;
 pub mod settings;
 pub mod stream;
