@@ -23,6 +23,8 @@ use serde::{Deserialize, Serialize};
 use super::pyramid::Pyramid;
 use super::rate::{self, EncodeAt, FileRate, Search};
 use super::source::{Encoded, Written};
+use super::spill::Spill;
+use super::views::{EncodeLevel, level_zero_views, view_levels, view_maps};
 use crate::Error;
 use crate::core::metrics::Errors;
 use crate::io::asset::{Asset, write_atomic_with};
@@ -82,9 +84,6 @@ fn header_allowance(table: &ChunkTable) -> u64 {
 
 /// Codes one chunk (a raster of its own) by whichever 2D codec and settings the caller chose.
 pub type EncodeOne<'a> = dyn Fn(&Raster) -> Result<Encoded, Error> + Sync + 'a;
-
-/// Codes one chunk of a level (0: the source's cells, l: an overview of 2^l cells a side).
-pub(super) type EncodeLevel<'a> = dyn Fn(usize, &Raster) -> Result<Encoded, Error> + Sync + 'a;
 
 /// Counts chunks coded: `progress(done, total)`.
 pub type Progress<'a> = dyn Fn(u64, u64) + Sync + 'a;
@@ -302,58 +301,6 @@ pub(super) fn write_spilled(
         f.flush()
     })?;
     Ok(length)
-}
-
-/// Where chunk files wait while the others are coded: memory for a file built in memory, an
-/// unnamed temporary file (and its length) for one written to disk.
-pub(super) enum Spill {
-    Memory(Vec<u8>),
-    File(std::fs::File, u64),
-}
-
-impl Spill {
-    /// An unnamed temporary file in `output`'s folder (the same file system, and nothing
-    /// left behind if the process is killed).
-    pub(super) fn beside(output: &Path) -> Result<Spill, Error> {
-        let dir = output
-            .parent()
-            .filter(|p| !p.as_os_str().is_empty())
-            .unwrap_or(Path::new("."));
-        let file = tempfile::tempfile_in(dir).map_err(|e| {
-            Error::output(format!("{}: {e}", output.display()))
-                .at(output)
-                .caused_by(e)
-        })?;
-        Ok(Spill::File(file, 0))
-    }
-
-    /// Appends a chunk's file; returns where it starts.
-    pub(super) fn push(&mut self, file: &[u8]) -> std::io::Result<u64> {
-        match self {
-            Spill::Memory(v) => {
-                v.extend_from_slice(file);
-                Ok((v.len() - file.len()) as u64)
-            }
-            Spill::File(f, len) => {
-                f.write_all(file)?;
-                *len += file.len() as u64;
-                Ok(*len - file.len() as u64)
-            }
-        }
-    }
-
-    /// Copies `len` bytes from `at` to `out`.
-    pub(super) fn copy(&self, at: u64, len: u64, out: &mut dyn Write) -> std::io::Result<()> {
-        match self {
-            Spill::Memory(v) => out.write_all(&v[at as usize..(at + len) as usize]),
-            Spill::File(f, _) => {
-                use std::os::unix::fs::FileExt;
-                let mut buf = vec![0u8; len as usize];
-                f.read_exact_at(&mut buf, at)?;
-                out.write_all(&buf)
-            }
-        }
-    }
 }
 
 /// What a streaming encode coded: every chunk's record and where its file lies in the
@@ -610,130 +557,6 @@ fn new_table(chunk: u32, views: usize) -> ChunkTable {
         levels: Vec::new(),
         views: Vec::new(),
     }
-}
-
-/// The entries of view level `l`: level 0's, with the cells of their views.
-fn level_zero_views(zero: &[ChunkEntry], l: usize) -> Vec<ChunkEntry> {
-    zero.iter()
-        .map(|e| ChunkEntry {
-            cells: ChunkTable::view_cells(e.cells, l),
-            ..e.clone()
-        })
-        .collect()
-}
-
-/// How many overview levels of a raster of `header` in `sizes` levels are views of its source
-/// chunks (`io::chunked`): [`ChunkTable::view_levels`] for a height field of one channel whose
-/// chunks `encode` codes as lifted projected planes (rate mode; the codec is the caller's: a
-/// small surface coded by it says which), none otherwise: their overviews are coded. A lifted
-/// plane's coarse band is a local mean, as a box-mean overview is; the pyramid's coarse
-/// samples (max-error mode, the bounded default) are source cells, closed loop, and a view of
-/// them aliases: on etopo20 in chunks of 256 the level-1 view was 2,824 m from the box means
-/// it stands for, where the coded level 2 was 510 m (measured).
-fn view_levels(header: &Header, sizes: &[(u32, u32)], encode: &EncodeLevel<'_>) -> usize {
-    let n = ChunkTable::view_levels(sizes.len());
-    if n == 0 || header.kind != fractile_proto::AssetKind::HeightField || header.channels != 1 {
-        return 0;
-    }
-    let side = 32;
-    let surface = (0..side * side)
-        .map(|i| ((i % side) * 3 + (i / side) * 5) as f32)
-        .collect();
-    let probe = Raster {
-        width: side,
-        height: side,
-        channels: vec![surface],
-        valid: None,
-        kind: header.kind,
-        sample: header.sample,
-        units: None,
-        nodata: None,
-        georef: None,
-    };
-    let lifted = |e: &Encoded| {
-        e.asset.planes.iter().all(|p| match &p.coding {
-            crate::io::asset::Coding::Projected { header, .. } => header.order.lifting().is_some(),
-            _ => false,
-        })
-    };
-    match encode(0, &probe) {
-        Ok(e) if lifted(&e) => n,
-        _ => 0,
-    }
-}
-
-/// The source-error maps of the views at levels 1 to `views` of a source chunk coded as
-/// `enc` from `part`: each view decoded as a reader decodes it (from the file's bytes), against
-/// what it stands for, the same analysis of the source itself (the chunk's lifting to that
-/// depth, its coarse band divided by the kernel's gain), with its share of the chunk's map
-/// budget (a view of level l has 4^-l of the cells).
-///
-/// Why the analysis and not the box means format 6's overviews were measured against: a coarse
-/// level stands for the source low-passed to its cell size, and the view's low-pass is the
-/// wavelet's (as JPEG 2000's resolution levels are), longer than a box. Against the box means
-/// the difference of the two filters, not the coding, set the map: on etopo20 at 0.8 bits a
-/// cell, in chunks of 256, the level-1 view was 161 m RMS and 2,128 m at worst from the box
-/// means, its map 3,022 m, where its source level's RMSE was 76 m (measured).
-fn view_maps(enc: &Encoded, part: &Raster, views: usize) -> Result<Vec<Vec<u8>>, Error> {
-    use crate::codecs::projected::lifting;
-    let bytes = enc.asset.to_bytes();
-    let Some(crate::io::asset::Coding::Projected { header, .. }) =
-        enc.asset.planes.first().map(|p| &p.coding)
-    else {
-        return Ok(Vec::new());
-    };
-    let Some(kernel) = header.order.lifting() else {
-        return Ok(Vec::new());
-    };
-    let (w, h) = (part.width, part.height);
-    let mut filled = part.channels[0].clone();
-    if let Some(valid) = &part.valid {
-        super::source::fill_invalid(&mut filled, valid, w, h);
-    }
-    let grid: Vec<f64> = filled.iter().map(|&v| f64::from(v)).collect();
-    let plane = lifting::Plane {
-        size: [w, h],
-        levels: u32::from(header.levels),
-        step: header.step,
-        kernel,
-        ends: crate::codecs::projected::kernel::Ends::Mirror,
-    };
-    let limits = crate::io::asset::AssetLimits::default();
-    (1..=views)
-        .map(|l| {
-            let view =
-                Asset::coarse_view(&bytes, &limits, l as u32, crate::codecs::plane::Build::Lazy)?;
-            let read = (l as u32).min(plane.levels);
-            let band = lifting::analysis(&plane, &grid, read);
-            let gain = crate::codecs::projected::kernel::dc_gain(kernel).powi(2 * read as i32);
-            let s = 1usize << l;
-            let (cw, ch) = (w.div_ceil(s), h.div_ceil(s));
-            let mut values = Vec::with_capacity(cw * ch);
-            for y in (0..h).step_by(s) {
-                values.extend((0..w).step_by(s).map(|x| (band[y * w + x] / gain) as f32));
-            }
-            let valid = part.valid.as_ref().map(|v| {
-                let mut out = vec![false; cw * ch];
-                for (i, _) in v.iter().enumerate().filter(|(_, b)| **b) {
-                    out[(i / w / s) * cw + (i % w) / s] = true;
-                }
-                out
-            });
-            let reference = Raster {
-                width: cw,
-                height: ch,
-                channels: vec![values],
-                valid,
-                kind: part.kind,
-                sample: fractile_proto::SampleFormat::F32,
-                units: part.units.clone(),
-                nodata: part.nodata,
-                georef: None,
-            };
-            let budget = crate::core::fidelity::reserve(bytes.len() >> (2 * l));
-            Ok(super::fidelity::measure(&view, &reference, budget).encode())
-        })
-        .collect()
 }
 
 /// Every chunk of every level of the raster `rows` reads that `share` holds, coded by

@@ -13,6 +13,8 @@ pub mod parts;
 mod pyramid;
 pub mod rate;
 pub(crate) mod source;
+mod spill;
+mod views;
 pub mod volume;
 
 pub use source::{Encoded, PlaneEncoder, Written};

@@ -14,9 +14,10 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::chunked::{
-    ChunkRecord, EncodeOne, Progress, Share, Spill, code_streamed, summarise, write_spilled,
+    ChunkRecord, EncodeOne, Progress, Share, code_streamed, summarise, write_spilled,
 };
 use super::source::Written;
+use super::spill::Spill;
 use crate::Error;
 use crate::io::asset::{Asset, write_atomic_with};
 use crate::io::chunked;

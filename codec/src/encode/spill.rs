@@ -1,0 +1,59 @@
+//! Where chunk files wait while the others are coded ([`Spill`]): memory, or an unnamed
+//! temporary file beside the output.
+
+use std::io::Write;
+use std::path::Path;
+
+use crate::Error;
+
+/// Where chunk files wait while the others are coded: memory for a file built in memory, an
+/// unnamed temporary file (and its length) for one written to disk.
+pub(super) enum Spill {
+    Memory(Vec<u8>),
+    File(std::fs::File, u64),
+}
+
+impl Spill {
+    /// An unnamed temporary file in `output`'s folder (the same file system, and nothing
+    /// left behind if the process is killed).
+    pub(super) fn beside(output: &Path) -> Result<Spill, Error> {
+        let dir = output
+            .parent()
+            .filter(|p| !p.as_os_str().is_empty())
+            .unwrap_or(Path::new("."));
+        let file = tempfile::tempfile_in(dir).map_err(|e| {
+            Error::output(format!("{}: {e}", output.display()))
+                .at(output)
+                .caused_by(e)
+        })?;
+        Ok(Spill::File(file, 0))
+    }
+
+    /// Appends a chunk's file; returns where it starts.
+    pub(super) fn push(&mut self, file: &[u8]) -> std::io::Result<u64> {
+        match self {
+            Spill::Memory(v) => {
+                v.extend_from_slice(file);
+                Ok((v.len() - file.len()) as u64)
+            }
+            Spill::File(f, len) => {
+                f.write_all(file)?;
+                *len += file.len() as u64;
+                Ok(*len - file.len() as u64)
+            }
+        }
+    }
+
+    /// Copies `len` bytes from `at` to `out`.
+    pub(super) fn copy(&self, at: u64, len: u64, out: &mut dyn Write) -> std::io::Result<()> {
+        match self {
+            Spill::Memory(v) => out.write_all(&v[at as usize..(at + len) as usize]),
+            Spill::File(f, _) => {
+                use std::os::unix::fs::FileExt;
+                let mut buf = vec![0u8; len as usize];
+                f.read_exact_at(&mut buf, at)?;
+                out.write_all(&buf)
+            }
+        }
+    }
+}
