@@ -574,11 +574,6 @@ const LONG_FILES: &[(&str, usize, &str)] = &[
         1451,
         "tiles, regions and points apart",
     ),
-    (
-        "codec/src/core/decode.rs",
-        1490,
-        "discrete, continuous and grid decoders apart",
-    ),
 ];
 
 #[test]
@@ -610,25 +605,30 @@ fn no_file_of_any_crate_is_over_600_lines() {
             }
         }
     }
+    for (listed, ..) in LONG_FILES {
+        if !root().join(listed).exists() {
+            over.push(format!("{listed}: listed, and gone: unlist it"));
+        }
+    }
     assert!(over.is_empty(), "{over:#?}");
 }
 
 /// Functions over 120 lines that stay whole, and why.
 const LONG_FUNCTIONS: &[(&str, &str, &str)] = &[
     (
-        "codec/src/core/decode.rs",
+        "codec/src/core/decode/continuous.rs",
         "grid",
         "continuous decoding's hot loop: one block work-list and the state it carries, in one \
          place so that its bit-for-bit agreement with point decoding (a property test) can be \
          read in one function",
     ),
     (
-        "codec/src/core/decode.rs",
+        "codec/src/core/decode/patch.rs",
         "patch",
         "the same hot loop in f64 for reprojected patches, kept beside `grid` line for line",
     ),
     (
-        "codec/src/core/decode.rs",
+        "codec/src/core/decode/discrete.rs",
         "discrete_volume",
         "the 3D discrete iteration, one loop nest that mirrors `discrete`",
     ),
