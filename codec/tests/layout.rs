@@ -569,11 +569,6 @@ const LONG_FILES: &[(&str, usize, &str)] = &[
         1334,
         "the walk apart from the header's compact form",
     ),
-    (
-        "codec/src/extract/mod.rs",
-        1451,
-        "tiles, regions and points apart",
-    ),
 ];
 
 #[test]
