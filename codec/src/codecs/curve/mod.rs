@@ -34,10 +34,12 @@
 //! levels align the rings on their finest level, so that one asset level means one scale.
 
 pub mod code;
+mod contexts;
 pub mod deform;
 mod distance;
 pub mod fit;
 pub mod geojson;
+mod header;
 mod model;
 mod prepare;
 
