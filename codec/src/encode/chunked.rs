@@ -12,7 +12,6 @@
 //! coded but are views of the source chunks (their own coarse bands, `io::chunked`), and only
 //! their error maps are measured here (`view_levels`, `view_maps`).
 
-use std::io::Write;
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
@@ -23,12 +22,14 @@ use serde::{Deserialize, Serialize};
 use super::pyramid::Pyramid;
 use super::rate::{self, EncodeAt, FileRate, Search};
 use super::source::{Encoded, Written};
-use super::spill::Spill;
-use super::views::{EncodeLevel, level_zero_views, view_levels, view_maps};
+use super::spill::{Spill, write_spilled};
+use super::summary::{ChunkRecord, summarise};
+use super::summary::{Coded, blank, header_allowance, new_table, table_of};
+use super::views::{EncodeLevel, view_levels, view_maps};
 use crate::Error;
 use crate::core::metrics::Errors;
-use crate::io::asset::{Asset, write_atomic_with};
-use crate::io::chunked::{self, ChunkEntry, ChunkTable, overlap_for};
+use crate::io::asset::Asset;
+use crate::io::chunked::{self, ChunkEntry, ChunkTable};
 use crate::io::mosaic;
 use crate::io::raster::Raster;
 use crate::io::rows::{Header, InMemory, Rows};
@@ -60,26 +61,6 @@ pub fn chunk_bpp(width: usize, height: usize, chunk: u32, bpp: f64) -> f64 {
     let file = bpp * (width * height) as f64 / 8.0;
     let chunks = (file - header_allowance(&table) as f64).max(0.0);
     0.99 * 8.0 * chunks / coded.max(1) as f64
-}
-
-/// A table of every chunk of levels `sizes` (nothing yet of their files).
-fn table_of(chunk: u32, sizes: &[(u32, u32)], views: usize) -> ChunkTable {
-    let mut table = new_table(chunk, views);
-    for (entries, &(w, h)) in blank(&table, sizes).into_iter().zip(sizes) {
-        table.levels.push(chunked::Level {
-            width: w,
-            height: h,
-            chunks: entries,
-        });
-    }
-    table
-}
-
-/// What a chunked file's header may take beside its chunks: the table (its size is fixed by
-/// its entry count), and 512 bytes for the metadata (an encoder line, a georeference: about
-/// 235 bytes measured).
-fn header_allowance(table: &ChunkTable) -> u64 {
-    (fractile_proto::encode(table).len() + 512) as u64
 }
 
 /// Codes one chunk (a raster of its own) by whichever 2D codec and settings the caller chose.
@@ -131,7 +112,7 @@ pub fn encode_chunked(
 /// `output`, in memory bounded whatever the raster's size: rows are read a band at a time
 /// and dropped once the chunks (and overview rows) that need them are made, and each chunk's
 /// file goes to an unnamed temporary file as it is coded. The output appears whole or not at
-/// all ([`write_atomic_with`]).
+/// all ([`crate::io::asset::write_atomic_with`]).
 pub fn encode_chunked_file(
     rows: &mut dyn Rows,
     chunk: u32,
@@ -281,28 +262,6 @@ fn code_at_rate(
     )))
 }
 
-/// Writes `head` then the spilled files at `order` (start, length) to `output`, atomically;
-/// returns the file's length.
-pub(super) fn write_spilled(
-    output: &Path,
-    head: &[u8],
-    order: impl Iterator<Item = (u64, u64)> + Clone,
-    spill: &Spill,
-) -> Result<u64, Error> {
-    let mut length = 0;
-    write_atomic_with(output, &mut |f| {
-        let mut f = std::io::BufWriter::new(f);
-        f.write_all(head)?;
-        length = head.len() as u64;
-        for (at, len) in order.clone() {
-            spill.copy(at, len, &mut f)?;
-            length += len;
-        }
-        f.flush()
-    })?;
-    Ok(length)
-}
-
 /// What a streaming encode coded: every chunk's record and where its file lies in the
 /// spill, in table order (`None`: a chunk with no valid cell, or one of another share).
 pub(super) struct Streamed {
@@ -369,193 +328,6 @@ impl Share {
 
     fn holds(&self, k: u64) -> bool {
         k % u64::from(self.count) == u64::from(self.index)
-    }
-}
-
-/// What the file keeps of one chunk's encode: the figures of its table entry and of the
-/// file's metadata (its bytes go to the spill).
-#[derive(Clone, Debug, Serialize, Deserialize)]
-pub(super) struct ChunkRecord {
-    pub(super) level: u32,
-    pub(super) index: u32,
-    pub(super) length: u64,
-    pub(super) crc: u32,
-    codec: u8,
-    max_contrast: f32,
-    seed_bound: f32,
-    smallest_source_error: Option<f32>,
-    meta: fractile_proto::AssetMeta,
-    /// A source chunk's views' source-error maps (levels 1, 2, ...; none where the overviews
-    /// are coded, see `io::chunked`).
-    views: Vec<Vec<u8>>,
-    /// RMSE, MAE and largest error over its coded cells, and their count.
-    errors: [f64; 3],
-    samples: u64,
-    transforms: u64,
-}
-
-/// A chunk coded: its file and its record.
-struct Coded {
-    bytes: Vec<u8>,
-    record: ChunkRecord,
-}
-
-impl Coded {
-    /// The file of a chunk's encode, with no encode time in its metadata: an encode of one
-    /// input is then the same bytes however it ran (split in parts or not, on any machine).
-    /// The decoded asset an encode returns (a projected one holds 48 bytes a cell) is
-    /// dropped here, so that memory holds the chunks in flight, not every chunk coded.
-    fn of(enc: Encoded, level: usize, index: u32, views: Vec<Vec<u8>>) -> Coded {
-        let mut a = enc.asset;
-        a.meta.stats.seconds = 0.0;
-        let bytes = a.to_bytes();
-        let e = enc.errors;
-        Coded {
-            record: ChunkRecord {
-                level: level as u32,
-                index,
-                length: bytes.len() as u64,
-                crc: chunked::file_crc(&bytes),
-                codec: a.codec().byte(),
-                max_contrast: a.max_contrast(),
-                seed_bound: a.bound_after(0),
-                smallest_source_error: a.source_error.as_ref().and_then(|m| m.smallest()),
-                meta: a.meta.clone(),
-                views,
-                errors: [e.rmse, e.mae, e.max_error],
-                samples: e.samples,
-                transforms: enc.transforms as u64,
-            },
-            bytes,
-        }
-    }
-}
-
-/// The file's metadata, table (offsets not yet set) and source-level errors from the records
-/// of every chunk of `header`'s raster, taken in table order so that the same chunks give the
-/// same file however they were coded.
-pub(super) fn summarise<'r>(
-    (width, height, georef): (usize, usize, Option<&fractile_proto::Georef>),
-    chunk: u32,
-    sizes: &[(u32, u32)],
-    records: impl Iterator<Item = &'r ChunkRecord>,
-) -> Result<(fractile_proto::AssetMeta, ChunkTable, Errors, usize), Error> {
-    let records: Vec<&ChunkRecord> = records.collect();
-    // The source chunks' records say how many levels are views (their maps), and so the
-    // overlap they were cut with.
-    let view_count = records
-        .iter()
-        .filter(|c| c.level == 0)
-        .map(|c| c.views.len())
-        .max()
-        .unwrap_or(0);
-    let mut table = new_table(chunk, view_count);
-    let mut entries = blank(&table, sizes);
-    let mut views: Vec<Vec<Vec<u8>>> = Vec::new();
-    let (mut sq, mut abs, mut samples, mut max_error) = (0.0f64, 0.0f64, 0u64, 0.0f64);
-    let (mut transforms, mut template) = (0u64, None::<&fractile_proto::AssetMeta>);
-    let mut value_range = [f64::INFINITY, f64::NEG_INFINITY];
-    for c in records {
-        if table.codec != 0 && table.codec != c.codec {
-            return Err(Error::settings("chunks coded by different codecs"));
-        }
-        table.codec = c.codec;
-        table.max_contrast = table.max_contrast.max(c.max_contrast);
-        table.seed_bound = table.seed_bound.max(c.seed_bound);
-        if let Some(e) = c.smallest_source_error {
-            let s = table.smallest_source_error.get_or_insert(e);
-            *s = s.min(e);
-        }
-        value_range[0] = value_range[0].min(c.meta.value_min);
-        value_range[1] = value_range[1].max(c.meta.value_max);
-        if c.level == 0 {
-            let [rmse, mae, max] = c.errors;
-            sq += rmse * rmse * c.samples as f64;
-            abs += mae * c.samples as f64;
-            samples += c.samples;
-            max_error = max_error.max(max);
-            transforms += c.transforms;
-            template.get_or_insert(&c.meta);
-            for (l, map) in c.views.iter().enumerate() {
-                if views.len() <= l {
-                    views.push(vec![Vec::new(); entries[0].len()]);
-                }
-                if let Some(m) = views[l].get_mut(c.index as usize) {
-                    m.clone_from(map);
-                }
-            }
-        }
-        let entry = entries
-            .get_mut(c.level as usize)
-            .and_then(|l| l.get_mut(c.index as usize))
-            .ok_or_else(|| Error::input(format!("no chunk {} of level {}", c.index, c.level)))?;
-        entry.value_range = [c.meta.value_min, c.meta.value_max];
-        entry.length = c.length;
-        entry.crc = c.crc;
-    }
-    let Some(mut meta) = template.cloned() else {
-        return Err(Error::input("no cell of the raster has data"));
-    };
-    // A view level's entries: level 0's (value ranges too), with the view's cells; their
-    // offsets are level 0's, set by `chunked::header`.
-    let zero = entries[0].clone();
-    for (l, level) in entries.iter_mut().enumerate().skip(1).take(views.len()) {
-        *level = level_zero_views(&zero, l);
-    }
-    for (entries, &(w, h)) in entries.into_iter().zip(sizes) {
-        table.levels.push(chunked::Level {
-            width: w,
-            height: h,
-            chunks: entries,
-        });
-    }
-    table.views = views
-        .into_iter()
-        .map(|maps| chunked::ViewLevel { maps })
-        .collect();
-    meta.width = width as u32;
-    meta.height = height as u32;
-    meta.georef = georef.cloned();
-    // Images keep their fixed 0-255 range; height fields span every chunk's.
-    if meta.kind == fractile_proto::AssetKind::HeightField {
-        [meta.value_min, meta.value_max] = value_range;
-    }
-    let rmse = (sq / samples.max(1) as f64).sqrt();
-    let psnr = if rmse > 0.0 {
-        20.0 * (meta.psnr_peak() / rmse).log10()
-    } else {
-        f64::INFINITY
-    };
-    meta.encoder = format!("chunked {chunk}: {}", meta.encoder);
-    // No encode time (see `Coded::of`): the command line reports it.
-    meta.stats = fractile_proto::EncodeStats {
-        transforms,
-        rmse,
-        psnr,
-        max_error,
-        seconds: 0.0,
-    };
-    let errors = Errors {
-        rmse,
-        mae: abs / samples.max(1) as f64,
-        max_error,
-        psnr,
-        samples,
-    };
-    Ok((meta, table, errors, transforms as usize))
-}
-
-/// An empty table for chunks of `chunk` cut for `views` view levels.
-fn new_table(chunk: u32, views: usize) -> ChunkTable {
-    ChunkTable {
-        chunk,
-        overlap: overlap_for(views),
-        codec: 0,
-        max_contrast: 0.0,
-        seed_bound: 0.0,
-        smallest_source_error: None,
-        levels: Vec::new(),
-        views: Vec::new(),
     }
 }
 
@@ -695,25 +467,6 @@ fn checked_header(rows: &mut dyn Rows, chunk: u32) -> Result<Header, Error> {
     Ok(header)
 }
 
-/// A table entry (its cells, nothing yet of its file) for every chunk of every level.
-fn blank(table: &ChunkTable, sizes: &[(u32, u32)]) -> Vec<Vec<ChunkEntry>> {
-    sizes
-        .iter()
-        .map(|&(w, h)| {
-            let (nx, ny) = table.grid(w, h);
-            (0..nx * ny)
-                .map(|i| ChunkEntry {
-                    offset: 0,
-                    length: 0,
-                    cells: table.coded_cells(w, h, i % nx, i / nx),
-                    value_range: [0.0, 0.0],
-                    crc: 0,
-                })
-                .collect()
-        })
-        .collect()
-}
-
 /// Chunks waiting to be coded (a batch of a chunk a core), and the records of those coded.
 struct Tally<'w, 's> {
     records: Vec<Vec<Option<(ChunkRecord, u64)>>>,
@@ -825,104 +578,4 @@ impl<'w, 's> Tally<'w, 's> {
 }
 
 #[cfg(test)]
-mod tests {
-    use super::*;
-    use std::sync::Mutex;
-
-    fn testdata(name: &str) -> std::path::PathBuf {
-        Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../testdata")
-            .join(name)
-    }
-
-    /// Where a chunk lies: its level (pixel size), corner and size.
-    fn key(r: &Raster) -> (u64, u64, u64, usize, usize) {
-        let g = r.georef.as_ref().expect("georeferenced");
-        (
-            g.pixel_size[0].to_bits(),
-            g.origin[0].to_bits(),
-            g.origin[1].to_bits(),
-            r.width,
-            r.height,
-        )
-    }
-
-    /// The cells `[x0, y0, x1, y1)` of a whole raster (its georeference moved to the corner).
-    fn crop(r: &Raster, [x0, y0, x1, y1]: [u32; 4]) -> Raster {
-        let (x0, y0, x1, y1) = (x0 as usize, y0 as usize, x1 as usize, y1 as usize);
-        let rows = |p: &[f32]| -> Vec<f32> {
-            (y0..y1)
-                .flat_map(|y| p[y * r.width + x0..y * r.width + x1].to_vec())
-                .collect()
-        };
-        let valid = r.valid.as_ref().map(|v| {
-            (y0..y1)
-                .flat_map(|y| v[y * r.width + x0..y * r.width + x1].to_vec())
-                .collect::<Vec<bool>>()
-        });
-        Header::of(r).band(
-            [x0, y0],
-            x1 - x0,
-            r.channels.iter().map(|c| rows(c)).collect(),
-            valid.filter(|v| v.contains(&false)),
-        )
-    }
-
-    /// The chunks a streaming encode codes, read a band at a time, are the cells a chunk of
-    /// the raster held whole (and of its overviews, halved whole) holds: nodata cells, odd
-    /// sizes and the last lone row of a level included.
-    #[test]
-    fn streamed_chunks_are_the_whole_rasters_chunks() {
-        // 344 x 363 with nodata around the rotated source: levels of 344 x 363, 172 x 182,
-        // 86 x 91 in chunks of 64.
-        let raster = Raster::open(&testdata("jacksboro-utm.tif")).unwrap();
-        let seen = Mutex::new(Vec::new());
-        let one = |part: &Raster| {
-            seen.lock().unwrap().push(part.clone());
-            crate::encode_default(part, 0.8, &|_, _| {})
-        };
-        let enc = encode_chunked(&raster, 64, &one, &|_, _| {}).unwrap();
-        let table = &enc.asset.chunks.as_ref().unwrap().table;
-        let mut level = raster.clone();
-        let mut expected = Vec::new();
-        for (l, lev) in table.levels.iter().enumerate() {
-            if l > 0 {
-                level = super::super::pyramid::halve(&level);
-            }
-            assert_eq!(
-                (lev.width as usize, lev.height as usize),
-                (level.width, level.height)
-            );
-            for e in &lev.chunks {
-                let part = crop(&level, e.cells);
-                if part.valid.as_ref().is_none_or(|v| v.contains(&true)) {
-                    expected.push(part);
-                }
-            }
-        }
-        let mut seen = seen.into_inner().unwrap();
-        // Aside: the surface that tells whether the codec's overviews may be views (32 x 32,
-        // no georeference; this codec's are coded).
-        let probes = seen.iter().filter(|p| p.georef.is_none()).count();
-        assert_eq!(probes, 1);
-        seen.retain(|p| p.georef.is_some());
-        assert_eq!(seen.len(), expected.len());
-        assert!(
-            table.levels.len() == 3 && expected.len() > 30,
-            "{}",
-            expected.len()
-        );
-        seen.sort_by_key(key);
-        expected.sort_by_key(key);
-        for (s, e) in seen.iter().zip(&expected) {
-            assert_eq!(key(s), key(e));
-            assert_eq!(s.valid, e.valid, "{:?}", key(e));
-            for (a, b) in s.channels[0].iter().zip(&e.channels[0]) {
-                assert!(
-                    a.to_bits() == b.to_bits() || (a.is_nan() && b.is_nan()),
-                    "{a} {b}"
-                );
-            }
-        }
-    }
-}
+mod tests;

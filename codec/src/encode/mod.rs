@@ -14,6 +14,7 @@ mod pyramid;
 pub mod rate;
 pub(crate) mod source;
 mod spill;
+mod summary;
 mod views;
 pub mod volume;
 

@@ -13,11 +13,10 @@ use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
 
-use super::chunked::{
-    ChunkRecord, EncodeOne, Progress, Share, code_streamed, summarise, write_spilled,
-};
+use super::chunked::{EncodeOne, Progress, Share, code_streamed};
 use super::source::Written;
-use super::spill::Spill;
+use super::spill::{Spill, write_spilled};
+use super::summary::{ChunkRecord, summarise};
 use crate::Error;
 use crate::io::asset::{Asset, write_atomic_with};
 use crate::io::chunked;

@@ -5,6 +5,7 @@ use std::io::Write;
 use std::path::Path;
 
 use crate::Error;
+use crate::io::asset::write_atomic_with;
 
 /// Where chunk files wait while the others are coded: memory for a file built in memory, an
 /// unnamed temporary file (and its length) for one written to disk.
@@ -56,4 +57,26 @@ impl Spill {
             }
         }
     }
+}
+
+/// Writes `head` then the spilled files at `order` (start, length) to `output`, atomically;
+/// returns the file's length.
+pub(super) fn write_spilled(
+    output: &Path,
+    head: &[u8],
+    order: impl Iterator<Item = (u64, u64)> + Clone,
+    spill: &Spill,
+) -> Result<u64, Error> {
+    let mut length = 0;
+    write_atomic_with(output, &mut |f| {
+        let mut f = std::io::BufWriter::new(f);
+        f.write_all(head)?;
+        length = head.len() as u64;
+        for (at, len) in order.clone() {
+            spill.copy(at, len, &mut f)?;
+            length += len;
+        }
+        f.flush()
+    })?;
+    Ok(length)
 }
