@@ -17,6 +17,14 @@
 //! (`codec/tests/layout.rs` checks, resolving paths as the compiler does).
 //!
 //! No HTTP and no async here: the server calls these functions.
+//!
+//! What is public is what other crates name: the root re-exports the common entry points
+//! (`Asset`, `Raster`, `encode`, `CodecSettings`, each codec's settings, decode options), and
+//! the modules they reach stay public. What only the codec uses is crate-private (issue 57,
+//! in part): the range coder and lattice coding (`core::entropy`, `core::lattice`), block
+//! transforms (`core::transform`; `Quantiser` is re-exported), each codec's `plane`, `fit`,
+//! `encode` and stream internals where no other crate names them, the projected codec's grid
+//! machinery, the SDF and marching of IFS3D, the source-error measure and colour conversion.
 
 #[macro_use]
 pub mod codecs;

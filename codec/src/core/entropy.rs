@@ -73,7 +73,7 @@ impl Bit {
 /// learnt anything; on the 40 Natural Earth coastlines, whose curve contexts see a few hundred
 /// symbols each, this codes the five longest rings 1.5-9% smaller (the shorter, the more).
 #[derive(Clone, Copy, Debug)]
-pub struct CountedBit {
+pub(crate) struct CountedBit {
     p0: u16,
     seen: u8,
 }
@@ -331,17 +331,17 @@ impl<'a> Decoder<'a> {
 /// probability saturates at `(2^11 - 31) / 2^11` (the adaptation step rounds to zero there), so
 /// the likelier symbol costs at least `log2(2048 / 2017)` = 0.0220 bits. Readers use it to refuse,
 /// before allocating anything, a header that claims more symbols than its stream can hold.
-pub const MIN_BITS_PER_DECISION: f64 = 0.0219;
+pub(crate) const MIN_BITS_PER_DECISION: f64 = 0.0219;
 
 /// The most binary decisions through [`Bit`] contexts that a stream of `bytes` bytes can hold
 /// (with the coder's flush bytes and the reader's tolerated overrun).
-pub fn most_decisions(bytes: usize) -> u64 {
+pub(crate) fn most_decisions(bytes: usize) -> u64 {
     (((bytes as f64 + 9.0) * 8.0) / MIN_BITS_PER_DECISION).ceil() as u64
 }
 
 /// One direction of the coder. The stream walks ([`crate::codecs::quadtree::stream`], [`crate::codecs::ifs3d::octree`]) are one
 /// function each that codes in either direction, so that encoder and decoder cannot drift apart.
-pub enum Dir<'a, 'b> {
+pub(crate) enum Dir<'a, 'b> {
     /// Writing: the values given are coded and returned.
     Enc(&'a mut Encoder),
     /// Reading: the values given are ignored and the decoded ones returned.
@@ -352,7 +352,7 @@ impl Dir<'_, '_> {
     /// Whether a reader ran past the end of its stream ([`Decoder::overrun`]); never for a
     /// writer. Stream walks test it as they go, so that a short stream claiming a large frame
     /// stops within a few thousand symbols instead of decoding the whole claim from zeros.
-    pub fn overrun(&self) -> bool {
+    pub(crate) fn overrun(&self) -> bool {
         match self {
             Dir::Enc(_) => false,
             Dir::Dec(d) => d.overrun(),
@@ -360,7 +360,7 @@ impl Dir<'_, '_> {
     }
 
     /// Codes one bit.
-    pub fn bit<M: Model>(&mut self, p: &mut M, v: bool) -> bool {
+    pub(crate) fn bit<M: Model>(&mut self, p: &mut M, v: bool) -> bool {
         match self {
             Dir::Enc(e) => {
                 e.bit(p, v);
@@ -371,7 +371,7 @@ impl Dir<'_, '_> {
     }
 
     /// Codes a value through a bit tree.
-    pub fn tree<M: Model>(&mut self, t: &mut BitTree<M>, v: u32) -> u32 {
+    pub(crate) fn tree<M: Model>(&mut self, t: &mut BitTree<M>, v: u32) -> u32 {
         match self {
             Dir::Enc(e) => {
                 e.tree(t, v);
@@ -382,7 +382,7 @@ impl Dir<'_, '_> {
     }
 
     /// Codes a wide index (see [`WideIndex`]).
-    pub fn wide(&mut self, w: &mut WideIndex, v: u32) -> u32 {
+    pub(crate) fn wide(&mut self, w: &mut WideIndex, v: u32) -> u32 {
         let nlow = w.low.len() as u32;
         let mut out = self.tree(&mut w.high, v >> nlow) << nlow;
         for (i, bit) in w.low.iter_mut().enumerate() {
@@ -396,14 +396,14 @@ impl Dir<'_, '_> {
 /// An index of up to 32 bits (a domain's): its high bits through a bit tree of at most
 /// `tree_bits`, then one adaptive bit per remaining low bit. A full tree over 2^30 values would
 /// need gigabytes of contexts; the high bits carry what is predictable.
-pub struct WideIndex {
+pub(crate) struct WideIndex {
     high: BitTree,
     low: Vec<Bit>,
 }
 
 impl WideIndex {
     /// Models for values in `0..2^bits`.
-    pub fn new(bits: u32, tree_bits: u32) -> Self {
+    pub(crate) fn new(bits: u32, tree_bits: u32) -> Self {
         let high = bits.min(tree_bits);
         WideIndex {
             high: BitTree::new(high),

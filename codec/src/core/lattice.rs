@@ -183,7 +183,7 @@ pub(crate) fn lattice_locate(n: [usize; 2], spacing: f32, t: [f32; 2]) -> (usize
 }
 
 /// A normalised source grid (values in 0..1, nodata already filled).
-pub struct Source<'a> {
+pub(crate) struct Source<'a> {
     /// Width in samples.
     pub width: usize,
     /// Height in samples.
@@ -211,7 +211,7 @@ impl Source<'_> {
 
 /// RMS error of plain bilinear interpolation between nodes `spacing` apart (normalised units):
 /// what the surface must improve on, and the scale the node heights need no finer step than.
-pub fn interpolation_rmse(source: &Source, spacing: u32) -> f32 {
+pub(crate) fn interpolation_rmse(source: &Source, spacing: u32) -> f32 {
     let k = spacing.max(1) as usize;
     let (mut sum, mut n) = (0.0f64, 0usize);
     for y in 0..source.height {

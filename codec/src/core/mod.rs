@@ -2,10 +2,10 @@
 //! entropy coder and the quality metrics. Nothing here knows a codec or the asset file.
 
 pub mod decode;
-pub mod entropy;
+pub(crate) mod entropy;
 pub mod fidelity;
-pub mod lattice;
+pub(crate) mod lattice;
 pub mod metrics;
 pub mod operator;
 pub mod pieces;
-pub mod transform;
+pub(crate) mod transform;

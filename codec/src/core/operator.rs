@@ -70,7 +70,7 @@ pub trait AxisAligned: Operator<2> {
 /// The smallest interval I with `hull(g_c + s_c * I) ⊂ I` over all cells, where each cell gives
 /// `(s, g_min, g_max)`, the range of its offset function over the cell; found by iterating that
 /// map from [0, 1] (a constant-offset fractile operator keeps [0, 1] invariant, see
-/// [`crate::core::transform`]; a planar one may overshoot it a little, and the iteration finds by how much).
+/// `crate::core::transform`; a planar one may overshoot it a little, and the iteration finds by how much).
 pub fn invariant_interval(maps: impl Iterator<Item = (f32, f32, f32)> + Clone) -> (f32, f32) {
     let (mut lo, mut hi) = (0.0f32, 1.0f32);
     for _ in 0..500 {

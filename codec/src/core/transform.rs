@@ -9,13 +9,15 @@
 use serde::{Deserialize, Serialize};
 
 /// Number of isometries of the square (the dihedral group D4).
-pub const SQUARE_ISOMETRIES: u8 = 8;
+pub(crate) const SQUARE_ISOMETRIES: u8 = 8;
 
 /// Applies isometry `k` (0..8) to a point of the unit square.
 ///
 /// 0 identity, 1 mirror x, 2 mirror y, 3 rotate 180, 4 transpose, 5..7 the transposes of 1..3.
-#[inline(always)]
-pub fn isometry(k: u8, a: f32, b: f32) -> (f32, f32) {
+/// The reference the decoders' matrices (`ISOMETRY_MATRICES`) and the index form below are
+/// tested against; the decoders use those.
+#[cfg(test)]
+pub(crate) fn isometry(k: u8, a: f32, b: f32) -> (f32, f32) {
     let (a, b) = if k & 4 != 0 { (b, a) } else { (a, b) };
     let a = if k & 1 != 0 { 1.0 - a } else { a };
     let b = if k & 2 != 0 { 1.0 - b } else { b };
@@ -25,7 +27,7 @@ pub fn isometry(k: u8, a: f32, b: f32) -> (f32, f32) {
 /// The same isometry on the pixel grid of an n x n block: where pixel (i, j) of the range reads
 /// in the (downsampled) domain block.
 #[inline(always)]
-pub fn isometry_index(k: u8, i: usize, j: usize, n: usize) -> (usize, usize) {
+pub(crate) fn isometry_index(k: u8, i: usize, j: usize, n: usize) -> (usize, usize) {
     let (i, j) = if k & 4 != 0 { (j, i) } else { (i, j) };
     let i = if k & 1 != 0 { n - 1 - i } else { i };
     let j = if k & 2 != 0 { n - 1 - j } else { j };

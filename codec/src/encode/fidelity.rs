@@ -25,7 +25,7 @@ const BAND: usize = 32;
 /// The half-cell lattice is decoded as separable grids (bands of its rows), which the
 /// decoders step by blocks, bit for bit the answers of its points one by one: a point at a
 /// time, with a support list each, took about two thirds of a projected encode.
-pub fn measure(asset: &Asset, source: &Raster, budget: usize) -> SourceError {
+pub(crate) fn measure(asset: &Asset, source: &Raster, budget: usize) -> SourceError {
     let (w, h) = (source.width, source.height);
     let span = (asset.meta.value_max - asset.meta.value_min) as f32;
     let valid = |x: usize, y: usize| source.valid.as_ref().is_none_or(|v| v[y * w + x]);

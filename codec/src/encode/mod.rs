@@ -7,7 +7,7 @@
 
 pub mod chunked;
 pub mod curve;
-pub mod fidelity;
+pub(crate) mod fidelity;
 pub(crate) mod lattice;
 pub mod parts;
 mod pyramid;

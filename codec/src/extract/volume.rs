@@ -1,5 +1,5 @@
 //! A volume asset's answers: signed distances at any world point, boxes of samples at any
-//! resolution, and meshes of any region ([`crate::codecs::ifs3d::isosurface`]).
+//! resolution, and meshes of any region (`crate::codecs::ifs3d::isosurface`).
 
 use crate::Error;
 use crate::codecs::ifs3d::isosurface;

@@ -2,7 +2,7 @@
 //! resolution and chroma at half resolution and a lower rate (the seed's advice).
 
 /// Converts RGB planes to Y, Cb, Cr planes; `peak` is 255 (8-bit) or 65535 (16-bit).
-pub fn rgb_to_ycbcr(rgb: &[Vec<f32>], peak: f32) -> [Vec<f32>; 3] {
+pub(crate) fn rgb_to_ycbcr(rgb: &[Vec<f32>], peak: f32) -> [Vec<f32>; 3] {
     let mid = (peak + 1.0) / 2.0;
     let n = rgb[0].len();
     let (mut y, mut cb, mut cr) = (
@@ -20,7 +20,7 @@ pub fn rgb_to_ycbcr(rgb: &[Vec<f32>], peak: f32) -> [Vec<f32>; 3] {
 
 /// Converts one Y, Cb, Cr sample to RGB.
 #[inline]
-pub fn ycbcr_to_rgb(y: f32, cb: f32, cr: f32, peak: f32) -> [f32; 3] {
+pub(crate) fn ycbcr_to_rgb(y: f32, cb: f32, cr: f32, peak: f32) -> [f32; 3] {
     let mid = (peak + 1.0) / 2.0;
     let (cb, cr) = (cb - mid, cr - mid);
     [
@@ -31,7 +31,7 @@ pub fn ycbcr_to_rgb(y: f32, cb: f32, cr: f32, peak: f32) -> [f32; 3] {
 }
 
 /// Largest RGB error that Y, Cb, Cr errors of at most `by`, `bc` can cause.
-pub fn rgb_bound(by: f32, bcb: f32, bcr: f32) -> f32 {
+pub(crate) fn rgb_bound(by: f32, bcb: f32, bcr: f32) -> f32 {
     (by + 1.402 * bcr)
         .max(by + 0.344_136 * bcb + 0.714_136 * bcr)
         .max(by + 1.772 * bcb)

@@ -1,7 +1,7 @@
 //! Rendering decoded heights for people: colour ramps and hillshading (Horn's method, the
 //! convention of GDAL's `gdaldem hillshade`).
 
-pub mod colour;
+pub(crate) mod colour;
 
 /// A colour ramp over normalised values in [0, 1].
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -21,8 +21,8 @@
 //!
 //! Tolerance 0 codes every residual as its exact `f64` (lossless).
 //!
-//! Symbols go through the adaptive binary range coder of [`crate::core::entropy`], with
-//! fast-learning contexts ([`crate::core::entropy::CountedBit`]) by level counted from the finest.
+//! Symbols go through the adaptive binary range coder of `crate::core::entropy`, with
+//! fast-learning contexts (`crate::core::entropy::CountedBit`) by level counted from the finest.
 
 use super::contexts::*;
 use super::distance::{Metric, Pt, point_segment_scaled, span_deviation};

@@ -18,7 +18,7 @@ struct Sample {
 
 /// Fits a surface to a normalised source: node heights by subsampling (rounded by
 /// `round_to_surface`), s by least squares.
-pub fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Error> {
+pub(crate) fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Error> {
     header.validate().map_err(Error::settings)?;
     let [nx, ny] = header.nodes();
     let k = header.spacing as usize;

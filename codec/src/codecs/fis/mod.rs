@@ -32,8 +32,8 @@
 //! linear in the s parameters.
 
 pub mod encode;
-pub mod fit;
-pub mod plane;
+pub(crate) mod fit;
+pub(crate) mod plane;
 
 use serde::{Deserialize, Serialize};
 

@@ -65,7 +65,7 @@ fn gradient(values: &[f32], dims: [usize; 3], spacing: [f64; 3], g: usize) -> [f
 
 /// The surface `value = iso` of a grid of `dims` samples (x fastest), sample (i, j, k) at
 /// `origin + (i, j, k) * spacing`. Samples that are NaN count as outside.
-pub fn extract(
+pub(crate) fn extract(
     values: &[f32],
     dims: [usize; 3],
     iso: f32,

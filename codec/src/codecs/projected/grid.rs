@@ -99,7 +99,7 @@ impl ProjectedOperator {
 
     /// Continuous decoding of the separable grid of unit points `(xs[i], ys[j])`, row-major.
     /// Where the grid is dense in the cells it covers (a tile past the source resolution), by
-    /// [`super::subdivision`]: every answer a chain's of the steps its window needs, to f32
+    /// `super::subdivision`: every answer a chain's of the steps its window needs, to f32
     /// rounding, within the chain's bound. Elsewhere by chains ([`Self::grid_by_chains`]).
     pub fn grid(&self, xs: &[f32], ys: &[f32], iterations: u32, tolerance: f32) -> Vec<PointValue> {
         self.grid_with(xs, ys, iterations, tolerance, true)

@@ -24,17 +24,17 @@
 //! fitted per asset as the ratio of the finest two octaves' detail amplitudes.
 
 pub mod encode;
-pub mod grid;
+pub(crate) mod grid;
 mod header;
 pub mod kernel;
 pub mod lifting;
 mod neighbourhood;
 mod operator;
-pub mod plane;
+pub(crate) mod plane;
 pub mod pyramid;
-pub mod records;
+pub(crate) mod records;
 mod residual;
-pub mod subdivision;
+pub(crate) mod subdivision;
 
 use crate::core::entropy::{Decoder, Encoder};
 

@@ -112,7 +112,7 @@ impl ProjectedOperator {
     /// request needs built for it ([`Self::window`]). The same values as [`Self::new`]'s
     /// operator where chains take the same steps; its residual bounds are rounded up by at
     /// most 9%, so a chain may take a step more to reach a tolerance. What chunks of chunked
-    /// assets use (see [`crate::codecs::projected::records`]).
+    /// assets use (see `crate::codecs::projected::records`).
     pub fn lazy(header: &ProjectedHeader, grid: Vec<f64>) -> Result<ProjectedOperator, String> {
         // The grid goes once the samples are made: it is twice their size, and a server builds
         // chunks' operators a core at a time.

@@ -10,7 +10,7 @@ use crate::core::lattice::Source;
 /// Fits the model to a normalised source: vertex heights by subsampling, each region's domain by
 /// search (least squared error of the collage over the region's samples), against the bilinear
 /// patch (kept when no domain beats it).
-pub fn fit(source: &Source, header: &PsaHeader) -> Result<PsaParams, Error> {
+pub(crate) fn fit(source: &Source, header: &PsaHeader) -> Result<PsaParams, Error> {
     header.validate().map_err(Error::settings)?;
     let [nx, ny] = header.vertices();
     let d = header.region as usize;

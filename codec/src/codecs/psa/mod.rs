@@ -29,8 +29,8 @@
 //!   overlapping (any vertex may start a domain), searched within `radius` of the region.
 
 pub mod encode;
-pub mod fit;
-pub mod plane;
+pub(crate) mod fit;
+pub(crate) mod plane;
 
 use serde::{Deserialize, Serialize};
 

@@ -31,7 +31,7 @@ use crate::io::raster::Raster;
 type BoxedLimits = Box<dyn Fn(usize, usize, usize) -> (f32, usize) + Sync>;
 
 /// Encodes a raster. `progress(done, total)` is called as blocks are fitted.
-pub fn encode(
+pub(crate) fn encode(
     raster: &Raster,
     settings: &QuadtreeSettings,
     progress: &(dyn Fn(u64, u64) + Sync),

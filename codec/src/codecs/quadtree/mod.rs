@@ -3,11 +3,11 @@
 //! planar offset). The flow: [`partition`] splits the frame and [`search`] finds each range's
 //! map; [`stream`] codes the tree and the maps; [`operator`] states them in the operator form.
 
-pub mod encode;
+pub(crate) mod encode;
 pub mod operator;
 pub mod partition;
-pub mod plane;
-pub mod pool;
+pub(crate) mod plane;
+pub(crate) mod pool;
 pub mod search;
 pub mod settings;
 pub mod stream;

@@ -126,7 +126,7 @@ pub(super) type LocalTree = (ImmutableKdTree<f32, INDEXED>, Vec<DomainOrientatio
 /// the query against 46% at 0.58 Mpx, and its time a pixel grew 1.5x a 4x (measured on
 /// mirrored copies of etopo20; docs/benchmarks.md). Local search is the usual compromise of
 /// fractal coders: most good domains of a range are near it.
-pub const TILE: usize = 1024;
+pub(crate) const TILE: usize = 1024;
 
 /// Tiles along an axis of `frame` samples: 1 up to 1.5 [`TILE`], else one a [`TILE`] with the
 /// remainder in the last.
