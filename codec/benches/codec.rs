@@ -7,7 +7,7 @@
 use std::path::{Path, PathBuf};
 use std::time::Instant;
 
-use fractile_codec::codecs::quadtree::settings::{DEFAULT_SPEED, SPEEDS};
+use fractile_codec::codecs::quadtree::{DEFAULT_SPEED, SPEEDS};
 use fractile_codec::core::decode::{self, DiscreteOptions};
 use fractile_codec::core::metrics;
 use fractile_codec::core::operator;
@@ -445,7 +445,7 @@ fn scale(root: &Path, dem: &dyn Fn(f64) -> QuadtreeSettings) {
 /// on both DEMs and on camera, its max-error ratios, and point decoding beside the quadtree's.
 fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
     use fractile_codec::codecs::projected::ProjectedSettings;
-    use fractile_codec::codecs::projected::encode::encode_projected;
+    use fractile_codec::codecs::projected::encode_projected;
     let rate = ProjectedSettings::default();
     let pyramid = ProjectedSettings {
         pyramid: true,
@@ -601,7 +601,7 @@ fn kernel(asset: &fractile_codec::io::asset::Asset) -> String {
 /// a metre), where projected chains end on the bilinear interpolant and stop sooner.
 fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
     use fractile_codec::codecs::projected::ProjectedSettings;
-    use fractile_codec::codecs::projected::encode::encode_projected;
+    use fractile_codec::codecs::projected::encode_projected;
     let e = Raster::open(&root.join("testdata/etopo20.tif")).expect("testdata");
     let bounded = ProjectedSettings {
         bounded: true,

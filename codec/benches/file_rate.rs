@@ -52,7 +52,7 @@ fn encode(r: &Raster, bpp: f64, bounded: bool, old: bool) -> (Encoded, f64) {
             ..Default::default()
         };
         let one = |part: &Raster| {
-            fractile_codec::codecs::projected::encode::encode_projected(
+            fractile_codec::codecs::projected::encode_projected(
                 part,
                 &fractile_codec::codecs::projected::ProjectedSettings {
                     target_bpp: Some(bpp),
@@ -62,9 +62,8 @@ fn encode(r: &Raster, bpp: f64, bounded: bool, old: bool) -> (Encoded, f64) {
         };
         encode_chunked(r, DEFAULT_CHUNK, &one, &|_, _| {})
     } else {
-        let at = |part: &Raster, q, trial| {
-            fractile_codec::codecs::projected::encode::encode_at(part, q, trial)
-        };
+        let at =
+            |part: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(part, q, trial);
         encode_chunked_at(
             r,
             DEFAULT_CHUNK,

@@ -7,7 +7,7 @@ use std::time::Instant;
 
 use fractile_codec::codecs::fis::{FisSettings, Scaling, codec_name};
 use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
-use fractile_codec::codecs::{fis::encode::encode_fis, psa::encode::encode_psa};
+use fractile_codec::codecs::{fis::encode_fis, psa::encode_psa};
 use fractile_codec::{Encoded, QuadtreeSettings, Raster, RateMode, encode};
 use rustfft::FftPlanner;
 use rustfft::num_complex::Complex;

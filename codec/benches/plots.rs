@@ -47,7 +47,7 @@ fn settings(r: &Raster, bpp: f64) -> QuadtreeSettings {
 
 fn curves(r: &Raster, rates: &[f64], with_jpeg: bool) -> Vec<Curve> {
     use fractile_codec::codecs::projected::ProjectedSettings;
-    use fractile_codec::codecs::projected::encode::encode_projected;
+    use fractile_codec::codecs::projected::encode_projected;
     let mut fractile = Vec::new();
     let mut projected = Vec::new();
     let (mut jpeg, mut j2k) = (Vec::new(), Vec::new());

@@ -14,7 +14,7 @@
 
 use std::path::{Path, PathBuf};
 
-use fractile_codec::codecs::ifs3d::fit::Partition3;
+use fractile_codec::codecs::ifs3d::Partition3;
 use fractile_codec::codecs::ifs3d::volume::surface_distance;
 use fractile_codec::encode::volume::{MeshSettings, encode_mesh};
 use fractile_codec::mesh::Mesh;

@@ -25,6 +25,11 @@
 //! transforms (`core::transform`; `Quantiser` is re-exported), each codec's `plane`, `fit`,
 //! `encode` and stream internals where no other crate names them, the projected codec's grid
 //! machinery, the SDF and marching of IFS3D, the source-error measure and colour conversion.
+//! Each codec's module publishes what a user of that codec needs, as image's `codecs::png`
+//! does: its settings, its encoder entry (`codecs::fis::encode_fis`), its operator; its
+//! search, stream and pyramid internals are `#[doc(hidden)]`, public only for this crate's own
+//! integration tests and benches, and no other crate of the workspace names them
+//! (`codec/tests/layout.rs` checks, grouped imports included).
 
 #[macro_use]
 pub mod codecs;
@@ -40,6 +45,7 @@ pub use crate::core::decode::{DiscreteOptions, Method};
 pub use crate::core::transform::Quantiser;
 pub use codecs::quadtree::search::SearchMode;
 pub use codecs::quadtree::settings::{QuadtreeSettings, RateMode, Roi};
+pub use codecs::registry::Codec;
 pub use encode::{CodecSettings, Encoded, PlaneEncoder, encode, encode_default};
 pub use io::asset::{Asset, AssetLimits};
 pub use io::raster::Raster;

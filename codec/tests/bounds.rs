@@ -9,7 +9,7 @@
 //! and a synthetic rough DEM: fractional Brownian relief with a cliff and single-cell spikes.
 
 use fractile_codec::codecs::projected::ProjectedSettings;
-use fractile_codec::codecs::projected::encode::encode_projected;
+use fractile_codec::codecs::projected::encode_projected;
 use fractile_codec::encode::chunked::encode_chunked;
 use fractile_codec::geo::{self, Placement, Sites};
 use fractile_codec::{Asset, Raster, encode_default};

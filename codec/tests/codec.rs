@@ -675,7 +675,7 @@ fn window_methods_agree_on_smooth_terrain() {
 /// height step), and the fractal detail beats plain bilinear interpolation of the same nodes.
 #[test]
 fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
-    use fractile_codec::codecs::fis::encode::encode_fis;
+    use fractile_codec::codecs::fis::encode_fis;
     use fractile_codec::codecs::fis::{FisSettings, Scaling};
     let r = Raster::open(&data("jacksboro.tif")).unwrap();
     let (w, h) = (r.width, r.height);
@@ -748,7 +748,7 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
 fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
     use fractile_codec::codecs::fis::FisSettings;
     use fractile_codec::codecs::fis::Scaling;
-    use fractile_codec::codecs::fis::encode::encode_fis;
+    use fractile_codec::codecs::fis::encode_fis;
     for (file, bpp, scaling) in [
         ("topobathy.tif", 0.5, Scaling::PerNode),
         ("topobathy.tif", 1.0, Scaling::PerNode),
@@ -798,7 +798,7 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
 /// through every vertex, and the domain maps beat the bilinear patches of the same vertices.
 #[test]
 fn piecewise_self_affine_surfaces_interpolate_real_data() {
-    use fractile_codec::codecs::psa::encode::encode_psa;
+    use fractile_codec::codecs::psa::encode_psa;
     use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
     let dem = Raster::open(&data("jacksboro.tif")).unwrap();
     let camera = crop(
@@ -1020,7 +1020,7 @@ fn adaptive_terrain_meshes_stay_within_their_error_without_cracks() {
 
 #[test]
 fn slower_speed_presets_buy_quality_at_the_same_rate() {
-    use fractile_codec::codecs::quadtree::settings::{DEFAULT_SPEED, SPEEDS};
+    use fractile_codec::codecs::quadtree::{DEFAULT_SPEED, SPEEDS};
     let d = QuadtreeSettings::default();
     let p = QuadtreeSettings::at_speed(DEFAULT_SPEED).unwrap();
     assert_eq!(
@@ -1146,7 +1146,7 @@ fn attractor_passes_lower_the_decoded_error_at_the_same_rate() {
         assert!(refined.errors.psnr > plain.errors.psnr + 0.01, "{name}");
     }
     let too_many = QuadtreeSettings {
-        attractor_passes: fractile_codec::codecs::quadtree::settings::MAX_ATTRACTOR_PASSES + 1,
+        attractor_passes: fractile_codec::codecs::quadtree::MAX_ATTRACTOR_PASSES + 1,
         ..QuadtreeSettings::default()
     };
     let err = encode(&camera(), &too_many, &quiet).unwrap_err();

@@ -4,7 +4,7 @@
 
 use std::path::Path;
 
-use fractile_codec::codecs::projected::encode::{encode_at, encode_projected};
+use fractile_codec::codecs::projected::{encode_at, encode_projected};
 use fractile_codec::encode::chunked::{chunk_bpp, encode_chunked, encode_chunked_at, quality_for};
 use fractile_codec::encode::rate::{AIM, FileRate, Quality};
 use fractile_codec::io::rows::InMemory;

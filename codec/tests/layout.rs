@@ -291,7 +291,7 @@ fn paths_named(module: &str, text: &str, modules: &BTreeSet<String>) -> Vec<Name
 /// through re-exports to where the item is (`crate::Raster` names `io::raster` when the root
 /// has `pub use io::raster::Raster`). The crate root is left out: it declares every module and
 /// re-exports their items (a facade), so a path to one of its own items (`crate::Error`) would
-/// close a circle through it.
+/// close a circle through it. Likewise a module's `pub use` of its own descendants' items.
 fn import_graph(texts: &BTreeMap<String, String>) -> BTreeMap<String, BTreeSet<String>> {
     let modules: BTreeSet<String> = texts.keys().cloned().collect();
     let named: BTreeMap<&String, Vec<Named>> = texts
@@ -351,7 +351,15 @@ fn import_graph(texts: &BTreeMap<String, String>) -> BTreeMap<String, BTreeSet<S
         .iter()
         .filter(|(m, _)| !m.is_empty())
         .map(|(m, paths)| {
-            let mut deps: BTreeSet<String> = paths.iter().map(resolve).collect();
+            // A module that publishes its own children's items (`pub use encode::encode_fis`
+            // in `codecs/fis/mod.rs`) is their facade, as the root is everyone's: that edge is
+            // not a dependence, and the child may use its parent's items.
+            let below = format!("{m}::");
+            let mut deps: BTreeSet<String> = paths
+                .iter()
+                .filter(|p| !(p.reexport && resolve(p).starts_with(&below)))
+                .map(resolve)
+                .collect();
             deps.remove(*m);
             deps.remove("");
             ((*m).clone(), deps)
@@ -674,5 +682,116 @@ fn no_function_is_over_120_lines_outside_tests() {
     assert!(
         unexplained.is_empty(),
         "functions over 120 lines: {unexplained:?}"
+    );
+}
+
+/// The codec's modules marked `#[doc(hidden)]` (public only for the codec's own integration
+/// tests and benches), as paths from the crate root: `codecs::quadtree::search`, ...
+fn hidden_modules() -> BTreeSet<String> {
+    let src = root().join("codec/src");
+    let mut hidden = BTreeSet::new();
+    for (module, text) in crate_texts(&src) {
+        let lines: Vec<&str> = text.lines().map(str::trim).collect();
+        for w in lines.windows(2) {
+            let name = w[1]
+                .strip_prefix("pub mod ")
+                .and_then(|r| r.strip_suffix(';'));
+            if let (true, Some(name)) = (w[0].starts_with("#[doc(hidden)]"), name) {
+                let path = if module.is_empty() {
+                    name.to_string()
+                } else {
+                    format!("{module}::{name}")
+                };
+                hidden.insert(path);
+            }
+        }
+    }
+    hidden
+}
+
+/// The codec paths a text names (`fractile_codec::a::b`, grouped trees expanded), each joined
+/// by `::` without the crate name.
+fn codec_paths(text: &str) -> Vec<String> {
+    let t = tokens(&code_only(text));
+    let mut out = Vec::new();
+    for i in 0..t.len() {
+        if t[i] == "fractile_codec" && t.get(i + 1).map(String::as_str) == Some("::") {
+            let (paths, _) = paths_at(&t, i + 2);
+            out.extend(paths.into_iter().map(|p| p.join("::")));
+        }
+    }
+    out
+}
+
+/// The paths among `paths` that reach into a hidden module.
+fn into_hidden(paths: &[String], hidden: &BTreeSet<String>) -> Vec<String> {
+    paths
+        .iter()
+        .filter(|p| {
+            hidden
+                .iter()
+                .any(|h| *p == h || p.starts_with(&format!("{h}::")))
+        })
+        .cloned()
+        .collect()
+}
+
+/// Issue 57's curated API: the other crates (server, CLI, GPU, client, end-to-end tests, and
+/// any crate added beside them) reach the codec through its public API only, never through a
+/// module it keeps public for its own tests.
+#[test]
+fn no_other_crate_names_a_hidden_module_of_the_codec() {
+    let hidden = hidden_modules();
+    assert!(
+        hidden.contains("codecs::quadtree::search"),
+        "the hidden modules were not found: {hidden:?}"
+    );
+    let mut found = Vec::new();
+    for e in std::fs::read_dir(root()).expect("workspace") {
+        let dir = e.expect("entry").path();
+        let name = dir.file_name().unwrap_or_default().to_string_lossy();
+        if !dir.join("Cargo.toml").exists() || name == "codec" {
+            continue;
+        }
+        let mut files = Vec::new();
+        for sub in ["src", "tests", "benches", "examples"] {
+            if dir.join(sub).is_dir() {
+                rust_files(&dir.join(sub), &mut files);
+            }
+        }
+        if dir.join("lib.rs").exists() {
+            rust_files(&dir, &mut files);
+        }
+        for f in files {
+            let text = std::fs::read_to_string(&f).expect("readable");
+            for p in into_hidden(&codec_paths(&text), &hidden) {
+                found.push(format!("{}: fractile_codec::{p}", f.display()));
+            }
+        }
+    }
+    found.sort();
+    found.dedup();
+    assert!(
+        found.is_empty(),
+        "hidden codec modules named:\n{}",
+        found.join("\n")
+    );
+}
+
+/// The check above sees a hidden module named directly and inside a grouped use tree, and
+/// lets the public paths beside it pass.
+#[test]
+fn the_api_check_sees_hidden_modules_however_they_are_named() {
+    let hidden: BTreeSet<String> = ["codecs::quadtree::search".to_string()].into();
+    let text = "use fractile_codec::{Asset, codecs::{quadtree::{search::Fit, QuadtreeSettings}}};\n\
+                fn f() { fractile_codec::codecs::quadtree::search::best(); }\n\
+                // fractile_codec::codecs::quadtree::search in a comment is not code\n";
+    let found = into_hidden(&codec_paths(text), &hidden);
+    assert_eq!(
+        found,
+        vec![
+            "codecs::quadtree::search::Fit".to_string(),
+            "codecs::quadtree::search::best".to_string()
+        ]
     );
 }

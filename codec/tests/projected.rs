@@ -4,7 +4,7 @@
 //! PSNR against bicubic, and the power of the finest octave against the real finer DEM's).
 
 use fractile_codec::Method;
-use fractile_codec::codecs::projected::encode::encode_projected;
+use fractile_codec::codecs::projected::encode_projected;
 use fractile_codec::codecs::projected::{ProjectedHeader, ProjectedSettings};
 use fractile_codec::io::asset::{Asset, Coding};
 use fractile_codec::io::raster::Raster;

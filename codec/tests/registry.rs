@@ -2,7 +2,7 @@
 //! reachable through the one encoder entry, writes its own codec byte and name, and reads back
 //! as itself, so that a codec added by its line alone works end to end.
 
-use fractile_codec::codecs::registry::Codec;
+use fractile_codec::Codec;
 use fractile_codec::{Asset, CodecSettings, Raster, encode};
 
 fn testdata(name: &str) -> std::path::PathBuf {

@@ -2,7 +2,7 @@
 //! specialisation they take, or an IFS3D octree's.
 
 use bytemuck::{Pod, Zeroable};
-use fractile_codec::codecs::ifs3d::octree::OctreeOperator;
+use fractile_codec::codecs::ifs3d::OctreeOperator;
 use fractile_codec::core::operator::Operator;
 use fractile_codec::core::pieces::{Ends, Flat, Lattice, Offsets, PieceTable};
 use wgpu::util::DeviceExt;

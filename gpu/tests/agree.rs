@@ -5,7 +5,7 @@ use std::path::PathBuf;
 
 use fractile_codec::codecs::fis::{FisSettings, Scaling};
 use fractile_codec::codecs::psa::{PsaSettings, Tiling};
-use fractile_codec::codecs::{fis::encode::encode_fis, psa::encode::encode_psa};
+use fractile_codec::codecs::{fis::encode_fis, psa::encode_psa};
 use fractile_codec::core::decode;
 use fractile_codec::core::pieces::Flatten;
 use fractile_codec::{Asset, QuadtreeSettings, Raster, RateMode, encode};
@@ -512,7 +512,7 @@ fn volume_points_and_boxes_agree_with_the_cpu() {
 fn volume_lattices_agree(
     gpu: &Gpu,
     file: &str,
-    op: &fractile_codec::codecs::ifs3d::octree::OctreeOperator,
+    op: &fractile_codec::codecs::ifs3d::OctreeOperator,
     dev: &fractile_gpu::GpuOperator,
     grid: usize,
 ) {

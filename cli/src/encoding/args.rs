@@ -127,7 +127,7 @@ pub(crate) struct EncodeArgs {
     /// quadtree-pifs: encoder speed preset, 0 (slowest, best) to 4 (fastest). Sets the domain
     /// lattice, the search's candidates and the attractor passes (`--domain-step`,
     /// `--candidates` and `--attractor-passes` override it).
-    #[arg(long, default_value_t = fractile_codec::codecs::quadtree::settings::DEFAULT_SPEED)]
+    #[arg(long, default_value_t = fractile_codec::codecs::quadtree::DEFAULT_SPEED)]
     pub(crate) speed: u8,
     /// Domain lattice step, as a fraction of the range side [default: from --speed, 2].
     #[arg(long)]

@@ -40,9 +40,8 @@ pub(super) fn encode_part(
     let (width, height) = (rows.header().width, rows.header().height);
     let w = match file_rate(a, rows.header().channels) {
         Some(rate) => {
-            let at = |r: &Raster, q, trial| {
-                fractile_codec::codecs::projected::encode::encode_at(r, q, trial)
-            };
+            let at =
+                |r: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(r, q, trial);
             let how = (chunk, share, settings.as_str());
             encode_chunked_part_at(rows, how, (rate, &at), &progress, out.path())?
         }

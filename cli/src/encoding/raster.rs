@@ -23,9 +23,8 @@ pub(super) fn encode_chunks(
     let progress = |done: u64, total: u64| bar.update(done, total);
     let enc = match file_rate(a, rows.header().channels) {
         Some(rate) => {
-            let at = |r: &Raster, q, trial| {
-                fractile_codec::codecs::projected::encode::encode_at(r, q, trial)
-            };
+            let at =
+                |r: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(r, q, trial);
             encode_chunked_file_at(rows, c, (rate, &at), &progress, output)?
         }
         None => {

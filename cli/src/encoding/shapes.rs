@@ -18,7 +18,7 @@ pub(crate) fn is_mesh(p: &Path) -> bool {
 /// ranges are 4 to 16 voxels and its quantiser is its own (`fit::VolumeSettings`); the
 /// raster flags of range sizes and bits do not apply.
 pub(crate) fn encode_volume(a: &EncodeArgs) -> Result<()> {
-    use fractile_codec::codecs::ifs3d::fit::Partition3;
+    use fractile_codec::codecs::ifs3d::Partition3;
     if a.target_bpp.is_some() || a.codec.is_some() {
         bail!("meshes take --grid, --band and --tolerance (voxels), --transforms or --const-range");
     }

@@ -49,4 +49,4 @@ pub mod plane;
 pub mod projected;
 pub mod psa;
 pub mod quadtree;
-pub mod registry;
+pub(crate) mod registry;

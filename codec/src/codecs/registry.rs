@@ -12,9 +12,9 @@ use crate::core::pieces::{Flat, Flatten, PieceTable};
 
 /// The codec byte of IFS3D volumes (octree PIFS of a signed distance field), which have no
 /// planes.
-pub const OCTREE_BYTE: u8 = 4;
+pub(crate) const OCTREE_BYTE: u8 = 4;
 /// The codec byte of curve sets (projected IFS with details of curves), which have no planes.
-pub const CURVE_BYTE: u8 = 5;
+pub(crate) const CURVE_BYTE: u8 = 5;
 
 /// A plane codec as the registry lists it: its header, with how a header and stream become a
 /// [`Coding`] and an operator a [`PlaneOperator`] (made by the registry for every codec).

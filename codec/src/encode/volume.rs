@@ -1,5 +1,5 @@
 //! Meshes into IFS3D volume assets: a mesh becomes a signed distance field
-//! (`crate::codecs::ifs3d::sdf`), the field an octree IFS ([`crate::codecs::ifs3d::octree`]).
+//! (`crate::codecs::ifs3d::sdf`), the field an octree IFS ([`crate::codecs::ifs3d::OctreeOperator`]).
 
 use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
 

@@ -26,7 +26,7 @@
 
 use super::contexts::*;
 use super::distance::{Metric, Pt, point_segment_scaled, span_deviation};
-pub use super::header::{CurveHeader, MAX_POINTS, RingHeader, compact};
+pub(crate) use super::header::{CurveHeader, RingHeader, compact};
 use super::model::{CurveSet, Frame, Ring, Scheme};
 use super::prepare::Prepared;
 use crate::core::entropy::{Decoder, Dir, Encoder};
@@ -300,7 +300,7 @@ fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<
 
 /// Codes prepared rings under `scheme`; returns the header (with its level bounds), the stream
 /// and the curve set a decoder will see.
-pub fn encode(
+pub(crate) fn encode(
     scheme: &Scheme,
     metric: Metric,
     tolerance: f64,
@@ -480,7 +480,7 @@ fn strays(scheme: &Scheme, metric: Metric, tol: f64, ring: &Ring, src: &Prepared
 }
 
 /// Decodes a stream.
-pub fn decode(header: &CurveHeader, stream: &[u8]) -> Result<CurveSet, String> {
+pub(crate) fn decode(header: &CurveHeader, stream: &[u8]) -> Result<CurveSet, String> {
     header.validate()?;
     let mut dec = Decoder::new(stream);
     let rings = walk(&mut Dir::Dec(&mut dec), header, None)?;
@@ -510,7 +510,7 @@ pub fn decode(header: &CurveHeader, stream: &[u8]) -> Result<CurveSet, String> {
 /// point is within it of its span's segment, and the finest path between a segment's ends,
 /// which are its own points, projects onto the whole segment). Triangle inequality: at most the
 /// tolerance looser than measuring against the source, which the reader does not have.
-pub fn level_bounds(
+pub(crate) fn level_bounds(
     scheme: &Scheme,
     metric: Metric,
     finest_bound: f64,

@@ -20,7 +20,7 @@ use levenberg_marquardt::{LeastSquaresProblem, LevenbergMarquardt};
 use nalgebra::{DMatrix, DVector, Dyn, Owned};
 
 /// Levels of details kept in step 2.
-pub const FIRST_LEVELS: usize = 2;
+pub(crate) const FIRST_LEVELS: usize = 2;
 
 /// What the fit did, for the encoder's report.
 #[derive(Clone, Debug, Default, PartialEq, serde::Serialize)]
@@ -234,7 +234,7 @@ fn sample(sources: &[Prepared], budget: usize) -> Vec<&Prepared> {
 
 /// Fits the scheme to prepared rings, starting from [`Scheme::default`]. A step whose result is
 /// invalid or no better than where it started keeps the starting values.
-pub fn fit(sources: &[Prepared]) -> (Scheme, FitReport) {
+pub(crate) fn fit(sources: &[Prepared]) -> (Scheme, FitReport) {
     let mut scheme = Scheme::default();
     let mut report = FitReport::default();
     let rings = sample(sources, 60_000);
@@ -302,12 +302,6 @@ pub fn fit(sources: &[Prepared]) -> (Scheme, FitReport) {
     }
     report.scheme = Some(scheme.clone());
     (scheme, report)
-}
-
-/// The detail-free attractor of one prepared ring under `scheme`, with its best control points
-/// (step 1's curve; for tests and figures).
-pub fn attractor_rms(scheme: &Scheme, source: &Prepared) -> f64 {
-    rms(&attractor_residuals(&scheme.t, &[source]))
 }
 
 #[cfg(test)]

@@ -30,7 +30,7 @@ pub struct CurveHeader {
 /// ends it): LEB128 counts, one byte for the scheme when it is the default, the tolerance as
 /// `f32`, and the finest level's bound as a 16-bit code `k` of `tolerance · 2^(k/256)` (0.27%
 /// steps, rounded up; `u16::MAX`: no bound), or as `f32` rounded up when the tolerance is 0.
-pub mod compact {
+pub(crate) mod compact {
     use super::{CurveHeader, Metric, RingHeader, Scheme, SeamCrossing};
 
     fn varint(out: &mut Vec<u8>, mut v: u64) {
@@ -46,13 +46,13 @@ pub mod compact {
     }
 
     /// The largest `f32` value at or under `t` (a tolerance as stored: never looser than asked).
-    pub fn tolerance_down(t: f64) -> f64 {
+    pub(crate) fn tolerance_down(t: f64) -> f64 {
         let f = t as f32;
         f64::from(if f64::from(f) > t { f.next_down() } else { f })
     }
 
     /// The smallest stored bound at or above `b` for tolerance `tol`.
-    pub fn bound_up(tol: f64, b: f64) -> f64 {
+    pub(crate) fn bound_up(tol: f64, b: f64) -> f64 {
         decode_bound(tol, encode_bound(tol, b))
     }
 
@@ -86,7 +86,7 @@ pub mod compact {
     }
 
     /// The header's bytes (the tolerance must be an `f32` value, as [`tolerance_down`] makes it).
-    pub fn write(h: &CurveHeader) -> Vec<u8> {
+    pub(crate) fn write(h: &CurveHeader) -> Vec<u8> {
         let mut out = Vec::with_capacity(16 + 4 * h.rings.len());
         if h.scheme == Scheme::default() {
             out.push(0);
@@ -185,7 +185,7 @@ pub mod compact {
 
     /// Reads a header from the front of `bytes` (refusing a truncated one;
     /// [`CurveHeader::validate`] checks the rest); returns it and the bytes after it.
-    pub fn read(bytes: &[u8]) -> Result<(CurveHeader, &[u8]), String> {
+    pub(crate) fn read(bytes: &[u8]) -> Result<(CurveHeader, &[u8]), String> {
         let mut r = Reader(bytes);
         let scheme = match r.bytes::<1>()? {
             [0] => Scheme::default(),
@@ -285,7 +285,7 @@ pub struct RingHeader {
 
 /// Most points a curve asset may decode to at its finest level (a tiny hostile header must not
 /// make a reader allocate gigabytes).
-pub const MAX_POINTS: u64 = 1 << 26;
+pub(crate) const MAX_POINTS: u64 = 1 << 26;
 
 impl CurveHeader {
     /// Refuses inconsistent or oversized headers.

@@ -15,7 +15,7 @@
 //! the model commutes with affine maps of the plane) and `d_i` the piece's two *details*. The
 //! junction `C` is carried over: the scheme is interpolating, so every control point of every
 //! level is a point of the curve. That choice is what makes lossy coding trustworthy: a point's
-//! error is its own quantisation error and never accumulates over levels (see [`code`]).
+//! error is its own quantisation error and never accumulates over levels (see `code`).
 //!
 //! Over the five fine points of a piece, synthesis is one 5×5 matrix `R` (the rows of `T_0, T_1`
 //! merged on the shared point `C`, and the two detail rows); analysis is `R⁻¹` (eq. 7), which
@@ -25,7 +25,7 @@
 //! matrices* `U_i` (`d_child = U_i · d_parent` before anything is added). The encoder codes only
 //! what inheritance does not predict, and a decoder asked for levels deeper than the source
 //! continues the details through `U` (and the shape through `T`): "self-similar detail".
-//! `T` and `U` are fitted by Levenberg-Marquardt in the paper's two steps ([`fit`]).
+//! `T` and `U` are fitted by Levenberg-Marquardt in the paper's two steps (`fit`).
 //!
 //! # Levels
 //! A ring's own level `l` is its polygon after `l` subdivisions of the base pieces: `K·2^(l+1)`
@@ -33,11 +33,11 @@
 //! the input's own segments so that the count fits `K·2^(L+1)`; the output drops them). Asset
 //! levels align the rings on their finest level, so that one asset level means one scale.
 
-pub mod code;
+pub(crate) mod code;
 mod contexts;
 pub mod deform;
 mod distance;
-pub mod fit;
+pub(crate) mod fit;
 pub mod geojson;
 mod header;
 mod model;

@@ -31,10 +31,11 @@
 //! sample, with B the bilinear interpolants of the corner and the mapped-corner heights; it is
 //! linear in the s parameters.
 
-pub mod encode;
+pub(crate) mod encode;
 pub(crate) mod fit;
 pub(crate) mod plane;
 
+pub use encode::encode_fis;
 use serde::{Deserialize, Serialize};
 
 use crate::core::entropy::{Decoder, Encoder};

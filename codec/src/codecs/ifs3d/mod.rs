@@ -1,9 +1,12 @@
 //! IFS3D: a mesh as a signed distance field (`sdf`), coded as an octree partitioned IFS
-//! ([`octree`]); surfaces come back by marching cubes (`isosurface`); [`volume`] holds the
+//! ([`OctreeOperator`]); surfaces come back by marching cubes (`isosurface`); [`volume`] holds the
 //! decoded volume's placement in the world.
 
-pub mod fit;
+pub(crate) mod fit;
+pub use fit::*;
 pub(crate) mod isosurface;
-pub mod octree;
+pub(crate) mod octree;
+pub use octree::*;
 pub(crate) mod sdf;
+#[doc(hidden)] // public for the crate's own integration tests and benches, not API
 pub mod volume;

@@ -23,14 +23,17 @@
 //! so on down every octave: the roughness of the source continues self-similarly. rho is
 //! fitted per asset as the ratio of the finest two octaves' detail amplitudes.
 
-pub mod encode;
+pub(crate) mod encode;
 pub(crate) mod grid;
 mod header;
+#[doc(hidden)] // public for the crate's own integration tests and benches, not API
 pub mod kernel;
+#[doc(hidden)] // public for the crate's own integration tests and benches, not API
 pub mod lifting;
 mod neighbourhood;
 mod operator;
 pub(crate) mod plane;
+#[doc(hidden)] // public for the crate's own integration tests and benches, not API
 pub mod pyramid;
 pub(crate) mod records;
 mod residual;
@@ -38,6 +41,7 @@ pub(crate) mod subdivision;
 
 use crate::core::entropy::{Decoder, Encoder};
 
+pub use encode::{encode_at, encode_projected};
 pub use header::{CODEC_NAME, ProjectedHeader};
 pub use operator::ProjectedOperator;
 pub use pyramid::levels_for;

@@ -28,10 +28,11 @@
 //! - Domains: touching (domains tile the lattice: addresses on multiples of the ratio) or
 //!   overlapping (any vertex may start a domain), searched within `radius` of the region.
 
-pub mod encode;
+pub(crate) mod encode;
 pub(crate) mod fit;
 pub(crate) mod plane;
 
+pub use encode::encode_psa;
 use serde::{Deserialize, Serialize};
 
 use crate::core::entropy::{Bit, Decoder, Encoder};

@@ -4,10 +4,15 @@
 //! map; [`stream`] codes the tree and the maps; [`operator`] states them in the operator form.
 
 pub(crate) mod encode;
+#[doc(hidden)] // public for the crate's own integration tests and benches, not API
 pub mod operator;
+#[doc(hidden)] // public for the crate's own integration tests and benches, not API
 pub mod partition;
 pub(crate) mod plane;
 pub(crate) mod pool;
+#[doc(hidden)] // public for the crate's own integration tests and benches, not API
 pub mod search;
-pub mod settings;
+pub(crate) mod settings;
+pub use settings::*;
+#[doc(hidden)] // public for the crate's own integration tests and benches, not API
 pub mod stream;
