@@ -37,6 +37,7 @@ const CRATES: &[&str] = &[
     "server/src",
     "cli/src",
     "client/src",
+    "wasm/src",
 ];
 
 /// `core/decode.rs` -> `core::decode`; `codecs/fis/mod.rs` -> `codecs::fis`; `lib.rs` and

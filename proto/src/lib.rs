@@ -6,6 +6,7 @@
 pub mod asset;
 pub mod catalog;
 pub mod curve;
+pub mod heights;
 pub mod points;
 pub mod query;
 pub mod tiles;

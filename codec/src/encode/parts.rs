@@ -8,7 +8,6 @@
 //! files of its chunks in the header's order.
 
 use std::io::Write;
-use std::os::unix::fs::FileExt;
 use std::path::{Path, PathBuf};
 
 use serde::{Deserialize, Serialize};
@@ -20,6 +19,7 @@ use super::summary::{ChunkRecord, summarise};
 use crate::Error;
 use crate::io::asset::{Asset, write_atomic_with};
 use crate::io::chunked;
+use crate::io::layout::read_exact_at;
 use crate::io::rows::{Header, Rows};
 
 const MAGIC: &[u8; 8] = b"FRAPART\0";
@@ -169,8 +169,7 @@ fn open_part(path: &Path) -> Result<Part, Error> {
     };
     let file = std::fs::File::open(path).map_err(io)?;
     let mut head = [0u8; 14];
-    file.read_exact_at(&mut head, 0)
-        .map_err(|_| bad("not a part file (too short)".into()))?;
+    read_exact_at(&file, &mut head, 0).map_err(|_| bad("not a part file (too short)".into()))?;
     if &head[..8] != MAGIC {
         return Err(bad(
             "not a part file (made by fractile encode --part I/N)".into()
@@ -188,7 +187,7 @@ fn open_part(path: &Path) -> Result<Part, Error> {
         return Err(bad(format!("a header of {n} bytes in a file of {len}")));
     }
     let mut bytes = vec![0u8; n as usize + 4];
-    file.read_exact_at(&mut bytes, 14).map_err(io)?;
+    read_exact_at(&file, &mut bytes, 14).map_err(io)?;
     let crc = u32::from_le_bytes(bytes[n as usize..].try_into().expect("4"));
     bytes.truncate(n as usize);
     if crc32fast::hash(&bytes) != crc {
@@ -379,7 +378,7 @@ pub fn assemble(parts: &[PathBuf], output: &Path) -> Result<Written, Error> {
         length = head.len() as u64;
         for &(k, at, r) in &order {
             let mut buf = vec![0u8; r.length as usize];
-            parts[k].file.read_exact_at(&mut buf, at)?;
+            read_exact_at(&parts[k].file, &mut buf, at)?;
             let whole =
                 buf.len() >= 4 && crc32fast::hash(&buf[..buf.len() - 4]) == chunked::file_crc(&buf);
             if !whole || chunked::file_crc(&buf) != r.crc {

@@ -50,9 +50,8 @@ impl Spill {
         match self {
             Spill::Memory(v) => out.write_all(&v[at as usize..(at + len) as usize]),
             Spill::File(f, _) => {
-                use std::os::unix::fs::FileExt;
                 let mut buf = vec![0u8; len as usize];
-                f.read_exact_at(&mut buf, at)?;
+                crate::io::layout::read_exact_at(f, &mut buf, at)?;
                 out.write_all(&buf)
             }
         }

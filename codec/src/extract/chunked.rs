@@ -330,6 +330,47 @@ impl Chunked {
     }
 }
 
+impl crate::Asset {
+    /// The byte ranges `(offset, length)` of the file that an answer at `pixels` reads: the
+    /// chunks under them at the level they are answered from (none for whole assets, nor for
+    /// chunks with no valid cell). A reader that fetches by range (a browser over HTTP) asks
+    /// for these all at once before answering, instead of one round trip a chunk.
+    pub fn chunk_ranges(&self, pixels: &Pixels) -> Vec<(u64, u64)> {
+        let Some(c) = &self.chunks else {
+            return Vec::new();
+        };
+        let (level, parts) = c.split(&self.meta, pixels);
+        let entries = &c.table.levels[level].chunks;
+        parts
+            .iter()
+            .map(|p| &entries[p.index])
+            .filter(|e| e.length > 0)
+            .map(|e| (e.offset, e.length))
+            .collect()
+    }
+
+    /// [`Self::chunk_ranges`] of points (unit coordinates), which source chunks answer.
+    pub fn point_chunk_ranges(&self, pts: &[[f32; 2]]) -> Vec<(u64, u64)> {
+        let Some(c) = &self.chunks else {
+            return Vec::new();
+        };
+        let [ax, ay] = c.axes(&self.meta, 0);
+        let entries = &c.table.levels[0].chunks;
+        let mut indices: Vec<usize> = pts
+            .iter()
+            .map(|&[u, v]| (ay.owner(v).0 * ax.count + ax.owner(u).0) as usize)
+            .collect();
+        indices.sort_unstable();
+        indices.dedup();
+        indices
+            .into_iter()
+            .map(|i| &entries[i])
+            .filter(|e| e.length > 0)
+            .map(|e| (e.offset, e.length))
+            .collect()
+    }
+}
+
 /// `continuous` for the planes of chunk `(level, index)`: a chunk is an asset of its own, and
 /// knows not which chunk it is, so its planes are named here on their way to the hook.
 fn in_chunk<'a>(

@@ -17,6 +17,29 @@ mod tests {
     use super::*;
     use fractile_proto::Georef;
 
+    /// The common CRSs a build without the EPSG registry places (the browser's) are the
+    /// registry's own definitions, parsed to the same projection.
+    #[cfg(feature = "epsg")]
+    #[test]
+    fn common_crs_are_the_registrys() {
+        use proj4rs::proj::Proj;
+        let codes = [4326, 4269, 4258, 3857]
+            .into_iter()
+            .chain(32601..=32660)
+            .chain(32701..=32760)
+            .chain(26901..=26923)
+            .chain(25828..=25838);
+        let mut n = 0;
+        for code in codes {
+            let ours = Proj::from_proj_string(&common_crs(code).unwrap()).unwrap();
+            let registry = Proj::from_epsg_code(code as u16).unwrap();
+            assert_eq!(format!("{ours:?}"), format!("{registry:?}"), "EPSG:{code}");
+            n += 1;
+        }
+        assert_eq!(n, 4 + 60 + 60 + 23 + 11);
+        assert!(common_crs(4087).is_none());
+    }
+
     /// The EPSG registry's own kinds (not a number range): 4087 is projected though it lies in
     /// 4000-4999.
     #[test]

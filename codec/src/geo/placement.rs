@@ -5,7 +5,7 @@
 use std::sync::Arc;
 
 use fractile_proto::Georef;
-use fractile_proto::tiles::{tile_bounds, tile_lonlat};
+use fractile_proto::tiles::{MAX_LATITUDE, tile_bounds, tile_lonlat};
 use proj4rs::proj::Proj;
 
 use crate::core::decode::Patch;
@@ -88,8 +88,50 @@ pub enum PlacementError {
 /// code they do not hold. (EPSG codes 4000-4999 are mostly geographic but not all: 4087, World
 /// Equidistant Cylindrical, is projected.)
 pub fn epsg_is_geographic(code: u32) -> Option<bool> {
-    let c = u16::try_from(code).ok()?;
-    Proj::from_epsg_code(c).ok().map(|p| p.is_latlong())
+    crs_of(code).map(|p| p.is_latlong())
+}
+
+/// The CRS of EPSG `code`: from the registry's definitions (feature `epsg`, the default), else
+/// from [`common_crs`].
+fn crs_of(code: u32) -> Option<Proj> {
+    #[cfg(feature = "epsg")]
+    return u16::try_from(code)
+        .ok()
+        .and_then(|c| Proj::from_epsg_code(c).ok());
+    #[cfg(not(feature = "epsg"))]
+    return Proj::from_proj_string(&common_crs(code)?).ok();
+}
+
+/// The PROJ.4 definition of the CRSs that nearly all DEMs come in, as the EPSG registry's
+/// definitions word them: WGS84 and NAD83 lon/lat, ETRS89, Web Mercator, UTM on WGS84 (north
+/// and south), on NAD83 and on ETRS89. What a build without the registry (the browser's, where
+/// it would be half of the module) places; a test checks each against the registry.
+pub fn common_crs(code: u32) -> Option<String> {
+    Some(match code {
+        4326 => "+proj=longlat +datum=WGS84 +no_defs".into(),
+        4269 => "+proj=longlat +datum=NAD83 +no_defs".into(),
+        4258 => "+proj=longlat +ellps=GRS80 +towgs84=0,0,0,0,0,0,0 +no_defs".into(),
+        3857 => "+proj=merc +a=6378137 +b=6378137 +lat_ts=0.0 +lon_0=0.0 +x_0=0.0 +y_0=0 \
+                 +k=1.0 +units=m +nadgrids=@null +wktext +no_defs"
+            .into(),
+        32601..=32660 => format!(
+            "+proj=utm +zone={} +datum=WGS84 +units=m +no_defs",
+            code - 32600
+        ),
+        32701..=32760 => format!(
+            "+proj=utm +zone={} +south +datum=WGS84 +units=m +no_defs",
+            code - 32700
+        ),
+        26901..=26923 => format!(
+            "+proj=utm +zone={} +datum=NAD83 +units=m +no_defs",
+            code - 26900
+        ),
+        25828..=25838 => format!(
+            "+proj=utm +zone={} +ellps=GRS80 +towgs84=0,0,0,0,0,0,0 +units=m +no_defs",
+            code - 25800
+        ),
+        _ => return None,
+    })
 }
 
 /// Samples along each edge of a projected frame when bounding it in lon/lat (projected edges
@@ -134,14 +176,11 @@ impl Placement {
             None | Some(4326) => return geographic((w - 360.0).abs() < 1e-6 * 360.0),
             Some(c) => c,
         };
-        let crs = u16::try_from(code)
-            .ok()
-            .and_then(|c| Proj::from_epsg_code(c).ok())
-            .ok_or(PlacementError::UnknownCrs(code))?;
+        let crs = crs_of(code).ok_or(PlacementError::UnknownCrs(code))?;
         if crs.is_latlong() {
             return geographic((w - 360.0).abs() < 1e-6 * 360.0);
         }
-        let wgs84 = Proj::from_epsg_code(4326).expect("EPSG:4326 is in every CRS table");
+        let wgs84 = crs_of(4326).expect("EPSG:4326 is in every CRS table");
         let projection = Projection {
             epsg: code,
             crs,
@@ -398,6 +437,31 @@ pub fn tile_points(
 ) -> (Vec<Option<[f32; 2]>>, [f32; 2]) {
     let g = tile_pixels(placement, z, x, y, size, 0);
     (g.points(), g.footprint)
+}
+
+/// Zoom at which a tile pixel of `tile_size` is about the size of a source cell of an asset
+/// `width` cells wide placed by `placement` (the unit square spans the globe without one).
+/// Deeper zooms decode detail the source never had: the point of a fractal codec, so a map's
+/// `maxzoom` may go a few levels further (the server's TileJSON says 4).
+pub fn native_zoom(placement: Option<&Placement>, width: u32, tile_size: usize) -> u8 {
+    let degrees = placement.map_or(360.0, |p| p.bounds()[2] - p.bounds()[0]);
+    let pixels_world = f64::from(width) * 360.0 / degrees;
+    (pixels_world / tile_size as f64)
+        .log2()
+        .ceil()
+        .clamp(0.0, 22.0) as u8
+}
+
+/// An asset's lon/lat bounds `[west, south, east, north]` as a map source states them:
+/// clamped to Web Mercator's world, the whole world without a placement.
+pub fn map_bounds(placement: Option<&Placement>) -> [f64; 4] {
+    let [w, s, e, n] = placement.map_or([-180.0, -90.0, 180.0, 90.0], Placement::bounds);
+    [
+        w.max(-180.0),
+        s.max(-MAX_LATITUDE),
+        e.min(180.0),
+        n.min(MAX_LATITUDE),
+    ]
 }
 
 /// The pixel centres of tile z/x/y (see [`tile_points`]), on a `(size + 2 margin)` square

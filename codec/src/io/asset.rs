@@ -103,7 +103,7 @@ pub struct Asset {
 /// concurrent requests for one chunk decode it once.
 #[derive(Clone)]
 pub struct ChunkCache {
-    pub(crate) cache: moka::sync::Cache<(u64, u8, u32), Arc<Asset>>,
+    pub(crate) cache: super::cache::ChunkMap<Asset>,
     /// Chunks being decoded now, and the most at once.
     pub(crate) decoding: Arc<(std::sync::Mutex<usize>, std::sync::Condvar)>,
     pub(crate) most_decoding: usize,

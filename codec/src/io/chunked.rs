@@ -45,11 +45,9 @@ use crate::codecs::registry::{Codec, Coding, PlaneOperator};
 impl ChunkCache {
     /// A cache of at most `bytes` of decoded chunks.
     pub fn new(bytes: u64) -> ChunkCache {
+        let cache = super::cache::chunk_map(bytes, resident_bytes);
         ChunkCache {
-            cache: moka::sync::Cache::builder()
-                .max_capacity(bytes)
-                .weigher(|_, a: &Arc<Asset>| resident_bytes(a).min(u64::from(u32::MAX)) as u32)
-                .build(),
+            cache,
             decoding: Arc::default(),
             most_decoding: std::thread::available_parallelism().map_or(2, |n| n.get()),
         }
@@ -90,13 +88,21 @@ impl ChunkCache {
 
     /// The most bytes the cache holds.
     pub fn capacity(&self) -> u64 {
-        self.cache.policy().max_capacity().unwrap_or(u64::MAX)
+        #[cfg(feature = "moka")]
+        return self.cache.policy().max_capacity().unwrap_or(u64::MAX);
+        #[cfg(not(feature = "moka"))]
+        self.cache.capacity()
     }
 
     /// Estimated bytes held by the cache now.
     pub fn weighted_bytes(&self) -> u64 {
-        self.cache.run_pending_tasks();
-        self.cache.weighted_size()
+        #[cfg(feature = "moka")]
+        {
+            self.cache.run_pending_tasks();
+            self.cache.weighted_size()
+        }
+        #[cfg(not(feature = "moka"))]
+        self.cache.weight()
     }
 }
 
@@ -292,17 +298,21 @@ impl Chunked {
             }
             Ok(Arc::new(asset))
         };
-        self.cache
+        let key = (self.key, level as u8, index as u32);
+        #[cfg(feature = "moka")]
+        let loaded = self
             .cache
-            .try_get_with((self.key, level as u8, index as u32), load)
-            .map(Some)
-            .map_err(|e| {
-                let e = (*e).clone();
-                if matches!(e, Error::Asset { .. }) {
-                    self.corrupt_chunks().insert((level, index), e.clone());
-                }
-                e
-            })
+            .cache
+            .try_get_with(key, load)
+            .map_err(|e| (*e).clone());
+        #[cfg(not(feature = "moka"))]
+        let loaded = self.cache.cache.get_or_insert_with(&key, load);
+        loaded.map(Some).map_err(|e| {
+            if matches!(e, Error::Asset { .. }) {
+                self.corrupt_chunks().insert((level, index), e.clone());
+            }
+            e
+        })
     }
 
     fn corrupt_chunks(

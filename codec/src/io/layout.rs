@@ -382,14 +382,32 @@ impl ChunkSource for FileSource {
     }
 
     fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>> {
-        use std::os::unix::fs::FileExt;
         let mut buf = vec![0u8; len];
-        self.file.read_exact_at(&mut buf, offset)?;
+        read_exact_at(&self.file, &mut buf, offset)?;
         Ok(buf)
     }
 
     fn describe(&self) -> String {
         self.path.display().to_string()
+    }
+}
+
+/// Fills `buf` from `file` at `offset`: a positioned read on Unix (no shared cursor, so
+/// concurrent reads need no lock), a seek and a read elsewhere (WebAssembly builds, which
+/// open no files but compile this).
+pub(crate) fn read_exact_at(
+    file: &std::fs::File,
+    buf: &mut [u8],
+    offset: u64,
+) -> std::io::Result<()> {
+    #[cfg(unix)]
+    return std::os::unix::fs::FileExt::read_exact_at(file, buf, offset);
+    #[cfg(not(unix))]
+    {
+        use std::io::{Read, Seek};
+        let mut f = file;
+        f.seek(std::io::SeekFrom::Start(offset))?;
+        f.read_exact(buf)
     }
 }
 

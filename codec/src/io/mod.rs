@@ -4,9 +4,10 @@
 
 pub mod asset;
 mod atomic;
+mod cache;
 pub mod chunked;
 mod container;
-mod layout;
+pub(crate) mod layout;
 mod mask;
 pub mod mosaic;
 pub mod raster;

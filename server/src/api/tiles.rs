@@ -24,22 +24,6 @@ use crate::error::AppError;
 use crate::store::StoredAsset;
 use crate::work::{Bounds, Cancel};
 
-/// Zoom at which a tile pixel is about the size of a source cell (deeper zooms decode detail the
-/// source never had: the point of a fractal codec, hence `maxzoom` goes 4 levels further).
-fn native_zoom(a: &StoredAsset, tile_size: usize) -> u8 {
-    let width = a.asset.meta.width as f64;
-    let degrees = a
-        .placement
-        .as_ref()
-        .map(|p| p.bounds()[2] - p.bounds()[0])
-        .unwrap_or(360.0);
-    let pixels_world = width * 360.0 / degrees;
-    (pixels_world / tile_size as f64)
-        .log2()
-        .ceil()
-        .clamp(0.0, 22.0) as u8
-}
-
 pub(super) async fn tilejson(
     State(state): Shared,
     Path(id): Path<String>,
@@ -51,16 +35,8 @@ pub(super) async fn tilejson(
     } else {
         ("png", "")
     };
-    let native = native_zoom(&a, 256);
-    let bounds = a.placement.as_ref().map(|p| {
-        let [w, s, e, n] = p.bounds();
-        [
-            w.max(-180.0),
-            s.max(-geo::MAX_LATITUDE),
-            e.min(180.0),
-            n.min(geo::MAX_LATITUDE),
-        ]
-    });
+    let native = geo::native_zoom(a.placement.as_ref(), a.asset.meta.width, 256);
+    let bounds = geo::map_bounds(a.placement.as_ref());
     Ok(Json(TileJson {
         tilejson: "3.0.0".into(),
         name: a.id.clone(),
@@ -70,7 +46,7 @@ pub(super) async fn tilejson(
         )],
         minzoom: 0,
         maxzoom: (native + 4).min(state.limits.max_zoom),
-        bounds: bounds.unwrap_or([-180.0, -geo::MAX_LATITUDE, 180.0, geo::MAX_LATITUDE]),
+        bounds,
         tile_size: 256,
         encoding: heights.then(|| "terrarium".into()),
     }))

@@ -18,22 +18,9 @@ pub enum TileFormat {
     F32,
 }
 
-/// Height used where there is no data: 0 clamped into the asset's range, so that a map never
-/// sees a -10000 m hole or a spike (the camera would jump).
+/// Height used where there is no data (see [`fractile_proto::heights::fill_height`]).
 fn nodata_height(m: &AssetMeta) -> f32 {
-    0.0f32.clamp(m.value_min as f32, m.value_max as f32)
-}
-
-/// `x.round() as u32` for `x >= 0` without the libm call that `round` is on baseline x86-64
-/// (3% of an uncached tile's time): truncating `x + 0.5` is the same below 2^23 (where adding
-/// 0.5 is exact from x = 1 up; under 1 only x = 0.5 - 2^-25 differs, a height of -9999.95 m in
-/// terrain-RGB), and from 2^23 up x is already an integer.
-fn round_non_negative(x: f32) -> u32 {
-    if x < 8_388_608.0 {
-        (x + 0.5) as u32
-    } else {
-        x as u32
-    }
+    fractile_proto::heights::fill_height(m.value_min, m.value_max)
 }
 
 /// How visual PNGs of heights are drawn beyond the grey ramp.
@@ -146,43 +133,7 @@ fn encode_heights(
 ) -> (&'static str, Vec<u8>) {
     let fill = nodata_height(m);
     let height = |v: f32| if v.is_finite() { v } else { fill };
-    // One loop per encoding into a sized buffer (a `flat_map(..).collect()` with the
-    // match inside measured 7-15% of an uncached tile's time).
-    let mut px = vec![0u8; heights.len() * 3];
-    let cells = px.chunks_exact_mut(3).zip(heights);
-    match e {
-        HeightEncoding::TerrainRgb => {
-            let scale = 10.0 / (1u32 << shift) as f32;
-            for (p, &v) in cells {
-                let x = ((height(v) + 10000.0) * scale).max(0.0);
-                let c = (round_non_negative(x) << shift).min(0xFF_FFFF);
-                p.copy_from_slice(&[(c >> 16) as u8, (c >> 8) as u8, c as u8]);
-            }
-        }
-        HeightEncoding::Terrarium if shift > 0 => {
-            // In 1/256 m units, rounded to the nearest multiple of the step (the full-precision
-            // arm below truncates the fraction, as Terrarium's own tiles do).
-            let scale = 256.0 / (1u32 << shift) as f32;
-            for (p, &v) in cells {
-                let x = ((height(v) + 32768.0) * scale).max(0.0);
-                let c = (round_non_negative(x) << shift).min(0xFF_FFFF);
-                p.copy_from_slice(&[(c >> 16) as u8, (c >> 8) as u8, c as u8]);
-            }
-        }
-        HeightEncoding::Terrarium => {
-            for (p, &v) in cells {
-                let c = (height(v) + 32768.0).clamp(0.0, 65535.996);
-                // Truncation is floor for c >= 0 (and not a libm call).
-                let i = c as u32;
-                p.copy_from_slice(&[
-                    (i >> 8) as u8,
-                    (i & 0xFF) as u8,
-                    ((c - i as f32) * 256.0) as u8,
-                ]);
-            }
-        }
-        HeightEncoding::Gray16 => {}
-    }
+    let px = fractile_proto::heights::pack_rgb(heights, e, fill, shift).unwrap_or_default();
     if e == HeightEncoding::Gray16 {
         let (lo, span) = (
             m.value_min as f32,
