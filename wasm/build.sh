@@ -5,9 +5,10 @@
 #
 #   OUT/pkg/fractile_wasm.js, fractile_wasm_bg.wasm   the module and its bindings
 #   OUT/reader.js, worker.js, fractile-protocol.js    RemoteAsset, the worker, MapLibre's protocol
+#   OUT/terrain.html, OUT/vendor/                      a page: hillshade and 3D terrain of ?url=
 #
 # OUT is target/wasm-web unless given. Serve OUT as static files beside the page that imports
-# fractile-protocol.js (web/static/terrain.html does).
+# fractile-protocol.js (terrain.html does).
 set -euo pipefail
 cd "$(dirname "$0")/.."
 OUT=${1:-target/wasm-web}
@@ -22,5 +23,8 @@ cargo build -q --profile wasm -p fractile-wasm --target wasm32-unknown-unknown
 mkdir -p "$OUT/pkg"
 "$BINDGEN" --target web --no-typescript --out-dir "$OUT/pkg" \
   target/wasm32-unknown-unknown/wasm/fractile_wasm.wasm
-cp wasm/js/*.js "$OUT/"
+cp wasm/js/*.js wasm/web/*.html "$OUT/"
+# MapLibre for the page, the copy the server's viewer vendors (no CDN).
+mkdir -p "$OUT/vendor"
+cp server/web/vendor/maplibre-gl.js server/web/vendor/maplibre-gl.css server/web/vendor/MAPLIBRE-LICENSE.txt "$OUT/vendor/"
 echo "$OUT"

@@ -11,7 +11,7 @@
 
 const TILE = /^fractile:\/\/(.+)\/(\d+)\/(\d+)\/(\d+)(?:\.png)?$/;
 
-/** Registers `fractile://` with `maplibregl`; returns `{ stats, heights, close }`. */
+/** Registers `fractile://` with `maplibregl`; returns `{ stats, tilejson, heights, close }`. */
 export function addFractileProtocol(maplibregl, { encoding = 'terrainrgb', tileSize = 256, worker } = {}) {
   const w = worker || new Worker(new URL('./worker.js', import.meta.url), { type: 'module' });
   const pending = new Map();
@@ -39,23 +39,24 @@ export function addFractileProtocol(maplibregl, { encoding = 'terrainrgb', tileS
     stats.decodeMs.push(r.decodeMs);
   };
 
+  // The TileJSON an asset implies, as the server's: its bounds, zooms to 4 past the source's.
+  const tilejson = async (url) => {
+    const r = await call({ kind: 'meta', url });
+    return {
+      tilejson: '3.0.0',
+      tiles: [`fractile://${url}/{z}/{x}/{y}`],
+      bounds: r.bounds,
+      minzoom: 0,
+      maxzoom: Math.min(r.nativeZoom + 4, 22),
+      nativeZoom: r.nativeZoom,
+      tileSize,
+      encoding: encoding === 'terrarium' ? 'terrarium' : 'mapbox',
+    };
+  };
+
   maplibregl.addProtocol('fractile', async (params) => {
     const m = params.url.match(TILE);
-    if (!m) {
-      const url = params.url.slice('fractile://'.length);
-      const r = await call({ kind: 'meta', url });
-      return {
-        data: {
-          tilejson: '3.0.0',
-          tiles: [`fractile://${url}/{z}/{x}/{y}`],
-          bounds: r.bounds,
-          minzoom: 0,
-          maxzoom: Math.min(r.nativeZoom + 4, 22),
-          tileSize,
-          encoding: encoding === 'terrarium' ? 'terrarium' : 'mapbox',
-        },
-      };
-    }
+    if (!m) return { data: await tilejson(params.url.slice('fractile://'.length)) };
     const [, url, z, x, y] = m;
     const r = await call({ kind: 'rgba', url, z: +z, x: +x, y: +y, size: tileSize, encoding });
     stats.tiles += 1;
@@ -65,6 +66,8 @@ export function addFractileProtocol(maplibregl, { encoding = 'terrainrgb', tileS
 
   return {
     stats,
+    /** The TileJSON of the asset at `url` (a plain URL, no `fractile://`). */
+    tilejson,
     /** Tile z/x/y's heights as the worker decodes them (Float32Array), with its bound. */
     async heights(url, z, x, y, size = tileSize) {
       const r = await call({ kind: 'heights', url, z, x, y, size });

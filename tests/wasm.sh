@@ -1,0 +1,91 @@
+#!/usr/bin/env bash
+# The browser's decoder end to end (issue 58), with no tile server in the path: an asset in
+# chunks is served as a static file by nginx (Debian's, with Range support), and
+#  1. Node decodes 20 tiles at zooms inside and past the source through wasm/js/reader.js and
+#     compares them with the server's float32 tiles (wasm/tests/parity.mjs; prints decode times);
+#  2. headless Chromium loads wasm/web/terrain.html from nginx: MapLibre draws the asset from
+#     the fractile:// protocol (hillshade, 3D terrain), decoded in a Web Worker; the page
+#     compares 20 tiles' heights with the server's (nginx proxies /v1/ to it) and the
+#     screenshot must show each map drawing more than its background.
+# Prints a closing "N passed, N failed" line.
+set -euo pipefail
+cd "$(dirname "$0")/.."
+for c in nginx node chromium; do
+  command -v $c >/dev/null || [ -x /usr/sbin/$c ] || { echo "$c is needed (.ci/run installs it)" >&2; exit 1; }
+done
+NGINX=$(command -v nginx || echo /usr/sbin/nginx)
+PORT=${PORT:-18297}
+SERVER_PORT=$((PORT + 1))
+WORK=$(mktemp -d)
+# nginx's workers run as nobody when it starts as root: they must reach the files.
+chmod 755 "$WORK"
+cargo build --release --workspace -q
+WEB=$(wasm/build.sh "$WORK/site")
+mkdir -p "$WORK/assets" "$WORK/nginx"
+# etopo20 in chunks of 128: 45 chunks at the source level, so a tile reads a few of them.
+target/release/fractile encode testdata/etopo20.tif -o "$WORK/assets/etopo20.fra" --chunk 128 >/dev/null
+cp "$WORK/assets/etopo20.fra" "$WEB/"
+FRACTILE_BACKEND=cpu RUST_LOG=warn target/release/fractile serve --bind 127.0.0.1:$SERVER_PORT \
+  --assets "$WORK/assets" &
+PID=$!
+cat > "$WORK/nginx/nginx.conf" <<CONF
+worker_processes 1;
+daemon off;
+error_log $WORK/nginx/error.log;
+pid $WORK/nginx/nginx.pid;
+events { worker_connections 256; }
+http {
+  access_log $WORK/nginx/access.log;
+  client_body_temp_path $WORK/nginx/body;
+  proxy_temp_path $WORK/nginx/proxy;
+  fastcgi_temp_path $WORK/nginx/fastcgi;
+  uwsgi_temp_path $WORK/nginx/uwsgi;
+  scgi_temp_path $WORK/nginx/scgi;
+  types { text/html html; text/javascript js; text/css css; application/wasm wasm; }
+  default_type application/octet-stream;
+  server {
+    listen 127.0.0.1:$PORT;
+    root $WEB;
+    location /v1/ { proxy_pass http://127.0.0.1:$SERVER_PORT; }
+  }
+}
+CONF
+"$NGINX" -c "$WORK/nginx/nginx.conf" &
+NGINX_PID=$!
+trap 'kill $PID $NGINX_PID 2>/dev/null; wait $PID $NGINX_PID 2>/dev/null; rm -rf "$WORK"' EXIT
+for _ in $(seq 1 240); do curl -fs "http://127.0.0.1:$SERVER_PORT/readyz" >/dev/null && break; sleep 0.5; done
+for _ in $(seq 1 40); do curl -fs -o /dev/null "http://127.0.0.1:$PORT/terrain.html" && break; sleep 0.25; done
+
+pass=0; fail=0
+check() { if eval "$2"; then pass=$((pass + 1)); echo "ok: $1"; else fail=$((fail + 1)); echo "FAILED: $1"; fi; }
+
+SIZE=$(stat -c %s "$WEB/etopo20.fra")
+check "nginx answers a range of the asset with 206" \
+  '[ "$(curl -s -o /dev/null -w "%{http_code}" -H "Range: bytes=0-99" "http://127.0.0.1:$PORT/etopo20.fra")" = 206 ]'
+check "the module is at most 1 MB before compression" \
+  '[ "$(stat -c %s "$WEB/pkg/fractile_wasm_bg.wasm")" -le 1000000 ]'
+check "Node: 20 tiles decoded from ranges equal the server's" \
+  'node wasm/tests/parity.mjs --web "$WEB" --static "http://127.0.0.1:$PORT/" --server "http://127.0.0.1:$SERVER_PORT" --assets etopo20 --tiles 20'
+
+READY_JS="(() => { const s = document.getElementById('status'); return !!s && s.dataset.loaded === 'true'; })()" \
+  python3 tests/browser.py "http://127.0.0.1:$PORT/terrain.html?url=etopo20.fra&compare=/v1/assets/etopo20/tiles" "$WORK" 120 || true
+DOM=$(cat "$WORK/dom.html" 2>/dev/null || true)
+STATUS=$(grep -o '<span id="status"[^>]*>[^<]*' <<<"$DOM" || true)
+echo "page status: $STATUS"
+attr() { sed -n "s/.*data-$1=\"\([^\"]*\)\".*/\1/p" <<<"$STATUS"; }
+check "the page finished" '[ "$(attr loaded)" = true ]'
+check "the maps decoded tiles in the browser" '[ "${tiles:=$(attr tiles)}" -gt 0 ]'
+check "the page compared 20 tiles, some past the source's zoom" '[ "$(attr compared)" = 20 ] && [ "$(attr past)" -gt 0 ]'
+check "all 20 equal the server's heights (within terrain-RGB's rounding)" '[ "$(attr equal)" = 20 ]'
+check "the browser fetched less than the file ($SIZE bytes)" '[ "$(attr bytes)" -gt 0 ] && [ "$(attr bytes)" -lt "$SIZE" ]'
+check "nginx answered the page's reads by range" 'grep -q "GET /etopo20.fra HTTP/1.1\" 206" "$WORK/nginx/access.log"'
+check "the page reported no error" '[ "$(attr errors)" = 0 ]'
+check "Chromium saw no JavaScript error" '[ ! -s "$WORK/console.txt" ]'
+[ -s "$WORK/console.txt" ] && sed 's/^/  console: /' "$WORK/console.txt"
+# The page: a 48 px bar, then two maps side by side, each under a 32 px label. A map that drew
+# nothing is one flat colour: a fifth of each must differ from it.
+check "each map draws more than its background" \
+  '[ -s "$WORK/shot.png" ] && target/release/browser-pixels "$WORK/shot.png" 48 32 0 hillshade:0.2 terrain:0.2'
+[ -n "${KEEP_SHOT:-}" ] && cp "$WORK/shot.png" "$KEEP_SHOT"
+echo "wasm: $pass passed, $fail failed"
+[ "$fail" = 0 ]
