@@ -714,3 +714,28 @@ async fn volume_surfaces_and_distances_through_the_client() {
     let e = c.point_unit("fandisk", 0.5, 0.5, None).await.unwrap_err();
     assert_eq!(e.code(), Some("bad_point"));
 }
+
+/// The asset's file through the client: whole, it reads back as the asset the catalog
+/// describes; by range, its bytes are the whole file's.
+#[tokio::test]
+async fn asset_files_whole_and_by_range() {
+    let c = client();
+    let whole = c.file_bytes("jacksboro", None).await.unwrap();
+    let asset = fractile_codec::Asset::from_bytes(&whole).unwrap();
+    let info = c.asset("jacksboro").await.unwrap();
+    assert_eq!(whole.len() as u64, info.bytes);
+    assert_eq!(
+        (asset.meta.width, asset.meta.height),
+        (info.width, info.height)
+    );
+    let part = c.file_bytes("jacksboro", Some((7, 1030))).await.unwrap();
+    assert_eq!(part, &whole[7..=1030]);
+    let err = c
+        .file_bytes(
+            "jacksboro",
+            Some((whole.len() as u64 + 1, whole.len() as u64 + 5)),
+        )
+        .await
+        .unwrap_err();
+    assert!(format!("{err:?}").contains("bad_range"), "{err:?}");
+}

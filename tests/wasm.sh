@@ -2,7 +2,8 @@
 # The browser's decoder end to end (issue 58), with no tile server in the path: an asset in
 # chunks is served as a static file by nginx (Debian's, with Range support), and
 #  1. Node decodes 20 tiles at zooms inside and past the source through wasm/js/reader.js and
-#     compares them with the server's float32 tiles (wasm/tests/parity.mjs; prints decode times);
+#     compares them with the server's float32 tiles (wasm/tests/parity.mjs; prints decode times),
+#     then again reading the asset from the server's own /v1/assets/{id}/file by range;
 #  2. headless Chromium loads wasm/web/terrain.html from nginx: MapLibre draws the asset from
 #     the fractile:// protocol (hillshade, 3D terrain), decoded in a Web Worker; the page
 #     compares 20 tiles' heights with the server's (nginx proxies /v1/ to it) and the
@@ -66,6 +67,8 @@ check "the module is at most 1 MB before compression" \
   '[ "$(stat -c %s "$WEB/pkg/fractile_wasm_bg.wasm")" -le 1000000 ]'
 check "Node: 20 tiles decoded from ranges equal the server's" \
   'node wasm/tests/parity.mjs --web "$WEB" --static "http://127.0.0.1:$PORT/" --server "http://127.0.0.1:$SERVER_PORT" --assets etopo20 --tiles 20'
+check "Node: the same, the asset read by range from the server's /v1/assets/{id}/file" \
+  'node wasm/tests/parity.mjs --web "$WEB" --static "http://127.0.0.1:$SERVER_PORT/v1/assets/{id}/file" --server "http://127.0.0.1:$SERVER_PORT" --assets etopo20 --tiles 20 >/dev/null'
 
 READY_JS="(() => { const s = document.getElementById('status'); return !!s && s.dataset.loaded === 'true'; })()" \
   python3 tests/browser.py "http://127.0.0.1:$PORT/terrain.html?url=etopo20.fra&compare=/v1/assets/etopo20/tiles" "$WORK" 120 || true

@@ -182,6 +182,21 @@ impl Client {
         self.get_json(&self.asset_path(id, "/tilejson.json")?).await
     }
 
+    /// `GET /v1/assets/{id}/file`: the asset's file as stored, whole, or `first..=last` of its
+    /// bytes (a `Range` request; the server answers one range, and whole files up to 64 MiB).
+    pub async fn file_bytes(
+        &self,
+        id: &str,
+        range: Option<(u64, u64)>,
+    ) -> Result<Vec<u8>, ClientError> {
+        let mut req = self.http.get(self.url(&self.asset_path(id, "/file")?));
+        if let Some((first, last)) = range {
+            req = req.header(reqwest::header::RANGE, format!("bytes={first}-{last}"));
+        }
+        let r = self.send(req).await?;
+        Ok(r.bytes().await.map_err(ClientError::Transport)?.to_vec())
+    }
+
     /// `GET /v1/assets/{id}/layer.json`: the Cesium terrain layer of a georeferenced DEM.
     pub async fn layer_json(&self, id: &str) -> Result<LayerJson, ClientError> {
         self.get_json(&self.asset_path(id, "/layer.json")?).await

@@ -216,6 +216,7 @@ error_codes! {
     BadPoint => "bad_point",
     BadPrecision => "bad_precision",
     BadQuery => "bad_query",
+    BadRange => "bad_range",
     BadRequest => "bad_request",
     BadRescale => "bad_rescale",
     BadResolution => "bad_resolution",

@@ -2069,3 +2069,57 @@ async fn projected_assets_serve_points_within_their_promise_and_tiles() {
     // jacksboro's relief is several hundred metres: a tile of it is not flat.
     assert!(hi - lo > 50.0, "tile heights {lo}..{hi}");
 }
+
+/// `GET /v1/assets/{id}/file`: the file as stored, whole or by one byte range, for clients that
+/// decode by themselves; ranges that cannot be served are 416 `bad_range`.
+#[tokio::test]
+async fn asset_files_are_served_whole_and_by_range() {
+    state();
+    let dir = std::env::temp_dir().join(format!("fractile-http-{}", std::process::id()));
+    let file = std::fs::read(dir.join("jacksboro.fra")).unwrap();
+    let (s, h, b) = get("/v1/assets/jacksboro/file").await;
+    assert_eq!(s, StatusCode::OK);
+    assert_eq!(b, file, "the whole file, as stored");
+    assert_eq!(h["accept-ranges"], "bytes");
+    let (s, h, b) = send(
+        Request::get("/v1/assets/jacksboro/file")
+            .header("Range", "bytes=10-99")
+            .body(Body::empty())
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::PARTIAL_CONTENT);
+    assert_eq!(b, &file[10..100]);
+    assert_eq!(
+        h["content-range"],
+        format!("bytes 10-99/{}", file.len()).as_str()
+    );
+    // The last bytes, by suffix.
+    let (s, _, b) = send(
+        Request::get("/v1/assets/jacksboro/file")
+            .header("Range", "bytes=-4")
+            .body(Body::empty())
+            .unwrap(),
+    )
+    .await;
+    assert_eq!(s, StatusCode::PARTIAL_CONTENT);
+    assert_eq!(b, &file[file.len() - 4..]);
+    for bad in [
+        format!("bytes={}-", file.len() + 10),
+        "bytes=0-1,5-9".to_string(),
+        "lines=1-2".to_string(),
+    ] {
+        let (s, _, b) = send(
+            Request::get("/v1/assets/jacksboro/file")
+                .header("Range", bad.as_str())
+                .body(Body::empty())
+                .unwrap(),
+        )
+        .await;
+        assert_eq!(s, StatusCode::RANGE_NOT_SATISFIABLE, "{bad}");
+        assert_eq!(json(&b)["code"], "bad_range", "{bad}");
+    }
+    let (s, _, b) = get("/v1/assets/nothing/file").await;
+    assert_eq!(s, StatusCode::NOT_FOUND);
+    assert_eq!(json(&b)["code"], "unknown_asset");
+}

@@ -34,7 +34,10 @@ const rows = [];
 let failed = 0;
 const perAsset = Math.ceil(wanted / ids.length);
 for (const id of ids) {
-  const a = await RemoteAsset.open(new URL(`${id}.fra`, args.static).href);
+  // --static: a folder URL holding ID.fra, or a template with {id} (the server's own
+  // /v1/assets/{id}/file, which answers ranges too).
+  const at = args.static.includes('{id}') ? args.static.replace('{id}', id) : new URL(`${id}.fra`, args.static).href;
+  const a = await RemoteAsset.open(at);
   const [w, s, e, n] = a.bounds;
   // Zooms from two under the native one to three past it; at each, a tile at the centre and
   // one at a quarter of the extent (different chunks).

@@ -411,6 +411,24 @@ impl Chunked {
         Ok(())
     }
 
+    /// The container's length in bytes.
+    pub fn len(&self) -> u64 {
+        self.source.len()
+    }
+
+    /// Whether the container is empty (never, once opened).
+    pub fn is_empty(&self) -> bool {
+        self.source.is_empty()
+    }
+
+    /// `len` bytes of the container from `offset`, read where it lies (what a server hands a
+    /// client that decodes itself, by range).
+    pub fn read(&self, offset: u64, len: usize) -> Result<Vec<u8>, Error> {
+        self.source.read(offset, len).map_err(|e| {
+            Error::unavailable(format!("{}: {e}", self.source.describe())).caused_by(e)
+        })
+    }
+
     /// The container's bytes, whole (for `Asset::to_bytes`).
     pub fn bytes(&self) -> Result<Vec<u8>, Error> {
         self.source

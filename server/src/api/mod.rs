@@ -6,6 +6,7 @@
 
 mod assets;
 mod curves;
+mod files;
 mod meshes;
 mod points;
 mod regions;
@@ -17,6 +18,7 @@ mod tiles;
 use assets::*;
 pub use curves::CurveQuery;
 use curves::*;
+use files::*;
 use fractile_proto::ErrorCode;
 use meshes::*;
 use points::*;
@@ -58,6 +60,7 @@ pub fn router(state: Arc<AppState>) -> Router {
                 .delete(delete_asset)
                 .layer(axum::extract::DefaultBodyLimit::max(state.max_upload)),
         )
+        .route("/v1/assets/{id}/file", get(asset_file))
         .route("/v1/assets/{id}/tilejson.json", get(tilejson))
         .route("/v1/assets/{id}/tiles/{z}/{x}/{tile}", get(tile))
         .route("/v1/assets/{id}/layer.json", get(layer))
