@@ -7,7 +7,8 @@
 #  2. headless Chromium loads wasm/web/terrain.html from nginx: MapLibre draws the asset from
 #     the fractile:// protocol (hillshade, 3D terrain), decoded in a Web Worker; the page
 #     compares 20 tiles' heights with the server's (nginx proxies /v1/ to it) and the
-#     screenshot must show each map drawing more than its background.
+#     screenshot must show each map drawing more than its background;
+#  3. the server's viewer with its switch "decode in the browser" on: both paths side by side.
 # Prints a closing "N passed, N failed" line.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -90,5 +91,25 @@ check "Chromium saw no JavaScript error" '[ ! -s "$WORK/console.txt" ]'
 check "each map draws more than its background" \
   '[ -s "$WORK/shot.png" ] && target/release/browser-pixels "$WORK/shot.png" 48 32 0 hillshade:0.2 terrain:0.2'
 [ -n "${KEEP_SHOT:-}" ] && cp "$WORK/shot.png" "$KEEP_SHOT"
+
+# 3. The server's viewer with its switch on (`?decode=browser`): the demo's DEM decoded in the
+# browser from /v1/assets/{id}/file (the server started with --wasm), beside the server's tiles.
+VIEWER_PORT=$((PORT + 2))
+FRACTILE_BACKEND=cpu FRACTILE_CACHE=$WORK/demo RUST_LOG=warn target/release/fractile serve \
+  --bind 127.0.0.1:$VIEWER_PORT --wasm "$WEB" &
+VIEWER_PID=$!
+trap 'kill $PID $NGINX_PID $VIEWER_PID 2>/dev/null; wait $PID $NGINX_PID $VIEWER_PID 2>/dev/null; rm -rf "$WORK"' EXIT
+for _ in $(seq 1 240); do curl -fs "http://127.0.0.1:$VIEWER_PORT/readyz" >/dev/null && break; sleep 0.5; done
+mkdir -p "$WORK/viewer"
+READY_JS="(() => { const s = document.getElementById('status'); return !!s && s.dataset.loaded === 'true' && Number(s.dataset.coastPoints) > 0 && s.dataset.browser === 'ready'; })()" \
+  python3 tests/browser.py "http://127.0.0.1:$VIEWER_PORT/?decode=browser" "$WORK/viewer" 120 || true
+STATUS=$(grep -o '<span id="status"[^>]*>[^<]*' "$WORK/viewer/dom.html" 2>/dev/null || true)
+echo "viewer status: $STATUS"
+check "the viewer's switch decoded the DEM in the browser" '[ "$(attr browser)" = ready ] && [ "$(attr browser-tiles)" -gt 0 ]'
+check "the viewer reported no error" '[ "$(attr errors)" = 0 ] && [ ! -s "$WORK/viewer/console.txt" ]'
+# Its layout: the bar, then five panels (the globe's empty without CesiumJS), each under a label.
+check "the browser's panel draws beside the server's" \
+  '[ -s "$WORK/viewer/shot.png" ] && target/release/browser-pixels "$WORK/viewer/shot.png" 48 64 40 terrain:0.2 browser:0.2 image:0.2 coast:0.001 globe:0'
+[ -n "${KEEP_SHOT:-}" ] && cp "$WORK/viewer/shot.png" "${KEEP_SHOT%.png}-viewer.png"
 echo "wasm: $pass passed, $fail failed"
 [ "$fail" = 0 ]

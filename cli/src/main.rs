@@ -108,6 +108,10 @@ enum Command {
         /// A folder with CesiumJS's build (tools/fetch-cesium.sh): the viewer adds a globe.
         #[arg(long, env = "FRACTILE_CESIUM")]
         cesium: Option<PathBuf>,
+        /// A folder with the browser's decoder (wasm/build.sh writes target/wasm-web): the
+        /// viewer can decode the DEM in the browser, beside the server's tiles.
+        #[arg(long, env = "FRACTILE_WASM")]
+        wasm: Option<PathBuf>,
     },
     /// Compare a decoded raster with its original: PSNR, RMSE, MAE, max error.
     Compare {
@@ -176,13 +180,14 @@ fn main() {
             allow_anonymous_writes,
             backend,
             cesium,
+            wasm,
         } => run_serve(
             assets,
             bind,
             config,
             public_url,
             (write_token, allow_anonymous_writes),
-            (backend, cesium),
+            (backend, cesium, wasm),
         ),
     };
     if let Err(e) = result {
@@ -197,7 +202,7 @@ fn run_serve(
     config: Option<PathBuf>,
     public_url: Option<String>,
     (write_token, allow_anonymous_writes): (Option<String>, bool),
-    (backend, cesium): (Option<String>, Option<PathBuf>),
+    (backend, cesium, wasm): (Option<String>, Option<PathBuf>, Option<PathBuf>),
 ) -> Result<()> {
     tracing_subscriber::fmt()
         .with_env_filter(
@@ -214,6 +219,9 @@ fn run_serve(
     }
     if cesium.is_some() {
         file.cesium_dir = cesium;
+    }
+    if wasm.is_some() {
+        file.wasm_dir = wasm;
     }
     if allow_anonymous_writes {
         file.allow_anonymous_writes = Some(true);

@@ -81,6 +81,10 @@ pub struct FileConfig {
     /// `tools/fetch-cesium.sh` puts one in `target/cesium`), served at `/vendor/cesium/` so that
     /// the viewer shows the DEM on a globe through `layer.json`. Not compiled in: it is 14 MB.
     pub cesium_dir: Option<PathBuf>,
+    /// A folder holding the browser's decoder (`wasm/build.sh` writes `target/wasm-web`),
+    /// served at `/wasm/` so that the viewer can decode the DEM in the browser beside the
+    /// server's tiles. Not compiled in: it is built for another target.
+    pub wasm_dir: Option<PathBuf>,
     /// Where continuous decoding runs: `cpu`, `gpu` or `auto` (default; see `backend`).
     pub backend: Option<String>,
     /// GPU memory for resident operators, in MiB (default 1024).
@@ -119,10 +123,10 @@ pub struct ServeOptions {
     pub file: FileConfig,
 }
 
-/// CesiumJS's folder as `ServeDir` serves it (which refuses `..`), less what lies behind a
-/// symbolic link, which it follows: the assets folder serves only its own files, and so does
-/// this one (`leak.js -> /etc/hostname` was served).
-fn cesium_files(dir: PathBuf) -> axum::Router {
+/// A folder of the viewer's (CesiumJS's, the browser decoder's) as `ServeDir` serves it (which
+/// refuses `..`), less what lies behind a symbolic link, which it follows: the assets folder
+/// serves only its own files, and so does this one (`leak.js -> /etc/hostname` was served).
+fn folder_files(dir: PathBuf) -> axum::Router {
     let served = tower_http::services::ServeDir::new(dir.clone());
     axum::Router::new()
         .fallback_service(served)
@@ -133,7 +137,7 @@ fn cesium_files(dir: PathBuf) -> axum::Router {
                     if through_a_link(&dir, req.uri().path()).await {
                         let refused = error::AppError::not_found(
                             ErrorCode::NoFile,
-                            "no such file in the CesiumJS folder (links are not followed)",
+                            "no such file in the folder (links are not followed)",
                         );
                         return axum::response::IntoResponse::into_response(refused);
                     }
@@ -168,10 +172,15 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
     telemetry::handle();
     // CesiumJS, when a folder of it is configured (ServeDir refuses paths out of it).
     let cesium = state.cesium_dir.clone();
+    let wasm = state.wasm_dir.clone();
     let gpu = state.gpu.clone();
     let router = api::router(state);
     let router = match cesium {
-        Some(dir) => router.nest("/vendor/cesium", cesium_files(dir)),
+        Some(dir) => router.nest("/vendor/cesium", folder_files(dir)),
+        None => router,
+    };
+    let router = match wasm {
+        Some(dir) => router.nest("/wasm", folder_files(dir)),
         None => router,
     };
     router
@@ -323,6 +332,7 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
             .build();
     }
     state.cesium_dir = opts.file.cesium_dir.clone();
+    state.wasm_dir = opts.file.wasm_dir.clone();
     if let Some(m) = opts.file.coarse_cache_mib {
         state.coarse = api::coarse_cache(m);
     }

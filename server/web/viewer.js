@@ -194,6 +194,73 @@
       status.dataset.loaded = 'true';
     });
 
+    // Decode in the browser: the same DEM read by range from /v1/assets/{dem}/file and decoded
+    // by fractile's WebAssembly decoder in a Web Worker (when the server has it: `fractile
+    // serve --wasm DIR`), in a panel beside the server's tiles, on the same camera. #status's
+    // data-browser says 'absent', 'off', 'loading' or 'ready'.
+    const toggle = document.getElementById('browser-decode');
+    const panel = document.getElementById('browser');
+    let browserMap = null;
+    const relayout = () => { terrain.resize(); image.resize(); coastMap.then((m) => m.resize()); };
+    const follow = () => {
+      if (browserMap) browserMap.jumpTo({ center: terrain.getCenter(), zoom: terrain.getZoom(), bearing: terrain.getBearing(), pitch: terrain.getPitch() });
+    };
+    const startBrowser = async () => {
+      status.dataset.browser = 'loading';
+      panel.hidden = false;
+      relayout();
+      const { addFractileProtocol } = await import(`${origin}/wasm/fractile-protocol.js`);
+      window.fractileProtocol = window.fractileProtocol || addFractileProtocol(maplibregl);
+      const url = `fractile://${origin}/v1/assets/${dem}/file`;
+      browserMap = new maplibregl.Map({
+        container: 'browser',
+        style: {
+          version: 8,
+          sources: {
+            dem: { type: 'raster-dem', url, tileSize: 256, encoding: 'mapbox' },
+            shade: { type: 'raster-dem', url, tileSize: 256, encoding: 'mapbox' },
+          },
+          layers: [
+            { id: 'background', type: 'background', paint: { 'background-color': '#dde4ea' } },
+            { id: 'hillshade', type: 'hillshade', source: 'shade', paint: { 'hillshade-exaggeration': 0.5 } },
+          ],
+          terrain: { source: 'dem', exaggeration: 1.5 },
+        },
+        center: terrain.getCenter(),
+        zoom: terrain.getZoom(),
+        pitch: terrain.getPitch(),
+        maxPitch: 80,
+        interactive: false,
+      });
+      browserMap.on('error', (e) => fail(e.error ? e.error.message : 'map error'));
+      browserMap.on('data', (e) => { if (e.dataType === 'source' && e.tile) bump('browserTiles'); });
+      browserMap.once('idle', () => {
+        status.dataset.browser = 'ready';
+        const s = window.fractileProtocol.stats;
+        document.getElementById('browser-note').textContent = `(${s.tiles} tiles, ${s.bytesFetched} bytes fetched)`;
+      });
+    };
+    const stopBrowser = () => {
+      if (browserMap) browserMap.remove();
+      browserMap = null;
+      panel.hidden = true;
+      status.dataset.browser = 'off';
+      relayout();
+    };
+    terrain.on('move', follow);
+    fetch(`${origin}/wasm/fractile-protocol.js`, { method: 'HEAD' }).then((r) => {
+      if (!r.ok) {
+        status.dataset.browser = 'absent';
+        return;
+      }
+      toggle.disabled = false;
+      toggle.addEventListener('change', () => (toggle.checked ? startBrowser().catch((e) => fail(`browser decoder: ${e}`)) : stopBrowser()));
+      if (params.get('decode') === 'browser') {
+        toggle.checked = true;
+        startBrowser().catch((e) => fail(`browser decoder: ${e}`));
+      }
+    }).catch((e) => fail(String(e)));
+
     const slider = document.getElementById('iterations');
     const label = document.getElementById('iterations-value');
     slider.addEventListener('input', () => {

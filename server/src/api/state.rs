@@ -69,6 +69,8 @@ pub struct AppState {
     pub gpu: Option<Arc<GpuBackend>>,
     /// CesiumJS's build, served at `/vendor/cesium/` when set (`cesium_dir`).
     pub cesium_dir: Option<std::path::PathBuf>,
+    /// The browser's decoder, served at `/wasm/` when set (`wasm_dir`).
+    pub wasm_dir: Option<std::path::PathBuf>,
 }
 
 /// Default of `coarse_cache_mib`: every coarse zoom of a 9.3 Mpx DEM takes 73 MB (its zoom
@@ -130,6 +132,7 @@ impl AppState {
             backend: Backend::Auto,
             gpu: None,
             cesium_dir: None,
+            wasm_dir: None,
         }
     }
 }
