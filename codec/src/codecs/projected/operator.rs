@@ -4,7 +4,7 @@
 use std::sync::Arc;
 
 use crate::codecs::projected::header::ProjectedHeader;
-use crate::codecs::projected::residual;
+use crate::codecs::projected::residual::LazyBounds;
 use crate::core::operator::{Chain, Operator, Step};
 
 /// The continuation operator of a decoded grid (see the module's documentation). Per cell it
@@ -34,9 +34,10 @@ pub struct ProjectedOperator {
     /// need the steps that take the bound where they are, not the value range, under the
     /// tolerance.
     pub(super) residual: Vec<f32>,
-    /// Of a lazily built operator: every cell's residual bound, coded in a byte.
-    pub(super) coded: Option<Arc<residual::ResidualCodes>>,
-    /// The largest residual bound.
+    /// Of a lazily built operator (and its windows): every cell's residual bound, coded, made
+    /// a block of cells at a time on first use (see [`records`](super::records)).
+    pub(super) bounds: Option<Arc<LazyBounds>>,
+    /// The largest residual bound (of a lazily built operator: unknown, infinite).
     pub(super) residual_max: f32,
     /// The part of the frame unit coordinates map onto (the frame, or for half-resolution
     /// chroma of an odd-sized image, half the luma's extent).
@@ -102,25 +103,24 @@ impl ProjectedOperator {
         let mut op = ProjectedOperator::samples_only(header, grid)?;
         op.records = op.all_records();
         op.region.size = [op.size[0] - 1, op.size[1] - 1];
-        op.residual = op.residual_bounds();
+        op.residual = op.residual_bounds(&op.records);
         op.residual_max = op.residual.iter().fold(0.0, |m: f32, &r| m.max(r));
         Ok(op)
     }
 
-    /// The operator of decoded samples `grid` under `header`, built lazily: its samples and a
-    /// residual bound a cell coded in a byte (5 bytes a sample), the records of the cells a
-    /// request needs built for it ([`Self::window`]). The same values as [`Self::new`]'s
-    /// operator where chains take the same steps; its residual bounds are rounded up by at
-    /// most 9%, so a chain may take a step more to reach a tolerance. What chunks of chunked
-    /// assets use (see `crate::codecs::projected::records`).
+    /// The operator of decoded samples `grid` under `header`, built lazily: its samples, the
+    /// records of the cells a request needs built for it ([`Self::window`]), and a residual
+    /// bound a cell coded in a byte, made a block of cells at a time when a request first
+    /// reads them (5 bytes a sample in all). The same values as [`Self::new`]'s operator where
+    /// chains take the same steps; its residual bounds are rounded up by at most 9%, so a
+    /// chain may take a step more to reach a tolerance. What chunks of chunked assets use (see
+    /// `crate::codecs::projected::records`).
     pub fn lazy(header: &ProjectedHeader, grid: Vec<f64>) -> Result<ProjectedOperator, String> {
         // The grid goes once the samples are made: it is twice their size, and a server builds
         // chunks' operators a core at a time.
         let mut op = ProjectedOperator::samples_only(header, &grid)?;
         drop(grid);
-        let coded = op.residual_codes();
-        op.residual_max = coded.max();
-        op.coded = Some(Arc::new(coded));
+        op.bounds = Some(Arc::new(LazyBounds::new([op.size[0] - 1, op.size[1] - 1])));
         Ok(op)
     }
 
@@ -165,7 +165,7 @@ impl ProjectedOperator {
             rho,
             interval,
             residual: Vec::new(),
-            coded: None,
+            bounds: None,
             residual_max: f32::INFINITY,
             valid: [size[0] as f32, size[1] as f32],
         })
@@ -173,13 +173,13 @@ impl ProjectedOperator {
 
     /// Bytes the operator holds (a cache's weight).
     pub fn resident_bytes(&self) -> u64 {
-        let coded = self.coded.as_ref().map_or(0, |c| c.bytes());
-        (4 * self.z.len() + 36 * self.records.len() + 4 * self.residual.len() + coded) as u64
+        let bounds = self.bounds.as_ref().map_or(0, |b| b.bytes());
+        (4 * self.z.len() + 36 * self.records.len() + 4 * self.residual.len() + bounds) as u64
     }
 
     /// Whether the operator was built lazily (see [`Self::lazy`]).
     pub fn is_lazy(&self) -> bool {
-        self.coded.is_some()
+        self.bounds.is_some()
     }
 
     /// Per cell, a bound on |f - S| there, S the bilinear interpolant of the samples. With
@@ -193,7 +193,7 @@ impl ProjectedOperator {
     /// `R_c = D_c + rho max_Q D / (1 - rho)`: the limit of iterating the recursion, in closed
     /// form (chains never leave their block, but for the unpaired last cell of an even axis,
     /// which maps onto the pair before it).
-    pub(super) fn residual_bounds(&self) -> Vec<f32> {
+    pub(super) fn residual_bounds(&self, records: &[[f32; 9]]) -> Vec<f32> {
         use rayon::prelude::*;
         let [nx, ny] = self.size;
         let cells = (nx - 1) * (ny - 1);
@@ -202,7 +202,7 @@ impl ProjectedOperator {
         }
         let d: Vec<f32> = (0..cells)
             .into_par_iter()
-            .map(|k| self.excess((k % (nx - 1), k / (nx - 1)), &self.records[k]))
+            .map(|k| self.excess((k % (nx - 1), k / (nx - 1)), &records[k]))
             .collect();
         (0..cells)
             .into_par_iter()
@@ -306,8 +306,14 @@ impl ProjectedOperator {
     }
 
     /// Whether chains end on S with a residual bound a cell ([`Operator::run_chains`]): unless
-    /// the bounds are no tighter than the invariant interval's (or NaN).
+    /// the bounds are no tighter than the invariant interval's (or NaN). A lazily built
+    /// operator without a window does not know its largest bound: its chains end on S
+    /// (whichever end a chain takes, its bound holds), nor do its windows and its lattice, so
+    /// that all take the same end.
     pub(super) fn ends_on_samples(&self) -> bool {
+        if self.is_lazy() {
+            return self.rho < 1.0;
+        }
         let (lo, hi) = self.interval;
         !self.residual_max.is_nan() && self.residual_max < 0.5 * (hi - lo)
     }
@@ -320,15 +326,24 @@ impl ProjectedOperator {
         self.residual_of(i, j)
     }
 
-    /// The residual bound of cell (i, j): from the region, or outside it its coded one.
+    /// The residual bound of cell (i, j): from the region, or outside it the lazily built
+    /// operator's (or evaluated).
     #[inline(always)]
     pub(super) fn residual_of(&self, i: usize, j: usize) -> f32 {
         match self.region.index(i, j) {
             Some(k) => self.residual[k],
-            None => self
-                .coded
-                .as_ref()
-                .map_or(f32::INFINITY, |c| c.at(j * (self.size[0] - 1) + i)),
+            None => self.residual_outside(i, j),
+        }
+    }
+
+    /// [`Self::residual_of`] of a cell outside the region.
+    #[cold]
+    #[inline(never)]
+    pub(super) fn residual_outside(&self, i: usize, j: usize) -> f32 {
+        match &self.bounds {
+            Some(b) => b.at(&|rect| self.bounds_for(rect).1, i, j),
+            // An operator of samples alone (tests): from the records of the cells around it.
+            None => self.bounds_for([i, j, i + 1, j + 1]).1[0],
         }
     }
 
@@ -540,24 +555,15 @@ impl ProjectedOperator {
             let x0 = 0.5 * a as f32;
             2.0 * x0 - block(a / 2, n) as f32 + 0.5
         };
-        let whole = self.region.origin == [0, 0] && self.region.size == [nx - 1, ny - 1];
-        let records = if whole {
-            self.records.clone()
+        // An operator that holds records for only part of its cells (a chunk's holds none: a
+        // request builds those of its own cells) builds them and their bounds for all, on
+        // every core, the same bits as `quarter`'s direct evaluation (which took a 1025 x 1080
+        // chunk 850 ms).
+        let all = self.region.origin == [0, 0] && self.region.size == [nx - 1, ny - 1];
+        let whole = if all {
+            std::borrow::Cow::Borrowed(self)
         } else {
-            // An operator that holds records for only part of its cells (a chunk's holds
-            // none: a request builds those of its own cells) builds them from the half
-            // lattices, a band of cell rows at a time on every core, the same bits as
-            // `quarter`'s direct evaluation (which took a 1025 x 1080 chunk 850 ms).
-            use rayon::prelude::*;
-            let mut all = vec![[0.0f32; 9]; (nx - 1) * (ny - 1)];
-            all.par_chunks_mut(residual::BAND * (nx - 1))
-                .enumerate()
-                .for_each(|(band, out)| {
-                    let j0 = band * residual::BAND;
-                    let j1 = (j0 + residual::BAND).min(ny - 1);
-                    self.records_into([0, j0, nx - 1, j1], out);
-                });
-            all
+            std::borrow::Cow::Owned(self.with_region([0, 0, nx - 1, ny - 1]))
         };
         crate::core::pieces::Lattice {
             frame: self.frame(),
@@ -566,16 +572,14 @@ impl ProjectedOperator {
             lut_cell: [0.5; 2],
             lut_size: [lx as u32, ly as u32],
             contrast: [self.rho, 0.0, 0.0, 0.0],
-            offsets: crate::core::pieces::Offsets::Blocks(records),
+            offsets: crate::core::pieces::Offsets::Blocks(whole.records.clone()),
             columns: (0..lx).map(|a| [map(a, nx), 1.0, 0.0, 0.0]).collect(),
             rows: (0..ly).map(|b| [map(b, ny), 0.0, 1.0, 0.0]).collect(),
             interval: self.interval,
-            ends: self.ends_on_samples().then(|| crate::core::pieces::Ends {
+            ends: whole.ends_on_samples().then(|| crate::core::pieces::Ends {
                 size: [nx as u32, ny as u32],
                 samples: self.z.to_vec(),
-                residual: (0..(nx - 1) * (ny - 1))
-                    .map(|k| self.residual_of(k % (nx - 1), k / (nx - 1)))
-                    .collect(),
+                residual: whole.residual.clone(),
                 ulps: self.chain_ulps(),
             }),
         }
