@@ -309,18 +309,9 @@ pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
         }
         let d = asset.window_from_planes(window, width, height, planes);
         (d, Method::Continuous, g.adapter())
-    } else if a.window.is_none() && method != Method::Continuous {
-        let opts = a.iterations.map(DiscreteOptions::fixed).unwrap_or_default();
-        // A chunked asset's decode samples its chunks continuously (from the overview of
-        // the pixels' size).
-        let used = if asset.chunks.is_some() {
-            Method::Continuous
-        } else {
-            Method::Discrete
-        };
-        (asset.decode(width, height, opts).0, used, "CPU".into())
     } else {
-        let (d, m) = asset.window(window, width, height, a.iterations, method);
+        // What Python's `Asset.read` makes too.
+        let (d, m) = asset.raster(a.window, width, height, a.iterations, method)?;
         (d, m, "CPU".into())
     };
     write_decoded(&asset, &decoded, window, &a.output)?;
@@ -404,7 +395,10 @@ pub(crate) fn write_decoded(
                 d.height,
                 &values,
                 georef.as_ref(),
-                asset.mask.as_ref().map(|_| nodata),
+                // A chunked asset's masks are its chunks': the tag goes with any cell written
+                // as nodata, or rasterio would read -32768 as a height.
+                (asset.mask.is_some() || d.channels[0].iter().any(|v| v.is_nan()))
+                    .then_some(nodata),
             )?;
         }
         ("tif" | "tiff", _) => bail!("GeoTIFF output is for height fields; write a .png"),

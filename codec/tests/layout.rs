@@ -36,6 +36,7 @@ const CRATES: &[&str] = &[
     "gpu/src",
     "server/src",
     "cli/src",
+    "python/src",
     "client/src",
     "wasm/src",
 ];
@@ -618,6 +619,7 @@ fn no_function_is_over_120_lines_outside_tests() {
         "codec/src",
         "server/src",
         "cli/src",
+        "python/src",
         "client/src",
         "gpu/src",
         "proto/src",

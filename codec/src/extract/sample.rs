@@ -51,6 +51,86 @@ impl Asset {
         }
     }
 
+    /// The asset as a raster of `width x height` over `window` (`None`: all of it), as
+    /// `fractile decode` and Python's `Asset.read` make it on the CPU: the whole asset decoded
+    /// discretely unless `method` asks the continuous decode, a window by [`Asset::window`]; a
+    /// chunked asset's chunks sampled continuously whatever is asked. `iterations`: exactly
+    /// this many (`None`: until converged). Returns the method used; a chunk that cannot be
+    /// read or decoded is an error (where `window` leaves its pixels NaN).
+    pub fn raster(
+        &self,
+        window: Option<[f32; 4]>,
+        width: usize,
+        height: usize,
+        iterations: Option<u32>,
+        method: Method,
+    ) -> Result<(Decoded, Method), crate::Error> {
+        if self.chunks.is_some() {
+            let rect = window.unwrap_or([0.0, 0.0, 1.0, 1.0]);
+            let channels = self
+                .chunked_window(rect, width, height, iterations, &|_, _, _, _| None)
+                .map_err(|e| match e {
+                    SampleError::Chunk(e) => e,
+                    SampleError::Cancelled => crate::Error::unavailable("the decode was cancelled"),
+                })?;
+            let decoded = Decoded {
+                width,
+                height,
+                channels,
+            };
+            return Ok((decoded, Method::Continuous));
+        }
+        Ok(match window {
+            None if method != Method::Continuous => {
+                let opts = iterations.map(DiscreteOptions::fixed).unwrap_or_default();
+                (self.decode(width, height, opts).0, Method::Discrete)
+            }
+            _ => self.window(
+                window.unwrap_or([0.0, 0.0, 1.0, 1.0]),
+                width,
+                height,
+                iterations,
+                method,
+            ),
+        })
+    }
+
+    /// A chunked asset's window: chunks answer continuously (the overview of the pixels'
+    /// size where they are coarser than the source), whatever the method asked; exactly
+    /// `iterations` steps, or (`None`) the decoder's default most, each pixel stopping at the
+    /// asset's default tolerance.
+    fn chunked_window(
+        &self,
+        rect: [f32; 4],
+        width: usize,
+        height: usize,
+        iterations: Option<u32>,
+        continuous: &ContinuousHook<'_>,
+    ) -> Result<Vec<Vec<f32>>, SampleError> {
+        let (xs, ys) = decode::window_axes(rect, width, height);
+        let pixels = Pixels {
+            sites: geo::Sites::Grid {
+                xs: xs.into_iter().map(Some).collect(),
+                ys: ys.into_iter().map(Some).collect(),
+            },
+            footprint: [
+                (rect[2] - rect[0]).abs() / width as f32,
+                (rect[3] - rect[1]).abs() / height as f32,
+            ],
+        };
+        let n = iterations.unwrap_or(DiscreteOptions::default().max_iterations);
+        let tolerance = if iterations.is_some() {
+            0.0
+        } else {
+            self.default_tolerance()
+        };
+        let delegates = Delegates {
+            continuous,
+            ..no_delegates()
+        };
+        Ok(self.sample_with(&pixels, n, tolerance, &delegates)?.0)
+    }
+
     /// A window `[u0, v0, u1, v1]` of the unit square at `width x height`.
     pub fn window(
         &self,
@@ -77,34 +157,12 @@ impl Asset {
         continuous: &ContinuousHook<'_>,
     ) -> (Decoded, Method) {
         if self.chunks.is_some() {
-            // Chunks answer continuously (the overview of the pixels' size where they are
-            // coarser than the source), whatever the method asked.
-            let (xs, ys) = decode::window_axes(rect, width, height);
-            let pixels = Pixels {
-                sites: geo::Sites::Grid {
-                    xs: xs.into_iter().map(Some).collect(),
-                    ys: ys.into_iter().map(Some).collect(),
-                },
-                footprint: [
-                    (rect[2] - rect[0]).abs() / width as f32,
-                    (rect[3] - rect[1]).abs() / height as f32,
-                ],
-            };
-            let n = iterations
-                .unwrap_or(crate::core::decode::DiscreteOptions::default().max_iterations);
-            let tolerance = if iterations.is_some() {
-                0.0
-            } else {
-                self.default_tolerance()
-            };
-            let delegates = Delegates {
-                continuous,
-                ..no_delegates()
-            };
-            let channels = match self.sample_with(&pixels, n, tolerance, &delegates) {
-                Ok((c, _)) => c,
-                Err(_) => vec![vec![f32::NAN; width * height]; self.meta.channels as usize],
-            };
+            // A chunk that cannot be read leaves the window NaN here; `raster` says why.
+            let channels = self
+                .chunked_window(rect, width, height, iterations, continuous)
+                .unwrap_or_else(|_| {
+                    vec![vec![f32::NAN; width * height]; self.meta.channels as usize]
+                });
             return (
                 Decoded {
                     width,

@@ -485,34 +485,36 @@ impl Asset {
         })
     }
 
-    /// Opens an asset file under `limits`: a chunked one by its header alone (its chunks are
-    /// read by range when needed, decoded into `cache`), any other whole.
-    pub fn open(path: &Path, limits: &AssetLimits, cache: ChunkCache) -> Result<Asset, Error> {
-        let input = |e: std::io::Error| {
-            Error::input(format!("{}: {e}", path.display()))
-                .at(path)
-                .caused_by(e)
+    /// The asset `source` holds (a file, an object, a URL), under `limits`: a chunked one by
+    /// its header alone (its chunks read by range when needed, decoded into `cache`), any
+    /// other read whole.
+    pub fn from_source(
+        source: Box<dyn ChunkSource>,
+        limits: &AssetLimits,
+        cache: ChunkCache,
+    ) -> Result<Asset, Error> {
+        let read = |offset, len| {
+            source
+                .read(offset, len)
+                .map_err(|e| Error::unavailable(format!("{}: {e}", source.describe())).caused_by(e))
         };
-        let mut head = [0u8; 12];
-        let n = {
-            use std::io::Read;
-            let mut f = std::fs::File::open(path).map_err(input)?;
-            let mut n = 0;
-            while n < head.len() {
-                match f.read(&mut head[n..]).map_err(input)? {
-                    0 => break,
-                    k => n += k,
-                }
-            }
-            n
-        };
-        if is_chunked(&head[..n]) {
-            let source = FileSource::open(path).map_err(input)?;
-            return Asset::open_chunked(Box::new(source), limits, cache);
+        if is_chunked(&read(0, source.len().min(12) as usize)?) {
+            return Asset::open_chunked(source, limits, cache);
         }
-        let bytes = std::fs::read(path).map_err(input)?;
+        let bytes = read(0, usize::try_from(source.len()).unwrap_or(usize::MAX))?;
         Asset::from_bytes_limited(&bytes, limits).map_err(|e| match e {
-            Error::Asset { .. } => e.within(path.display()).at(path),
+            Error::Asset { .. } => e.within(source.describe()),
+            e => e,
+        })
+    }
+
+    /// The asset file at `path`, as [`Asset::from_source`] opens it.
+    pub fn open(path: &Path, limits: &AssetLimits, cache: ChunkCache) -> Result<Asset, Error> {
+        let source = FileSource::open(path)
+            .map_err(|e| Error::input(format!("{}: {e}", path.display())).caused_by(e))
+            .map_err(|e| e.at(path))?;
+        Asset::from_source(Box::new(source), limits, cache).map_err(|e| match e {
+            Error::Asset { .. } => e.at(path),
             e => e,
         })
     }

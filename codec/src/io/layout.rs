@@ -330,6 +330,13 @@ pub trait ChunkSource: Send + Sync {
     }
     /// `len` bytes from `offset`.
     fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>>;
+    /// Where `len` bytes from `offset` end; `UnexpectedEof` past the end of the container.
+    fn end_of(&self, offset: u64, len: usize) -> std::io::Result<u64> {
+        offset
+            .checked_add(len as u64)
+            .filter(|&e| e <= self.len())
+            .ok_or_else(|| std::io::Error::from(std::io::ErrorKind::UnexpectedEof))
+    }
     /// Where the bytes are, for messages.
     fn describe(&self) -> String;
 }

@@ -40,21 +40,40 @@ impl Raster {
         values: Vec<f32>,
         kind: AssetKind,
     ) -> Result<Raster, Error> {
-        if values.len() != width * height {
+        Raster::from_channels(width, height, vec![values], kind, SampleFormat::F32, None)
+    }
+
+    /// A raster of `channels` (a row-major plane each, 1 or 3) of the source's `sample` type:
+    /// NaN cells and cells equal to `nodata` have no data.
+    pub fn from_channels(
+        width: usize,
+        height: usize,
+        channels: Vec<Vec<f32>>,
+        kind: AssetKind,
+        sample: SampleFormat,
+        nodata: Option<f64>,
+    ) -> Result<Raster, Error> {
+        if let Some(c) = channels.iter().find(|c| c.len() != width * height) {
             return Err(Error::input(format!(
                 "{} values for a {width}x{height} grid",
-                values.len()
+                c.len()
+            )));
+        }
+        if !matches!(channels.len(), 1 | 3) {
+            return Err(Error::input(format!(
+                "{} channels: 1 (grey or heights) or 3 (colour)",
+                channels.len()
             )));
         }
         let mut r = Raster {
             width,
             height,
-            channels: vec![values],
+            channels,
             valid: None,
             kind,
-            sample: SampleFormat::F32,
+            sample,
             units: None,
-            nodata: None,
+            nodata,
             georef: None,
         };
         r.mask_invalid();

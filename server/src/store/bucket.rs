@@ -195,36 +195,9 @@ impl Bucket {
     }
 }
 
-/// The object store of `url` (`s3://bucket` or `s3://bucket/key`) and the key under it, its
-/// credentials and endpoint from the standard AWS variables. A request that gets no answer
-/// fails after a few seconds (a 2 s connect timeout, two retries at most), so that a store that
-/// has gone away gives clear errors rather than requests that hang. What the server's bucket
-/// and the command line's transfers (`encode --part`, `assemble`) both open.
-pub fn s3_store(url: &str) -> std::io::Result<(Arc<dyn ObjectStore>, Path)> {
-    let parsed = url.strip_prefix("s3://").ok_or_else(|| {
-        std::io::Error::other(format!(
-            "{url}: only s3:// object stores are supported (S3, SeaweedFS, MinIO, R2)"
-        ))
-    })?;
-    let (bucket, key) = parsed.split_once('/').unwrap_or((parsed, ""));
-    let retry = object_store::RetryConfig {
-        max_retries: 2,
-        retry_timeout: Duration::from_secs(10),
-        ..Default::default()
-    };
-    // Set key by key: `with_client_options` would drop those of the environment
-    // (AWS_ALLOW_HTTP among them).
-    use object_store::ClientConfigKey as C;
-    use object_store::aws::AmazonS3ConfigKey as K;
-    let store = object_store::aws::AmazonS3Builder::from_env()
-        .with_bucket_name(bucket)
-        .with_retry(retry)
-        .with_config(K::Client(C::ConnectTimeout), "2s")
-        .with_config(K::Client(C::Timeout), "30s")
-        .build()
-        .map_err(|e| std::io::Error::other(format!("{url}: {e}")))?;
-    Ok((Arc::new(store), Path::from(key.trim_matches('/'))))
-}
+/// The object store of `url` and the key under it: [`fractile_remote::s3_store`], which the
+/// command line's transfers (`encode --part`, `assemble`) and the Python package open too.
+pub use fractile_remote::s3_store;
 
 impl Backing for Bucket {
     fn list(&self) -> std::io::Result<Listing> {
@@ -383,10 +356,7 @@ impl ChunkSource for ObjectSource {
     }
 
     fn read(&self, offset: u64, len: usize) -> std::io::Result<Vec<u8>> {
-        let end = offset
-            .checked_add(len as u64)
-            .filter(|&e| e <= self.length)
-            .ok_or_else(|| std::io::Error::from(std::io::ErrorKind::UnexpectedEof))?;
+        let end = self.end_of(offset, len)?;
         let name = format!("{}\n{offset}\n{len}", self.cache_name);
         if let Some(bytes) = self.remote.disk.as_ref().and_then(|d| d.get(&name))
             && bytes.len() == len
