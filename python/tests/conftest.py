@@ -150,8 +150,9 @@ class Weed:
         urllib.request.urlopen(req, timeout=30).close()
 
     def stop(self):
-        self.proc.kill()
-        self.proc.wait()
+        if self.proc.poll() is None:
+            self.proc.kill()
+            self.proc.wait()
         self.log.close()
 
 

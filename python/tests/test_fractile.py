@@ -201,6 +201,12 @@ def test_open_from_s3(weed, chunked_asset, dem_asset, monkeypatch):
         np.testing.assert_array_equal(remote.read(), local.read())
     with pytest.raises(fractile.InputError):
         fractile.open("s3://fractile/assets/missing.fra")
+    # The store goes away after the header was read: the chunks' reads fail as unavailable
+    # (worth trying again), not as NaN arrays or a corrupt asset. Last: it ends the store.
+    opened = fractile.open("s3://fractile/assets/utm.fra")
+    weed.stop()
+    with pytest.raises(fractile.UnavailableError):
+        opened.read()
 
 
 def test_errors_are_typed(work, dem_asset):
