@@ -76,8 +76,12 @@ def encode(
     default), ``"fis-bilinear"``, ``"fis-rect"``, ``"fis-rect-global"``, ``"psa2d-rect"`` or
     ``"psa2d-tri"``. The rate: ``target_bpp`` bits a cell (the height-field default is 0.8,
     bounded: every cell within the bound it reports) or, for the projected codec,
-    ``max_error`` in value units. ``chunk``: cells a side of the chunks a large grid is coded
-    in (default 1024 for grids over 2048 a side; 0 codes it whole).
+    ``max_error`` in value units (0: lossless, for integer samples). ``chunk``: cells a side
+    of the chunks a large grid is coded in (default 1024 for grids over 2048 a side; 0 codes
+    it whole, refused with ``SettingsError`` where readers would not open the file).
+
+    Values beyond 1e30 in magnitude are refused (``InputError``): +-3.4e38 is usually a nodata
+    marker, to be given as ``nodata``.
 
     Returns what the encoder measured: ``bytes``, ``ratio``, ``bpp``, ``psnr``, ``rmse``,
     ``max_error``, ``seconds``, ``codec``, ``chunked``.
@@ -133,8 +137,10 @@ class Asset:
         ``((row_start, row_stop), (col_start, col_stop))``; default all of it) at
         ``out_shape`` (``(rows, cols)``; default the window's cells; any size). Shape
         ``(rows, cols)``, or ``(rows, cols, 3)`` for colour. ``iterations``: exactly this many
-        (default: until converged). ``method``: ``"auto"``, ``"discrete"``, ``"continuous"``.
-        Equal to ``fractile decode`` of the same window and size on the CPU."""
+        (default: until converged; at least 1). ``method``: ``"auto"``, ``"discrete"``,
+        ``"continuous"``. Equal to ``fractile decode`` of the same window and size on the CPU.
+        A read whose decode would take over 3 GiB (about 40 bytes a pixel) is refused with
+        ``ValueError`` before anything is made: read such an asset in windows."""
 
     def points(
         self, lon: _Coordinates, lat: _Coordinates, iterations: Optional[int] = None

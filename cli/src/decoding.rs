@@ -275,10 +275,12 @@ pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
         (None, None, Some(h)) => ((h as f32 * ww / wh).round() as usize, h),
         (None, None, None) => (ww.round() as usize, wh.round() as usize),
     };
-    const MAX_PIXELS: usize = 1 << 28;
-    if width == 0 || height == 0 || width.saturating_mul(height) > MAX_PIXELS {
-        bail!("output size {width}x{height} must be at least 1x1 and at most {MAX_PIXELS} pixels");
+    if width == 0 || height == 0 {
+        bail!("output size {width}x{height} must be at least 1x1");
     }
+    // The codec's rule for any read (Python's too), on the GPU's path as well: the size is
+    // checked before anything is made.
+    asset.check_read(width, height, &fractile_codec::AssetLimits::default())?;
     let started = Instant::now();
     let method = match a.method {
         MethodArg::Auto => Method::Auto,

@@ -55,3 +55,57 @@ fn context_keeps_the_kind_the_file_and_the_cause() {
     );
     assert_eq!(e.to_string(), "output: chunk 3: writing a chunk");
 }
+
+/// What a writer checks (`check_opens`, from headers) is what a reader opens: on every golden
+/// file, at limits from far too small to the default, the two agree. A writer that checked
+/// less wrote files its own reader refused (Python's 8640 x 8640 in one piece).
+#[test]
+fn what_a_writer_checks_is_what_a_reader_opens() {
+    let golden = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata/golden");
+    let mut files = 0;
+    for e in std::fs::read_dir(golden).unwrap() {
+        let path = e.unwrap().path();
+        let bytes = std::fs::read(&path).unwrap();
+        for mib in [0u64, 1, 4, 16, 64, 3 << 10] {
+            let limits = fractile_codec::AssetLimits {
+                max_decode_bytes: mib << 20,
+                ..Default::default()
+            };
+            let checked = fractile_codec::io::asset::check_opens(&bytes, &limits);
+            let opened = Asset::from_bytes_limited(&bytes, &limits);
+            assert_eq!(
+                checked.is_ok(),
+                opened.is_ok(),
+                "{} at {mib} MiB: check {:?}, open {:?}",
+                path.display(),
+                checked.err(),
+                opened.err()
+            );
+        }
+        files += 1;
+    }
+    assert!(files > 20);
+}
+
+/// Values beyond what the codecs hold in float32 are refused with a message that names the
+/// usual cause (an undeclared nodata marker), not decoded to infinity under a max error of 0.
+#[test]
+fn extreme_values_are_refused_naming_nodata() {
+    let mut v = vec![100.0f32; 64 * 64];
+    v[5] = -3.4028235e38;
+    let e =
+        Raster::from_values(64, 64, v.clone(), fractile_proto::AssetKind::HeightField).unwrap_err();
+    assert!(matches!(e, Error::Input { .. }), "{e:?}");
+    assert!(e.to_string().contains("nodata"), "{e}");
+    // Declared as nodata, the same cells encode.
+    let r = Raster::from_channels(
+        64,
+        64,
+        vec![v],
+        fractile_proto::AssetKind::HeightField,
+        fractile_proto::SampleFormat::F32,
+        Some(-3.4028235e38),
+    )
+    .unwrap();
+    assert!(!r.is_valid(5));
+}

@@ -238,6 +238,7 @@ error_codes! {
     NotCurve => "not_curve",
     NotTerrain => "not_terrain",
     Outside => "outside",
+    PreconditionFailed => "precondition_failed",
     StorageUnavailable => "storage_unavailable",
     TooExpensive => "too_expensive",
     TooLarge => "too_large",

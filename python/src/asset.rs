@@ -21,9 +21,6 @@ use crate::errors::{InputError, raise};
 /// (its default `max_iterations`), so that `Asset.points` gives the server's heights.
 const SERVER_ITERATIONS: u32 = 64;
 
-/// The most pixels one `read` makes (1 GiB of float32 a channel), as `fractile decode`.
-const MAX_PIXELS: usize = 1 << 28;
-
 /// An opened asset. Chunked assets are read by range: opening reads the header and the
 /// chunk table; each `read` or `points` reads (and keeps decoded, in the process's chunk
 /// cache of 512 MiB) the chunks it touches.
@@ -200,11 +197,19 @@ impl Asset {
             }
             None => ((rh.round() as usize).max(1), (cw.round() as usize).max(1)),
         };
-        if width == 0 || height == 0 || width.saturating_mul(height) > MAX_PIXELS {
+        if width == 0 || height == 0 {
             return Err(PyValueError::new_err(format!(
-                "out_shape {height}x{width} must be at least 1x1 and at most {MAX_PIXELS} pixels"
+                "out_shape {height}x{width} must be at least 1x1"
             )));
         }
+        if iterations == Some(0) {
+            return Err(PyValueError::new_err("iterations must be at least 1"));
+        }
+        // The size's rule is the codec's, the CLI's too: checked before anything is made. An
+        // argument out of range is Python's ValueError.
+        self.asset
+            .check_read(width, height, &AssetLimits::default())
+            .map_err(|e| PyValueError::new_err(e.to_string()))?;
         let rect = cells.map(|[c0, r0, cw, rh]| {
             [
                 (c0 / sw) as f32,

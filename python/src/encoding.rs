@@ -17,6 +17,7 @@ use fractile_codec::encode::chunked::{
 };
 use fractile_codec::encode::rate::FileRate;
 use fractile_codec::encode::{DEFAULT_HEIGHT_FIELD_BPP, Written};
+use fractile_codec::io::raster::MAX_MAGNITUDE;
 use fractile_codec::io::rows::{InMemory, Rows};
 use fractile_codec::{CodecSettings, QuadtreeSettings, Raster, RateMode};
 use fractile_proto::{AssetKind, Georef, SampleFormat};
@@ -74,12 +75,15 @@ impl Request {
                 "settings: max_error is for the projected codec",
             ));
         }
-        for (name, v) in [("target_bpp", target_bpp), ("max_error", max_error)] {
-            if v.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
-                return Err(PyValueError::new_err(format!(
-                    "{name} must be a positive number"
-                )));
-            }
+        if target_bpp.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
+            return Err(PyValueError::new_err(
+                "target_bpp must be a positive number",
+            ));
+        }
+        // 0 is lossless, for integer samples (the codec says so of continuous ones), as
+        // `fractile encode --max-error 0`.
+        if max_error.is_some_and(|v| !(v.is_finite() && v >= 0.0)) {
+            return Err(PyValueError::new_err("max_error must be a number >= 0"));
         }
         Ok(Request {
             codec,
@@ -315,7 +319,18 @@ fn raster_of(array: &Bound<'_, PyAny>, nodata: Option<f64>) -> PyResult<Raster> 
         .map(|p| (p, SampleFormat::I16))
         .or_else(|| plane::<u16>(array, f32::from).map(|p| (p, SampleFormat::U16)))
         .or_else(|| plane::<f32>(array, |v| v).map(|p| (p, SampleFormat::F32)))
-        .or_else(|| plane::<f64>(array, |v| v as f32).map(|p| (p, SampleFormat::F32)));
+        .or_else(|| {
+            // float64 is coded as float32: a value beyond float32 would become infinity, and
+            // so nodata, silently; it is refused with the codec's own message instead.
+            plane::<f64>(array, |v| {
+                if v.is_finite() && v.abs() > MAX_MAGNITUDE {
+                    f32::copysign(f32::MAX, v as f32)
+                } else {
+                    v as f32
+                }
+            })
+            .map(|p| (p, SampleFormat::F32))
+        });
     let (kind, sample, width, height, channels) = if let Some(((w, h, v), s)) = height_field {
         (AssetKind::HeightField, s, w, h, vec![v])
     } else if let Some((w, h, v)) = plane::<u8>(array, f32::from) {

@@ -56,6 +56,15 @@ pub fn is_remote(location: &str) -> bool {
 /// its bytes when a read needs them. A store or server that cannot be reached is an error
 /// of kind `ConnectionRefused`, `TimedOut` or `Other`; a missing object `NotFound`.
 pub fn open(url: &str) -> std::io::Result<Box<dyn ChunkSource>> {
+    open_with(url, READ_TIMEOUT)
+}
+
+/// How long an HTTP answer may send nothing (its headers or its next bytes) before the read
+/// fails as timed out: a server that stalls mid-body held a reader for minutes.
+pub const READ_TIMEOUT: Duration = Duration::from_secs(30);
+
+/// [`open`], an HTTP answer that sends nothing for `read_timeout` failing as timed out.
+pub fn open_with(url: &str, read_timeout: Duration) -> std::io::Result<Box<dyn ChunkSource>> {
     let runtime = tokio::runtime::Builder::new_multi_thread()
         .worker_threads(2)
         .thread_name("fractile-remote")
@@ -69,6 +78,9 @@ pub fn open(url: &str) -> std::io::Result<Box<dyn ChunkSource>> {
         let http = reqwest::Client::builder()
             .user_agent(concat!("fractile/", env!("CARGO_PKG_VERSION")))
             .connect_timeout(Duration::from_secs(10))
+            // A server that stalls mid-body is left after `read_timeout` without a byte, and
+            // no answer takes over 120 s in all.
+            .read_timeout(read_timeout)
             .timeout(Duration::from_secs(120))
             .build()
             .map_err(std::io::Error::other)?;
@@ -104,8 +116,13 @@ async fn http_length(http: &reqwest::Client, url: &str) -> std::io::Result<(u64,
         .map_err(|e| http_error(url, e))?;
     let status = r.status();
     if status == reqwest::StatusCode::OK {
-        let bytes = r.bytes().await.map_err(|e| http_error(url, e))?;
-        return Ok((bytes.len() as u64, Some(bytes.to_vec())));
+        let bytes = body_at_most(r, MOST_WHOLE, url).await.map_err(|e| {
+            std::io::Error::new(
+                e.kind(),
+                format!("{e} (the server ignores Range requests: serve the file from one that answers them)"),
+            )
+        })?;
+        return Ok((bytes.len() as u64, Some(bytes)));
     }
     if status != reqwest::StatusCode::PARTIAL_CONTENT {
         return Err(status_error(url, status));
@@ -122,6 +139,38 @@ async fn http_length(http: &reqwest::Client, url: &str) -> std::io::Result<(u64,
             ))
         })?;
     Ok((total, None))
+}
+
+/// The most bytes taken from a server that ignores `Range` and sends a file whole: one
+/// that sent a 100 GB file this way was buffered whole.
+const MOST_WHOLE: usize = 256 << 20;
+
+/// The body of `r`, `most` bytes at most: a server that says or sends more is an error, and
+/// what it sends past that is not read.
+async fn body_at_most(
+    mut r: reqwest::Response,
+    most: usize,
+    url: &str,
+) -> std::io::Result<Vec<u8>> {
+    let over = |n: String| {
+        std::io::Error::new(
+            std::io::ErrorKind::InvalidData,
+            format!("{url}: the server sends {n} bytes where {most} at most were asked"),
+        )
+    };
+    if let Some(n) = r.content_length()
+        && n > most as u64
+    {
+        return Err(over(n.to_string()));
+    }
+    let mut out = Vec::with_capacity(r.content_length().map_or(0, |n| n as usize));
+    while let Some(piece) = r.chunk().await.map_err(|e| http_error(url, e))? {
+        if out.len() + piece.len() > most {
+            return Err(over(format!("more than {}", out.len() + piece.len())));
+        }
+        out.extend_from_slice(&piece);
+    }
+    Ok(out)
 }
 
 fn http_error(url: &str, e: reqwest::Error) -> std::io::Error {
@@ -212,7 +261,7 @@ impl ChunkSource for Ranged {
                 if r.status() != reqwest::StatusCode::PARTIAL_CONTENT {
                     return Err(status_error(url, r.status()));
                 }
-                r.bytes().await.map_err(|e| http_error(url, e))
+                body_at_most(r, len, url).await.map(Into::into)
             })?,
         };
         if bytes.len() != len {

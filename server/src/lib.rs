@@ -199,9 +199,31 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
         .method_not_allowed_fallback(error::method_not_allowed)
         .layer(axum::middleware::from_fn(telemetry::track))
         .layer(
+            // A page on another origin (a static host, the usual serverless case) reads
+            // `/file` by range and tiles' bounds: what it must see is exposed, what it sends
+            // allowed.
             CorsLayer::new()
                 .allow_origin(Any)
-                .allow_methods([axum::http::Method::GET, axum::http::Method::POST]),
+                .allow_methods([
+                    axum::http::Method::GET,
+                    axum::http::Method::HEAD,
+                    axum::http::Method::POST,
+                ])
+                .allow_headers([
+                    axum::http::header::RANGE,
+                    axum::http::header::IF_MATCH,
+                    axum::http::header::IF_NONE_MATCH,
+                    axum::http::header::IF_RANGE,
+                    axum::http::header::CONTENT_TYPE,
+                ])
+                .expose_headers([
+                    axum::http::header::CONTENT_RANGE,
+                    axum::http::header::CONTENT_LENGTH,
+                    axum::http::header::ACCEPT_RANGES,
+                    axum::http::header::ETAG,
+                    axum::http::HeaderName::from_static("x-error-bound"),
+                    axum::http::HeaderName::from_static("x-convergence-bound"),
+                ]),
         )
         .layer(TimeoutLayer::with_status_code(
             axum::http::StatusCode::SERVICE_UNAVAILABLE,
@@ -481,6 +503,11 @@ async fn open_gpu(
 /// loads), 60 s and 3600 s did not (2 of 2 each).
 pub const HEADER_READ_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(60);
 
+/// How long a write to a connection may make no progress before the connection is closed:
+/// a reader that stops reading (or reads a byte a second) holds its answer's buffered piece
+/// and its open file only this long. nginx's `send_timeout` is 60 s too.
+pub const SEND_TIMEOUT: std::time::Duration = std::time::Duration::from_secs(60);
+
 /// Serves `app` on `listener` until `stop` resolves, then lets in-flight requests finish
 /// (for at most [`api::REQUEST_TIMEOUT`]). What `axum::serve` does, plus the header-read
 /// timeout it does not expose: HTTP/1 headers must arrive within `header_timeout`
@@ -526,6 +553,11 @@ pub async fn run(
                 Ok(Ok(n)) if n > 0 => {}
                 _ => return,
             }
+            // A reader that takes nothing for SEND_TIMEOUT is closed, so that it holds no
+            // answer's piece and no file open for longer (nginx's send_timeout).
+            let mut stream = tokio_io_timeout::TimeoutStream::new(stream);
+            stream.set_write_timeout(Some(SEND_TIMEOUT));
+            let stream = Box::pin(stream);
             let conn = builder.serve_connection_with_upgrades(TokioIo::new(stream), service);
             let _ = watcher.watch(conn.into_owned()).await;
         });

@@ -11,7 +11,7 @@ use std::path::Path;
 use std::sync::{Arc, RwLock};
 
 use fractile_codec::geo::Placement;
-use fractile_codec::io::chunked::ChunkCache;
+use fractile_codec::io::chunked::{ChunkCache, ChunkSource};
 use fractile_codec::{Asset, AssetLimits};
 
 use crate::error::AppError;
@@ -260,6 +260,67 @@ impl Store {
             .ok_or_else(|| AppError::not_found(ErrorCode::UnknownAsset, format!("no asset {id:?}")))
     }
 
+    /// The asset `id` and its file as stored, at the version served, for `/file`: the bytes
+    /// the catalog's entry (and so its ETag) was made from, whatever format version they are
+    /// (never written again from the decoded asset). A file replaced since it was loaded (a
+    /// folder's file renamed over or rewritten in place) brings the catalog up to date first;
+    /// one still changing is 503. Blocking.
+    pub fn file(&self, id: &str) -> Result<(Arc<StoredAsset>, Box<dyn ChunkSource>), AppError> {
+        let changing = || AppError {
+            status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
+            code: ErrorCode::StorageUnavailable,
+            detail: format!("the file of {id:?} is being replaced; try again"),
+            retry_after: Some(1),
+        };
+        for attempt in 0..2 {
+            let a = self.get(id)?;
+            let version = self
+                .versions
+                .lock()
+                .unwrap_or_else(|e| e.into_inner())
+                .get(id)
+                .cloned()
+                .ok_or_else(changing)?;
+            if changed_under(self.backing.as_ref(), id, &version) {
+                if attempt == 0 {
+                    self.refresh();
+                    continue;
+                }
+                return Err(changing());
+            }
+            let source = self.backing.open(id, &version).map_err(|e| {
+                tracing::error!("reading asset {id}: {e}");
+                AppError {
+                    status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
+                    code: ErrorCode::StorageUnavailable,
+                    detail: "the asset store could not be read; try again".into(),
+                    retry_after: Some(1),
+                }
+            })?;
+            if source.len() != a.bytes || changed_under(self.backing.as_ref(), id, &version) {
+                return Err(changing());
+            }
+            return Ok((a, source));
+        }
+        Err(changing())
+    }
+
+    /// Whether the file of `id` is still the version `a` was loaded from (cheap where the
+    /// backing can tell, as a folder can; always where versions cannot change under a
+    /// reader): what a long answer from [`Store::file`] checks as it goes.
+    pub fn unchanged(&self, id: &str) -> bool {
+        let Some(version) = self
+            .versions
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(id)
+            .cloned()
+        else {
+            return false;
+        };
+        !changed_under(self.backing.as_ref(), id, &version)
+    }
+
     /// Decodes the chunked assets' chunks into the chunk cache on a thread of its own, until
     /// it is 90% full (see `Chunked::prefetch`), and logs what it cached: the first requests
     /// then wait on no chunk. Requests still run meanwhile; a chunk both want is decoded once.
@@ -419,20 +480,9 @@ fn load_from(
         .read(0, source.len().min(12) as usize)
         .map_err(|e| what(&e))?;
     if !fractile_codec::io::chunked::is_chunked(&head) {
-        // Before reading it whole: a file that is no asset, or one larger than any asset that
-        // is not chunked can be (its decoded planes, which `max_decode_bytes` bounds, are
-        // larger than its bytes), is refused from its length and first bytes. A 100 GB sparse
-        // file dropped in the folder took the server down asking for its size in memory, and
-        // a 2 GB junk file was read whole at every rescan to say "bad magic".
-        fractile_codec::io::asset::check_magic(&head).map_err(|e| what(&e))?;
-        if source.len() > limits.max_decode_bytes {
-            return Err(what(&format!(
-                "{} bytes, over any asset that is not chunked (max_decode_mib {}): chunk it \
-                 (fractile encode --chunk N)",
-                source.len(),
-                limits.max_decode_bytes >> 20
-            )));
-        }
+        // Before reading it whole (see `check_whole_file`).
+        fractile_codec::io::asset::check_whole_file(&head, source.len(), limits)
+            .map_err(|e| what(&e))?;
         let bytes = source
             .read(0, source.len() as usize)
             .map_err(|e| what(&e))?;

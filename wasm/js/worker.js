@@ -3,11 +3,17 @@
 import { loadDecoder, RemoteAsset } from './reader.js';
 
 const assets = new Map();
+// The opened ones, to tell an asset whose decoder failed (`broken`): it is opened again.
+const opened = new Map();
 
 function asset(url) {
+  if (opened.get(url)?.broken) {
+    opened.delete(url);
+    assets.delete(url);
+  }
   if (!assets.has(url)) {
     const a = RemoteAsset.open(url);
-    a.catch(() => assets.delete(url));
+    a.then((o) => opened.set(url, o), () => assets.delete(url));
     assets.set(url, a);
   }
   return assets.get(url);

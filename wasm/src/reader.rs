@@ -91,6 +91,31 @@ pub struct Tile {
     pub bound: f32,
 }
 
+/// The largest tile, in pixels a side: map tiles are 256 or 512; a tile of 30,000 ran the
+/// module out of memory (a trap, after which the reader was unusable). Checked before anything
+/// is made.
+pub const MOST_TILE_SIZE: usize = 2048;
+
+/// What a file may claim and cost in the browser: the codec's limits, with a decode budget of
+/// 1 GiB (wasm32's memory is 4 GiB at most, and a tab is granted less).
+fn limits() -> AssetLimits {
+    AssetLimits {
+        max_decode_bytes: 1 << 30,
+        ..AssetLimits::default()
+    }
+}
+
+/// Refuses a tile size the reader does not make (see [`MOST_TILE_SIZE`]).
+fn check_size(size: usize) -> Result<(), ReadError> {
+    if (1..=MOST_TILE_SIZE).contains(&size) {
+        Ok(())
+    } else {
+        Err(ReadError::Failed(format!(
+            "a tile of {size} pixels a side: 1 to {MOST_TILE_SIZE} (map tiles are 256 or 512)"
+        )))
+    }
+}
+
 /// The first bytes fetched when a reader opens: a chunked file's header and table (a few
 /// kilobytes on a DEM of 16k x 16k cells in chunks of 1,024), or all of a small file.
 pub const OPENING_BYTES: u64 = 16 << 10;
@@ -152,12 +177,16 @@ impl Reader {
                 .ranges
                 .get(0, length.min(12))
                 .ok_or(ReadError::Missing(0, length.min(OPENING_BYTES)))?;
-            let limits = AssetLimits::default();
+            let limits = limits();
             let asset = if is_chunked(&head) {
                 let source = Box::new(Fetched(self.ranges.clone()));
                 Asset::open_chunked(source, &limits, self.cache.clone())
                     .map_err(|e| self.failed(e))?
             } else {
+                // Before asking for it whole: a length no asset in one piece has (a lying
+                // server, a wrong URL) is refused, not fetched.
+                fractile_codec::io::asset::check_whole_file(&head, length, &limits)
+                    .map_err(|e| ReadError::Failed(e.to_string()))?;
                 let bytes = self
                     .ranges
                     .get(0, length)
@@ -201,6 +230,7 @@ impl Reader {
         tile: (u8, u32, u32),
         size: usize,
     ) -> Result<Vec<(u64, u64)>, ReadError> {
+        check_size(size)?;
         let pixels = self.tile_pixels(tile, size);
         if pixels.is_outside() {
             return Ok(Vec::new());
@@ -216,6 +246,7 @@ impl Reader {
     /// a tolerance asked: `ITERATIONS` at most, each pixel stopping at the tolerance the
     /// tile's pixels settle.
     pub fn tile(&self, tile: (u8, u32, u32), size: usize) -> Result<Tile, ReadError> {
+        check_size(size)?;
         let asset = self.opened()?;
         let pixels = self.tile_pixels(tile, size);
         if pixels.is_outside() {

@@ -370,6 +370,7 @@ fn read_levels(
     while y < header.height {
         let y1 = (y + READ_ROWS).min(header.height);
         let band = rows.read(y, y1)?;
+        band.check_magnitudes()?;
         if band.width != header.width || band.height != y1 - y {
             return Err(Error::input(format!(
                 "rows {y}..{y1} read as {}x{}, not {}x{}",

@@ -246,7 +246,11 @@ impl<'a> Search<'a> {
             let e = (t.exp() - 1.0).max(0.0).round();
             (Quality::Bound(e * self.quantum), (e + 1.0).ln())
         } else {
-            (Quality::Bound(t.exp()), t)
+            // No finer than the projected codec codes a continuous plane of this range (a
+            // constant sample fits the budget at any bound, and the search went on down).
+            let finest = crate::codecs::projected::finest_bound(self.span);
+            let e = t.exp().max(finest);
+            (Quality::Bound(e), e.ln())
         }
     }
 

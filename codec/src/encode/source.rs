@@ -39,8 +39,18 @@ impl Encoded {
         self.asset.meta.source_bytes() as f64 / self.bytes.len() as f64
     }
 
-    /// Writes the file to `path` atomically; keeps what was measured.
+    /// Writes the file to `path` atomically; keeps what was measured. A file that readers
+    /// under the default limits would refuse (a large raster in one piece) is not written:
+    /// what one reader (the CLI, Python) writes, every reader opens.
     pub fn write(self, path: &std::path::Path) -> Result<Written, Error> {
+        crate::io::asset::check_opens(&self.bytes, &crate::AssetLimits::default()).map_err(
+            |e| {
+                Error::settings(format!(
+                    "not written: readers would refuse it ({e}); encode it in chunks (--chunk \
+                     1024, Python's chunk=1024)"
+                ))
+            },
+        )?;
         crate::io::asset::write_atomic(path, &self.bytes)?;
         Ok(Written {
             length: self.bytes.len() as u64,

@@ -214,11 +214,22 @@ impl Chunked {
             // grids are the asset's (`Asset::discrete_planes`): the caller's delegate may keep
             // them (a server's coarse cache), instead of a decode a tile.
             let discrete = |w, h, n, t| std::sync::Arc::new(chunk.discrete_planes(w, h, n, t));
+            // A caller with no grids of its own (the CLI's and Python's reads) gets the
+            // chunk's: an empty answer filtered every pixel of a read 8x coarser than the
+            // source to NaN.
+            let kept = |w, h, n, t| {
+                let grids = (delegates.discrete)(w, h, n, t);
+                if grids.is_empty() {
+                    discrete(w, h, n, t)
+                } else {
+                    grids
+                }
+            };
             let top = level + 1 == self.table.levels.len();
             let continuous = in_chunk(delegates.continuous, (level, part.index));
             let own = Delegates {
                 continuous: &continuous,
-                discrete: if top { delegates.discrete } else { &discrete },
+                discrete: if top { &kept } else { &discrete },
                 cancelled: delegates.cancelled,
             };
             let (values, b) = chunk.sample_with(&part.pixels, iterations, tolerance, &own)?;

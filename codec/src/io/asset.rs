@@ -1,20 +1,7 @@
 //! The asset file: a versioned container of metadata and the coded operator(s).
 //!
-//! Layout (all integers little-endian; specified in docs/asset-format.md):
-//!
-//! | offset | size | field |
-//! |---|---|---|
-//! | 0 | 8 | magic `FRACTILE` |
-//! | 8 | 2 | format version (5; 1 to 4 are still read, 3 on only for curves) |
-//! | 10 | 1 | kind (0 image, 1 height field, 2 volume, 3 curve) |
-//! | 11 | 1 | codec (1 quadtree PIFS, 2 fractal interpolation surface, 3 piecewise self-affine, 4 octree PIFS of a volume, 5 projected IFS of curves) |
-//! | 12 | 4 | metadata length M |
-//! | 16 | M | metadata ([`AssetMeta`], proto's binary encoding) |
-//! | 16+M | 4 | payload length P |
-//! | 20+M | P | payload (codec-specific) |
-//! | 20+M+P | 4 | source-error map length S (version 5 on; 0: none) |
-//! | 24+M+P | S | source-error map ([`SourceError`]) |
-//! | end-4 | 4 | CRC-32 (IEEE) of every byte before it |
+//! The layout (magic, version, kind, codec, metadata, payload, source-error map, CRC-32) is
+//! specified in docs/asset-format.md, and its frame read and written in `io::container`.
 //!
 //! Reading checks all of it before any decoding: a truncated, corrupt or newer file is an
 //! [`Error::asset`] naming what is wrong, never a panic.
@@ -28,8 +15,10 @@ use serde::{Deserialize, Serialize};
 pub use super::atomic::{temporary_owner, write_atomic, write_atomic_with};
 pub use super::container::{
     AssetLimits, FORMAT_VERSION, OLDEST_CURVE_VERSION, OLDEST_READ_VERSION, check_magic,
+    check_whole_file,
 };
 use super::container::{Payload, assemble, container};
+use super::cost::{PayloadCost, payload_cost};
 use super::layout::{ChunkSource, ChunkTable, FileSource, InMemory, is_chunked};
 pub use super::mask::Mask;
 use crate::Error;
@@ -498,9 +487,11 @@ impl Asset {
                 .read(offset, len)
                 .map_err(|e| Error::unavailable(format!("{}: {e}", source.describe())).caused_by(e))
         };
-        if is_chunked(&read(0, source.len().min(12) as usize)?) {
+        let head = read(0, source.len().min(12) as usize)?;
+        if is_chunked(&head) {
             return Asset::open_chunked(source, limits, cache);
         }
+        check_whole_file(&head, source.len(), limits).map_err(|e| e.within(source.describe()))?;
         let bytes = read(0, usize::try_from(source.len()).unwrap_or(usize::MAX))?;
         Asset::from_bytes_limited(&bytes, limits).map_err(|e| match e {
             Error::Asset { .. } => e.within(source.describe()),
@@ -553,27 +544,40 @@ impl Visit for ReadPayload<'_> {
             limits,
             build,
         } = self;
-        let (w, h) = (u64::from(meta.width), u64::from(meta.height));
         let p: Payload<H> =
             fractile_proto::decode(payload).map_err(|e| Error::asset(e.to_string()))?;
-        let mut operators = 0u64;
-        for (i, (header, stream)) in p.planes.iter().enumerate() {
-            let bytes = header
-                .cost(&meta, stream)
-                .map_err(|e| Error::asset(format!("plane {i}: {e}")))?;
-            operators = operators.saturating_add(bytes);
-        }
-        // A mask is a byte per cell and a small summary; a full-resolution discrete decode
-        // holds two f32 grids per plane.
-        let mask_bytes = p.mask.as_ref().map_or(0, |_| w * h + w * h / 64);
-        let discrete = 8 * w * h * p.planes.len() as u64;
-        limits.check_cost(operators.saturating_add(mask_bytes + discrete))?;
+        limits.check_cost(payload_cost(&meta, &p)?)?;
         let mask = p
             .mask
             .map(|m| Mask::decode(meta.width as usize, meta.height as usize, &m))
             .transpose()?;
         Asset::from_coded_built(meta, p.planes, mask, build)
     }
+}
+
+/// Whether the file `bytes` opens under `limits`, from its headers (a plane codec's streams
+/// are not decoded): what a writer checks, so that what one reader writes another opens
+/// (Python wrote an 8640 x 8640 asset in one piece that it then refused to open).
+pub fn check_opens(bytes: &[u8], limits: &AssetLimits) -> Result<(), Error> {
+    if is_chunked(bytes) {
+        // A chunked file's chunks are each checked when read; its header is small.
+        return Ok(());
+    }
+    let (codec, meta, payload, _) = container(bytes)?;
+    let planes = Codec::from_byte(codec).filter(|c| !matches!(c, Codec::Octree | Codec::Curve));
+    let Some(plane_codec) = planes else {
+        return Asset::from_payload(codec, meta, payload, limits, Build::Whole).map(|_| ());
+    };
+    limits.check_pixels("a grid", u64::from(meta.width) * u64::from(meta.height))?;
+    let cost = registry::visit(
+        plane_codec,
+        PayloadCost {
+            meta: &meta,
+            payload,
+        },
+    )
+    .unwrap_or(Ok(0))?;
+    limits.check_cost(cost)
 }
 
 /// Writes the planes of a plane codec's asset as its payload.

@@ -73,6 +73,25 @@ impl AssetLimits {
     }
 }
 
+/// Whether a file that is not chunked, `len` bytes starting with `head` (12 bytes, or all of
+/// a shorter file), may be read whole under `limits`: one that is no asset, or one larger than
+/// any asset that is not chunked can be (its decoded planes, which `max_decode_bytes` bounds,
+/// are larger than its bytes), is refused from its length and first bytes, before anything is
+/// allocated. Every reader (the server, the CLI, Python) goes through it: a 100 GB sparse file
+/// aborted a process that asked for its size in memory, and a 3 GB junk file took 3 GB and 15 s
+/// to say "bad magic".
+pub fn check_whole_file(head: &[u8], len: u64, limits: &AssetLimits) -> Result<(), Error> {
+    check_magic(head)?;
+    if len > limits.max_decode_bytes {
+        return Err(Error::asset(format!(
+            "{len} bytes, over any asset that is not chunked (max_decode_mib {}): chunk it \
+             (fractile encode --chunk N)",
+            limits.max_decode_bytes >> 20
+        )));
+    }
+    Ok(())
+}
+
 /// Whether a file's first bytes (8 or more) are an asset's, before the rest is read: the
 /// error says what the file is instead (see [`crate::io::asset::Asset::from_bytes`]).
 pub fn check_magic(head: &[u8]) -> Result<(), Error> {

@@ -7,6 +7,7 @@ mod atomic;
 mod cache;
 pub mod chunked;
 mod container;
+mod cost;
 pub(crate) mod layout;
 mod mask;
 pub mod mosaic;

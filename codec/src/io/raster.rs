@@ -8,6 +8,11 @@ use fractile_proto::{AssetKind, ColourModel, Georef, SampleFormat};
 
 use crate::Error;
 
+/// The largest magnitude of a value that is coded: far beyond any height (the deepest trench
+/// is 1.1e4 m) or image, and far enough from float32's 3.4e38 that a range between two such
+/// values and the codecs' arithmetic on it stay finite.
+pub const MAX_MAGNITUDE: f64 = 1e30;
+
 /// A grid of samples in source units, row-major, row 0 at the top (north).
 #[derive(Clone, Debug)]
 pub struct Raster {
@@ -127,6 +132,26 @@ impl Raster {
             && !v.iter().any(|&b| b)
         {
             return Err(Error::input("every cell is nodata: nothing to encode"));
+        }
+        self.check_magnitudes()
+    }
+
+    /// Refuses values whose magnitude is over [`MAX_MAGNITUDE`]: the codecs normalise values
+    /// over their range in float32, and a range wider than float32 holds (+-3.4e38, GDAL's
+    /// usual float nodata, left undeclared) decoded to infinity while the encoder reported no
+    /// error. Such a value is nearly always a nodata marker: the message says how to declare it.
+    pub(crate) fn check_magnitudes(&self) -> Result<(), Error> {
+        for ch in &self.channels {
+            for (i, &v) in ch.iter().enumerate() {
+                if self.is_valid(i) && f64::from(v).abs() > MAX_MAGNITUDE {
+                    let (x, y) = (i % self.width, i / self.width);
+                    return Err(Error::input(format!(
+                        "the value {v:e} at column {x}, row {y} is beyond the {MAX_MAGNITUDE:e} this \
+                         version codes; if it marks cells without data (GDAL's float nodata is \
+                         -3.4028235e38), declare it as the nodata value"
+                    )));
+                }
+            }
         }
         Ok(())
     }

@@ -6,9 +6,12 @@ use std::time::Instant;
 
 use rayon::prelude::*;
 
-use fractile_proto::{ColourModel, SampleFormat};
+use fractile_proto::ColourModel;
 
 use crate::Error;
+use crate::codecs::projected::bound::{
+    check_bound, chunk_span, finest_bound, max_error_step, source_quantum,
+};
 use crate::codecs::projected::pyramid::Order;
 use crate::codecs::projected::{
     self, CODEC_NAME, ProjectedHeader, ProjectedSettings, encode_grid, levels_for,
@@ -135,13 +138,7 @@ fn encode_within(
             check_bound(&coded.1, &source, valid, e, span)?;
             coded
         }
-        (Some(e), _) => {
-            header.step = max_error_step(e, quantum)?;
-            header.max_error = e;
-            let (stream, grid) = smaller_order(&mut header, &source, valid, (0.0, 0.0));
-            check_bound(&grid, &source, valid, e, span)?;
-            (stream, grid)
-        }
+        (Some(e), _) => code_to_bound(&mut header, (&source, valid), e, span)?,
         (None, Some(bpp)) => {
             header.growth = settings.growth;
             // No promise to keep at each sample: steps and predictions need not sit on the
@@ -214,8 +211,11 @@ pub fn encode_at(
             trial,
             ..Default::default()
         },
+        // The file's bound, no finer than this chunk's range is coded to: finer only where
+        // the chunk is constant (its range is then taken as 1) in a file of a range under 1,
+        // and a constant is decoded exactly.
         crate::encode::rate::Quality::Bound(e) => ProjectedSettings {
-            max_error: Some(e),
+            max_error: Some(e.max(finest_bound(chunk_span(raster)))),
             trial,
             ..Default::default()
         },
@@ -255,63 +255,26 @@ fn squared_error(grid: &[f64], source: &[f64], valid: Option<&[bool]>) -> f64 {
         .sum()
 }
 
-/// The quantum the source lies on: 1 for integer samples (and float samples that are all whole
-/// numbers, as most DEMs stored as float are not), else 0 (continuous).
-fn source_quantum(raster: &Raster) -> f64 {
-    if raster.sample != SampleFormat::F32 {
-        return 1.0;
-    }
-    let valid = raster.valid.as_deref();
-    let whole = raster.channels[0]
-        .iter()
-        .enumerate()
-        .all(|(i, &v)| valid.is_some_and(|m| !m[i]) || (v.fract() == 0.0 && v.abs() < 1e7));
-    if whole { 1.0 } else { 0.0 }
-}
-
-/// The step that keeps every sample within `e`: `2 delta + 1` quanta for `delta = floor(e /
-/// quantum)` on quantised data (JPEG-LS's near-lossless step), `2 e` on continuous data.
-fn max_error_step(e: f64, quantum: f64) -> Result<f64, Error> {
-    if !(e.is_finite() && e >= 0.0) {
-        return Err(Error::settings(format!(
-            "--max-error {e} must be a distance >= 0"
-        )));
-    }
-    if quantum > 0.0 {
-        Ok((2.0 * (e / quantum).floor() + 1.0) * quantum)
-    } else if e > 0.0 {
-        Ok(2.0 * e)
-    } else {
-        Err(Error::settings(
-            "--max-error 0 needs a source on a quantum (integer samples); this one is continuous",
-        ))
-    }
-}
-
-/// Refuses an asset that breaks its promise (a bug, not an input error: the closed loop bounds
-/// every sample by construction). The decoded value is an f32 of the normalised range, so the
-/// check allows its rounding: 2^-22 of the range.
-fn check_bound(
-    grid: &[f64],
-    source: &[f64],
-    valid: Option<&[bool]>,
+/// Max-error mode: every valid sample within `e` of the source, under the order that codes
+/// it smaller.
+fn code_to_bound(
+    header: &mut ProjectedHeader,
+    (source, valid): (&[f64], Option<&[bool]>),
     e: f64,
     span: f64,
-) -> Result<(), Error> {
-    let slack = span * 2f64.powi(-22);
-    let worst = grid
-        .iter()
-        .zip(source)
-        .enumerate()
-        .filter(|(i, _)| valid.is_none_or(|v| v[*i]))
-        .map(|(_, (g, s))| (g - s).abs())
-        .fold(0.0f64, f64::max);
-    if worst > e + slack {
+) -> Result<Coded, Error> {
+    let finest = finest_bound(span);
+    if header.quantum == 0.0 && e < finest {
         return Err(Error::settings(format!(
-            "internal: a decoded sample is {worst} from its source, over the bound {e}"
+            "--max-error {e} is finer than float32 samples over this range hold ({finest:e}): \
+             ask at least that"
         )));
     }
-    Ok(())
+    header.step = max_error_step(e, header.quantum)?;
+    header.max_error = e;
+    let (stream, grid) = smaller_order(header, source, valid, (0.0, 0.0));
+    check_bound(&grid, source, valid, e, span)?;
+    Ok((stream, grid))
 }
 
 /// A coded stream and the samples it decodes to.
@@ -418,10 +381,27 @@ fn fit_bound(
         encode_grid(header, source, valid, (0.0, 0.0))
     };
     let finest = try_bound(bound(lo));
-    if finest.0.len() <= budget {
+    // A constant plane is coded at the finest bound whatever the rate: it costs a few bytes at
+    // any bound, and a tiny raster (whose header alone is over the rate) decoded a constant 7
+    // as 6. So is any plane that a coarser bound codes no smaller.
+    let constant = {
+        let mut cells = source
+            .iter()
+            .enumerate()
+            .filter(|(i, _)| valid.is_none_or(|v| v[*i]));
+        let first = cells.next().map(|(_, v)| *v);
+        cells.all(|(_, v)| Some(*v) == first)
+    };
+    if finest.0.len() <= budget || constant {
         return (bound(lo), finest);
     }
     let mut best = try_bound(bound(hi));
+    if best.0.len() >= finest.0.len() {
+        let e = bound(lo);
+        header.step = max_error_step(e, quantum).expect("a bound tried");
+        header.max_error = e;
+        return (e, finest);
+    }
     let mut steps = 0;
     while steps < BISECTIONS && (quantum == 0.0 || hi - lo > 1.0) {
         let mid = if quantum > 0.0 {

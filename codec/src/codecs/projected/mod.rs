@@ -23,6 +23,7 @@
 //! so on down every octave: the roughness of the source continues self-similarly. rho is
 //! fitted per asset as the ratio of the finest two octaves' detail amplitudes.
 
+pub(crate) mod bound;
 pub(crate) mod encode;
 pub(crate) mod grid;
 mod header;
@@ -41,6 +42,7 @@ pub(crate) mod subdivision;
 
 use crate::core::entropy::{Decoder, Encoder};
 
+pub(crate) use bound::finest_bound;
 pub use encode::{encode_at, encode_projected};
 pub use header::{CODEC_NAME, ProjectedHeader};
 pub use operator::ProjectedOperator;
