@@ -8,7 +8,10 @@
 #     the fractile:// protocol (hillshade, 3D terrain), decoded in a Web Worker; the page
 #     compares 20 tiles' heights with the server's (nginx proxies /v1/ to it) and the
 #     screenshot must show each map drawing more than its background;
+#     the same page on another origin than the server's /file, which it reads by range (CORS);
 #  3. the server's viewer with its switch "decode in the browser" on: both paths side by side.
+# Also: format versions 1-4 read through /file (parity.mjs) and hostile servers and files
+# (wasm/tests/hostile.mjs).
 # Prints a closing "N passed, N failed" line.
 set -euo pipefail
 cd "$(dirname "$0")/.."
@@ -27,6 +30,11 @@ mkdir -p "$WORK/assets" "$WORK/nginx"
 # etopo20 in chunks of 128: 45 chunks at the source level, so a tile reads a few of them.
 target/release/fractile encode testdata/etopo20.tif -o "$WORK/assets/etopo20.fra" --chunk 128 >/dev/null
 cp "$WORK/assets/etopo20.fra" "$WEB/"
+# Files of format versions 1 to 4 (height fields), served as they are stored through /file.
+for v in 1 2 3 4; do
+  cp testdata/golden/v$v-fis-jacksboro.fra "$WORK/assets/v$v-fis.fra"
+  cp testdata/golden/v$v-quadtree-jacksboro-utm.fra "$WORK/assets/v$v-utm.fra"
+done
 FRACTILE_BACKEND=cpu RUST_LOG=warn target/release/fractile serve --bind 127.0.0.1:$SERVER_PORT \
   --assets "$WORK/assets" &
 PID=$!
@@ -71,6 +79,11 @@ check "Node: 20 tiles decoded from ranges equal the server's" \
 check "Node: the same, the asset read by range from the server's /v1/assets/{id}/file" \
   'node wasm/tests/parity.mjs --web "$WEB" --static "http://127.0.0.1:$SERVER_PORT/v1/assets/{id}/file" --server "http://127.0.0.1:$SERVER_PORT" --assets etopo20 --tiles 20 >/dev/null'
 
+check "Node: files of format versions 1 to 4 read through /file equal the server's tiles" \
+  'node wasm/tests/parity.mjs --web "$WEB" --static "http://127.0.0.1:$SERVER_PORT/v1/assets/{id}/file" --server "http://127.0.0.1:$SERVER_PORT" --assets v1-fis,v1-utm,v2-fis,v2-utm,v3-fis,v3-utm,v4-fis,v4-utm --tiles 16 >/dev/null'
+check "Node: lying and stalling servers and 200 broken files end in errors, no trap, no hang" \
+  'node wasm/tests/hostile.mjs --web "$WEB" --asset "$WEB/etopo20.fra" --mutants 200'
+
 READY_JS="(() => { const s = document.getElementById('status'); return !!s && s.dataset.loaded === 'true'; })()" \
   python3 tests/browser.py "http://127.0.0.1:$PORT/terrain.html?url=etopo20.fra&compare=/v1/assets/etopo20/tiles" "$WORK" 120 || true
 DOM=$(cat "$WORK/dom.html" 2>/dev/null || true)
@@ -91,6 +104,18 @@ check "Chromium saw no JavaScript error" '[ ! -s "$WORK/console.txt" ]'
 check "each map draws more than its background" \
   '[ -s "$WORK/shot.png" ] && target/release/browser-pixels "$WORK/shot.png" 48 32 0 hillshade:0.2 terrain:0.2'
 [ -n "${KEEP_SHOT:-}" ] && cp "$WORK/shot.png" "$KEEP_SHOT"
+
+# 2b. The same page reading the asset from the server's /file on another origin (the page from
+# nginx's port, the file from the server's): ranges and their Content-Range cross origins.
+mkdir -p "$WORK/cross"
+READY_JS="(() => { const s = document.getElementById('status'); return !!s && s.dataset.loaded === 'true'; })()" \
+  python3 tests/browser.py "http://127.0.0.1:$PORT/terrain.html?url=http://127.0.0.1:$SERVER_PORT/v1/assets/etopo20/file&compare=/v1/assets/etopo20/tiles" "$WORK/cross" 120 || true
+STATUS=$(grep -o '<span id="status"[^>]*>[^<]*' "$WORK/cross/dom.html" 2>/dev/null || true)
+echo "cross-origin page status: $STATUS"
+check "a page on another origin reads /file by range: 20 tiles equal the server's" \
+  '[ "$(attr loaded)" = true ] && [ "$(attr equal)" = 20 ] && [ "$(attr errors)" = 0 ]'
+check "the cross-origin page drew each map" \
+  '[ -s "$WORK/cross/shot.png" ] && target/release/browser-pixels "$WORK/cross/shot.png" 48 32 0 hillshade:0.2 terrain:0.2'
 
 # 3. The server's viewer with its switch on (`?decode=browser`): the demo's DEM decoded in the
 # browser from /v1/assets/{id}/file (the server started with --wasm), beside the server's tiles.

@@ -67,9 +67,13 @@ function stallTimer(url, stallMs) {
   let timer = null;
   const stall = {
     signal: controller.signal,
+    timedOut: null,
     reset() {
       clearTimeout(timer);
-      timer = setTimeout(() => controller.abort(new Error(`${url}: no bytes for ${stallMs / 1000} s`)), stallMs);
+      timer = setTimeout(() => {
+        stall.timedOut = new Error(`${url}: no bytes for ${stallMs / 1000} s`);
+        controller.abort(stall.timedOut);
+      }, stallMs);
     },
     abort() {
       clearTimeout(timer);
@@ -114,8 +118,7 @@ async function fetchRange(fetchFn, url, offset, length, stallMs = STALL_MS) {
     if (bytes.length !== want) throw new Error(`${url}: ${bytes.length} bytes for a range of ${want}`);
     return { bytes, total };
   } catch (e) {
-    if (stall.signal.aborted && stall.signal.reason instanceof Error) throw stall.signal.reason;
-    throw e;
+    throw stall.timedOut || e;
   } finally {
     stall.done();
   }

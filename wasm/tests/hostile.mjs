@@ -148,10 +148,10 @@ async function outcome(promise, ms) {
 
 // Servers that lie or stall: each open ends in an Error within seconds.
 for (const [name, what] of [
-  ['whole', 'ignores Range, sends 100 GB said'],
-  ['unsaid', 'ignores Range, sends on without a length'],
-  ['long', 'a 206 far longer than asked'],
-  ['other', 'a 206 of another range'],
+  ['whole', 'ignores Range and says 100 GB'],
+  ['unsaid', 'ignores Range and sends on without a length'],
+  ['long', 'sends a 206 far longer than asked'],
+  ['other', 'sends a 206 of another range'],
   ['stall', 'stalls mid-body'],
 ]) {
   const t0 = performance.now();
