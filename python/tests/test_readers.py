@@ -208,3 +208,16 @@ def test_broken_files_are_errors_not_crashes(work, dem_asset, chunked_asset):
     assert refused > 40, (refused, answered)
     grown = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss - before
     assert grown < 2 << 20, f"{grown >> 10} MiB"
+
+
+def test_a_grid_readers_would_refuse_is_not_coded_in_one_piece(work):
+    """What one reader writes, every reader opens: a DEM in one piece over the readers' decode
+    limit (8640 x 8640 was coded for minutes, then refused by `open`) is refused before it is
+    coded, and nothing is written; in chunks it is coded."""
+    path = work / "one-piece.fra"
+    big = np.zeros((7800, 7800), np.int16)
+    t = time.perf_counter()
+    with pytest.raises(fractile.SettingsError, match="in chunks"):
+        fractile.encode(big, path, chunk=0)
+    assert time.perf_counter() - t < 10.0
+    assert not path.exists()

@@ -63,6 +63,12 @@ macro_rules! settings {
                     $( CodecSettings::$name(s) => s.encode(raster, progress), )*
                 }
             }
+
+            fn reader_bytes_per_cell(&self) -> u64 {
+                match self {
+                    $( CodecSettings::$name(s) => s.reader_bytes_per_cell(), )*
+                }
+            }
         }
 
         $(
@@ -84,6 +90,22 @@ pub fn encode(
     settings: &(impl PlaneEncoder + ?Sized),
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<Encoded, Error> {
+    // A raster in one piece that readers under the default limits would refuse is refused
+    // before it is coded (an 8640 x 8640 DEM was coded for minutes, then not opened).
+    let cells = (raster.width as u64).saturating_mul(raster.height as u64);
+    let limits = crate::AssetLimits::default();
+    limits
+        .check_pixels("a grid", cells)
+        .and_then(|()| limits.check_cost(cells.saturating_mul(settings.reader_bytes_per_cell())))
+        .map_err(|e| {
+            Error::settings(format!(
+                "{} x {} cells in one piece: readers would refuse it ({}); encode it in chunks \
+                 (--chunk 1024, Python's chunk=1024)",
+                raster.width,
+                raster.height,
+                e.message()
+            ))
+        })?;
     settings.encode(raster, progress)
 }
 

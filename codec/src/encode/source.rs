@@ -105,6 +105,14 @@ pub trait PlaneEncoder {
         raster: &Raster,
         progress: &(dyn Fn(u64, u64) + Sync),
     ) -> Result<Encoded, crate::Error>;
+
+    /// What a reader of this codec's file takes a cell at least (its `PlaneCodec::cost` and
+    /// the discrete decode's two f32 grids): [`crate::encode::encode`] refuses up front a
+    /// raster in one piece that readers would refuse, rather than after coding it. A lower
+    /// bound: the file itself is checked before it is written ([`Encoded::write`]).
+    fn reader_bytes_per_cell(&self) -> u64 {
+        8
+    }
 }
 
 /// A source channel, normalised, before padding: values, validity, and its extent in source

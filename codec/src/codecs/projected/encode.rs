@@ -562,4 +562,9 @@ impl PlaneEncoder for ProjectedSettings {
     ) -> Result<Encoded, Error> {
         encode_projected(raster, self)
     }
+
+    /// The operator's 48 bytes a sample (`ProjectedHeader::cost`) and the discrete decode's 8.
+    fn reader_bytes_per_cell(&self) -> u64 {
+        56
+    }
 }
