@@ -167,6 +167,17 @@ check('a tile of 30,000 pixels a side is refused, not a trap', huge.kind === 'er
 const next = await outcome(good.tileHeights(0, 0, 0, 256), 20000);
 check('the reader answers the next tile', next.kind === 'value' && next.value.length === 256 * 256 && next.value.some(Number.isFinite), next.message || next.kind);
 
+// A trap of the module (none of the inputs above makes one; out of memory would): the asset
+// says plainly that it must be opened again, on that call and every later one, and opened
+// again it answers.
+const victim = await RemoteAsset.open(`${base}/good.fra`, { stallMs: STALL_MS });
+const trapped = await outcome(victim.retry(() => { throw new WebAssembly.RuntimeError('unreachable'); }), 5000);
+const later = await outcome(victim.tileHeights(0, 0, 0, 256), 5000);
+check('after a trap, the asset says it must be opened again', trapped.kind === 'error' && /open the asset again/.test(trapped.message)
+  && later.kind === 'error' && /open the asset again/.test(later.message) && Boolean(victim.broken), `${trapped.message}; then ${later.message}`);
+const reopened = await outcome(RemoteAsset.open(`${base}/good.fra`).then((a) => a.tileHeights(0, 0, 0, 256)), 20000);
+check('opened again, it answers', reopened.kind === 'value' && reopened.value.some(Number.isFinite), reopened.message || reopened.kind);
+
 // Broken files: each mutant opens and answers three tiles, or fails with an Error.
 const counts = { value: 0, error: 0, trap: 0, hang: 0 };
 const traps = [];
