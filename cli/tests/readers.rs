@@ -40,6 +40,18 @@ fn ok(out: std::process::Output) -> std::process::Output {
     out
 }
 
+/// `fractile encode INPUT -o OUT FLAGS...`, which must succeed.
+fn encode(input: &Path, out: &Path, flags: &[&str]) {
+    let mut args = vec![
+        "encode",
+        input.to_str().unwrap(),
+        "-o",
+        out.to_str().unwrap(),
+    ];
+    args.extend_from_slice(flags);
+    ok(run(&args));
+}
+
 /// A request with extra header lines (each ending in `\r\n`): status, headers, body.
 fn ask(port: u16, method: &str, path: &str, extra: &str) -> (u16, String, Vec<u8>) {
     request(
@@ -276,8 +288,8 @@ fn peak_rss(pid: u32, stop: Arc<AtomicBool>) -> std::thread::JoinHandle<u64> {
 
 /// `/file` holds a piece per reader, not a file: 200 concurrent whole reads of a
 /// multi-megabyte asset and 200 concurrent one-byte ranges, each checked byte for byte, and
-/// 200 readers that take a byte a second, grow the server's resident memory by under 256 MB (they took it from 620 MB to
-/// 2,369 MB, and +1,768 MB, when answers were built whole).
+/// 200 readers that take a byte a second, grow the server's resident memory by under 256 MB
+/// (they took it from 620 MB to 2,369 MB, and +1,768 MB, when answers were built whole).
 #[test]
 fn many_and_slow_readers_hold_little_memory() {
     let dir = tempdir("memory");
@@ -285,14 +297,7 @@ fn many_and_slow_readers_hold_little_memory() {
     std::fs::create_dir_all(&assets).unwrap();
     // etopo20 at twice its resolution, coded near-losslessly: a file of some megabytes.
     let exact = dir.join("etopo.fra");
-    ok(run(&[
-        "encode",
-        data("etopo20.tif").to_str().unwrap(),
-        "-o",
-        exact.to_str().unwrap(),
-        "--max-error",
-        "0",
-    ]));
+    encode(&data("etopo20.tif"), &exact, &["--max-error", "0"]);
     let fine = dir.join("etopo-x2.tif");
     ok(run(&[
         "decode",
@@ -303,14 +308,7 @@ fn many_and_slow_readers_hold_little_memory() {
         "2",
     ]));
     let asset = assets.join("big.fra");
-    ok(run(&[
-        "encode",
-        fine.to_str().unwrap(),
-        "-o",
-        asset.to_str().unwrap(),
-        "--max-error",
-        "0.5",
-    ]));
+    encode(&fine, &asset, &["--max-error", "0.5"]);
     let bytes = Arc::new(std::fs::read(&asset).unwrap());
     assert!(bytes.len() > 2 << 20, "{} bytes", bytes.len());
     let server = Server::start(
@@ -443,14 +441,7 @@ fn coarse_reads_of_chunked_assets_are_the_servers() {
     let assets = dir.join("assets");
     std::fs::create_dir_all(&assets).unwrap();
     let asset = assets.join("etopo.fra");
-    ok(run(&[
-        "encode",
-        data("etopo20.tif").to_str().unwrap(),
-        "-o",
-        asset.to_str().unwrap(),
-        "--chunk",
-        "256",
-    ]));
+    encode(&data("etopo20.tif"), &asset, &["--chunk", "256"]);
     let server = Server::start(
         assets.to_str().unwrap(),
         free_port(),

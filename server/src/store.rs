@@ -40,6 +40,16 @@ pub struct StoredAsset {
     pub placement: Option<Placement>,
 }
 
+/// An asset's file as stored, opened at the version the catalog serves ([`Store::file`]).
+pub struct StoredFile {
+    /// The catalog's entry (its checksum and length make the ETag).
+    pub asset: Arc<StoredAsset>,
+    /// The file, read by range.
+    pub source: Box<dyn ChunkSource>,
+    /// The backing's version of it.
+    pub version: String,
+}
+
 /// The asset catalog over a [`Backing`].
 pub struct Store {
     backing: Box<dyn Backing>,
@@ -265,7 +275,7 @@ impl Store {
     /// (never written again from the decoded asset). A file replaced since it was loaded (a
     /// folder's file renamed over or rewritten in place) brings the catalog up to date first;
     /// one still changing is 503. Blocking.
-    pub fn file(&self, id: &str) -> Result<(Arc<StoredAsset>, Box<dyn ChunkSource>), AppError> {
+    pub fn file(&self, id: &str) -> Result<StoredFile, AppError> {
         let changing = || AppError {
             status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
             code: ErrorCode::StorageUnavailable,
@@ -300,25 +310,20 @@ impl Store {
             if source.len() != a.bytes || changed_under(self.backing.as_ref(), id, &version) {
                 return Err(changing());
             }
-            return Ok((a, source));
+            return Ok(StoredFile {
+                asset: a,
+                source,
+                version,
+            });
         }
         Err(changing())
     }
 
-    /// Whether the file of `id` is still the version `a` was loaded from (cheap where the
-    /// backing can tell, as a folder can; always where versions cannot change under a
-    /// reader): what a long answer from [`Store::file`] checks as it goes.
-    pub fn unchanged(&self, id: &str) -> bool {
-        let Some(version) = self
-            .versions
-            .lock()
-            .unwrap_or_else(|e| e.into_inner())
-            .get(id)
-            .cloned()
-        else {
-            return false;
-        };
-        !changed_under(self.backing.as_ref(), id, &version)
+    /// Whether the file of `id` is still at `version` (cheap where the backing can tell, as
+    /// a folder can; always where versions cannot change under a reader): what a long answer
+    /// from [`Store::file`] checks as it goes, against the version it opened.
+    pub fn unchanged(&self, id: &str, version: &str) -> bool {
+        !changed_under(self.backing.as_ref(), id, version)
     }
 
     /// Decodes the chunked assets' chunks into the chunk cache on a thread of its own, until

@@ -569,15 +569,11 @@ pub fn check_opens(bytes: &[u8], limits: &AssetLimits) -> Result<(), Error> {
         return Asset::from_payload(codec, meta, payload, limits, Build::Whole).map(|_| ());
     };
     limits.check_pixels("a grid", u64::from(meta.width) * u64::from(meta.height))?;
-    let cost = registry::visit(
-        plane_codec,
-        PayloadCost {
-            meta: &meta,
-            payload,
-        },
-    )
-    .unwrap_or(Ok(0))?;
-    limits.check_cost(cost)
+    let cost = PayloadCost {
+        meta: &meta,
+        payload,
+    };
+    limits.check_cost(registry::visit(plane_codec, cost).unwrap_or(Ok(0))?)
 }
 
 /// Writes the planes of a plane codec's asset as its payload.

@@ -102,9 +102,10 @@ pub(super) async fn asset_file(
 ) -> Result<Response, AppError> {
     let opening = (state.clone(), id.clone());
     // Opening stats and opens a file, or asks a bucket: blocking, off the async executor.
-    let (a, source) = tokio::task::spawn_blocking(move || opening.0.store.file(&opening.1))
+    let file = tokio::task::spawn_blocking(move || opening.0.store.file(&opening.1))
         .await
         .map_err(|_| AppError::internal("the file could not be opened"))??;
+    let (a, source) = (file.asset, file.source);
     let len = source.len();
     let etag = format!("\"{:08x}-{len}\"", a.hash);
     let etag_value = HeaderValue::from_str(&etag).map_err(|e| AppError::internal(e.to_string()))?;
@@ -151,7 +152,8 @@ pub(super) async fn asset_file(
     let body = if method == Method::HEAD || n == 0 {
         Body::empty()
     } else {
-        Body::from_stream(pieces(state, id, Arc::from(source), first, n))
+        let opened = (id, file.version);
+        Body::from_stream(pieces(state, opened, Arc::from(source), first, n))
     };
     let mut response = Response::new(body);
     let h = response.headers_mut();
@@ -177,14 +179,15 @@ pub(super) async fn asset_file(
 /// reader sees a broken answer, never bytes of two versions under one ETag.
 fn pieces(
     state: Arc<super::state::AppState>,
-    id: String,
+    (id, version): (String, String),
     source: Arc<dyn ChunkSource>,
     first: u64,
     n: u64,
 ) -> impl futures_util::Stream<Item = std::io::Result<axum::body::Bytes>> {
     let end = first + n;
     futures_util::stream::try_unfold(first, move |at| {
-        let (source, state, id) = (source.clone(), state.clone(), id.clone());
+        let (source, state) = (source.clone(), state.clone());
+        let (id, version) = (id.clone(), version.clone());
         async move {
             if at >= end {
                 return Ok(None);
@@ -192,7 +195,7 @@ fn pieces(
             let take = PIECE.min(end - at) as usize;
             let piece = tokio::task::spawn_blocking(move || {
                 let bytes = source.read(at, take)?;
-                if !state.store.unchanged(&id) {
+                if !state.store.unchanged(&id, &version) {
                     return Err(std::io::Error::other(format!(
                         "the file of {id} changed while it was sent"
                     )));
