@@ -22,7 +22,9 @@ enum Lie {
 
 const LENGTH: u64 = 5000;
 
-/// Serves `lie` on a loopback port until the test ends.
+/// Serves `lie` on a loopback port until the test ends: one answer a connection, each saying
+/// `Connection: close` (a client that reused the closed connection of the length probe failed
+/// "sending the request" instead of meeting the lie).
 fn serve(lie: Lie) -> String {
     let listener = TcpListener::bind("127.0.0.1:0").unwrap();
     let port = listener.local_addr().unwrap().port();
@@ -64,7 +66,7 @@ fn answer(mut conn: TcpStream, lie: Lie) {
             Ok(())
         }
         (_, true) => conn.write_all(
-            format!("HTTP/1.1 206 Partial Content\r\nContent-Range: bytes 0-0/{LENGTH}\r\nContent-Length: 1\r\n\r\nF").as_bytes(),
+            format!("HTTP/1.1 206 Partial Content\r\nContent-Range: bytes 0-0/{LENGTH}\r\nContent-Length: 1\r\nConnection: close\r\n\r\nF").as_bytes(),
         ),
         (Lie::LongRange, false) => {
             let _ = conn.write_all(
@@ -75,7 +77,7 @@ fn answer(mut conn: TcpStream, lie: Lie) {
         }
         (Lie::Stall, false) => {
             let _ = conn.write_all(
-                format!("HTTP/1.1 206 Partial Content\r\nContent-Range: bytes 0-99/{LENGTH}\r\nContent-Length: 100\r\n\r\n").as_bytes(),
+                format!("HTTP/1.1 206 Partial Content\r\nContent-Range: bytes 0-99/{LENGTH}\r\nContent-Length: 100\r\nConnection: close\r\n\r\n").as_bytes(),
             );
             let _ = conn.write_all(&zeros[..50]);
             std::thread::sleep(Duration::from_secs(30));
