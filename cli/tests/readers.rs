@@ -52,6 +52,17 @@ fn encode(input: &Path, out: &Path, flags: &[&str]) {
     ok(run(&args));
 }
 
+/// `fractile serve --assets ASSETS` on a free loopback port with `args`, its log in `log_dir`.
+fn serve(assets: &Path, args: &[&str], log_dir: &Path) -> Server {
+    Server::start(
+        assets.to_str().unwrap(),
+        free_port(),
+        args,
+        &[],
+        &log_dir.join("server.log"),
+    )
+}
+
 /// A request with extra header lines (each ending in `\r\n`): status, headers, body.
 fn ask(port: u16, method: &str, path: &str, extra: &str) -> (u16, String, Vec<u8>) {
     request(
@@ -97,13 +108,7 @@ fn files_are_served_as_a_static_host_serves_them() {
     // No rescan: what `/file` answers of a replaced file is its own doing.
     let config = dir.join("fractile.toml");
     std::fs::write(&config, "rescan_seconds = 0\n").unwrap();
-    let server = Server::start(
-        dir.to_str().unwrap(),
-        free_port(),
-        &["--config", config.to_str().unwrap()],
-        &[],
-        &dir.join("server.log"),
-    );
+    let server = serve(&dir, &["--config", config.to_str().unwrap()], &dir);
     let port = server.port;
     // Curves of versions 1 and 2 are not served (their coding changed in version 3): every
     // other file is.
@@ -311,13 +316,7 @@ fn many_and_slow_readers_hold_little_memory() {
     encode(&fine, &asset, &["--max-error", "0.5"]);
     let bytes = Arc::new(std::fs::read(&asset).unwrap());
     assert!(bytes.len() > 2 << 20, "{} bytes", bytes.len());
-    let server = Server::start(
-        assets.to_str().unwrap(),
-        free_port(),
-        &[],
-        &[],
-        &dir.join("server.log"),
-    );
+    let server = serve(&assets, &[], &dir);
     let port = server.port;
     let pid = server.pid();
     // Warm: the asset is loaded and a first answer made.
@@ -442,13 +441,7 @@ fn coarse_reads_of_chunked_assets_are_the_servers() {
     std::fs::create_dir_all(&assets).unwrap();
     let asset = assets.join("etopo.fra");
     encode(&data("etopo20.tif"), &asset, &["--chunk", "256"]);
-    let server = Server::start(
-        assets.to_str().unwrap(),
-        free_port(),
-        &[],
-        &[],
-        &dir.join("server.log"),
-    );
+    let server = serve(&assets, &[], &dir);
     let (s, _, meta) = ask(server.port, "GET", "/v1/assets/etopo", "");
     assert_eq!(s, 200);
     let meta: serde_json::Value = serde_json::from_slice(&meta).unwrap();

@@ -81,14 +81,15 @@ pub struct Refreshed {
     pub unreachable: Option<String>,
 }
 
-/// A backing that failed on a write: 503, since a store that comes back takes writes again.
-/// Where and why go to the log, not to the client.
+/// A backing that failed, `what` it was doing (storing, deleting, reading): 503, since a store
+/// that comes back serves again (a failed write changed nothing). Where and why go to the log,
+/// not to the client.
 fn storage_unavailable(what: &str, id: &str, e: std::io::Error) -> AppError {
     tracing::error!("{what} asset {id}: {e}");
     AppError {
         status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
         code: ErrorCode::StorageUnavailable,
-        detail: format!("the asset store could not be written ({what}); try again"),
+        detail: format!("the asset store failed ({what}); try again"),
         retry_after: Some(1),
     }
 }
@@ -298,15 +299,10 @@ impl Store {
                 }
                 return Err(changing());
             }
-            let source = self.backing.open(id, &version).map_err(|e| {
-                tracing::error!("reading asset {id}: {e}");
-                AppError {
-                    status: axum::http::StatusCode::SERVICE_UNAVAILABLE,
-                    code: ErrorCode::StorageUnavailable,
-                    detail: "the asset store could not be read; try again".into(),
-                    retry_after: Some(1),
-                }
-            })?;
+            let source = self
+                .backing
+                .open(id, &version)
+                .map_err(|e| storage_unavailable("reading", id, e))?;
             if source.len() != a.bytes || changed_under(self.backing.as_ref(), id, &version) {
                 return Err(changing());
             }
