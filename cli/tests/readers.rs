@@ -313,7 +313,7 @@ fn many_and_slow_readers_hold_little_memory() {
         "2",
     ]));
     let asset = assets.join("big.fra");
-    encode(&fine, &asset, &["--max-error", "0.5"]);
+    encode(&fine, &asset, &["--max-error", "0.25"]);
     let bytes = Arc::new(std::fs::read(&asset).unwrap());
     assert!(bytes.len() > 2 << 20, "{} bytes", bytes.len());
     let server = serve(&assets, &[], &dir);

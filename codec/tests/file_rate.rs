@@ -105,13 +105,14 @@ fn a_bounded_file_has_one_bound_held_everywhere() {
     }
 }
 
-/// Rate mode (lifted chunks, format 7): the first overview is a view of the source chunks,
-/// the coarse band of their own multiresolution, with no bytes of its own; coarse pixels are
+/// Rate mode (lifted chunks, format 8): the first two overviews are views of the source chunks,
+/// the coarse bands of their own multiresolution, with no bytes of their own, and a coded
+/// level lies above them; coarse pixels are
 /// answered from it within its measured maps, and it stands for the box means as well as a
 /// coded overview at twice the step would (its RMSE against them within twice the source
 /// level's against the source).
 #[test]
-fn a_rate_files_first_overview_is_a_view_of_its_source_chunks() {
+fn a_rate_files_first_overviews_are_views_of_its_source_chunks() {
     use fractile_codec::geo::{Pixels, Sites};
     let r = testdata("etopo20.tif");
     let enc = at_rate(
@@ -124,13 +125,15 @@ fn a_rate_files_first_overview_is_a_view_of_its_source_chunks() {
     );
     let chunks = enc.asset.chunks.as_ref().expect("chunked");
     let t = &chunks.table;
-    assert_eq!((t.levels.len(), t.views.len()), (3, 1));
-    assert!(t.is_view(1) && !t.is_view(2));
-    for (v, s) in t.levels[1].chunks.iter().zip(&t.levels[0].chunks) {
-        assert_eq!((v.offset, v.length), (s.offset, s.length));
+    assert_eq!((t.levels.len(), t.views.len()), (4, 2));
+    assert!(t.is_view(1) && t.is_view(2) && !t.is_view(3));
+    for l in [1, 2] {
+        for (v, s) in t.levels[l].chunks.iter().zip(&t.levels[0].chunks) {
+            assert_eq!((v.offset, v.length), (s.offset, s.length));
+        }
     }
-    // The file is its header, level 0's chunks and level 2's: nothing of level 1.
-    let coded: u64 = [0, 2]
+    // The file is its header, level 0's chunks and level 3's: nothing of levels 1 and 2.
+    let coded: u64 = [0, 3]
         .iter()
         .flat_map(|&l| &t.levels[l].chunks)
         .map(|e| e.length)

@@ -36,9 +36,10 @@ fn every_format_version_is_read_as_it_was_written() {
     files.sort();
     assert_eq!(
         files.len(),
-        36,
+        39,
         "six codecs a version, versions 1 to 5; version 6 chunked; version 7 chunked, with and \
-         without views; the projected codec's three multiresolutions in version 5"
+         without views; version 8 chunked, bounded, rate and max-error, all with views; the \
+         projected codec's three multiresolutions in version 5"
     );
     let mut versions = std::collections::BTreeSet::new();
     for path in files {
@@ -56,11 +57,17 @@ fn every_format_version_is_read_as_it_was_written() {
         }
         let asset = read.unwrap_or_else(|e| panic!("{name}: {e}"));
         // Version 5 added the source-error map, to rasters only; version 6 is the chunked
-        // container, whose chunks are version-5 files with their maps; version 7 adds views.
+        // container, whose chunks are version-5 files with their maps; version 7 adds views,
+        // version 8 a coded level above them and views of the pyramid (bounded, max-error).
         let raster = matches!(asset.meta.kind, AssetKind::Image | AssetKind::HeightField);
         assert_eq!(asset.chunks.is_some(), version >= 6, "{name}");
         if let Some(c) = &asset.chunks {
-            let views = usize::from(name.contains("views"));
+            // Version 7 viewed one level, version 8 views two below a coded one.
+            let views = match () {
+                _ if !name.contains("views") => 0,
+                _ if version == 7 => 1,
+                _ => 2,
+            };
             assert_eq!(c.table.views.len(), views, "{name}");
             // Every level answers: a view decodes from its source chunk's bytes.
             for level in 0..c.table.levels.len() {
@@ -144,6 +151,6 @@ fn every_format_version_is_read_as_it_was_written() {
     }
     assert_eq!(
         versions.into_iter().collect::<Vec<_>>(),
-        vec![1, 2, 3, 4, 5, 6, 7]
+        vec![1, 2, 3, 4, 5, 6, 7, 8]
     );
 }

@@ -15,7 +15,7 @@ use fractile_codec::codecs::psa::{PsaSettings, Tiling};
 use fractile_codec::encode::chunked::{
     DEFAULT_CHUNK, chunk_bpp, encode_chunked_file, encode_chunked_file_at, wants_chunks,
 };
-use fractile_codec::encode::rate::FileRate;
+use fractile_codec::encode::rate::{FileRate, Quality, Target};
 use fractile_codec::encode::{DEFAULT_HEIGHT_FIELD_BPP, Written};
 use fractile_codec::io::raster::MAX_MAGNITUDE;
 use fractile_codec::io::rows::{InMemory, Rows};
@@ -214,14 +214,19 @@ fn code(
         let enc = fractile_codec::encode(&raster, &settings, progress).map_err(raise)?;
         return enc.write(path).map_err(raise);
     };
-    if req.codec == "projected" && req.max_error.is_none() && channels == 1 {
-        // The chunks share one rate over the file (as `fractile encode`'s file rate).
-        let rate = FileRate {
-            bpp: req.target_bpp.unwrap_or(DEFAULT_HEIGHT_FIELD_BPP),
-            bounded: true,
+    if req.codec == "projected" && channels == 1 {
+        // The chunks share one quality (as `fractile encode`'s): the max error asked for, or
+        // the one that fits the file's rate.
+        let target: Target = match req.max_error {
+            Some(e) => Quality::Bound(e).into(),
+            None => FileRate {
+                bpp: req.target_bpp.unwrap_or(DEFAULT_HEIGHT_FIELD_BPP),
+                bounded: true,
+            }
+            .into(),
         };
         let at = |r: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(r, q, trial);
-        return encode_chunked_file_at(rows, c, (rate, &at), progress, path).map_err(raise);
+        return encode_chunked_file_at(rows, c, (target, &at), progress, path).map_err(raise);
     }
     let per_chunk = req.settings(kind, req.target_bpp.map(|b| chunk_bpp(width, height, c, b)))?;
     let one = |r: &Raster| fractile_codec::encode(r, &per_chunk, &|_, _| {});

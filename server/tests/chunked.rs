@@ -235,10 +235,11 @@ async fn chunked_assets_decode_on_the_gpu_chunk_by_chunk() {
 #[tokio::test]
 async fn coarse_pixels_of_a_chunked_asset_share_cached_grids() {
     let st = state();
-    // Regions of the whole globe with pixels of 17, 8 and 11 source cells: the top level
-    // (etopo20's 1080 x 540 halved twice, 270 x 135 cells, one chunk) filtered from its grids
-    // of 68 x 34, 135 x 68 and 135 x 68 cells (a pixel's cells between half a pixel and one).
-    let sizes = [(64, 32), (128, 64), (96, 48)];
+    // Regions of the whole globe with pixels of 34, 17 and 22 source cells: the top level
+    // (etopo20's 1080 x 540 halved three times, 135 x 68 cells, one chunk, above two views)
+    // filtered from its grids of 34 x 17, 68 x 34 and 68 x 34 cells (a pixel's cells between
+    // half a pixel and one).
+    let sizes = [(32, 16), (64, 32), (48, 24)];
     for (w, h) in sizes {
         let uri = |id: &str| {
             format!("/v1/assets/{id}/region?bbox=-180,-90,180,90&width={w}&height={h}&format=f32")
@@ -352,7 +353,7 @@ fn crafted_chunk_tables_are_refused_at_upload() {
     (empty.width, empty.height) = (8192, 8192);
     let mut table = c.table.clone();
     table.chunk = 64;
-    table.levels = fractile_codec::io::chunked::ChunkTable::level_sizes(8192, 8192, 64)
+    table.levels = fractile_codec::io::chunked::ChunkTable::level_sizes(8192, 8192, 64, false)
         .into_iter()
         .map(|(w, h)| {
             let (nx, ny) = table.grid(w, h);

@@ -9,7 +9,7 @@ use fractile_codec::codecs::fis::FisSettings;
 use fractile_codec::codecs::projected::ProjectedSettings;
 use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
 use fractile_codec::encode::chunked::chunk_bpp;
-use fractile_codec::encode::rate::FileRate;
+use fractile_codec::encode::rate::{FileRate, Quality, Target};
 use fractile_codec::{CodecSettings, QuadtreeSettings, Quantiser, RateMode, Roi, SearchMode};
 use fractile_proto::AssetKind;
 
@@ -413,14 +413,24 @@ impl EncodeArgs {
     }
 }
 
-/// The file's rate of a chunked encode (`fractile_codec::encode::rate`): the projected codec
-/// of one channel under `--target-bpp` (the DEM default among them), whose chunks share one
-/// step or one bound. `None`: each chunk coded on its own ([`EncodeArgs::chunk_rate`]).
-pub(crate) fn file_rate(a: &EncodeArgs, channels: usize) -> Option<FileRate> {
-    let projected = a.codec() == CodecArg::Projected && a.max_error.is_none() && channels == 1;
-    a.target_bpp.filter(|_| projected).map(|bpp| FileRate {
-        bpp,
-        bounded: a.bounded,
+/// The one quality of a chunked encode's chunks (`fractile_codec::encode::rate`): for the
+/// projected codec of one channel, `--max-error E` (every source chunk within E, the coded
+/// overviews' bound doubled a level) or the file's rate under `--target-bpp` (the DEM default
+/// among them), whose chunks share one step or one bound. `None`: each chunk coded on its own
+/// ([`EncodeArgs::chunk_rate`]).
+pub(crate) fn file_rate(a: &EncodeArgs, channels: usize) -> Option<Target> {
+    if a.codec() != CodecArg::Projected || channels != 1 {
+        return None;
+    }
+    if let Some(e) = a.max_error {
+        return Some(Quality::Bound(e).into());
+    }
+    a.target_bpp.map(|bpp| {
+        FileRate {
+            bpp,
+            bounded: a.bounded,
+        }
+        .into()
     })
 }
 

@@ -1,16 +1,16 @@
-//! Rasters in chunks (format version 7, `io::chunked`): the raster and its overviews cut into
+//! Rasters in chunks (format version 8, `io::chunked`): the raster and its overviews cut into
 //! chunks, each coded on its own by any 2D codec, on every core.
 //!
-//! The rate is the file's, overviews and table included: [`encode_chunked_file_at`] codes every
-//! chunk at one quality (a step, or a bound) found on a sample of them ([`rate`]), the
-//! overviews' scaled by 2 a level; [`encode_chunked_file`] codes each chunk by its own settings
-//! (a codec without a file's rate gets its share of the file, [`chunk_bpp`]). Overviews are the
-//! raster box-averaged by 2 (nodata cells left out of the mean) until a level fits in one
-//! chunk, and let a coarse tile decode a few chunks of a coarse level instead of the whole
-//! raster. Coded, they add about a third to the cells, as a COG's overviews do; so where the
-//! chunks are lifted projected planes of a height field (rate mode), levels 1 and 2 are not
-//! coded but are views of the source chunks (their own coarse bands, `io::chunked`), and only
-//! their error maps are measured here (`view_levels`, `view_maps`).
+//! Every chunk of a projected file is coded at one quality, a step or a bound, the overviews'
+//! scaled by 2 a level: given (`--max-error`) or the file's rate ([`encode_chunked_file_at`],
+//! [`rate`]); [`encode_chunked_file`] codes each chunk by its own settings (a codec without a
+//! file's rate gets its share of the file, [`chunk_bpp`]). Overviews are the raster
+//! box-averaged by 2 (nodata cells left out of the mean) until a level fits in one chunk, and
+//! let a coarse tile decode a few chunks of a coarse level instead of the whole raster. Coded,
+//! they add about a third to the cells, as a COG's overviews do; so where the chunks are
+//! projected planes of a height field, levels 1 and 2 are not coded but are views of the source
+//! chunks (their own coarse bands or samples, `io::chunked`), and only their error maps are
+//! measured here (`viewed`, `view_maps`).
 
 use std::path::Path;
 use std::sync::atomic::{AtomicU64, Ordering};
@@ -20,12 +20,12 @@ use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::pyramid::Pyramid;
-use super::rate::{self, EncodeAt, FileRate, Search};
+use super::rate::{self, EncodeAt, Search, Target};
 use super::source::{Encoded, Written};
 use super::spill::{Spill, write_spilled};
 use super::summary::{ChunkRecord, summarise};
 use super::summary::{Coded, blank, header_allowance, new_table, table_of};
-use super::views::{EncodeLevel, view_levels, view_maps};
+use super::views::{EncodeLevel, view_maps, viewed};
 use crate::Error;
 use crate::core::metrics::Errors;
 use crate::io::asset::Asset;
@@ -50,7 +50,7 @@ pub fn wants_chunks(width: usize, height: usize, chunk: u32) -> bool {
 /// file's rate, [`rate`]) is at most `bpp` bits a source cell: `bpp` times the source's cells
 /// over every level's coded cells (overviews and overlaps included), less 1% for the table.
 pub fn chunk_bpp(width: usize, height: usize, chunk: u32, bpp: f64) -> f64 {
-    let sizes = ChunkTable::level_sizes(width as u32, height as u32, chunk);
+    let sizes = ChunkTable::level_sizes(width as u32, height as u32, chunk, false);
     let table = table_of(chunk, &sizes, 0);
     let coded: u64 = table
         .levels
@@ -140,18 +140,19 @@ pub fn encode_chunked_file(
     })
 }
 
-/// Codes `rows` in chunks as [`encode_chunked_file`] does, every chunk at the one quality
-/// ([`rate::Quality`]) whose whole file fits `rate` ([`rate`]: found on a sample of the
-/// chunks, then every chunk coded once; again, coarser, should the file come out over).
+/// Codes `rows` in chunks as [`encode_chunked_file`] does, every chunk at one quality
+/// ([`rate::Quality`]): the one given, or the one whose whole file fits a [`FileRate`]
+/// ([`rate`]: found on a sample of the chunks, then every chunk coded once; again, coarser,
+/// should the file come out over).
 pub fn encode_chunked_file_at(
     rows: &mut dyn Rows,
     chunk: u32,
-    (rate, encode_at): (FileRate, &EncodeAt<'_>),
+    (rate, encode_at): (impl Into<Target>, &EncodeAt<'_>),
     progress: &Progress<'_>,
     output: &Path,
 ) -> Result<Written, Error> {
     let spill = || Spill::beside(output);
-    let at = code_at_rate(rows, chunk, (rate, encode_at), progress, &spill)?;
+    let at = code_at_rate(rows, chunk, (rate.into(), encode_at), progress, &spill)?;
     let length = write_spilled(output, &at.head, at.coded.order(), &at.spill)?;
     Ok(Written {
         asset: Asset::read(output)?,
@@ -166,14 +167,14 @@ pub fn encode_chunked_file_at(
 pub fn encode_chunked_at(
     raster: &Raster,
     chunk: u32,
-    (rate, encode_at): (FileRate, &EncodeAt<'_>),
+    (rate, encode_at): (impl Into<Target>, &EncodeAt<'_>),
     progress: &Progress<'_>,
 ) -> Result<Encoded, Error> {
     let spill = || Ok(Spill::Memory(Vec::new()));
     let at = code_at_rate(
         &mut InMemory::new(raster),
         chunk,
-        (rate, encode_at),
+        (rate.into(), encode_at),
         progress,
         &spill,
     )?;
@@ -192,20 +193,24 @@ pub fn encode_chunked_at(
     })
 }
 
-/// The quality a file of `rows` in chunks of `chunk` is coded at under `rate`, aiming at `aim`
-/// of its budget (what each process of a split encode finds alike: the same sample, the same
-/// search), and the budget.
+/// The quality a file of `rows` in chunks of `chunk` is coded at for `target`, aiming at `aim`
+/// of its budget under a rate (what each process of a split encode finds alike: the same
+/// sample, the same search), and the budget (none for a quality given).
 pub fn quality_for(
     rows: &mut dyn Rows,
     chunk: u32,
-    (rate, encode_at): (FileRate, &EncodeAt<'_>),
+    (target, encode_at): (impl Into<Target>, &EncodeAt<'_>),
     aim: f64,
-) -> Result<(rate::Quality, u64), Error> {
+) -> Result<(rate::Quality, Option<u64>), Error> {
     let header = checked_header(rows, chunk)?;
+    let rate = match target.into() {
+        Target::Quality(q) => return Ok((q, None)),
+        Target::Rate(rate) => rate,
+    };
     let budget = rate.budget((header.width * header.height) as u64)?;
-    let sample = sample_chunks(rows, chunk, !rate.bounded)?;
+    let sample = sample_chunks(rows, chunk)?;
     let quality = Search::new(&sample, rate, budget, encode_at).find(aim)?;
-    Ok((quality, budget))
+    Ok((quality, Some(budget)))
 }
 
 /// A file coded at its rate: the chunks, where they wait, its header and figures.
@@ -225,16 +230,26 @@ const RATE_PASSES: usize = 4;
 fn code_at_rate(
     rows: &mut dyn Rows,
     chunk: u32,
-    (rate, encode_at): (FileRate, &EncodeAt<'_>),
+    (target, encode_at): (Target, &EncodeAt<'_>),
     progress: &Progress<'_>,
     spill: &dyn Fn() -> Result<Spill, Error>,
 ) -> Result<AtRate, Error> {
     let start = Instant::now();
     let header = checked_header(rows, chunk)?;
-    let budget = rate.budget((header.width * header.height) as u64)?;
-    let sample = sample_chunks(rows, chunk, !rate.bounded)?;
-    let mut search = Search::new(&sample, rate, budget, encode_at);
-    let mut quality = search.find(rate::AIM)?;
+    let rate = target.rate();
+    let cells = (header.width * header.height) as u64;
+    let budget = rate
+        .map(|r| r.budget(cells))
+        .transpose()?
+        .unwrap_or(u64::MAX);
+    let sample = rate.map(|_| sample_chunks(rows, chunk)).transpose()?;
+    let mut search = rate
+        .zip(sample.as_ref())
+        .map(|(rate, sample)| Search::new(sample, rate, budget, encode_at));
+    let mut quality = match (target, search.as_mut()) {
+        (Target::Quality(q), _) => q,
+        (Target::Rate(_), search) => search.expect("a rate's search").find(rate::AIM)?,
+    };
     let mut last = 0;
     for _ in 0..RATE_PASSES {
         let mut sp = spill()?;
@@ -244,7 +259,7 @@ fn code_at_rate(
             summarise(coded.size(), chunk, &coded.sizes, coded.records())?;
         let head = chunked::header(&meta, &mut table);
         last = head.len() as u64 + coded.order().map(|(_, len)| len).sum::<u64>();
-        if last <= budget {
+        let Some(search) = search.as_mut().filter(|_| last > budget) else {
             return Ok(AtRate {
                 start,
                 coded,
@@ -253,12 +268,12 @@ fn code_at_rate(
                 errors,
                 transforms,
             });
-        }
+        };
         quality = search.coarser(quality, last)?;
     }
+    let bpp = rate.map_or(0.0, |rate| rate.bpp);
     Err(Error::settings(format!(
-        "--target-bpp {}: the file came out at {last} bytes, over its {budget}, {RATE_PASSES} times",
-        rate.bpp
+        "--target-bpp {bpp}: the file came out at {last} bytes, over its {budget}, {RATE_PASSES} times"
     )))
 }
 
@@ -267,6 +282,8 @@ fn code_at_rate(
 pub(super) struct Streamed {
     pub(super) header: Header,
     pub(super) sizes: Vec<(u32, u32)>,
+    /// Whether the first overviews are views (the layout's sizes follow).
+    pub(super) viewed: bool,
     pub(super) records: Vec<Vec<Option<(ChunkRecord, u64)>>>,
     pub(super) start: Instant,
 }
@@ -342,8 +359,13 @@ pub(super) fn code_streamed(
 ) -> Result<Streamed, Error> {
     let start = Instant::now();
     let header = checked_header(rows, chunk)?;
-    let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk);
-    let views = view_levels(&header, &sizes, work.0);
+    let viewed = viewed(&header, work.0);
+    let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk, viewed);
+    let views = if viewed {
+        ChunkTable::view_levels(sizes.len())
+    } else {
+        0
+    };
     let table = new_table(chunk, views);
     let mut pyramid = Pyramid::new(&header, &sizes, &table);
     let mut tally = Tally::new((&blank(&table, &sizes), views), share, work, spill);
@@ -353,6 +375,7 @@ pub(super) fn code_streamed(
     Ok(Streamed {
         header,
         sizes,
+        viewed,
         records: tally.records,
         start,
     })
@@ -387,21 +410,15 @@ fn read_levels(
 }
 
 /// The sample of chunks a file's rate is found on ([`rate::sample_indices`]), read as the
-/// encode reads them, with every level's valid cells to scale it by.
-/// `lifted`: the chunks are coded by the lifted multiresolution (rate mode, not the bounded
-/// default's pyramid), so that a height field's first overviews are views.
-pub(super) fn sample_chunks(
-    rows: &mut dyn Rows,
-    chunk: u32,
-    lifted: bool,
-) -> Result<rate::Sample, Error> {
+/// encode reads them, with every level's valid cells to scale it by. A height field's first
+/// overviews are views, whose bytes are their source chunks' (their maps are counted with
+/// those): they are left out of the sample.
+pub(super) fn sample_chunks(rows: &mut dyn Rows, chunk: u32) -> Result<rate::Sample, Error> {
     let header = checked_header(rows, chunk)?;
-    let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk);
-    // Lifted chunks of a height field: its first overviews are views, whose bytes are their
-    // source chunks' (their maps are counted with those). (Left in the sample, the bounded
-    // default's estimate missed its coded overviews' bytes, and its file was coded twice.)
     let one_height = header.kind == fractile_proto::AssetKind::HeightField && header.channels == 1;
-    let views = if lifted && one_height {
+    let (w, h) = (header.width as u32, header.height as u32);
+    let sizes = ChunkTable::level_sizes(w, h, chunk, one_height);
+    let views = if one_height {
         ChunkTable::view_levels(sizes.len())
     } else {
         0

@@ -23,7 +23,8 @@ use crate::io::layout::read_exact_at;
 use crate::io::rows::{Header, Rows};
 
 const MAGIC: &[u8; 8] = b"FRAPART\0";
-const VERSION: u16 = 3;
+/// 4: the header says whether the file has views (their layout has a coded level above them).
+const VERSION: u16 = 4;
 
 /// Most bytes a part file's header may claim: 2^20 chunk records of a few hundred bytes.
 const MAX_HEADER: u32 = 1 << 30;
@@ -43,6 +44,8 @@ struct PartHeader {
     width: u32,
     height: u32,
     georef: Option<fractile_proto::Georef>,
+    /// Whether the file's first overviews are views (`ChunkTable::level_sizes`).
+    viewed: bool,
     /// The chunks this part coded, in table order; their files follow the header in this order.
     records: Vec<ChunkRecord>,
 }
@@ -94,6 +97,7 @@ fn write_part(
         width: coded.header.width as u32,
         height: coded.header.height as u32,
         georef: coded.header.georef.clone(),
+        viewed: coded.viewed,
         records: coded.records().cloned().collect(),
     };
     let length = write_spilled(output, &part_head(&header), coded.order(), spill)?;
@@ -104,8 +108,8 @@ fn write_part(
     })
 }
 
-/// [`encode_chunked_part`] under a file's rate ([`super::rate`]): each process finds the
-/// quality on the same sample (the same quality in every process, which goes in the part's
+/// [`encode_chunked_part`] at one quality for the file: given (`--max-error`), or under a
+/// file's rate ([`super::rate`]), where each process finds the quality on the same sample (the same quality in every process, which goes in the part's
 /// settings, so that [`assemble`] refuses parts that disagree), then codes its share at it.
 /// A single encode codes its file again, coarser, should it come out over the rate; a split
 /// one cannot know the whole file's size until [`assemble`], so its parts aim lower
@@ -114,7 +118,7 @@ fn write_part(
 pub fn encode_chunked_part_at(
     rows: &mut dyn Rows,
     (chunk, share, settings): (u32, Share, &str),
-    (rate, encode_at): (super::rate::FileRate, &super::rate::EncodeAt<'_>),
+    (rate, encode_at): (impl Into<super::rate::Target>, &super::rate::EncodeAt<'_>),
     progress: &Progress<'_>,
     output: &Path,
 ) -> Result<PartWritten, Error> {
@@ -124,12 +128,7 @@ pub fn encode_chunked_part_at(
     let mut spill = Spill::beside(output)?;
     let one = |l: usize, r: &crate::Raster| encode_at(r, quality.at_level(l), false);
     let coded = code_streamed(rows, (chunk, share), (&one, progress), &mut spill)?;
-    write_part(
-        (chunk, share, &settings, Some(budget)),
-        coded,
-        &spill,
-        output,
-    )
+    write_part((chunk, share, &settings, budget), coded, &spill, output)
 }
 
 /// A part file's head: magic, version, the header's length, the header, its CRC.
@@ -230,7 +229,7 @@ fn check_header(h: &PartHeader) -> Result<(), String> {
     if h.width == 0 || h.height == 0 {
         return Err(format!("a raster of {} x {} cells", h.width, h.height));
     }
-    let chunks: u64 = chunked::ChunkTable::level_sizes(h.width, h.height, h.chunk)
+    let chunks: u64 = chunked::ChunkTable::level_sizes(h.width, h.height, h.chunk, h.viewed)
         .iter()
         .map(|&(w, h2)| u64::from(w.div_ceil(h.chunk)) * u64::from(h2.div_ceil(h.chunk)))
         .sum();
@@ -265,7 +264,7 @@ fn check_shares(parts: &[Part]) -> Result<(), Error> {
         if h.share.count != count {
             return Err(differs("their part counts"));
         }
-        if h.source != h0.source || h.chunk != h0.chunk {
+        if h.source != h0.source || h.chunk != h0.chunk || h.viewed != h0.viewed {
             return Err(differs("their sources"));
         }
         if h.settings != h0.settings {
@@ -304,7 +303,7 @@ pub fn assemble(parts: &[PathBuf], output: &Path) -> Result<Written, Error> {
     let h0 = &first.header;
     let count = h0.share.count;
     check_shares(&parts)?;
-    let sizes = chunked::ChunkTable::level_sizes(h0.width, h0.height, h0.chunk);
+    let sizes = chunked::ChunkTable::level_sizes(h0.width, h0.height, h0.chunk, h0.viewed);
     let levels: Vec<u64> = sizes
         .iter()
         .map(|&(w, h)| {

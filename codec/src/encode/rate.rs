@@ -66,6 +66,39 @@ pub struct FileRate {
     pub bounded: bool,
 }
 
+/// What a chunked file's chunks are coded at: the file's rate (a quality searched for), or a
+/// quality given (`--max-error E`: every source chunk within E). Either way one quality for
+/// every chunk, the coded overviews' scaled by [`Quality::at_level`].
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Target {
+    /// The finest quality whose file fits this rate.
+    Rate(FileRate),
+    /// This quality.
+    Quality(Quality),
+}
+
+impl Target {
+    /// The file's rate, where the quality is to be found.
+    pub fn rate(&self) -> Option<FileRate> {
+        match self {
+            Target::Rate(rate) => Some(*rate),
+            Target::Quality(_) => None,
+        }
+    }
+}
+
+impl From<FileRate> for Target {
+    fn from(rate: FileRate) -> Target {
+        Target::Rate(rate)
+    }
+}
+
+impl From<Quality> for Target {
+    fn from(quality: Quality) -> Target {
+        Target::Quality(quality)
+    }
+}
+
 impl FileRate {
     /// The file's budget in bytes for a raster of `cells`.
     pub fn budget(&self, cells: u64) -> Result<u64, Error> {

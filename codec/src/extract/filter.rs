@@ -205,3 +205,42 @@ impl Inside {
         full
     }
 }
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use crate::core::decode;
+
+    /// The separable filter is the four taps a point, as [`Asset::sample`] took them one by
+    /// one, on a grid with values that vary along both axes, points inside, on the edges and
+    /// past them (clamped).
+    #[test]
+    fn separable_filtering_is_the_mean_of_four_bilinear_taps() {
+        let (w, h) = (37, 23);
+        let g = decode::Grid {
+            width: w,
+            height: h,
+            values: (0..w * h)
+                .map(|k| ((k % w) as f32 * 0.37).sin() + ((k / w) as f32 * 0.21).cos() * 2.0)
+                .collect(),
+        };
+        let xs: Vec<f32> = (0..50).map(|i| -0.05 + 1.1 * i as f32 / 49.0).collect();
+        let ys: Vec<f32> = (0..31).map(|j| 0.02 + 0.97 * j as f32 / 30.0).collect();
+        for (qx, qy) in [(0.25, 0.25), (0.6, 0.4), (1.3, 0.9)] {
+            let got = filter_separable((&g.values, w, h), (&xs, &ys), [qx, qy]);
+            assert_eq!(got.len(), xs.len() * ys.len());
+            for (k, v) in got.iter().enumerate() {
+                let (x, y) = (
+                    xs[k % xs.len()] * w as f32 - 0.5,
+                    ys[k / xs.len()] * h as f32 - 0.5,
+                );
+                let want = 0.25
+                    * (decode::sample_bilinear(&g, x - qx, y - qy)
+                        + decode::sample_bilinear(&g, x + qx, y - qy)
+                        + decode::sample_bilinear(&g, x - qx, y + qy)
+                        + decode::sample_bilinear(&g, x + qx, y + qy));
+                assert!((v - want).abs() < 1e-5, "point {k}: {v} against {want}");
+            }
+        }
+    }
+}

@@ -211,7 +211,9 @@ impl Chunked {
         }
         let version = u16::from_le_bytes([head[8], head[9]]);
         let table = ChunkTable::decode(&rest[..t_len as usize], version).map_err(bad)?;
-        table.validate(&meta, header_end, file_len).map_err(bad)?;
+        table
+            .validate(&meta, (header_end, file_len), version)
+            .map_err(bad)?;
         // Each chunk is read under the limits as its own asset; the chunk side bounds its
         // grid (a last chunk takes up to half a chunk more), so a chunk over the limits is
         // refused when the file opens.
@@ -441,7 +443,9 @@ impl Asset {
     /// The coarse view at `depth` of a chunk's file (a single-plane projected height field):
     /// its multiresolution's coarse samples ([`crate::codecs::projected::decode_coarse`]) as
     /// an asset of `ceil(w / 2^depth) x ceil(h / 2^depth)` cells, its mask valid where any of
-    /// a cell's `2^depth x 2^depth` source cells is (as the box means of overviews are). No
+    /// a cell's `2^depth x 2^depth` source cells is (as the box means of overviews are) for a
+    /// lifted plane, where the cell on the lattice is for a pyramid (whose samples there are
+    /// the source's, and whose nodata cells are coded to no bound). No
     /// source-error map: a chunked file keeps the view's in its table.
     pub(crate) fn coarse_view(
         bytes: &[u8],
@@ -476,11 +480,8 @@ impl Asset {
             .map(|m| Mask::decode(w, h, &m))
             .transpose()?
             .map(|m| {
-                let s = 1usize << depth;
-                let mut valid = vec![false; cw * ch];
-                for (i, _) in m.valid().iter().enumerate().filter(|(_, v)| **v) {
-                    valid[(i / w / s) * cw + (i % w) / s] = true;
-                }
+                let decimated = header.order.lifting().is_none();
+                let valid = super::mask::coarse_valid(m.valid(), [w, h], 1 << depth, decimated);
                 Mask::new(cw, ch, valid)
             });
         let operator = match build {

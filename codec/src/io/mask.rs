@@ -137,6 +137,28 @@ fn context(valid: &[bool], width: usize, x: usize, y: usize) -> usize {
     usize::from(left) | usize::from(up) << 1
 }
 
+/// The validity of a coarse grid of `s x s` cells a cell over a grid of `size` cells: where any
+/// of a cell's source cells is valid (a box mean's), or where the one on its lattice, its first,
+/// is (`decimated`: a grid of samples taken from the source).
+pub(crate) fn coarse_valid(
+    valid: &[bool],
+    [w, h]: [usize; 2],
+    s: usize,
+    decimated: bool,
+) -> Vec<bool> {
+    let (cw, ch) = (w.div_ceil(s), h.div_ceil(s));
+    if decimated {
+        return (0..cw * ch)
+            .map(|c| valid[(c / cw) * s * w + (c % cw) * s])
+            .collect();
+    }
+    let mut out = vec![false; cw * ch];
+    for (i, _) in valid.iter().enumerate().filter(|(_, b)| **b) {
+        out[(i / w / s) * cw + (i % w) / s] = true;
+    }
+    out
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;

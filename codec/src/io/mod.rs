@@ -9,7 +9,7 @@ pub mod chunked;
 mod container;
 mod cost;
 pub(crate) mod layout;
-mod mask;
+pub(crate) mod mask;
 pub mod mosaic;
 pub mod raster;
 pub mod rows;

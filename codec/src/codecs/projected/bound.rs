@@ -35,9 +35,32 @@ pub(crate) fn finest_bound(span: f64) -> f64 {
     span * 2f64.powi(-20)
 }
 
+/// How far a reader's float32 answer at a sample centre may lie from the decoded sample of a
+/// plane coded over `[lo, lo + span]`: the normalised sample's float32 rounding and a chain's
+/// (2^-20 of the span, as [`finest_bound`]), and the answer's own (an ulp of the largest
+/// magnitude, 2^-23 of it). On a continuous source the step keeps the bound less this, so that
+/// what users receive keeps it (issue 73: `--max-error 10` decoded 10.0005 away); on a quantum
+/// the decoded samples are whole quanta and readers round an answer this close to one onto it
+/// (`Asset::to_source`), so they are received exactly.
+pub(crate) fn delivery_margin(lo: f64, span: f64) -> f64 {
+    span * 2f64.powi(-20) + lo.abs().max((lo + span).abs()) * 2f64.powi(-23)
+}
+
+/// A value in source units as readers deliver it, float32: onto the quantum where it lies
+/// within the float32 roundings of one (`onto`: the quantum and that distance,
+/// [`super::ProjectedHeader::delivered_quantum`]).
+pub(crate) fn delivered(x: f64, onto: Option<(f64, f64)>) -> f32 {
+    match onto {
+        Some((q, near)) if ((x / q).round() * q - x).abs() <= near => ((x / q).round() * q) as f32,
+        _ => x as f32,
+    }
+}
+
 /// The step that keeps every sample within `e`: `2 delta + 1` quanta for `delta = floor(e /
-/// quantum)` on quantised data (JPEG-LS's near-lossless step), `2 e` on continuous data.
-pub(crate) fn max_error_step(e: f64, quantum: f64) -> Result<f64, Error> {
+/// quantum)` on quantised data (JPEG-LS's near-lossless step), `2 (e - margin)` on continuous
+/// data ([`delivery_margin`]; `e` where the bound is under twice the margin, which float32
+/// answers cannot keep).
+pub(crate) fn max_error_step(e: f64, quantum: f64, margin: f64) -> Result<f64, Error> {
     if !(e.is_finite() && e >= 0.0) {
         return Err(Error::settings(format!(
             "--max-error {e} must be a distance >= 0"
@@ -46,7 +69,7 @@ pub(crate) fn max_error_step(e: f64, quantum: f64) -> Result<f64, Error> {
     if quantum > 0.0 {
         Ok((2.0 * (e / quantum).floor() + 1.0) * quantum)
     } else if e > 0.0 {
-        Ok(2.0 * e)
+        Ok(2.0 * (e - margin).max(0.5 * e))
     } else {
         Err(Error::settings(
             "--max-error 0 needs a source on a quantum (integer samples); this one is continuous",

@@ -10,7 +10,7 @@ use fractile_proto::ColourModel;
 
 use crate::Error;
 use crate::codecs::projected::bound::{
-    check_bound, chunk_span, finest_bound, max_error_step, source_quantum,
+    check_bound, chunk_span, delivery_margin, finest_bound, max_error_step, source_quantum,
 };
 use crate::codecs::projected::pyramid::Order;
 use crate::codecs::projected::{
@@ -270,7 +270,8 @@ fn code_to_bound(
              ask at least that"
         )));
     }
-    header.step = max_error_step(e, header.quantum)?;
+    let margin = delivery_margin(header.value_min, header.value_span);
+    header.step = max_error_step(e, header.quantum, margin)?;
     header.max_error = e;
     let (stream, grid) = smaller_order(header, source, valid, (0.0, 0.0));
     check_bound(&grid, source, valid, e, span)?;
@@ -364,6 +365,7 @@ fn fit_bound(
     span: f64,
 ) -> (f64, Coded) {
     let quantum = header.quantum;
+    let margin = delivery_margin(header.value_min, header.value_span);
     let (mut lo, mut hi) = if quantum > 0.0 {
         (0.0, (span / quantum).ceil().max(1.0))
     } else {
@@ -372,11 +374,11 @@ fn fit_bound(
     let bound = |x: f64| if quantum > 0.0 { x * quantum } else { x.exp() };
     // The order: the one that codes a bound of 1/1000 of the range smaller.
     let middling = (span * 1e-3).max(quantum);
-    header.step = max_error_step(middling, quantum).expect("a positive bound");
+    header.step = max_error_step(middling, quantum, margin).expect("a positive bound");
     header.max_error = middling;
     smaller_order(header, source, valid, (0.0, 0.0));
     let mut try_bound = |e: f64| -> Coded {
-        header.step = max_error_step(e, quantum).expect("a bound >= 0 on a quantum or > 0");
+        header.step = max_error_step(e, quantum, margin).expect("a bound >= 0 on a quantum or > 0");
         header.max_error = e;
         encode_grid(header, source, valid, (0.0, 0.0))
     };
@@ -398,7 +400,7 @@ fn fit_bound(
     let mut best = try_bound(bound(hi));
     if best.0.len() >= finest.0.len() {
         let e = bound(lo);
-        header.step = max_error_step(e, quantum).expect("a bound tried");
+        header.step = max_error_step(e, quantum, margin).expect("a bound tried");
         header.max_error = e;
         return (e, finest);
     }
@@ -419,7 +421,7 @@ fn fit_bound(
     }
     // The header holds the last bound tried: put back the one kept.
     let e = bound(hi);
-    header.step = max_error_step(e, quantum).expect("a bound kept");
+    header.step = max_error_step(e, quantum, margin).expect("a bound kept");
     header.max_error = e;
     (e, best)
 }

@@ -76,13 +76,19 @@ impl ProjectedHeader {
 
     /// The encoder's promise at every valid sample, source units: `max_error` in max-error mode
     /// (which sets a quantum, or a positive bound on continuous data); none under rate control.
-    /// Decoded values are f32 fractions of the value range, and a continuous decode sums a
-    /// chain of them, so the promise carries their rounding: 2^-20 of the range (0.015 m on
-    /// etopo20; the encoder checks its samples with 2^-22, the chain measured up to 4 times
-    /// that).
+    /// It holds in what readers receive: the step keeps the bound less the float32 roundings
+    /// of an answer on a continuous source, and answers on a quantum are rounded onto it
+    /// (`bound::delivery_margin`).
     pub fn promise(&self) -> Option<f64> {
-        (self.max_error > 0.0 || self.quantum > 0.0)
-            .then_some(self.max_error + self.value_span * 2f64.powi(-20))
+        (self.max_error > 0.0 || self.quantum > 0.0).then_some(self.max_error)
+    }
+
+    /// The quantum the samples lie on where the encoder promised a bound on one (max-error and
+    /// bounded modes), with how near an answer must be to be delivered onto it: its float32
+    /// roundings ([`super::bound::delivery_margin`]), far under half a quantum.
+    pub(crate) fn delivered_quantum(&self) -> Option<(f64, f64)> {
+        let near = super::bound::delivery_margin(self.value_min, self.value_span);
+        (self.quantum > 0.0 && near < 0.25 * self.quantum).then_some((self.quantum, near))
     }
 
     /// Samples in all.

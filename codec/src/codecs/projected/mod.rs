@@ -42,7 +42,7 @@ pub(crate) mod subdivision;
 
 use crate::core::entropy::{Decoder, Encoder};
 
-pub(crate) use bound::finest_bound;
+pub(crate) use bound::{delivered, finest_bound};
 pub use encode::{encode_at, encode_projected};
 pub use header::{CODEC_NAME, ProjectedHeader};
 pub use operator::ProjectedOperator;
@@ -182,11 +182,14 @@ pub fn decode_coarse(
     if decoder.overrun() || coarse.iter().any(|v| !v.is_finite()) {
         return Err("projected stream truncated or corrupt".into());
     }
+    // A pyramid's coarse samples are source cells within its bound, on its quantum: the view
+    // keeps both (its promise on its own samples); a lifted band promises nothing.
+    let pyramid = layout.order.lifting().is_none();
     let view = ProjectedHeader {
         samples: [cw as u32, ch as u32],
         levels: header.levels - read as u8,
-        max_error: 0.0,
-        quantum: 0.0,
+        max_error: if pyramid { header.max_error } else { 0.0 },
+        quantum: if pyramid { header.quantum } else { 0.0 },
         ..header.clone()
     };
     view.validate()?;

@@ -283,7 +283,7 @@ fn a_grid_codes_within_half_a_step_and_decodes_as_coded() {
 }
 
 /// A coarse view: the pyramid's samples on multiples of 2^depth, bit for bit the full
-/// decode's there; a lifted plane's, the low-pass of the decoded grid at that depth (in
+/// decode's there, with the plane's promise; a lifted plane's, the low-pass of the decoded grid at that depth (in
 /// source units: a plane's view of a plane is that plane), and close to the source's own
 /// low-pass at a fine step.
 #[test]
@@ -306,10 +306,11 @@ fn coarse_views_are_the_coarse_samples_of_the_multiresolution() {
             stream.len()
         );
         assert_eq!(view.samples, [cw as u32, ch as u32]);
+        // A pyramid's view is source cells decoded within the plane's bound: its promise.
         assert_eq!(
             view.promise(),
-            None,
-            "a view stands for cells, not one cell"
+            hd.promise(),
+            "a view keeps its samples' bound"
         );
         for (k, v) in coarse.iter().enumerate() {
             assert_eq!(*v, full[(k / cw) * s * w + (k % cw) * s], "pyramid {depth}");
