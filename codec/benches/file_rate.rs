@@ -2,7 +2,7 @@
 //! bounded default against JPEG-LS near-lossless at the same max error, and encode times,
 //! side by side in one run (release build):
 //!
-//! `cargo bench -p fractile-codec --bench file_rate -- rates|bounded|views [COPIES] [old] [FILE.tif]`
+//! `cargo bench -p fractile-codec --bench file_rate -- rates|bounded|bounds|views [COPIES] [old] [FILE.tif]`
 //! (FILE.tif absolute, or from the `codec` folder, where the bench runs)
 //!
 //! The raster: etopo20 (or FILE.tif) mirrored COPIES x COPIES (odd columns of copies flipped,
@@ -15,7 +15,11 @@
 //! search), as the baseline. The last column of `rates` is level 0 alone against OpenJPEG at
 //! level 0's bytes: the gap if the overviews cost nothing (issue 52's one multiresolution).
 //! `views`: in rate mode, the share of its source chunk's stream a view of depth 1 and 2
-//! decodes (format 7), what a layout with coarse bands apart would save it.
+//! decodes (format 7), what a layout with coarse bands apart would save it. `bounds` (issue
+//! 73): `--max-error E` at E = 1, 10, 50, 150 in the default chunks and in one piece
+//! (`--chunk 0`), their ratio of bytes, SZ3, SPERR and JPEG-LS at the same E on the same cells
+//! (python3's imagecodecs), and the largest |decoded - source| of every output as delivered
+//! (float32, compared in float64).
 
 #[path = "support/baselines.rs"]
 #[allow(dead_code)]
@@ -23,6 +27,9 @@ mod baselines;
 
 #[path = "support/memory.rs"]
 mod memory;
+
+#[path = "support/peers.rs"]
+mod peers;
 use memory::peak_mb;
 
 use std::time::Instant;
@@ -182,6 +189,72 @@ fn views(r: &Raster) {
     }
 }
 
+/// The largest |delivered - source| of `enc` decoded whole at the source's size, as a user
+/// receives it (float32, compared in float64), over the valid cells.
+fn delivered_error(enc: &Encoded, r: &Raster) -> f64 {
+    let (decoded, _) = enc.asset.decode_native();
+    decoded.channels[0]
+        .iter()
+        .zip(&r.channels[0])
+        .enumerate()
+        .filter(|(i, _)| r.valid.as_ref().is_none_or(|v| v[*i]))
+        .map(|(_, (&d, &s))| (f64::from(d) - f64::from(s)).abs())
+        .fold(0.0, f64::max)
+}
+
+/// The `bounds` table (issue 73): max-error files in chunks and whole, against SZ3, SPERR and
+/// JPEG-LS at the same bound.
+fn bounds(r: &Raster) {
+    use fractile_codec::codecs::projected::{ProjectedSettings, encode_projected};
+    use fractile_codec::encode::rate::Quality;
+    println!(
+        "\n| E | chunked | --chunk 0 | chunked / whole bytes | SZ3 | SPERR | JPEG-LS | chunked / best peer | max error delivered: chunked, whole, peers | encode s: chunked, whole |"
+    );
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    let mut versions = String::new();
+    for e in [1.0, 10.0, 50.0, 150.0] {
+        let at =
+            |part: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(part, q, trial);
+        let t = Instant::now();
+        let chunked = encode_chunked_at(r, DEFAULT_CHUNK, (Quality::Bound(e), &at), &|_, _| {})
+            .expect("chunked encode");
+        let chunked_s = t.elapsed().as_secs_f64();
+        let t = Instant::now();
+        let settings = ProjectedSettings {
+            max_error: Some(e),
+            ..Default::default()
+        };
+        let whole = encode_projected(r, &settings).expect("whole encode");
+        let whole_s = t.elapsed().as_secs_f64();
+        let (peers, v) = peers::at_bound(r, e).unwrap_or_else(|| ([None, None, None], "-".into()));
+        versions = v;
+        let cell =
+            |p: &Option<peers::Peer>| p.as_ref().map_or("-".into(), |p| format!("{:.2}", p.ratio));
+        let best = peers.iter().flatten().map(|p| p.ratio).fold(0.0, f64::max);
+        let peer_errors: Vec<String> = peers
+            .iter()
+            .map(|p| {
+                p.as_ref()
+                    .map_or("-".into(), |p| format!("{:.3}", p.max_error))
+            })
+            .collect();
+        println!(
+            "| {e} | {:.2} | {:.2} | {:.3} | {} | {} | {} | {:.3} | {:.4}, {:.4}, {} | {chunked_s:.1}, {whole_s:.1} |",
+            chunked.ratio(),
+            whole.ratio(),
+            chunked.bytes.len() as f64 / whole.bytes.len() as f64,
+            cell(&peers[0]),
+            cell(&peers[1]),
+            cell(&peers[2]),
+            chunked.ratio() / best,
+            delivered_error(&chunked, r),
+            delivered_error(&whole, r),
+            peer_errors.join(", "),
+        );
+    }
+    println!("\nPeers: {versions}");
+}
+
 fn main() {
     let args: Vec<String> = std::env::args()
         .skip(1)
@@ -205,6 +278,10 @@ fn main() {
     );
     if mode == "views" {
         views(&r);
+        return;
+    }
+    if mode == "bounds" {
+        bounds(&r);
         return;
     }
     if mode == "bounded" {
