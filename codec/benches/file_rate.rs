@@ -2,7 +2,7 @@
 //! bounded default against JPEG-LS near-lossless at the same max error, and encode times,
 //! side by side in one run (release build):
 //!
-//! `cargo bench -p fractile-codec --bench file_rate -- rates|bounded|bounds|views [COPIES] [old] [FILE.tif]`
+//! `cargo bench -p fractile-codec --bench file_rate -- rates|bounded|bounds|sizes|views [COPIES] [old] [FILE.tif]`
 //! (FILE.tif absolute, or from the `codec` folder, where the bench runs)
 //!
 //! The raster: etopo20 (or FILE.tif) mirrored COPIES x COPIES (odd columns of copies flipped,
@@ -19,7 +19,11 @@
 //! 73): `--max-error E` at E = 1, 10, 50, 150 in the default chunks and in one piece
 //! (`--chunk 0`), their ratio of bytes, SZ3, SPERR and JPEG-LS at the same E on the same cells
 //! (python3's imagecodecs), and the largest |decoded - source| of every output as delivered
-//! (float32, compared in float64).
+//! (float32, compared in float64). `sizes` (issue 73): the rate of a chunked file is
+//! independent of the raster's size: the raster mirrored 2 x 2 (etopo20: 2160 x 1080, 2.3 Mpx,
+//! the tile) and 8 x 8 (8640 x 4320, 37 Mpx, its mosaic), the default encodes of both at 0.6,
+//! 0.8 and 1.0 bits a cell, bounded and in rate mode, and the mosaic's PSNR less the tile's at
+//! the mosaic's bits a cell (the tile's curve interpolated linearly in bits).
 
 #[path = "support/baselines.rs"]
 #[allow(dead_code)]
@@ -255,6 +259,49 @@ fn bounds(r: &Raster) {
     println!("\nPeers: {versions}");
 }
 
+/// The `sizes` table (issue 73): a tile and its 16-fold mosaic, each a default chunked encode
+/// at the same rates, bounded and in rate mode.
+fn sizes(file: Option<&str>) {
+    let (tile, mosaic) = (raster(2, file), raster(8, file));
+    println!(
+        "tile {} x {}, mosaic {} x {}",
+        tile.width, tile.height, mosaic.width, mosaic.height
+    );
+    println!(
+        "\n| mode | aim bpp | tile bpp | tile PSNR dB | mosaic bpp | mosaic PSNR dB | mosaic - tile at the mosaic's bpp, dB |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    for bounded in [true, false] {
+        let aims = [0.6, 0.8, 1.0];
+        let points = |r: &Raster| -> Vec<(f64, f64)> {
+            aims.iter()
+                .map(|&bpp| {
+                    let (enc, _) = encode(r, bpp, bounded, false);
+                    (enc.bpp(), enc.errors.psnr)
+                })
+                .collect()
+        };
+        let (t, m) = (points(&tile), points(&mosaic));
+        // The tile's PSNR at `b` bits a cell, linear between its two nearest points.
+        let at = |b: f64| {
+            let k = (1..t.len()).find(|&k| t[k].0 >= b).unwrap_or(t.len() - 1);
+            let ((b0, p0), (b1, p1)) = (t[k - 1], t[k]);
+            p0 + (p1 - p0) * (b - b0) / (b1 - b0)
+        };
+        for ((aim, tp), mp) in aims.iter().zip(&t).zip(&m) {
+            println!(
+                "| {} | {aim} | {:.3} | {:.2} | {:.3} | {:.2} | {:+.2} |",
+                if bounded { "bounded" } else { "rate" },
+                tp.0,
+                tp.1,
+                mp.0,
+                mp.1,
+                mp.1 - at(mp.0)
+            );
+        }
+    }
+}
+
 fn main() {
     let args: Vec<String> = std::env::args()
         .skip(1)
@@ -267,6 +314,10 @@ fn main() {
         .iter()
         .find(|a| a.ends_with(".tif"))
         .map(String::as_str);
+    if mode == "sizes" {
+        sizes(file);
+        return;
+    }
     let r = raster(copies, file);
     let cells = (r.width * r.height) as f64;
     println!(
@@ -284,6 +335,7 @@ fn main() {
         bounds(&r);
         return;
     }
+
     if mode == "bounded" {
         println!(
             "\n| encode | bytes (bpp) | within 0.8 | max error | PSNR dB | ratio | JPEG-LS ratio at that max error | encode s | peak RSS MB |"

@@ -141,12 +141,18 @@ fn a_rate_files_first_overviews_are_views_of_its_source_chunks() {
     let first = t.levels[0].chunks.iter().map(|e| e.offset).min().unwrap();
     assert_eq!(first + coded, enc.bytes.len() as u64);
     let (w, h) = (r.width, r.height);
-    let (pw, ph) = (w / 2, h / 2);
-    let centres = |n: usize| (0..n).map(|i| Some((i as f32 + 0.5) / n as f32)).collect();
+    // Level-1 pixels over the first source chunk's cells (a view answers pixels whose source
+    // chunks are at most an eighth of the file; the 8 chunks of this one are about that each).
+    let (pw, ph) = (128, 128);
+    let centres = |n: usize, of: usize| {
+        (0..n)
+            .map(|i| Some((2 * i + 1) as f32 / of as f32))
+            .collect()
+    };
     let pixels = Pixels {
         sites: Sites::Grid {
-            xs: centres(pw),
-            ys: centres(ph),
+            xs: centres(pw, w),
+            ys: centres(ph, h),
         },
         footprint: [2.0 / w as f32, 2.0 / h as f32],
     };

@@ -134,3 +134,50 @@ fn a_tile_fetches_only_the_chunks_it_reads_and_names_them_first() {
         "all held now"
     );
 }
+
+/// A zoom-0 tile of a chunked DEM reads at most an eighth of its file (issue 73). etopo20
+/// mirrored to 2160 x 1080, the world, in chunks of 256: zoom 0's pixels are 4 to 8.4 cells,
+/// whose level (2) is a view of the source chunks, which it would read whole (94% of the file,
+/// measured); the coded level above the views (270 x 135, one chunk) answers instead.
+#[test]
+fn a_zoom_zero_tile_reads_an_eighth_of_the_file_at_most() {
+    use fractile_codec::encode::chunked::encode_chunked_at;
+    use fractile_codec::encode::rate::FileRate;
+    let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../testdata/etopo20.tif");
+    let src = fractile_codec::Raster::open(std::path::Path::new(path)).unwrap();
+    let mut r = fractile_codec::io::mosaic::mirrored(&src, 2, 2).unwrap();
+    r.georef = Some(fractile_proto::Georef {
+        epsg: Some(4326),
+        origin: [-180.0, 90.0],
+        pixel_size: [360.0 / r.width as f64, -180.0 / r.height as f64],
+    });
+    let rate = FileRate {
+        bpp: 0.8,
+        bounded: true,
+    };
+    let at = fractile_codec::codecs::projected::encode_at;
+    let bytes = encode_chunked_at(&r, 256, (rate, &at), &|_, _| {})
+        .unwrap()
+        .bytes;
+    let asset = Asset::from_bytes(&bytes).unwrap();
+    let table = &asset.chunks.as_ref().unwrap().table;
+    assert_eq!((table.levels.len(), table.views.len()), (4, 2));
+    let mut reader = Reader::new(bytes.len() as u64, 64 << 20);
+    let opened = loop {
+        match reader.open() {
+            Ok(_) => break reader.held_bytes(),
+            Err(ReadError::Missing(o, l)) => {
+                reader.add(o, bytes[o as usize..(o + l) as usize].to_vec())
+            }
+            Err(ReadError::Failed(m)) => panic!("{m}"),
+        }
+    };
+    let t = fetching(&reader, &bytes, |r| r.tile((0, 0, 0), 256));
+    assert!(t.heights.iter().filter(|v| v.is_finite()).count() > 256 * 100);
+    let read = reader.held_bytes() - opened;
+    assert!(
+        read > 0 && read <= bytes.len() as u64 / 8,
+        "zoom 0 read {read} of {} bytes (opening {opened})",
+        bytes.len()
+    );
+}

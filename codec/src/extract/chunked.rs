@@ -4,8 +4,10 @@
 //!
 //! The level: pixels of `f` source cells are sampled from level `round(log2 f)`, whose cells
 //! are then between 0.7 and 1.4 pixels, continuously (the overview is the filter, so a chunk is
-//! never decoded discretely for coarse pixels). On the coarsest level, which is one chunk,
-//! pixels coarser still are filtered by that chunk as any asset filters them.
+//! never decoded discretely for coarse pixels), unless that level is a view whose source
+//! chunks under the pixels are over an eighth of the file (then the coded level above the
+//! views). On the coarsest level, which is one chunk, pixels coarser still are filtered by that
+//! chunk as any asset filters them.
 
 use fractile_proto::AssetMeta;
 
@@ -104,11 +106,31 @@ impl Chunked {
         ]
     }
 
-    /// The level the pixels are answered from, and the pixels of each chunk they touch.
+    /// The level the pixels are answered from, and the pixels of each chunk they touch. A view
+    /// level answers only pixels whose source chunks are at most an eighth of the file: a view
+    /// reads its source chunks whole, and a tile over most of the raster (zoom 0 of a raster
+    /// just over the chunking threshold, 2160 x 1080, read 94% of its file) is answered by the
+    /// coded level above the views instead, its cells at most 2^(1 + VIEW_DEPTH - l) pixels
+    /// (issue 73).
     fn split(&self, meta: &AssetMeta, pixels: &Pixels) -> (usize, Vec<Part>) {
         let cells =
             (pixels.footprint[0] * meta.width as f32).min(pixels.footprint[1] * meta.height as f32);
         let level = self.level_for(cells);
+        let parts = self.split_at(meta, pixels, level);
+        if !self.table.is_view(level) {
+            return (level, parts);
+        }
+        let entries = &self.table.levels[level].chunks;
+        let read: u64 = parts.iter().map(|p| entries[p.index].length).sum();
+        if read.saturating_mul(8) <= self.source.len() {
+            return (level, parts);
+        }
+        let coded = self.table.views.len() + 1;
+        (coded, self.split_at(meta, pixels, coded))
+    }
+
+    /// The pixels of each chunk of `level` they touch.
+    fn split_at(&self, meta: &AssetMeta, pixels: &Pixels, level: usize) -> Vec<Part> {
         let top = level + 1 == self.table.levels.len();
         let [ax, ay] = self.axes(meta, level);
         let entries = &self.table.levels[level].chunks;
@@ -186,7 +208,7 @@ impl Chunked {
                 }
             }
         }
-        (level, parts)
+        parts
     }
 
     /// [`crate::Asset::sample_with`] of a chunked asset: each chunk's pixels decoded by the

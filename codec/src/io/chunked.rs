@@ -1,22 +1,24 @@
-//! Chunked assets (format version 7; 6 still read): a raster cut into square chunks, each coded
-//! on its own as a whole asset file of version 5, behind a table that says where each chunk
-//! lies in the file, so that a reader fetches and decodes one chunk by byte range without
+//! Chunked assets (format version 8; 6 and 7 still read): a raster cut into square chunks, each
+//! coded on its own as a whole asset file of version 5, behind a table that says where each
+//! chunk lies in the file, so that a reader fetches and decodes one chunk by byte range without
 //! reading the rest (`docs/asset-format.md`). Coarser levels (overviews: the raster at 2, 4,
 //! ... source cells a cell) let a coarse tile of a huge raster decode a few chunks of a coarse
 //! level instead of the whole raster.
 //!
-//! The first [`VIEW_DEPTH`] overview levels are not coded in format 7 where a height field's
-//! chunks are lifted projected planes (rate mode): a level-l chunk is the source chunk's own
-//! multiresolution read to depth l, its coarse band (the *view*, `Asset::coarse_view`),
-//! decoded from the coarse part of the same stream. Coded beside the source, as format 6 did,
-//! they took 19-26% of a file's bytes and cost it 1-2 dB against JPEG 2000 at the same bytes
-//! (docs/benchmarks.md, "What the overviews cost"); the coded overviews that remain, from level
-//! 3 on and the top level, are 2-6% of the cells. For the views' lattices to be the levels'
-//! own, chunks start on multiples of `2^VIEW_DEPTH` ([`VIEW_OVERLAP`]), and a view's sample
-//! `k` stands `1/2 - 2^-(l+1)` of a level cell before its box cell's centre (the low-pass sits
-//! on a source cell, the box mean between cells): the reader places it there
+//! The first [`VIEW_DEPTH`] overview levels of a height field whose chunks are projected planes
+//! are not coded (format 7: lifted chunks, rate mode; format 8: the pyramid's too, max-error
+//! and bounded): a level-l chunk is the source chunk's own multiresolution read to depth l (the
+//! *view*, `Asset::coarse_view`), decoded from the coarse part of the same stream: a lifted
+//! plane's coarse band, a pyramid's coarse samples (source cells within the chunk's bound).
+//! Coded beside the source, as format 6 did, they took 19-26% of a rate file's bytes and cost
+//! it 1-2 dB against JPEG 2000 at the same bytes, and 38-51% of a max-error file's
+//! (docs/benchmarks.md); the coded overviews that remain, from level 3 on, are 2% of the cells,
+//! and format 8 keeps one above the views (`ChunkTable::level_sizes`). For the views' lattices
+//! to be the levels' own, chunks start on multiples of `2^VIEW_DEPTH` ([`VIEW_OVERLAP`]), and a
+//! view's sample `k` stands `1/2 - 2^-(l+1)` of a level cell before its box cell's centre (it
+//! sits on a source cell, the box mean between cells): the reader places it there
 //! ([`ChunkTable::view_shift`]). Each view's source-error map, measured at encode time against
-//! the same analysis of the source (the low-pass it stands for), is kept in the table.
+//! what it stands for, is kept in the table.
 //!
 //! Each chunk codes `OVERLAP` cells beyond its own on every side (clamped at the raster's
 //! edges): a point is answered by the chunk that owns it, and every point a chunk owns lies
