@@ -141,7 +141,7 @@ pub fn encode_chunked_file(
 }
 
 /// Codes `rows` in chunks as [`encode_chunked_file`] does, every chunk at one quality
-/// ([`rate::Quality`]): the one given, or the one whose whole file fits a [`FileRate`]
+/// ([`rate::Quality`]): the one given, or the one whose whole file fits a [`rate::FileRate`]
 /// ([`rate`]: found on a sample of the chunks, then every chunk coded once; again, coarser,
 /// should the file come out over).
 pub fn encode_chunked_file_at(
