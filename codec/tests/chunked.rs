@@ -362,3 +362,32 @@ fn a_table_whose_views_do_not_match_the_layout_is_refused() {
     let err = with(&|t| t.overlap = 1).unwrap_err();
     assert!(err.contains("overlap of 1"), "{err}");
 }
+
+/// A file with views assembled again from its chunks' files is the same bytes: a view level's
+/// files are level 0's, not written twice (they were, and the file was refused on upload).
+#[test]
+fn a_file_with_views_assembles_to_its_own_bytes() {
+    let r = Raster::open(&testdata("etopo20.tif")).unwrap();
+    let enc = chunked(&r);
+    let asset = Asset::from_bytes(&enc.bytes).unwrap();
+    let c = asset.chunks.as_ref().unwrap();
+    assert_eq!(c.table.views.len(), 2);
+    let files: Vec<Vec<Vec<u8>>> = c
+        .table
+        .levels
+        .iter()
+        .map(|l| {
+            l.chunks
+                .iter()
+                .map(|e| enc.bytes[e.offset as usize..(e.offset + e.length) as usize].to_vec())
+                .collect()
+        })
+        .collect();
+    let again = fractile_codec::io::chunked::assemble(&asset.meta, c.table.clone(), &files);
+    assert!(
+        again == enc.bytes,
+        "{} bytes against {}",
+        again.len(),
+        enc.bytes.len()
+    );
+}

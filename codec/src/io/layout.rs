@@ -440,18 +440,26 @@ pub fn is_chunked(bytes: &[u8]) -> bool {
 
 /// The bytes of a chunked container: the header (magic, version, kind, codec, metadata, table,
 /// CRC) then the chunk files in the order given. `chunks[l][i]` is level `l`'s chunk `i`'s
-/// file, empty for a chunk with no valid cell; the table's offsets, lengths and CRCs are
+/// file, empty for a chunk with no valid cell; a view level's are not written (its chunks are
+/// level 0's bytes, whatever is given for them). The table's offsets, lengths and CRCs are
 /// filled in here.
 pub fn assemble(meta: &AssetMeta, mut table: ChunkTable, chunks: &[Vec<Vec<u8>>]) -> Vec<u8> {
-    for (level, files) in table.levels.iter_mut().zip(chunks) {
+    let views = table.views.len();
+    let coded = |l: usize| l == 0 || l > views;
+    for (l, (level, files)) in table.levels.iter_mut().zip(chunks).enumerate() {
+        if !coded(l) {
+            continue;
+        }
         for (entry, file) in level.chunks.iter_mut().zip(files) {
             entry.length = file.len() as u64;
             entry.crc = file_crc(file);
         }
     }
     let mut out = header(meta, &mut table);
-    for file in chunks.iter().flatten() {
-        out.extend_from_slice(file);
+    for (_, files) in chunks.iter().enumerate().filter(|(l, _)| coded(*l)) {
+        for file in files {
+            out.extend_from_slice(file);
+        }
     }
     out
 }
