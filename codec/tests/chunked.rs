@@ -114,8 +114,7 @@ fn coarse_pixels_are_answered_from_the_overview_of_their_size() {
     );
     // Pixels of b x b source cells (the cells of level log2(b): 1 and 2, views; 3, the top):
     // over the whole raster for the coded level; over the first chunk's cells for a view,
-    // which answers only pixels whose source chunks are at most an eighth of the file (this
-    // file's 8 are about that each).
+    // which never answers pixels that span half the raster on both axes.
     for level in 1..levels {
         let b = 1usize << level;
         let view = table.is_view(level);

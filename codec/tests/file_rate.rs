@@ -141,8 +141,8 @@ fn a_rate_files_first_overviews_are_views_of_its_source_chunks() {
     let first = t.levels[0].chunks.iter().map(|e| e.offset).min().unwrap();
     assert_eq!(first + coded, enc.bytes.len() as u64);
     let (w, h) = (r.width, r.height);
-    // Level-1 pixels over the first source chunk's cells (a view answers pixels whose source
-    // chunks are at most an eighth of the file; the 8 chunks of this one are about that each).
+    // Level-1 pixels over the first source chunk's cells (a view never answers pixels that
+    // span half the raster on both axes).
     let (pw, ph) = (128, 128);
     let centres = |n: usize, of: usize| {
         (0..n)

@@ -4,9 +4,8 @@
 //!
 //! The level: pixels of `f` source cells are sampled from level `round(log2 f)`, whose cells
 //! are then between 0.7 and 1.4 pixels, continuously (the overview is the filter, so a chunk is
-//! never decoded discretely for coarse pixels), unless that level is a view whose source
-//! chunks under the pixels are over an eighth of the file (then the coded level above the
-//! views). On the coarsest level, which is one chunk, pixels coarser still are filtered by that
+//! never decoded discretely for coarse pixels), unless that level is a view and the pixels
+//! span half the raster or more (then the coded level above the views). On the coarsest level, which is one chunk, pixels coarser still are filtered by that
 //! chunk as any asset filters them.
 
 use fractile_proto::AssetMeta;
@@ -67,6 +66,25 @@ impl Axis {
     }
 }
 
+/// Whether `pixels` span half the unit square or more on both axes (a grid by its pixel count
+/// and footprint, wherever it lies; points by their extent).
+fn spans_half(pixels: &Pixels) -> bool {
+    match &pixels.sites {
+        Sites::Grid { xs, ys } => {
+            xs.len() as f32 * pixels.footprint[0] >= 0.5
+                && ys.len() as f32 * pixels.footprint[1] >= 0.5
+        }
+        Sites::List { points, .. } => {
+            let (mut lo, mut hi) = ([f32::INFINITY; 2], [f32::NEG_INFINITY; 2]);
+            for [u, v] in points.iter().flatten() {
+                (lo[0], hi[0]) = (lo[0].min(*u), hi[0].max(*u));
+                (lo[1], hi[1]) = (lo[1].min(*v), hi[1].max(*v));
+            }
+            hi[0] - lo[0] >= 0.5 && hi[1] - lo[1] >= 0.5
+        }
+    }
+}
+
 impl Chunked {
     /// The level for pixels `cells` source cells wide (the smaller axis).
     fn level_for(&self, cells: f32) -> usize {
@@ -107,26 +125,21 @@ impl Chunked {
     }
 
     /// The level the pixels are answered from, and the pixels of each chunk they touch. A view
-    /// level answers only pixels whose source chunks are at most an eighth of the file: a view
-    /// reads its source chunks whole, and a tile over most of the raster (zoom 0 of a raster
-    /// just over the chunking threshold, 2160 x 1080, read 94% of its file) is answered by the
-    /// coded level above the views instead, its cells at most 2^(1 + VIEW_DEPTH - l) pixels
-    /// (issue 73).
+    /// level never answers pixels that span half the raster or more on both axes: a view reads
+    /// its source chunks whole, and such pixels (zoom 0 of a world raster just over the
+    /// chunking threshold, 2160 x 1080, read 94% of its file through a view) are answered by
+    /// the coded level above the views, its cells then at most 2^(1 + VIEW_DEPTH - l) pixels
+    /// (issue 73). The rule is the request's size, not its place, so that the tiles of a zoom
+    /// all take the same level (a rule by the bytes of the chunks under each tile answered a
+    /// tile across a chunk seam from a coarser level than its neighbours).
     fn split(&self, meta: &AssetMeta, pixels: &Pixels) -> (usize, Vec<Part>) {
         let cells =
             (pixels.footprint[0] * meta.width as f32).min(pixels.footprint[1] * meta.height as f32);
-        let level = self.level_for(cells);
-        let parts = self.split_at(meta, pixels, level);
-        if !self.table.is_view(level) {
-            return (level, parts);
+        let mut level = self.level_for(cells);
+        if self.table.is_view(level) && spans_half(pixels) {
+            level = self.table.views.len() + 1;
         }
-        let entries = &self.table.levels[level].chunks;
-        let read: u64 = parts.iter().map(|p| entries[p.index].length).sum();
-        if read.saturating_mul(8) <= self.source.len() {
-            return (level, parts);
-        }
-        let coded = self.table.views.len() + 1;
-        (coded, self.split_at(meta, pixels, coded))
+        (level, self.split_at(meta, pixels, level))
     }
 
     /// The pixels of each chunk of `level` they touch.
