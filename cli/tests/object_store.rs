@@ -97,17 +97,7 @@ fn code(body: &[u8]) -> String {
 fn collision_pair_and_race(pa: u16, pb: u16, sound: &[u8]) {
     let asset = fractile_codec::Asset::from_bytes(sound).unwrap();
     let c = asset.chunks.as_ref().expect("a chunked file");
-    let files: Vec<Vec<Vec<u8>>> = c
-        .table
-        .levels
-        .iter()
-        .map(|l| {
-            l.chunks
-                .iter()
-                .map(|e| sound[e.offset as usize..(e.offset + e.length) as usize].to_vec())
-                .collect()
-        })
-        .collect();
+    let files: Vec<Vec<Vec<u8>>> = fractile_codec::io::chunked::chunk_files(&c.table, sound);
     let mut other = asset.meta.clone();
     let last = other.encoder.pop().expect("an encoder name");
     other.encoder.push(if last == 'x' { 'y' } else { 'x' });

@@ -371,17 +371,7 @@ fn a_file_with_views_assembles_to_its_own_bytes() {
     let asset = Asset::from_bytes(&enc.bytes).unwrap();
     let c = asset.chunks.as_ref().unwrap();
     assert_eq!(c.table.views.len(), 2);
-    let files: Vec<Vec<Vec<u8>>> = c
-        .table
-        .levels
-        .iter()
-        .map(|l| {
-            l.chunks
-                .iter()
-                .map(|e| enc.bytes[e.offset as usize..(e.offset + e.length) as usize].to_vec())
-                .collect()
-        })
-        .collect();
+    let files: Vec<Vec<Vec<u8>>> = fractile_codec::io::chunked::chunk_files(&c.table, &enc.bytes);
     let again = fractile_codec::io::chunked::assemble(&asset.meta, c.table.clone(), &files);
     assert!(
         again == enc.bytes,

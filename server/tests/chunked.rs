@@ -280,17 +280,7 @@ fn crafted_chunk_tables_are_refused_at_upload() {
     let c = asset.chunks.as_ref().unwrap();
     // Every chunk's file, by level and index.
     type Files = Vec<Vec<Vec<u8>>>;
-    let files: Files = c
-        .table
-        .levels
-        .iter()
-        .map(|l| {
-            l.chunks
-                .iter()
-                .map(|e| sound[e.offset as usize..(e.offset + e.length) as usize].to_vec())
-                .collect()
-        })
-        .collect();
+    let files: Files = fractile_codec::io::chunked::chunk_files(&c.table, &sound);
     let craft = |edit: &dyn Fn(&mut Files)| {
         let mut f = files.clone();
         edit(&mut f);

@@ -464,6 +464,21 @@ pub fn assemble(meta: &AssetMeta, mut table: ChunkTable, chunks: &[Vec<Vec<u8>>]
     out
 }
 
+/// Every chunk's file of a chunked container's `bytes`, by level and index as its `table` lists
+/// them (a view level's are level 0's bytes): what [`assemble`] takes back.
+pub fn chunk_files(table: &ChunkTable, bytes: &[u8]) -> Vec<Vec<Vec<u8>>> {
+    table
+        .levels
+        .iter()
+        .map(|l| {
+            l.chunks
+                .iter()
+                .map(|e| bytes[e.offset as usize..(e.offset + e.length) as usize].to_vec())
+                .collect()
+        })
+        .collect()
+}
+
 /// The CRC a chunk's file ends with (0 for an empty file): what its table entry repeats.
 pub fn file_crc(file: &[u8]) -> u32 {
     file.len()
