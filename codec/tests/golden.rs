@@ -36,10 +36,11 @@ fn every_format_version_is_read_as_it_was_written() {
     files.sort();
     assert_eq!(
         files.len(),
-        39,
+        43,
         "six codecs a version, versions 1 to 5; version 6 chunked; version 7 chunked, with and \
          without views; version 8 chunked, bounded, rate and max-error, all with views; the \
-         projected codec's three multiresolutions in version 5"
+         projected codec's three multiresolutions in version 5; version 9 the quadtree, the \
+         projected pyramid, and chunked bounded and max-error"
     );
     let mut versions = std::collections::BTreeSet::new();
     for path in files {
@@ -58,9 +59,13 @@ fn every_format_version_is_read_as_it_was_written() {
         let asset = read.unwrap_or_else(|e| panic!("{name}: {e}"));
         // Version 5 added the source-error map, to rasters only; version 6 is the chunked
         // container, whose chunks are version-5 files with their maps; version 7 adds views,
-        // version 8 a coded level above them and views of the pyramid (bounded, max-error).
+        // version 8 a coded level above them and views of the pyramid (bounded, max-error);
+        // version 9 numbers both containers (the pyramid's details in two-rate contexts).
         let raster = matches!(asset.meta.kind, AssetKind::Image | AssetKind::HeightField);
-        assert_eq!(asset.chunks.is_some(), version >= 6, "{name}");
+        let chunked = name.contains("chunked");
+        assert_eq!(asset.chunks.is_some(), chunked, "{name}");
+        // Versions 6 to 8 are chunked only, 1 to 5 never.
+        assert!(version >= 9 || chunked == (version >= 6), "{name}");
         if let Some(c) = &asset.chunks {
             // Version 7 viewed one level, version 8 views two below a coded one.
             let views = match () {
@@ -79,7 +84,7 @@ fn every_format_version_is_read_as_it_was_written() {
         }
         assert_eq!(
             asset.source_error.is_some(),
-            version == 5 && raster,
+            version >= 5 && raster && !chunked,
             "{name}"
         );
         // A projected file holds the multiresolution its name says.
@@ -92,9 +97,25 @@ fn every_format_version_is_read_as_it_was_written() {
             let want = match () {
                 _ if name.contains("lifted") => vec![Order::Lifted],
                 _ if name.contains("cdf97") => vec![Order::Lifted97],
+                _ if version >= 9 => Order::PYRAMIDS.to_vec(),
                 _ => vec![Order::Separable, Order::Quincunx],
             };
             assert!(want.contains(&header.order), "{name}: {:?}", header.order);
+        }
+        // A chunked file of version 9 holds chunks of version 9, whose pyramids are coded in
+        // two-rate contexts; those of 6 to 8, chunks of version 5.
+        if let Some(c) = &asset.chunks {
+            use fractile_codec::io::asset::Coding;
+            let chunk = c.chunk(0, 0).unwrap().expect("a chunk with cells");
+            let Coding::Projected { header, .. } = &chunk.planes[0].coding else {
+                panic!("{name}: not a projected chunk");
+            };
+            if header.order.lifting().is_none() {
+                assert_eq!(header.order.two_rate(), version >= 9, "{name}");
+            }
+            let files = fractile_codec::io::chunked::chunk_files(&c.table, &bytes);
+            let chunk_version = u16::from_le_bytes([files[0][0][8], files[0][0][9]]);
+            assert_eq!(chunk_version, if version >= 9 { 9 } else { 5 }, "{name}");
         }
         match asset.meta.kind {
             AssetKind::Image | AssetKind::HeightField => {
@@ -151,6 +172,6 @@ fn every_format_version_is_read_as_it_was_written() {
     }
     assert_eq!(
         versions.into_iter().collect::<Vec<_>>(),
-        vec![1, 2, 3, 4, 5, 6, 7, 8]
+        vec![1, 2, 3, 4, 5, 6, 7, 8, 9]
     );
 }

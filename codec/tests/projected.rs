@@ -317,7 +317,9 @@ fn rate_control_fits_its_target_and_reaches_jpeg_2000_on_etopo20() {
 #[test]
 fn lifted_levels_beat_the_closed_loop_pyramid_at_low_rates() {
     // At 80:1 most details are zero: the pyramid then subdivides sub-sampled control points,
-    // the lifted levels local means (measured 1.0-1.2 dB apart on both DEMs).
+    // the lifted levels local means (measured 1.0-1.2 dB apart on both DEMs with one-rate
+    // contexts; format 9's two-rate contexts, which code the pyramid's many zeros for less,
+    // brought jacksboro to 0.49 dB apart).
     for name in ["jacksboro.tif", "etopo20.tif"] {
         let r = Raster::open(&testdata(name)).expect("testdata");
         let lifted = encode_projected(
@@ -352,7 +354,7 @@ fn lifted_levels_beat_the_closed_loop_pyramid_at_low_rates() {
         // streams where it was not needed.
         assert!(lifted.bpp() >= 0.99 * 0.2, "{name}: {} bpp", lifted.bpp());
         assert!(
-            lifted.errors.psnr >= pyramid.errors.psnr + 0.5,
+            lifted.errors.psnr >= pyramid.errors.psnr + 0.3,
             "{name}: lifted {:.2} dB, pyramid {:.2} dB",
             lifted.errors.psnr,
             pyramid.errors.psnr

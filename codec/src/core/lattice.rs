@@ -3,34 +3,46 @@
 //! range coder, MED prediction over a grid, the lattice's frame and cells, and the normalised
 //! source grid the fits read.
 
-use crate::core::entropy::{Bit, Decoder, Encoder};
+use crate::core::entropy::{Bit, Decoder, Encoder, Model};
 
 /// Adaptive Elias-gamma-like code of a signed integer on the binary range coder: a zero flag, a
 /// sign, the magnitude's bit length in unary, then its lower bits. Each unary position and each
 /// mantissa position has its own context, so the code learns the residuals' distribution.
-pub(crate) struct IntCoder {
-    zero: Bit,
-    sign: Bit,
-    unary: [Bit; 32],
-    mantissa: [Bit; 32],
+pub(crate) struct IntCoder<M = Bit> {
+    zero: M,
+    sign: [M; 3],
+    unary: [M; 32],
+    mantissa: [M; 32],
 }
 
 impl IntCoder {
     pub(crate) fn new() -> IntCoder {
+        IntCoder::fresh()
+    }
+}
+
+impl<M: Model + Default + Copy> IntCoder<M> {
+    /// A coder whose contexts have learnt nothing.
+    pub(crate) fn fresh() -> IntCoder<M> {
         IntCoder {
-            zero: Bit::default(),
-            sign: Bit::default(),
-            unary: [Bit::default(); 32],
-            mantissa: [Bit::default(); 32],
+            zero: M::default(),
+            sign: [M::default(); 3],
+            unary: [M::default(); 32],
+            mantissa: [M::default(); 32],
         }
     }
 
     pub(crate) fn put(&mut self, enc: &mut Encoder, v: i32) {
+        self.put_signed(enc, v, 0)
+    }
+
+    /// [`IntCoder::put`] with the sign in context `sign` (0 to 2; `put` codes it in 0).
+    pub(crate) fn put_signed(&mut self, enc: &mut Encoder, v: i32, sign: usize) {
         enc.bit(&mut self.zero, v == 0);
         if v == 0 {
             return;
         }
-        enc.bit(&mut self.sign, v < 0);
+        enc.bit(&mut self.sign[sign], v < 0);
         let m = v.unsigned_abs();
         let len = 32 - m.leading_zeros(); // 1..=32; the top bit is implied
         for k in 1..len {
@@ -44,13 +56,14 @@ impl IntCoder {
         }
     }
 
-    /// What [`IntCoder::put`] of `v` would cost now, in bits (for rate-distortion choices).
-    pub(crate) fn cost(&self, v: i32) -> f64 {
+    /// What [`IntCoder::put_signed`] of `v` in sign context `sign` would cost now, in bits
+    /// (for rate-distortion choices).
+    pub(crate) fn cost(&self, v: i32, sign: usize) -> f64 {
         let mut bits = self.zero.cost(v == 0);
         if v == 0 {
             return bits;
         }
-        bits += self.sign.cost(v < 0);
+        bits += self.sign[sign].cost(v < 0);
         let m = v.unsigned_abs();
         let len = 32 - m.leading_zeros();
         for k in 1..len {
@@ -66,10 +79,15 @@ impl IntCoder {
     }
 
     pub(crate) fn get(&mut self, dec: &mut Decoder) -> i32 {
+        self.get_signed(dec, 0)
+    }
+
+    /// Reads what [`IntCoder::put_signed`] wrote.
+    pub(crate) fn get_signed(&mut self, dec: &mut Decoder, sign: usize) -> i32 {
         if dec.bit(&mut self.zero) {
             return 0;
         }
-        let negative = dec.bit(&mut self.sign);
+        let negative = dec.bit(&mut self.sign[sign]);
         let mut len = 1u32;
         while len < 32 && dec.bit(&mut self.unary[len as usize]) {
             len += 1;

@@ -17,8 +17,14 @@ use crate::codecs::registry::Codec;
 /// antimeridian crossings and start vertex, which a version-3 reader would misread as levels);
 /// the other payloads are the same in all four, so version-1 to -3 files of codecs 1-4 are
 /// still read, version-3 curve assets too (they hold neither), and an older curve asset is
-/// refused by name (re-encode its GeoJSON).
-pub const FORMAT_VERSION: u16 = 5;
+/// refused by name (re-encode its GeoJSON). Versions 6 to 8 are chunked containers only
+/// (`io::layout`); version 9, one number for both containers, codes the projected pyramid's
+/// details with two-rate contexts (`pyramid::Order::SeparableTwoRate`), which a reader of
+/// version 5 would take for a corrupt header: the version tells it the file is newer.
+pub const FORMAT_VERSION: u16 = 9;
+/// The last version of files that are not chunked before [`FORMAT_VERSION`] (6 to 8 name
+/// chunked containers only).
+pub(crate) const LAST_UNCHUNKED_VERSION: u16 = 5;
 /// The oldest format version this build reads (codecs 1-4 only).
 pub const OLDEST_READ_VERSION: u16 = 1;
 /// The oldest format version of curve assets this build reads.
@@ -151,9 +157,11 @@ pub(crate) fn container(bytes: &[u8]) -> Result<Container<'_>, Error> {
         return Err(bad(not_an_asset(bytes)));
     }
     let version = u16::from_le_bytes([bytes[8], bytes[9]]);
-    if !(OLDEST_READ_VERSION..=FORMAT_VERSION).contains(&version) {
+    if !(OLDEST_READ_VERSION..=LAST_UNCHUNKED_VERSION).contains(&version)
+        && version != FORMAT_VERSION
+    {
         return Err(bad(format!(
-            "format version {version} is not supported by this build (reads versions {OLDEST_READ_VERSION} to {FORMAT_VERSION})"
+            "format version {version} is not supported by this build (reads versions {OLDEST_READ_VERSION} to {LAST_UNCHUNKED_VERSION} and {FORMAT_VERSION}; 6 to 8 are chunked)"
         )));
     }
     let body = bytes.len() - 4;

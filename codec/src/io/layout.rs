@@ -24,7 +24,9 @@ pub(crate) fn kind_byte(k: AssetKind) -> u8 {
 /// The format version of a chunked container. Single-operator files stay version 5 (their
 /// layout did not change), so readers of version 5 keep reading what they read. Version 8: a
 /// file with views has a coded level above them ([`ChunkTable::level_sizes`]); 7 is read.
-pub const CHUNKED_VERSION: u16 = 8;
+/// Version 9 (the number files that are not chunked take too): the chunks are files of
+/// version 9, whose projected details are coded with two-rate contexts; the table is 8's.
+pub const CHUNKED_VERSION: u16 = 9;
 
 /// The first chunked version whose files with views keep a coded level above them.
 pub const CODED_TOP_VERSION: u16 = 8;
@@ -430,12 +432,15 @@ pub(crate) fn read_exact_at(
     }
 }
 
-/// Whether `bytes` (at least the first 12 of a file) start a chunked container.
+/// Whether `bytes` (at least the first 12 of a file) start a chunked container: versions 6
+/// to 8 are chunked, version 9 (which numbers both containers) with the chunked codec byte.
 pub fn is_chunked(bytes: &[u8]) -> bool {
     bytes.len() >= 12
         && &bytes[..8] == MAGIC
-        && (OLDEST_CHUNKED_VERSION..=CHUNKED_VERSION)
-            .contains(&u16::from_le_bytes([bytes[8], bytes[9]]))
+        && match u16::from_le_bytes([bytes[8], bytes[9]]) {
+            v if v == CHUNKED_VERSION => bytes[11] == CHUNKED_CODEC,
+            v => (OLDEST_CHUNKED_VERSION..CHUNKED_VERSION).contains(&v),
+        }
 }
 
 /// The bytes of a chunked container: the header (magic, version, kind, codec, metadata, table,

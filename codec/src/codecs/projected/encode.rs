@@ -289,7 +289,7 @@ fn smaller_order(
     quantising: (f64, f64),
 ) -> (Vec<u8>, Vec<f64>) {
     let mut best: Option<(Order, Coded)> = None;
-    for order in [Order::Separable, Order::Quincunx] {
+    for order in Order::PYRAMIDS {
         header.order = order;
         let coded = encode_grid(header, source, valid, quantising);
         if best.as_ref().is_none_or(|b| coded.0.len() < b.1.0.len()) {
@@ -540,7 +540,7 @@ fn plane_header(w: usize, h: usize, quantum: f64, (lo, span): (f64, f64)) -> Pro
         value_span: span,
         roughness: 0.0,
         max_error: 0.0,
-        order: Order::Quincunx,
+        order: Order::QuincunxTwoRate,
     }
 }
 

@@ -296,7 +296,10 @@ impl Order {
     /// The kernel of a lifted plane; `None` for the pyramid's orders.
     pub fn lifting(self) -> Option<Kernel> {
         match self {
-            Order::Separable | Order::Quincunx => None,
+            Order::Separable
+            | Order::Quincunx
+            | Order::SeparableTwoRate
+            | Order::QuincunxTwoRate => None,
             Order::Lifted => Some(Kernel::Fitted),
             Order::Lifted97 => Some(Kernel::Cdf97),
         }

@@ -239,7 +239,7 @@ impl Indices for Quantiser<'_> {
         let mut q = q;
         if self.lambda > 0.0 && q != 0 {
             let nearer = q - q.signum();
-            let cost = |q: i32| (r - f64::from(q)).powi(2) + self.lambda * coder.cost(q);
+            let cost = |q: i32| (r - f64::from(q)).powi(2) + self.lambda * coder.cost(q, 0);
             if cost(nearer) < cost(q) {
                 q = nearer;
             }

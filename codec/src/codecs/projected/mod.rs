@@ -24,6 +24,8 @@
 //! fitted per asset as the ratio of the finest two octaves' detail amplitudes.
 
 pub(crate) mod bound;
+#[doc(hidden)] // public as the pyramid is (its walk's two sides), not API
+pub mod details;
 pub(crate) mod encode;
 pub(crate) mod grid;
 mod header;
@@ -68,13 +70,13 @@ pub fn encode_grid(
         return lifting::encode(&lifted_plane(&layout, kernel), source, lambda);
     }
     let mut g = vec![0.0; header.cells()];
-    let mut q = pyramid::Quantiser {
+    let mut q = details::Quantiser {
         source,
         valid,
         dead_zone,
         lambda,
         encoder: Encoder::new(),
-        coders: pyramid::Coders::new(),
+        coders: details::Coders::new(layout.order),
     };
     let target = |i: usize| valid.is_none_or(|v| v[i]).then(|| source[i]);
     pyramid::walk(&layout, &mut g, &mut q, Some(&target));
@@ -98,7 +100,8 @@ pub fn decode_grid(header: &ProjectedHeader, stream: &[u8]) -> Result<Vec<f64>, 
     header.validate()?;
     // Every sample costs at least one decision: refuse a header that claims more than the stream
     // can hold before allocating for it.
-    let most = crate::core::entropy::most_decisions(stream.len());
+    let most =
+        crate::core::entropy::most_decisions_of(stream.len(), header.order.min_bits_per_sample());
     if header.cells() as u64 > most {
         return Err(format!(
             "a projected stream of {} bytes cannot hold {} samples",
@@ -112,9 +115,9 @@ pub fn decode_grid(header: &ProjectedHeader, stream: &[u8]) -> Result<Vec<f64>, 
         lifting::decode(&lifted_plane(&layout, kernel), &mut decoder)
     } else {
         let mut g = vec![0.0; header.cells()];
-        let mut r = pyramid::Reader {
+        let mut r = details::Reader {
             decoder,
-            coders: pyramid::Coders::new(),
+            coders: details::Coders::new(layout.order),
         };
         pyramid::walk(&layout, &mut g, &mut r, None);
         decoder = r.decoder;
@@ -152,7 +155,8 @@ pub fn decode_coarse(
     // A plane of fewer levels (a thin chunk) is read whole below its coarsest level, and its
     // samples on multiples of 2^depth taken.
     let read = depth.min(u32::from(header.levels));
-    let most = crate::core::entropy::most_decisions(stream.len());
+    let most =
+        crate::core::entropy::most_decisions_of(stream.len(), header.order.min_bits_per_sample());
     if (header.cells() >> (2 * depth.min(u32::from(header.levels)))) as u64 > most {
         return Err("projected stream too short for its grid".into());
     }
@@ -164,9 +168,9 @@ pub fn decode_coarse(
         (g, kernel::dc_gain(kernel).powi(2 * read as i32))
     } else {
         let mut g = vec![0.0; header.cells()];
-        let mut r = pyramid::Reader {
+        let mut r = details::Reader {
             decoder,
-            coders: pyramid::Coders::new(),
+            coders: details::Coders::new(layout.order),
         };
         pyramid::walk_to(&layout, &mut g, &mut r, None, read);
         decoder = r.decoder;

@@ -24,20 +24,19 @@
 //! [`walk`], which asks a [`Details`] for each sample's decoded value: the encoder quantises
 //! and codes, the decoder reads. One walk, so the two cannot drift apart.
 
-use crate::core::entropy::{Decoder, Encoder};
-use crate::core::lattice::{IntCoder, med};
+use crate::core::lattice::med;
 
 /// Contexts of the detail coder per pass: local relief over the step (8 buckets) times the
 /// magnitudes of the pass's details already coded west and north (5 buckets).
 const RELIEF_BUCKETS: usize = 8;
 const NEIGHBOUR_BUCKETS: usize = 5;
-const CONTEXTS: usize = RELIEF_BUCKETS * NEIGHBOUR_BUCKETS;
+pub(super) const CONTEXTS: usize = RELIEF_BUCKETS * NEIGHBOUR_BUCKETS;
 /// Where the coarsest grid's contexts start (after the three passes').
 const LEVEL0: usize = 3 * CONTEXTS;
 /// Fixed-point denominator of the fitted mask weights.
 pub const WEIGHT_ONE: f64 = 1024.0;
 /// Largest |weight| index (weights in [-2, 2]).
-const WEIGHT_LIMIT: i32 = 2048;
+pub(super) const WEIGHT_LIMIT: i32 = 2048;
 
 /// What a walk needs to know about the grid and the quantiser.
 #[derive(Clone, Copy, Debug)]
@@ -93,6 +92,9 @@ pub struct Sample {
     pub step: f64,
     /// Coding context.
     pub context: usize,
+    /// Context of the detail's sign: 1 (0) where the signs of the details coded west and
+    /// north sum to more (less) than 0, else 2. Read only by the two-rate coding.
+    pub sign: usize,
 }
 
 /// The two sides of the walk: the encoder quantises the source and codes the detail, the decoder
@@ -157,7 +159,8 @@ const GROUPS: [[Groups; 3]; 2] = [
     ],
 ];
 
-/// The order of a level's three passes.
+/// The multiresolution of a plane: the pyramid's order of a level's three passes and how its
+/// details are coded, or a lifted kernel.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
 pub enum Order {
     /// Points between two coarser samples along rows, then along columns (each from its own
@@ -172,6 +175,41 @@ pub enum Order {
     Lifted,
     /// The lifted multiresolution with the CDF 9/7 kernel.
     Lifted97,
+    /// [`Order::Separable`], its details coded with two-rate contexts and their signs in the
+    /// context of their neighbours' (format 9, what encoders write).
+    SeparableTwoRate,
+    /// [`Order::Quincunx`], its details coded as [`Order::SeparableTwoRate`]'s.
+    QuincunxTwoRate,
+}
+
+impl Order {
+    /// The pyramid's orders this build writes (the encoder keeps the one that codes smaller).
+    pub const PYRAMIDS: [Order; 2] = [Order::SeparableTwoRate, Order::QuincunxTwoRate];
+
+    /// The order of the passes alone: [`Order::Separable`] or [`Order::Quincunx`] (a lifted
+    /// one is itself).
+    pub fn passes(self) -> Order {
+        match self {
+            Order::SeparableTwoRate => Order::Separable,
+            Order::QuincunxTwoRate => Order::Quincunx,
+            o => o,
+        }
+    }
+
+    /// Whether the details are coded with [`crate::core::entropy::TwoRateBit`] contexts and signs in context.
+    pub fn two_rate(self) -> bool {
+        matches!(self, Order::SeparableTwoRate | Order::QuincunxTwoRate)
+    }
+
+    /// The fewest bits a coded sample takes (its zero flag's): what a reader checks a header's
+    /// sample count against before it allocates.
+    pub(crate) fn min_bits_per_sample(self) -> f64 {
+        if self.two_rate() {
+            crate::core::entropy::MIN_BITS_PER_TWO_RATE_DECISION
+        } else {
+            crate::core::entropy::MIN_BITS_PER_DECISION
+        }
+    }
 }
 
 /// Levels for a grid: the control grid keeps about 8 samples on its shorter side (its samples
@@ -202,7 +240,7 @@ fn pass_points(
     pass: usize,
 ) -> impl Iterator<Item = (usize, usize)> {
     let half = s / 2;
-    let (x0, y0) = match (order, pass) {
+    let (x0, y0) = match (order.passes(), pass) {
         (Order::Separable, 0) | (Order::Quincunx, 1) => (half, 0),
         (Order::Separable, 1) | (Order::Quincunx, 2) => (0, half),
         _ => (half, half),
@@ -317,6 +355,16 @@ fn neighbour_bucket(n: u32) -> usize {
     }
 }
 
+/// The context of a detail's sign from the sum of its west and north neighbours' signs
+/// (see [`Sample::sign`]).
+fn sign_context(sum: i8) -> usize {
+    match sum {
+        1.. => 1,
+        ..=-1 => 0,
+        0 => 2,
+    }
+}
+
 /// The west, north and north-west neighbours of (x, y) on a coarse grid of spacing `s` in a
 /// row-major grid `w` wide, for LOCO-I's median: a missing one takes the other's value, and the
 /// first sample has zeros.
@@ -376,6 +424,7 @@ pub fn walk_to(
                 prediction,
                 step,
                 context,
+                sign: 2,
             });
         }
     }
@@ -383,7 +432,7 @@ pub fn walk_to(
         let s = s0 >> level;
         let half = s / 2;
         let step = layout.step_at(level + 1);
-        for (pass, groups) in GROUPS[layout.order as usize].iter().enumerate() {
+        for (pass, groups) in GROUPS[layout.order.passes() as usize].iter().enumerate() {
             let grid = &*g;
             let fit = |source: &dyn Fn(usize) -> Option<f64>| {
                 let rows: Vec<_> = pass_points(layout.size, s, layout.order, pass)
@@ -400,15 +449,20 @@ pub fn walk_to(
             let wf = wq.map(|v| f64::from(v) / WEIGHT_ONE);
             // |detail| of this pass's points in the row above and in this row, by column.
             let (mut above, mut row) = (vec![0u8; w], vec![0u8; w]);
+            // Their signs (-1, 0, 1), whose sum is the context of this point's sign.
+            let (mut sabove, mut srow) = (vec![0i8; w], vec![0i8; w]);
+            let mut swest = 0i8;
             let mut row_y = usize::MAX;
             let mut west = 0u8;
             for (x, y) in pass_points(layout.size, s, layout.order, pass) {
                 if y != row_y {
                     if row_y != usize::MAX {
                         std::mem::swap(&mut above, &mut row);
+                        std::mem::swap(&mut sabove, &mut srow);
                     }
                     row_y = y;
                     west = 0;
+                    swest = 0;
                 }
                 let (pred, _, spread) = predict(g, layout.size, x, y, half, groups, wf);
                 let i = y * w + x;
@@ -420,109 +474,19 @@ pub fn walk_to(
                     prediction: layout.snap(pred),
                     step,
                     context,
+                    sign: sign_context(swest + sabove[x]),
                 });
-                let q = ((v - layout.snap(pred)) / step).round().abs().min(255.0) as u8;
+                let detail = ((v - layout.snap(pred)) / step).round();
+                let q = detail.abs().min(255.0) as u8;
+                let sign = if detail > 0.0 {
+                    1
+                } else {
+                    -i8::from(detail < 0.0)
+                };
                 (west, row[x]) = (q, q);
+                (swest, srow[x]) = (sign, sign);
                 g[i] = v;
             }
         }
-    }
-}
-
-/// The coders of one walk: per pass a set of contexts, plus the weights' coder.
-pub struct Coders {
-    passes: Vec<IntCoder>,
-    weights: IntCoder,
-}
-
-impl Coders {
-    /// Fresh contexts.
-    pub fn new() -> Coders {
-        Coders {
-            passes: (0..4 * CONTEXTS).map(|_| IntCoder::new()).collect(),
-            weights: IntCoder::new(),
-        }
-    }
-}
-
-impl Default for Coders {
-    fn default() -> Self {
-        Coders::new()
-    }
-}
-
-/// The encoder's side: quantises each source sample against its prediction and codes the detail.
-pub struct Quantiser<'a> {
-    /// The source (filled where invalid), source units.
-    pub source: &'a [f64],
-    /// Which samples count (invalid ones take their prediction: a zero detail).
-    pub valid: Option<&'a [bool]>,
-    /// Fraction of a step the dead zone adds around zero (0 in max-error mode).
-    pub dead_zone: f64,
-    /// Rate-distortion weight of a bit, in squared steps (0: plain rounding; max-error mode).
-    pub lambda: f64,
-    /// The stream.
-    pub encoder: Encoder,
-    /// Contexts.
-    pub coders: Coders,
-}
-
-impl Details for Quantiser<'_> {
-    fn sample(&mut self, s: &Sample) -> f64 {
-        let valid = self.valid.is_none_or(|v| v[s.index]);
-        let q = if valid {
-            let r = (self.source[s.index] - s.prediction) / s.step;
-            let m = (r.abs() + 0.5 - self.dead_zone).floor().max(0.0);
-            let q = (m.min(f64::from(i32::MAX / 2)) as i32) * if r < 0.0 { -1 } else { 1 };
-            if self.lambda > 0.0 && q != 0 {
-                // Rate-distortion choice between q and one step nearer zero, in units of
-                // step^2: the squared error plus lambda per bit the context would spend.
-                let coder = &self.coders.passes[s.context];
-                let nearer = q - q.signum();
-                let cost = |q: i32| (r - f64::from(q)).powi(2) + self.lambda * coder.cost(q);
-                if cost(nearer) < cost(q) { nearer } else { q }
-            } else {
-                q
-            }
-        } else {
-            0
-        };
-        self.coders.passes[s.context].put(&mut self.encoder, q);
-        s.prediction + f64::from(q) * s.step
-    }
-
-    fn weights(&mut self, fitted: Option<[i32; FEATURES]>) -> [i32; FEATURES] {
-        let w = fitted.unwrap_or([0; FEATURES]);
-        for v in w {
-            self.coders.weights.put(&mut self.encoder, v);
-        }
-        w
-    }
-}
-
-/// The decoder's side.
-pub struct Reader<'a> {
-    /// The stream.
-    pub decoder: Decoder<'a>,
-    /// Contexts.
-    pub coders: Coders,
-}
-
-impl Details for Reader<'_> {
-    fn sample(&mut self, s: &Sample) -> f64 {
-        let q = self.coders.passes[s.context].get(&mut self.decoder);
-        s.prediction + f64::from(q) * s.step
-    }
-
-    fn weights(&mut self, _fitted: Option<[i32; FEATURES]>) -> [i32; FEATURES] {
-        let mut w = [0; FEATURES];
-        for v in &mut w {
-            *v = self
-                .coders
-                .weights
-                .get(&mut self.decoder)
-                .clamp(-WEIGHT_LIMIT, WEIGHT_LIMIT);
-        }
-        w
     }
 }

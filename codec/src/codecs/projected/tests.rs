@@ -31,7 +31,7 @@ pub(super) fn header(w: usize, h: usize, g: &[f64]) -> ProjectedHeader {
         value_span: hi - lo,
         roughness: fit_roughness(g, w, h),
         max_error: 0.5,
-        order: pyramid::Order::Quincunx,
+        order: pyramid::Order::QuincunxTwoRate,
     }
 }
 
@@ -265,7 +265,13 @@ impl crate::core::pieces::Flatten for Stepwise<'_> {
 fn a_grid_codes_within_half_a_step_and_decodes_as_coded() {
     let (w, h) = (37, 29);
     let g = grid(w, h);
-    for order in [pyramid::Order::Separable, pyramid::Order::Quincunx] {
+    // Both codings: format 9's two-rate contexts, and formats 5-8's one-rate ones (still read).
+    for order in [
+        pyramid::Order::Separable,
+        pyramid::Order::Quincunx,
+        pyramid::Order::SeparableTwoRate,
+        pyramid::Order::QuincunxTwoRate,
+    ] {
         let hd = ProjectedHeader {
             order,
             ..header(w, h, &g)
