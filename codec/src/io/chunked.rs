@@ -1,9 +1,9 @@
 //! Chunked assets (format version 9; 6 to 8 still read): a raster cut into square chunks, each
-//! coded on its own as a whole asset file (of version 9; 5 in files of 6 to 8), behind a table that says where each
-//! chunk lies in the file, so that a reader fetches and decodes one chunk by byte range without
-//! reading the rest (`docs/asset-format.md`). Coarser levels (overviews: the raster at 2, 4,
-//! ... source cells a cell) let a coarse tile of a huge raster decode a few chunks of a coarse
-//! level instead of the whole raster.
+//! coded on its own as a whole asset file (of version 9; 5 in files of 6 to 8), behind a table
+//! that says where each chunk lies in the file, so that a reader fetches and decodes one chunk
+//! by byte range without reading the rest (`docs/asset-format.md`). Coarser levels (overviews:
+//! the raster at 2, 4, ... source cells a cell) let a coarse tile of a huge raster decode a few
+//! chunks of a coarse level instead of the whole raster.
 //!
 //! The first [`VIEW_DEPTH`] overview levels of a height field whose chunks are projected planes
 //! are not coded (format 7: lifted chunks, rate mode; format 8: the pyramid's too, max-error

@@ -196,7 +196,8 @@ impl Order {
         }
     }
 
-    /// Whether the details are coded with [`crate::core::entropy::TwoRateBit`] contexts and signs in context.
+    /// Whether the details are coded with [`crate::core::entropy::TwoRateBit`] contexts and
+    /// signs in context.
     pub fn two_rate(self) -> bool {
         matches!(self, Order::SeparableTwoRate | Order::QuincunxTwoRate)
     }
