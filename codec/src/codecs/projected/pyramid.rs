@@ -276,6 +276,25 @@ fn ring(
     (if n > 0 { sum / n as f64 } else { 0.0 }, n, lo, hi)
 }
 
+/// [`ring`] about row-major index `i` of a grid `w` wide, every offset known to lie in it.
+fn ring_inside(
+    g: &[f64],
+    w: usize,
+    i: usize,
+    half: usize,
+    offsets: &[[i64; 2]],
+) -> (f64, usize, f64, f64) {
+    let (mut sum, mut lo, mut hi) = (0.0, f64::INFINITY, f64::NEG_INFINITY);
+    for [dx, dy] in offsets {
+        let v = g[(i as i64 + (dx + dy * w as i64) * half as i64) as usize];
+        sum += v;
+        lo = lo.min(v);
+        hi = hi.max(v);
+    }
+    let n = offsets.len();
+    (if n > 0 { sum / n as f64 } else { 0.0 }, n, lo, hi)
+}
+
 /// The prediction of `(x, y)` in pass `pass` with weights `w`: the mean of the nearest samples
 /// plus the weighted features (a feature whose group leaves the grid counts 0: no say). Also
 /// the features (for fitting) and the nearest samples' spread (for the context).
@@ -288,11 +307,22 @@ fn predict(
     groups: &Groups,
     w: [f64; FEATURES],
 ) -> (f64, [f64; FEATURES], f64) {
-    let (m, _, lo, hi) = ring(g, size, x, y, half, groups[0]);
+    // Groups reach 3 halves away: a point that far from every edge reads them unchecked (the
+    // same sums in the same order, so the same prediction).
+    let reach = 3 * half;
+    let inside = x >= reach && y >= reach && x + reach < size[0] && y + reach < size[1];
+    let ring = |offsets: &[[i64; 2]]| {
+        if inside {
+            ring_inside(g, size[0], y * size[0] + x, half, offsets)
+        } else {
+            ring(g, size, x, y, half, offsets)
+        }
+    };
+    let (m, _, lo, hi) = ring(groups[0]);
     let mut f = [0.0; FEATURES];
     let mut pred = m;
     for k in 0..FEATURES {
-        let (mean, n, ..) = ring(g, size, x, y, half, groups[k + 1]);
+        let (mean, n, ..) = ring(groups[k + 1]);
         if n > 0 && n == groups[k + 1].len() {
             f[k] = mean - m;
             pred += w[k] * f[k];
