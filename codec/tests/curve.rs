@@ -151,6 +151,14 @@ fn corrupt_truncated_and_unknown_files_are_refused() {
     );
 }
 
+/// Sets an asset file's version byte and its CRC to match.
+fn restamp(bytes: &mut [u8], version: u8) {
+    bytes[8] = version;
+    let body = bytes.len() - 4;
+    let crc = crc32fast::hash(&bytes[..body]).to_le_bytes();
+    bytes[body..].copy_from_slice(&crc);
+}
+
 #[test]
 fn older_curve_assets_are_refused_by_name() {
     // Format versions 2 and 3 changed the curve coding: an older curve file must not decode
@@ -160,10 +168,7 @@ fn older_curve_assets_are_refused_by_name() {
     let v9 = encode(&coast()[..1], 0.01, false).to_bytes();
     assert_eq!(u16::from_le_bytes([v9[8], v9[9]]), 9);
     let mut v5 = v9.clone();
-    v5[8] = 5;
-    let body = v5.len() - 4;
-    let crc = crc32fast::hash(&v5[..body]).to_le_bytes();
-    v5[body..].copy_from_slice(&crc);
+    restamp(&mut v5, 5);
     assert_eq!(
         Asset::from_bytes(&v5).unwrap().curve.unwrap().set,
         Asset::from_bytes(&v9).unwrap().curve.unwrap().set
@@ -174,29 +179,21 @@ fn older_curve_assets_are_refused_by_name() {
     assert_eq!(v5[body..body + 4], [0; 4]);
     let mut current = v5.clone();
     current.drain(body..body + 4);
-    current[8] = 4;
-    let crc = crc32fast::hash(&current[..body]).to_le_bytes();
-    current[body..].copy_from_slice(&crc);
+    restamp(&mut current, 4);
     assert_eq!(
         Asset::from_bytes(&current).unwrap().curve.unwrap().set,
         Asset::from_bytes(&v5).unwrap().curve.unwrap().set
     );
     // Version 4 only added antimeridian crossings: a version-3 curve asset (none) still reads.
     let mut v3 = current.clone();
-    v3[8] = 3;
-    let body = v3.len() - 4;
-    let crc = crc32fast::hash(&v3[..body]).to_le_bytes();
-    v3[body..].copy_from_slice(&crc);
+    restamp(&mut v3, 3);
     assert_eq!(
         Asset::from_bytes(&v3).unwrap().curve.unwrap().set,
         Asset::from_bytes(&current).unwrap().curve.unwrap().set
     );
     for version in [1u8, 2] {
         let mut bytes = current.clone();
-        bytes[8] = version;
-        let body = bytes.len() - 4;
-        let crc = crc32fast::hash(&bytes[..body]).to_le_bytes();
-        bytes[body..].copy_from_slice(&crc);
+        restamp(&mut bytes, version);
         let err = Asset::from_bytes(&bytes).unwrap_err().to_string();
         assert!(
             err.contains(&format!("curve asset of format version {version}")),

@@ -478,44 +478,36 @@ pub fn walk_to(
             };
             let wq = details.weights(target.map(fit));
             let wf = wq.map(|v| f64::from(v) / WEIGHT_ONE);
-            // |detail| of this pass's points in the row above and in this row, by column.
-            let (mut above, mut row) = (vec![0u8; w], vec![0u8; w]);
-            // Their signs (-1, 0, 1), whose sum is the context of this point's sign.
-            let (mut sabove, mut srow) = (vec![0i8; w], vec![0i8; w]);
-            let mut swest = 0i8;
+            // The details (clamped to +-255) of this pass's points in the row above and in this
+            // row, by column: their magnitudes and their signs are the contexts of the next.
+            let (mut above, mut row) = (vec![0i16; w], vec![0i16; w]);
             let mut row_y = usize::MAX;
-            let mut west = 0u8;
+            let mut west = 0i16;
             for (x, y) in pass_points(layout.size, s, layout.order, pass) {
                 if y != row_y {
                     if row_y != usize::MAX {
                         std::mem::swap(&mut above, &mut row);
-                        std::mem::swap(&mut sabove, &mut srow);
                     }
                     row_y = y;
                     west = 0;
-                    swest = 0;
                 }
                 let (pred, _, spread) = predict(g, layout.size, x, y, half, groups, wf);
+                let prediction = layout.snap(pred);
                 let i = y * w + x;
+                let (north, west_q) = (above[x], west);
+                let magnitudes = u32::from(west_q.unsigned_abs()) + u32::from(north.unsigned_abs());
                 let context = pass * CONTEXTS
                     + relief(spread, step) * NEIGHBOUR_BUCKETS
-                    + neighbour_bucket(u32::from(west) + u32::from(above[x]));
+                    + neighbour_bucket(magnitudes);
                 let v = details.sample(&Sample {
                     index: i,
-                    prediction: layout.snap(pred),
+                    prediction,
                     step,
                     context,
-                    sign: sign_context(swest + sabove[x]),
+                    sign: sign_context((west_q.signum() + north.signum()) as i8),
                 });
-                let detail = ((v - layout.snap(pred)) / step).round();
-                let q = detail.abs().min(255.0) as u8;
-                let sign = if detail > 0.0 {
-                    1
-                } else {
-                    -i8::from(detail < 0.0)
-                };
+                let q = ((v - prediction) / step).round().clamp(-255.0, 255.0) as i16;
                 (west, row[x]) = (q, q);
-                (swest, srow[x]) = (sign, sign);
                 g[i] = v;
             }
         }
