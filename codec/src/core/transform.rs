@@ -34,6 +34,23 @@ pub(crate) fn isometry_index(k: u8, i: usize, j: usize, n: usize) -> (usize, usi
     (i, j)
 }
 
+/// `v.round()` (half away from zero, the sign of zero kept), bit for bit, without the call into
+/// libm that `f64::round` is on baseline x86-64 (no SSE4.1 `roundsd`): 10% of a projected
+/// plane's decode went to that call (issue 75). Below 2^52 the truncation through `i64` and
+/// the difference are exact; from there on every f64 is an integer (or not finite).
+#[inline(always)]
+pub(crate) fn round_half_away(v: f64) -> f64 {
+    if v.abs() < 4_503_599_627_370_496.0 {
+        let t = (v as i64) as f64;
+        let d = v - t;
+        // Without branches: a fraction's side of one half is a coin toss on real data.
+        let up = i64::from(d >= 0.5) - i64::from(d <= -0.5);
+        (t + up as f64).copysign(v)
+    } else {
+        v
+    }
+}
+
 /// How contrast and offset are quantised; stored in each plane header.
 #[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Quantiser {

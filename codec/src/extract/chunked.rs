@@ -9,12 +9,16 @@
 //! chunk as any asset filters them.
 
 use fractile_proto::AssetMeta;
+use rayon::prelude::*;
 
 use super::{
     Answer, ContinuousHook, Delegates, PlaneRef, PointSample, SampleError, Sites as Chains,
 };
 use crate::geo::{Pixels, Sites};
 use crate::io::chunked::Chunked;
+
+/// A chunk's answer at its pixels: a plane's values each, and their bound.
+type PartAnswer = (Vec<Vec<f32>>, f32);
 
 /// The pixels one chunk answers, in its unit coordinates, and where its answers go.
 struct Part {
@@ -236,14 +240,56 @@ impl Chunked {
         delegates: &Delegates<'_>,
     ) -> Result<(Vec<Vec<f32>>, f32), SampleError> {
         let (level, parts) = self.split(meta, pixels);
+        // Chunks side by side (a whole read touches them all; a tile one to four): each is
+        // decoded and answered on its own, then its answers put in place.
+        let answers: Vec<Option<PartAnswer>> = parts
+            .par_iter()
+            .map(|part| self.sample_part(level, part, (iterations, tolerance), delegates))
+            .collect::<Result<_, _>>()?;
         let mut out = vec![vec![f32::NAN; pixels.len()]; meta.channels as usize];
         let mut bound = 0.0f32;
-        for part in parts {
+        for (part, answer) in parts.iter().zip(answers) {
+            let Some((values, b)) = answer else {
+                continue;
+            };
+            bound = bound.max(b);
+            for (plane, v) in out.iter_mut().zip(values) {
+                match &part.back {
+                    Back::Grid { cols, rows, width } => {
+                        for (j, &row) in rows.iter().enumerate() {
+                            let v = &v[j * cols.len()..(j + 1) * cols.len()];
+                            let plane = &mut plane[row * width..(row + 1) * width];
+                            for (&col, &x) in cols.iter().zip(v) {
+                                plane[col] = x;
+                            }
+                        }
+                    }
+                    Back::List(to) => {
+                        for (&k, x) in to.iter().zip(v) {
+                            plane[k] = x;
+                        }
+                    }
+                }
+            }
+        }
+        Ok((out, bound))
+    }
+
+    /// One part of [`Self::sample`]: its chunk's answers at its pixels (`None`: a chunk with
+    /// no valid cell).
+    fn sample_part(
+        &self,
+        level: usize,
+        part: &Part,
+        (iterations, tolerance): (u32, f32),
+        delegates: &Delegates<'_>,
+    ) -> Result<Option<PartAnswer>, SampleError> {
+        {
             if (delegates.cancelled)() {
                 return Err(SampleError::Cancelled);
             }
             let Some(chunk) = self.chunk(level, part.index).map_err(SampleError::Chunk)? else {
-                continue;
+                return Ok(None);
             };
             // Only the top level's pixels may be coarser than its cells (see `split`), and its
             // grids are the asset's (`Asset::discrete_planes`): the caller's delegate may keep
@@ -267,26 +313,13 @@ impl Chunked {
                 discrete: if top { &kept } else { &discrete },
                 cancelled: delegates.cancelled,
             };
-            let (values, b) = chunk.sample_with(&part.pixels, iterations, tolerance, &own)?;
-            bound = bound.max(b);
-            for (plane, v) in out.iter_mut().zip(values) {
-                match &part.back {
-                    Back::Grid { cols, rows, width } => {
-                        for (j, &row) in rows.iter().enumerate() {
-                            for (i, &col) in cols.iter().enumerate() {
-                                plane[row * width + col] = v[j * cols.len() + i];
-                            }
-                        }
-                    }
-                    Back::List(to) => {
-                        for (&k, x) in to.iter().zip(v) {
-                            plane[k] = x;
-                        }
-                    }
-                }
-            }
+            Ok(Some(chunk.sample_with(
+                &part.pixels,
+                iterations,
+                tolerance,
+                &own,
+            )?))
         }
-        Ok((out, bound))
     }
 
     /// [`crate::Asset::discrete_planes`] of a chunked asset: its top level's one chunk's, at

@@ -51,8 +51,15 @@ pub(crate) fn delivery_margin(lo: f64, span: f64) -> f64 {
 /// [`super::ProjectedHeader::delivered_quantum`]).
 pub(crate) fn delivered(x: f64, onto: Option<(f64, f64)>) -> f32 {
     match onto {
-        Some((q, near)) if ((x / q).round() * q - x).abs() <= near => ((x / q).round() * q) as f32,
-        _ => x as f32,
+        Some((q, near)) => {
+            let on = crate::core::transform::round_half_away(x / q) * q;
+            if (on - x).abs() <= near {
+                on as f32
+            } else {
+                x as f32
+            }
+        }
+        None => x as f32,
     }
 }
 

@@ -75,7 +75,7 @@ pub struct Quantiser<'a> {
 }
 
 impl Details for Quantiser<'_> {
-    fn sample(&mut self, s: &Sample) -> f64 {
+    fn sample(&mut self, s: &Sample) -> (f64, i32) {
         let valid = self.valid.is_none_or(|v| v[s.index]);
         let q = if valid {
             let r = (self.source[s.index] - s.prediction) / s.step;
@@ -95,7 +95,7 @@ impl Details for Quantiser<'_> {
             0
         };
         self.coders.put(&mut self.encoder, s, q);
-        s.prediction + f64::from(q) * s.step
+        (s.prediction + f64::from(q) * s.step, q)
     }
 
     fn weights(&mut self, fitted: Option<[i32; FEATURES]>) -> [i32; FEATURES] {
@@ -116,9 +116,9 @@ pub struct Reader<'a> {
 }
 
 impl Details for Reader<'_> {
-    fn sample(&mut self, s: &Sample) -> f64 {
+    fn sample(&mut self, s: &Sample) -> (f64, i32) {
         let q = self.coders.get(&mut self.decoder, s);
-        s.prediction + f64::from(q) * s.step
+        (s.prediction + f64::from(q) * s.step, q)
     }
 
     fn weights(&mut self, _fitted: Option<[i32; FEATURES]>) -> [i32; FEATURES] {

@@ -36,6 +36,7 @@ pub mod lifting;
 mod neighbourhood;
 mod operator;
 pub(crate) mod plane;
+mod predict;
 #[doc(hidden)] // public for the crate's own integration tests and benches, not API
 pub mod pyramid;
 pub(crate) mod records;

@@ -25,18 +25,18 @@
 //! and codes, the decoder reads. One walk, so the two cannot drift apart.
 
 use crate::core::lattice::med;
+use crate::core::transform::round_half_away;
+
+pub(super) use super::predict::WEIGHT_LIMIT;
+pub use super::predict::{FEATURES, WEIGHT_ONE};
+use super::predict::{GROUPS, RELIEF_BUCKETS, Relief, Rings, fit_weights, predict};
 
 /// Contexts of the detail coder per pass: local relief over the step (8 buckets) times the
 /// magnitudes of the pass's details already coded west and north (5 buckets).
-const RELIEF_BUCKETS: usize = 8;
 const NEIGHBOUR_BUCKETS: usize = 5;
 pub(super) const CONTEXTS: usize = RELIEF_BUCKETS * NEIGHBOUR_BUCKETS;
 /// Where the coarsest grid's contexts start (after the three passes').
 const LEVEL0: usize = 3 * CONTEXTS;
-/// Fixed-point denominator of the fitted mask weights.
-pub const WEIGHT_ONE: f64 = 1024.0;
-/// Largest |weight| index (weights in [-2, 2]).
-pub(super) const WEIGHT_LIMIT: i32 = 2048;
 
 /// What a walk needs to know about the grid and the quantiser.
 #[derive(Clone, Copy, Debug)]
@@ -74,8 +74,11 @@ impl Layout {
     }
 
     fn snap(&self, v: f64) -> f64 {
-        if self.quantum > 0.0 {
-            (v / self.quantum).round() * self.quantum
+        if self.quantum == 1.0 {
+            // v / 1 and r * 1 are v and r exactly: integer data skips a division a sample.
+            round_half_away(v)
+        } else if self.quantum > 0.0 {
+            round_half_away(v / self.quantum) * self.quantum
         } else {
             v
         }
@@ -98,66 +101,14 @@ pub struct Sample {
 }
 
 /// The two sides of the walk: the encoder quantises the source and codes the detail, the decoder
-/// reads the detail; both return the decoded value.
+/// reads the detail; both return the decoded value and the detail (in steps).
 pub trait Details {
-    /// The decoded value of `s`.
-    fn sample(&mut self, s: &Sample) -> f64;
+    /// The decoded value of `s` and its detail: `prediction + detail * step`.
+    fn sample(&mut self, s: &Sample) -> (f64, i32);
     /// The mask weights of a pass: the encoder codes those it fitted on what the walk has
     /// decoded so far, the decoder reads them.
     fn weights(&mut self, fitted: Option<[i32; FEATURES]>) -> [i32; FEATURES];
 }
-
-/// Features of a pass's prediction. Each is the mean of a group of samples (offsets in units
-/// of half the coarser spacing) less the mean of the nearest samples (group 0, whose mean is
-/// the plain prediction). The fitted masks weigh them, so a pass can lean on the direction
-/// the terrain runs in. Two orders of the passes ([`Order`]); an empty group is a feature
-/// that is always 0.
-pub const FEATURES: usize = 3;
-type Groups = [&'static [[i64; 2]]; FEATURES + 1];
-const GROUPS: [[Groups; 3]; 2] = [
-    // Separable: rows, then columns, then faces.
-    [
-        [
-            &[[-1, 0], [1, 0]],
-            &[[-3, 0], [3, 0]],
-            &[[-1, -2], [1, -2], [-1, 2], [1, 2]],
-            &[],
-        ],
-        [
-            &[[0, -1], [0, 1]],
-            &[[0, -3], [0, 3]],
-            &[[-2, -1], [-2, 1], [2, -1], [2, 1]],
-            &[[-1, -1], [1, -1], [-1, 1], [1, 1]],
-        ],
-        [
-            &[[-1, 0], [1, 0], [0, -1], [0, 1]],
-            &[[-1, 0], [1, 0]],
-            &[[-1, -1], [1, -1], [-1, 1], [1, 1]],
-            &[[-3, 0], [3, 0], [0, -3], [0, 3]],
-        ],
-    ],
-    // Quincunx: faces from the coarser corners, then rows and columns from four neighbours.
-    [
-        [
-            &[[-1, -1], [1, -1], [-1, 1], [1, 1]],
-            &[[-1, -1], [1, 1]],
-            &[[-3, -1], [3, -1], [-3, 1], [3, 1]],
-            &[[-1, -3], [1, -3], [-1, 3], [1, 3]],
-        ],
-        [
-            &[[-1, 0], [1, 0], [0, -1], [0, 1]],
-            &[[-1, 0], [1, 0]],
-            &[[-3, 0], [3, 0]],
-            &[[0, -3], [0, 3]],
-        ],
-        [
-            &[[0, -1], [0, 1], [-1, 0], [1, 0]],
-            &[[0, -1], [0, 1]],
-            &[[0, -3], [0, 3]],
-            &[[-3, 0], [3, 0]],
-        ],
-    ],
-];
 
 /// The multiresolution of a plane: the pyramid's order of a level's three passes and how its
 /// details are coded, or a lifted kernel.
@@ -223,13 +174,14 @@ pub fn levels_for(w: usize, h: usize) -> u8 {
     l
 }
 
-/// Relief bucket of a spread over a step.
-fn relief(spread: f64, step: f64) -> usize {
-    let a = spread / step;
-    if a < 0.5 {
-        0
-    } else {
-        ((a / 0.5).log2() as usize + 1).min(RELIEF_BUCKETS - 1)
+/// The first point of pass `pass` at spacing `s` (the coarser grid's): its points are those
+/// from there on multiples of `s` along both axes.
+fn pass_origin(s: usize, order: Order, pass: usize) -> (usize, usize) {
+    let half = s / 2;
+    match (order.passes(), pass) {
+        (Order::Separable, 0) | (Order::Quincunx, 1) => (half, 0),
+        (Order::Separable, 1) | (Order::Quincunx, 2) => (0, half),
+        _ => (half, half),
     }
 }
 
@@ -240,141 +192,10 @@ fn pass_points(
     order: Order,
     pass: usize,
 ) -> impl Iterator<Item = (usize, usize)> {
-    let half = s / 2;
-    let (x0, y0) = match (order.passes(), pass) {
-        (Order::Separable, 0) | (Order::Quincunx, 1) => (half, 0),
-        (Order::Separable, 1) | (Order::Quincunx, 2) => (0, half),
-        _ => (half, half),
-    };
+    let (x0, y0) = pass_origin(s, order, pass);
     (y0..size[1])
         .step_by(s)
         .flat_map(move |y| (x0..size[0]).step_by(s).map(move |x| (x, y)))
-}
-
-/// The mean of the samples at `offsets` (times `half`) from (x, y) that lie in the grid, with
-/// their count, min and max.
-fn ring(
-    g: &[f64],
-    size: [usize; 2],
-    x: usize,
-    y: usize,
-    half: usize,
-    offsets: &[[i64; 2]],
-) -> (f64, usize, f64, f64) {
-    let (mut sum, mut n, mut lo, mut hi) = (0.0, 0, f64::INFINITY, f64::NEG_INFINITY);
-    for [dx, dy] in offsets {
-        let (px, py) = (x as i64 + dx * half as i64, y as i64 + dy * half as i64);
-        if px < 0 || py < 0 || px >= size[0] as i64 || py >= size[1] as i64 {
-            continue;
-        }
-        let v = g[py as usize * size[0] + px as usize];
-        sum += v;
-        n += 1;
-        lo = lo.min(v);
-        hi = hi.max(v);
-    }
-    (if n > 0 { sum / n as f64 } else { 0.0 }, n, lo, hi)
-}
-
-/// [`ring`] about row-major index `i` of a grid `w` wide, every offset known to lie in it.
-fn ring_inside(
-    g: &[f64],
-    w: usize,
-    i: usize,
-    half: usize,
-    offsets: &[[i64; 2]],
-) -> (f64, usize, f64, f64) {
-    let (mut sum, mut lo, mut hi) = (0.0, f64::INFINITY, f64::NEG_INFINITY);
-    for [dx, dy] in offsets {
-        let v = g[(i as i64 + (dx + dy * w as i64) * half as i64) as usize];
-        sum += v;
-        lo = lo.min(v);
-        hi = hi.max(v);
-    }
-    let n = offsets.len();
-    (if n > 0 { sum / n as f64 } else { 0.0 }, n, lo, hi)
-}
-
-/// The prediction of `(x, y)` in pass `pass` with weights `w`: the mean of the nearest samples
-/// plus the weighted features (a feature whose group leaves the grid counts 0: no say). Also
-/// the features (for fitting) and the nearest samples' spread (for the context).
-fn predict(
-    g: &[f64],
-    size: [usize; 2],
-    x: usize,
-    y: usize,
-    half: usize,
-    groups: &Groups,
-    w: [f64; FEATURES],
-) -> (f64, [f64; FEATURES], f64) {
-    // Groups reach 3 halves away: a point that far from every edge reads them unchecked (the
-    // same sums in the same order, so the same prediction).
-    let reach = 3 * half;
-    let inside = x >= reach && y >= reach && x + reach < size[0] && y + reach < size[1];
-    let ring = |offsets: &[[i64; 2]]| {
-        if inside {
-            ring_inside(g, size[0], y * size[0] + x, half, offsets)
-        } else {
-            ring(g, size, x, y, half, offsets)
-        }
-    };
-    let (m, _, lo, hi) = ring(groups[0]);
-    let mut f = [0.0; FEATURES];
-    let mut pred = m;
-    for k in 0..FEATURES {
-        let (mean, n, ..) = ring(groups[k + 1]);
-        if n > 0 && n == groups[k + 1].len() {
-            f[k] = mean - m;
-            pred += w[k] * f[k];
-        }
-    }
-    (pred, f, hi - lo)
-}
-
-/// Least-squares weights (as fixed-point indices) of a pass from its points' features and
-/// targets (the source less the plain mean): normal equations with a whisker of ridge, so that a
-/// feature that never varies gets weight 0.
-pub fn fit_weights(rows: &[(f64, [f64; FEATURES])]) -> [i32; FEATURES] {
-    const K: usize = FEATURES;
-    let mut a = [[0.0f64; K + 1]; K];
-    for (y, f) in rows {
-        for i in 0..K {
-            for j in 0..K {
-                a[i][j] += f[i] * f[j];
-            }
-            a[i][K] += f[i] * y;
-        }
-    }
-    let scale = (0..K).map(|i| a[i][i]).fold(0.0, f64::max);
-    for (i, row) in a.iter_mut().enumerate() {
-        row[i] += 1e-9 * scale + 1e-300;
-    }
-    // Gauss-Jordan with partial pivoting on a 3 x 3 system.
-    for c in 0..K {
-        let p = (c..K)
-            .max_by(|&i, &j| a[i][c].abs().total_cmp(&a[j][c].abs()))
-            .unwrap_or(c);
-        a.swap(c, p);
-        let d = a[c][c];
-        if d.abs() < 1e-300 {
-            return [0; K];
-        }
-        for v in a[c].iter_mut() {
-            *v /= d;
-        }
-        for r in 0..K {
-            if r != c {
-                let k = a[r][c];
-                let pivot = a[c];
-                for (v, pv) in a[r].iter_mut().zip(pivot) {
-                    *v -= k * pv;
-                }
-            }
-        }
-    }
-    std::array::from_fn(|i| {
-        ((a[i][K] * WEIGHT_ONE).round() as i32).clamp(-WEIGHT_LIMIT, WEIGHT_LIMIT)
-    })
 }
 
 /// Bucket of the sum of two neighbours' |detail|: 0, 1, 2, 3-4, 5 and more.
@@ -416,10 +237,10 @@ pub(crate) fn causal_neighbours<T: Copy + Default>(
 
 /// Walks the whole pyramid, filling `g` (row-major, `size[0] * size[1]`) with decoded values.
 /// `target` gives the encoder's source values for fitting (the decoder passes `None`).
-pub fn walk(
+pub fn walk<D: Details + ?Sized>(
     layout: &Layout,
     g: &mut [f64],
-    details: &mut dyn Details,
+    details: &mut D,
     target: Option<&dyn Fn(usize) -> Option<f64>>,
 ) {
     walk_to(layout, g, details, target, 0);
@@ -428,10 +249,10 @@ pub fn walk(
 /// [`walk`] down to the level of spacing `2^depth` only (0: every level): the decoded samples
 /// on multiples of `2^depth` are then final (closed loop: no finer level changes them), and
 /// the stream's rest is left unread.
-pub fn walk_to(
+pub fn walk_to<D: Details + ?Sized>(
     layout: &Layout,
     g: &mut [f64],
-    details: &mut dyn Details,
+    details: &mut D,
     target: Option<&dyn Fn(usize) -> Option<f64>>,
     depth: u32,
 ) {
@@ -443,26 +264,28 @@ pub fn walk_to(
     let s0 = 1usize << layout.levels;
     // Level 0: MED over the coarse grid in raster order.
     let step = layout.step_at(layout.levels + 1);
+    let buckets = Relief::new(step);
     for y in (0..h).step_by(s0) {
         for x in (0..w).step_by(s0) {
             let i = y * w + x;
             let (a, b, c) = causal_neighbours(g, w, (x, y), s0);
             let prediction = layout.snap(med(a, b, c));
-            let context = relief((a - b).abs().max((a - c).abs()), step);
+            let context = buckets.bucket((a - b).abs().max((a - c).abs()));
             let context = LEVEL0 + context * NEIGHBOUR_BUCKETS;
-            g[i] = details.sample(&Sample {
-                index: i,
-                prediction,
-                step,
-                context,
-                sign: 2,
-            });
+            g[i] = details
+                .sample(&Sample {
+                    index: i,
+                    prediction,
+                    step,
+                    context,
+                    sign: 2,
+                })
+                .0;
         }
     }
     for level in 0..layout.levels.saturating_sub(depth) {
         let s = s0 >> level;
         let half = s / 2;
-        let step = layout.step_at(level + 1);
         for (pass, groups) in GROUPS[layout.order.passes() as usize].iter().enumerate() {
             let grid = &*g;
             let fit = |source: &dyn Fn(usize) -> Option<f64>| {
@@ -478,38 +301,60 @@ pub fn walk_to(
             };
             let wq = details.weights(target.map(fit));
             let wf = wq.map(|v| f64::from(v) / WEIGHT_ONE);
-            // The details (clamped to +-255) of this pass's points in the row above and in this
-            // row, by column: their magnitudes and their signs are the contexts of the next.
-            let (mut above, mut row) = (vec![0i16; w], vec![0i16; w]);
-            let mut row_y = usize::MAX;
-            let mut west = 0i16;
-            for (x, y) in pass_points(layout.size, s, layout.order, pass) {
-                if y != row_y {
-                    if row_y != usize::MAX {
-                        std::mem::swap(&mut above, &mut row);
-                    }
-                    row_y = y;
-                    west = 0;
-                }
-                let (pred, _, spread) = predict(g, layout.size, x, y, half, groups, wf);
-                let prediction = layout.snap(pred);
-                let i = y * w + x;
-                let (north, west_q) = (above[x], west);
-                let magnitudes = u32::from(west_q.unsigned_abs()) + u32::from(north.unsigned_abs());
-                let context = pass * CONTEXTS
-                    + relief(spread, step) * NEIGHBOUR_BUCKETS
-                    + neighbour_bucket(magnitudes);
-                let v = details.sample(&Sample {
-                    index: i,
-                    prediction,
-                    step,
-                    context,
-                    sign: sign_context((west_q.signum() + north.signum()) as i8),
-                });
-                let q = ((v - prediction) / step).round().clamp(-255.0, 255.0) as i16;
-                (west, row[x]) = (q, q);
-                g[i] = v;
-            }
+            walk_pass(layout, g, details, (level, pass), wf);
         }
+    }
+}
+
+/// The points of one pass of refinement `level` with mask weights `wf`, a row at a time: the
+/// row's predictions and relief first (they read coarser passes only), then its details, whose
+/// contexts read the details west and north. Why apart: the range decoder is one serial chain
+/// of data-dependent branches, and a prediction's loads, division and rounding between two of
+/// its symbols waited on it (issue 75).
+fn walk_pass<D: Details + ?Sized>(
+    layout: &Layout,
+    g: &mut [f64],
+    details: &mut D,
+    (level, pass): (u32, usize),
+    wf: [f64; FEATURES],
+) {
+    let [w, h] = layout.size;
+    let s = (1usize << layout.levels) >> level;
+    let step = layout.step_at(level + 1);
+    let groups = &GROUPS[layout.order.passes() as usize][pass];
+    let rings = Rings::new(groups, w, s / 2);
+    let buckets = Relief::new(step);
+    let (x0, y0) = pass_origin(s, layout.order, pass);
+    // The details (clamped to +-255) of this pass's points in the row above and in this row,
+    // by column: their magnitudes and their signs are the contexts of the next.
+    let (mut above, mut row) = (vec![0i16; w], vec![0i16; w]);
+    let mut predicted: Vec<(f64, usize)> = Vec::with_capacity(w / s + 1);
+    for y in (y0..h).step_by(s) {
+        predicted.clear();
+        predicted.extend((x0..w).step_by(s).map(|x| {
+            let (pred, spread) = rings.predict((g, layout.size), (x, y), groups, wf);
+            (layout.snap(pred), buckets.bucket(spread))
+        }));
+        let mut west = 0i16;
+        for (x, &(prediction, relief)) in (x0..w).step_by(s).zip(&predicted) {
+            let i = y * w + x;
+            let north = above[x];
+            let magnitudes = u32::from(west.unsigned_abs()) + u32::from(north.unsigned_abs());
+            let context =
+                pass * CONTEXTS + relief * NEIGHBOUR_BUCKETS + neighbour_bucket(magnitudes);
+            let (v, q) = details.sample(&Sample {
+                index: i,
+                prediction,
+                step,
+                context,
+                sign: sign_context((west.signum() + north.signum()) as i8),
+            });
+            // The detail as coded: formats up to 9 were written taking it back from the value,
+            // `round((v - prediction) / step)`, the same integer (|q| < 2^31).
+            let q = q.clamp(-255, 255) as i16;
+            (west, row[x]) = (q, q);
+            g[i] = v;
+        }
+        std::mem::swap(&mut above, &mut row);
     }
 }
