@@ -3,7 +3,8 @@
 //! in one run (release build):
 //!
 //! `cargo bench -p fractile-codec --bench decode_speed -- [COPIES] [FILE.tif]`
-//! (FILE.tif absolute, or from the `codec` folder, where the bench runs)
+//! (FILE.tif absolute, or from the `codec` folder, where the bench runs);
+//! `-- ASSET.fra`: only the whole reads of that file, best of 7 on one thread (for profiling).
 //!
 //! The raster: etopo20 (or FILE.tif) mirrored COPIES x COPIES (default 4: 4320 x 2160, 9.3 Mpx,
 //! chunked by default). Encoded twice: the bounded default (0.8 bpp, the pyramid) and rate mode
@@ -140,6 +141,28 @@ fn main() {
         .skip(1)
         .filter(|a| a != "--bench")
         .collect();
+    let one = rayon::ThreadPoolBuilder::new()
+        .num_threads(1)
+        .build()
+        .expect("a pool");
+    if let Some(asset) = args.iter().find(|a| a.ends_with(".fra")) {
+        let path = Path::new(asset);
+        let a = Asset::read(path).expect("an asset");
+        let (w, h) = (a.meta.width as usize, a.meta.height as usize);
+        let best = (0..7)
+            .map(|_| {
+                let t = Instant::now();
+                one.install(|| {
+                    let a = Asset::open(path, &AssetLimits::default(), ChunkCache::new(1 << 30))
+                        .expect("open");
+                    a.raster(None, w, h, None, Method::Auto).expect("read");
+                });
+                t.elapsed().as_secs_f64()
+            })
+            .fold(f64::INFINITY, f64::min);
+        println!("{asset}: {w} x {h}, whole read on one thread, best of 7: {best:.3} s");
+        return;
+    }
     let copies: usize = args.iter().find_map(|a| a.parse().ok()).unwrap_or(4);
     let file = args
         .iter()
@@ -155,10 +178,6 @@ fn main() {
     );
     let dir = std::env::temp_dir().join(format!("fractile-decode-speed-{}", std::process::id()));
     std::fs::create_dir_all(&dir).expect("a temporary folder");
-    let one = rayon::ThreadPoolBuilder::new()
-        .num_threads(1)
-        .build()
-        .expect("a pool");
     let all = rayon::ThreadPoolBuilder::new()
         .num_threads(cores)
         .build()

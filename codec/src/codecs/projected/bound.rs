@@ -52,7 +52,12 @@ pub(crate) fn delivery_margin(lo: f64, span: f64) -> f64 {
 pub(crate) fn delivered(x: f64, onto: Option<(f64, f64)>) -> f32 {
     match onto {
         Some((q, near)) => {
-            let on = crate::core::transform::round_half_away(x / q) * q;
+            // x / 1 and r * 1 are exact: integer data skips a division a value.
+            let on = if q == 1.0 {
+                crate::core::transform::round_half_away(x)
+            } else {
+                crate::core::transform::round_half_away(x / q) * q
+            };
             if (on - x).abs() <= near {
                 on as f32
             } else {

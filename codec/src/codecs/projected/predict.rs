@@ -135,22 +135,35 @@ fn ring(
 /// from it (row-major, already times `half`).
 #[inline(always)]
 fn ring_inside(g: &[f64], i: usize, offsets: &[isize]) -> (f64, usize, f64, f64) {
-    let (mut sum, mut lo, mut hi) = (0.0, f64::INFINITY, f64::NEG_INFINITY);
-    for &d in offsets {
-        let v = g[i.wrapping_add_signed(d)];
-        sum += v;
-        lo = lo.min(v);
-        hi = hi.max(v);
+    let at = |d: isize| g[i.wrapping_add_signed(d)];
+    // Comparisons, not `f64::min`: the same on the finite samples a walk holds, without the
+    // NaN fix-ups. Groups of 2 and 4 unrolled, their means by the exact reciprocals (the
+    // quotients' bits); the sums in the loop's order.
+    let lo = |a: f64, b: f64| if b < a { b } else { a };
+    let hi = |a: f64, b: f64| if b > a { b } else { a };
+    match *offsets {
+        [a, b] => {
+            let (va, vb) = (at(a), at(b));
+            (((0.0 + va) + vb) * 0.5, 2, lo(va, vb), hi(va, vb))
+        }
+        [a, b, c, d] => {
+            let (va, vb, vc, vd) = (at(a), at(b), at(c), at(d));
+            let sum = (((0.0 + va) + vb) + vc) + vd;
+            let (l, h) = (lo(lo(va, vb), lo(vc, vd)), hi(hi(va, vb), hi(vc, vd)));
+            (sum * 0.25, 4, l, h)
+        }
+        _ => {
+            let (mut sum, mut l, mut h) = (0.0, f64::INFINITY, f64::NEG_INFINITY);
+            for &d in offsets {
+                let v = at(d);
+                sum += v;
+                l = l.min(v);
+                h = h.max(v);
+            }
+            let n = offsets.len();
+            (if n > 0 { sum / n as f64 } else { 0.0 }, n, l, h)
+        }
     }
-    // Groups of 2 and 4: the mean by their exact reciprocals, the quotient's bits.
-    let n = offsets.len();
-    let mean = match n {
-        0 => 0.0,
-        2 => sum * 0.5,
-        4 => sum * 0.25,
-        _ => sum / n as f64,
-    };
-    (mean, n, lo, hi)
 }
 
 /// A pass's groups at one level as row-major offsets (times `half`), for the points that
@@ -178,8 +191,7 @@ impl Rings {
         groups: &Groups,
         w: [f64; FEATURES],
     ) -> (f64, f64) {
-        let reach = 3 * self.half;
-        if !(x >= reach && y >= reach && x + reach < size[0] && y + reach < size[1]) {
+        if !self.inside(size, x, y) {
             let (pred, _, spread) = predict(g, size, x, y, self.half, groups, w);
             return (pred, spread);
         }
@@ -193,6 +205,36 @@ impl Rings {
         }
         (pred, hi - lo)
     }
+
+    /// What a fit reads of `(x, y)`: the mean of the nearest samples and the features (those
+    /// of [`predict`], the same bits).
+    pub(super) fn features(
+        &self,
+        (g, size): (&[f64], [usize; 2]),
+        (x, y): (usize, usize),
+        groups: &Groups,
+    ) -> (f64, [f64; FEATURES]) {
+        if !self.inside(size, x, y) {
+            let (m, f, _) = predict(g, size, x, y, self.half, groups, [0.0; FEATURES]);
+            return (m, f);
+        }
+        let i = y * size[0] + x;
+        let m = ring_inside(g, i, &self.offsets[0]).0;
+        let mut f = [0.0; FEATURES];
+        for (fk, offsets) in f.iter_mut().zip(&self.offsets[1..]) {
+            if !offsets.is_empty() {
+                *fk = ring_inside(g, i, offsets).0 - m;
+            }
+        }
+        (m, f)
+    }
+
+    /// Whether every group of `(x, y)` lies in the grid: it reaches 3 halves away.
+    #[inline(always)]
+    fn inside(&self, size: [usize; 2], x: usize, y: usize) -> bool {
+        let reach = 3 * self.half;
+        x >= reach && y >= reach && x + reach < size[0] && y + reach < size[1]
+    }
 }
 
 /// A group's offsets (times `half`) as row-major offsets in a grid `w` wide.
@@ -204,7 +246,8 @@ fn linear(offsets: &[[i64; 2]], w: usize, half: usize) -> Vec<isize> {
         .collect()
 }
 
-/// The prediction of `(x, y)` in pass `pass` with weights `w`: the mean of the nearest samples
+/// The prediction of `(x, y)` in pass `pass` with weights `w` near the grid's edges (where
+/// [`Rings`] does not read unchecked): the mean of the nearest samples
 /// plus the weighted features (a feature whose group leaves the grid counts 0: no say). Also
 /// the features (for fitting) and the nearest samples' spread (for the context).
 pub(super) fn predict(
@@ -216,17 +259,7 @@ pub(super) fn predict(
     groups: &Groups,
     w: [f64; FEATURES],
 ) -> (f64, [f64; FEATURES], f64) {
-    // Groups reach 3 halves away: a point that far from every edge reads them unchecked (the
-    // same sums in the same order, so the same prediction).
-    let reach = 3 * half;
-    let inside = x >= reach && y >= reach && x + reach < size[0] && y + reach < size[1];
-    let ring = |offsets: &[[i64; 2]]| {
-        if inside {
-            ring_inside(g, y * size[0] + x, &linear(offsets, size[0], half))
-        } else {
-            ring(g, size, x, y, half, offsets)
-        }
-    };
+    let ring = |offsets: &[[i64; 2]]| ring(g, size, x, y, half, offsets);
     let (m, _, lo, hi) = ring(groups[0]);
     let mut f = [0.0; FEATURES];
     let mut pred = m;

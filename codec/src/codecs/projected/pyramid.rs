@@ -29,7 +29,7 @@ use crate::core::transform::round_half_away;
 
 pub(super) use super::predict::WEIGHT_LIMIT;
 pub use super::predict::{FEATURES, WEIGHT_ONE};
-use super::predict::{GROUPS, RELIEF_BUCKETS, Relief, Rings, fit_weights, predict};
+use super::predict::{GROUPS, RELIEF_BUCKETS, Relief, Rings, fit_weights};
 
 /// Contexts of the detail coder per pass: local relief over the step (8 buckets) times the
 /// magnitudes of the pass's details already coded west and north (5 buckets).
@@ -288,12 +288,12 @@ pub fn walk_to<D: Details + ?Sized>(
         let half = s / 2;
         for (pass, groups) in GROUPS[layout.order.passes() as usize].iter().enumerate() {
             let grid = &*g;
+            let rings = Rings::new(groups, w, half);
             let fit = |source: &dyn Fn(usize) -> Option<f64>| {
                 let rows: Vec<_> = pass_points(layout.size, s, layout.order, pass)
                     .filter_map(|(x, y)| {
                         let t = source(y * w + x)?;
-                        let (m, f, _) =
-                            predict(grid, layout.size, x, y, half, groups, [0.0; FEATURES]);
+                        let (m, f) = rings.features((grid, layout.size), (x, y), groups);
                         Some((t - m, f))
                     })
                     .collect();
