@@ -69,6 +69,19 @@ fn every_cell_of_a_chunked_dem_is_within_its_bound_and_chunks_meet_within_their_
         worst = worst.max(err);
     }
     assert!(worst > 0.0, "a lossy rate has errors");
+    // A native read (`fractile decode`, Python's `read`) answers every cell by its chunk's
+    // sample, the attractor there: within each chain's bound of its point's answer, and
+    // within the cell's source error of the source.
+    let (read, _) = asset
+        .raster(None, w, h, None, fractile_codec::Method::Auto)
+        .unwrap();
+    for (i, a) in answers.iter().enumerate() {
+        let v = read.channels[0][i];
+        let chain = (v - a.values[0]).abs();
+        assert!(chain <= a.error_bound + slack, "cell {i}: {chain} from its chain");
+        let err = (v - r.channels[0][i]).abs();
+        assert!(err <= a.source_error.unwrap() + slack, "cell {i}: error {err}");
+    }
     // Seams: just either side of every chunk edge, the two chunks' answers differ by at most
     // the sum of their bounds (each is within its bound of the bilinear source, which is
     // continuous).
