@@ -78,9 +78,15 @@ fn every_cell_of_a_chunked_dem_is_within_its_bound_and_chunks_meet_within_their_
     for (i, a) in answers.iter().enumerate() {
         let v = read.channels[0][i];
         let chain = (v - a.values[0]).abs();
-        assert!(chain <= a.error_bound + slack, "cell {i}: {chain} from its chain");
+        assert!(
+            chain <= a.error_bound + slack,
+            "cell {i}: {chain} from its chain"
+        );
         let err = (v - r.channels[0][i]).abs();
-        assert!(err <= a.source_error.unwrap() + slack, "cell {i}: error {err}");
+        assert!(
+            err <= a.source_error.unwrap() + slack,
+            "cell {i}: error {err}"
+        );
     }
     // Seams: just either side of every chunk edge, the two chunks' answers differ by at most
     // the sum of their bounds (each is within its bound of the bilinear source, which is

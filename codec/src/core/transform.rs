@@ -61,13 +61,36 @@ mod rounding {
     /// ends of its fast range and beyond, and not finite values.
     #[test]
     fn round_half_away_is_libm_round() {
-        let mut cases = vec![0.0, -0.0, 0.5, -0.5, 1.5, -1.5, 2.5, -2.5, 0.49999999999999994];
-        cases.extend([-0.49999999999999994, 4503599627370495.5, -4503599627370495.5]);
+        let mut cases = vec![
+            0.0,
+            -0.0,
+            0.5,
+            -0.5,
+            1.5,
+            -1.5,
+            2.5,
+            -2.5,
+            0.49999999999999994,
+        ];
+        cases.extend([
+            -0.49999999999999994,
+            4503599627370495.5,
+            -4503599627370495.5,
+        ]);
         cases.extend([2251799813685247.5, -2251799813685247.5, 2251799813685248.5]);
-        cases.extend([1e300, -1e300, f64::INFINITY, f64::NEG_INFINITY, 1e-310, -1e-310]);
+        cases.extend([
+            1e300,
+            -1e300,
+            f64::INFINITY,
+            f64::NEG_INFINITY,
+            1e-310,
+            -1e-310,
+        ]);
         let mut seed = 0x9e37_79b9_7f4a_7c15u64;
         for k in 0..200_000 {
-            seed = seed.wrapping_mul(6364136223846793005).wrapping_add(1442695040888963407);
+            seed = seed
+                .wrapping_mul(6364136223846793005)
+                .wrapping_add(1442695040888963407);
             let scale = [1.0, 1e3, 1e6, 1e12, 1e15][k % 5];
             let v = ((seed >> 11) as f64 / (1u64 << 53) as f64 - 0.5) * scale;
             cases.extend([v, (v * 2.0).round() / 2.0]);

@@ -59,8 +59,14 @@ pub(super) struct Line {
 
 impl Line {
     /// The index of sample `k` of the line, mirrored about its ends.
+    #[inline(always)]
     pub(super) fn at(&self, k: isize) -> usize {
         let n = self.n as isize;
+        if (0..n).contains(&k) {
+            // Inside the line, which is nearly always: no remainder to take (a division a
+            // tap was a third of a lifted plane's inverse transform, issue 75).
+            return self.base + k as usize * self.stride;
+        }
         let period = 2 * (n - 1);
         let mut k = k.rem_euclid(period);
         if k >= n {
@@ -71,6 +77,7 @@ impl Line {
 
     /// Sample `k` of the line, continued past its ends: read as a detail (`detail`, an odd
     /// sample once predicted) or as a value.
+    #[inline(always)]
     pub(super) fn value(&self, g: &[f64], k: isize, detail: bool) -> f64 {
         let n = self.n as isize;
         if self.ends == Ends::Mirror || (0..n).contains(&k) {
