@@ -268,7 +268,7 @@ impl<'a> Decoder<'a> {
         d
     }
 
-    #[inline(always)]
+    #[inline]
     fn byte(&mut self) -> u8 {
         match self.data.get(self.pos) {
             Some(&b) => {
@@ -282,8 +282,7 @@ impl<'a> Decoder<'a> {
         }
     }
 
-    /// Decodes one bit. Inlined into its callers: a call a decision cost a projected plane's
-    /// decode a tenth of its time (issue 75).
+    /// Decodes one bit (inlined: a call a decision was a tenth of a projected decode).
     #[inline(always)]
     pub fn bit<M: Model>(&mut self, p: &mut M) -> bool {
         let bound = p.bound(self.range);
@@ -318,8 +317,7 @@ impl<'a> Decoder<'a> {
         self.data.len()
     }
 
-    /// Bytes of the stream read so far: a decoder given only these would have decoded the
-    /// same symbols (what a partial decode needs of a stream).
+    /// Bytes read so far: all a decoder of the same symbols needs (a partial decode's prefix).
     pub fn consumed(&self) -> usize {
         self.pos
     }
@@ -342,8 +340,7 @@ pub(crate) fn most_decisions(bytes: usize) -> u64 {
     most_decisions_of(bytes, MIN_BITS_PER_DECISION)
 }
 
-/// The most binary decisions of at least `min_bits` bits each that a stream of `bytes` bytes
-/// can hold.
+/// [`most_decisions`] of decisions of at least `min_bits` bits each.
 pub(crate) fn most_decisions_of(bytes: usize, min_bits: f64) -> u64 {
     (((bytes as f64 + 9.0) * 8.0) / min_bits).ceil() as u64
 }
