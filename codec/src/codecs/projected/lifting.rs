@@ -135,6 +135,17 @@ fn walk(
                 for x in (x0..w).step_by(stride) {
                     let i = y * w + x;
                     let (xi, yi, st) = (x as isize, y as isize, stride as isize);
+                    // Every neighbour below lies within stride + s of (x, y) (above it, or
+                    // beside it, or a stride below): away from the edges, read unchecked.
+                    let reach = stride + s;
+                    let inside = x >= reach && y >= reach && x + reach < w && y + stride < h;
+                    let magnitude = |q: &[i32], x: isize, y: isize| -> u32 {
+                        if inside {
+                            q[y as usize * w + x as usize].unsigned_abs()
+                        } else {
+                            magnitude(q, x, y)
+                        }
+                    };
                     let near = 2 * (magnitude(&q, xi - st, yi) + magnitude(&q, xi, yi - st))
                         + magnitude(&q, xi - st, yi - st)
                         + magnitude(&q, xi + st, yi - st);
