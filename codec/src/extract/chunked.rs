@@ -284,42 +284,40 @@ impl Chunked {
         (iterations, tolerance): (u32, f32),
         delegates: &Delegates<'_>,
     ) -> Result<Option<PartAnswer>, SampleError> {
-        {
-            if (delegates.cancelled)() {
-                return Err(SampleError::Cancelled);
-            }
-            let Some(chunk) = self.chunk(level, part.index).map_err(SampleError::Chunk)? else {
-                return Ok(None);
-            };
-            // Only the top level's pixels may be coarser than its cells (see `split`), and its
-            // grids are the asset's (`Asset::discrete_planes`): the caller's delegate may keep
-            // them (a server's coarse cache), instead of a decode a tile.
-            let discrete = |w, h, n, t| std::sync::Arc::new(chunk.discrete_planes(w, h, n, t));
-            // A caller with no grids of its own (the CLI's and Python's reads) gets the
-            // chunk's: an empty answer filtered every pixel of a read 8x coarser than the
-            // source to NaN.
-            let kept = |w, h, n, t| {
-                let grids = (delegates.discrete)(w, h, n, t);
-                if grids.is_empty() {
-                    discrete(w, h, n, t)
-                } else {
-                    grids
-                }
-            };
-            let top = level + 1 == self.table.levels.len();
-            let continuous = in_chunk(delegates.continuous, (level, part.index));
-            let own = Delegates {
-                continuous: &continuous,
-                discrete: if top { &kept } else { &discrete },
-                cancelled: delegates.cancelled,
-            };
-            Ok(Some(chunk.sample_with(
-                &part.pixels,
-                iterations,
-                tolerance,
-                &own,
-            )?))
+        if (delegates.cancelled)() {
+            return Err(SampleError::Cancelled);
         }
+        let Some(chunk) = self.chunk(level, part.index).map_err(SampleError::Chunk)? else {
+            return Ok(None);
+        };
+        // Only the top level's pixels may be coarser than its cells (see `split`), and its
+        // grids are the asset's (`Asset::discrete_planes`): the caller's delegate may keep
+        // them (a server's coarse cache), instead of a decode a tile.
+        let discrete = |w, h, n, t| std::sync::Arc::new(chunk.discrete_planes(w, h, n, t));
+        // A caller with no grids of its own (the CLI's and Python's reads) gets the
+        // chunk's: an empty answer filtered every pixel of a read 8x coarser than the
+        // source to NaN.
+        let kept = |w, h, n, t| {
+            let grids = (delegates.discrete)(w, h, n, t);
+            if grids.is_empty() {
+                discrete(w, h, n, t)
+            } else {
+                grids
+            }
+        };
+        let top = level + 1 == self.table.levels.len();
+        let continuous = in_chunk(delegates.continuous, (level, part.index));
+        let own = Delegates {
+            continuous: &continuous,
+            discrete: if top { &kept } else { &discrete },
+            cancelled: delegates.cancelled,
+        };
+        Ok(Some(chunk.sample_with(
+            &part.pixels,
+            iterations,
+            tolerance,
+            &own,
+        )?))
     }
 
     /// [`crate::Asset::discrete_planes`] of a chunked asset: its top level's one chunk's, at

@@ -47,6 +47,14 @@ fn snap_axis(t: f32, cells: u32) -> f32 {
     }
 }
 
+/// The sample `i` of an axis of `cells` cells whose centre `t` (unit coordinates) is exactly, as
+/// [`snap_axis`] puts a position onto it; `None` off every centre.
+fn centre_index(t: f32, cells: usize) -> Option<usize> {
+    let n = cells as f64;
+    let i = (f64::from(t) * n - 0.5).round();
+    (i >= 0.0 && i < n && ((i + 0.5) / n) as f32 == t).then_some(i as usize)
+}
+
 /// The part of an asset's smallest source error that its default tolerance may reach (see
 /// [`Asset::default_tolerance`]): an eighth, so that the convergence adds at most 12.5% to a
 /// bound that the source error makes anyway.

@@ -476,13 +476,7 @@ impl Asset {
         let (w, h) = (self.meta.width as usize, self.meta.height as usize);
         let z = op.samples().filter(|z| z.len() == w * h)?;
         let centres = |ts: &[f32], n: usize| -> Option<Vec<usize>> {
-            ts.iter()
-                .map(|&t| {
-                    let i = (f64::from(t) * n as f64 - 0.5).round();
-                    let exact = i >= 0.0 && i < n as f64 && ((i + 0.5) / n as f64) as f32 == t;
-                    exact.then_some(i as usize)
-                })
-                .collect()
+            ts.iter().map(|&t| super::centre_index(t, n)).collect()
         };
         let (cols, rows) = (centres(xs, w)?, centres(ys, h)?);
         let mut values = Vec::with_capacity(cols.len() * rows.len());

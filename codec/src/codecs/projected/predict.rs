@@ -132,9 +132,9 @@ fn ring(
 }
 
 /// [`ring`] about row-major index `i`, every sample known to lie in the grid, at `offsets`
-/// from it (row-major, already times `half`).
+/// from it (row-major, already times `half`): the mean, min and max.
 #[inline(always)]
-fn ring_inside(g: &[f64], i: usize, offsets: &[isize]) -> (f64, usize, f64, f64) {
+fn ring_inside(g: &[f64], i: usize, offsets: &[isize]) -> (f64, f64, f64) {
     let at = |d: isize| g[i.wrapping_add_signed(d)];
     // Comparisons, not `f64::min`: the same on the finite samples a walk holds, without the
     // NaN fix-ups. Groups of 2 and 4 unrolled, their means by the exact reciprocals (the
@@ -144,13 +144,13 @@ fn ring_inside(g: &[f64], i: usize, offsets: &[isize]) -> (f64, usize, f64, f64)
     match *offsets {
         [a, b] => {
             let (va, vb) = (at(a), at(b));
-            (((0.0 + va) + vb) * 0.5, 2, lo(va, vb), hi(va, vb))
+            (((0.0 + va) + vb) * 0.5, lo(va, vb), hi(va, vb))
         }
         [a, b, c, d] => {
             let (va, vb, vc, vd) = (at(a), at(b), at(c), at(d));
             let sum = (((0.0 + va) + vb) + vc) + vd;
             let (l, h) = (lo(lo(va, vb), lo(vc, vd)), hi(hi(va, vb), hi(vc, vd)));
-            (sum * 0.25, 4, l, h)
+            (sum * 0.25, l, h)
         }
         _ => {
             let (mut sum, mut l, mut h) = (0.0, f64::INFINITY, f64::NEG_INFINITY);
@@ -161,14 +161,15 @@ fn ring_inside(g: &[f64], i: usize, offsets: &[isize]) -> (f64, usize, f64, f64)
                 h = h.max(v);
             }
             let n = offsets.len();
-            (if n > 0 { sum / n as f64 } else { 0.0 }, n, l, h)
+            (if n > 0 { sum / n as f64 } else { 0.0 }, l, h)
         }
     }
 }
 
-/// A pass's groups at one level as row-major offsets (times `half`), for the points that
-/// lie 3 halves or more inside the grid.
+/// A pass's groups at one level, and their row-major offsets (times `half`) for the points
+/// that lie 3 halves or more inside the grid.
 pub(super) struct Rings {
+    groups: Groups,
     offsets: [Vec<isize>; FEATURES + 1],
     half: usize,
 }
@@ -176,56 +177,46 @@ pub(super) struct Rings {
 impl Rings {
     pub(super) fn new(groups: &Groups, w: usize, half: usize) -> Rings {
         Rings {
+            groups: *groups,
             offsets: std::array::from_fn(|k| linear(groups[k], w, half)),
             half,
         }
     }
 
-    /// [`predict`]'s prediction and spread (the same sums in the same order, so the same
-    /// bits), without the features.
+    /// [`predict`]'s prediction with weights `w` and its spread (the same sums in the same
+    /// order, so the same bits).
     #[inline(always)]
     pub(super) fn predict(
         &self,
         (g, size): (&[f64], [usize; 2]),
         (x, y): (usize, usize),
-        groups: &Groups,
         w: [f64; FEATURES],
     ) -> (f64, f64) {
         if !self.inside(size, x, y) {
-            let (pred, _, spread) = predict(g, size, x, y, self.half, groups, w);
+            let (pred, _, spread) = predict(g, size, x, y, self.half, &self.groups, w);
             return (pred, spread);
         }
-        let i = y * size[0] + x;
-        let (m, _, lo, hi) = ring_inside(g, i, &self.offsets[0]);
+        let (m, f, spread) = self.inner(g, y * size[0] + x);
         let mut pred = m;
-        for (offsets, wk) in self.offsets[1..].iter().zip(w) {
+        for ((fk, wk), offsets) in f.iter().zip(w).zip(&self.offsets[1..]) {
             if !offsets.is_empty() {
-                pred += wk * (ring_inside(g, i, offsets).0 - m);
+                pred += wk * fk;
             }
         }
-        (pred, hi - lo)
+        (pred, spread)
     }
 
-    /// What a fit reads of `(x, y)`: the mean of the nearest samples and the features (those
-    /// of [`predict`], the same bits).
+    /// What a fit reads of `(x, y)`: [`predict`]'s mean of the nearest samples and features.
     pub(super) fn features(
         &self,
         (g, size): (&[f64], [usize; 2]),
         (x, y): (usize, usize),
-        groups: &Groups,
     ) -> (f64, [f64; FEATURES]) {
         if !self.inside(size, x, y) {
-            let (m, f, _) = predict(g, size, x, y, self.half, groups, [0.0; FEATURES]);
+            let (m, f, _) = predict(g, size, x, y, self.half, &self.groups, [0.0; FEATURES]);
             return (m, f);
         }
-        let i = y * size[0] + x;
-        let m = ring_inside(g, i, &self.offsets[0]).0;
-        let mut f = [0.0; FEATURES];
-        for (fk, offsets) in f.iter_mut().zip(&self.offsets[1..]) {
-            if !offsets.is_empty() {
-                *fk = ring_inside(g, i, offsets).0 - m;
-            }
-        }
+        let (m, f, _) = self.inner(g, y * size[0] + x);
         (m, f)
     }
 
@@ -234,6 +225,20 @@ impl Rings {
     fn inside(&self, size: [usize; 2], x: usize, y: usize) -> bool {
         let reach = 3 * self.half;
         x >= reach && y >= reach && x + reach < size[0] && y + reach < size[1]
+    }
+
+    /// The mean of the nearest samples of a point inside (row-major index `i`), its features
+    /// and its nearest samples' spread, read unchecked.
+    #[inline(always)]
+    fn inner(&self, g: &[f64], i: usize) -> (f64, [f64; FEATURES], f64) {
+        let (m, lo, hi) = ring_inside(g, i, &self.offsets[0]);
+        let mut f = [0.0; FEATURES];
+        for (fk, offsets) in f.iter_mut().zip(&self.offsets[1..]) {
+            if !offsets.is_empty() {
+                *fk = ring_inside(g, i, offsets).0 - m;
+            }
+        }
+        (m, f, hi - lo)
     }
 }
 
@@ -250,7 +255,7 @@ fn linear(offsets: &[[i64; 2]], w: usize, half: usize) -> Vec<isize> {
 /// [`Rings`] does not read unchecked): the mean of the nearest samples
 /// plus the weighted features (a feature whose group leaves the grid counts 0: no say). Also
 /// the features (for fitting) and the nearest samples' spread (for the context).
-pub(super) fn predict(
+fn predict(
     g: &[f64],
     size: [usize; 2],
     x: usize,

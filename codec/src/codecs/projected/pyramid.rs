@@ -293,7 +293,7 @@ pub fn walk_to<D: Details + ?Sized>(
                 let rows: Vec<_> = pass_points(layout.size, s, layout.order, pass)
                     .filter_map(|(x, y)| {
                         let t = source(y * w + x)?;
-                        let (m, f) = rings.features((grid, layout.size), (x, y), groups);
+                        let (m, f) = rings.features((grid, layout.size), (x, y));
                         Some((t - m, f))
                     })
                     .collect();
@@ -332,7 +332,7 @@ fn walk_pass<D: Details + ?Sized>(
     for y in (y0..h).step_by(s) {
         predicted.clear();
         predicted.extend((x0..w).step_by(s).map(|x| {
-            let (pred, spread) = rings.predict((g, layout.size), (x, y), groups, wf);
+            let (pred, spread) = rings.predict((g, layout.size), (x, y), wf);
             (layout.snap(pred), buckets.bucket(spread))
         }));
         let mut west = 0i16;
