@@ -256,11 +256,17 @@ impl Chunked {
             for (plane, v) in out.iter_mut().zip(values) {
                 match &part.back {
                     Back::Grid { cols, rows, width } => {
+                        let run = super::consecutive(cols);
                         for (j, &row) in rows.iter().enumerate() {
                             let v = &v[j * cols.len()..(j + 1) * cols.len()];
                             let plane = &mut plane[row * width..(row + 1) * width];
-                            for (&col, &x) in cols.iter().zip(v) {
-                                plane[col] = x;
+                            match &run {
+                                Some(r) => plane[r.clone()].copy_from_slice(v),
+                                None => {
+                                    for (&col, &x) in cols.iter().zip(v) {
+                                        plane[col] = x;
+                                    }
+                                }
                             }
                         }
                     }

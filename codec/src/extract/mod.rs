@@ -13,7 +13,7 @@ use std::sync::Arc;
 
 use rayon::prelude::*;
 
-use crate::codecs::projected::delivered;
+use crate::codecs::projected::deliver_plane;
 use crate::core::decode::{self, DiscreteOptions, DiscreteReport, Grid};
 use crate::core::operator::Operator;
 use crate::geo::{self, Pixels};
@@ -53,6 +53,14 @@ fn centre_index(t: f32, cells: usize) -> Option<usize> {
     let n = cells as f64;
     let i = (f64::from(t) * n - 0.5).round();
     (i >= 0.0 && i < n && ((i + 0.5) / n) as f32 == t).then_some(i as usize)
+}
+
+/// Indices that follow one another from the first (`first..first + n`): a window's columns,
+/// whose values are then copied a row at a time instead of one by one.
+fn consecutive(indices: &[usize]) -> Option<std::ops::Range<usize>> {
+    let &first = indices.first()?;
+    let run = first..first + indices.len();
+    indices.iter().copied().eq(run.clone()).then_some(run)
 }
 
 /// The part of an asset's smallest source error that its default tolerance may reach (see
@@ -356,8 +364,7 @@ impl Asset {
                 planes
                     .into_iter()
                     .map(|mut p| {
-                        p.iter_mut()
-                            .for_each(|v| *v = delivered(lo + f64::from(*v) * span, onto));
+                        deliver_plane(&mut p, (lo, span), onto);
                         p
                     })
                     .collect()

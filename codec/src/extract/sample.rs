@@ -480,9 +480,14 @@ impl Asset {
         };
         let (cols, rows) = (centres(xs, w)?, centres(ys, h)?);
         let mut values = Vec::with_capacity(cols.len() * rows.len());
+        // A window's columns are consecutive samples: a copy a row.
+        let run = super::consecutive(&cols);
         for &j in &rows {
             let row = &z[j * w..(j + 1) * w];
-            values.extend(cols.iter().map(|&i| row[i]));
+            match &run {
+                Some(r) => values.extend_from_slice(&row[r.clone()]),
+                None => values.extend(cols.iter().map(|&i| row[i])),
+            }
         }
         Some(Answer::Values {
             values,

@@ -45,7 +45,7 @@ pub(crate) mod subdivision;
 
 use crate::core::entropy::{Decoder, Encoder};
 
-pub(crate) use bound::{delivered, finest_bound};
+pub(crate) use bound::{deliver_plane, finest_bound};
 pub use encode::{encode_at, encode_projected};
 pub use header::{CODEC_NAME, ProjectedHeader};
 pub use operator::ProjectedOperator;
@@ -124,10 +124,17 @@ pub fn decode_grid(header: &ProjectedHeader, stream: &[u8]) -> Result<Vec<f64>, 
         decoder = r.decoder;
         g
     };
-    if decoder.overrun() || g.iter().any(|v| !v.is_finite()) {
+    if decoder.overrun() || !all_finite(&g) {
         return Err("projected stream truncated or corrupt".into());
     }
     Ok(g)
+}
+
+/// Whether every value is finite: a test of eight at a time without an early way out, which the
+/// compiler vectorises (a pass over a decoded grid: 2% of a whole read as `any`).
+fn all_finite(g: &[f64]) -> bool {
+    g.chunks(8)
+        .all(|c| c.iter().fold(true, |ok, v| ok & v.is_finite()))
 }
 
 /// The coarse view at `depth` of a coded plane: its multiresolution's samples on multiples of

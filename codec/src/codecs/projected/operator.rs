@@ -144,13 +144,7 @@ impl ProjectedOperator {
         } else {
             header.roughness
         };
-        let (lo, hi) = z
-            .iter()
-            .fold((f32::INFINITY, f32::NEG_INFINITY), |(a, b), &v| {
-                // Comparisons: `f32::min` is a call to libm in WebAssembly (5% of a first tile
-                // there); the samples are finite (`decode_grid` refuses others).
-                (if v < a { v } else { a }, if v > b { v } else { b })
-            });
+        let (lo, hi) = crate::core::operator::extremes(&z);
         let over = OVERSHOOT * (hi - lo);
         let (clo, chi) = (lo - over, hi + over);
         let interval = crate::core::operator::invariant_interval(

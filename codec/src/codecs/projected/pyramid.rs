@@ -331,10 +331,9 @@ fn walk_pass<D: Details + ?Sized>(
     let mut predicted: Vec<(f64, usize)> = Vec::with_capacity(w / s + 1);
     for y in (y0..h).step_by(s) {
         predicted.clear();
-        predicted.extend((x0..w).step_by(s).map(|x| {
-            let (pred, spread) = rings.predict((g, layout.size), (x, y), wf);
-            (layout.snap(pred), buckets.bucket(spread))
-        }));
+        rings.predict_row((g, layout.size), y, (x0, s), wf, |pred, spread| {
+            predicted.push((layout.snap(pred), buckets.bucket(spread)));
+        });
         let mut west = 0i16;
         for (x, &(prediction, relief)) in (x0..w).step_by(s).zip(&predicted) {
             let i = y * w + x;
