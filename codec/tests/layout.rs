@@ -799,48 +799,58 @@ fn the_api_check_sees_hidden_modules_however_they_are_named() {
     );
 }
 
-/// The codec's layers, lowest first (ARCHITECTURE.md, "Layers"): a module imports from its
-/// own layer and those below it only, so that data flows one way, input -> encode -> asset ->
-/// operator -> decode -> output, and a layer can be read without those above it.
+/// The codec's layers, lowest first (ARCHITECTURE.md, "Layers"), as modules and the modules
+/// under them (the longest that names a module places it): a module imports from its own
+/// layer and those below it only, so that data flows one way, input -> encode -> asset ->
+/// operator -> decode -> output, and a layer can be read without those above it. `io` holds
+/// both the input (rasters, their masks, files written atomically), which the codecs read,
+/// and the asset container, which holds the codecs' payloads.
 const LAYERS: [&[&str]; 5] = [
     &["core"],
-    &["geo", "mesh", "render"],
+    &[
+        "geo",
+        "mesh",
+        "render",
+        "io::raster",
+        "io::mask",
+        "io::atomic",
+    ],
     &["codecs"],
     &["io"],
     &["encode", "extract"],
 ];
 
 /// The imports that still run up (`module`, `the module above it that it imports`), each
-/// named in issue 76: the codecs' encoders build an `Asset` (`io::asset`) from the input
-/// raster and its mask (`io::raster`, `io::mask`: the input read by the layer above) with
-/// `encode`'s source helpers. Issue 76 moves the input and those helpers below the codecs and
-/// has the encoders return coded planes. The check fails on any other import up, and on any of
+/// named in issue 76: the codecs' encoders build an `Asset` (`io::asset`) with `encode`'s
+/// source helpers (`encode::{source, lattice}`, the projected codec's `encode::rate::Quality`).
+/// Issue 76 moves those helpers below the codecs and has the encoders return coded planes. The check fails on any other import up, and on any of
 /// these once it is gone, so the list only shrinks and stays true.
 const UPWARD_YET: &[(&str, &str)] = &[
     ("codecs::fis::encode", "encode::lattice"),
     ("codecs::fis::encode", "encode::source"),
     ("codecs::fis::encode", "io::asset"),
-    ("codecs::fis::encode", "io::raster"),
     ("codecs::projected::bound", "encode::source"),
-    ("codecs::projected::bound", "io::raster"),
     ("codecs::projected::encode", "encode::rate"),
     ("codecs::projected::encode", "encode::source"),
     ("codecs::projected::encode", "io::asset"),
-    ("codecs::projected::encode", "io::mask"),
-    ("codecs::projected::encode", "io::raster"),
     ("codecs::psa::encode", "encode::lattice"),
     ("codecs::psa::encode", "encode::source"),
     ("codecs::psa::encode", "io::asset"),
-    ("codecs::psa::encode", "io::raster"),
     ("codecs::quadtree::encode", "encode::source"),
     ("codecs::quadtree::encode", "io::asset"),
-    ("codecs::quadtree::encode", "io::mask"),
-    ("codecs::quadtree::encode", "io::raster"),
 ];
 
 fn layer_of(module: &str) -> Option<usize> {
-    let top = module.split("::").next()?;
-    LAYERS.iter().position(|l| l.contains(&top))
+    let under = |m: &str| module == m || module.starts_with(&format!("{m}::"));
+    (0..LAYERS.len())
+        .flat_map(|k| {
+            LAYERS[k]
+                .iter()
+                .filter(|m| under(m))
+                .map(move |m| (m.len(), k))
+        })
+        .max()
+        .map(|(_, k)| k)
 }
 
 /// Each import of the codec crate from a module of a lower layer to one of a higher.
