@@ -130,7 +130,7 @@ impl Request {
                 ..Default::default()
             }
             .into(),
-            _ => PsaSettings {
+            "psa2d-rect" | "psa2d-tri" => PsaSettings {
                 tiling: if self.codec == "psa2d-tri" {
                     Tiling::Triangular
                 } else {
@@ -140,6 +140,13 @@ impl Request {
                 ..Default::default()
             }
             .into(),
+            // A name in `CODECS` without settings here (a codec added to one list, not the
+            // other) is refused, not encoded with another codec's settings.
+            other => {
+                return Err(SettingsError::new_err(format!(
+                    "settings: codec {other:?} has no settings in this build"
+                )));
+            }
         })
     }
 }

@@ -1,13 +1,16 @@
 //! The codecs, one folder each: how a codec partitions its support, searches its maps, codes
-//! them and states them as an [`crate::core::operator::Operator`]. A codec depends on
-//! [`crate::core`] only; the asset container ([`crate::io::asset`]) depends on the codecs.
+//! them and states them as an [`crate::core::operator::Operator`]. A codec depends on the
+//! layers below it ([`crate::core`]; `geo`, `mesh`, `render` and the input rasters, ARCHITECTURE.md
+//! "Layers"); the asset container ([`crate::io::asset`]) depends on the codecs. The encoders
+//! still build an `Asset` with `encode`'s source helpers: the imports `codec/tests/layout.rs`
+//! lists as running up, which issue 76 removes.
 //!
 //! | codec | asset kinds | folder |
 //! |---|---|---|
 //! | quadtree PIFS (codec 1) | images, height fields | [`quadtree`] |
 //! | fractal interpolation surfaces (codec 2) | height fields | [`fis`] |
-//! | projected IFS with details on surfaces (codecs 3, 4) | height fields | [`psa`] |
-//! | IFS3D on signed distance fields (octree) | volumes (meshes) | [`ifs3d`] |
+//! | projected IFS with details on surfaces (codec 3) | height fields | [`psa`] |
+//! | IFS3D on signed distance fields (octree, codec 4) | volumes (meshes) | [`ifs3d`] |
 //! | projected IFS with details on curves (codec 5) | curves | [`curve`] |
 //! | projected IFS with details on grids (codec 6) | height fields, grey images | [`projected`] |
 
