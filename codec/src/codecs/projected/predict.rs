@@ -267,12 +267,7 @@ impl Rings {
             [2, 2, 4, 4] => self.inner_row::<2, 2, 4, 4>(g, inner, w, &mut put),
             [4, 2, 4, 4] => self.inner_row::<4, 2, 4, 4>(g, inner, w, &mut put),
             [4, 2, 2, 2] => self.inner_row::<4, 2, 2, 2>(g, inner, w, &mut put),
-            _ => {
-                for k in first..end {
-                    let (p, spread) = self.predict((g, size), (x0 + k * s, y), w);
-                    put(p, spread);
-                }
-            }
+            _ => (first..end).for_each(|k| edge(k, &mut put)),
         }
         for k in end..count {
             edge(k, &mut put);
