@@ -134,17 +134,8 @@ fn main() {
         unsafe { std::env::set_var("NODEVICE_SELECT", "1") };
     }
     let matches = <Cli as clap::CommandFactory>::command().get_matches();
-    let mut cli =
+    let cli =
         <Cli as clap::FromArgMatches>::from_arg_matches(&matches).unwrap_or_else(|e| e.exit());
-    // Which quadtree-only flags were given, not defaulted: they keep a height field on the
-    // quadtree when no --codec is named.
-    if let (Command::Encode(a), Some(("encode", m))) = (&mut cli.command, matches.subcommand()) {
-        a.quadtree_flags = QUADTREE_FLAGS
-            .iter()
-            .copied()
-            .filter(|id| m.value_source(id) == Some(clap::parser::ValueSource::CommandLine))
-            .collect();
-    }
     // `fractile info x.fra | head` should end quietly as Unix tools do, not panic on the closed
     // pipe (Rust ignores SIGPIPE, rust-lang/rust#62569). Not for `serve`: a server must see
     // EPIPE on a socket whose peer left, not die of the signal.

@@ -445,7 +445,6 @@ fn scale(root: &Path, dem: &dyn Fn(f64) -> QuadtreeSettings) {
 /// on both DEMs and on camera, its max-error ratios, and point decoding beside the quadtree's.
 fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
     use fractile_codec::codecs::projected::ProjectedSettings;
-    use fractile_codec::codecs::projected::encode_projected;
     let rate = ProjectedSettings::default();
     let pyramid = ProjectedSettings {
         pyramid: true,
@@ -469,20 +468,22 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> QuadtreeSet
     let dem_rows = |name: &str, r: &Raster| {
         for ratio in [10.0, 20.0, 40.0, 80.0] {
             let bpp = 16.0 / ratio;
-            let p = encode_projected(
+            let p = fractile_codec::encode(
                 r,
                 &ProjectedSettings {
                     target_bpp: Some(bpp),
                     ..rate.clone()
                 },
+                &|_, _| {},
             )
             .expect("projected");
-            let pp = encode_projected(
+            let pp = fractile_codec::encode(
                 r,
                 &ProjectedSettings {
                     target_bpp: Some(bpp),
                     ..pyramid.clone()
                 },
+                &|_, _| {},
             )
             .expect("projected");
             let q = encode(r, &quadtree(bpp), &quiet).expect("quadtree");
@@ -504,20 +505,22 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> QuadtreeSet
     };
     let image_rows = |label: &str, image: &Raster| {
         for bpp in [0.25, 0.5, 1.0, 2.0] {
-            let p = encode_projected(
+            let p = fractile_codec::encode(
                 image,
                 &ProjectedSettings {
                     target_bpp: Some(bpp),
                     ..rate.clone()
                 },
+                &|_, _| {},
             )
             .expect("projected");
-            let pp = encode_projected(
+            let pp = fractile_codec::encode(
                 image,
                 &ProjectedSettings {
                     target_bpp: Some(bpp),
                     ..pyramid.clone()
                 },
+                &|_, _| {},
             )
             .expect("projected");
             let j = jpeg2000_at(image, p.bpp());
@@ -569,7 +572,7 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> QuadtreeSet
                 max_error: Some(e),
                 ..ProjectedSettings::default()
             };
-            let p = encode_projected(r, &s).expect("projected");
+            let p = fractile_codec::encode(r, &s, &|_, _| {}).expect("projected");
             let anchor = match (*name, e) {
                 ("etopo20.tif", 10.0) => "4.45:1",
                 ("jacksboro.tif", 10.0) => "10.6:1",
@@ -601,26 +604,27 @@ fn kernel(asset: &fractile_codec::io::asset::Asset) -> String {
 /// a metre), where projected chains end on the bilinear interpolant and stop sooner.
 fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
     use fractile_codec::codecs::projected::ProjectedSettings;
-    use fractile_codec::codecs::projected::encode_projected;
     let e = Raster::open(&root.join("testdata/etopo20.tif")).expect("testdata");
     let bounded = ProjectedSettings {
         bounded: true,
         ..Default::default()
     };
-    let p = encode_projected(
+    let p = fractile_codec::encode(
         &e,
         &ProjectedSettings {
             target_bpp: Some(0.8),
             ..ProjectedSettings::default()
         },
+        &|_, _| {},
     )
     .expect("projected");
-    let b = encode_projected(
+    let b = fractile_codec::encode(
         &e,
         &ProjectedSettings {
             target_bpp: Some(0.8),
             ..bounded.clone()
         },
+        &|_, _| {},
     )
     .expect("projected");
     let q = encode(&e, &quadtree(0.8), &quiet).expect("quadtree");

@@ -42,7 +42,7 @@ fn raster(copies: usize, file: Option<&str>) -> Raster {
 
 fn encode(r: &Raster, bounded: bool) -> (Encoded, f64) {
     let t = Instant::now();
-    let at = |part: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(part, q, trial);
+    let at = |part: &Raster, q, trial| fractile_codec::encode::rate::encode_at(part, q, trial);
     let file = FileRate { bpp: 0.8, bounded };
     let enc = encode_chunked_at(r, DEFAULT_CHUNK, (file, &at), &|_, _| {}).expect("encode");
     (enc, t.elapsed().as_secs_f64())

@@ -63,18 +63,18 @@ fn encode(r: &Raster, bpp: f64, bounded: bool, old: bool) -> (Encoded, f64) {
             ..Default::default()
         };
         let one = |part: &Raster| {
-            fractile_codec::codecs::projected::encode_projected(
+            fractile_codec::encode(
                 part,
                 &fractile_codec::codecs::projected::ProjectedSettings {
                     target_bpp: Some(bpp),
                     ..settings.clone()
                 },
+                &|_, _| {},
             )
         };
         encode_chunked(r, DEFAULT_CHUNK, &one, &|_, _| {})
     } else {
-        let at =
-            |part: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(part, q, trial);
+        let at = |part: &Raster, q, trial| fractile_codec::encode::rate::encode_at(part, q, trial);
         encode_chunked_at(
             r,
             DEFAULT_CHUNK,
@@ -209,7 +209,7 @@ fn delivered_error(enc: &Encoded, r: &Raster) -> f64 {
 /// The `bounds` table (issue 73): max-error files in chunks and whole, against SZ3, SPERR and
 /// JPEG-LS at the same bound.
 fn bounds(r: &Raster) {
-    use fractile_codec::codecs::projected::{ProjectedSettings, encode_projected};
+    use fractile_codec::codecs::projected::ProjectedSettings;
     use fractile_codec::encode::rate::Quality;
     println!(
         "\n| E | chunked | --chunk 0 | chunked / whole bytes | SZ3 | SPERR | JPEG-LS | chunked / best peer | max error delivered: chunked, whole, peers | encode s: chunked, whole |"
@@ -217,8 +217,7 @@ fn bounds(r: &Raster) {
     println!("|---|---|---|---|---|---|---|---|---|---|");
     let mut versions = String::new();
     for e in [1.0, 10.0, 50.0, 150.0] {
-        let at =
-            |part: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(part, q, trial);
+        let at = |part: &Raster, q, trial| fractile_codec::encode::rate::encode_at(part, q, trial);
         let t = Instant::now();
         let chunked = encode_chunked_at(r, DEFAULT_CHUNK, (Quality::Bound(e), &at), &|_, _| {})
             .expect("chunked encode");
@@ -228,7 +227,7 @@ fn bounds(r: &Raster) {
             max_error: Some(e),
             ..Default::default()
         };
-        let whole = encode_projected(r, &settings).expect("whole encode");
+        let whole = fractile_codec::encode(r, &settings, &|_, _| {}).expect("whole encode");
         let whole_s = t.elapsed().as_secs_f64();
         let (peers, v) = peers::at_bound(r, e).unwrap_or_else(|| ([None, None, None], "-".into()));
         versions = v;

@@ -7,7 +7,6 @@ use std::time::Instant;
 
 use fractile_codec::codecs::fis::{FisSettings, Scaling, codec_name};
 use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
-use fractile_codec::codecs::{fis::encode_fis, psa::encode_psa};
 use fractile_codec::{Encoded, QuadtreeSettings, Raster, RateMode, encode};
 use rustfft::FftPlanner;
 use rustfft::num_complex::Complex;
@@ -159,12 +158,13 @@ fn main() {
                         fractile_codec::codecs::psa::codec_name(tiling),
                         format!("{domains:?}").to_lowercase()
                     );
-                    match encode_psa(
+                    match fractile_codec::encode(
                         &r,
                         &PsaSettings {
                             target_bpp: Some(bpp),
                             ..s.clone()
                         },
+                        &|_, _| {},
                     ) {
                         Ok(e) => row(name, &label, &e),
                         Err(e) => println!("| {name} | {label} | - | {ratio}:1 | {e} | | | |"),
@@ -174,13 +174,14 @@ fn main() {
                     if image {
                         continue;
                     }
-                    match encode_fis(
+                    match fractile_codec::encode(
                         &r,
                         &FisSettings {
                             scaling: s,
                             target_bpp: Some(bpp),
                             ..FisSettings::default()
                         },
+                        &|_, _| {},
                     ) {
                         Ok(e) => row(name, codec_name(s), &e),
                         Err(e) => {
@@ -243,24 +244,26 @@ fn main() {
         for (label, enc) in [
             (
                 "fis-bilinear, spacing 4",
-                encode_fis(
+                fractile_codec::encode(
                     &r,
                     &FisSettings {
                         spacing: 4,
                         ..FisSettings::default()
                     },
+                    &|_, _| {},
                 )
                 .expect("fis"),
             ),
             (
                 "fis-rect, spacing 4",
-                encode_fis(
+                fractile_codec::encode(
                     &r,
                     &FisSettings {
                         scaling: Scaling::PerCell,
                         spacing: 4,
                         ..FisSettings::default()
                     },
+                    &|_, _| {},
                 )
                 .expect("fis"),
             ),

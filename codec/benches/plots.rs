@@ -47,19 +47,19 @@ fn settings(r: &Raster, bpp: f64) -> QuadtreeSettings {
 
 fn curves(r: &Raster, rates: &[f64], with_jpeg: bool) -> Vec<Curve> {
     use fractile_codec::codecs::projected::ProjectedSettings;
-    use fractile_codec::codecs::projected::encode_projected;
     let mut fractile = Vec::new();
     let mut projected = Vec::new();
     let (mut jpeg, mut j2k) = (Vec::new(), Vec::new());
     for &bpp in rates {
         let enc = encode(r, &settings(r, bpp), &|_, _| {}).expect("encode");
         fractile.push((enc.bpp(), enc.errors.psnr));
-        let p = encode_projected(
+        let p = fractile_codec::encode(
             r,
             &ProjectedSettings {
                 target_bpp: Some(bpp),
                 ..ProjectedSettings::default()
             },
+            &|_, _| {},
         )
         .expect("projected");
         projected.push((p.bpp(), p.errors.psnr));

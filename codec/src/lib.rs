@@ -8,7 +8,7 @@
 //! |---|---|---|
 //! | input | [`io::raster`] (images, DEMs), [`mesh`] (triangle meshes), [`geo`] | `core` |
 //! | encode | [`mod@encode`] (rasters, meshes, curves: rate control, codec choice) | `codecs`, `io` |
-//! | codecs | [`codecs`] (one folder each) | `core`, `mesh` |
+//! | codecs | [`codecs`] (one folder each; encoders return coded planes) | `core`, `mesh`, the input |
 //! | asset | [`io::asset`] (the container) | `codecs` |
 //! | operator, decode | [`core`] (the operator form, its decoders, entropy coder) | nothing |
 //! | output | [`extract`] (tiles, points, regions, distances), [`render`] | `io`, `codecs`, `core` |
@@ -26,7 +26,7 @@
 //! `encode` and stream internals where no other crate names them, the projected codec's grid
 //! machinery, the SDF and marching of IFS3D, the source-error measure and colour conversion.
 //! Each codec's module publishes what a user of that codec needs, as image's `codecs::png`
-//! does: its settings, its encoder entry (`codecs::fis::encode_fis`), its operator; its
+//! does: its settings (`codecs::fis::FisSettings`, encoded through [`encode()`]), its operator; its
 //! search, stream and pyramid internals are `#[doc(hidden)]`, public only for this crate's own
 //! integration tests and benches, and no other crate of the workspace names them
 //! (`codec/tests/layout.rs` checks, grouped imports included).

@@ -679,7 +679,6 @@ fn window_methods_agree_on_smooth_terrain() {
 /// height step), and the fractal detail beats plain bilinear interpolation of the same nodes.
 #[test]
 fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
-    use fractile_codec::codecs::fis::encode_fis;
     use fractile_codec::codecs::fis::{FisSettings, Scaling};
     let r = Raster::open(&data("jacksboro.tif")).unwrap();
     let (w, h) = (r.width, r.height);
@@ -689,7 +688,7 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
             spacing: 6,
             ..FisSettings::default()
         };
-        let enc = encode_fis(&r, &settings).unwrap();
+        let enc = fractile_codec::encode(&r, &settings, &|_, _| {}).unwrap();
         let back = Asset::from_bytes(&enc.bytes).unwrap();
         assert_eq!(back.to_bytes(), enc.bytes);
         assert_eq!(
@@ -739,7 +738,10 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
             max_scaling,
             ..FisSettings::default()
         };
-        encode_fis(&r, &s).unwrap().errors.psnr
+        fractile_codec::encode(&r, &s, &|_, _| {})
+            .unwrap()
+            .errors
+            .psnr
     };
     let (flat, fitted) = (psnr(Scaling::Global, 1e-4), psnr(Scaling::PerCell, 0.9));
     assert!(
@@ -752,7 +754,6 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
 fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
     use fractile_codec::codecs::fis::FisSettings;
     use fractile_codec::codecs::fis::Scaling;
-    use fractile_codec::codecs::fis::encode_fis;
     for (file, bpp, scaling) in [
         ("topobathy.tif", 0.5, Scaling::PerNode),
         ("topobathy.tif", 1.0, Scaling::PerNode),
@@ -763,12 +764,13 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
             scaling,
             ..FisSettings::default()
         };
-        let enc = encode_fis(
+        let enc = fractile_codec::encode(
             &r,
             &FisSettings {
                 target_bpp: Some(bpp),
                 ..settings.clone()
             },
+            &|_, _| {},
         )
         .unwrap();
         assert!(enc.bpp() <= bpp, "{file}: {} > {bpp}", enc.bpp());
@@ -782,7 +784,7 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
                     spacing: k,
                     ..settings.clone()
                 };
-                encode_fis(&r, &s).unwrap()
+                fractile_codec::encode(&r, &s, &|_, _| {}).unwrap()
             })
             .find(|e| e.bpp() <= bpp)
             .unwrap();
@@ -794,7 +796,7 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
         }
     }
     let camera = Raster::open(&data("camera.png")).unwrap();
-    let e = encode_fis(&camera, &FisSettings::default()).unwrap_err();
+    let e = fractile_codec::encode(&camera, &FisSettings::default(), &|_, _| {}).unwrap_err();
     assert!(e.to_string().contains("height fields"), "{e}");
 }
 
@@ -802,7 +804,6 @@ fn interpolation_surface_rate_control_lands_under_target_and_refuses_images() {
 /// through every vertex, and the domain maps beat the bilinear patches of the same vertices.
 #[test]
 fn piecewise_self_affine_surfaces_interpolate_real_data() {
-    use fractile_codec::codecs::psa::encode_psa;
     use fractile_codec::codecs::psa::{Domains, PsaSettings, Tiling};
     let dem = Raster::open(&data("jacksboro.tif")).unwrap();
     let camera = crop(
@@ -823,7 +824,7 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
             region: 6,
             ..PsaSettings::default()
         };
-        let enc = encode_psa(r, &s).unwrap();
+        let enc = fractile_codec::encode(r, &s, &|_, _| {}).unwrap();
         let back = Asset::from_bytes(&enc.bytes).unwrap();
         assert_eq!(back.to_bytes(), enc.bytes);
         assert_eq!(
@@ -1085,7 +1086,11 @@ fn rate_control_sizes_are_the_sizes_of_the_files() {
                 _ => panic!("a quadtree asset"),
             })
             .collect();
-        let size = Asset::coded_file_size(&e.asset.meta, planes, e.asset.mask.as_ref());
+        let size = fractile_codec::encode::Coded::file_size_of(
+            &e.asset.meta,
+            planes,
+            e.asset.mask.as_ref(),
+        );
         // The source-error map comes after what rate control sized.
         let map = e.asset.source_error.as_ref().unwrap().encode().len();
         assert_eq!(size + map, e.bytes.len());

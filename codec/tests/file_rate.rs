@@ -4,8 +4,8 @@
 
 use std::path::Path;
 
-use fractile_codec::codecs::projected::{encode_at, encode_projected};
 use fractile_codec::encode::chunked::{chunk_bpp, encode_chunked, encode_chunked_at, quality_for};
+use fractile_codec::encode::rate::encode_at;
 use fractile_codec::encode::rate::{AIM, FileRate, Quality};
 use fractile_codec::io::rows::InMemory;
 use fractile_codec::{Encoded, Raster};
@@ -53,7 +53,7 @@ fn the_files_rate_is_a_ceiling_and_one_step_beats_a_rate_a_chunk() {
             target_bpp: Some(per_chunk),
             ..Default::default()
         };
-        let one = |part: &Raster| encode_projected(part, &settings);
+        let one = |part: &Raster| fractile_codec::encode(part, &settings, &|_, _| {});
         let theirs = encode_chunked(&r, 256, &one, &|_, _| {}).unwrap();
         assert!(theirs.bytes.len() <= budget(&r, bpp));
         assert!(

@@ -4,7 +4,6 @@
 //! PSNR against bicubic, and the power of the finest octave against the real finer DEM's).
 
 use fractile_codec::Method;
-use fractile_codec::codecs::projected::encode_projected;
 use fractile_codec::codecs::projected::{ProjectedHeader, ProjectedSettings};
 use fractile_codec::io::asset::{Asset, Coding};
 use fractile_codec::io::raster::Raster;
@@ -36,7 +35,7 @@ fn max_error_holds_at_every_cell_of_real_dems_read_back_from_their_bytes() {
                 max_error: Some(e),
                 ..Default::default()
             };
-            let enc = encode_projected(&r, &s).expect("encode");
+            let enc = fractile_codec::encode(&r, &s, &|_, _| {}).expect("encode");
             let asset = Asset::from_bytes(&enc.bytes).expect("read back");
             assert_eq!(asset.codec_name(), "projected");
             let (d, _) = asset.decode_native();
@@ -77,7 +76,7 @@ fn max_error_10_codes_smaller_than_jpeg_ls_near_lossless() {
             max_error: Some(10.0),
             ..Default::default()
         };
-        let enc = encode_projected(&r, &s).expect("encode");
+        let enc = fractile_codec::encode(&r, &s, &|_, _| {}).expect("encode");
         println!("{name}: {:.2}:1 against JPEG-LS {jpeg_ls}:1", enc.ratio());
         assert!(
             enc.ratio() >= jpeg_ls,
@@ -96,12 +95,13 @@ fn a_corrupt_or_truncated_stream_is_an_error() {
     };
     // The pyramid (max error) and the lifted levels (rate).
     for (settings, bpp) in [(bounded, None), (ProjectedSettings::default(), Some(0.8))] {
-        let enc = encode_projected(
+        let enc = fractile_codec::encode(
             &r,
             &ProjectedSettings {
                 target_bpp: bpp,
                 ..settings.clone()
             },
+            &|_, _| {},
         )
         .expect("encode");
         let Coding::Projected { header, stream } = &enc.asset.planes[0].coding else {
@@ -207,7 +207,7 @@ fn zoom(name: &str) -> Zoom {
         max_error: Some(0.5),
         ..Default::default()
     };
-    let enc = encode_projected(&c, &s).expect("encode");
+    let enc = fractile_codec::encode(&c, &s, &|_, _| {}).expect("encode");
     let (d, _) = enc
         .asset
         .window([0.0, 0.0, 1.0, 1.0], w, h, Some(40), Method::Continuous);
@@ -291,12 +291,13 @@ fn rate_control_fits_its_target_and_reaches_jpeg_2000_on_etopo20() {
     // Issue 29's bar: JPEG 2000 (OpenJPEG) gives 47.2 dB on etopo20 at 20:1 (0.8 bpp); the
     // quadtree 43.2 dB.
     let r = Raster::open(&testdata("etopo20.tif")).expect("testdata");
-    let enc = encode_projected(
+    let enc = fractile_codec::encode(
         &r,
         &ProjectedSettings {
             target_bpp: Some(0.8),
             ..ProjectedSettings::default()
         },
+        &|_, _| {},
     )
     .expect("encode");
     println!(
@@ -322,24 +323,26 @@ fn lifted_levels_beat_the_closed_loop_pyramid_at_low_rates() {
     // brought jacksboro to 0.49 dB apart).
     for name in ["jacksboro.tif", "etopo20.tif"] {
         let r = Raster::open(&testdata(name)).expect("testdata");
-        let lifted = encode_projected(
+        let lifted = fractile_codec::encode(
             &r,
             &ProjectedSettings {
                 target_bpp: Some(0.2),
                 ..ProjectedSettings::default()
             },
+            &|_, _| {},
         )
         .expect("lifted");
         let pyramid = ProjectedSettings {
             pyramid: true,
             ..Default::default()
         };
-        let pyramid = encode_projected(
+        let pyramid = fractile_codec::encode(
             &r,
             &ProjectedSettings {
                 target_bpp: Some(0.2),
                 ..pyramid.clone()
             },
+            &|_, _| {},
         )
         .expect("pyramid");
         println!(
@@ -389,12 +392,13 @@ fn error_bounds_hold_and_are_tight_at_random_cell_centres() {
                 Some(0.8),
             ),
         ] {
-            let enc = encode_projected(
+            let enc = fractile_codec::encode(
                 &src,
                 &ProjectedSettings {
                     target_bpp: bpp,
                     ..settings.clone()
                 },
+                &|_, _| {},
             )
             .expect("encode");
             let asset = Asset::from_bytes(&enc.bytes).expect("read back");
@@ -490,12 +494,13 @@ fn colour_images_code_as_luma_and_chroma_at_the_resolution_that_codes_better() {
     // JPEG at these rates gives 27.7 and 36.99 dB on it (the codec bench at 0.5 and 2 bpp; it
     // cannot reach 0.25), JPEG 2000 28.65 and 40.70; a broken chroma path is far under.
     for (bpp, chroma, floor) in [(0.25, 256, 27.0), (2.0, 512, 40.0)] {
-        let enc = encode_projected(
+        let enc = fractile_codec::encode(
             &r,
             &ProjectedSettings {
                 target_bpp: Some(bpp),
                 ..ProjectedSettings::default()
             },
+            &|_, _| {},
         )
         .expect("encode");
         let asset = Asset::from_bytes(&enc.bytes).expect("read back");
@@ -527,7 +532,7 @@ fn colour_images_code_as_luma_and_chroma_at_the_resolution_that_codes_better() {
         ..Default::default()
     };
     assert!(
-        encode_projected(&r, &settings).is_err(),
+        fractile_codec::encode(&r, &settings, &|_, _| {}).is_err(),
         "a bound on colour is refused"
     );
 }

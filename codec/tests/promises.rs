@@ -6,8 +6,9 @@
 //! and the points at cell centres (`/points`), each as those callers make them. The
 //! float32 roundings of a value once took `--max-error 1` to 1.0029.
 
-use fractile_codec::codecs::projected::{ProjectedSettings, encode_at, encode_projected};
+use fractile_codec::codecs::projected::ProjectedSettings;
 use fractile_codec::encode::chunked::encode_chunked_at;
+use fractile_codec::encode::rate::encode_at;
 use fractile_codec::encode::rate::{FileRate, Quality};
 use fractile_codec::geo::{Pixels, Sites};
 use fractile_codec::{Asset, Encoded, Method, Raster};
@@ -137,12 +138,13 @@ fn every_output_of_a_max_error_file_is_within_its_bound() {
     ];
     for (name, r) in &dems {
         for e in [0.5, 1.0, 10.0, 150.0] {
-            let whole = encode_projected(
+            let whole = fractile_codec::encode(
                 r,
                 &ProjectedSettings {
                     max_error: Some(e),
                     ..Default::default()
                 },
+                &|_, _| {},
             )
             .unwrap();
             every_output_within(&format!("{name} whole at {e}"), r, &whole, e);

@@ -102,3 +102,68 @@ fn every_registered_plane_codec_encodes_and_reads_back_as_itself() {
         "the registry lists the four plane codecs at least"
     );
 }
+
+/// Every name the registry gives (`--codec`, Python's `codec=`) makes settings of a codec that
+/// writes an asset answering to that name, from no options (each codec's defaults) and from a
+/// rate; the names are distinct; an option the codec does not read, and an unknown name, are
+/// refused by name.
+#[test]
+fn every_codec_name_encodes_under_that_name() {
+    use fractile_codec::encode::Options;
+    let raster = dem();
+    let names = CodecSettings::names();
+    let mut distinct: Vec<&str> = names.iter().map(|(n, _)| *n).collect();
+    distinct.sort_unstable();
+    distinct.dedup();
+    assert_eq!(distinct.len(), names.len(), "two codecs share a name");
+    assert!(names.len() >= 7, "{names:?}");
+    for &(name, help) in &names {
+        assert!(!help.is_empty(), "{name}: no help");
+        let takes = CodecSettings::takes(name).expect("a listed name is taken");
+        for options in [
+            Options::default(),
+            Options {
+                target_bpp: Some(2.0),
+                ..Options::default()
+            },
+        ] {
+            let settings = CodecSettings::named(name, &options, raster.kind)
+                .unwrap_or_else(|e| panic!("{name} with {:?}: {e}", options.given()));
+            let enc = encode(&raster, &settings, &|_, _| {})
+                .unwrap_or_else(|e| panic!("{name} with {:?}: {e}", options.given()));
+            assert_eq!(enc.asset.codec_name(), name);
+            if options.target_bpp.is_some() {
+                assert!(enc.bpp() <= 2.0, "{name}: {} bpp over 2", enc.bpp());
+            }
+        }
+        let untaken = ["max-error", "spacing", "tolerance"]
+            .into_iter()
+            .find(|o| !takes.contains(o))
+            .expect("no codec reads all three");
+        let options = match untaken {
+            "max-error" => Options {
+                max_error: Some(1.0),
+                ..Options::default()
+            },
+            "spacing" => Options {
+                spacing: Some(4),
+                ..Options::default()
+            },
+            _ => Options {
+                tolerance: Some(1.0),
+                ..Options::default()
+            },
+        };
+        let err = CodecSettings::named(name, &options, raster.kind)
+            .expect_err("an option the codec does not read")
+            .to_string();
+        assert!(
+            err.contains(&format!("--{untaken}")) && err.contains(name),
+            "{err}"
+        );
+    }
+    let err = CodecSettings::named("jpeg", &Options::default(), raster.kind)
+        .expect_err("no such codec")
+        .to_string();
+    assert!(err.contains("jpeg") && err.contains("projected"), "{err}");
+}

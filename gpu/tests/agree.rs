@@ -5,7 +5,6 @@ use std::path::PathBuf;
 
 use fractile_codec::codecs::fis::{FisSettings, Scaling};
 use fractile_codec::codecs::psa::{PsaSettings, Tiling};
-use fractile_codec::codecs::{fis::encode_fis, psa::encode_psa};
 use fractile_codec::core::decode;
 use fractile_codec::core::pieces::Flatten;
 use fractile_codec::{Asset, QuadtreeSettings, Raster, RateMode, encode};
@@ -87,12 +86,13 @@ fn points_agree_on_images_and_dems_for_every_codec() {
         ),
         (
             "jacksboro fis-rect".into(),
-            encode_fis(
+            fractile_codec::encode(
                 &dem,
                 &FisSettings {
                     scaling: Scaling::PerCell,
                     ..FisSettings::default()
                 },
+                &|_, _| {},
             )
             .unwrap()
             .asset,
@@ -102,12 +102,13 @@ fn points_agree_on_images_and_dems_for_every_codec() {
         ),
         (
             "jacksboro psa2d-tri".into(),
-            encode_psa(
+            fractile_codec::encode(
                 &dem,
                 &PsaSettings {
                     tiling: Tiling::Triangular,
                     ..PsaSettings::default()
                 },
+                &|_, _| {},
             )
             .unwrap()
             .asset,
@@ -334,12 +335,13 @@ fn dyadic_grids_and_points_on_cell_boundaries_agree_with_the_cpu() {
         ),
         (
             "jacksboro psa2d-tri",
-            encode_psa(
+            fractile_codec::encode(
                 &dem,
                 &PsaSettings {
                     tiling: Tiling::Triangular,
                     ..PsaSettings::default()
                 },
+                &|_, _| {},
             )
             .unwrap()
             .asset,
@@ -347,12 +349,13 @@ fn dyadic_grids_and_points_on_cell_boundaries_agree_with_the_cpu() {
         ),
         (
             "jacksboro fis-rect",
-            encode_fis(
+            fractile_codec::encode(
                 &dem,
                 &FisSettings {
                     scaling: Scaling::PerCell,
                     ..FisSettings::default()
                 },
+                &|_, _| {},
             )
             .unwrap()
             .asset,

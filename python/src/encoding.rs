@@ -9,17 +9,14 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use fractile_codec::codecs::fis::{FisSettings, Scaling};
-use fractile_codec::codecs::projected::ProjectedSettings;
-use fractile_codec::codecs::psa::{PsaSettings, Tiling};
 use fractile_codec::encode::chunked::{
     DEFAULT_CHUNK, chunk_bpp, encode_chunked_file, encode_chunked_file_at, wants_chunks,
 };
-use fractile_codec::encode::rate::{FileRate, Quality, Target};
-use fractile_codec::encode::{DEFAULT_HEIGHT_FIELD_BPP, Written};
+use fractile_codec::encode::rate::file_target;
+use fractile_codec::encode::{Options, Written};
 use fractile_codec::io::raster::MAX_MAGNITUDE;
 use fractile_codec::io::rows::{InMemory, Rows};
-use fractile_codec::{CodecSettings, QuadtreeSettings, Raster, RateMode};
+use fractile_codec::{CodecSettings, Raster};
 use fractile_proto::{AssetKind, Georef, SampleFormat};
 use numpy::{PyReadonlyArray2, PyReadonlyArray3};
 use pyo3::exceptions::{PyTypeError, PyValueError};
@@ -28,20 +25,9 @@ use pyo3::types::PyDict;
 
 use crate::errors::{SettingsError, raise};
 
-/// The codecs `codec=` names, as `fractile encode --codec` spells them.
-const CODECS: &[&str] = &[
-    "projected",
-    "quadtree-pifs",
-    "fis-bilinear",
-    "fis-rect",
-    "fis-rect-global",
-    "psa2d-rect",
-    "psa2d-tri",
-];
-
 /// What the keywords ask, checked.
 struct Request {
-    codec: &'static str,
+    codec: String,
     target_bpp: Option<f64>,
     max_error: Option<f64>,
     chunk: Option<u32>,
@@ -55,24 +41,18 @@ impl Request {
         max_error: Option<f64>,
         chunk: Option<u32>,
     ) -> PyResult<Request> {
+        // The defaults, as `fractile encode`'s: the projected codec for height fields and
+        // under a max error, the quadtree for images. Any codec of the registry by its name.
         let codec = match codec {
-            Some(name) => CODECS.iter().copied().find(|c| *c == name).ok_or_else(|| {
-                SettingsError::new_err(format!(
-                    "settings: unknown codec {name:?}; one of {}",
-                    CODECS.join(", ")
-                ))
-            })?,
-            None if kind == AssetKind::HeightField || max_error.is_some() => "projected",
+            Some(name) => name,
+            None if kind == AssetKind::HeightField || max_error.is_some() => {
+                fractile_codec::codecs::projected::CODEC_NAME
+            }
             None => "quadtree-pifs",
         };
         if target_bpp.is_some() && max_error.is_some() {
             return Err(SettingsError::new_err(
                 "settings: give target_bpp or max_error, not both",
-            ));
-        }
-        if max_error.is_some() && codec != "projected" {
-            return Err(SettingsError::new_err(
-                "settings: max_error is for the projected codec",
             ));
         }
         if target_bpp.is_some_and(|v| !(v.is_finite() && v > 0.0)) {
@@ -85,69 +65,29 @@ impl Request {
         if max_error.is_some_and(|v| !(v.is_finite() && v >= 0.0)) {
             return Err(PyValueError::new_err("max_error must be a number >= 0"));
         }
-        Ok(Request {
-            codec,
+        let req = Request {
+            codec: codec.to_string(),
             target_bpp,
             max_error,
             chunk,
-        })
+        };
+        // An unknown name, or a keyword the codec does not read, is refused before any work.
+        req.settings(kind, target_bpp)?;
+        Ok(req)
     }
 
-    /// The codec's settings at `bpp` bits a cell (`None`: the codec's default rate).
+    /// The codec's settings at `bpp` bits a cell (`None`: the codec's default rate), through
+    /// the codec's registry (`CodecSettings::named`): a codec reading `bounded` codes a rate
+    /// bounded (every cell within the bound it reports), as the height-field default does.
     fn settings(&self, kind: AssetKind, bpp: Option<f64>) -> PyResult<CodecSettings> {
-        Ok(match self.codec {
-            "projected" => ProjectedSettings {
-                max_error: self.max_error,
-                // The DEM default: the smallest max error whose file fits the rate.
-                bounded: self.max_error.is_none(),
-                target_bpp: match self.max_error {
-                    Some(_) => None,
-                    None => Some(bpp.unwrap_or(DEFAULT_HEIGHT_FIELD_BPP)),
-                },
-                ..Default::default()
-            }
-            .into(),
-            "quadtree-pifs" => {
-                let preset =
-                    QuadtreeSettings::at_speed(fractile_codec::codecs::quadtree::DEFAULT_SPEED)
-                        .map_err(raise)?;
-                let mut q = QuadtreeSettings {
-                    rate: bpp.map_or(RateMode::Tolerance(f32::NAN), RateMode::TargetBpp),
-                    ..preset
-                };
-                q.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(kind);
-                q.quantiser_choices =
-                    QuadtreeSettings::default_quantiser_choices(kind, q.quantiser);
-                q.into()
-            }
-            "fis-bilinear" | "fis-rect" | "fis-rect-global" => FisSettings {
-                scaling: match self.codec {
-                    "fis-rect" => Scaling::PerCell,
-                    "fis-rect-global" => Scaling::Global,
-                    _ => Scaling::PerNode,
-                },
-                target_bpp: bpp,
-                ..Default::default()
-            }
-            .into(),
-            "psa2d-rect" | "psa2d-tri" => PsaSettings {
-                tiling: if self.codec == "psa2d-tri" {
-                    Tiling::Triangular
-                } else {
-                    Tiling::Rectangular
-                },
-                target_bpp: bpp,
-                ..Default::default()
-            }
-            .into(),
-            // A name in `CODECS` without settings here (a codec added to one list, not the
-            // other) is refused, not encoded with another codec's settings.
-            other => {
-                return Err(SettingsError::new_err(format!(
-                    "settings: codec {other:?} has no settings in this build"
-                )));
-            }
-        })
+        let takes = CodecSettings::takes(&self.codec).unwrap_or_default();
+        let options = Options {
+            target_bpp: bpp,
+            max_error: self.max_error,
+            bounded: self.max_error.is_none() && takes.contains(&"bounded"),
+            ..Options::default()
+        };
+        CodecSettings::named(&self.codec, &options, kind).map_err(raise)
     }
 }
 
@@ -221,18 +161,10 @@ fn code(
         let enc = fractile_codec::encode(&raster, &settings, progress).map_err(raise)?;
         return enc.write(path).map_err(raise);
     };
-    if req.codec == "projected" && channels == 1 {
-        // The chunks share one quality (as `fractile encode`'s): the max error asked for, or
-        // the one that fits the file's rate.
-        let target: Target = match req.max_error {
-            Some(e) => Quality::Bound(e).into(),
-            None => FileRate {
-                bpp: req.target_bpp.unwrap_or(DEFAULT_HEIGHT_FIELD_BPP),
-                bounded: true,
-            }
-            .into(),
-        };
-        let at = |r: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(r, q, trial);
+    // The chunks share one quality where the codec offers one (as `fractile encode`'s): the
+    // max error asked for, or the one that fits the file's rate.
+    if let Some(target) = file_target(&req.settings(kind, req.target_bpp)?, channels) {
+        let at = |r: &Raster, q, trial| fractile_codec::encode::rate::encode_at(r, q, trial);
         return encode_chunked_file_at(rows, c, (target, &at), progress, path).map_err(raise);
     }
     let per_chunk = req.settings(kind, req.target_bpp.map(|b| chunk_bpp(width, height, c, b)))?;

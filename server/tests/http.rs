@@ -2018,7 +2018,7 @@ async fn projected_assets_serve_points_within_their_promise_and_tiles() {
         max_error: Some(5.0),
         ..Default::default()
     };
-    let enc = fractile_codec::codecs::projected::encode_projected(&src, &settings).unwrap();
+    let enc = fractile_codec::encode(&src, &settings, &|_, _| {}).unwrap();
     let put = Request::put("/v1/assets/jp")
         .header(header::AUTHORIZATION, "Bearer p")
         .body(Body::from(enc.bytes.clone()))

@@ -155,7 +155,7 @@ fn a_zoom_zero_tile_reads_an_eighth_of_the_file_at_most() {
         bpp: 0.8,
         bounded: true,
     };
-    let at = fractile_codec::codecs::projected::encode_at;
+    let at = fractile_codec::encode::rate::encode_at;
     let bytes = encode_chunked_at(&r, 256, (rate, &at), &|_, _| {})
         .unwrap()
         .bytes;

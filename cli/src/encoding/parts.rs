@@ -28,8 +28,8 @@ pub(super) fn encode_part(
             output: PathBuf::new(),
             part: None,
             json: false,
-            quadtree_flags: a.quadtree_flags.clone(),
             roi: a.roi.clone(),
+            codec: a.codec.clone(),
             ..*a
         }
     );
@@ -38,10 +38,9 @@ pub(super) fn encode_part(
     // An s3:// part is written here first, then uploaded: the machines share a bucket.
     let out = crate::remote::Local::output(&a.output)?;
     let (width, height) = (rows.header().width, rows.header().height);
-    let w = match file_rate(a, rows.header().channels) {
+    let w = match file_rate(a, rows.header().kind, rows.header().channels)? {
         Some(rate) => {
-            let at =
-                |r: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(r, q, trial);
+            let at = |r: &Raster, q, trial| fractile_codec::encode::rate::encode_at(r, q, trial);
             let how = (chunk, share, settings.as_str());
             encode_chunked_part_at(rows, how, (rate, &at), &progress, out.path())?
         }

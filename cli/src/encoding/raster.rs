@@ -7,7 +7,7 @@ use fractile_codec::encode::chunked::{encode_chunked_file, encode_chunked_file_a
 use fractile_codec::io::rows::Rows;
 use fractile_codec::{Raster, encode};
 
-use super::args::{CodecArg, EncodeArgs, file_rate};
+use super::args::{EncodeArgs, file_rate};
 use crate::progress::Progress;
 
 /// A raster coded in chunks of `c` into `output`: under a file's rate ([`file_rate`]) or each
@@ -21,10 +21,9 @@ pub(super) fn encode_chunks(
     let (width, height) = (rows.header().width, rows.header().height);
     let mut bar = Progress::start("coding chunks", a.quiet || a.json);
     let progress = |done: u64, total: u64| bar.update(done, total);
-    let enc = match file_rate(a, rows.header().channels) {
+    let enc = match file_rate(a, rows.header().kind, rows.header().channels)? {
         Some(rate) => {
-            let at =
-                |r: &Raster, q, trial| fractile_codec::codecs::projected::encode_at(r, q, trial);
+            let at = |r: &Raster, q, trial| fractile_codec::encode::rate::encode_at(r, q, trial);
             encode_chunked_file_at(rows, c, (rate, &at), &progress, output)?
         }
         None => {
@@ -49,7 +48,7 @@ pub(super) fn encode_with(
 ) -> Result<fractile_codec::Encoded> {
     let settings = a.codec_settings(raster.kind)?;
     // The quadtree counts the blocks it fits; the other codecs report no progress.
-    let quiet = a.quiet || a.json || !bar || a.codec() != CodecArg::QuadtreePifs;
+    let quiet = a.quiet || a.json || !bar || a.codec() != "quadtree-pifs";
     let mut bar = Progress::start("fitting blocks", quiet);
     let progress = |done: u64, total: u64| bar.update(done, total);
     let enc = encode(raster, &settings, &progress)?;

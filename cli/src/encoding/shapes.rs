@@ -6,7 +6,7 @@ use std::path::Path;
 use anyhow::{Context, Result, bail};
 use serde_json::json;
 
-use super::args::{CodecArg, EncodeArgs};
+use super::args::EncodeArgs;
 /// Whether a path names a mesh (by extension).
 pub(crate) fn is_mesh(p: &Path) -> bool {
     p.extension()
@@ -91,7 +91,7 @@ pub(crate) fn is_geojson(p: &Path) -> bool {
 
 /// `fractile encode coast.geojson -o coast.fra [--codec curve] [--tolerance T]`.
 pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
-    if !matches!(a.codec, None | Some(CodecArg::Curve))
+    if !matches!(a.codec.as_deref(), None | Some("curve"))
         || a.target_bpp.is_some()
         || a.transforms.is_some()
         || a.const_range.is_some()

@@ -1,9 +1,9 @@
 //! The codecs, one folder each: how a codec partitions its support, searches its maps, codes
 //! them and states them as an [`crate::core::operator::Operator`]. A codec depends on the
 //! layers below it ([`crate::core`]; `geo`, `mesh`, `render` and the input rasters, ARCHITECTURE.md
-//! "Layers"); the asset container ([`crate::io::asset`]) depends on the codecs. The encoders
-//! still build an `Asset` with `encode`'s source helpers: the imports `codec/tests/layout.rs`
-//! lists as running up, which issue 76 removes.
+//! "Layers"); the asset container ([`crate::io::asset`]) depends on the codecs. A plane codec's
+//! encoder returns coded planes ([`coded::Coded`]) and asks what needs the layers above (its
+//! planes decoded as a reader decodes them, the source-error map) of a [`coded::Measure`].
 //!
 //! | codec | asset kinds | folder |
 //! |---|---|---|
@@ -16,13 +16,13 @@
 
 //!
 //! A codec of planes (images, height fields) implements [`plane::PlaneCodec`] on its header,
-//! [`plane::PlaneDecoder`] on its operator and `encode::PlaneEncoder` on its settings, in its
+//! [`plane::PlaneDecoder`] on its operator and [`coded::PlaneEncoder`] on its settings, in its
 //! folder, and adds one line to `plane_codecs!` (below); the container, the decoders, the encoder's
 //! entry (`encode::encode`) and the GPU take it from there.
 
 /// The plane codecs, one line each: the variant's name (in [`registry::Codec`],
 /// [`registry::Coding`], [`registry::PlaneOperator`] and `encode::CodecSettings`), its header
-/// (a [`plane::PlaneCodec`]) and its settings (an `encode::PlaneEncoder`). Hands the list to
+/// (a [`plane::PlaneCodec`]) and its settings (a [`coded::PlaneEncoder`]). Hands the list to
 /// `$then!`, so that the registry and the encoder's entry are made from this one list.
 macro_rules! plane_codecs {
     ($then:ident) => {
@@ -45,11 +45,15 @@ macro_rules! plane_codecs {
     };
 }
 
+pub mod coded;
 pub mod curve;
 pub mod fis;
 pub mod ifs3d;
+pub(crate) mod lattice;
+pub mod options;
 pub mod plane;
 pub mod projected;
 pub mod psa;
 pub mod quadtree;
 pub(crate) mod registry;
+pub(crate) mod source;

@@ -1,7 +1,8 @@
 //! What a codec of 2D planes gives the rest of the crate: how its planes are stored
 //! ([`PlaneCodec`], implemented by its header) and how they are decoded ([`PlaneDecoder`],
-//! implemented by its operator). The registry (`codecs::registry`) lists the codecs that
-//! implement them; the container, the decoders, the GPU and the server see only these two.
+//! implemented by its operator); how they are coded is `coded::PlaneEncoder`, implemented by
+//! its settings. The registry (`codecs::registry`) lists the codecs that implement them; the
+//! container, the decoders, the GPU and the server see only these two.
 
 use std::fmt::Debug;
 

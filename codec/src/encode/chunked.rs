@@ -19,9 +19,9 @@ use std::time::Instant;
 use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
+use super::encoded::{Encoded, Written};
 use super::pyramid::Pyramid;
 use super::rate::{self, EncodeAt, Search, Target};
-use super::source::{Encoded, Written};
 use super::spill::{Spill, write_spilled};
 use super::summary::{ChunkRecord, summarise};
 use super::summary::{Coded, blank, header_allowance, new_table, table_of};

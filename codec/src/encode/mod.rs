@@ -1,31 +1,36 @@
 //! Inputs into assets. The entry point of the plane codecs is [`encode`]: a [`Raster`] and
 //! the settings of one codec ([`CodecSettings`], or a codec's own settings), each codec's
-//! encoder in its folder (`codecs/<name>/encode.rs`, a [`PlaneEncoder`]). Here is what the
-//! encoders share (`source`: a raster's planes, metadata, nodata, measures; `lattice`: the
-//! lattice codecs' pipeline), what runs any of them (`chunked`, `rate`, `parts`), the source
-//! error map (`fidelity`) and the encoders of meshes (`volume`) and curves (`curve`).
+//! encoder in its folder (`codecs/<name>/encode.rs`, a [`PlaneEncoder`]) returning coded
+//! planes, which become the [`Encoded`] asset here (`encoded`: the asset and what was
+//! measured; the [`Measure`] lent to the encoders). Here too is what runs any of them
+//! (`chunked`, `rate`, `parts`), the source error map (`fidelity`) and the encoders of meshes
+//! (`volume`) and curves (`curve`).
 
 pub mod chunked;
 pub mod curve;
+mod encoded;
 pub(crate) mod fidelity;
-pub(crate) mod lattice;
 pub mod parts;
 mod pyramid;
 pub mod rate;
-pub(crate) mod source;
 mod spill;
 mod summary;
 mod views;
 pub mod volume;
 
-pub use source::{Encoded, PlaneEncoder, Written};
+pub use crate::codecs::coded::{Coded, Measure, PlaneEncoder};
+pub use crate::codecs::options::{Domains, Named, Options, Search};
+
+pub use encoded::{Encoded, Written};
 
 use fractile_proto::AssetKind;
 
 use crate::Error;
+
 use crate::codecs::projected::ProjectedSettings;
 use crate::codecs::quadtree::settings::{QuadtreeSettings, RateMode};
 use crate::codecs::registry::Codec;
+use crate::core::metrics::Errors;
 use crate::io::raster::Raster;
 
 macro_rules! settings {
@@ -51,16 +56,49 @@ macro_rules! settings {
                     $( CodecSettings::$name(_) => Codec::$name, )*
                 }
             }
+
+            /// Every plane codec's names (`--codec`, Python's `codec=`), each with a line of
+            /// help, in the registry's order.
+            pub fn names() -> Vec<(&'static str, &'static str)> {
+                [$( <$settings as Named>::NAMES, )*].concat()
+            }
+
+            /// The options the codec `name` reads (`None`: no plane codec is so named).
+            pub fn takes(name: &str) -> Option<&'static [&'static str]> {
+                $(
+                    if <$settings as Named>::NAMES.iter().any(|(n, _)| *n == name) {
+                        return Some(<$settings as Named>::TAKES);
+                    }
+                )*
+                None
+            }
+
+            /// The settings of the plane codec `name` with `options`, for a raster of `kind`;
+            /// an unknown name, or an option the codec does not read, is refused by name.
+            pub fn named(name: &str, options: &Options, kind: AssetKind) -> Result<CodecSettings, Error> {
+                $(
+                    if <$settings as Named>::NAMES.iter().any(|(n, _)| *n == name) {
+                        options.refuse_untaken(name, <$settings as Named>::TAKES)?;
+                        return <$settings as Named>::named(name, options, kind).map(CodecSettings::$name);
+                    }
+                )*
+                let names: Vec<&str> = CodecSettings::names().iter().map(|(n, _)| *n).collect();
+                Err(Error::settings(format!(
+                    "unknown codec {name:?}; the plane codecs are {}",
+                    names.join(", ")
+                )))
+            }
         }
 
         impl PlaneEncoder for CodecSettings {
             fn encode(
                 &self,
                 raster: &Raster,
+                measure: &dyn Measure,
                 progress: &(dyn Fn(u64, u64) + Sync),
-            ) -> Result<Encoded, Error> {
+            ) -> Result<(Coded, Errors), Error> {
                 match self {
-                    $( CodecSettings::$name(s) => s.encode(raster, progress), )*
+                    $( CodecSettings::$name(s) => s.encode(raster, measure, progress), )*
                 }
             }
 
@@ -106,13 +144,12 @@ pub fn encode(
                 e.message()
             ))
         })?;
-    settings.encode(raster, progress)
+    let context = encoded::Context::new();
+    let (coded, errors) = settings.encode(raster, &context, progress)?;
+    context.encoded(coded, errors)
 }
 
-/// The rate of a height field's default encode: 0.8 bits a cell (20:1 against 16-bit samples),
-/// where issue 34's measurements put every bar (bound within 2.7x of the actual error, tiles
-/// within 1.4x of TiTiler's bytes).
-pub const DEFAULT_HEIGHT_FIELD_BPP: f64 = 0.8;
+pub use crate::codecs::projected::DEFAULT_HEIGHT_FIELD_BPP;
 
 /// What `fractile encode` writes when no codec is named, at `target_bpp` bits a source cell: for
 /// a height field the projected IFS with details under a bounded rate (the smallest max error

@@ -13,7 +13,7 @@ use std::path::{Path, PathBuf};
 use serde::{Deserialize, Serialize};
 
 use super::chunked::{EncodeOne, Progress, Share, code_streamed};
-use super::source::Written;
+use super::encoded::Written;
 use super::spill::{Spill, write_spilled};
 use super::summary::{ChunkRecord, summarise};
 use crate::Error;

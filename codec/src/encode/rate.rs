@@ -16,46 +16,13 @@
 
 use rayon::prelude::*;
 
-use super::source::Encoded;
+use super::CodecSettings;
+use super::encoded::Encoded;
 use crate::Error;
-use crate::codecs::projected::AtStep;
+pub use crate::codecs::projected::Quality;
 use crate::codecs::projected::pyramid::Order;
+use crate::codecs::projected::{AtStep, ProjectedSettings};
 use crate::io::raster::Raster;
-
-/// The quality every chunk of a file is coded at.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub enum Quality {
-    /// Rate mode: a step and a multiresolution.
-    Step(AtStep),
-    /// Bounded: every valid cell within this of its source (source units).
-    Bound(f64),
-}
-
-impl Quality {
-    /// The quality of the chunks of overview level `l` (cells of 2^l source cells): the step
-    /// or bound times 2^l. A coarse cell is 2^l cells wide and is seen at a 2^l times coarser
-    /// zoom, so its error may be 2^l times larger, as a terrain level of detail's geometric
-    /// error doubles a level (Cesium's, and the error a coarse tile's mesh is simplified to).
-    /// At the source's step the overviews took a third of the file (docs/benchmarks.md).
-    pub fn at_level(self, l: usize) -> Quality {
-        let scale = f64::from(1u32 << l.min(30));
-        match self {
-            Quality::Step(s) => Quality::Step(AtStep {
-                step: s.step * scale,
-                design: s.design,
-            }),
-            Quality::Bound(e) => Quality::Bound(e * scale),
-        }
-    }
-
-    /// How the encoder's settings name it (what split encodes must agree on).
-    pub fn describe(&self) -> String {
-        match self {
-            Quality::Step(s) => format!("step {} {:?}", s.step, s.design),
-            Quality::Bound(e) => format!("max error {e}"),
-        }
-    }
-}
 
 /// What a file's rate asks for.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -452,5 +419,37 @@ impl<'a> Search<'a> {
         } else {
             (b - a).abs() < 2e-3
         }
+    }
+}
+
+/// One chunk of a file whose rate is the file's, coded at its `quality` by the projected codec
+/// (`ProjectedSettings::at`); `trial`: a coding whose file is not kept, without its
+/// source-error map. What the chunked encoders take as their [`EncodeAt`].
+pub fn encode_at(raster: &Raster, quality: Quality, trial: bool) -> Result<Encoded, Error> {
+    super::encode(
+        raster,
+        &ProjectedSettings::at(quality, raster, trial),
+        &|_, _| {},
+    )
+}
+
+/// The one quality of a chunked file's chunks under `settings`, for a raster of `channels`: the
+/// projected codec's on one channel (its max error, or the file's rate: the smallest bound or
+/// the finest step that fits it); `None` for the other codecs, each of whose chunks is coded on
+/// its own at its share of the rate (`chunked::chunk_bpp`).
+pub fn file_target(settings: &CodecSettings, channels: usize) -> Option<Target> {
+    match settings {
+        CodecSettings::Projected(p) if channels == 1 => match (p.max_error, p.target_bpp) {
+            (Some(e), _) => Some(Quality::Bound(e).into()),
+            (None, Some(bpp)) => Some(
+                FileRate {
+                    bpp,
+                    bounded: p.bounded,
+                }
+                .into(),
+            ),
+            (None, None) => None,
+        },
+        _ => None,
     }
 }

@@ -1,7 +1,7 @@
 //! What a chunked file keeps of each chunk's encode ([`ChunkRecord`]), and the file's table,
 //! metadata and errors summarised from the records in table order.
 
-use super::source::Encoded;
+use super::encoded::Encoded;
 use super::views::level_zero_views;
 use crate::Error;
 use crate::core::metrics::Errors;

@@ -2,7 +2,7 @@
 //! chunks' coarse bands (lifted projected planes), their cells and their source-error maps.
 
 use crate::Error;
-use crate::encode::source::Encoded;
+use crate::encode::encoded::Encoded;
 use crate::io::asset::Asset;
 use crate::io::chunked::{ChunkEntry, ChunkTable};
 use crate::io::raster::Raster;
@@ -84,7 +84,7 @@ pub(super) fn view_maps(enc: &Encoded, part: &Raster, views: usize) -> Result<Ve
     let (w, h) = (part.width, part.height);
     let mut filled = part.channels[0].clone();
     if let Some(valid) = &part.valid {
-        super::source::fill_invalid(&mut filled, valid, w, h);
+        crate::codecs::source::fill_invalid(&mut filled, valid, w, h);
     }
     let grid: Vec<f64> = filled.iter().map(|&v| f64::from(v)).collect();
     // A pyramid's view is the source decimated: valid where its lattice cell is.

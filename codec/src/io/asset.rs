@@ -13,48 +13,22 @@ use fractile_proto::{AssetKind, AssetMeta};
 use serde::{Deserialize, Serialize};
 
 pub use super::atomic::{temporary_owner, write_atomic, write_atomic_with};
+use super::container::container;
 pub use super::container::{
     AssetLimits, FORMAT_VERSION, OLDEST_CURVE_VERSION, OLDEST_READ_VERSION, check_magic,
     check_whole_file,
 };
-use super::container::{Payload, assemble, container};
 use super::cost::{PayloadCost, payload_cost};
+use super::frame::assemble;
 use super::layout::{ChunkSource, ChunkTable, FileSource, InMemory, is_chunked};
 pub use super::mask::Mask;
 use crate::Error;
-use crate::codecs::plane::{Build, PlaneCodec};
-use crate::codecs::quadtree::stream::PlaneHeader;
+pub use crate::codecs::coded::Plane;
+use crate::codecs::coded::{Coded, Payload, payload};
+use crate::codecs::plane::Build;
 use crate::codecs::registry::{self, Registered, Visit};
 pub use crate::codecs::registry::{Codec, Coding, PlaneOperator};
 use crate::core::fidelity::SourceError;
-
-/// A coded plane: how it is coded and the operator decoded from that.
-#[derive(Clone, Debug)]
-pub struct Plane {
-    /// Header and stream, as stored.
-    pub coding: Coding,
-    /// The decoding operator.
-    pub operator: PlaneOperator,
-}
-
-impl Plane {
-    /// The largest |decoded sample - source| the encoder promised at every valid sample centre
-    /// (source units), for codecs that promise one (projected under `--max-error`).
-    pub fn promise(&self) -> Option<f32> {
-        match &self.coding {
-            Coding::Projected { header, .. } => header.promise().map(|e| e as f32),
-            _ => None,
-        }
-    }
-
-    /// The quadtree header, for quadtree planes.
-    pub fn header(&self) -> Option<&PlaneHeader> {
-        match &self.coding {
-            Coding::Quadtree { header, .. } => Some(header),
-            _ => None,
-        }
-    }
-}
 
 #[derive(Serialize, Deserialize)]
 struct VolumePayload {
@@ -133,56 +107,43 @@ impl Asset {
         mask: Option<Mask>,
         build: Build,
     ) -> Result<Asset, Error> {
-        H::accepts(&meta)?;
-        Asset::assemble(meta, planes, mask, |meta, header, stream| {
-            let operator = H::plane_operator(header.operator(meta, &stream, build)?);
-            Ok(Plane {
-                coding: header.coding(stream),
-                operator,
-            })
-        })
+        Asset::from_planes(Coded::new(meta, planes, mask, build)?)
     }
 
-    /// Size in bytes of the file [`Asset::from_coded`] would build from the same parts, without
-    /// decoding the streams or building operators: rate control asks it of every trial
-    /// partition and builds the asset once, for the one it keeps.
-    pub fn coded_file_size<H: PlaneCodec>(
-        meta: &AssetMeta,
-        planes: Vec<(H, Vec<u8>)>,
-        mask: Option<&Mask>,
-    ) -> usize {
-        let payload = fractile_proto::encode(&Payload {
+    /// The asset of a plane codec's coded planes (what its encoder returns), checked.
+    pub fn from_planes(coded: Coded) -> Result<Asset, Error> {
+        let asset = Asset::holding(coded);
+        asset.check()?;
+        Ok(asset)
+    }
+
+    /// The asset that holds `coded` as it is: what an encoder's measures decode.
+    pub(crate) fn holding(coded: Coded) -> Asset {
+        let Coded {
+            meta,
             planes,
-            mask: mask.map(Mask::encode),
-        });
-        assemble(meta, H::BYTE, &payload, &[]).len()
-    }
-
-    /// Decodes every coded plane with `plane` (errors name the plane) and checks the whole.
-    fn assemble<H>(
-        meta: AssetMeta,
-        planes: Vec<(H, Vec<u8>)>,
-        mask: Option<Mask>,
-        plane: impl Fn(&AssetMeta, H, Vec<u8>) -> Result<Plane, String>,
-    ) -> Result<Asset, Error> {
-        let planes = planes
-            .into_iter()
-            .enumerate()
-            .map(|(i, (header, stream))| {
-                plane(&meta, header, stream).map_err(|e| Error::asset(format!("plane {i}: {e}")))
-            })
-            .collect::<Result<Vec<_>, Error>>()?;
-        let asset = Asset {
+            mask,
+            source_error,
+        } = coded;
+        Asset {
             meta,
             planes,
             mask,
             volume: None,
             curve: None,
-            source_error: None,
+            source_error,
             chunks: None,
-        };
-        asset.check()?;
-        Ok(asset)
+        }
+    }
+
+    /// The coded planes an asset of a plane codec holds, given back.
+    pub(crate) fn into_planes(self) -> Coded {
+        Coded {
+            meta: self.meta,
+            planes: self.planes,
+            mask: self.mask,
+            source_error: self.source_error,
+        }
     }
 
     /// Builds a volume asset from its coded stream (decoding it, as a reader would).
@@ -332,7 +293,6 @@ impl Asset {
             // Empty if its source cannot be read: `write` says why instead.
             return c.bytes().unwrap_or_default();
         }
-        let mask = self.mask.as_ref().map(Mask::encode);
         let codec = self.codec();
         let payload = match codec {
             Codec::Octree => {
@@ -351,14 +311,7 @@ impl Asset {
                 .as_ref()
                 .expect("a curve asset holds curves")
                 .payload(),
-            _ => registry::visit(
-                codec,
-                WritePayload {
-                    planes: &self.planes,
-                    mask,
-                },
-            )
-            .expect("a codec of planes"),
+            _ => payload(codec, &self.planes, self.mask.as_ref()),
         };
         let section = self
             .source_error
@@ -574,26 +527,4 @@ pub fn check_opens(bytes: &[u8], limits: &AssetLimits) -> Result<(), Error> {
         payload,
     };
     limits.check_cost(registry::visit(plane_codec, cost).unwrap_or(Ok(0))?)
-}
-
-/// Writes the planes of a plane codec's asset as its payload.
-struct WritePayload<'a> {
-    planes: &'a [Plane],
-    mask: Option<Vec<u8>>,
-}
-
-impl Visit for WritePayload<'_> {
-    type Output = Vec<u8>;
-
-    fn visit<H: Registered>(self) -> Vec<u8> {
-        fractile_proto::encode(&Payload {
-            planes: self
-                .planes
-                .iter()
-                .filter_map(|p| H::of(&p.coding))
-                .map(|(header, stream)| (header.clone(), stream.to_vec()))
-                .collect(),
-            mask: self.mask,
-        })
-    }
 }

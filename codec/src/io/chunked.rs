@@ -36,10 +36,12 @@ use fractile_proto::{AssetKind, AssetMeta};
 
 use super::asset::{Asset, AssetLimits, Plane};
 pub use super::asset::{ChunkCache, Chunked};
-use super::container::{Payload, container};
+use super::container::container;
+use super::frame::kind_byte;
 pub use super::layout::*;
 use super::mask::Mask;
 use crate::Error;
+use crate::codecs::coded::Payload;
 use crate::codecs::plane::Build;
 use crate::codecs::projected::{ProjectedHeader, ProjectedOperator};
 use crate::codecs::registry::{Codec, Coding, PlaneOperator};

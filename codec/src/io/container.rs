@@ -5,23 +5,12 @@
 
 use fractile_proto::{AssetKind, AssetMeta};
 
-use super::layout::{MAGIC, kind_byte};
-use serde::{Deserialize, Serialize};
+pub use super::frame::FORMAT_VERSION;
+use super::frame::{MAGIC, kind_byte};
 
 use crate::Error;
 use crate::codecs::registry::Codec;
 
-/// The format version this build writes. Versions 2 to 4 changed only the curve payload
-/// (codec 5; version 3: hexagonal lattice for details, shared coarse contexts, an `f32`
-/// tolerance and one stored bound, no length fields; version 4: a ring may carry its
-/// antimeridian crossings and start vertex, which a version-3 reader would misread as levels);
-/// the other payloads are the same in all four, so version-1 to -3 files of codecs 1-4 are
-/// still read, version-3 curve assets too (they hold neither), and an older curve asset is
-/// refused by name (re-encode its GeoJSON). Versions 6 to 8 are chunked containers only
-/// (`io::layout`); version 9, one number for both containers, codes the projected pyramid's
-/// details with two-rate contexts (`pyramid::Order::SeparableTwoRate`), which a reader of
-/// version 5 would take for a corrupt header: the version tells it the file is newer.
-pub const FORMAT_VERSION: u16 = 9;
 /// The last version of files that are not chunked before [`FORMAT_VERSION`] (6 to 8 name
 /// chunked containers only).
 pub(crate) const LAST_UNCHUNKED_VERSION: u16 = 5;
@@ -131,15 +120,6 @@ fn not_an_asset(bytes: &[u8]) -> String {
     }
 }
 
-/// The payload of a plane codec: its planes (header and stream) and the mask. One generic
-/// struct for every codec: bincode writes a struct as its fields, so every codec's payload
-/// has this layout.
-#[derive(Serialize, Deserialize)]
-pub(crate) struct Payload<H> {
-    pub(crate) planes: Vec<(H, Vec<u8>)>,
-    pub(crate) mask: Option<Vec<u8>>,
-}
-
 /// A file's frame, read: codec byte, metadata, payload and source-error map bytes.
 pub(crate) type Container<'a> = (u8, AssetMeta, &'a [u8], &'a [u8]);
 
@@ -234,23 +214,4 @@ pub(crate) fn container(bytes: &[u8]) -> Result<Container<'_>, Error> {
         )));
     }
     Ok((codec, meta, &bytes[p_start..p_end], section))
-}
-
-/// The file of a payload: the frame around it, the CRC after.
-pub(crate) fn assemble(meta: &AssetMeta, codec: u8, payload: &[u8], section: &[u8]) -> Vec<u8> {
-    let meta_bytes = fractile_proto::encode(meta);
-    let mut out = Vec::with_capacity(28 + meta_bytes.len() + payload.len() + section.len());
-    out.extend_from_slice(MAGIC);
-    out.extend_from_slice(&FORMAT_VERSION.to_le_bytes());
-    out.push(kind_byte(meta.kind));
-    out.push(codec);
-    out.extend_from_slice(&(meta_bytes.len() as u32).to_le_bytes());
-    out.extend_from_slice(&meta_bytes);
-    out.extend_from_slice(&(payload.len() as u32).to_le_bytes());
-    out.extend_from_slice(payload);
-    out.extend_from_slice(&(section.len() as u32).to_le_bytes());
-    out.extend_from_slice(section);
-    let crc = crc32fast::hash(&out);
-    out.extend_from_slice(&crc.to_le_bytes());
-    out
 }

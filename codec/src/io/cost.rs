@@ -4,8 +4,8 @@
 
 use fractile_proto::AssetMeta;
 
-use super::container::Payload;
 use crate::Error;
+use crate::codecs::coded::Payload;
 use crate::codecs::registry::{Registered, Visit};
 
 /// What decoding a plane codec's payload takes, from its headers, before anything is decoded:

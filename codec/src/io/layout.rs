@@ -5,21 +5,11 @@
 use std::path::{Path, PathBuf};
 use std::sync::Arc;
 
-use fractile_proto::{AssetKind, AssetMeta};
+use fractile_proto::AssetMeta;
 use serde::{Deserialize, Serialize};
 
-/// File magic.
-pub const MAGIC: &[u8; 8] = b"FRACTILE";
-
-/// The byte of an asset kind in a file's header.
-pub(crate) fn kind_byte(k: AssetKind) -> u8 {
-    match k {
-        AssetKind::Image => 0,
-        AssetKind::HeightField => 1,
-        AssetKind::Volume => 2,
-        AssetKind::Curve => 3,
-    }
-}
+pub use super::frame::MAGIC;
+use super::frame::kind_byte;
 
 /// The format version of a chunked container. Single-operator files stay version 5 (their
 /// layout did not change), so readers of version 5 keep reading what they read. Version 8: a

@@ -8,6 +8,7 @@ mod cache;
 pub mod chunked;
 mod container;
 mod cost;
+pub(crate) mod frame;
 pub(crate) mod layout;
 pub(crate) mod mask;
 pub mod mosaic;

@@ -175,7 +175,7 @@ pub(crate) fn sources() -> Vec<(&'static str, Vec<u8>)> {
     };
     out.push((
         "fis",
-        fractile_codec::codecs::fis::encode_fis(&crop(&jacksboro, 10, 10, 33, 29), &fis)
+        fractile_codec::encode(&crop(&jacksboro, 10, 10, 33, 29), &fis, &|_, _| {})
             .unwrap()
             .bytes,
     ));
@@ -185,7 +185,7 @@ pub(crate) fn sources() -> Vec<(&'static str, Vec<u8>)> {
     };
     out.push((
         "psa2d",
-        fractile_codec::codecs::psa::encode_psa(&crop(&camera, 60, 60, 40, 40), &psa)
+        fractile_codec::encode(&crop(&camera, 60, 60, 40, 40), &psa, &|_, _| {})
             .unwrap()
             .bytes,
     ));

@@ -1,20 +1,29 @@
-//! The fractal interpolation surfaces' encoder: the lattice pipeline (`encode::lattice`) with
+//! The fractal interpolation surfaces' encoder: the lattice pipeline (`codecs::lattice`) with
 //! the collage fit of node heights and scalings, and the scalings' shrink measured.
 
 use fractile_proto::AssetKind;
 
 use crate::Error;
+use crate::codecs::coded::PlaneEncoder;
+use crate::codecs::coded::{Coded, Measure};
 use crate::codecs::fis::fit::fit;
-use crate::codecs::fis::{FisHeader, FisParams, FisSettings, codec_name, encode_params};
-use crate::encode::lattice::{Lattice, encode_lattice};
-use crate::encode::source::{Encoded, PlaneEncoder};
-use crate::io::asset::Asset;
+use crate::codecs::fis::{
+    FisHeader, FisParams, FisSettings, codec_name, encode_params, scaling_of_codec,
+};
+use crate::codecs::lattice::{Lattice, encode_lattice};
+use crate::codecs::options::{Named, Options};
+use crate::codecs::plane::Build;
+use crate::core::metrics::Errors;
 use crate::io::raster::Raster;
 
 /// Encodes a height field as a fractal interpolation surface ([`crate::codecs::fis`]).
 /// `settings.target_bpp`, when given, overrides `settings.spacing` (and the automatic height step); see
 /// `encode_lattice`.
-pub fn encode_fis(raster: &Raster, settings: &FisSettings) -> Result<Encoded, Error> {
+fn encode_fis(
+    raster: &Raster,
+    settings: &FisSettings,
+    measure: &dyn Measure,
+) -> Result<(Coded, Errors), Error> {
     if raster.kind != AssetKind::HeightField {
         return Err(Error::settings(
             "fractal interpolation surfaces code height fields (use quadtree-pifs or psa2d for \
@@ -32,6 +41,7 @@ pub fn encode_fis(raster: &Raster, settings: &FisSettings) -> Result<Encoded, Er
     encode_lattice(
         raster,
         &lattice,
+        measure,
         |source, spacing, height_step, meta, mask, budget| {
             let header = FisHeader {
                 samples: [source.width as u32, source.height as u32],
@@ -63,7 +73,7 @@ pub fn encode_fis(raster: &Raster, settings: &FisSettings) -> Result<Encoded, Er
             let (lo, span) = (meta.value_min, meta.value_max - meta.value_min);
             let step = f64::from(height_step) * span;
             let mu = 0.75 * step * step / 12.0 * f64::from(spacing * spacing) * 4.0 / 9.0;
-            let mut best: Option<(f64, Asset)> = None;
+            let mut best: Option<(f64, Coded)> = None;
             for shrink in [1.0f32, 0.75, 0.5, 0.25, 0.0] {
                 let params = FisParams {
                     heights: fitted.heights.clone(),
@@ -74,9 +84,10 @@ pub fn encode_fis(raster: &Raster, settings: &FisSettings) -> Result<Encoded, Er
                         .collect(),
                 };
                 let stream = encode_params(&header, &params);
-                let a = Asset::from_coded(m.clone(), vec![(header.clone(), stream)], mask.clone())?;
-                let (d, _) = a.decode_native();
-                let sse: f64 = d.channels[0]
+                let planes = vec![(header.clone(), stream)];
+                let a = Coded::new(m.clone(), planes, mask.clone(), Build::Whole)?;
+                let (a, decoded) = measure.decoded(a);
+                let sse: f64 = decoded[0]
                     .iter()
                     .zip(source.values)
                     .filter(|(z, _)| z.is_finite())
@@ -105,8 +116,43 @@ impl PlaneEncoder for FisSettings {
     fn encode(
         &self,
         raster: &Raster,
+        measure: &dyn Measure,
         _progress: &(dyn Fn(u64, u64) + Sync),
-    ) -> Result<Encoded, Error> {
-        encode_fis(raster, self)
+    ) -> Result<(Coded, Errors), Error> {
+        encode_fis(raster, self, measure)
+    }
+}
+
+impl Named for FisSettings {
+    const NAMES: &'static [(&'static str, &'static str)] = &[
+        (
+            "fis-bilinear",
+            "Fractal interpolation surface, s per node (Wu and Zhou).",
+        ),
+        ("fis-rect", "Fractal interpolation surface, s per cell."),
+        (
+            "fis-rect-global",
+            "Fractal interpolation surface, one s (Drakopoulos and Manousopoulos).",
+        ),
+    ];
+    const TAKES: &'static [&'static str] = &[
+        "target-bpp",
+        "spacing",
+        "height-step",
+        "scaling-bits",
+        "max-contrast",
+    ];
+
+    /// The layout of s the name says, the defaults under the options given.
+    fn named(name: &str, o: &Options, _kind: AssetKind) -> Result<Self, Error> {
+        let d = FisSettings::default();
+        Ok(FisSettings {
+            scaling: scaling_of_codec(name).unwrap_or(d.scaling),
+            spacing: o.spacing.unwrap_or(d.spacing),
+            height_step: o.height_step,
+            scaling_bits: o.scaling_bits.unwrap_or(d.scaling_bits),
+            max_scaling: o.max_contrast.unwrap_or(d.max_scaling),
+            target_bpp: o.target_bpp,
+        })
     }
 }

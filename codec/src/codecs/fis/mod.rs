@@ -35,7 +35,6 @@ pub(crate) mod encode;
 pub(crate) mod fit;
 pub(crate) mod plane;
 
-pub use encode::encode_fis;
 use serde::{Deserialize, Serialize};
 
 use crate::core::entropy::{Decoder, Encoder};
@@ -408,14 +407,14 @@ pub struct FisSettings {
     /// Samples between interpolation points.
     pub spacing: u32,
     /// Node height step in source units (`None`: automatic, see
-    /// `encode::lattice`).
+    /// `codecs::lattice`).
     pub height_step: Option<f64>,
     /// Bits of an s index.
     pub scaling_bits: u8,
     /// Largest |s|.
     pub max_scaling: f32,
     /// Rate control: at most this many bits a source cell, overriding `spacing` and the
-    /// automatic height step (see `encode::lattice`).
+    /// automatic height step (see `codecs::lattice`).
     pub target_bpp: Option<f64>,
 }
 

@@ -4,7 +4,7 @@
 use fractile_proto::SampleFormat;
 
 use crate::Error;
-use crate::encode::source::coding_range;
+use crate::codecs::source::coding_range;
 use crate::io::raster::Raster;
 
 /// The quantum the source lies on: 1 for integer samples (and float samples that are all whole

@@ -2,25 +2,25 @@
 //! units, nodata filled (and masked, its details forced to zero), then either a bound on the
 //! error at every valid sample or a size, and measured like every asset.
 
-use std::time::Instant;
-
 use rayon::prelude::*;
 
 use fractile_proto::ColourModel;
 
 use crate::Error;
+use crate::codecs::coded::PlaneEncoder;
+use crate::codecs::coded::{Coded, Measure};
+use crate::codecs::plane::Build;
 use crate::codecs::projected::bound::{
-    check_bound, chunk_span, delivery_margin, finest_bound, max_error_step, source_quantum,
+    check_bound, delivery_margin, finest_bound, max_error_step, source_quantum,
 };
 use crate::codecs::projected::pyramid::Order;
 use crate::codecs::projected::{
     self, CODEC_NAME, ProjectedHeader, ProjectedSettings, encode_grid, levels_for,
 };
-use crate::encode::source::{
-    Encoded, PlaneEncoder, coding_range, decoded_errors, fill_invalid, measured, source_meta,
-    source_planes, without_map,
-};
-use crate::io::asset::{Asset, Mask};
+use crate::codecs::registry::Coding;
+use crate::codecs::source::{coding_range, fill_invalid, source_meta, source_planes, without_map};
+use crate::core::metrics::Errors;
+use crate::io::mask::Mask;
 use crate::io::raster::Raster;
 use crate::render::colour::rgb_to_ycbcr;
 
@@ -31,7 +31,11 @@ const BISECTIONS: u32 = 18;
 /// Encodes a grey image or a height field with the projected IFS with details: under
 /// `settings.max_error` every valid decoded sample is within it of the source; under
 /// `settings.target_bpp` the finest step whose file fits is kept.
-pub fn encode_projected(raster: &Raster, settings: &ProjectedSettings) -> Result<Encoded, Error> {
+fn encode_projected(
+    raster: &Raster,
+    settings: &ProjectedSettings,
+    measure: &dyn Measure,
+) -> Result<(Coded, Errors), Error> {
     let target_bpp = settings.target_bpp;
     // The streams get the rate less an allowance for the rest of the file, which a nodata
     // mask can overrun (a warped DEM's mask took 1.8% of its 0.8 bpp): a file over the rate
@@ -43,37 +47,36 @@ pub fn encode_projected(raster: &Raster, settings: &ProjectedSettings) -> Result
         .map(|b| (b * (raster.width * raster.height) as f64 / 8.0).floor() as usize);
     let all = designs(settings);
     let Some(limit) = limit else {
-        return encode_within(raster, settings, target_bpp, (0, &all));
+        return encode_within((raster, measure), settings, target_bpp, (0, &all));
     };
     let mut shift = 0i64;
-    let mut kept: Option<Encoded> = None;
+    let mut kept: Option<(Coded, Errors, usize)> = None;
     // Once a file fits, passes for the slack code its design alone.
     let mut tried = all.clone();
     for _ in 0..4 {
-        let enc = encode_within(raster, settings, target_bpp, (shift, &tried))?;
-        let len = enc.bytes.len();
+        let (coded, errors) =
+            encode_within((raster, measure), settings, target_bpp, (shift, &tried))?;
+        let len = coded.file_size();
         if len > limit {
             shift += (len - limit) as i64 + 8;
             continue;
         }
         let first_within = kept.is_none();
         // Of two files within the rate, the larger one has the finer step.
-        if kept.as_ref().is_none_or(|k| len > k.bytes.len()) {
-            kept = Some(enc);
+        if kept.as_ref().is_none_or(|k| len > k.2) {
+            kept = Some((coded, errors, len));
         }
         let slack = limit - len;
         if first_within && slack > limit / 100 + 16 {
             shift -= slack as i64 - 8;
-            tried = kept
-                .as_ref()
-                .map_or(all.clone(), |k| vec![design_of(&k.asset)]);
+            tried = kept.as_ref().map_or(all.clone(), |k| vec![design_of(&k.0)]);
             continue;
         }
         break;
     }
     match kept {
-        Some(enc) => Ok(enc),
-        None => encode_within(raster, settings, target_bpp, (shift, &all)),
+        Some((coded, errors, _)) => Ok((coded, errors)),
+        None => encode_within((raster, measure), settings, target_bpp, (shift, &all)),
     }
 }
 
@@ -86,12 +89,11 @@ fn shifted(bpp: f64, raster: &Raster, shift: i64) -> Result<usize, Error> {
 /// [`encode_projected`] with the streams' budget `shift` bytes under the rate's (over it if
 /// negative), trying the `designs` given under a rate.
 fn encode_within(
-    raster: &Raster,
+    (raster, measure): (&Raster, &dyn Measure),
     settings: &ProjectedSettings,
     target_bpp: Option<f64>,
     (shift, designs): (i64, &[Option<Order>]),
-) -> Result<Encoded, Error> {
-    let start = Instant::now();
+) -> Result<(Coded, Errors), Error> {
     let (w, h) = (raster.width, raster.height);
     if w < 2 || h < 2 {
         return Err(Error::input(format!(
@@ -104,7 +106,7 @@ fn encode_within(
                 "a fixed step codes one channel (colour takes a rate)",
             ));
         }
-        return encode_colour(raster, settings, target_bpp, (start, shift, designs));
+        return encode_colour((raster, measure), settings, target_bpp, (shift, designs));
     }
     let (lo, hi) = coding_range(raster);
     let span = hi - lo;
@@ -146,7 +148,7 @@ fn encode_within(
             header.quantum = 0.0;
             let budget = shifted(bpp, raster, shift)?;
             // Each design on its own core (their bisections are independent).
-            let tries: Vec<(f64, ProjectedHeader, Coded)> = designs
+            let tries: Vec<(f64, ProjectedHeader, Stream)> = designs
                 .par_iter()
                 .map(|&lifted| {
                     let mut planes = [(header.clone(), source.as_slice(), valid, 1.0)];
@@ -180,47 +182,12 @@ fn encode_within(
         header.roughness
     );
     let mask = raster.valid.as_ref().map(|v| Mask::new(w, h, v.clone()));
-    let asset = Asset::from_coded(meta, vec![(header, stream)], mask)?;
-    let errors = decoded_errors(&asset, raster);
+    let coded = Coded::new(meta, vec![(header, stream)], mask, Build::Whole)?;
+    let (coded, errors) = coded.errors(raster, measure);
     if settings.trial {
-        let bytes = asset.to_bytes();
-        let transforms = asset.planes.iter().map(|p| p.operator.transforms()).sum();
-        let seconds = start.elapsed().as_secs_f64();
-        return Ok(Encoded {
-            asset,
-            bytes,
-            errors,
-            transforms,
-            seconds,
-        });
+        return Ok((coded, errors));
     }
-    Ok(measured(asset, start, errors, raster))
-}
-
-/// One chunk of a file whose rate is the file's ([`crate::encode::rate`]) at its quality: a step
-/// (rate mode, no rate control of its own) or a bound (max-error mode); `trial`: a coding
-/// whose file is not kept, without its source-error map.
-pub fn encode_at(
-    raster: &Raster,
-    quality: crate::encode::rate::Quality,
-    trial: bool,
-) -> Result<Encoded, Error> {
-    let settings = match quality {
-        crate::encode::rate::Quality::Step(at) => ProjectedSettings {
-            at_step: Some(at),
-            trial,
-            ..Default::default()
-        },
-        // The file's bound, no finer than this chunk's range is coded to: finer only where
-        // the chunk is constant (its range is then taken as 1) in a file of a range under 1,
-        // and a constant is decoded exactly.
-        crate::encode::rate::Quality::Bound(e) => ProjectedSettings {
-            max_error: Some(e.max(finest_bound(chunk_span(raster)))),
-            trial,
-            ..Default::default()
-        },
-    };
-    encode_projected(raster, &settings)
+    Ok((measure.kept(coded, raster, &errors), errors))
 }
 
 /// The multiresolutions rate mode tries, the best kept (`None` is the closed-loop pyramid): both
@@ -236,11 +203,9 @@ fn designs(settings: &ProjectedSettings) -> Vec<Option<Order>> {
 }
 
 /// The design an asset's first plane was coded with, as [`designs`] names it.
-fn design_of(asset: &Asset) -> Option<Order> {
-    match &asset.planes[0].coding {
-        crate::io::asset::Coding::Projected { header, .. } => {
-            header.order.lifting().map(|_| header.order)
-        }
+fn design_of(coded: &Coded) -> Option<Order> {
+    match &coded.planes[0].coding {
+        Coding::Projected { header, .. } => header.order.lifting().map(|_| header.order),
         _ => None,
     }
 }
@@ -262,7 +227,7 @@ fn code_to_bound(
     (source, valid): (&[f64], Option<&[bool]>),
     e: f64,
     span: f64,
-) -> Result<Coded, Error> {
+) -> Result<Stream, Error> {
     let finest = finest_bound(span);
     if header.quantum == 0.0 && e < finest {
         return Err(Error::settings(format!(
@@ -279,7 +244,7 @@ fn code_to_bound(
 }
 
 /// A coded stream and the samples it decodes to.
-type Coded = (Vec<u8>, Vec<f64>);
+type Stream = (Vec<u8>, Vec<f64>);
 
 /// Codes under both orders of the passes and keeps the smaller (the order goes in `header`).
 fn smaller_order(
@@ -288,7 +253,7 @@ fn smaller_order(
     valid: Option<&[bool]>,
     quantising: (f64, f64),
 ) -> (Vec<u8>, Vec<f64>) {
-    let mut best: Option<(Order, Coded)> = None;
+    let mut best: Option<(Order, Stream)> = None;
     for order in Order::PYRAMIDS {
         header.order = order;
         let coded = encode_grid(header, source, valid, quantising);
@@ -314,7 +279,7 @@ fn fit_size(
     quantising: (f64, f64),
     budget: usize,
     (span, lifted): (f64, Option<Order>),
-) -> Vec<Coded> {
+) -> Vec<Stream> {
     for (header, source, valid, scale) in planes.iter_mut() {
         header.step = span * 1e-3 * *scale;
         match lifted {
@@ -325,7 +290,7 @@ fn fit_size(
         }
     }
     let (mut lo, mut hi) = ((span * 1e-6).ln(), span.ln());
-    let mut try_step = |step: f64| -> Vec<Coded> {
+    let mut try_step = |step: f64| -> Vec<Stream> {
         planes
             .iter_mut()
             .map(|(header, source, valid, scale)| {
@@ -334,7 +299,7 @@ fn fit_size(
             })
             .collect()
     };
-    let bytes = |c: &[Coded]| c.iter().map(|c| c.0.len()).sum::<usize>();
+    let bytes = |c: &[Stream]| c.iter().map(|c| c.0.len()).sum::<usize>();
     let finest = try_step(lo.exp());
     if bytes(&finest) <= budget {
         return finest;
@@ -363,7 +328,7 @@ fn fit_bound(
     (source, valid): (&[f64], Option<&[bool]>),
     budget: usize,
     span: f64,
-) -> (f64, Coded) {
+) -> (f64, Stream) {
     let quantum = header.quantum;
     let margin = delivery_margin(header.value_min, header.value_span);
     let (mut lo, mut hi) = if quantum > 0.0 {
@@ -377,7 +342,7 @@ fn fit_bound(
     header.step = max_error_step(middling, quantum, margin).expect("a positive bound");
     header.max_error = middling;
     smaller_order(header, source, valid, (0.0, 0.0));
-    let mut try_bound = |e: f64| -> Coded {
+    let mut try_bound = |e: f64| -> Stream {
         header.step = max_error_step(e, quantum, margin).expect("a bound >= 0 on a quantum or > 0");
         header.max_error = e;
         encode_grid(header, source, valid, (0.0, 0.0))
@@ -450,11 +415,11 @@ type Plane = (usize, usize, Vec<f32>);
 /// low rates, but caps the PSNR at high ones (astronaut: 37.6 dB at 2 bpp with the pyramid,
 /// where JPEG 2000 reaches 40.7).
 fn encode_colour(
-    raster: &Raster,
+    (raster, measure): (&Raster, &dyn Measure),
     settings: &ProjectedSettings,
     target_bpp: Option<f64>,
-    (start, shift, designs): (Instant, i64, &[Option<Order>]),
-) -> Result<Encoded, Error> {
+    (shift, designs): (i64, &[Option<Order>]),
+) -> Result<(Coded, Errors), Error> {
     let Some(bpp) = target_bpp.filter(|_| settings.max_error.is_none()) else {
         return Err(Error::settings(
             "--max-error bounds one channel: projected codes colour under --target-bpp",
@@ -481,7 +446,7 @@ fn encode_colour(
         .flat_map(|planes| designs.iter().map(move |&d| (planes.clone(), d)))
         .collect();
     // Each resolution and design on its own core.
-    let coded: Vec<(Asset, crate::core::metrics::Errors)> = tries
+    let coded: Vec<(Coded, Errors)> = tries
         .into_par_iter()
         .map(|(planes, lifted)| {
             let sources: Vec<Vec<f64>> = planes
@@ -515,16 +480,15 @@ fn encode_colour(
                 "{CODEC_NAME} colour step={} chroma={}x{}",
                 parts[0].0.step, parts[1].0.samples[0], parts[1].0.samples[1]
             );
-            let asset = Asset::from_coded(meta, parts, None)?;
-            let errors = decoded_errors(&asset, raster);
-            Ok((asset, errors))
+            let coded = Coded::new(meta, parts, None, Build::Whole)?;
+            Ok(coded.errors(raster, measure))
         })
         .collect::<Result<_, Error>>()?;
     let best = coded
         .into_iter()
         .min_by(|a, b| a.1.rmse.total_cmp(&b.1.rmse));
-    let (asset, errors) = best.expect("two chroma resolutions tried");
-    Ok(measured(asset, start, errors, raster))
+    let (coded, errors) = best.expect("two chroma resolutions tried");
+    Ok((measure.kept(coded, raster, &errors), errors))
 }
 
 /// A plane's header before coding: its levels, the quantum, and its value range (what decoded
@@ -560,9 +524,10 @@ impl PlaneEncoder for ProjectedSettings {
     fn encode(
         &self,
         raster: &Raster,
+        measure: &dyn Measure,
         _progress: &(dyn Fn(u64, u64) + Sync),
-    ) -> Result<Encoded, Error> {
-        encode_projected(raster, self)
+    ) -> Result<(Coded, Errors), Error> {
+        encode_projected(raster, self, measure)
     }
 
     /// The operator's 48 bytes a sample (`ProjectedHeader::cost`) and the discrete decode's 8.

@@ -43,10 +43,13 @@ pub(crate) mod records;
 mod residual;
 pub(crate) mod subdivision;
 
+use fractile_proto::AssetKind;
+
+use crate::Error;
+use crate::codecs::options::{Named, Options};
 use crate::core::entropy::{Decoder, Encoder};
 
 pub(crate) use bound::{deliver_plane, finest_bound};
-pub use encode::{encode_at, encode_projected};
 pub use header::{CODEC_NAME, ProjectedHeader};
 pub use operator::ProjectedOperator;
 pub use pyramid::levels_for;
@@ -285,6 +288,100 @@ pub struct AtStep {
     pub step: f64,
     /// The multiresolution.
     pub design: Option<pyramid::Order>,
+}
+
+/// The quality every chunk of a file is coded at (`encode::rate`: a file's rate is the
+/// file's).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Quality {
+    /// Rate mode: a step and a multiresolution.
+    Step(AtStep),
+    /// Bounded: every valid cell within this of its source (source units).
+    Bound(f64),
+}
+
+impl Quality {
+    /// The quality of the chunks of overview level `l` (cells of 2^l source cells): the step
+    /// or bound times 2^l. A coarse cell is 2^l cells wide and is seen at a 2^l times coarser
+    /// zoom, so its error may be 2^l times larger, as a terrain level of detail's geometric
+    /// error doubles a level (Cesium's, and the error a coarse tile's mesh is simplified to).
+    /// At the source's step the overviews took a third of the file (docs/benchmarks.md).
+    pub fn at_level(self, l: usize) -> Quality {
+        let scale = f64::from(1u32 << l.min(30));
+        match self {
+            Quality::Step(s) => Quality::Step(AtStep {
+                step: s.step * scale,
+                design: s.design,
+            }),
+            Quality::Bound(e) => Quality::Bound(e * scale),
+        }
+    }
+
+    /// How the encoder's settings name it (what split encodes must agree on).
+    pub fn describe(&self) -> String {
+        match self {
+            Quality::Step(s) => format!("step {} {:?}", s.step, s.design),
+            Quality::Bound(e) => format!("max error {e}"),
+        }
+    }
+}
+
+impl ProjectedSettings {
+    /// The settings of one chunk of a file whose rate is the file's (`encode::rate`), at its
+    /// quality: a step (rate mode, no rate control of its own) or a bound (max-error mode);
+    /// `trial`: a coding whose file is not kept, without its source-error map.
+    pub fn at(quality: Quality, raster: &crate::io::raster::Raster, trial: bool) -> Self {
+        match quality {
+            Quality::Step(at) => ProjectedSettings {
+                at_step: Some(at),
+                trial,
+                ..Default::default()
+            },
+            // The file's bound, no finer than this chunk's range is coded to: finer only where
+            // the chunk is constant (its range is then taken as 1) in a file of a range under 1,
+            // and a constant is decoded exactly.
+            Quality::Bound(e) => ProjectedSettings {
+                max_error: Some(e.max(finest_bound(bound::chunk_span(raster)))),
+                trial,
+                ..Default::default()
+            },
+        }
+    }
+}
+
+/// The rate of a height field's default encode: 0.8 bits a cell (20:1 against 16-bit samples),
+/// where issue 34's measurements put every bar (bound within 2.7x of the actual error, tiles
+/// within 1.4x of TiTiler's bytes).
+pub const DEFAULT_HEIGHT_FIELD_BPP: f64 = 0.8;
+
+impl Named for ProjectedSettings {
+    const NAMES: &'static [(&'static str, &'static str)] = &[(
+        CODEC_NAME,
+        "Projected IFS with details on a grid: fitted subdivision plus details (height fields \
+         and grey images; --max-error or --target-bpp).",
+    )];
+    const TAKES: &'static [&'static str] = &["target-bpp", "max-error", "bounded"];
+
+    /// A max error, or a rate (`bounded`: the smallest max error that fits it); neither given,
+    /// the height-field default: bounded at [`DEFAULT_HEIGHT_FIELD_BPP`].
+    fn named(_name: &str, o: &Options, _kind: AssetKind) -> Result<Self, Error> {
+        if o.max_error.is_some() && o.target_bpp.is_some() {
+            return Err(Error::settings(
+                "projected takes --max-error or --target-bpp, not both",
+            ));
+        }
+        let no_rate = o.max_error.is_none() && o.target_bpp.is_none();
+        Ok(ProjectedSettings {
+            max_error: o.max_error,
+            bounded: o.bounded || no_rate,
+            target_bpp: if no_rate {
+                Some(DEFAULT_HEIGHT_FIELD_BPP)
+            } else {
+                o.target_bpp
+            },
+            ..Default::default()
+        })
+    }
 }
 
 impl Default for ProjectedSettings {

@@ -32,7 +32,6 @@ pub(crate) mod encode;
 pub(crate) mod fit;
 pub(crate) mod plane;
 
-pub use encode::encode_psa;
 use serde::{Deserialize, Serialize};
 
 use crate::core::entropy::{Bit, Decoder, Encoder};
@@ -50,14 +49,7 @@ pub enum Tiling {
     Triangular,
 }
 
-/// Where domains may start.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
-pub enum Domains {
-    /// On multiples of the ratio (domains tile the lattice).
-    Touching,
-    /// On any vertex.
-    Overlapping,
-}
+pub use crate::codecs::options::Domains;
 
 /// What a reader needs to decode a plane's stream.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -567,7 +559,7 @@ pub struct PsaSettings {
     /// Largest |s|.
     pub max_scaling: f32,
     /// Rate control: at most this many bits a source cell, picking the region size (see
-    /// `encode::lattice`).
+    /// `codecs::lattice`).
     pub target_bpp: Option<f64>,
 }
 

@@ -1,4 +1,4 @@
-//! The quadtree encoder: a [`Raster`] becomes an [`Asset`].
+//! The quadtree encoder: a [`Raster`] becomes coded planes ([`Coded`]).
 //!
 //! Flow: normalise values to [0, 1] -> colour to YCbCr (chroma at half resolution) -> fill nodata
 //! (push-pull) and pad to the frame (edge replication; padding and nodata weigh 0 in every fit)
@@ -6,25 +6,24 @@
 //! const range, or a target rate by bisection) -> entropy code -> decode once to report the real
 //! error.
 
-use std::time::Instant;
-
 use fractile_proto::AssetMeta;
 
 use crate::Error;
+use crate::codecs::coded::PlaneEncoder;
+use crate::codecs::coded::{Coded, Measure};
+use crate::codecs::plane::Build;
 use crate::codecs::quadtree::partition::{
     Limits, Partition, Pyramid, greedy_order, partitions_after,
 };
 use crate::codecs::quadtree::search::{CodingPlane, SearchMode};
 use crate::codecs::quadtree::settings::{QuadtreeSettings, RateMode};
 use crate::codecs::quadtree::stream::{PlaneHeader, encode_plane};
+use crate::codecs::registry::PlaneOperator;
+use crate::codecs::source::{SourcePlane, fill_invalid, source_meta, source_planes, without_map};
 use crate::core::decode::{self, DiscreteOptions};
 use crate::core::metrics::Errors;
 use crate::core::transform::Quantiser;
-use crate::encode::source::{
-    Encoded, PlaneEncoder, SourcePlane, decoded_errors, fill_invalid, measured, source_meta,
-    source_planes, without_map,
-};
-use crate::io::asset::{Asset, Mask, PlaneOperator};
+use crate::io::mask::Mask;
 use crate::io::raster::Raster;
 
 /// Owned form of [`Limits`].
@@ -34,9 +33,9 @@ type BoxedLimits = Box<dyn Fn(usize, usize, usize) -> (f32, usize) + Sync>;
 pub(crate) fn encode(
     raster: &Raster,
     settings: &QuadtreeSettings,
+    measure: &dyn Measure,
     progress: &(dyn Fn(u64, u64) + Sync),
-) -> Result<Encoded, Error> {
-    let start = Instant::now();
+) -> Result<(Coded, Errors), Error> {
     settings.validate()?;
     let (w, h) = (raster.width, raster.height);
     let (lo, hi, colour, sources) = source_planes(raster);
@@ -96,7 +95,7 @@ pub(crate) fn encode(
         // The size alone (no stream decoding, no operator). The stats `measured` fills in
         // later are fixed-width fields, so the final file has exactly this size.
         let file_size = |parts: &[Partition]| {
-            Asset::coded_file_size(&meta, code_planes(pyramids, parts), mask.as_ref())
+            Coded::file_size_of(&meta, code_planes(pyramids, parts), mask.as_ref())
         };
         let max_bytes = target_bytes.unwrap_or(usize::MAX);
         partitions_for(
@@ -107,23 +106,23 @@ pub(crate) fn encode(
             &file_size,
         )
     };
-    let build = |pyramids: &[Pyramid]| -> Result<Asset, Error> {
-        Asset::from_coded(
+    let build = |pyramids: &[Pyramid]| -> Result<Coded, Error> {
+        Coded::new(
             meta_for(pyramids[0].header.quantiser),
             code_planes(pyramids, &choose(pyramids)?),
             mask.clone(),
+            Build::Whole,
         )
     };
     // One search per plane serves every quantiser, with domains read from `avg2[plane]`; rate
     // control runs for each. Under a target size every quantiser's asset fits it: the one that
     // decodes closest to the source wins (the settings' own on a tie).
-    let weigh = |avg2: &[Vec<f32>]| -> Result<(Asset, Errors), Error> {
+    let weigh = |avg2: &[Vec<f32>]| -> Result<(Coded, Errors), Error> {
         let pyramids_by_quantiser =
             search_planes(&planes, avg2, &headers_by_quantiser, settings.search, &tick);
-        let mut weighed: Option<(Asset, Errors)> = None;
+        let mut weighed: Option<(Coded, Errors)> = None;
         for pyramids in &pyramids_by_quantiser {
-            let asset = build(pyramids)?;
-            let errors = decoded_errors(&asset, raster);
+            let (asset, errors) = build(pyramids)?.errors(raster, measure);
             let better = weighed
                 .as_ref()
                 .is_none_or(|(best, e)| preferred((&asset, &errors), (best, e), target_bytes));
@@ -137,7 +136,7 @@ pub(crate) fn encode(
     let (latest, errors) = weigh(&own_domains)?;
     if settings.attractor_passes == 0 {
         progress(total, total);
-        return Ok(measured(latest, start, errors, raster));
+        return Ok((measure.kept(latest, raster, &errors), errors));
     }
     // A pass must not buy its quality with bytes the user did not grant: under a target size
     // any asset within it will do; otherwise it may be no larger than the first.
@@ -146,23 +145,23 @@ pub(crate) fn encode(
     let (best, best_errors) =
         attractor_passes(&planes, (latest, errors), passes, max_size, &weigh)?;
     progress(total, total);
-    Ok(measured(best, start, best_errors, raster))
+    Ok((measure.kept(best, raster, &best_errors), best_errors))
 }
 
 /// One search with the given domains per plane, under every quantiser: the asset that decodes
 /// closest to the source, and its errors.
-type Weigh<'a> = dyn Fn(&[Vec<f32>]) -> Result<(Asset, Errors), Error> + 'a;
+type Weigh<'a> = dyn Fn(&[Vec<f32>]) -> Result<(Coded, Errors), Error> + 'a;
 
 /// Searches `passes` more times with domains read from the latest asset's decoded attractor
 /// instead of the source, and keeps the asset that decodes closest to the source within
 /// `max_size` bytes (the first on a tie).
 fn attractor_passes(
     planes: &[CodingPlane],
-    first: (Asset, Errors),
+    first: (Coded, Errors),
     passes: u32,
     max_size: usize,
     weigh: &Weigh,
-) -> Result<(Asset, Errors), Error> {
+) -> Result<(Coded, Errors), Error> {
     let (mut latest, mut best_errors) = first;
     let mut best = latest.clone();
     for _ in 0..passes {
@@ -412,8 +411,8 @@ fn attractor(plane: &CodingPlane, op: &PlaneOperator) -> Vec<f32> {
 /// Whether `candidate` beats `best` under a target size: an asset within the target beats one
 /// over it (rate control returns its smallest where nothing fits); then the smaller mean square
 /// error (what PSNR ranks by), or between two over the target, the smaller file.
-fn preferred(candidate: (&Asset, &Errors), best: (&Asset, &Errors), target: Option<usize>) -> bool {
-    let fits = |a: &Asset| target.is_none_or(|t| a.file_size() <= t);
+fn preferred(candidate: (&Coded, &Errors), best: (&Coded, &Errors), target: Option<usize>) -> bool {
+    let fits = |a: &Coded| target.is_none_or(|t| a.file_size() <= t);
     match (fits(candidate.0), fits(best.0)) {
         (true, false) => true,
         (false, true) => false,
@@ -488,8 +487,9 @@ impl PlaneEncoder for QuadtreeSettings {
     fn encode(
         &self,
         raster: &Raster,
+        measure: &dyn Measure,
         progress: &(dyn Fn(u64, u64) + Sync),
-    ) -> Result<Encoded, Error> {
-        encode(raster, self, progress)
+    ) -> Result<(Coded, Errors), Error> {
+        encode(raster, self, measure, progress)
     }
 }

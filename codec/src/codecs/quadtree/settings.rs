@@ -5,6 +5,7 @@
 use fractile_proto::AssetKind;
 
 use crate::Error;
+use crate::codecs::options::{Named, Options, Search};
 use crate::codecs::quadtree::search::SearchMode;
 use crate::core::transform::Quantiser;
 
@@ -23,16 +24,7 @@ pub enum RateMode {
     TargetBpp(f64),
 }
 
-/// A region of interest with its own tolerance and smallest range size.
-#[derive(Clone, Copy, Debug, PartialEq)]
-pub struct Roi {
-    /// x0, y0, x1, y1 in source pixels.
-    pub rect: [f32; 4],
-    /// Tolerance in source value units.
-    pub tolerance: f32,
-    /// Smallest range side inside the region (a power of two); the global one if `None`.
-    pub min_range: Option<u32>,
-}
+pub use crate::codecs::options::Roi;
 
 /// Encoder settings.
 #[derive(Clone, Debug, PartialEq)]
@@ -289,5 +281,78 @@ impl QuadtreeSettings {
             self.rois.len(),
             self.attractor_passes
         )
+    }
+}
+
+impl Named for QuadtreeSettings {
+    const NAMES: &'static [(&'static str, &'static str)] = &[(
+        "quadtree-pifs",
+        "Quadtree partitioned IFS (images and height fields).",
+    )];
+    const TAKES: &'static [&'static str] = &[
+        "target-bpp",
+        "tolerance",
+        "transforms",
+        "const-range",
+        "roi",
+        "min-range",
+        "max-range",
+        "speed",
+        "domain-step",
+        "contrast-bits",
+        "offset-bits",
+        "slope-bits",
+        "max-contrast",
+        "search",
+        "candidates",
+        "attractor-passes",
+    ];
+
+    /// The speed preset's settings ([`QuadtreeSettings::at_speed`]) with the options given
+    /// over it; the rate: a target size, else a tolerance, a number of ranges or a constant
+    /// range, else the default tolerance.
+    fn named(_name: &str, o: &Options, kind: AssetKind) -> Result<Self, Error> {
+        let rate = match (o.target_bpp, o.tolerance, o.transforms, o.const_range) {
+            (Some(b), ..) => RateMode::TargetBpp(b),
+            (_, Some(t), ..) => RateMode::Tolerance(t),
+            (_, _, Some(n), _) => RateMode::Transforms(n),
+            (.., Some(r)) => RateMode::ConstRange(r),
+            _ => RateMode::Tolerance(f32::NAN),
+        };
+        let preset = QuadtreeSettings::at_speed(o.speed.unwrap_or(DEFAULT_SPEED))?;
+        let candidates = match preset.search {
+            SearchMode::Nearest(k) => o.candidates.unwrap_or(k),
+            _ => o.candidates.unwrap_or(32),
+        };
+        let quantiser = Quantiser {
+            contrast_bits: o.contrast_bits.unwrap_or(preset.quantiser.contrast_bits),
+            offset_bits: o.offset_bits.unwrap_or(preset.quantiser.offset_bits),
+            max_contrast: o.max_contrast.unwrap_or(preset.quantiser.max_contrast),
+            slope_bits: o
+                .slope_bits
+                .unwrap_or(QuadtreeSettings::default_slope_bits(kind)),
+        };
+        // Bits given are kept as given; otherwise the encoder weighs the kind's choices.
+        let quantiser_choices = if o.offset_bits.is_none() && o.slope_bits.is_none() {
+            QuadtreeSettings::default_quantiser_choices(kind, quantiser)
+        } else {
+            Vec::new()
+        };
+        Ok(QuadtreeSettings {
+            rate,
+            min_range: o.min_range.unwrap_or(preset.min_range),
+            max_range: o.max_range.unwrap_or(preset.max_range),
+            domain_step: o.domain_step.unwrap_or(preset.domain_step),
+            quantiser,
+            quantiser_choices,
+            search: match o.search.unwrap_or(Search::Nearest) {
+                Search::Full => SearchMode::Full,
+                Search::Classified => SearchMode::Classified,
+                Search::Nearest => SearchMode::Nearest(candidates.max(1)),
+            },
+            rois: o.roi.clone(),
+            attractor_passes: o.attractor_passes.unwrap_or(preset.attractor_passes),
+            ..preset
+        })
     }
 }

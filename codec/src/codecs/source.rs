@@ -1,119 +1,11 @@
-//! The source side of every encoder: a raster's planes over its value range, its metadata,
-//! nodata filled for coding, the errors of a decode against it, and what an encode returns.
-
-use std::time::Instant;
+//! The source side of every plane encoder, below the codecs that share it: a raster's planes
+//! over its value range (luma and half-resolution chroma for colour), its metadata, nodata
+//! filled for coding, and the share of a target size the source-error map takes.
 
 use fractile_proto::{AssetKind, AssetMeta, ColourModel, EncodeStats, SampleFormat};
 
-use crate::Error;
-use crate::core::metrics::{Errors, compare};
-use crate::io::asset::Asset;
 use crate::io::raster::Raster;
 use crate::render::colour::rgb_to_ycbcr;
-
-use super::fidelity;
-
-/// What an encode produced and measured.
-#[derive(Clone, Debug)]
-pub struct Encoded {
-    /// The asset (also holds the stats in its metadata).
-    pub asset: Asset,
-    /// The file's bytes.
-    pub bytes: Vec<u8>,
-    /// Errors of the decoded asset against the source (valid cells, source units).
-    pub errors: Errors,
-    /// Ranges over all planes.
-    pub transforms: usize,
-    /// Wall time in seconds.
-    pub seconds: f64,
-}
-
-impl Encoded {
-    /// Bits per source pixel of the whole file.
-    pub fn bpp(&self) -> f64 {
-        bpp(&self.asset.meta, self.bytes.len() as u64)
-    }
-
-    /// Source bytes (at the source's sample type) over file bytes.
-    pub fn ratio(&self) -> f64 {
-        self.asset.meta.source_bytes() as f64 / self.bytes.len() as f64
-    }
-
-    /// Writes the file to `path` atomically; keeps what was measured. A file that readers
-    /// under the default limits would refuse (a large raster in one piece) is not written:
-    /// what one reader (the CLI, Python) writes, every reader opens.
-    pub fn write(self, path: &std::path::Path) -> Result<Written, Error> {
-        crate::io::asset::check_opens(&self.bytes, &crate::AssetLimits::default()).map_err(
-            |e| {
-                Error::settings(format!(
-                    "not written: readers would refuse it ({e}); encode it in chunks (--chunk \
-                     1024, Python's chunk=1024)"
-                ))
-            },
-        )?;
-        crate::io::asset::write_atomic(path, &self.bytes)?;
-        Ok(Written {
-            length: self.bytes.len() as u64,
-            asset: self.asset,
-            errors: self.errors,
-            transforms: self.transforms,
-            seconds: self.seconds,
-        })
-    }
-}
-
-/// What an encode wrote to a file and measured: [`Encoded::write`], or a chunked encode
-/// streamed to disk ([`super::chunked::encode_chunked_file`]), whose bytes were never all in memory.
-#[derive(Clone, Debug)]
-pub struct Written {
-    /// The asset (a chunked one as opened from the file: its header, chunks on demand).
-    pub asset: Asset,
-    /// The file's length in bytes.
-    pub length: u64,
-    /// Errors of the decoded asset against the source (a chunked one's: its source level's
-    /// chunks over their coded cells).
-    pub errors: Errors,
-    /// Ranges over all planes (a chunked one's: over its source level's chunks).
-    pub transforms: usize,
-    /// Wall time in seconds.
-    pub seconds: f64,
-}
-
-impl Written {
-    /// Bits per source pixel of the whole file.
-    pub fn bpp(&self) -> f64 {
-        bpp(&self.asset.meta, self.length)
-    }
-
-    /// Source bytes (at the source's sample type) over file bytes.
-    pub fn ratio(&self) -> f64 {
-        self.asset.meta.source_bytes() as f64 / self.length as f64
-    }
-}
-
-pub(crate) fn bpp(meta: &fractile_proto::AssetMeta, length: u64) -> f64 {
-    length as f64 * 8.0 / (f64::from(meta.width) * f64::from(meta.height))
-}
-
-/// A plane codec's encoder, implemented by its settings: what the entry point
-/// ([`crate::encode::encode`]) runs for the codec the settings name.
-pub trait PlaneEncoder {
-    /// Codes `raster`; `progress(done, total)` is called as work is done, where the codec
-    /// counts it.
-    fn encode(
-        &self,
-        raster: &Raster,
-        progress: &(dyn Fn(u64, u64) + Sync),
-    ) -> Result<Encoded, crate::Error>;
-
-    /// What a reader of this codec's file takes a cell at least (its `PlaneCodec::cost` and
-    /// the discrete decode's two f32 grids): [`crate::encode::encode`] refuses up front a
-    /// raster in one piece that readers would refuse, rather than after coding it. A lower
-    /// bound: the file itself is checked before it is written ([`Encoded::write`]).
-    fn reader_bytes_per_cell(&self) -> u64 {
-        8
-    }
-}
 
 /// A source channel, normalised, before padding: values, validity, and its extent in source
 /// pixels per plane sample (1 for full resolution, 2 for chroma).
@@ -231,52 +123,11 @@ pub(crate) fn source_meta(
     }
 }
 
-/// The asset decoded at the source size, compared with the source (valid cells, source units).
-pub(crate) fn decoded_errors(asset: &Asset, raster: &Raster) -> Errors {
-    let (decoded, _) = asset.decode_native();
-    compare(
-        &raster.channels,
-        &decoded.channels,
-        raster.valid.as_deref(),
-        asset.meta.psnr_peak(),
-    )
-}
-
 /// Of a target of `bytes`, what the operator may take: the rest is the source-error map's
 /// (whose budget, a share of the operator's size, then fits in it).
 pub(crate) fn without_map(bytes: usize) -> usize {
     (bytes as f64 / (1.0 + crate::core::fidelity::SHARE)).floor() as usize
         - crate::core::fidelity::reserve(0).min(bytes / 64)
-}
-
-/// The encoder's report: the asset's `errors` ([`decoded_errors`]), the figures stored in its
-/// metadata, and its bytes.
-pub(crate) fn measured(
-    mut asset: Asset,
-    start: Instant,
-    errors: Errors,
-    source: &Raster,
-) -> Encoded {
-    let transforms: usize = asset.planes.iter().map(|p| p.operator.transforms()).sum();
-    // Its share of the operator's bytes (set aside under a target size, see `encode`).
-    let budget = crate::core::fidelity::reserve(asset.file_size());
-    asset.source_error = Some(fidelity::measure(&asset, source, budget));
-    let seconds = start.elapsed().as_secs_f64();
-    asset.meta.stats = EncodeStats {
-        transforms: transforms as u64,
-        rmse: errors.rmse,
-        psnr: errors.psnr,
-        max_error: errors.max_error,
-        seconds,
-    };
-    let bytes = asset.to_bytes();
-    Encoded {
-        asset,
-        bytes,
-        errors,
-        transforms,
-        seconds,
-    }
 }
 
 /// Push-pull fill of invalid cells from the valid ones.

@@ -2,16 +2,14 @@
 //! channel normalised, nodata filled and masked, vertices on a lattice, the height step and the
 //! spacing chosen, rate control over both.
 
-use std::time::Instant;
-
 use fractile_proto::{AssetMeta, ColourModel, SampleFormat};
 
 use crate::Error;
+use crate::codecs::coded::{Coded, Measure};
+use crate::codecs::source::{coding_range, fill_invalid, source_meta, without_map};
 use crate::core::lattice::{Source, interpolation_rmse};
-use crate::encode::source::{
-    Encoded, coding_range, decoded_errors, fill_invalid, measured, source_meta, without_map,
-};
-use crate::io::asset::{Asset, Mask};
+use crate::core::metrics::Errors;
+use crate::io::mask::Mask;
 use crate::io::raster::Raster;
 
 /// How a lattice codec's vertices are placed and quantised.
@@ -48,9 +46,9 @@ const FINER_SPACINGS: u32 = 4;
 pub(crate) fn encode_lattice(
     raster: &Raster,
     lattice: &Lattice,
-    build: impl Fn(&Source, u32, f32, &AssetMeta, Option<Mask>, Option<usize>) -> Result<Asset, Error>,
-) -> Result<Encoded, Error> {
-    let start = Instant::now();
+    measure: &dyn Measure,
+    build: impl Fn(&Source, u32, f32, &AssetMeta, Option<Mask>, Option<usize>) -> Result<Coded, Error>,
+) -> Result<(Coded, Errors), Error> {
     if raster.channels.len() != 1 {
         return Err(Error::settings(format!(
             "this codec codes one grey channel; the input has {} (use quadtree-pifs for colour)",
@@ -96,7 +94,7 @@ pub(crate) fn encode_lattice(
         let height_step = ((step / span) as f32).clamp(1e-9, 1.0);
         build(&source, spacing, height_step, &meta, mask.clone(), budget)
     };
-    let asset = match lattice.target_bpp {
+    let coded = match lattice.target_bpp {
         None => {
             let k = lattice.spacing.max(1);
             make(k, auto_step(k), None)?
@@ -118,7 +116,8 @@ pub(crate) fn encode_lattice(
                     "nothing fits in {bpp} bits per pixel (the coarsest lattice takes more)"
                 )));
             };
-            let mut best = (decoded_errors(&a, raster).psnr, a);
+            let (a, errors) = a.errors(raster, measure);
+            let mut best = (errors.psnr, a);
             if lattice.height_step.is_none() {
                 for finer in (k.saturating_sub(FINER_SPACINGS).max(1)..k).rev() {
                     // Steps base * 2^(m/8): m = 0 did not fit (the spacing is under k), find
@@ -141,15 +140,15 @@ pub(crate) fn encode_lattice(
                     }
                     // No early stop on a lower PSNR: with per-node or per-cell scalings the
                     // best can lie past a worse spacing.
-                    let psnr = decoded_errors(&fit, raster).psnr;
-                    if psnr > best.0 {
-                        best = (psnr, fit);
+                    let (fit, errors) = fit.errors(raster, measure);
+                    if errors.psnr > best.0 {
+                        best = (errors.psnr, fit);
                     }
                 }
             }
             best.1
         }
     };
-    let errors = decoded_errors(&asset, raster);
-    Ok(measured(asset, start, errors, raster))
+    let (coded, errors) = coded.errors(raster, measure);
+    Ok((measure.kept(coded, raster, &errors), errors))
 }
