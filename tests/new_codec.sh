@@ -17,8 +17,8 @@
 set -euo pipefail
 cd "$(dirname "$0")/.."
 repo=$PWD
-registry=codec/src/codecs/mod.rs
-folder=codec/src/codecs/toy
+registry=$repo/codec/src/codecs/mod.rs
+folder=$repo/codec/src/codecs/toy
 work=$(mktemp -d)
 cp "$registry" "$work/mod.rs.orig"
 server=
@@ -37,7 +37,8 @@ python3 - "$registry" <<'PY'
 import sys
 p = sys.argv[1]
 s = open(p).read()
-line = "            Toy(crate::codecs::toy::ToyHeader, crate::codecs::toy::ToySettings),\n"
+line = ("            /// The new-codec test's codec.\n"
+        "            Toy(crate::codecs::toy::ToyHeader, crate::codecs::toy::ToySettings),\n")
 end = "        }\n    };\n}\n"
 assert s.count(end) == 1, "the end of plane_codecs! moved"
 s = s.replace(end, line + end).replace("pub mod quadtree;\n", "pub mod quadtree;\npub mod toy;\n")
@@ -84,8 +85,8 @@ tj = json.loads(get(f"{base}/toy/tilejson.json"))
 w, s, e, n = tj["bounds"]
 lon, lat = (w + e) / 2, (s + n) / 2
 point = json.loads(get(f"{base}/toy/point/{lon},{lat}"))
-lo, hi = meta["value_min"], meta["value_max"]
-h = point["value"] if "value" in point else point["height"]
+lo, hi = meta["value_range"]
+h = point["values"][0]
 assert lo - 2 <= h <= hi + 2, (h, lo, hi)
 z = tj["maxzoom"]
 import math

@@ -15,6 +15,10 @@ use crate::core::pieces::{Flat, Flatten, PieceTable};
 pub(crate) const OCTREE_BYTE: u8 = 4;
 /// The codec byte of curve sets (projected IFS with details of curves), which have no planes.
 pub(crate) const CURVE_BYTE: u8 = 5;
+/// The codec byte of a chunked container (`io::layout`), which names no codec: its chunks do.
+/// No plane codec may take it (a file of that byte is read as chunked): checked when the
+/// registry is built.
+pub(crate) const CHUNKED_BYTE: u8 = 7;
 
 /// A plane codec as the registry lists it: its header, with how a header and stream become a
 /// [`Coding`] and an operator a [`PlaneOperator`] (made by the registry for every codec).
@@ -38,6 +42,17 @@ pub(crate) trait Visit {
 
 macro_rules! registry {
     ($( $(#[$doc:meta])* $name:ident($header:ty, $settings:ty) ),* $(,)?) => {
+        // A plane codec's byte is none of those reserved (the enum below refuses two codecs of
+        // one byte).
+        const _: () = {
+            $(
+                assert!(
+                    <$header as PlaneCodec>::BYTE != CHUNKED_BYTE,
+                    "a plane codec's byte is that of the chunked container (7)"
+                );
+            )*
+        };
+
         /// The codec of an asset's payload (the container's byte at offset 11, which is the
         /// discriminant: `codec as u8` is its byte).
         #[derive(Clone, Copy, Debug, PartialEq, Eq)]

@@ -30,7 +30,7 @@ pub const OLDEST_CHUNKED_VERSION: u16 = 6;
 pub const VIEW_DEPTH: u32 = 2;
 
 /// The codec byte of a chunked container (its chunks name their own codec).
-pub const CHUNKED_CODEC: u8 = 7;
+pub const CHUNKED_CODEC: u8 = crate::codecs::registry::CHUNKED_BYTE;
 
 /// Cells each chunk codes beyond its own on every side (see the module's doc), in a file whose
 /// overviews are all coded (and in every file of format 6).

@@ -25,7 +25,7 @@ pub struct ToyHeader(ProjectedHeader);
 
 impl PlaneCodec for ToyHeader {
     type Operator = ProjectedOperator;
-    const BYTE: u8 = 7;
+    const BYTE: u8 = 8;
     const LABEL: &'static str = "toy";
     const NAME: Option<&'static str> = Some(NAME);
 
