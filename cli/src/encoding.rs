@@ -2,7 +2,8 @@
 //! meshes (IFS3D) and curves.
 
 use super::*;
-use fractile_codec::encode::chunked::{DEFAULT_CHUNK, Share, wants_chunks};
+use fractile_codec::encode::Plan;
+use fractile_codec::encode::chunked::Share;
 
 use crate::progress::Progress;
 
@@ -28,32 +29,27 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     let mut rows = fractile_codec::io::mosaic::open_rows(&a.inputs)?;
     let (width, height) = (rows.header().width, rows.header().height);
     let a = a.with_default_codec(rows.header().kind);
-    // The flags checked against the codec before anything is read.
-    a.codec_settings(rows.header().kind)?;
-    let chunk = match a.chunk {
-        Some(0) => None,
-        Some(c) => Some(c),
-        None => wants_chunks(width, height, DEFAULT_CHUNK).then_some(DEFAULT_CHUNK),
-    };
+    // The codec, its flags and the chunks, checked before anything is read.
+    if a.codec() == "curve" {
+        bail!("--codec curve is for GeoJSON input");
+    }
+    let plan = Plan::new(a.codec(), &a.options(), a.chunk, rows.header())?;
     if let Some(text) = &a.part {
-        let Some(c) = chunk else {
-            bail!("--part splits an encode in chunks, and this one is whole: give --chunk N")
-        };
-        return encode_part(&a, rows.as_mut(), c, Share::parse(text)?);
+        return encode_part(&a, &plan, rows.as_mut(), Share::parse(text)?);
     }
     // An s3:// output is written here first, then uploaded.
     let out = crate::remote::Local::output(&a.output)?;
-    let enc = match chunk {
+    let enc = match plan.chunk() {
         None => {
             // The quadtree counts its blocks in a bar of its own; the other codecs get one that
             // shows how long they have run.
             let quadtree = a.codec() == "quadtree-pifs";
             let mut bar = Progress::start("coding", a.quiet || a.json || quadtree);
-            let enc = encode_with(&a, &rows.read_all()?, true)?;
+            let enc = encode_with(&a, &plan, &rows.read_all()?)?;
             bar.finish();
             enc.write(out.path())?
         }
-        Some(c) => encode_chunks(&a, rows.as_mut(), c, out.path())?,
+        Some(_) => encode_chunks(&a, &plan, rows.as_mut(), out.path())?,
     };
     out.finish()?;
     let report = json!({

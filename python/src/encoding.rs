@@ -9,11 +9,7 @@ use std::path::PathBuf;
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
-use fractile_codec::encode::chunked::{
-    DEFAULT_CHUNK, chunk_bpp, encode_chunked_file, encode_chunked_file_at, wants_chunks,
-};
-use fractile_codec::encode::rate::file_target;
-use fractile_codec::encode::{Options, Written};
+use fractile_codec::encode::{Options, Plan, Written};
 use fractile_codec::io::raster::MAX_MAGNITUDE;
 use fractile_codec::io::rows::{InMemory, Rows};
 use fractile_codec::{CodecSettings, Raster};
@@ -72,22 +68,21 @@ impl Request {
             chunk,
         };
         // An unknown name, or a keyword the codec does not read, is refused before any work.
-        req.settings(kind, target_bpp)?;
+        CodecSettings::named(&req.codec, &req.options(), kind).map_err(raise)?;
         Ok(req)
     }
 
-    /// The codec's settings at `bpp` bits a cell (`None`: the codec's default rate), through
-    /// the codec's registry (`CodecSettings::named`): a codec reading `bounded` codes a rate
-    /// bounded (every cell within the bound it reports), as the height-field default does.
-    fn settings(&self, kind: AssetKind, bpp: Option<f64>) -> PyResult<CodecSettings> {
+    /// The codec's options (`None`: the codec's default rate); a codec reading `bounded`
+    /// codes a rate bounded (every cell within the bound it reports), as the height-field
+    /// default does.
+    fn options(&self) -> Options {
         let takes = CodecSettings::takes(&self.codec).unwrap_or_default();
-        let options = Options {
-            target_bpp: bpp,
+        Options {
+            target_bpp: self.target_bpp,
             max_error: self.max_error,
             bounded: self.max_error.is_none() && takes.contains(&"bounded"),
             ..Options::default()
-        };
-        CodecSettings::named(&self.codec, &options, kind).map_err(raise)
+        }
     }
 }
 
@@ -143,33 +138,24 @@ fn code(
     path: &std::path::Path,
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> PyResult<Written> {
-    let h = rows.header();
-    let (width, height, kind, channels) = (h.width, h.height, h.kind, h.channels);
     let chunk = match req.chunk {
-        Some(0) => None,
-        Some(c) if c < 64 => {
+        Some(c) if c != 0 && c < 64 => {
             return Err(PyValueError::new_err(
                 "chunk must be 0 (whole) or at least 64",
             ));
         }
-        Some(c) => Some(c),
-        None => wants_chunks(width, height, DEFAULT_CHUNK).then_some(DEFAULT_CHUNK),
+        other => other,
     };
-    let Some(c) = chunk else {
+    // The plan of `fractile encode`: whole, or in chunks sharing one quality where the codec
+    // offers one (the max error asked for, or the one that fits the file's rate), each at its
+    // share of the rate otherwise.
+    let plan = Plan::new(&req.codec, &req.options(), chunk, rows.header()).map_err(raise)?;
+    if plan.chunk().is_none() {
         let raster = rows.read_all().map_err(raise)?;
-        let settings = req.settings(kind, req.target_bpp)?;
-        let enc = fractile_codec::encode(&raster, &settings, progress).map_err(raise)?;
+        let enc = fractile_codec::encode(&raster, plan.settings(), progress).map_err(raise)?;
         return enc.write(path).map_err(raise);
-    };
-    // The chunks share one quality where the codec offers one (as `fractile encode`'s): the
-    // max error asked for, or the one that fits the file's rate.
-    if let Some(target) = file_target(&req.settings(kind, req.target_bpp)?, channels) {
-        let at = |r: &Raster, q, trial| fractile_codec::encode::rate::encode_at(r, q, trial);
-        return encode_chunked_file_at(rows, c, (target, &at), progress, path).map_err(raise);
     }
-    let per_chunk = req.settings(kind, req.target_bpp.map(|b| chunk_bpp(width, height, c, b)))?;
-    let one = |r: &Raster| fractile_codec::encode(r, &per_chunk, &|_, _| {});
-    encode_chunked_file(rows, c, &one, progress, path).map_err(raise)
+    plan.encode_chunks(rows, path, progress).map_err(raise)
 }
 
 /// What an encode reports, as a dict.

@@ -7,8 +7,6 @@ use anyhow::{Result, bail};
 use clap::ValueEnum;
 use clap::builder::{PossibleValue, PossibleValuesParser};
 
-use fractile_codec::encode::chunked::chunk_bpp;
-use fractile_codec::encode::rate::{Target, file_target};
 use fractile_codec::encode::{Domains, Options};
 use fractile_codec::{CodecSettings, Roi};
 use fractile_proto::AssetKind;
@@ -292,42 +290,6 @@ impl EncodeArgs {
             spacing: self.spacing,
             height_step: self.height_step,
             scaling_bits: self.scaling_bits,
-        }
-    }
-
-    /// The settings of the codec named (decided by [`Self::with_default_codec`] for rasters)
-    /// from its flags, for a raster of `kind` (`CodecSettings::named`: a flag the codec does
-    /// not read is refused by name).
-    pub(crate) fn codec_settings(&self, kind: AssetKind) -> Result<CodecSettings> {
-        if self.codec() == "curve" {
-            bail!("--codec curve is for GeoJSON input");
-        }
-        Ok(CodecSettings::named(self.codec(), &self.options(), kind)?)
-    }
-}
-
-/// The one quality of a chunked encode's chunks (`fractile_codec::encode::rate::file_target`),
-/// or `None`: each chunk coded on its own ([`EncodeArgs::chunk_rate`]).
-pub(crate) fn file_rate(
-    a: &EncodeArgs,
-    kind: AssetKind,
-    channels: usize,
-) -> Result<Option<Target>> {
-    Ok(file_target(&a.codec_settings(kind)?, channels))
-}
-
-impl EncodeArgs {
-    /// These settings with the rate of one chunk of a file coded chunk by chunk, so that the
-    /// whole file, overviews included, is within `--target-bpp` ([`chunk_bpp`]).
-    pub(crate) fn chunk_rate(&self, width: usize, height: usize, chunk: u32) -> EncodeArgs {
-        EncodeArgs {
-            inputs: self.inputs.clone(),
-            output: self.output.clone(),
-            roi: self.roi.clone(),
-            part: self.part.clone(),
-            codec: self.codec.clone(),
-            target_bpp: self.target_bpp.map(|b| chunk_bpp(width, height, chunk, b)),
-            ..*self
         }
     }
 }

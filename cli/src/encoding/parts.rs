@@ -3,56 +3,30 @@
 
 use std::path::{Path, PathBuf};
 
-use anyhow::Result;
-use fractile_codec::Raster;
+use anyhow::{Result, bail};
+use fractile_codec::encode::Plan;
 use fractile_codec::encode::chunked::Share;
 use fractile_codec::io::rows::Rows;
 use serde_json::json;
 
-use super::args::{EncodeArgs, file_rate};
-use super::raster::encode_with;
-use fractile_codec::encode::parts::{encode_chunked_part, encode_chunked_part_at};
+use super::args::EncodeArgs;
 
-/// `encode --part I/N`: one share of a chunked encode into a part file.
+/// `encode --part I/N`: one share of a chunked encode into a part file, as `plan` codes it
+/// (its fingerprint, which every part must share, in the part file).
 pub(super) fn encode_part(
     a: &EncodeArgs,
+    plan: &Plan,
     rows: &mut dyn Rows,
-    chunk: u32,
     share: Share,
 ) -> Result<()> {
-    // The settings every part must share: the arguments less what names this part's files.
-    let settings = format!(
-        "{:?}",
-        EncodeArgs {
-            inputs: Vec::new(),
-            output: PathBuf::new(),
-            part: None,
-            json: false,
-            roi: a.roi.clone(),
-            codec: a.codec.clone(),
-            ..*a
-        }
-    );
+    let Some(chunk) = plan.chunk() else {
+        bail!("--part splits an encode in chunks, and this one is whole: give --chunk N")
+    };
     let mut bar = crate::progress::Progress::start("coding chunks", a.quiet || a.json);
     let progress = |done: u64, total: u64| bar.update(done, total);
     // An s3:// part is written here first, then uploaded: the machines share a bucket.
     let out = crate::remote::Local::output(&a.output)?;
-    let (width, height) = (rows.header().width, rows.header().height);
-    let w = match file_rate(a, rows.header().kind, rows.header().channels)? {
-        Some(rate) => {
-            let at = |r: &Raster, q, trial| fractile_codec::encode::rate::encode_at(r, q, trial);
-            let how = (chunk, share, settings.as_str());
-            encode_chunked_part_at(rows, how, (rate, &at), &progress, out.path())?
-        }
-        None => {
-            let per_chunk = a.chunk_rate(width, height, chunk);
-            let one = |r: &Raster| {
-                encode_with(&per_chunk, r, false)
-                    .map_err(|e| fractile_codec::Error::settings(e.to_string()))
-            };
-            encode_chunked_part(rows, (chunk, share, &settings), &one, &progress, out.path())?
-        }
-    };
+    let w = plan.encode_part(rows, share, out.path(), &progress)?;
     bar.finish();
     out.finish()?;
     let report = json!({

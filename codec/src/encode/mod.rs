@@ -11,6 +11,7 @@ pub mod curve;
 mod encoded;
 pub(crate) mod fidelity;
 pub mod parts;
+pub mod plan;
 mod pyramid;
 pub mod rate;
 mod spill;
@@ -22,6 +23,7 @@ pub use crate::codecs::coded::{Coded, Measure, PlaneEncoder};
 pub use crate::codecs::options::{Domains, Named, Options, Search};
 
 pub use encoded::{Encoded, Written};
+pub use plan::Plan;
 
 use fractile_proto::AssetKind;
 

@@ -362,25 +362,26 @@ impl Named for ProjectedSettings {
     )];
     const TAKES: &'static [&'static str] = &["target-bpp", "max-error", "bounded"];
 
-    /// A max error, or a rate (`bounded`: the smallest max error that fits it); neither given,
-    /// the height-field default: bounded at [`DEFAULT_HEIGHT_FIELD_BPP`].
+    /// A max error, or a rate (`bounded`: the smallest max error that fits it; bounded
+    /// alone, the height-field default's rate, [`DEFAULT_HEIGHT_FIELD_BPP`]).
     fn named(_name: &str, o: &Options, _kind: AssetKind) -> Result<Self, Error> {
-        if o.max_error.is_some() && o.target_bpp.is_some() {
-            return Err(Error::settings(
+        match (o.max_error, o.target_bpp, o.bounded) {
+            (Some(_), Some(_), _) => Err(Error::settings(
                 "projected takes --max-error or --target-bpp, not both",
-            ));
+            )),
+            (Some(_), None, true) => Err(Error::settings(
+                "--bounded bounds the error under a rate (--target-bpp B), not under --max-error",
+            )),
+            (None, None, false) => Err(Error::settings(
+                "projected takes --max-error E (source units) or --target-bpp B",
+            )),
+            (max_error, target_bpp, bounded) => Ok(ProjectedSettings {
+                max_error,
+                bounded,
+                target_bpp: target_bpp.or(bounded.then_some(DEFAULT_HEIGHT_FIELD_BPP)),
+                ..Default::default()
+            }),
         }
-        let no_rate = o.max_error.is_none() && o.target_bpp.is_none();
-        Ok(ProjectedSettings {
-            max_error: o.max_error,
-            bounded: o.bounded || no_rate,
-            target_bpp: if no_rate {
-                Some(DEFAULT_HEIGHT_FIELD_BPP)
-            } else {
-                o.target_bpp
-            },
-            ..Default::default()
-        })
     }
 }
 
