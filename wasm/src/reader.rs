@@ -7,7 +7,7 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, PoisonError};
 
-use fractile_codec::extract::{Delegates, PointSample, SampleError};
+use fractile_codec::extract::{Delegates, PointSample, Request, SampleError};
 use fractile_codec::geo::{Pixels, Placement, map_bounds, native_zoom, tile_pixels};
 use fractile_codec::io::chunked::{ChunkCache, ChunkSource, is_chunked};
 use fractile_codec::{Asset, AssetLimits};
@@ -15,7 +15,7 @@ use fractile_proto::AssetMeta;
 
 /// What the server answers with when a request names neither steps nor a tolerance: its
 /// default `max_iterations`, each answer stopping at the tolerance its pixels settle
-/// (`Asset::tolerance_over`). The browser answers the same way so that both give the same
+/// (`Asset::answer`). The browser answers the same way so that both give the same
 /// heights.
 pub const ITERATIONS: u32 = 64;
 
@@ -255,17 +255,22 @@ impl Reader {
                 bound: 0.0,
             });
         }
-        let tolerance = asset.tolerance_over(&pixels).map_err(|e| self.failed(e))?;
         let discrete = |w, h, n, t| Arc::new(asset.discrete_planes(w, h, n, t));
         let delegates = Delegates {
             continuous: &|_, _, _, _| None,
             discrete: &discrete,
             cancelled: &|| false,
         };
-        match asset.sample_with(&pixels, ITERATIONS, tolerance, &delegates) {
-            Ok((mut channels, bound)) => Ok(Tile {
-                heights: channels.swap_remove(0),
-                bound,
+        // The server's one call: the tolerance settled over the tile's pixels.
+        let request = Request {
+            pixels: &pixels,
+            iterations: ITERATIONS,
+            tolerance: None,
+        };
+        match asset.answer(&request, &delegates) {
+            Ok(mut answer) => Ok(Tile {
+                heights: answer.channels.swap_remove(0),
+                bound: answer.convergence,
             }),
             Err(SampleError::Chunk(e)) => Err(self.failed(e)),
             Err(SampleError::Cancelled) => Err(ReadError::Failed("cancelled".into())),

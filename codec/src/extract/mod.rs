@@ -2,11 +2,14 @@
 //! brought back to source terms — value units, RGB from YCbCr, nodata where the source had none.
 //! This is what the CLI and the server call.
 
+mod answer;
 mod chunked;
 mod filter;
 mod points;
 mod sample;
 pub mod volume;
+
+pub use answer::{Request, Sampled};
 
 use fractile_proto::{ColourModel, SampleFormat};
 use std::sync::Arc;

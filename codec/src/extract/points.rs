@@ -127,11 +127,10 @@ impl Asset {
     /// chunked asset under the pixels cannot be read: an answer settled on the default instead
     /// would take other steps than the same request answered later, under the same ETag.
     pub fn tolerance_over(&self, pixels: &Pixels) -> Result<f32, crate::Error> {
-        let default = self.default_tolerance();
-        Ok(self
-            .source_error_over(pixels)?
-            .filter(|e| e.is_finite())
-            .map_or(default, |e| default.max(SETTLED_FRACTION * e)))
+        Ok(settled_over(
+            self.default_tolerance(),
+            self.source_error_over(pixels)?,
+        ))
     }
 
     /// The bound on |answer - source| at unit point (u, v) beyond convergence: the source-error
@@ -234,4 +233,12 @@ impl Asset {
             })
             .collect())
     }
+}
+
+/// [`Asset::tolerance_over`]'s rule: the asset's `default` tolerance, or [`SETTLED_FRACTION`]
+/// of the largest finite `source` error over the pixels where that is larger.
+pub(super) fn settled_over(default: f32, source: Option<f32>) -> f32 {
+    source
+        .filter(|e| e.is_finite())
+        .map_or(default, |e| default.max(SETTLED_FRACTION * e))
 }

@@ -117,7 +117,6 @@ pub(super) fn sample_on(
     iterations: u32,
     tolerance: Tolerance,
 ) -> Result<(Vec<Vec<f32>>, Bounds), AppError> {
-    let tolerance = tolerance.over(a, pixels)?;
     let gpu = gpu.filter(|g| g.takes(choice, a, pixels.len()));
     // The GPU's round trip runs off the request's core slot (see `work`), the operator's
     // upload on it.
@@ -160,23 +159,29 @@ pub(super) fn sample_on(
         discrete: &discrete,
         cancelled: &cancelled,
     };
-    let (channels, attractor) = a
-        .asset
-        .sample_with(pixels, iterations, tolerance, &delegates)
-        .map_err(|e| match e {
-            fractile_codec::extract::SampleError::Cancelled => AppError {
-                status: StatusCode::SERVICE_UNAVAILABLE,
-                code: ErrorCode::Cancelled,
-                detail: "the request was given up before its decode finished".into(),
-                retry_after: None,
-            },
-            fractile_codec::extract::SampleError::Chunk(e) => chunk_unavailable(e),
-        })?;
-    let source = a
-        .asset
-        .source_error_over(pixels)
-        .map_err(chunk_unavailable)?;
-    Ok((channels, Bounds { attractor, source }))
+    // One call: the source error over the pixels, the tolerance settled on it (where the
+    // request named none), the values and their convergence bound.
+    let request = fractile_codec::extract::Request {
+        pixels,
+        iterations,
+        tolerance: tolerance.asked(),
+    };
+    let answer = a.asset.answer(&request, &delegates).map_err(|e| match e {
+        fractile_codec::extract::SampleError::Cancelled => AppError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            code: ErrorCode::Cancelled,
+            detail: "the request was given up before its decode finished".into(),
+            retry_after: None,
+        },
+        fractile_codec::extract::SampleError::Chunk(e) => chunk_unavailable(e),
+    })?;
+    Ok((
+        answer.channels,
+        Bounds {
+            attractor: answer.convergence,
+            source: answer.source,
+        },
+    ))
 }
 
 /// A chunk of a chunked asset that could not be read or decoded. Read failures (a store that
@@ -216,13 +221,13 @@ pub(crate) enum Tolerance {
 }
 
 impl Tolerance {
-    /// The tolerance of an answer at `pixels`: a settled one is `Asset::tolerance_over` them
-    /// (an eighth of the largest source error their bound carries anyway, or the asset's
-    /// default where that is larger); 503 where a chunk under them cannot be read.
-    fn over(self, a: &StoredAsset, pixels: &geo::Pixels) -> Result<f32, AppError> {
+    /// The tolerance asked for, or `None`: settled by the codec over what is answered
+    /// (`Asset::answer`: an eighth of the largest source error the answer's bound carries
+    /// anyway, or the asset's default where that is larger).
+    fn asked(self) -> Option<f32> {
         match self {
-            Tolerance::Asked(t) => Ok(t),
-            Tolerance::Settled => a.asset.tolerance_over(pixels).map_err(chunk_unavailable),
+            Tolerance::Asked(t) => Some(t),
+            Tolerance::Settled => None,
         }
     }
 
