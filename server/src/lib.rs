@@ -64,7 +64,7 @@ pub struct FileConfig {
     pub tile_cache_mib: Option<u64>,
     /// Coarse-decode cache size in MiB (default 256): the whole-asset discrete decodes that
     /// tiles coarser than the source sample, a grid per asset, zoom and band of latitude (see
-    /// `Asset::sample_with`; a band's grid is derived from a finer one of the same zoom when
+    /// `Asset::answer`; a band's grid is derived from a finer one of the same zoom when
     /// that is cached). Size it to hold the coarse zooms of the largest assets (about 8
     /// bytes a source pixel and plane: 256 MiB holds a 30 Mpx DEM's), or their grids are
     /// decoded again and again.
