@@ -55,7 +55,11 @@ fn one_answer_is_the_calls_it_replaces() {
                     .sample_with(&pixels, 64, tolerance, &delegates)
                     .expect("samples");
                 let source = asset.source_error_over(&pixels).expect("source error");
-                assert_eq!(answer.tolerance.to_bits(), tolerance.to_bits(), "z{z} {asked:?}");
+                assert_eq!(
+                    answer.tolerance.to_bits(),
+                    tolerance.to_bits(),
+                    "z{z} {asked:?}"
+                );
                 assert_eq!(answer.convergence.to_bits(), convergence.to_bits());
                 assert_eq!(answer.source, source);
                 assert!(answer.source.is_some(), "a map over the tile");

@@ -174,24 +174,16 @@ pub(crate) struct EncodeArgs {
     pub(crate) quiet: bool,
 }
 
-/// The flags only the quadtree PIFS reads: given any, a height field with no `--codec` is
-/// coded by the quadtree, as before the projected default.
-const QUADTREE_FLAGS: &[&str] = &[
-    "tolerance",
-    "transforms",
-    "const-range",
-    "roi",
-    "min-range",
-    "max-range",
-    "speed",
-    "domain-step",
-    "contrast-bits",
-    "offset-bits",
-    "slope-bits",
-    "search",
-    "candidates",
-    "attractor-passes",
-];
+/// The flags only the quadtree PIFS reads (its options no other codec of the registry reads):
+/// given any, a height field with no `--codec` is coded by the quadtree, as before the
+/// projected default.
+fn quadtree_only(option: &str) -> bool {
+    let reads = |name: &str| CodecSettings::takes(name).is_some_and(|t| t.contains(&option));
+    reads(QUADTREE)
+        && !CodecSettings::names()
+            .iter()
+            .any(|&(name, _)| name != QUADTREE && reads(name))
+}
 
 pub(crate) fn parse_roi(s: &str) -> Result<Roi, String> {
     let mut parts = s.split(':');
@@ -229,7 +221,7 @@ impl EncodeArgs {
             return self;
         }
         let given = self.options().given();
-        let quadtree = given.iter().any(|o| QUADTREE_FLAGS.contains(o));
+        let quadtree = given.iter().any(|o| quadtree_only(o));
         let projected = !quadtree
             && (kind == AssetKind::HeightField || self.max_error.is_some() || self.bounded);
         self.codec = Some(if projected { PROJECTED } else { QUADTREE }.to_string());

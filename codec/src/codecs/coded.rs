@@ -127,12 +127,7 @@ impl Coded {
     pub fn to_bytes(&self) -> Vec<u8> {
         let codec = self.codec();
         let payload = payload(codec, &self.planes, self.mask.as_ref());
-        let section = self
-            .source_error
-            .as_ref()
-            .map(SourceError::encode)
-            .unwrap_or_default();
-        assemble(&self.meta, codec.byte(), &payload, &section)
+        file_bytes(&self.meta, codec, &payload, self.source_error.as_ref())
     }
 
     /// Size of the file in bytes.
@@ -157,6 +152,17 @@ impl Coded {
         );
         (coded, errors)
     }
+}
+
+/// The file of a payload of `codec`: its frame, and the source-error map after the payload.
+pub(crate) fn file_bytes(
+    meta: &AssetMeta,
+    codec: Codec,
+    payload: &[u8],
+    source_error: Option<&SourceError>,
+) -> Vec<u8> {
+    let section = source_error.map(SourceError::encode).unwrap_or_default();
+    assemble(meta, codec.byte(), payload, &section)
 }
 
 /// The payload of `codec`'s `planes` (each holds its header and stream) and the mask.

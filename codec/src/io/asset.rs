@@ -19,12 +19,11 @@ pub use super::container::{
     check_whole_file,
 };
 use super::cost::{PayloadCost, payload_cost};
-use super::frame::assemble;
 use super::layout::{ChunkSource, ChunkTable, FileSource, InMemory, is_chunked};
 pub use super::mask::Mask;
 use crate::Error;
 pub use crate::codecs::coded::Plane;
-use crate::codecs::coded::{Coded, Payload, payload};
+use crate::codecs::coded::{Coded, Payload, file_bytes, payload};
 use crate::codecs::plane::Build;
 use crate::codecs::registry::{self, Registered, Visit};
 pub use crate::codecs::registry::{Codec, Coding, PlaneOperator};
@@ -313,12 +312,7 @@ impl Asset {
                 .payload(),
             _ => payload(codec, &self.planes, self.mask.as_ref()),
         };
-        let section = self
-            .source_error
-            .as_ref()
-            .map(SourceError::encode)
-            .unwrap_or_default();
-        assemble(&self.meta, codec.byte(), &payload, &section)
+        file_bytes(&self.meta, codec, &payload, self.source_error.as_ref())
     }
 
     /// Size of the file in bytes.
