@@ -10,7 +10,7 @@ use serde::{Deserialize, Serialize};
 use crate::Error;
 use crate::codecs::coded::{Coded, Measure, PlaneEncoder};
 use crate::codecs::options::{Named, Options};
-use crate::codecs::plane::{Build, PlaneCodec};
+use crate::codecs::plane::{Build, PlaneCodec, PlaneError};
 use crate::codecs::projected::{ProjectedHeader, ProjectedOperator, ProjectedSettings};
 use crate::codecs::registry::Coding;
 use crate::core::metrics::Errors;
@@ -33,7 +33,7 @@ impl PlaneCodec for ToyHeader {
         NAME
     }
 
-    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, String> {
+    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, PlaneError> {
         self.0.cost(meta, stream)
     }
 
@@ -42,7 +42,7 @@ impl PlaneCodec for ToyHeader {
         meta: &AssetMeta,
         stream: &[u8],
         build: Build,
-    ) -> Result<ProjectedOperator, String> {
+    ) -> Result<ProjectedOperator, PlaneError> {
         self.0.operator(meta, stream, build)
     }
 }

@@ -3,7 +3,7 @@
 
 use fractile_proto::AssetMeta;
 
-use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder};
+use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder, PlaneError};
 use crate::codecs::psa::{PsaHeader, PsaOperator, codec_name, decode_params};
 
 impl PlaneCodec for PsaHeader {
@@ -16,8 +16,8 @@ impl PlaneCodec for PsaHeader {
         codec_name(self.tiling)
     }
 
-    fn cost(&self, _meta: &AssetMeta, _stream: &[u8]) -> Result<u64, String> {
-        self.validate()?;
+    fn cost(&self, _meta: &AssetMeta, _stream: &[u8]) -> Result<u64, PlaneError> {
+        self.validate().map_err(PlaneError::Header)?;
         // Vertex heights and region maps, about 64 bytes a vertex.
         let vertices: u64 = self.vertices().iter().map(|&n| n as u64).product();
         Ok(vertices.saturating_mul(64))
@@ -28,12 +28,14 @@ impl PlaneCodec for PsaHeader {
         meta: &AssetMeta,
         stream: &[u8],
         _build: Build,
-    ) -> Result<PsaOperator, String> {
+    ) -> Result<PsaOperator, PlaneError> {
         if self.samples != [meta.width, meta.height] {
-            return Err("sample grid and metadata disagree".into());
+            return Err(PlaneError::Header(
+                "sample grid and metadata disagree".into(),
+            ));
         }
-        let params = decode_params(self, stream)?;
-        PsaOperator::new(self, &params)
+        let params = decode_params(self, stream).map_err(PlaneError::Stream)?;
+        PsaOperator::new(self, &params).map_err(PlaneError::Stream)
     }
 }
 

@@ -3,7 +3,7 @@
 
 use fractile_proto::AssetMeta;
 
-use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder};
+use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder, PlaneError};
 use crate::codecs::quadtree::operator::QuadtreeOperator;
 use crate::codecs::quadtree::stream::{PlaneHeader, decode_plane, operator};
 use crate::core::decode::{self, Patch, PointValue};
@@ -18,9 +18,9 @@ impl PlaneCodec for PlaneHeader {
         "quadtree-pifs"
     }
 
-    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, String> {
-        self.validate()?;
-        check_extent(meta, self.valid)?;
+    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, PlaneError> {
+        self.validate().map_err(PlaneError::Header)?;
+        check_extent(meta, self.valid).map_err(PlaneError::Header)?;
         Ok(self.operator_bytes(stream.len()))
     }
 
@@ -29,9 +29,9 @@ impl PlaneCodec for PlaneHeader {
         _meta: &AssetMeta,
         stream: &[u8],
         _build: Build,
-    ) -> Result<QuadtreeOperator, String> {
-        let leaves = decode_plane(self, stream)?;
-        operator(self, &leaves)
+    ) -> Result<QuadtreeOperator, PlaneError> {
+        let leaves = decode_plane(self, stream).map_err(PlaneError::Stream)?;
+        operator(self, &leaves).map_err(PlaneError::Stream)
     }
 }
 
