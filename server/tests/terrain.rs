@@ -196,8 +196,13 @@ async fn check_tile(id: &str, z: u8, lon: f64, lat: f64, detail: bool) -> ReadTi
     assert_eq!(s, StatusCode::OK, "{}", String::from_utf8_lossy(&body));
     assert_eq!(h[header::CONTENT_TYPE], "application/vnd.quantized-mesh");
     let bound: f64 = h["x-convergence-bound"].to_str().unwrap().parse().unwrap();
+    // A file of this call's own: the tests run side by side and ask for the same tiles, with
+    // and without detail (one named by the tile alone was read back by another test while the
+    // other tile overwrote it: a crack of 9.6 m that was not in either tile).
+    static CALLS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+    let call = CALLS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
     let file = std::env::temp_dir().join(format!(
-        "fractile-{}-{z}-{x}-{y}.terrain",
+        "fractile-{}-{call}-{z}-{x}-{y}-{detail}.terrain",
         std::process::id()
     ));
     std::fs::write(&file, &body).unwrap();
