@@ -42,6 +42,7 @@ pub mod mesh;
 pub mod render;
 
 pub use crate::core::decode::{DiscreteOptions, Method};
+pub use crate::core::format::FormatError;
 pub use crate::core::transform::Quantiser;
 pub use codecs::quadtree::search::SearchMode;
 pub use codecs::quadtree::settings::{QuadtreeSettings, RateMode, Roi};

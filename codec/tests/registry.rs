@@ -175,11 +175,12 @@ fn every_codec_name_encodes_under_that_name() {
     assert!(err.contains("jpeg") && err.contains("projected"), "{err}");
 }
 
-/// A plane codec says what is wrong with a plane by kind (`PlaneError`): a header that does not
+/// A plane codec says what is wrong with a plane by kind (`FormatError`): a header that does not
 /// fit the metadata is a header error, a truncated stream a stream error; each codec alike.
 #[test]
 fn a_plane_codec_tells_a_bad_header_from_a_bad_stream() {
-    use fractile_codec::codecs::plane::{Build, PlaneCodec, PlaneError};
+    use fractile_codec::FormatError;
+    use fractile_codec::codecs::plane::{Build, PlaneCodec};
     use fractile_codec::io::asset::Coding;
     let raster = dem();
     let mut kinds = 0;
@@ -194,13 +195,13 @@ fn a_plane_codec_tells_a_bad_header_from_a_bad_stream() {
         let meta = enc.asset.meta.clone();
         let mut wider = meta.clone();
         wider.width += 8;
-        let check = |header: Result<(), PlaneError>, stream: Result<(), PlaneError>| {
+        let check = |header: Result<(), FormatError>, stream: Result<(), FormatError>| {
             assert!(
-                matches!(header, Err(PlaneError::Header(_))),
+                matches!(header, Err(FormatError::Header(_))),
                 "{codec:?}: {header:?}"
             );
             assert!(
-                matches!(stream, Err(PlaneError::Stream(_))),
+                matches!(stream, Err(FormatError::Stream(_))),
                 "{codec:?}: {stream:?}"
             );
         };
@@ -209,7 +210,7 @@ fn a_plane_codec_tells_a_bad_header_from_a_bad_stream() {
             s: &[u8],
             meta: &fractile_proto::AssetMeta,
             wider: &fractile_proto::AssetMeta,
-        ) -> (Result<(), PlaneError>, Result<(), PlaneError>) {
+        ) -> (Result<(), FormatError>, Result<(), FormatError>) {
             // The quadtree's header holds its own extent: a wider asset is refused by `cost`.
             let header = h
                 .cost(wider, s)

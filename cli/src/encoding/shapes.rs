@@ -105,8 +105,7 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
     }
     let text =
         std::fs::read_to_string(input).with_context(|| format!("reading {}", input.display()))?;
-    let lines =
-        fractile_codec::codecs::curve::geojson::read(&text).map_err(|e| anyhow::anyhow!(e))?;
+    let lines = fractile_codec::codecs::curve::geojson::read(&text)?;
     let settings = fractile_codec::codecs::curve::CurveSettings {
         tolerance,
         ..Default::default()

@@ -12,6 +12,7 @@ use serde::de::DeserializeOwned;
 
 use crate::Error;
 use crate::core::decode::{self, Patch, PointValue};
+use crate::core::format::FormatError;
 use crate::core::operator::Operator;
 use crate::core::pieces::Flatten;
 
@@ -50,7 +51,7 @@ pub trait PlaneCodec: Clone + Debug + Serialize + DeserializeOwned + Send + Sync
     /// Checks the header against the metadata without decoding anything, and estimates the
     /// bytes of the plane's operator (what a reader's limits are checked against before it
     /// allocates).
-    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, PlaneError>;
+    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, FormatError>;
 
     /// Decodes the plane's stream into its operator.
     fn operator(
@@ -58,20 +59,7 @@ pub trait PlaneCodec: Clone + Debug + Serialize + DeserializeOwned + Send + Sync
         meta: &AssetMeta,
         stream: &[u8],
         build: Build,
-    ) -> Result<Self::Operator, PlaneError>;
-}
-
-/// What a plane codec finds wrong with a plane it is asked to read, by kind; the container
-/// names the plane and the file (`Error::asset`). The message is for people.
-#[derive(Clone, Debug, PartialEq, Eq, thiserror::Error)]
-#[non_exhaustive]
-pub enum PlaneError {
-    /// The header contradicts itself or the asset's metadata (sizes, levels, steps).
-    #[error("{0}")]
-    Header(String),
-    /// The stream is truncated or corrupt, or decodes to parameters no operator takes.
-    #[error("{0}")]
-    Stream(String),
+    ) -> Result<Self::Operator, FormatError>;
 }
 
 /// A plane's decoding operator: [`Operator`] with the batch decoders written once in

@@ -20,6 +20,7 @@
 //! about 9%), always rounded up so that a stored bound is never below the measured one, and
 //! coded with the project's adaptive binary range coder (a few bits a block).
 
+use super::format::FormatError;
 use crate::core::entropy::{BitTree, Decoder, Encoder};
 
 /// Source cells a side of a block (a power of two; 16: a bound per 256 cells, a few bits each,
@@ -198,13 +199,20 @@ impl SourceError {
 
     /// Reads what [`SourceError::encode`] wrote for a `width x height` raster whose values span
     /// `span`.
-    pub fn decode(bytes: &[u8], width: usize, height: usize, span: f32) -> Result<Self, String> {
+    pub fn decode(
+        bytes: &[u8],
+        width: usize,
+        height: usize,
+        span: f32,
+    ) -> Result<Self, FormatError> {
         let block = match bytes {
             [a, b, ..] => usize::from(u16::from_le_bytes([*a, *b])),
-            _ => return Err("the source-error map is truncated".into()),
+            _ => return Err(FormatError::stream("the source-error map is truncated")),
         };
         if !block.is_power_of_two() || block > 4096 {
-            return Err(format!("bad source-error block size {block}"));
+            return Err(FormatError::stream(format!(
+                "bad source-error block size {block}"
+            )));
         }
         let cols = width.div_ceil(block);
         let n = cols * height.div_ceil(block);
@@ -215,7 +223,7 @@ impl SourceError {
             let c = context(&codes, i, cols);
             codes.push(dec.tree(&mut trees[c]) as u8);
             if dec.overrun() {
-                return Err("the source-error map is truncated".into());
+                return Err(FormatError::stream("the source-error map is truncated"));
             }
         }
         Ok(SourceError::from_codes(width, height, block, codes, span))

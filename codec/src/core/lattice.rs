@@ -3,6 +3,7 @@
 //! range coder, MED prediction over a grid, the lattice's frame and cells, and the normalised
 //! source grid the fits read.
 
+use super::format::FormatError;
 use crate::core::entropy::{Bit, Decoder, Encoder, Model};
 
 /// Adaptive Elias-gamma-like code of a signed integer on the binary range coder: a zero flag, a
@@ -148,14 +149,14 @@ pub(crate) fn get_grid(
     [nx, ny]: [usize; 2],
     range: std::ops::RangeInclusive<i64>,
     what: &str,
-) -> Result<Vec<i32>, String> {
+) -> Result<Vec<i32>, FormatError> {
     // A value codes at least one decision: a grid larger than the stream can hold is refused
     // before it is allocated, and a short stream stops at the row where it ran out.
     if (nx as u64) * (ny as u64) > crate::core::entropy::most_decisions(dec.stream_len()) {
-        return Err(format!(
+        return Err(FormatError::stream(format!(
             "a grid of {nx}x{ny} {what}s needs more than its stream's {} bytes",
             dec.stream_len()
-        ));
+        )));
     }
     let mut c = IntCoder::new();
     let mut values = vec![0i32; nx * ny];
@@ -163,12 +164,14 @@ pub(crate) fn get_grid(
         for i in 0..nx {
             let v = predict(&values, nx, i, j) as i64 + c.get(dec) as i64;
             if !range.contains(&v) {
-                return Err(format!("{what} {v} out of range"));
+                return Err(FormatError::stream(format!("{what} {v} out of range")));
             }
             values[j * nx + i] = v as i32;
         }
         if dec.overrun() {
-            return Err(format!("the stream ends inside the {what}s"));
+            return Err(FormatError::stream(format!(
+                "the stream ends inside the {what}s"
+            )));
         }
     }
     Ok(values)

@@ -6,6 +6,7 @@
 //! an offset error is amplified by 1/(1-|s|) in the attractor), and [0, 1] is invariant under every
 //! operator we write, so the decoders' error bound never needs more than the asset itself.
 
+use super::format::FormatError;
 use serde::{Deserialize, Serialize};
 
 /// Number of isometries of the square (the dihedral group D4).
@@ -131,21 +132,24 @@ impl Default for Quantiser {
 
 impl Quantiser {
     /// Checks the ranges a header may hold (a corrupt asset must not reach the decoder).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FormatError> {
         if !(2..=8).contains(&self.contrast_bits) || !(1..=12).contains(&self.offset_bits) {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "quantiser bits out of range: contrast {} (2..=8), offset {} (1..=12)",
                 self.contrast_bits, self.offset_bits
-            ));
+            )));
         }
         if self.slope_bits == 1 || self.slope_bits > 12 {
-            return Err(format!("slope bits {} not 0 or in 2..=12", self.slope_bits));
+            return Err(FormatError::header(format!(
+                "slope bits {} not 0 or in 2..=12",
+                self.slope_bits
+            )));
         }
         if !(self.max_contrast > 0.0 && self.max_contrast < 1.0) {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "max contrast {} is not in (0, 1)",
                 self.max_contrast
-            ));
+            )));
         }
         Ok(())
     }

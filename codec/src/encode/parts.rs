@@ -17,6 +17,7 @@ use super::encoded::Written;
 use super::spill::{Spill, write_spilled};
 use super::summary::{ChunkRecord, summarise};
 use crate::Error;
+use crate::core::format::FormatError;
 use crate::io::asset::{Asset, write_atomic_with};
 use crate::io::chunked;
 use crate::io::layout::read_exact_at;
@@ -194,7 +195,7 @@ fn open_part(path: &Path) -> Result<Part, Error> {
     }
     let header: PartHeader =
         fractile_proto::decode(&bytes).map_err(|e| bad(format!("its header: {e}")))?;
-    check_header(&header).map_err(bad)?;
+    check_header(&header).map_err(|e| bad(e.to_string()))?;
     let body = 14 + u64::from(n) + 4;
     let total = header
         .records
@@ -218,30 +219,36 @@ fn open_part(path: &Path) -> Result<Part, Error> {
 /// Refuses a part header no encoder writes, before anything is allocated for it (a crafted
 /// header claimed share 5 of 2, 2^32 shares, 2^32 cells a side, or chunks of side 0, and
 /// assemble panicked or asked for 100 GB). The raster's size is bounded by its chunk count.
-fn check_header(h: &PartHeader) -> Result<(), String> {
+fn check_header(h: &PartHeader) -> Result<(), FormatError> {
     let (lo, hi) = chunked::CHUNK_SIDES;
     if !h.chunk.is_power_of_two() || !(lo..=hi).contains(&h.chunk) {
-        return Err(format!(
+        return Err(FormatError::header(format!(
             "chunks of {} cells a side (an encode makes powers of two from {lo} to {hi})",
             h.chunk
-        ));
+        )));
     }
     if h.width == 0 || h.height == 0 {
-        return Err(format!("a raster of {} x {} cells", h.width, h.height));
+        return Err(FormatError::header(format!(
+            "a raster of {} x {} cells",
+            h.width, h.height
+        )));
     }
     let chunks: u64 = chunked::ChunkTable::level_sizes(h.width, h.height, h.chunk, h.viewed)
         .iter()
         .map(|&(w, h2)| u64::from(w.div_ceil(h.chunk)) * u64::from(h2.div_ceil(h.chunk)))
         .sum();
     if chunks > chunked::MAX_CHUNKS as u64 {
-        return Err(format!("{chunks} chunks (at most {})", chunked::MAX_CHUNKS));
+        return Err(FormatError::header(format!(
+            "{chunks} chunks (at most {})",
+            chunked::MAX_CHUNKS
+        )));
     }
     let Share { index, count } = h.share;
     if count == 0 || u64::from(count) > chunks.max(1) || index >= count {
-        return Err(format!(
+        return Err(FormatError::header(format!(
             "share {index}/{count} (shares go from 0 to count - 1, and an encode of {chunks} \
              chunks has at most {chunks})"
-        ));
+        )));
     }
     Ok(())
 }

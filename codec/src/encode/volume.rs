@@ -71,8 +71,7 @@ pub fn encode_mesh(mesh: &Mesh, s: &MeshSettings, source: &str) -> Result<Encode
     let field_seconds = start.elapsed().as_secs_f64();
     let n = field.size;
     let (header, stream, operator) =
-        crate::codecs::ifs3d::fit::encode_field(&field.normalised(), n, &s.codec)
-            .map_err(Error::settings)?;
+        crate::codecs::ifs3d::fit::encode_field(&field.normalised(), n, &s.codec)?;
     let transforms = operator.leaves().len();
     // Measure what a reader decodes: the native grid, discrete, as the encoder fitted it.
     let (decoded, _) = decode::discrete_volume(&operator, [n; 3], DiscreteOptions::fixed(24));

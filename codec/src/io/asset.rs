@@ -28,6 +28,7 @@ use crate::codecs::plane::Build;
 use crate::codecs::registry::{self, Registered, Visit};
 pub use crate::codecs::registry::{Codec, Coding, PlaneOperator};
 use crate::core::fidelity::SourceError;
+use crate::core::format::FormatError;
 
 #[derive(Serialize, Deserialize)]
 struct VolumePayload {
@@ -152,14 +153,14 @@ impl Asset {
         stream: Vec<u8>,
         placement: crate::codecs::ifs3d::volume::Placement,
     ) -> Result<Asset, Error> {
-        let bad = |m: String| Error::asset(format!("volume: {m}"));
+        let bad = |e: FormatError| Error::asset(format!("volume: {e}"));
         if meta.kind != AssetKind::Volume || meta.channels != 1 || meta.width != meta.height {
-            return Err(bad(
-                "metadata is not that of a cubic one-channel volume".into()
-            ));
+            return Err(bad(FormatError::header(
+                "metadata is not that of a cubic one-channel volume",
+            )));
         }
         if header.valid != meta.width as f32 {
-            return Err(bad("grid size and metadata disagree".into()));
+            return Err(bad(FormatError::header("grid size and metadata disagree")));
         }
         placement.validate().map_err(bad)?;
         let leaves = crate::codecs::ifs3d::octree::decode_stream(&header, &stream).map_err(bad)?;
@@ -189,9 +190,11 @@ impl Asset {
         header: crate::codecs::curve::code::CurveHeader,
         stream: Vec<u8>,
     ) -> Result<Asset, Error> {
-        let bad = |m: String| Error::asset(format!("curve: {m}"));
+        let bad = |e: FormatError| Error::asset(format!("curve: {e}"));
         if meta.kind != AssetKind::Curve {
-            return Err(bad("metadata is not that of a curve asset".into()));
+            return Err(bad(FormatError::header(
+                "metadata is not that of a curve asset",
+            )));
         }
         let set = crate::codecs::curve::code::decode(&header, &stream).map_err(bad)?;
         let asset = Asset {

@@ -45,6 +45,7 @@ use crate::codecs::coded::Payload;
 use crate::codecs::plane::Build;
 use crate::codecs::projected::{ProjectedHeader, ProjectedOperator};
 use crate::codecs::registry::{Codec, Coding, PlaneOperator};
+use crate::core::format::FormatError;
 
 impl ChunkCache {
     /// A cache of at most `bytes` of decoded chunks.
@@ -214,10 +215,11 @@ impl Chunked {
             )));
         }
         let version = u16::from_le_bytes([head[8], head[9]]);
-        let table = ChunkTable::decode(&rest[..t_len as usize], version).map_err(bad)?;
+        let table =
+            ChunkTable::decode(&rest[..t_len as usize], version).map_err(|e| bad(e.to_string()))?;
         table
             .validate(&meta, (header_end, file_len), version)
-            .map_err(bad)?;
+            .map_err(|e| bad(e.to_string()))?;
         // Each chunk is read under the limits as its own asset; the chunk side bounds its
         // grid (a last chunk takes up to half a chunk more), so a chunk over the limits is
         // refused when the file opens.
@@ -386,33 +388,35 @@ impl Chunked {
     /// replaced by another valid asset, a chunked file as a chunk, and tables that point
     /// elsewhere: stored, then answered 503 at every request that touched them (what
     /// [`Chunked::chunk`] finds at serving time, found at upload).
-    fn check_chunk_header(&self, bytes: &[u8], entry: &ChunkEntry) -> Result<(), String> {
+    fn check_chunk_header(&self, bytes: &[u8], entry: &ChunkEntry) -> Result<(), FormatError> {
         if is_chunked(bytes) {
-            return Err("a chunked file as a chunk".into());
+            return Err(FormatError::header("a chunked file as a chunk"));
         }
         if bytes.len() < 16 || &bytes[..8] != MAGIC {
-            return Err("not an asset".into());
+            return Err(FormatError::header("not an asset"));
         }
         if bytes[11] != self.table.codec {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "codec {} where the table says {}",
                 bytes[11], self.table.codec
-            ));
+            )));
         }
         let m_len = u32::from_le_bytes(bytes[12..16].try_into().expect("4")) as usize;
         let meta: AssetMeta = bytes
             .get(16..16usize.saturating_add(m_len))
-            .ok_or("truncated metadata")
-            .and_then(|m| fractile_proto::decode(m).map_err(|_| "unreadable metadata"))?;
+            .ok_or(FormatError::header("truncated metadata"))
+            .and_then(|m| {
+                fractile_proto::decode(m).map_err(|_| FormatError::header("unreadable metadata"))
+            })?;
         let [x0, y0, x1, y1] = entry.cells;
         if (meta.width, meta.height) != (x1 - x0, y1 - y0) {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "{} x {} cells where the table says {} x {}",
                 meta.width,
                 meta.height,
                 x1 - x0,
                 y1 - y0
-            ));
+            )));
         }
         Ok(())
     }
@@ -467,7 +471,7 @@ impl Asset {
             fractile_proto::decode(payload).map_err(|e| Error::asset(e.to_string()))?;
         let [(header, stream)] = <[_; 1]>::try_from(p.planes)
             .map_err(|_| Error::asset("a coarse view of a chunk of several planes"))?;
-        header.validate().map_err(Error::asset)?;
+        header.validate().map_err(|e| Error::asset(e.to_string()))?;
         if header.samples != [meta.width, meta.height] {
             return Err(Error::asset("sample grid and metadata disagree"));
         }
@@ -492,7 +496,7 @@ impl Asset {
             Build::Whole => ProjectedOperator::new(&view, &grid),
             Build::Lazy => ProjectedOperator::lazy(&view, grid),
         }
-        .map_err(Error::asset)?;
+        .map_err(|e| Error::asset(e.to_string()))?;
         let asset = Asset {
             meta: AssetMeta {
                 width: cw as u32,

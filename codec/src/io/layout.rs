@@ -8,6 +8,8 @@ use std::sync::Arc;
 use fractile_proto::AssetMeta;
 use serde::{Deserialize, Serialize};
 
+use crate::core::format::FormatError;
+
 pub use super::frame::MAGIC;
 use super::frame::kind_byte;
 
@@ -161,11 +163,12 @@ impl ChunkTable {
     }
 
     /// Reads a table of container version `version`.
-    pub(crate) fn decode(bytes: &[u8], version: u16) -> Result<ChunkTable, String> {
+    pub(crate) fn decode(bytes: &[u8], version: u16) -> Result<ChunkTable, FormatError> {
         if version >= 7 {
-            return fractile_proto::decode(bytes).map_err(|e| e.to_string());
+            return fractile_proto::decode(bytes).map_err(|e| FormatError::stream(e.to_string()));
         }
-        let t: ChunkTableV6 = fractile_proto::decode(bytes).map_err(|e| e.to_string())?;
+        let t: ChunkTableV6 =
+            fractile_proto::decode(bytes).map_err(|e| FormatError::stream(e.to_string()))?;
         Ok(ChunkTable {
             chunk: t.chunk,
             overlap: t.overlap,
@@ -235,48 +238,56 @@ impl ChunkTable {
         meta: &AssetMeta,
         (header_end, file_len): (u64, u64),
         version: u16,
-    ) -> Result<(), String> {
+    ) -> Result<(), FormatError> {
         let (lo, hi) = CHUNK_SIDES;
         if !self.chunk.is_power_of_two() || self.chunk < lo || self.chunk > hi {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "chunk side {} is not a power of two in {lo}..={hi}",
                 self.chunk
-            ));
+            )));
         }
         if self.overlap > self.chunk / 4 {
-            return Err(format!("overlap {} is over a quarter chunk", self.overlap));
+            return Err(FormatError::header(format!(
+                "overlap {} is over a quarter chunk",
+                self.overlap
+            )));
         }
         if !(1..=6).contains(&self.codec) || self.codec == 4 || self.codec == 5 {
-            return Err(format!("chunks of codec {} are not rasters", self.codec));
+            return Err(FormatError::header(format!(
+                "chunks of codec {} are not rasters",
+                self.codec
+            )));
         }
         if !(self.max_contrast.is_finite() && self.seed_bound.is_finite()) {
-            return Err("non-finite contrast or bound".into());
+            return Err(FormatError::header("non-finite contrast or bound"));
         }
         let viewed = version >= CODED_TOP_VERSION && !self.views.is_empty();
         let sizes = ChunkTable::level_sizes(meta.width, meta.height, self.chunk, viewed);
         if sizes.len() != self.levels.len() {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "{} levels where a {}x{} raster in chunks of {} has {}",
                 self.levels.len(),
                 meta.width,
                 meta.height,
                 self.chunk,
                 sizes.len()
-            ));
+            )));
         }
         let total: usize = self.levels.iter().map(|l| l.chunks.len()).sum();
         if total > MAX_CHUNKS {
-            return Err(format!("{total} chunks, over the limit of {MAX_CHUNKS}"));
+            return Err(FormatError::header(format!(
+                "{total} chunks, over the limit of {MAX_CHUNKS}"
+            )));
         }
         if self.views.len() > ChunkTable::view_levels(self.levels.len())
             || (!self.views.is_empty() && !self.overlap.is_multiple_of(1 << self.views.len()))
         {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "{} view levels of {} levels with an overlap of {}",
                 self.views.len(),
                 self.levels.len(),
                 self.overlap
-            ));
+            )));
         }
         for (l, (level, &(w, h))) in self.levels.iter().zip(&sizes).enumerate() {
             let (nx, ny) = if self.is_view(l) {
@@ -287,35 +298,47 @@ impl ChunkTable {
             if (level.width, level.height) != (w, h)
                 || level.chunks.len() != (nx as usize) * (ny as usize)
             {
-                return Err(format!("level {l} does not have the layout's size"));
+                return Err(FormatError::header(format!(
+                    "level {l} does not have the layout's size"
+                )));
             }
             if self.is_view(l) && self.views[l - 1].maps.len() != level.chunks.len() {
-                return Err(format!("level {l} has not a map a chunk"));
+                return Err(FormatError::header(format!(
+                    "level {l} has not a map a chunk"
+                )));
             }
             for (i, e) in level.chunks.iter().enumerate() {
                 let (cx, cy) = (i as u32 % nx, i as u32 / nx);
                 let cells = if self.is_view(l) {
                     let source = &self.levels[0].chunks[i];
                     if (e.offset, e.length, e.crc) != (source.offset, source.length, source.crc) {
-                        return Err(format!("chunk {i} of view level {l} is not level 0's"));
+                        return Err(FormatError::header(format!(
+                            "chunk {i} of view level {l} is not level 0's"
+                        )));
                     }
                     ChunkTable::view_cells(source.cells, l)
                 } else {
                     self.coded_cells(w, h, cx, cy)
                 };
                 if e.cells != cells {
-                    return Err(format!("chunk {i} of level {l} claims other cells"));
+                    return Err(FormatError::header(format!(
+                        "chunk {i} of level {l} claims other cells"
+                    )));
                 }
                 let end = e.offset.checked_add(e.length);
                 if e.length > 0 && (e.offset < header_end || end.is_none_or(|e| e > file_len)) {
-                    return Err(format!("chunk {i} of level {l} lies outside the file"));
+                    return Err(FormatError::header(format!(
+                        "chunk {i} of level {l} lies outside the file"
+                    )));
                 }
                 if e.length > 0
                     && e.value_range[0]
                         .partial_cmp(&e.value_range[1])
                         .is_none_or(|o| o.is_gt())
                 {
-                    return Err(format!("chunk {i} of level {l} has a bad value range"));
+                    return Err(FormatError::header(format!(
+                        "chunk {i} of level {l} has a bad value range"
+                    )));
                 }
             }
         }

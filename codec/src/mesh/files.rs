@@ -15,10 +15,11 @@ impl Mesh {
             .and_then(|e| e.to_str())
             .map(str::to_ascii_lowercase)
             .unwrap_or_default();
-        let named = |e: String| Error::input(format!("{}: {e}", path.display())).at(path);
+        let named = |e: Error| e.within(path.display()).at(path);
         let mesh = match ext.as_str() {
             "off" => {
-                let text = std::fs::read_to_string(path).map_err(|e| named(e.to_string()))?;
+                let text = std::fs::read_to_string(path)
+                    .map_err(|e| named(Error::input(e.to_string())))?;
                 Mesh::parse_off(&text).map_err(named)?
             }
             "obj" => {
@@ -27,7 +28,8 @@ impl Mesh {
                     single_index: true,
                     ..Default::default()
                 };
-                let (models, _) = tobj::load_obj(path, &opts).map_err(|e| named(e.to_string()))?;
+                let (models, _) =
+                    tobj::load_obj(path, &opts).map_err(|e| named(Error::input(e.to_string())))?;
                 let mut m = Mesh::default();
                 for model in models {
                     let base = m.positions.len() as u32;
@@ -49,8 +51,10 @@ impl Mesh {
                 m
             }
             "stl" => {
-                let mut f = std::fs::File::open(path).map_err(|e| named(e.to_string()))?;
-                let stl = stl_io::read_stl(&mut f).map_err(|e| named(e.to_string()))?;
+                let mut f =
+                    std::fs::File::open(path).map_err(|e| named(Error::input(e.to_string())))?;
+                let stl =
+                    stl_io::read_stl(&mut f).map_err(|e| named(Error::input(e.to_string())))?;
                 Mesh {
                     positions: stl.vertices.iter().map(|v| v.0).collect(),
                     triangles: stl
@@ -63,9 +67,9 @@ impl Mesh {
             }
             "ply" => Mesh::read_ply(path).map_err(named)?,
             _ => {
-                return Err(named(format!(
+                return Err(named(Error::input(format!(
                     "unknown mesh extension {ext:?} (off, obj, ply or stl)"
-                )));
+                ))));
             }
         };
         mesh.check().map_err(named)?;
@@ -73,7 +77,7 @@ impl Mesh {
     }
 
     /// Parses OFF text: `OFF`, `V F E`, V lines of `x y z`, F lines of `n i j k ...`.
-    pub fn parse_off(text: &str) -> Result<Mesh, String> {
+    pub fn parse_off(text: &str) -> Result<Mesh, crate::Error> {
         // Comments run from '#' to the end of a line; the counts may share the OFF line.
         let mut words = text
             .lines()
@@ -81,19 +85,19 @@ impl Mesh {
             .flat_map(str::split_whitespace);
         match words.next() {
             Some(w) if w.ends_with("OFF") => {}
-            _ => return Err("not an OFF file (no OFF header)".into()),
+            _ => return Err(crate::Error::input("not an OFF file (no OFF header)")),
         }
-        let mut number = |what: &str| -> Result<f64, String> {
+        let mut number = |what: &str| -> Result<f64, crate::Error> {
             words
                 .next()
-                .ok_or_else(|| format!("truncated OFF: expected {what}"))?
+                .ok_or_else(|| crate::Error::input(format!("truncated OFF: expected {what}")))?
                 .parse::<f64>()
-                .map_err(|e| format!("bad {what} in OFF: {e}"))
+                .map_err(|e| crate::Error::input(format!("bad {what} in OFF: {e}")))
         };
         let (v, f) = (number("vertex count")?, number("face count")?);
         number("edge count")?;
         if !(v >= 0.0 && f >= 0.0 && v < 1e8 && f < 1e8) {
-            return Err(format!("bad OFF counts {v} {f}"));
+            return Err(crate::Error::input(format!("bad OFF counts {v} {f}")));
         }
         let mut m = Mesh::default();
         for _ in 0..v as usize {
@@ -106,7 +110,7 @@ impl Mesh {
         for _ in 0..f as usize {
             let n = number("face size")? as usize;
             if !(3..=1024).contains(&n) {
-                return Err(format!("OFF face of {n} vertices"));
+                return Err(crate::Error::input(format!("OFF face of {n} vertices")));
             }
             let idx = (0..n)
                 .map(|_| number("vertex index").map(|i| i as u32))
@@ -118,11 +122,15 @@ impl Mesh {
         Ok(m)
     }
 
-    fn read_ply(path: &Path) -> Result<Mesh, String> {
+    fn read_ply(path: &Path) -> Result<Mesh, crate::Error> {
         use ply_rs_bw::ply::Property;
-        let mut f = std::io::BufReader::new(std::fs::File::open(path).map_err(|e| e.to_string())?);
+        let mut f = std::io::BufReader::new(
+            std::fs::File::open(path).map_err(|e| crate::Error::input(e.to_string()))?,
+        );
         let parser = ply_rs_bw::parser::Parser::<ply_rs_bw::ply::DefaultElement>::new();
-        let ply = parser.read_ply(&mut f).map_err(|e| e.to_string())?;
+        let ply = parser
+            .read_ply(&mut f)
+            .map_err(|e| crate::Error::input(e.to_string()))?;
         let scalar = |p: Option<&Property>| -> Option<f32> {
             Some(match p? {
                 Property::Float(v) => *v,
@@ -151,14 +159,14 @@ impl Mesh {
         for v in ply.payload.get("vertex").map(Vec::as_slice).unwrap_or(&[]) {
             let c = ["x", "y", "z"].map(|k| scalar(v.get(k)));
             let [Some(x), Some(y), Some(z)] = c else {
-                return Err("a PLY vertex without numeric x, y, z".into());
+                return Err(crate::Error::input("a PLY vertex without numeric x, y, z"));
             };
             m.positions.push([x, y, z]);
         }
         for f in ply.payload.get("face").map(Vec::as_slice).unwrap_or(&[]) {
             let idx = list(f.get("vertex_indices"))
                 .or_else(|| list(f.get("vertex_index")))
-                .ok_or("a PLY face without vertex_indices")?;
+                .ok_or(crate::Error::input("a PLY face without vertex_indices"))?;
             for k in 1..idx.len().saturating_sub(1) {
                 m.triangles.push([idx[0], idx[k], idx[k + 1]]);
             }

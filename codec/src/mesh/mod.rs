@@ -335,18 +335,20 @@ impl Mesh {
 
     /// Rejects meshes no encoder can use: no triangles, indices past the vertex list,
     /// non-finite coordinates.
-    pub fn check(&self) -> Result<(), String> {
+    pub fn check(&self) -> Result<(), crate::Error> {
         if self.triangles.is_empty() {
-            return Err("the mesh has no triangles".into());
+            return Err(crate::Error::input("the mesh has no triangles"));
         }
         let n = self.positions.len() as u32;
         if let Some(t) = self.triangles.iter().find(|t| t.iter().any(|&i| i >= n)) {
-            return Err(format!(
+            return Err(crate::Error::input(format!(
                 "triangle {t:?} names a vertex past the {n} vertices"
-            ));
+            )));
         }
         if self.positions.iter().flatten().any(|v| !v.is_finite()) {
-            return Err("a vertex has a NaN or infinite coordinate".into());
+            return Err(crate::Error::input(
+                "a vertex has a NaN or infinite coordinate",
+            ));
         }
         Ok(())
     }

@@ -10,7 +10,8 @@ use serde::{Deserialize, Serialize};
 use crate::Error;
 use crate::codecs::coded::{Coded, Measure, PlaneEncoder};
 use crate::codecs::options::{Named, Options};
-use crate::codecs::plane::{Build, PlaneCodec, PlaneError};
+use crate::codecs::plane::{Build, PlaneCodec};
+use crate::core::format::FormatError;
 use crate::codecs::projected::{ProjectedHeader, ProjectedOperator, ProjectedSettings};
 use crate::codecs::registry::Coding;
 use crate::core::metrics::Errors;
@@ -33,7 +34,7 @@ impl PlaneCodec for ToyHeader {
         NAME
     }
 
-    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, PlaneError> {
+    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, FormatError> {
         self.0.cost(meta, stream)
     }
 
@@ -42,7 +43,7 @@ impl PlaneCodec for ToyHeader {
         meta: &AssetMeta,
         stream: &[u8],
         build: Build,
-    ) -> Result<ProjectedOperator, PlaneError> {
+    ) -> Result<ProjectedOperator, FormatError> {
         self.0.operator(meta, stream, build)
     }
 }

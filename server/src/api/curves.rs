@@ -160,7 +160,7 @@ pub(super) async fn curve_deform(
                 return Err(AppError::internal("a curve asset without its curves"));
             };
             let deformed = fractile_codec::codecs::curve::deform::apply(&c.set, &req.deformations)
-                .map_err(|e| AppError::bad_request(ErrorCode::BadDeformation, e))?;
+                .map_err(|e| AppError::bad_request(ErrorCode::BadDeformation, e.message()))?;
             Ok(geojson_body(
                 deformed.at_level(level),
                 deformed.finest(),

@@ -80,8 +80,7 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
         tracing::info!("encoding demo volume {id} from {name} (first start only)");
         let text = std::str::from_utf8(bytes)
             .map_err(|e| fractile_codec::Error::input(format!("{name}: {e}")))?;
-        let mesh = fractile_codec::mesh::Mesh::parse_off(text)
-            .map_err(|e| fractile_codec::Error::input(format!("{name}: {e}")))?;
+        let mesh = fractile_codec::mesh::Mesh::parse_off(text).map_err(|e| e.within(name))?;
         let enc = fractile_codec::encode::volume::encode_mesh(
             &mesh,
             &fractile_codec::encode::volume::MeshSettings::default(),
@@ -100,8 +99,8 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
     if !out.exists() {
         let text = std::str::from_utf8(bytes)
             .map_err(|e| fractile_codec::Error::input(format!("{name}: {e}")))?;
-        let lines = fractile_codec::codecs::curve::geojson::read(text)
-            .map_err(|e| fractile_codec::Error::input(format!("{name}: {e}")))?;
+        let lines =
+            fractile_codec::codecs::curve::geojson::read(text).map_err(|e| e.within(name))?;
         let settings = fractile_codec::codecs::curve::CurveSettings {
             tolerance,
             ..Default::default()

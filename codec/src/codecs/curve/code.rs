@@ -30,6 +30,7 @@ pub(crate) use super::header::{CurveHeader, RingHeader, compact};
 use super::model::{CurveSet, Frame, Ring, Scheme};
 use super::prepare::Prepared;
 use crate::core::entropy::{Decoder, Dir, Encoder};
+use crate::core::format::FormatError;
 
 /// The finest level's lattice: the lattice of the quantiser turned to the chord between
 /// a point's decoded neighbours, in the metric's plane at the prediction. Along a coast the
@@ -161,7 +162,11 @@ fn four_point_correction(i: usize, outer: Pt, a: Pt, c: Pt, b: Pt) -> Pt {
 }
 
 /// Walks every ring in a fixed order, coding (encoder, with `sources`) or decoding.
-fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<Ring>, String> {
+fn walk(
+    dir: &mut Dir,
+    header: &CurveHeader,
+    plan: Option<&Plan>,
+) -> Result<Vec<Ring>, FormatError> {
     let q = Quantiser::new(header.metric, header.tolerance);
     let scheme = &header.scheme;
     let mut m = Models::new();
@@ -180,7 +185,9 @@ fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<
             let gap = m.gaps.code(dir, want);
             at += gap;
             if gap < 1 || at as usize >= fine_len {
-                return Err(format!("ring {ri}: bad inserted point index"));
+                return Err(FormatError::stream(format!(
+                    "ring {ri}: bad inserted point index"
+                )));
             }
             inserted.push(at as u32);
         }
@@ -205,7 +212,9 @@ fn walk(dir: &mut Dir, header: &CurveHeader, plan: Option<&Plan>) -> Result<Vec<
             for p in 0..n {
                 // A short stream stops where it ran out, not after decoding its claim.
                 if p % 1024 == 0 && dir.overrun() {
-                    return Err(format!("ring {ri}: the curve stream is truncated"));
+                    return Err(FormatError::stream(format!(
+                        "ring {ri}: the curve stream is truncated"
+                    )));
                 }
                 let (ia, ib) = (2 * p, (2 * p + 2) % cur.len());
                 let (a, c, b) = (cur[ia], cur[2 * p + 1], cur[ib]);
@@ -306,7 +315,10 @@ pub(crate) fn encode(
     tolerance: f64,
     sources: &[Prepared],
     frames: &[Frame],
-) -> Result<(CurveHeader, Vec<u8>, CurveSet), String> {
+) -> Result<(CurveHeader, Vec<u8>, CurveSet), crate::Error> {
+    // A header or stream this encoder makes and its reader refuses comes of the input (the
+    // rings it was given).
+    let settings = |e: FormatError| crate::Error::input(e.to_string());
     let tolerance = compact::tolerance_down(tolerance);
     let mut header = CurveHeader {
         scheme: scheme.clone(),
@@ -329,7 +341,7 @@ pub(crate) fn encode(
             .collect(),
         finest_bound: 0.0,
     };
-    header.validate()?;
+    header.validate().map_err(settings)?;
     // Code, verify the output against the source, hold strict the points around every place
     // where it strays, code again. Marks only grow, and a place whose points are all strict is
     // within the tolerance by convexity (each point within `tol` of its vertex), so this ends;
@@ -363,7 +375,7 @@ pub(crate) fn encode(
     }
     let (rings, stream) = loop {
         let mut enc = Encoder::new();
-        let rings = walk(&mut Dir::Enc(&mut enc), &header, Some(&plan))?;
+        let rings = walk(&mut Dir::Enc(&mut enc), &header, Some(&plan)).map_err(settings)?;
         let stream = enc.finish();
         if tolerance == 0.0 {
             break (rings, stream);
@@ -480,19 +492,21 @@ fn strays(scheme: &Scheme, metric: Metric, tol: f64, ring: &Ring, src: &Prepared
 }
 
 /// Decodes a stream.
-pub(crate) fn decode(header: &CurveHeader, stream: &[u8]) -> Result<CurveSet, String> {
+pub(crate) fn decode(header: &CurveHeader, stream: &[u8]) -> Result<CurveSet, FormatError> {
     header.validate()?;
     let mut dec = Decoder::new(stream);
     let rings = walk(&mut Dir::Dec(&mut dec), header, None)?;
     if dec.overrun() {
-        return Err("the curve stream is truncated".into());
+        return Err(FormatError::stream("the curve stream is truncated"));
     }
     let bad = rings
         .iter()
         .flat_map(|r| r.base.iter().chain(r.details.iter().flatten().flatten()))
         .any(|p| !p[0].is_finite() || !p[1].is_finite());
     if bad {
-        return Err("the curve stream decodes to non-finite points".into());
+        return Err(FormatError::stream(
+            "the curve stream decodes to non-finite points",
+        ));
     }
     Ok(CurveSet {
         level_bounds: level_bounds(&header.scheme, header.metric, header.finest_bound, &rings),

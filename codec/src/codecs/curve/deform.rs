@@ -7,7 +7,7 @@ use fractile_proto::Deformation;
 use nalgebra::{DMatrix, Matrix2, Vector2};
 
 /// Applies deformations in order and returns the deformed set.
-pub fn apply(set: &CurveSet, deformations: &[Deformation]) -> Result<CurveSet, String> {
+pub fn apply(set: &CurveSet, deformations: &[Deformation]) -> Result<CurveSet, crate::Error> {
     let mut out = set.clone();
     for d in deformations {
         match d {
@@ -19,7 +19,9 @@ pub fn apply(set: &CurveSet, deformations: &[Deformation]) -> Result<CurveSet, S
                 ring,
             } => {
                 if !(scale.is_finite() && rotate_degrees.is_finite()) || scale.abs() > 1e3 {
-                    return Err("scale and rotation must be finite (|scale| <= 1000)".into());
+                    return Err(crate::Error::input(
+                        "scale and rotation must be finite (|scale| <= 1000)",
+                    ));
                 }
                 let m = similarity(*scale, rotate_degrees.to_radians());
                 let finest = out.finest();
@@ -33,7 +35,10 @@ pub fn apply(set: &CurveSet, deformations: &[Deformation]) -> Result<CurveSet, S
                     }
                 }
                 if let Some(k) = ring.filter(|&k| k >= out.rings.len()) {
-                    return Err(format!("no ring {k}: the asset has {}", out.rings.len()));
+                    return Err(crate::Error::input(format!(
+                        "no ring {k}: the asset has {}",
+                        out.rings.len()
+                    )));
                 }
             }
             Deformation::Local {
@@ -65,34 +70,34 @@ fn transform_details(level: &mut [[Pt; 2]], m: &Matrix2<f64>) {
     }
 }
 
-fn ring_mut(set: &mut CurveSet, ring: usize) -> Result<&mut Ring, String> {
+fn ring_mut(set: &mut CurveSet, ring: usize) -> Result<&mut Ring, crate::Error> {
     let n = set.rings.len();
     set.rings
         .get_mut(ring)
-        .ok_or_else(|| format!("no ring {ring}: the asset has {n}"))
+        .ok_or_else(|| crate::Error::input(format!("no ring {ring}: the asset has {n}")))
 }
 
 /// Global deformation: new base control points; details follow the rotation and scale part
 /// `L(M)` of the affine map `M` that best takes the old points to the new (least squares, by
 /// the pseudo-inverse), i.e. the similarity closest to `M`'s linear part.
-fn control(set: &mut CurveSet, ring: usize, points: &[Pt]) -> Result<(), String> {
+fn control(set: &mut CurveSet, ring: usize, points: &[Pt]) -> Result<(), crate::Error> {
     let r = ring_mut(set, ring)?;
     if points.len() != r.base.len() {
-        return Err(format!(
+        return Err(crate::Error::input(format!(
             "ring {ring} has {} control points, {} were given",
             r.base.len(),
             points.len()
-        ));
+        )));
     }
     if points.iter().flatten().any(|v| !v.is_finite()) {
-        return Err("control points must be finite".into());
+        return Err(crate::Error::input("control points must be finite"));
     }
     let n = points.len();
     let x = DMatrix::from_fn(n, 3, |i, j| if j < 2 { r.base[i][j] } else { 1.0 });
     let y = DMatrix::from_fn(n, 2, |i, j| points[i][j]);
     let pinv = x
         .pseudo_inverse(1e-12)
-        .map_err(|e| format!("pseudo-inverse: {e}"))?;
+        .map_err(|e| crate::Error::input(format!("pseudo-inverse: {e}")))?;
     let a = pinv * y; // rows: x, y, 1 → columns x', y' (row-vector form p' = p·A)
     // Column-vector linear part [[a, c], [b, d]] and its closest similarity.
     let lin = Matrix2::new(a[(0, 0)], a[(1, 0)], a[(0, 1)], a[(1, 1)]);
@@ -125,22 +130,22 @@ fn local(
     index: usize,
     to: Pt,
     radius: usize,
-) -> Result<(), String> {
+) -> Result<(), crate::Error> {
     if !(to[0].is_finite() && to[1].is_finite()) {
-        return Err("the target point must be finite".into());
+        return Err(crate::Error::input("the target point must be finite"));
     }
     let finest = set.finest();
     if level > finest {
-        return Err(format!(
+        return Err(crate::Error::input(format!(
             "local edits work at the source's levels (0..={finest}), not {level}"
-        ));
+        )));
     }
     let scheme = set.scheme.clone();
     let own = {
         let r = set
             .rings
             .get(ring)
-            .ok_or_else(|| format!("no ring {ring}"))?;
+            .ok_or_else(|| crate::Error::input(format!("no ring {ring}")))?;
         set.ring_level(r, level)
     };
     let r = ring_mut(set, ring)?;
@@ -148,7 +153,9 @@ fn local(
     // The index is the output's (inserted points left out, the input's first vertex first);
     // `to` is in the output's longitudes, so the move is measured there.
     let Some(&at) = r.output_map(own).get(index) else {
-        return Err(format!("ring {ring} has no point {index} at level {level}"));
+        return Err(crate::Error::input(format!(
+            "ring {ring} has no point {index} at level {level}"
+        )));
     };
     let framed = r.framed(&scheme, own);
     let delta = [to[0] - framed[at][0], to[1] - framed[at][1]];

@@ -20,8 +20,10 @@ pub struct Polyline {
 }
 
 /// Parses GeoJSON text into polylines.
-pub fn read(text: &str) -> Result<Vec<Polyline>, String> {
-    let doc: GeoJson = text.parse().map_err(|e| format!("GeoJSON: {e}"))?;
+pub fn read(text: &str) -> Result<Vec<Polyline>, crate::Error> {
+    let doc: GeoJson = text
+        .parse()
+        .map_err(|e| crate::Error::input(format!("GeoJSON: {e}")))?;
     let mut out = Vec::new();
     match doc {
         GeoJson::FeatureCollection(fc) => {
@@ -39,7 +41,9 @@ pub fn read(text: &str) -> Result<Vec<Polyline>, String> {
         GeoJson::Geometry(g) => geometry(&g, &mut out)?,
     }
     if out.is_empty() {
-        return Err("GeoJSON: no LineString, MultiLineString or Polygon to encode".into());
+        return Err(crate::Error::input(
+            "GeoJSON: no LineString, MultiLineString or Polygon to encode",
+        ));
     }
     Ok(out)
 }
@@ -48,15 +52,19 @@ fn line(
     positions: &[geojson::Position],
     ring: bool,
     out: &mut Vec<Polyline>,
-) -> Result<(), String> {
+) -> Result<(), crate::Error> {
     let mut points = Vec::with_capacity(positions.len());
     for p in positions {
         if p.len() < 2 {
-            return Err("GeoJSON: a position has fewer than 2 coordinates".into());
+            return Err(crate::Error::input(
+                "GeoJSON: a position has fewer than 2 coordinates",
+            ));
         }
         let q = [p[0], p[1]];
         if !(q[0].is_finite() && q[1].is_finite()) {
-            return Err(format!("GeoJSON: position {q:?} is not finite"));
+            return Err(crate::Error::input(format!(
+                "GeoJSON: position {q:?} is not finite"
+            )));
         }
         points.push(q);
     }
@@ -68,7 +76,7 @@ fn line(
     Ok(())
 }
 
-fn geometry(g: &Geometry, out: &mut Vec<Polyline>) -> Result<(), String> {
+fn geometry(g: &Geometry, out: &mut Vec<Polyline>) -> Result<(), crate::Error> {
     match &g.value {
         GeometryValue::LineString { coordinates } => line(coordinates, false, out),
         GeometryValue::MultiLineString { coordinates } => {

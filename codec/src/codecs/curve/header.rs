@@ -3,6 +3,7 @@
 
 use super::distance::Metric;
 use super::model::{Scheme, SeamCrossing};
+use crate::core::format::FormatError;
 
 /// What the stream needs to be read: the scheme and the shape of every ring. Stored in the
 /// compact form of [`compact`], right before the stream (12 bytes for one ring, against 75 as
@@ -31,7 +32,7 @@ pub struct CurveHeader {
 /// `f32`, and the finest level's bound as a 16-bit code `k` of `tolerance · 2^(k/256)` (0.27%
 /// steps, rounded up; `u16::MAX`: no bound), or as `f32` rounded up when the tolerance is 0.
 pub(crate) mod compact {
-    use super::{CurveHeader, Metric, RingHeader, Scheme, SeamCrossing};
+    use super::{CurveHeader, FormatError, Metric, RingHeader, Scheme, SeamCrossing};
 
     fn varint(out: &mut Vec<u8>, mut v: u64) {
         loop {
@@ -148,20 +149,20 @@ pub(crate) mod compact {
     struct Reader<'a>(&'a [u8]);
 
     impl Reader<'_> {
-        fn bytes<const N: usize>(&mut self) -> Result<[u8; N], String> {
+        fn bytes<const N: usize>(&mut self) -> Result<[u8; N], FormatError> {
             if self.0.len() < N {
-                return Err("the curve header is truncated".into());
+                return Err(FormatError::stream("the curve header is truncated"));
             }
             let (head, rest) = self.0.split_at(N);
             self.0 = rest;
             Ok(head.try_into().expect("N bytes"))
         }
 
-        fn f64(&mut self) -> Result<f64, String> {
+        fn f64(&mut self) -> Result<f64, FormatError> {
             Ok(f64::from_le_bytes(self.bytes()?))
         }
 
-        fn varint(&mut self) -> Result<u64, String> {
+        fn varint(&mut self) -> Result<u64, FormatError> {
             let mut v = 0u64;
             for shift in (0..64).step_by(7) {
                 let [byte] = self.bytes()?;
@@ -170,14 +171,18 @@ pub(crate) mod compact {
                     return Ok(v);
                 }
             }
-            Err("a count in the curve header is too long".into())
+            Err(FormatError::stream(
+                "a count in the curve header is too long",
+            ))
         }
 
         /// A count that cannot exceed the bytes left (each entry takes at least one).
-        fn count(&mut self) -> Result<usize, String> {
+        fn count(&mut self) -> Result<usize, FormatError> {
             let n = self.varint()?;
             if n > self.0.len() as u64 {
-                return Err(format!("the curve header claims {n} entries"));
+                return Err(FormatError::stream(format!(
+                    "the curve header claims {n} entries"
+                )));
             }
             Ok(n as usize)
         }
@@ -185,7 +190,7 @@ pub(crate) mod compact {
 
     /// Reads a header from the front of `bytes` (refusing a truncated one;
     /// [`CurveHeader::validate`] checks the rest); returns it and the bytes after it.
-    pub(crate) fn read(bytes: &[u8]) -> Result<(CurveHeader, &[u8]), String> {
+    pub(crate) fn read(bytes: &[u8]) -> Result<(CurveHeader, &[u8]), FormatError> {
         let mut r = Reader(bytes);
         let scheme = match r.bytes::<1>()? {
             [0] => Scheme::default(),
@@ -199,22 +204,27 @@ pub(crate) mod compact {
                 }
                 s
             }
-            [b] => return Err(format!("unknown scheme tag {b}")),
+            [b] => return Err(FormatError::stream(format!("unknown scheme tag {b}"))),
         };
         let metric = match r.bytes::<1>()? {
             [0] => Metric::Plane,
             [1] => Metric::Sphere,
-            [b] => return Err(format!("unknown metric {b}")),
+            [b] => return Err(FormatError::stream(format!("unknown metric {b}"))),
         };
         let tolerance = f64::from(f32::from_le_bytes(r.bytes()?));
         let n = r.count()?;
         let mut rings = Vec::with_capacity(n);
         for _ in 0..n {
             let [flags] = r.bytes()?;
-            let pieces = u32::try_from(r.varint()?).map_err(|_| "too many pieces")?;
-            let inserted = u32::try_from(r.varint()?).map_err(|_| "too many inserted points")?;
+            let pieces =
+                u32::try_from(r.varint()?).map_err(|_| FormatError::stream("too many pieces"))?;
+            let inserted = u32::try_from(r.varint()?)
+                .map_err(|_| FormatError::stream("too many inserted points"))?;
             let start = if flags & 0x40 != 0 {
-                Some(u32::try_from(r.varint()?).map_err(|_| "a start index is too large")?)
+                Some(
+                    u32::try_from(r.varint()?)
+                        .map_err(|_| FormatError::stream("a start index is too large"))?,
+                )
             } else {
                 None
             };
@@ -230,13 +240,14 @@ pub(crate) mod compact {
                         1 => -1,
                         2 => {
                             let z = u32::try_from(r.varint()?)
-                                .map_err(|_| "a seam turn is too large")?;
+                                .map_err(|_| FormatError::stream("a seam turn is too large"))?;
                             ((z >> 1) as i32) ^ -((z & 1) as i32)
                         }
-                        _ => return Err("unknown seam turn code".into()),
+                        _ => return Err(FormatError::stream("unknown seam turn code")),
                     };
                     seam.push(SeamCrossing {
-                        at: u32::try_from(at).map_err(|_| "a seam index is too large")?,
+                        at: u32::try_from(at)
+                            .map_err(|_| FormatError::stream("a seam index is too large"))?,
                         turns,
                     });
                 }
@@ -289,22 +300,27 @@ pub(crate) const MAX_POINTS: u64 = 1 << 26;
 
 impl CurveHeader {
     /// Refuses inconsistent or oversized headers.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FormatError> {
         self.scheme.validate()?;
         if !(self.tolerance.is_finite() && self.tolerance >= 0.0) {
-            return Err(format!("tolerance {} is not a distance", self.tolerance));
+            return Err(FormatError::header(format!(
+                "tolerance {} is not a distance",
+                self.tolerance
+            )));
         }
         let mut total = 0u64;
         for (i, r) in self.rings.iter().enumerate() {
             if r.pieces == 0 || r.levels as usize > super::prepare::MAX_LEVELS {
-                return Err(format!(
+                return Err(FormatError::header(format!(
                     "ring {i}: {} pieces, {} levels",
                     r.pieces, r.levels
-                ));
+                )));
             }
             let n = (r.pieces as u64) << (r.levels as u32 + 1);
             if r.inserted as u64 >= n {
-                return Err(format!("ring {i}: more inserted points than points"));
+                return Err(FormatError::header(format!(
+                    "ring {i}: more inserted points than points"
+                )));
             }
             let fine_len = n + u64::from(!r.closed);
             if r.seam.windows(2).any(|w| w[0].at >= w[1].at)
@@ -312,20 +328,27 @@ impl CurveHeader {
                     .iter()
                     .any(|c| c.at as u64 >= fine_len || c.turns == 0 || c.turns.abs() > 1 << 20)
             {
-                return Err(format!("ring {i}: bad antimeridian crossings"));
+                return Err(FormatError::header(format!(
+                    "ring {i}: bad antimeridian crossings"
+                )));
             }
             if r.start.is_some_and(|s| s as u64 >= fine_len) {
-                return Err(format!("ring {i}: start vertex past its points"));
+                return Err(FormatError::header(format!(
+                    "ring {i}: start vertex past its points"
+                )));
             }
             total = total.saturating_add(n);
         }
         if total > MAX_POINTS {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "{total} points is more than this build reads ({MAX_POINTS})"
-            ));
+            )));
         }
         if self.finest_bound.is_nan() || self.finest_bound < 0.0 {
-            return Err(format!("bad error bound {}", self.finest_bound));
+            return Err(FormatError::header(format!(
+                "bad error bound {}",
+                self.finest_bound
+            )));
         }
         Ok(())
     }

@@ -115,23 +115,24 @@ pub fn encode(
     // coordinates, which lossless coding must not do (it codes the jump instead).
     let unwrap = settings.metric == Metric::Sphere && settings.tolerance > 0.0;
     // A ring started at input vertex `start`: its points rotated, unwrapped, prepared.
-    let started = |l: &geojson::Polyline, start: usize| -> Result<(Prepared, Frame), String> {
-        let mut pts = l.points.clone();
-        if l.closed && pts.len() > 1 && pts.first() == pts.last() {
-            pts.pop();
-        }
-        let len = pts.len().max(1);
-        pts.rotate_left(start % len);
-        let (points, closed, seam) = if unwrap {
-            unwrap_longitudes(&pts, l.closed)
-        } else {
-            (pts, l.closed, Vec::new())
+    let started =
+        |l: &geojson::Polyline, start: usize| -> Result<(Prepared, Frame), crate::Error> {
+            let mut pts = l.points.clone();
+            if l.closed && pts.len() > 1 && pts.first() == pts.last() {
+                pts.pop();
+            }
+            let len = pts.len().max(1);
+            pts.rotate_left(start % len);
+            let (points, closed, seam) = if unwrap {
+                unwrap_longitudes(&pts, l.closed)
+            } else {
+                (pts, l.closed, Vec::new())
+            };
+            let p = prepare(&points, closed)?;
+            let seam = seam_to_fine(&seam, &p);
+            let winds = l.closed && !closed;
+            Ok((p, (seam, (start > 0 || winds).then_some(start as u32))))
         };
-        let p = prepare(&points, closed)?;
-        let seam = seam_to_fine(&seam, &p);
-        let winds = l.closed && !closed;
-        Ok((p, (seam, (start > 0 || winds).then_some(start as u32))))
-    };
     let (prepared, frames): (Vec<Prepared>, Vec<Frame>) = lines
         .par_iter()
         .enumerate()
@@ -160,16 +161,15 @@ pub fn encode(
                     )?;
                     Ok((code::compact::write(&header).len() + stream.len(), p, frame))
                 })
-                .collect::<Result<Vec<_>, String>>()
-                .map_err(|e| format!("polyline {i}: {e}"))?;
+                .collect::<Result<Vec<_>, crate::Error>>()
+                .map_err(|e| e.within(format_args!("polyline {i}")))?;
             let best = (0..candidates.len())
                 .min_by_key(|&k| (candidates[k].0, k))
                 .expect("at least one start");
             let (_, p, frame) = candidates.swap_remove(best);
             Ok((p, frame))
         })
-        .collect::<Result<Vec<_>, String>>()
-        .map_err(crate::Error::input)?
+        .collect::<Result<Vec<_>, crate::Error>>()?
         .into_iter()
         .unzip();
     let coded = |scheme: &Scheme| {
@@ -180,7 +180,6 @@ pub fn encode(
             &prepared,
             &frames,
         )
-        .map_err(crate::Error::input)
     };
     let mut best = coded(&Scheme::default())?;
     let mut report = fit::FitReport::default();

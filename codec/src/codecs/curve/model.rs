@@ -4,6 +4,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::codecs::curve::distance::{Metric, Pt, span_deviation};
+use crate::core::format::FormatError;
 
 /// The subdivision scheme shared by all rings of an asset: the subdivision matrices `T_i` (as
 /// barycentric weights) and the detail matrices `U_i`.
@@ -34,17 +35,17 @@ pub const MAX_DETAIL_GAIN: f64 = 0.9;
 
 impl Scheme {
     /// Refuses schemes that are not barycentric, not finite, or whose details do not shrink.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FormatError> {
         for (i, t) in self.t.iter().enumerate() {
             if t.iter().any(|w| !w.is_finite() || w.abs() > MAX_WEIGHT) {
-                return Err(format!(
+                return Err(FormatError::header(format!(
                     "subdivision weights {t:?} of map {i} are out of range"
-                ));
+                )));
             }
             if (t.iter().sum::<f64>() - 1.0).abs() > 1e-9 {
-                return Err(format!(
+                return Err(FormatError::header(format!(
                     "subdivision weights {t:?} of map {i} do not sum to 1"
-                ));
+                )));
             }
         }
         for u in &self.u {
@@ -52,7 +53,9 @@ impl Scheme {
                 || u.iter()
                     .any(|r| r[0].abs() + r[1].abs() > MAX_DETAIL_GAIN + 1e-12)
             {
-                return Err(format!("detail matrix {u:?} does not shrink details"));
+                return Err(FormatError::header(format!(
+                    "detail matrix {u:?} does not shrink details"
+                )));
             }
         }
         Ok(())

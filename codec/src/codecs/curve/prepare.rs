@@ -25,12 +25,14 @@ pub const MAX_LEVELS: usize = 24;
 /// Cuts a polyline into base pieces and inserts points on its longest segments until the
 /// count fits `K·2^(L+1)`. Input vertices are never moved or dropped. `points` of a ring need
 /// not repeat the first point at the end (a repeated one is removed).
-pub fn prepare(points: &[Pt], closed: bool) -> Result<Prepared, String> {
+pub fn prepare(points: &[Pt], closed: bool) -> Result<Prepared, crate::Error> {
     if let Some(p) = points
         .iter()
         .find(|p| !p[0].is_finite() || !p[1].is_finite())
     {
-        return Err(format!("a vertex is not finite: {p:?}"));
+        return Err(crate::Error::input(format!(
+            "a vertex is not finite: {p:?}"
+        )));
     }
     let mut pts = points.to_vec();
     if closed && pts.len() > 1 && pts.first() == pts.last() {
@@ -38,11 +40,11 @@ pub fn prepare(points: &[Pt], closed: bool) -> Result<Prepared, String> {
     }
     let min = if closed { 3 } else { 2 };
     if pts.len() < min {
-        return Err(format!(
+        return Err(crate::Error::input(format!(
             "a {} needs at least {min} vertices, this one has {}",
             if closed { "ring" } else { "polyline" },
             pts.len()
-        ));
+        )));
     }
     // Segments to fill: n for a ring, n - 1 for an open polyline. Pick the levels L and pieces K
     // with K·2^(L+1) >= segments that cost least: an inserted point costs about one coded

@@ -19,7 +19,9 @@ struct Sample {
 /// Fits a surface to a normalised source: node heights by subsampling (rounded by
 /// `round_to_surface`), s by least squares.
 pub(crate) fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Error> {
-    header.validate().map_err(Error::settings)?;
+    header
+        .validate()
+        .map_err(|e| Error::settings(e.to_string()))?;
     let [nx, ny] = header.nodes();
     let k = header.spacing as usize;
     let heights: Vec<i32> = (0..ny)
@@ -32,7 +34,7 @@ pub(crate) fn fit(source: &Source, header: &FisHeader) -> Result<FisParams, Erro
         heights: heights.clone(),
         scalings: vec![0; header.parameters()],
     };
-    let op = FisOperator::new(header, &flat).map_err(Error::settings)?;
+    let op = FisOperator::new(header, &flat).map_err(|e| Error::settings(e.to_string()))?;
     let samples: Vec<Sample> = {
         use rayon::prelude::*;
         (0..source.width * source.height)

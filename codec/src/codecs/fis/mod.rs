@@ -38,6 +38,7 @@ pub(crate) mod plane;
 use serde::{Deserialize, Serialize};
 
 use crate::core::entropy::{Decoder, Encoder};
+use crate::core::format::FormatError;
 use crate::core::lattice::{get_grid, lattice_frame, lattice_locate, put_grid, top_index};
 use crate::core::operator::{Operator, Step};
 
@@ -87,23 +88,31 @@ impl FisHeader {
     }
 
     /// Rejects headers no encoder writes (a corrupt or hostile asset must not reach a decoder).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FormatError> {
         let [w, h] = self.samples;
         if !(2..=1 << 16).contains(&w) || !(2..=1 << 16).contains(&h) {
-            return Err(format!("bad FIS sample grid {w}x{h} (2..=65536 a side)"));
+            return Err(FormatError::header(format!(
+                "bad FIS sample grid {w}x{h} (2..=65536 a side)"
+            )));
         }
         if !(1..=4096).contains(&self.spacing) {
-            return Err(format!("bad FIS spacing {}", self.spacing));
+            return Err(FormatError::header(format!(
+                "bad FIS spacing {}",
+                self.spacing
+            )));
         }
         if !(self.height_step > 1e-9 && self.height_step <= 1.0) {
-            return Err(format!("bad FIS height step {}", self.height_step));
+            return Err(FormatError::header(format!(
+                "bad FIS height step {}",
+                self.height_step
+            )));
         }
         let contracts = self.max_scaling > 0.0 && self.max_scaling < 1.0;
         if !(2..=12).contains(&self.scaling_bits) || !contracts {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "bad FIS scaling quantiser: {} bits, max {}",
                 self.scaling_bits, self.max_scaling
-            ));
+            )));
         }
         Ok(())
     }
@@ -152,7 +161,7 @@ fn scaling_grid(header: &FisHeader) -> (usize, usize) {
 }
 
 /// Reads the parameters back (a truncated stream is an error, never a panic).
-pub fn decode_params(header: &FisHeader, bytes: &[u8]) -> Result<FisParams, String> {
+pub fn decode_params(header: &FisHeader, bytes: &[u8]) -> Result<FisParams, FormatError> {
     header.validate()?;
     let mut dec = Decoder::new(bytes);
     let top = top_index(header.height_step);
@@ -161,7 +170,7 @@ pub fn decode_params(header: &FisHeader, bytes: &[u8]) -> Result<FisParams, Stri
     let l = header.scaling_levels() as i64;
     let scalings = get_grid(&mut dec, [sx, sy], -l..=l, "scaling index")?;
     if dec.overrun() {
-        return Err("the FIS stream is truncated".into());
+        return Err(FormatError::stream("the FIS stream is truncated"));
     }
     Ok(FisParams { heights, scalings })
 }
@@ -187,11 +196,13 @@ pub struct FisOperator {
 
 impl FisOperator {
     /// Builds the operator of decoded parameters.
-    pub fn new(header: &FisHeader, params: &FisParams) -> Result<FisOperator, String> {
+    pub fn new(header: &FisHeader, params: &FisParams) -> Result<FisOperator, FormatError> {
         header.validate()?;
         let [nx, ny] = header.nodes();
         if params.heights.len() != nx * ny || params.scalings.len() != header.parameters() {
-            return Err("FIS parameter counts do not match the header".into());
+            return Err(FormatError::stream(
+                "FIS parameter counts do not match the header",
+            ));
         }
         let mut op = FisOperator {
             nodes: [nx, ny],

@@ -5,7 +5,8 @@ use fractile_proto::{AssetKind, AssetMeta};
 
 use crate::Error;
 use crate::codecs::fis::{FisHeader, FisOperator, codec_name, decode_params};
-use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder, PlaneError};
+use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder};
+use crate::core::format::FormatError;
 
 impl PlaneCodec for FisHeader {
     type Operator = FisOperator;
@@ -27,8 +28,8 @@ impl PlaneCodec for FisHeader {
         }
     }
 
-    fn cost(&self, _meta: &AssetMeta, _stream: &[u8]) -> Result<u64, PlaneError> {
-        self.validate().map_err(PlaneError::Header)?;
+    fn cost(&self, _meta: &AssetMeta, _stream: &[u8]) -> Result<u64, FormatError> {
+        self.validate()?;
         // Node heights, scalings and a piece per cell, about 64 bytes a node.
         let nodes: u64 = self.nodes().iter().map(|&n| n as u64).product();
         Ok(nodes.saturating_mul(64))
@@ -39,14 +40,14 @@ impl PlaneCodec for FisHeader {
         meta: &AssetMeta,
         stream: &[u8],
         _build: Build,
-    ) -> Result<FisOperator, PlaneError> {
+    ) -> Result<FisOperator, FormatError> {
         if self.samples != [meta.width, meta.height] {
-            return Err(PlaneError::Header(
+            return Err(FormatError::Header(
                 "sample grid and metadata disagree".into(),
             ));
         }
-        let params = decode_params(self, stream).map_err(PlaneError::Stream)?;
-        FisOperator::new(self, &params).map_err(PlaneError::Stream)
+        let params = decode_params(self, stream)?;
+        FisOperator::new(self, &params)
     }
 }
 

@@ -6,8 +6,10 @@ use std::num::NonZero;
 use kiddo::{ImmutableKdTree, SquaredEuclidean};
 use rayon::prelude::*;
 
+use crate::Error;
 use crate::codecs::ifs3d::octree::*;
 use crate::core::entropy::{Dir, Encoder};
+use crate::core::format::FormatError;
 use crate::core::transform::Quantiser;
 
 /// How the encoder partitions the frame.
@@ -67,9 +69,14 @@ pub fn encode_field(
     values: &[f32],
     n: usize,
     s: &VolumeSettings,
-) -> Result<(OctreeHeader, Vec<u8>, OctreeOperator), String> {
+) -> Result<(OctreeHeader, Vec<u8>, OctreeOperator), Error> {
+    // A header or stream this encoder makes and its reader refuses comes of the settings.
+    let settings = |e: FormatError| Error::settings(e.to_string());
     if values.len() != n * n * n || n == 0 {
-        return Err(format!("{} values for a {n}^3 grid", values.len()));
+        return Err(Error::input(format!(
+            "{} values for a {n}^3 grid",
+            values.len()
+        )));
     }
     let top = (s.min_size as usize) << (s.levels.max(1) - 1);
     let frame = n.div_ceil(top) * top;
@@ -81,7 +88,7 @@ pub fn encode_field(
         domain_steps: (0..s.levels).map(|l| (s.min_size << l).max(2)).collect(),
         quantiser: s.quantiser,
     };
-    header.validate()?;
+    header.validate().map_err(settings)?;
     // The frame: the field, padded by repeating its last sample (the band is clamped there).
     let mut v = vec![0.0f32; frame * frame * frame];
     for z in 0..frame {
@@ -114,11 +121,11 @@ pub fn encode_field(
     let stream = {
         let leaf_of = partition(&header, &fits, s.partition);
         let mut enc = Encoder::new();
-        code(&mut Dir::Enc(&mut enc), &header, &leaf_of)?;
+        code(&mut Dir::Enc(&mut enc), &header, &leaf_of).map_err(settings)?;
         enc.finish()
     };
-    let leaves = decode_stream(&header, &stream)?;
-    let op = OctreeOperator::new(&header, leaves)?;
+    let leaves = decode_stream(&header, &stream).map_err(settings)?;
+    let op = OctreeOperator::new(&header, leaves).map_err(settings)?;
     Ok((header, stream, op))
 }
 
@@ -567,7 +574,10 @@ mod tests {
         (bad.frame, bad.min_size, bad.levels, bad.valid) = (1024, 2, 6, 1000.0);
         bad.domain_steps = vec![2; 6];
         let e = decode_stream(&bad, &stream).unwrap_err();
-        assert!(e.contains("2^24"), "{e}");
+        assert!(
+            matches!(&e, FormatError::Header(m) if m.contains("2^24")),
+            "{e}"
+        );
         for i in 0..stream.len() {
             let mut s = stream.clone();
             s[i] ^= 0x5a;

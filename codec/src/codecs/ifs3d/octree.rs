@@ -17,6 +17,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::core::entropy::{Bit, BitTree, Decoder, Dir, WideIndex};
+use crate::core::format::FormatError;
 use crate::core::operator::{Operator, Step, invariant_interval};
 use crate::core::transform::Quantiser;
 
@@ -69,45 +70,49 @@ pub struct OctreeHeader {
 
 impl OctreeHeader {
     /// Rejects headers no encoder writes (a corrupt or hostile asset).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FormatError> {
         self.quantiser.validate()?;
         if self.quantiser.slope_bits != 0 {
-            return Err("IFS3D has constant offsets: slope bits must be 0".into());
+            return Err(FormatError::header(
+                "IFS3D has constant offsets: slope bits must be 0",
+            ));
         }
         if self.min_size < 2 || self.levels == 0 || self.levels > 6 {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "bad range sizes: min {} levels {}",
                 self.min_size, self.levels
-            ));
+            )));
         }
         let top = (self.min_size as u64) << (self.levels - 1);
         if self.frame == 0 || self.frame > 1024 || !(self.frame as u64).is_multiple_of(top) {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "frame {} is not a multiple of the largest range side {top} (or over 1024)",
                 self.frame
-            ));
+            )));
         }
         // The cell-index map has (frame / min_size)^3 entries: a hostile header must not make a
         // reader allocate gigabytes (2^24 entries is 64 MiB: a 1024 frame with 4-voxel ranges).
         if (self.frame as u64 / self.min_size as u64).pow(3) > 1 << 24 {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "frame {} with ranges of {} needs over 2^24 lookup cells",
                 self.frame, self.min_size
-            ));
+            )));
         }
         if !(self.valid > 0.0
             && self.valid <= self.frame as f32
             && self.valid > self.frame as f32 - top as f32)
         {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "bad valid extent {} in frame {}",
                 self.valid, self.frame
-            ));
+            )));
         }
         if self.domain_steps.len() != self.levels as usize
             || self.domain_steps.iter().any(|&s| s == 0 || s % 2 != 0)
         {
-            return Err("bad domain steps (each even and positive)".into());
+            return Err(FormatError::header(
+                "bad domain steps (each even and positive)",
+            ));
         }
         Ok(())
     }
@@ -228,7 +233,7 @@ pub struct OctreeOperator {
 
 impl OctreeOperator {
     /// Builds the operator of coded leaves; fails unless they tile the frame.
-    pub fn new(header: &OctreeHeader, leaves: Vec<Leaf3>) -> Result<OctreeOperator, String> {
+    pub fn new(header: &OctreeHeader, leaves: Vec<Leaf3>) -> Result<OctreeOperator, FormatError> {
         header.validate()?;
         let q = header.quantiser;
         let cell = header.min_size;
@@ -239,7 +244,9 @@ impl OctreeOperator {
             let n = header.size(leaf.level) as u32;
             let origin = leaf.block.map(|b| b as u32 * n);
             if origin.iter().any(|&o| o + n > header.frame) {
-                return Err(format!("range {i} lies outside the frame"));
+                return Err(FormatError::stream(format!(
+                    "range {i} lies outside the frame"
+                )));
             }
             let s = q.contrast(leaf.map.contrast);
             let o = q.offset(s, leaf.map.offset);
@@ -252,7 +259,9 @@ impl OctreeOperator {
                         &mut lut[(z * side + y) * side + c0[0]..(z * side + y) * side + c0[0] + k]
                     {
                         if *slot != u32::MAX {
-                            return Err(format!("range {i} overlaps another range"));
+                            return Err(FormatError::stream(format!(
+                                "range {i} overlaps another range"
+                            )));
                         }
                         *slot = i as u32;
                     }
@@ -260,7 +269,9 @@ impl OctreeOperator {
             }
         }
         if lut.contains(&u32::MAX) {
-            return Err("the ranges leave part of the frame uncovered".into());
+            return Err(FormatError::stream(
+                "the ranges leave part of the frame uncovered",
+            ));
         }
         let interval = invariant_interval(cells.iter().map(|c| (c.contrast, c.offset, c.offset)));
         Ok(OctreeOperator {
@@ -378,7 +389,7 @@ pub(crate) fn code(
     dir: &mut Dir,
     h: &OctreeHeader,
     decide: &dyn Fn(usize, [usize; 3]) -> Option<Map3>,
-) -> Result<Vec<Leaf3>, String> {
+) -> Result<Vec<Leaf3>, FormatError> {
     let mut m = Models::new(h);
     let top = h.levels as usize - 1;
     let blocks = h.frame as usize / h.size(top);
@@ -409,28 +420,34 @@ pub(crate) fn code(
                     let map = decide(l, b).unwrap_or_default();
                     let qs = dir.tree(&mut m.contrast[l], (map.contrast + l_s) as u32) as i32 - l_s;
                     if qs.abs() > l_s {
-                        return Err(format!("contrast index {qs} out of range"));
+                        return Err(FormatError::stream(format!(
+                            "contrast index {qs} out of range"
+                        )));
                     }
                     let qo = dir.tree(&mut m.offset[l][usize::from(qs != 0)], map.offset);
                     let (mut iso, mut dom) = (0u8, 0u32);
                     if qs != 0 {
                         let count = h.lattice(l).pow(3);
                         if count == 0 {
-                            return Err("a non-constant map at a size with no domains".into());
+                            return Err(FormatError::stream(
+                                "a non-constant map at a size with no domains",
+                            ));
                         }
                         iso = dir.tree(&mut m.isometry[l], map.isometry as u32) as u8;
                         if iso >= CUBE_ISOMETRIES {
-                            return Err(format!("isometry {iso} out of range"));
+                            return Err(FormatError::stream(format!(
+                                "isometry {iso} out of range"
+                            )));
                         }
                         dom = dir.wide(&mut m.domain[l], map.domain);
                         if dom as usize >= count {
-                            return Err(format!(
+                            return Err(FormatError::stream(format!(
                                 "domain index {dom} outside the lattice of {count}"
-                            ));
+                            )));
                         }
                     }
                     if dir.overrun() {
-                        return Err("the transform stream is truncated".into());
+                        return Err(FormatError::stream("the transform stream is truncated"));
                     }
                     leaves.push(Leaf3 {
                         level: l,
@@ -450,12 +467,12 @@ pub(crate) fn code(
 }
 
 /// Decodes a stream into its leaves (errors for anything no encoder writes).
-pub fn decode_stream(h: &OctreeHeader, bytes: &[u8]) -> Result<Vec<Leaf3>, String> {
+pub fn decode_stream(h: &OctreeHeader, bytes: &[u8]) -> Result<Vec<Leaf3>, FormatError> {
     h.validate()?;
     let mut dec = Decoder::new(bytes);
     let leaves = code(&mut Dir::Dec(&mut dec), h, &|_, _| None)?;
     if dec.overrun() {
-        return Err("the transform stream is truncated".into());
+        return Err(FormatError::stream("the transform stream is truncated"));
     }
     Ok(leaves)
 }

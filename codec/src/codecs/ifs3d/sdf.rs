@@ -47,7 +47,7 @@ pub struct DistanceField {
 impl DistanceField {
     /// The field of `mesh` on an `n^3` grid with distances clamped to `band_voxels` voxels.
     pub fn from_mesh(mesh: &Mesh, n: usize, band_voxels: f64) -> Result<DistanceField, Error> {
-        mesh.check().map_err(Error::input)?;
+        mesh.check()?;
         if !(1.0..=32.0).contains(&band_voxels) {
             return Err(Error::settings(format!(
                 "band {band_voxels} voxels is not in 1..=32"

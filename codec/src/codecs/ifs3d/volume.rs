@@ -8,6 +8,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::codecs::ifs3d::octree::{OctreeHeader, OctreeOperator};
+use crate::core::format::FormatError;
 use crate::mesh::Mesh;
 
 /// Where a volume's grid lies in world units.
@@ -21,11 +22,11 @@ pub struct Placement {
 
 impl Placement {
     /// Rejects placements no encoder writes.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FormatError> {
         if self.origin.iter().all(|v| v.is_finite()) && self.voxel.is_finite() && self.voxel > 0.0 {
             Ok(())
         } else {
-            Err(format!("bad placement {self:?}"))
+            Err(FormatError::header(format!("bad placement {self:?}")))
         }
     }
 }

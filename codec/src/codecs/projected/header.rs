@@ -3,6 +3,7 @@
 use serde::{Deserialize, Serialize};
 
 use crate::codecs::projected::pyramid;
+use crate::core::format::FormatError;
 
 /// What a reader needs to decode a plane's stream.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -33,13 +34,18 @@ pub struct ProjectedHeader {
 
 impl ProjectedHeader {
     /// Rejects headers no encoder writes.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FormatError> {
         let [w, h] = self.samples;
         if !(2..=1 << 16).contains(&w) || !(2..=1 << 16).contains(&h) {
-            return Err(format!("bad projected sample grid {w}x{h}"));
+            return Err(FormatError::header(format!(
+                "bad projected sample grid {w}x{h}"
+            )));
         }
         if self.levels > 12 {
-            return Err(format!("bad projected level count {}", self.levels));
+            return Err(FormatError::header(format!(
+                "bad projected level count {}",
+                self.levels
+            )));
         }
         let finite = [
             self.step,
@@ -49,16 +55,23 @@ impl ProjectedHeader {
             self.value_span,
         ];
         if finite.iter().any(|v| !v.is_finite()) || self.step <= 0.0 {
-            return Err("bad projected quantiser".into());
+            return Err(FormatError::header("bad projected quantiser"));
         }
         if !(0.5..=4.0).contains(&self.growth) || self.quantum < 0.0 || self.value_span <= 0.0 {
-            return Err("bad projected step growth, quantum or value range".into());
+            return Err(FormatError::header(
+                "bad projected step growth, quantum or value range",
+            ));
         }
         if !(0.0..=0.95).contains(&self.roughness) {
-            return Err(format!("bad projected roughness {}", self.roughness));
+            return Err(FormatError::header(format!(
+                "bad projected roughness {}",
+                self.roughness
+            )));
         }
         if self.order.lifting().is_some() && (self.max_error != 0.0 || self.quantum != 0.0) {
-            return Err("a lifted projected plane makes no per-sample promise".into());
+            return Err(FormatError::header(
+                "a lifted projected plane makes no per-sample promise",
+            ));
         }
         Ok(())
     }

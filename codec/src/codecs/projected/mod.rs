@@ -48,6 +48,7 @@ use fractile_proto::AssetKind;
 use crate::Error;
 use crate::codecs::options::{Named, Options};
 use crate::core::entropy::{Decoder, Encoder};
+use crate::core::format::FormatError;
 
 pub(crate) use bound::{deliver_plane, finest_bound};
 pub use header::{CODEC_NAME, ProjectedHeader};
@@ -100,18 +101,18 @@ fn lifted_plane(layout: &pyramid::Layout, kernel: kernel::Kernel) -> lifting::Pl
 }
 
 /// Decodes a plane's samples (source units).
-pub fn decode_grid(header: &ProjectedHeader, stream: &[u8]) -> Result<Vec<f64>, String> {
+pub fn decode_grid(header: &ProjectedHeader, stream: &[u8]) -> Result<Vec<f64>, FormatError> {
     header.validate()?;
     // Every sample costs at least one decision: refuse a header that claims more than the stream
     // can hold before allocating for it.
     let most =
         crate::core::entropy::most_decisions_of(stream.len(), header.order.min_bits_per_sample());
     if header.cells() as u64 > most {
-        return Err(format!(
+        return Err(FormatError::stream(format!(
             "a projected stream of {} bytes cannot hold {} samples",
             stream.len(),
             header.cells()
-        ));
+        )));
     }
     let layout = header.layout();
     let mut decoder = Decoder::new(stream);
@@ -128,7 +129,7 @@ pub fn decode_grid(header: &ProjectedHeader, stream: &[u8]) -> Result<Vec<f64>, 
         g
     };
     if decoder.overrun() || !all_finite(&g) {
-        return Err("projected stream truncated or corrupt".into());
+        return Err(FormatError::stream("projected stream truncated or corrupt"));
     }
     Ok(g)
 }
@@ -158,10 +159,12 @@ pub fn decode_coarse(
     header: &ProjectedHeader,
     stream: &[u8],
     depth: u32,
-) -> Result<(ProjectedHeader, Vec<f64>, usize), String> {
+) -> Result<(ProjectedHeader, Vec<f64>, usize), FormatError> {
     header.validate()?;
     if depth == 0 || depth > 12 {
-        return Err(format!("no coarse view at depth {depth}"));
+        return Err(FormatError::stream(format!(
+            "no coarse view at depth {depth}"
+        )));
     }
     // A plane of fewer levels (a thin chunk) is read whole below its coarsest level, and its
     // samples on multiples of 2^depth taken.
@@ -169,7 +172,9 @@ pub fn decode_coarse(
     let most =
         crate::core::entropy::most_decisions_of(stream.len(), header.order.min_bits_per_sample());
     if (header.cells() >> (2 * depth.min(u32::from(header.levels)))) as u64 > most {
-        return Err("projected stream too short for its grid".into());
+        return Err(FormatError::stream(
+            "projected stream too short for its grid",
+        ));
     }
     let layout = header.layout();
     let mut decoder = Decoder::new(stream);
@@ -195,7 +200,7 @@ pub fn decode_coarse(
         coarse.extend((0..w).step_by(s).map(|x| g[y * w + x] / gain));
     }
     if decoder.overrun() || coarse.iter().any(|v| !v.is_finite()) {
-        return Err("projected stream truncated or corrupt".into());
+        return Err(FormatError::stream("projected stream truncated or corrupt"));
     }
     // A pyramid's coarse samples are source cells within its bound, on its quantum: the view
     // keeps both (its promise on its own samples); a lifted band promises nothing.

@@ -5,6 +5,7 @@ use std::sync::Arc;
 
 use crate::codecs::projected::header::ProjectedHeader;
 use crate::codecs::projected::residual::LazyBounds;
+use crate::core::format::FormatError;
 use crate::core::operator::{Chain, Operator, Step};
 
 /// The continuation operator of a decoded grid (see the module's documentation). Per cell it
@@ -99,7 +100,7 @@ pub(super) const OVERSHOOT: f32 = 0.29;
 impl ProjectedOperator {
     /// The operator of decoded samples `grid` (source units) under `header`, built whole: a
     /// record and a residual bound a cell (about 44 bytes a sample with the sample).
-    pub fn new(header: &ProjectedHeader, grid: &[f64]) -> Result<ProjectedOperator, String> {
+    pub fn new(header: &ProjectedHeader, grid: &[f64]) -> Result<ProjectedOperator, FormatError> {
         let mut op = ProjectedOperator::samples_only(header, grid)?;
         op.records = op.all_records();
         op.region.size = [op.size[0] - 1, op.size[1] - 1];
@@ -115,7 +116,10 @@ impl ProjectedOperator {
     /// chains take the same steps; its residual bounds are rounded up by at most 9%, so a
     /// chain may take a step more to reach a tolerance. What chunks of chunked assets use (see
     /// `crate::codecs::projected::records`).
-    pub fn lazy(header: &ProjectedHeader, grid: Vec<f64>) -> Result<ProjectedOperator, String> {
+    pub fn lazy(
+        header: &ProjectedHeader,
+        grid: Vec<f64>,
+    ) -> Result<ProjectedOperator, FormatError> {
         // The grid goes once the samples are made: it is twice their size, and a server builds
         // chunks' operators a core at a time.
         let mut op = ProjectedOperator::samples_only(header, &grid)?;
@@ -128,10 +132,12 @@ impl ProjectedOperator {
     pub(super) fn samples_only(
         header: &ProjectedHeader,
         grid: &[f64],
-    ) -> Result<ProjectedOperator, String> {
+    ) -> Result<ProjectedOperator, FormatError> {
         header.validate()?;
         if grid.len() != header.cells() {
-            return Err("projected grid does not match its header".into());
+            return Err(FormatError::stream(
+                "projected grid does not match its header",
+            ));
         }
         let size = [header.samples[0] as usize, header.samples[1] as usize];
         let z: Arc<[f32]> = grid

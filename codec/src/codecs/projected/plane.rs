@@ -4,9 +4,10 @@
 
 use fractile_proto::{AssetMeta, ColourModel};
 
-use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder, PlaneError};
+use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder};
 use crate::codecs::projected::{CODEC_NAME, ProjectedHeader, ProjectedOperator, decode_grid};
 use crate::core::decode::PointValue;
+use crate::core::format::FormatError;
 
 impl PlaneCodec for ProjectedHeader {
     type Operator = ProjectedOperator;
@@ -18,8 +19,8 @@ impl PlaneCodec for ProjectedHeader {
         CODEC_NAME
     }
 
-    fn cost(&self, _meta: &AssetMeta, _stream: &[u8]) -> Result<u64, PlaneError> {
-        self.validate().map_err(PlaneError::Header)?;
+    fn cost(&self, _meta: &AssetMeta, _stream: &[u8]) -> Result<u64, FormatError> {
+        self.validate()?;
         // The decoded grid as f64 while decoding, then the samples as f32 and g at nine
         // half-lattice points a cell: about 48 bytes a sample.
         let samples = u64::from(self.samples[0]) * u64::from(self.samples[1]);
@@ -31,22 +32,21 @@ impl PlaneCodec for ProjectedHeader {
         meta: &AssetMeta,
         stream: &[u8],
         build: Build,
-    ) -> Result<ProjectedOperator, PlaneError> {
+    ) -> Result<ProjectedOperator, FormatError> {
         let (w, h) = (meta.width, meta.height);
         // Chroma of a colour asset is coded at half resolution (as the quadtree's).
         let chroma =
             meta.colour == ColourModel::YCbCr && self.samples == [w.div_ceil(2), h.div_ceil(2)];
         if self.samples != [w, h] && !chroma {
-            return Err(PlaneError::Header(
+            return Err(FormatError::Header(
                 "sample grid and metadata disagree".into(),
             ));
         }
-        let grid = decode_grid(self, stream).map_err(PlaneError::Stream)?;
+        let grid = decode_grid(self, stream)?;
         let mut operator = match build {
             Build::Whole => ProjectedOperator::new(self, &grid),
             Build::Lazy => ProjectedOperator::lazy(self, grid),
-        }
-        .map_err(PlaneError::Stream)?;
+        }?;
         if chroma && self.samples != [w, h] {
             operator = operator.with_valid([w as f32 / 2.0, h as f32 / 2.0]);
         }

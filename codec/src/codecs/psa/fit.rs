@@ -11,7 +11,9 @@ use crate::core::lattice::Source;
 /// search (least squared error of the collage over the region's samples), against the bilinear
 /// patch (kept when no domain beats it).
 pub(crate) fn fit(source: &Source, header: &PsaHeader) -> Result<PsaParams, Error> {
-    header.validate().map_err(Error::settings)?;
+    header
+        .validate()
+        .map_err(|e| Error::settings(e.to_string()))?;
     let [nx, ny] = header.vertices();
     let d = header.region as usize;
     let a = header.ratio as usize;

@@ -35,6 +35,7 @@ pub(crate) mod plane;
 use serde::{Deserialize, Serialize};
 
 use crate::core::entropy::{Bit, Decoder, Encoder};
+use crate::core::format::FormatError;
 use crate::core::lattice::{
     IntCoder, get_grid, lattice_frame, lattice_locate, put_grid, top_index,
 };
@@ -82,23 +83,25 @@ impl PsaHeader {
     }
 
     /// Rejects headers no encoder writes.
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FormatError> {
         let [w, h] = self.samples;
         if !(2..=1 << 16).contains(&w) || !(2..=1 << 16).contains(&h) {
-            return Err(format!("bad psa2d sample grid {w}x{h}"));
+            return Err(FormatError::header(format!(
+                "bad psa2d sample grid {w}x{h}"
+            )));
         }
         if !(1..=4096).contains(&self.region) || !(2..=16).contains(&self.ratio) {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "bad psa2d region {} or ratio {}",
                 self.region, self.ratio
-            ));
+            )));
         }
         if self.radius > 4096 || !(self.height_step > 1e-9 && self.height_step <= 1.0) {
-            return Err("bad psa2d radius or height step".into());
+            return Err(FormatError::header("bad psa2d radius or height step"));
         }
         let contracts = self.max_scaling > 0.0 && self.max_scaling < 1.0;
         if !(2..=12).contains(&self.scaling_bits) || !contracts {
-            return Err("bad psa2d scaling quantiser".into());
+            return Err(FormatError::header("bad psa2d scaling quantiser"));
         }
         Ok(())
     }
@@ -211,7 +214,7 @@ pub fn encode_params(header: &PsaHeader, p: &PsaParams) -> Vec<u8> {
 }
 
 /// Reads the parameters back; a truncated or hostile stream is an error.
-pub fn decode_params(header: &PsaHeader, bytes: &[u8]) -> Result<PsaParams, String> {
+pub fn decode_params(header: &PsaHeader, bytes: &[u8]) -> Result<PsaParams, FormatError> {
     header.validate()?;
     let [nx, ny] = header.vertices();
     let mut dec = Decoder::new(bytes);
@@ -228,7 +231,7 @@ pub fn decode_params(header: &PsaHeader, bytes: &[u8]) -> Result<PsaParams, Stri
     let mut regions = Vec::with_capacity((nx - 1) * (ny - 1));
     for cj in 0..ny - 1 {
         if dec.overrun() {
-            return Err("the psa2d stream is truncated".into());
+            return Err(FormatError::stream("the psa2d stream is truncated"));
         }
         for ci in 0..nx - 1 {
             if !dec.bit(&mut flag) {
@@ -237,15 +240,15 @@ pub fn decode_params(header: &PsaHeader, bytes: &[u8]) -> Result<PsaParams, Stri
             }
             let (dx, dy) = (ox.get(&mut dec), oy.get(&mut dec));
             if header.address(ci, cj, dx, dy).is_none() {
-                return Err(format!(
+                return Err(FormatError::stream(format!(
                     "region ({ci}, {cj}): domain offset ({dx}, {dy}) outside"
-                ));
+                )));
             }
             let (s0, s1) = if header.tiling == Tiling::Triangular {
                 let s0 = last.0 + sc.get(&mut dec);
                 let s1 = last.1 + sc.get(&mut dec);
                 if !(-l..=l).contains(&s0) || !(-l..=l).contains(&s1) {
-                    return Err("scaling index out of range".into());
+                    return Err(FormatError::stream("scaling index out of range"));
                 }
                 last = (s0, s1);
                 (s0, s1)
@@ -256,7 +259,7 @@ pub fn decode_params(header: &PsaHeader, bytes: &[u8]) -> Result<PsaParams, Stri
         }
     }
     if dec.overrun() {
-        return Err("the psa2d stream is truncated".into());
+        return Err(FormatError::stream("the psa2d stream is truncated"));
     }
     Ok(PsaParams { heights, regions })
 }
@@ -329,11 +332,13 @@ pub struct PsaOperator {
 
 impl PsaOperator {
     /// Builds the operator of decoded parameters.
-    pub fn new(header: &PsaHeader, params: &PsaParams) -> Result<PsaOperator, String> {
+    pub fn new(header: &PsaHeader, params: &PsaParams) -> Result<PsaOperator, FormatError> {
         header.validate()?;
         let [nx, ny] = header.vertices();
         if params.heights.len() != nx * ny || params.regions.len() != (nx - 1) * (ny - 1) {
-            return Err("psa2d parameter counts do not match the header".into());
+            return Err(FormatError::stream(
+                "psa2d parameter counts do not match the header",
+            ));
         }
         let z: Vec<f32> = params
             .heights
@@ -361,9 +366,9 @@ impl PsaOperator {
                         domain: None,
                     },
                     RegionCode::Mapped { dx, dy, s0, s1 } => {
-                        let (di, dj) = header
-                            .address(ci, cj, dx, dy)
-                            .ok_or_else(|| "domain address outside the lattice".to_string())?;
+                        let (di, dj) = header.address(ci, cj, dx, dy).ok_or_else(|| {
+                            FormatError::stream("domain address outside the lattice")
+                        })?;
                         let zd = corners(di, dj, a);
                         let domain = Some([
                             (di as u32 * header.region) as f32,
@@ -378,7 +383,11 @@ impl PsaOperator {
                                 },
                                 // A coded map must solve; an encoder never writes one that
                                 // does not (a corrupt file does).
-                                None => return Err("a mapped region has no contractive map".into()),
+                                None => {
+                                    return Err(FormatError::stream(
+                                        "a mapped region has no contractive map",
+                                    ));
+                                }
                             },
                             Tiling::Triangular => {
                                 let s = [header.scaling_of(s0), header.scaling_of(s1)];

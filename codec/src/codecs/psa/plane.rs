@@ -3,8 +3,9 @@
 
 use fractile_proto::AssetMeta;
 
-use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder, PlaneError};
+use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder};
 use crate::codecs::psa::{PsaHeader, PsaOperator, codec_name, decode_params};
+use crate::core::format::FormatError;
 
 impl PlaneCodec for PsaHeader {
     type Operator = PsaOperator;
@@ -16,8 +17,8 @@ impl PlaneCodec for PsaHeader {
         codec_name(self.tiling)
     }
 
-    fn cost(&self, _meta: &AssetMeta, _stream: &[u8]) -> Result<u64, PlaneError> {
-        self.validate().map_err(PlaneError::Header)?;
+    fn cost(&self, _meta: &AssetMeta, _stream: &[u8]) -> Result<u64, FormatError> {
+        self.validate()?;
         // Vertex heights and region maps, about 64 bytes a vertex.
         let vertices: u64 = self.vertices().iter().map(|&n| n as u64).product();
         Ok(vertices.saturating_mul(64))
@@ -28,14 +29,14 @@ impl PlaneCodec for PsaHeader {
         meta: &AssetMeta,
         stream: &[u8],
         _build: Build,
-    ) -> Result<PsaOperator, PlaneError> {
+    ) -> Result<PsaOperator, FormatError> {
         if self.samples != [meta.width, meta.height] {
-            return Err(PlaneError::Header(
+            return Err(FormatError::Header(
                 "sample grid and metadata disagree".into(),
             ));
         }
-        let params = decode_params(self, stream).map_err(PlaneError::Stream)?;
-        PsaOperator::new(self, &params).map_err(PlaneError::Stream)
+        let params = decode_params(self, stream)?;
+        PsaOperator::new(self, &params)
     }
 }
 

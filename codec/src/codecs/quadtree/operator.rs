@@ -1,6 +1,7 @@
 //! The quadtree IFS as an operator: ranges that tile the frame, each with its map, found by a
 //! separable lookup ([`AxisAligned`]) and flattened for the GPU ([`crate::core::pieces::Flatten`]).
 
+use crate::core::format::FormatError;
 use crate::core::operator::{
     AffineCell, AxisAligned, AxisCell, Chain, ISOMETRY_MATRICES, Operator, Step, invariant_interval,
 };
@@ -158,16 +159,16 @@ impl QuadtreeOperator {
         valid: [f32; 2],
         cell: u32,
         ranges: Vec<RangeMap>,
-    ) -> Result<Self, String> {
+    ) -> Result<Self, FormatError> {
         if cell == 0
             || !frame[0].is_multiple_of(cell)
             || !frame[1].is_multiple_of(cell)
             || frame[0] == 0
             || frame[1] == 0
         {
-            return Err(format!(
+            return Err(FormatError::stream(format!(
                 "frame {frame:?} is not a multiple of the cell size {cell}"
-            ));
+            )));
         }
         let cols = (frame[0] / cell) as usize;
         let rows = (frame[1] / cell) as usize;
@@ -187,9 +188,9 @@ impl QuadtreeOperator {
                     || (r.domain_x + 2 * r.size <= frame[0]
                         && r.domain_y + 2 * r.size <= frame[1]));
             if !fits {
-                return Err(format!(
+                return Err(FormatError::stream(format!(
                     "range {i} ({r:?}) does not fit the frame {frame:?}"
-                ));
+                )));
             }
             let (c0, r0, n) = (
                 (r.x / cell) as usize,
@@ -199,14 +200,18 @@ impl QuadtreeOperator {
             for row in r0..r0 + n {
                 for slot in &mut lut[row * cols + c0..row * cols + c0 + n] {
                     if *slot != u32::MAX {
-                        return Err(format!("range {i} overlaps another range"));
+                        return Err(FormatError::stream(format!(
+                            "range {i} overlaps another range"
+                        )));
                     }
                     *slot = i as u32;
                 }
             }
         }
         if lut.contains(&u32::MAX) {
-            return Err("the ranges leave part of the frame uncovered".into());
+            return Err(FormatError::stream(
+                "the ranges leave part of the frame uncovered",
+            ));
         }
         let interval = invariant_interval(ranges.iter().map(|r| {
             let (lo, hi) = r.offset_range();

@@ -3,10 +3,11 @@
 
 use fractile_proto::AssetMeta;
 
-use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder, PlaneError};
+use crate::codecs::plane::{Build, PlaneCodec, PlaneDecoder};
 use crate::codecs::quadtree::operator::QuadtreeOperator;
 use crate::codecs::quadtree::stream::{PlaneHeader, decode_plane, operator};
 use crate::core::decode::{self, Patch, PointValue};
+use crate::core::format::FormatError;
 
 impl PlaneCodec for PlaneHeader {
     type Operator = QuadtreeOperator;
@@ -18,9 +19,9 @@ impl PlaneCodec for PlaneHeader {
         "quadtree-pifs"
     }
 
-    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, PlaneError> {
-        self.validate().map_err(PlaneError::Header)?;
-        check_extent(meta, self.valid).map_err(PlaneError::Header)?;
+    fn cost(&self, meta: &AssetMeta, stream: &[u8]) -> Result<u64, FormatError> {
+        self.validate()?;
+        check_extent(meta, self.valid)?;
         Ok(self.operator_bytes(stream.len()))
     }
 
@@ -29,15 +30,15 @@ impl PlaneCodec for PlaneHeader {
         _meta: &AssetMeta,
         stream: &[u8],
         _build: Build,
-    ) -> Result<QuadtreeOperator, PlaneError> {
-        let leaves = decode_plane(self, stream).map_err(PlaneError::Stream)?;
-        operator(self, &leaves).map_err(PlaneError::Stream)
+    ) -> Result<QuadtreeOperator, FormatError> {
+        let leaves = decode_plane(self, stream)?;
+        operator(self, &leaves)
     }
 }
 
 /// Checks that a plane's coded extent is the metadata's grid (chroma: half of it; a
 /// supersampled plane: twice): a file may not claim a grid its planes do not code.
-fn check_extent(meta: &AssetMeta, valid: [f32; 2]) -> Result<(), String> {
+fn check_extent(meta: &AssetMeta, valid: [f32; 2]) -> Result<(), FormatError> {
     let (w, h) = (meta.width as f32, meta.height as f32);
     let fits = [0.5f32, 1.0, 2.0]
         .iter()
@@ -45,10 +46,10 @@ fn check_extent(meta: &AssetMeta, valid: [f32; 2]) -> Result<(), String> {
     if fits {
         Ok(())
     } else {
-        Err(format!(
+        Err(FormatError::header(format!(
             "the plane codes an extent of {}x{} where the metadata says {}x{}",
             valid[0], valid[1], meta.width, meta.height
-        ))
+        )))
     }
 }
 

@@ -180,9 +180,11 @@ impl QuadtreeSettings {
                 self.domain_step
             )));
         }
-        self.quantiser.validate().map_err(Error::settings)?;
+        self.quantiser
+            .validate()
+            .map_err(|e| Error::settings(e.to_string()))?;
         for q in &self.quantiser_choices {
-            q.validate().map_err(Error::settings)?;
+            q.validate().map_err(|e| Error::settings(e.to_string()))?;
             // One search serves every quantiser, and its domain features differ with slopes.
             if (q.slope_bits > 0) != (self.quantiser.slope_bits > 0) {
                 return Err(Error::settings(format!(

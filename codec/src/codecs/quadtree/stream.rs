@@ -11,6 +11,7 @@ use serde::{Deserialize, Serialize};
 use crate::codecs::quadtree::operator::{QuadtreeOperator, RangeMap};
 use crate::codecs::quadtree::search::{Fit, lattice};
 use crate::core::entropy::{Bit, BitTree, Decoder, Dir, Encoder, WideIndex};
+use crate::core::format::FormatError;
 use crate::core::transform::Quantiser;
 
 /// Everything a decoder needs besides the stream: stored in the asset for each plane.
@@ -32,17 +33,17 @@ pub struct PlaneHeader {
 
 impl PlaneHeader {
     /// Rejects headers no encoder writes (a corrupt or hostile asset).
-    pub fn validate(&self) -> Result<(), String> {
+    pub fn validate(&self) -> Result<(), FormatError> {
         self.quantiser.validate()?;
         let [w, h] = self.frame;
         if self.min_size == 0 || self.levels == 0 || self.levels > 12 {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "bad range sizes: min {} levels {}",
                 self.min_size, self.levels
-            ));
+            )));
         }
         if (self.min_size as u64) << (self.levels - 1) > 1 << 16 {
-            return Err("largest range side over 65536".into());
+            return Err(FormatError::header("largest range side over 65536"));
         }
         if w == 0
             || h == 0
@@ -51,23 +52,23 @@ impl PlaneHeader {
             || w % self.min_size != 0
             || h % self.min_size != 0
         {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "bad frame {w}x{h} for range side {}",
                 self.min_size
-            ));
+            )));
         }
         // The encoder pads by less than one smallest range (plus half a sample for odd chroma):
         // anything else would make decoders allocate frames far larger than their output.
         let slack = self.min_size as f32 + 1.0;
         let fits = |v: f32, f: u32| v > 0.0 && v <= f as f32 && v > f as f32 - slack;
         if !(fits(self.valid[0], w) && fits(self.valid[1], h)) {
-            return Err(format!(
+            return Err(FormatError::header(format!(
                 "bad valid extent {:?} in frame {w}x{h}",
                 self.valid
-            ));
+            )));
         }
         if self.domain_steps.len() != self.levels as usize || self.domain_steps.contains(&0) {
-            return Err("bad domain steps".into());
+            return Err(FormatError::header("bad domain steps"));
         }
         Ok(())
     }
@@ -203,7 +204,7 @@ fn code(
     dir: &mut Dir,
     h: &PlaneHeader,
     decide: &dyn Fn(usize, usize, usize) -> Option<Fit>,
-) -> Result<Vec<Leaf>, String> {
+) -> Result<Vec<Leaf>, FormatError> {
     let mut m = Models::new(h);
     let top = h.levels as usize - 1;
     let n = h.size(top);
@@ -229,9 +230,9 @@ fn code(
                 };
                 if split {
                     if l == 0 {
-                        return Err(
-                            "a block at the smallest size lies partly outside the frame".into()
-                        );
+                        return Err(FormatError::stream(
+                            "a block at the smallest size lies partly outside the frame",
+                        ));
                     }
                     // Pushed in reverse so that TL is coded first.
                     for (cx, cy) in [(1, 1), (0, 1), (1, 0), (0, 0)] {
@@ -254,7 +255,9 @@ fn code(
                 let (dc, dr) = h.lattice(l);
                 let qs = dir.tree(&mut m.contrast[l], (fit.contrast + l_s) as u32) as i32 - l_s;
                 if qs.abs() > l_s {
-                    return Err(format!("contrast index {qs} out of range"));
+                    return Err(FormatError::stream(format!(
+                        "contrast index {qs} out of range"
+                    )));
                 }
                 let qo = dir.tree(&mut m.offset[l][usize::from(qs != 0)], fit.offset);
                 let mut slope = [0i32; 2];
@@ -264,26 +267,30 @@ fn code(
                         let t = &mut m.slope[l][usize::from(qs != 0)][axis];
                         *v = dir.tree(t, (fit.slope[axis] + l_g) as u32) as i32 - l_g;
                         if v.abs() > l_g {
-                            return Err(format!("slope index {v} out of range"));
+                            return Err(FormatError::stream(format!(
+                                "slope index {v} out of range"
+                            )));
                         }
                     }
                 }
                 let (mut iso, mut dom) = (0, 0);
                 if qs != 0 {
                     if dc * dr == 0 {
-                        return Err("a non-constant map at a size with no domains".into());
+                        return Err(FormatError::stream(
+                            "a non-constant map at a size with no domains",
+                        ));
                     }
                     iso = dir.tree(&mut m.isometry[l], fit.isometry as u32) as u8;
                     dom = dir.wide(&mut m.domain[l], fit.domain);
                     if dom as usize >= dc * dr {
-                        return Err(format!(
+                        return Err(FormatError::stream(format!(
                             "domain index {dom} outside the lattice of {}",
                             dc * dr
-                        ));
+                        )));
                     }
                 }
                 if dir.overrun() {
-                    return Err("the transform stream is truncated".into());
+                    return Err(FormatError::stream("the transform stream is truncated"));
                 }
                 leaves.push(Leaf {
                     level: l,
@@ -319,29 +326,29 @@ pub fn encode_plane(
 }
 
 /// Reads a plane's partition and maps.
-pub fn decode_plane(h: &PlaneHeader, bytes: &[u8]) -> Result<Vec<Leaf>, String> {
+pub fn decode_plane(h: &PlaneHeader, bytes: &[u8]) -> Result<Vec<Leaf>, FormatError> {
     h.validate()?;
     // Every top-level block holds at least one leaf, and a leaf codes its contrast and offset
     // indices: a frame whose leaves the stream cannot hold is refused before the walk.
     let decisions = h.top_blocks() * u64::from(h.quantiser.contrast_bits + h.quantiser.offset_bits);
     if decisions > crate::core::entropy::most_decisions(bytes.len()) {
-        return Err(format!(
+        return Err(FormatError::stream(format!(
             "a frame of {}x{} needs more than the {} bytes of its stream",
             h.frame[0],
             h.frame[1],
             bytes.len()
-        ));
+        )));
     }
     let mut dec = Decoder::new(bytes);
     let leaves = code(&mut Dir::Dec(&mut dec), h, &|_, _, _| None)?;
     if dec.overrun() {
-        return Err("the transform stream is truncated".into());
+        return Err(FormatError::stream("the transform stream is truncated"));
     }
     Ok(leaves)
 }
 
 /// The decoding operator of a plane's leaves.
-pub fn operator(h: &PlaneHeader, leaves: &[Leaf]) -> Result<QuadtreeOperator, String> {
+pub fn operator(h: &PlaneHeader, leaves: &[Leaf]) -> Result<QuadtreeOperator, FormatError> {
     let q = &h.quantiser;
     let ranges = leaves
         .iter()
