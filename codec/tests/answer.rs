@@ -4,7 +4,7 @@
 //! tolerance settled and asked.
 
 use fractile_codec::encode::chunked::encode_chunked;
-use fractile_codec::extract::{Delegates, Request};
+use fractile_codec::extract::{CoarseGrids, Request, Resources};
 use fractile_codec::geo::{self, Placement};
 use fractile_codec::{Asset, Raster, encode_default};
 
@@ -23,13 +23,10 @@ fn one_answer_is_the_calls_it_replaces() {
     let chunked = Asset::from_bytes(&chunked.bytes).expect("reads");
     assert!(chunked.chunks.is_some());
     let g = r.georef.as_ref().expect("a georeferenced DEM");
-    let delegates = Delegates {
-        continuous: &|_, _, _, _| None,
-        discrete: &|w, h, n, t| std::sync::Arc::new(chunked.discrete_planes(w, h, n, t)),
-        cancelled: &|| false,
-    };
+    // The answers keep their coarse grids; the calls they replace decode their own.
+    let kept = CoarseGrids::new(64 << 20);
     let mut compared = 0;
-    for asset in [&whole, &chunked] {
+    for (key, asset) in [&whole, &chunked].into_iter().enumerate() {
         let place = Placement::of(g, asset.meta.width, asset.meta.height).expect("placement");
         let [west, south, east, north] = place.bounds();
         let (lon, lat) = (0.3 * west + 0.7 * east, 0.6 * south + 0.4 * north);
@@ -42,17 +39,17 @@ fn one_answer_is_the_calls_it_replaces() {
                     iterations: 64,
                     tolerance: asked,
                 };
-                let delegates = Delegates {
-                    discrete: &|w, h, n, t| std::sync::Arc::new(asset.discrete_planes(w, h, n, t)),
-                    ..delegates
+                let resources = Resources {
+                    coarse: Some((&kept, key as u64)),
+                    ..Resources::CPU
                 };
-                let answer = asset.answer(&request, &delegates).expect("answers");
+                let answer = asset.answer(&request, &resources).expect("answers");
                 let tolerance = match asked {
                     Some(t) => t,
                     None => asset.tolerance_over(&pixels).expect("tolerance"),
                 };
                 let (channels, convergence) = asset
-                    .sample_with(&pixels, 64, tolerance, &delegates)
+                    .sample_with(&pixels, 64, tolerance, &Resources::CPU)
                     .expect("samples");
                 let source = asset.source_error_over(&pixels).expect("source error");
                 assert_eq!(
@@ -74,4 +71,7 @@ fn one_answer_is_the_calls_it_replaces() {
         }
     }
     assert_eq!(compared, 16);
+    // The coarse zoom's grids went through the kept ones (the same bits as decoded).
+    let counts = kept.counts();
+    assert!(counts.misses >= 1 && !kept.is_empty(), "{counts:?}");
 }

@@ -4,7 +4,7 @@
 //! rest.
 
 use fractile_codec::encode::chunked::encode_chunked;
-use fractile_codec::extract::{Delegates, SampleError};
+use fractile_codec::extract::{Resources, SampleError};
 use fractile_codec::geo::{Pixels, Sites};
 use fractile_codec::io::chunked::is_chunked;
 use fractile_codec::{Asset, Encoded, Raster, encode_default};
@@ -238,13 +238,8 @@ fn a_corrupt_chunk_is_refused_by_name_and_the_other_chunks_still_answer() {
         },
         footprint: [1e-4, 1e-4],
     };
-    let none = Delegates {
-        continuous: &|_, _, _, _| None,
-        discrete: &|_, _, _, _| std::sync::Arc::new(Vec::new()),
-        cancelled: &|| false,
-    };
     assert!(matches!(
-        asset.sample_with(&pixels, 20, 0.0, &none),
+        asset.sample_with(&pixels, 20, 0.0, &Resources::CPU),
         Err(SampleError::Chunk(_))
     ));
     // A corrupt header is refused when the file opens.

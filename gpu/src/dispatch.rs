@@ -301,7 +301,7 @@ impl Gpu {
         Ok(out)
     }
 
-    /// The answer to a codec's continuous hook (`fractile_codec::extract::ContinuousHook`):
+    /// The answer to a codec's continuous hook (`fractile_codec::extract::ChainDevice`):
     /// a list of points with a value, bound and step count each, a separable grid (a tile, a
     /// region) with its values alone and their largest bound and step count.
     pub fn answer(

@@ -1,6 +1,6 @@
 //! Uncached tiles of a 9.3 Mpx DEM over zooms 0-7: per zoom, the first tile (which waits for
 //! the zoom's coarse decode), then the rest with `CONCURRENCY` requests in flight: p50, p99,
-//! and how many coarse grids were decoded (`fractile_coarse_cache_total{result="miss"}`).
+//! and how many coarse grids were decoded (`CoarseGrids::counts`, as `fractile_coarse_cache_total{result="miss"}` counts them).
 //! Prints a table.
 //!
 //! The DEM is 16 copies of etopo20 (1080 x 540), mirrored so that they join, as one global
@@ -87,14 +87,9 @@ async fn get(state: &Arc<AppState>, uri: String) -> Duration {
 }
 
 /// Coarse-cache lookups so far that decoded a grid and that derived one from a finer grid.
-fn coarse_counts(metrics: &metrics_exporter_prometheus::PrometheusHandle) -> [u64; 2] {
-    let text = metrics.render();
-    ["\"miss\"", "\"derived\""].map(|label| {
-        text.lines()
-            .find(|l| l.starts_with("fractile_coarse_cache_total") && l.contains(label))
-            .and_then(|l| l.rsplit(' ').next()?.parse().ok())
-            .unwrap_or(0)
-    })
+fn coarse_counts(coarse: &fractile_codec::extract::CoarseGrids) -> [u64; 2] {
+    let c = coarse.counts();
+    [c.misses, c.derived]
 }
 
 fn percentile(sorted: &[Duration], p: f64) -> f64 {
@@ -118,7 +113,6 @@ fn main() {
         .get(2)
         .map(|&m| m as u64)
         .unwrap_or(fractile_server::api::DEFAULT_COARSE_CACHE_MIB);
-    let metrics = fractile_server::telemetry::handle();
     let dir = std::env::temp_dir().join(format!("fractile-coarse-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("mosaic.fra"), asset()).unwrap();
@@ -158,7 +152,7 @@ fn main() {
         let uri = |(x, y): (u32, u32)| {
             format!("/v1/assets/mosaic/tiles/{z}/{x}/{y}.png?encoding=terrainrgb")
         };
-        let before = coarse_counts(metrics);
+        let before = coarse_counts(&state.coarse);
         let first = rt.block_on(get(&state, uri(tiles[0])));
         let rest: Vec<Duration> = rt.block_on(async {
             let mut out = Vec::new();
@@ -185,8 +179,8 @@ fn main() {
             first.as_secs_f64() * 1e3,
             percentile(&sorted, 0.5),
             percentile(&sorted, 0.99),
-            coarse_counts(metrics)[0] - before[0],
-            coarse_counts(metrics)[1] - before[1],
+            coarse_counts(&state.coarse)[0] - before[0],
+            coarse_counts(&state.coarse)[1] - before[1],
         );
         if z <= 4 {
             coarse_after_first.extend(rest.iter().copied());

@@ -174,6 +174,7 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
     let cesium = state.cesium_dir.clone();
     let wasm = state.wasm_dir.clone();
     let gpu = state.gpu.clone();
+    let coarse = state.coarse.clone();
     let router = api::router(state);
     let router = match cesium {
         Some(dir) => router.nest("/vendor/cesium", folder_files(dir)),
@@ -191,6 +192,7 @@ pub fn app(state: Arc<api::AppState>) -> axum::Router {
                     telemetry::gpu_rounds(g.rounds());
                     telemetry::gpu_uploads(g.uploads());
                 }
+                telemetry::coarse_grids(coarse.counts());
                 telemetry::handle().render()
             }),
         )

@@ -40,6 +40,17 @@ pub struct StoredAsset {
     pub placement: Option<Placement>,
 }
 
+impl StoredAsset {
+    /// Its key among the coarse grids the server keeps ([`fractile_codec::extract::CoarseGrids`]):
+    /// its id and checksum hashed, so that a replaced file is decoded anew.
+    pub fn coarse_key(&self) -> u64 {
+        use std::hash::{Hash, Hasher};
+        let mut h = std::collections::hash_map::DefaultHasher::new();
+        (&self.id, self.hash).hash(&mut h);
+        h.finish()
+    }
+}
+
 /// An asset's file as stored, opened at the version the catalog serves ([`Store::file`]).
 pub struct StoredFile {
     /// The catalog's entry (its checksum and length make the ETag).

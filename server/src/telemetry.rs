@@ -58,6 +58,15 @@ pub fn gpu_rounds((rounds, grids): (u64, u64)) {
     metrics::counter!("fractile_gpu_round_grids_total").absolute(grids);
 }
 
+/// The coarse grids' answers (`fractile_codec::extract::CoarseGrids`): kept, derived from a
+/// finer kept grid by block means, or decoded, as `fractile_coarse_cache_total{result}`: set
+/// when `/metrics` is read.
+pub fn coarse_grids(c: fractile_codec::extract::CoarseCounts) {
+    for (result, n) in [("hit", c.hits), ("derived", c.derived), ("miss", c.misses)] {
+        metrics::counter!("fractile_coarse_cache_total", "result" => result).absolute(n);
+    }
+}
+
 /// Operators uploaded to the GPU and operators it refused (their requests decoded on the CPU
 /// for a while: `backend::REFUSAL_TTL`), as `fractile_gpu_uploads_total{result}`: set when
 /// `/metrics` is read.

@@ -7,7 +7,7 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, PoisonError};
 
-use fractile_codec::extract::{Delegates, PointSample, Request, SampleError};
+use fractile_codec::extract::{PointSample, Request, Resources, SampleError};
 use fractile_codec::geo::{Pixels, Placement, map_bounds, native_zoom, tile_pixels};
 use fractile_codec::io::chunked::{ChunkCache, ChunkSource, is_chunked};
 use fractile_codec::{Asset, AssetLimits};
@@ -255,19 +255,13 @@ impl Reader {
                 bound: 0.0,
             });
         }
-        let discrete = |w, h, n, t| Arc::new(asset.discrete_planes(w, h, n, t));
-        let delegates = Delegates {
-            continuous: &|_, _, _, _| None,
-            discrete: &discrete,
-            cancelled: &|| false,
-        };
         // The server's one call: the tolerance settled over the tile's pixels.
         let request = Request {
             pixels: &pixels,
             iterations: ITERATIONS,
             tolerance: None,
         };
-        match asset.answer(&request, &delegates) {
+        match asset.answer(&request, &Resources::CPU) {
             Ok(mut answer) => Ok(Tile {
                 heights: answer.channels.swap_remove(0),
                 bound: answer.convergence,

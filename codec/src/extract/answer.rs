@@ -5,7 +5,7 @@
 //! asset split the pixels into its chunks for each).
 
 use super::points::settled_over;
-use super::{Delegates, SampleError};
+use super::{Resources, SampleError};
 use crate::geo::Pixels;
 use crate::io::asset::Asset;
 
@@ -36,13 +36,13 @@ pub struct Sampled {
 }
 
 impl Asset {
-    /// The answer at `request.pixels`, with its chains offered to `delegates` (see
-    /// [`Asset::sample_with`]). Fails where a chunk under the pixels cannot be read, or when
-    /// `delegates.cancelled` says to stop.
+    /// The answer at `request.pixels`, using `resources` (a device for its chains, coarse
+    /// grids kept, a flag to stop: see [`Asset::sample_with`]). Fails where a chunk under the
+    /// pixels cannot be read, or once `resources.given_up` is set.
     pub fn answer(
         &self,
         request: &Request<'_>,
-        delegates: &Delegates<'_>,
+        resources: &Resources<'_>,
     ) -> Result<Sampled, SampleError> {
         let pixels = request.pixels;
         let source = self.source_error_over(pixels).map_err(SampleError::Chunk)?;
@@ -50,7 +50,7 @@ impl Asset {
             .tolerance
             .unwrap_or_else(|| settled_over(self.default_tolerance(), source));
         let (channels, convergence) =
-            self.sample_with(pixels, request.iterations, tolerance, delegates)?;
+            self.sample_with(pixels, request.iterations, tolerance, resources)?;
         Ok(Sampled {
             channels,
             convergence,

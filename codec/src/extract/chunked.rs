@@ -11,9 +11,7 @@
 use fractile_proto::AssetMeta;
 use rayon::prelude::*;
 
-use super::{
-    Answer, ContinuousHook, Delegates, PlaneRef, PointSample, SampleError, Sites as Chains,
-};
+use super::{Answer, ChainDevice, PlaneRef, PointSample, Resources, SampleError, Sites as Chains};
 use crate::geo::{Pixels, Sites};
 use crate::io::chunked::Chunked;
 
@@ -229,7 +227,7 @@ impl Chunked {
     }
 
     /// [`crate::Asset::sample_with`] of a chunked asset: each chunk's pixels decoded by the
-    /// chunk, its chains offered to `delegates.continuous` with the chunk named (a device
+    /// chunk, its chains offered to `resources.device` with the chunk named (a device
     /// keeps each chunk's operator resident under its own key). Pixels of chunks with no
     /// valid cell, and pixels outside, are NaN.
     pub(crate) fn sample(
@@ -237,14 +235,14 @@ impl Chunked {
         meta: &AssetMeta,
         pixels: &Pixels,
         (iterations, tolerance): (u32, f32),
-        delegates: &Delegates<'_>,
+        resources: &Resources<'_>,
     ) -> Result<(Vec<Vec<f32>>, f32), SampleError> {
         let (level, parts) = self.split(meta, pixels);
         // Chunks side by side (a whole read touches them all; a tile one to four): each is
         // decoded and answered on its own, then its answers put in place.
         let answers: Vec<Option<PartAnswer>> = parts
             .par_iter()
-            .map(|part| self.sample_part(level, part, (iterations, tolerance), delegates))
+            .map(|part| self.sample_part(level, part, (iterations, tolerance), resources))
             .collect::<Result<_, _>>()?;
         let mut out = vec![vec![f32::NAN; pixels.len()]; meta.channels as usize];
         let mut bound = 0.0f32;
@@ -288,35 +286,23 @@ impl Chunked {
         level: usize,
         part: &Part,
         (iterations, tolerance): (u32, f32),
-        delegates: &Delegates<'_>,
+        resources: &Resources<'_>,
     ) -> Result<Option<PartAnswer>, SampleError> {
-        if (delegates.cancelled)() {
+        if resources.given_up() {
             return Err(SampleError::Cancelled);
         }
         let Some(chunk) = self.chunk(level, part.index).map_err(SampleError::Chunk)? else {
             return Ok(None);
         };
         // Only the top level's pixels may be coarser than its cells (see `split`), and its
-        // grids are the asset's (`Asset::discrete_planes`): the caller's delegate may keep
-        // them (a server's coarse cache), instead of a decode a tile.
-        let discrete = |w, h, n, t| std::sync::Arc::new(chunk.discrete_planes(w, h, n, t));
-        // A caller with no grids of its own (the CLI's and Python's reads) gets the
-        // chunk's: an empty answer filtered every pixel of a read 8x coarser than the
-        // source to NaN.
-        let kept = |w, h, n, t| {
-            let grids = (delegates.discrete)(w, h, n, t);
-            if grids.is_empty() {
-                discrete(w, h, n, t)
-            } else {
-                grids
-            }
-        };
+        // grids are the asset's (`Asset::discrete_planes`): kept under the asset's key where
+        // the caller keeps grids (a server's coarse cache), instead of a decode a tile.
         let top = level + 1 == self.table.levels.len();
-        let continuous = in_chunk(delegates.continuous, (level, part.index));
-        let own = Delegates {
-            continuous: &continuous,
-            discrete: if top { &kept } else { &discrete },
-            cancelled: delegates.cancelled,
+        let device = resources.device.map(|d| in_chunk(d, (level, part.index)));
+        let own = Resources {
+            device: device.as_ref().map(|d| d as &ChainDevice<'_>),
+            coarse: resources.coarse.filter(|_| top),
+            given_up: resources.given_up,
         };
         Ok(Some(chunk.sample_with(
             &part.pixels,
@@ -372,7 +358,7 @@ impl Chunked {
         meta: &AssetMeta,
         pts: &[[f32; 2]],
         (iterations, tolerance): (u32, f32),
-        continuous: &ContinuousHook<'_>,
+        continuous: &ChainDevice<'_>,
     ) -> Result<Vec<PointSample>, crate::Error> {
         let [ax, ay] = self.axes(meta, 0);
         let entries = &self.table.levels[0].chunks;
@@ -457,7 +443,7 @@ impl crate::Asset {
 /// `continuous` for the planes of chunk `(level, index)`: a chunk is an asset of its own, and
 /// knows not which chunk it is, so its planes are named here on their way to the hook.
 fn in_chunk<'a>(
-    continuous: &'a ContinuousHook<'a>,
+    continuous: &'a ChainDevice<'a>,
     chunk: (usize, usize),
 ) -> impl Fn(PlaneRef<'_>, Chains<'_>, u32, f32) -> Option<Answer> + Sync + 'a {
     move |plane, sites, n, t| {

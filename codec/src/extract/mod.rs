@@ -6,13 +6,14 @@ mod answer;
 mod chunked;
 mod filter;
 mod points;
+mod resources;
 mod sample;
 pub mod volume;
 
 pub use answer::{Request, Sampled};
+pub use resources::{CoarseCounts, CoarseGrids, Resources};
 
 use fractile_proto::{ColourModel, SampleFormat};
-use std::sync::Arc;
 
 use rayon::prelude::*;
 
@@ -71,12 +72,11 @@ fn consecutive(indices: &[usize]) -> Option<std::ops::Range<usize>> {
 /// bound that the source error makes anyway.
 pub const SETTLED_FRACTION: f32 = 0.125;
 
-/// Decodes one plane's point chains elsewhere (a GPU): `(plane, unit points, iterations,
-/// normalised tolerance)`, or `None` to leave them to the CPU.
-pub type ContinuousHook<'a> =
-    dyn Fn(PlaneRef<'_>, Sites<'_>, u32, f32) -> Option<Answer> + Sync + 'a;
+/// A device that decodes one plane's point chains (a GPU): `(plane, unit points, iterations,
+/// normalised tolerance)`, or `None` to leave them to the CPU ([`Resources::device`]).
+pub type ChainDevice<'a> = dyn Fn(PlaneRef<'_>, Sites<'_>, u32, f32) -> Option<Answer> + Sync + 'a;
 
-/// The plane a [`ContinuousHook`] is asked to decode: where it is in its asset, and its
+/// The plane a [`ChainDevice`] is asked to decode: where it is in its asset, and its
 /// operator. A device keeps operators resident by `(chunk, index)` within one asset, so the
 /// hook is handed the operator itself rather than looking it up: a chunk's operator lives in
 /// the chunk, not in the asset the caller holds.
@@ -101,7 +101,7 @@ impl<'a> PlaneRef<'a> {
     }
 }
 
-/// One plane's chains decoded at a [`ContinuousHook`]'s sites (normalised).
+/// One plane's chains decoded at a [`ChainDevice`]'s sites (normalised).
 #[derive(Clone, Debug, PartialEq)]
 pub enum Answer {
     /// A value, bound and step count a site.
@@ -173,34 +173,14 @@ impl Answer {
     }
 }
 
-/// Hands out the discrete decode of every plane at `(width, height, iterations, tolerance)`
-/// (normalised), as [`Asset::discrete_planes`] computes it: a server keeps recent ones, since
-/// every tile of a zoom level coarser than the source samples the same grid.
-pub type DiscreteHook<'a> =
-    dyn Fn(usize, usize, u32, f32) -> Arc<Vec<(Grid, DiscreteReport)>> + Sync + 'a;
-
-/// Asked between bands of work: `true` when whoever wanted the answer has given up (a server's
-/// request that timed out or whose client left), so that the work stops instead of running on.
-pub type CancelHook<'a> = dyn Fn() -> bool + Sync + 'a;
-
-/// Work that [`Asset::sample_with`] lets its caller do elsewhere or keep.
-pub struct Delegates<'a> {
-    /// Continuous chains (a GPU).
-    pub continuous: &'a ContinuousHook<'a>,
-    /// Discrete decodes for coarse pixels (a cache).
-    pub discrete: &'a DiscreteHook<'a>,
-    /// Whether to stop (see [`CancelHook`]).
-    pub cancelled: &'a CancelHook<'a>,
-}
-
-/// [`Asset::sample_with`] stopped because its [`CancelHook`] said so.
+/// [`Asset::sample_with`] stopped because its asker gave up ([`Resources::given_up`]).
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct Cancelled;
 
 /// Why [`Asset::sample_with`] gave no answer.
 #[derive(Clone, Debug)]
 pub enum SampleError {
-    /// Its [`CancelHook`] said to stop.
+    /// Its asker gave up ([`Resources::given_up`]).
     Cancelled,
     /// A chunk of a chunked asset could not be read or decoded (a corrupt or missing part of
     /// the file, or its store unreachable).
@@ -213,11 +193,11 @@ impl From<Cancelled> for SampleError {
     }
 }
 
-/// Points decoded between two questions to a [`CancelHook`]: a few tens of milliseconds of
+/// Points decoded between two looks at [`Resources::given_up`]: a few tens of milliseconds of
 /// work on one core, and a 512 x 512 tile in one band (no split, no cost).
 const BAND_POINTS: usize = 1 << 18;
 
-/// The unit points a [`ContinuousHook`] is asked for.
+/// The unit points a [`ChainDevice`] is asked for.
 #[derive(Clone, Copy, Debug)]
 pub enum Sites<'a> {
     /// Points in the order given.
@@ -251,16 +231,6 @@ impl Sites<'_> {
     /// Whether there are none.
     pub fn is_empty(&self) -> bool {
         self.len() == 0
-    }
-}
-
-/// Delegates that keep all work on the CPU and never stop (chunked assets, which ask their
-/// chunks' own discrete decodes).
-fn no_delegates() -> Delegates<'static> {
-    Delegates {
-        continuous: &|_, _, _, _| None,
-        discrete: &|_, _, _, _| Arc::new(Vec::new()),
-        cancelled: &|| false,
     }
 }
 
@@ -538,7 +508,7 @@ impl Asset {
             },
             footprint: [1.0 / width as f32, 1.0 / height as f32],
         };
-        let delegates = no_delegates();
+        let resources = Resources::CPU;
         // Fixed iterations stay fixed; a change criterion becomes the default tolerance.
         let tolerance = if opts.max_error > 0.0 {
             opts.max_error * self.span()
@@ -548,7 +518,7 @@ impl Asset {
             0.0
         };
         let (channels, bound) =
-            match self.sample_with(&pixels, opts.max_iterations, tolerance, &delegates) {
+            match self.sample_with(&pixels, opts.max_iterations, tolerance, &resources) {
                 Ok(r) => r,
                 Err(_) => (
                     vec![vec![f32::NAN; width * height]; self.meta.channels as usize],

@@ -159,13 +159,13 @@ impl Asset {
     }
 
     /// [`Asset::points`], each plane's chains offered first to `continuous` (see
-    /// [`ContinuousHook`]).
+    /// [`ChainDevice`]).
     pub fn points_with(
         &self,
         pts: &[[f32; 2]],
         iterations: u32,
         tolerance: f32,
-        continuous: &ContinuousHook<'_>,
+        continuous: &ChainDevice<'_>,
     ) -> Vec<PointSample> {
         self.try_points_with(pts, iterations, tolerance, continuous)
             .unwrap_or_else(|_| {
@@ -187,7 +187,7 @@ impl Asset {
         pts: &[[f32; 2]],
         iterations: u32,
         tolerance: f32,
-        continuous: &ContinuousHook<'_>,
+        continuous: &ChainDevice<'_>,
     ) -> Result<Vec<PointSample>, crate::Error> {
         if let Some(c) = &self.chunks {
             return c.points(&self.meta, pts, (iterations, tolerance), continuous);

@@ -136,7 +136,7 @@ impl Asset {
         width: usize,
         height: usize,
         iterations: Option<u32>,
-        continuous: &ContinuousHook<'_>,
+        continuous: &ChainDevice<'_>,
     ) -> Result<Vec<Vec<f32>>, SampleError> {
         let (xs, ys) = decode::window_axes(rect, width, height);
         let pixels = Pixels {
@@ -155,11 +155,11 @@ impl Asset {
         } else {
             self.default_tolerance()
         };
-        let delegates = Delegates {
-            continuous,
-            ..no_delegates()
+        let resources = Resources {
+            device: Some(continuous),
+            ..Resources::CPU
         };
-        Ok(self.sample_with(&pixels, n, tolerance, &delegates)?.0)
+        Ok(self.sample_with(&pixels, n, tolerance, &resources)?.0)
     }
 
     /// A window `[u0, v0, u1, v1]` of the unit square at `width x height`.
@@ -185,7 +185,7 @@ impl Asset {
         width: usize,
         height: usize,
         (iterations, method): (Option<u32>, Method),
-        continuous: &ContinuousHook<'_>,
+        continuous: &ChainDevice<'_>,
     ) -> (Decoded, Method) {
         if self.chunks.is_some() {
             // A chunk that cannot be read leaves the window NaN here; `raster` says why.
@@ -227,13 +227,7 @@ impl Asset {
     /// points). A chunk of a chunked asset that cannot be read leaves NaN and an infinite
     /// bound ([`Asset::sample_with`] says why).
     pub fn sample(&self, pixels: &Pixels, iterations: u32, tolerance: f32) -> (Vec<Vec<f32>>, f32) {
-        let discrete = |w, h, n, t| Arc::new(self.discrete_planes(w, h, n, t));
-        let delegates = Delegates {
-            continuous: &|_, _, _, _| None,
-            discrete: &discrete,
-            cancelled: &|| false,
-        };
-        self.sample_with(pixels, iterations, tolerance, &delegates)
+        self.sample_with(pixels, iterations, tolerance, &Resources::CPU)
             .unwrap_or_else(|_| {
                 let nan = vec![f32::NAN; pixels.len()];
                 (vec![nan; self.meta.channels as usize], f32::INFINITY)
@@ -310,10 +304,10 @@ impl Asset {
     }
 
     /// [`Asset::sample`], with the continuous chains of each plane offered first to
-    /// `delegates.continuous(plane, grid, iterations, tolerance)` (normalised tolerance), which
+    /// `resources.device(plane, grid, iterations, tolerance)` (normalised tolerance), which
     /// may answer them elsewhere (a GPU) or return `None` to leave them to the CPU, and the
-    /// discrete decodes of coarse pixels taken from `delegates.discrete`. Large requests are
-    /// decoded in bands of rows or points, asking `delegates.cancelled` before each: the
+    /// discrete decodes of coarse pixels kept in `resources.coarse`. Large requests are
+    /// decoded in bands of rows or points, looking at `resources.given_up` before each: the
     /// answers are the same (every point is decoded on its own), and a caller that gave up
     /// gets [`Cancelled`] within a band's time.
     pub fn sample_with(
@@ -321,15 +315,15 @@ impl Asset {
         pixels: &Pixels,
         iterations: u32,
         tolerance: f32,
-        delegates: &Delegates<'_>,
+        resources: &Resources<'_>,
     ) -> Result<(Vec<Vec<f32>>, f32), SampleError> {
         if let Some(c) = &self.chunks {
-            return c.sample(&self.meta, pixels, (iterations, tolerance), delegates);
+            return c.sample(&self.meta, pixels, (iterations, tolerance), resources);
         }
         let snapped = self.snap_pixels(pixels);
         let pixels = snapped.as_ref().unwrap_or(pixels);
         let stop = || {
-            if (delegates.cancelled)() {
+            if resources.given_up() {
                 Err(Cancelled)
             } else {
                 Ok(())
@@ -347,14 +341,14 @@ impl Asset {
         // A-posteriori bound of the discrete decodes (normalised).
         let mut coarse_bound = f32::INFINITY;
         let planes: Vec<Vec<f32>> = if coarse {
-            let (planes, bound) = self.filtered(&inside, footprint, delegates, iterations, tol);
+            let (planes, bound) = self.filtered(&inside, footprint, resources, iterations, tol);
             coarse_bound = bound;
             planes
         } else {
             let mut planes = Vec::with_capacity(self.planes.len());
             for k in 0..self.planes.len() {
                 let (values, bound) = self
-                    .continuous_plane(k, &inside, (iterations, tol), delegates)?
+                    .continuous_plane(k, &inside, (iterations, tol), resources)?
                     .into_values();
                 worst = worst.max(bound);
                 planes.push(values);
@@ -401,7 +395,7 @@ impl Asset {
         &self,
         inside: &Inside,
         footprint: [f32; 2],
-        delegates: &Delegates<'_>,
+        resources: &Resources<'_>,
         iterations: u32,
         tol: f32,
     ) -> (Vec<Vec<f32>>, f32) {
@@ -438,7 +432,10 @@ impl Asset {
                 return (planes, 0.0);
             }
         }
-        let grids = (delegates.discrete)(gw, gh, iterations, tol);
+        let grids = match resources.coarse {
+            Some((kept, key)) => kept.planes((self, key), (gw, gh), (iterations, tol)),
+            None => Arc::new(self.discrete_planes(gw, gh, iterations, tol)),
+        };
         let bound = grids.iter().map(|(_, r)| r.error_bound).fold(0.0, f32::max);
         let planes = grids
             .iter()
@@ -497,17 +494,17 @@ impl Asset {
     }
 
     /// Plane `k` at the pixels inside the asset by continuous decoding: offered to
-    /// `delegates.continuous` first, else on the CPU in bands, asking `delegates.cancelled`
+    /// `resources.device` first, else on the CPU in bands, looking at `resources.given_up`
     /// before each.
     pub(super) fn continuous_plane(
         &self,
         k: usize,
         inside: &Inside,
         (iterations, tol): (u32, f32),
-        delegates: &Delegates<'_>,
+        resources: &Resources<'_>,
     ) -> Result<Answer, Cancelled> {
         let stop = || {
-            if (delegates.cancelled)() {
+            if resources.given_up() {
                 Err(Cancelled)
             } else {
                 Ok(())
@@ -526,12 +523,10 @@ impl Asset {
                     Some(k) => (k, 0.0),
                     None => (iterations, tol),
                 };
-                let answer = match (delegates.continuous)(
-                    PlaneRef::whole(k, &p.operator),
-                    at,
-                    iterations,
-                    tol,
-                ) {
+                let offered = resources
+                    .device
+                    .and_then(|d| d(PlaneRef::whole(k, &p.operator), at, iterations, tol));
+                let answer = match offered {
                     Some(v) => v,
                     None => {
                         let rows = (BAND_POINTS / ix.len().max(1)).max(1);
@@ -550,13 +545,17 @@ impl Asset {
                 loose,
                 patches,
                 ..
-            } => match (delegates.continuous)(
-                PlaneRef::whole(k, &p.operator),
-                Sites::List(points),
-                iterations,
-                tol,
-            )
-            .map(|a| a.limited(&p.operator, Sites::List(points)))
+            } => match resources
+                .device
+                .and_then(|d| {
+                    d(
+                        PlaneRef::whole(k, &p.operator),
+                        Sites::List(points),
+                        iterations,
+                        tol,
+                    )
+                })
+                .map(|a| a.limited(&p.operator, Sites::List(points)))
             {
                 Some(v) => v,
                 None => {

@@ -50,7 +50,7 @@ use crate::core::format::FormatError;
 impl ChunkCache {
     /// A cache of at most `bytes` of decoded chunks.
     pub fn new(bytes: u64) -> ChunkCache {
-        let cache = super::cache::chunk_map(bytes, resident_bytes);
+        let cache = super::cache::keyed_map(bytes, resident_bytes);
         ChunkCache {
             cache,
             decoding: Arc::default(),

@@ -4,7 +4,7 @@
 
 pub mod asset;
 mod atomic;
-mod cache;
+pub(crate) mod cache;
 pub mod chunked;
 mod container;
 mod cost;

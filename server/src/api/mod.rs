@@ -28,8 +28,8 @@ use tiles::*;
 
 use state::Shared;
 pub use state::{
-    AppState, Cached, CoarseCache, CoarseKey, CoarsePlane, DEFAULT_COARSE_CACHE_MIB, Limits,
-    REQUEST_TIMEOUT, Writes, coarse_cache,
+    AppState, Cached, CoarseCache, DEFAULT_COARSE_CACHE_MIB, Limits, REQUEST_TIMEOUT, Writes,
+    coarse_cache,
 };
 
 use std::sync::Arc;

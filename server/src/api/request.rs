@@ -14,7 +14,7 @@ use crate::error::AppError;
 use crate::store::StoredAsset;
 use crate::work::{Bounds, Cancel};
 
-use super::state::{AppState, CoarseCache, CoarsePlane};
+use super::state::{AppState, CoarseCache};
 
 /// The asset of a request that works on 2D planes (tiles, regions, lon/lat and batch points):
 /// a volume is a 400 naming what it does answer instead.
@@ -120,44 +120,17 @@ pub(super) fn sample_on(
     let gpu = gpu.filter(|g| g.takes(choice, a, pixels.len()));
     // The GPU's round trip runs off the request's core slot (see `work`), the operator's
     // upload on it.
-    let continuous =
+    let device =
         |k: fractile_codec::extract::PlaneRef<'_>, p: fractile_codec::extract::Sites<'_>, n, t| {
             let (g, op) = gpu.and_then(|g| Some((g, g.operator(a, k)?)))?;
             cancel.off_core(|| g.points(a, &op, p, n, t))
         };
-    let discrete = |w: usize, h: usize, n, t: f32| {
-        let result = std::cell::Cell::new("hit");
-        let key = |w, h| (a.id.clone(), a.hash, w, h, n, t.to_bits());
-        let grids = coarse.get_with(key(w, h), || {
-            // A zoom's tiles ask for grids that differ by powers of two (a band of latitude
-            // has half the rows of the next): one cached at 2, 4 or 8 times the size on
-            // either axis gives this one by block means, in a pass instead of a decode.
-            let finer = (0..=3)
-                .flat_map(|i| (0..=3).map(move |j| (i, j)))
-                .filter(|&ij| ij != (0, 0))
-                .find_map(|(i, j)| Some(((i, j), coarse.get(&key(w << i, h << j))?)));
-            if let Some(((i, j), fine)) = finer {
-                let shrunk: Option<Vec<CoarsePlane>> = fine
-                    .iter()
-                    .map(|(g, r)| Some((g.shrink(1 << i, 1 << j)?, *r)))
-                    .collect();
-                if let Some(planes) = shrunk {
-                    result.set("derived");
-                    return Arc::new(planes);
-                }
-            }
-            result.set("miss");
-            Arc::new(a.asset.discrete_planes(w, h, n, t))
-        });
-        let result = result.get();
-        metrics::counter!("fractile_coarse_cache_total", "result" => result).increment(1);
-        grids
-    };
-    let cancelled = || cancel.is_set();
-    let delegates = fractile_codec::extract::Delegates {
-        continuous: &continuous,
-        discrete: &discrete,
-        cancelled: &cancelled,
+    let resources = fractile_codec::extract::Resources {
+        device: gpu
+            .is_some()
+            .then_some(&device as &fractile_codec::extract::ChainDevice<'_>),
+        coarse: Some((coarse, a.coarse_key())),
+        given_up: Some(cancel.flag()),
     };
     // One call: the source error over the pixels, the tolerance settled on it (where the
     // request named none), the values and their convergence bound.
@@ -166,7 +139,7 @@ pub(super) fn sample_on(
         iterations,
         tolerance: tolerance.asked(),
     };
-    let answer = a.asset.answer(&request, &delegates).map_err(|e| match e {
+    let answer = a.asset.answer(&request, &resources).map_err(|e| match e {
         fractile_codec::extract::SampleError::Cancelled => AppError {
             status: StatusCode::SERVICE_UNAVAILABLE,
             code: ErrorCode::Cancelled,

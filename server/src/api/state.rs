@@ -51,9 +51,10 @@ pub struct AppState {
     pub uploads_mib: u32,
     /// Encoded tiles keyed like their ETag, bounded in bytes.
     pub cache: moka::sync::Cache<String, Arc<Cached>>,
-    /// Discrete decodes of whole assets at the scale of a coarse zoom level, keyed by asset id,
-    /// checksum, grid size and steps, bounded in bytes: every tile of a zoom coarser than the
-    /// source samples the same grid, so it is decoded once (concurrent requests wait for it).
+    /// Discrete decodes of whole assets at the scale of a coarse zoom level, keyed by asset id
+    /// and checksum (`StoredAsset::coarse_key`), grid size and steps, bounded in bytes: every
+    /// tile of a zoom coarser than the source samples the same grid, so it is decoded once
+    /// (concurrent requests wait for it).
     pub coarse: CoarseCache,
     /// `Cache-Control` value of tiles.
     pub cache_control: String,
@@ -80,17 +81,10 @@ pub const DEFAULT_COARSE_CACHE_MIB: u64 = 256;
 
 /// A coarse-decode cache of `mib` MiB, weighed by the bytes of its grids.
 pub fn coarse_cache(mib: u64) -> CoarseCache {
-    moka::sync::Cache::builder()
-        .weigher(|_k: &CoarseKey, v: &Arc<Vec<CoarsePlane>>| {
-            let floats: usize = v.iter().map(|(g, _)| g.values.len()).sum();
-            (floats * 4).try_into().unwrap_or(u32::MAX)
-        })
-        .max_capacity(mib.saturating_mul(1024 * 1024))
-        .build()
+    Arc::new(fractile_codec::extract::CoarseGrids::new(
+        mib.saturating_mul(1024 * 1024),
+    ))
 }
-
-/// Key of [`AppState::coarse`]: asset id, checksum, width, height, iterations, tolerance bits.
-pub type CoarseKey = (String, u32, usize, usize, u32, u32);
 
 /// A cached answer.
 pub struct Cached {
@@ -139,14 +133,8 @@ impl AppState {
 
 pub(super) type Shared = State<Arc<AppState>>;
 
-/// Discrete decodes for coarse tiles (see [`AppState::coarse`]).
-pub type CoarseCache = moka::sync::Cache<CoarseKey, Arc<Vec<CoarsePlane>>>;
-
-/// A plane decoded discretely for coarse tiles, with what the decoder reported.
-pub type CoarsePlane = (
-    fractile_codec::core::decode::Grid,
-    fractile_codec::core::decode::DiscreteReport,
-);
+/// Discrete decodes for coarse tiles (see [`AppState::coarse`]): the codec's, shared.
+pub type CoarseCache = Arc<fractile_codec::extract::CoarseGrids>;
 
 /// The default request timeout.
 pub const REQUEST_TIMEOUT: Duration = Duration::from_secs(30);

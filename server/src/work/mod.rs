@@ -402,6 +402,12 @@ impl Cancel {
         self.0.given_up.load(Ordering::Relaxed)
     }
 
+    /// The flag [`Cancel::is_set`] reads, for the codec to look at between bands of work
+    /// (`fractile_codec::extract::Resources::given_up`).
+    pub fn flag(&self) -> &AtomicBool {
+        &self.0.given_up
+    }
+
     /// Runs `wait`, which waits on another device (a GPU decode), with the work's light slot
     /// given back to its lane, then takes one again ahead of new requests: the cores serve
     /// other requests meanwhile. Blocks the calling thread (a blocking-pool thread). Heavy work
