@@ -189,7 +189,7 @@ pub(crate) fn run_mesh(a: MeshArgs) -> Result<()> {
         "ply" => mesh.to_ply(),
         _ => mesh.to_glb(),
     };
-    fractile_codec::io::asset::write_atomic(&a.output, &body)?;
+    fractile_codec::asset::write_atomic(&a.output, &body)?;
     let report = json!({
         "output": a.output, "resolution": resolution, "vertices": mesh.positions.len(),
         "triangles": mesh.triangles.len(), "error_bound": bound, "seconds": started.elapsed().as_secs_f64(),
@@ -228,7 +228,7 @@ pub(crate) fn run_curve(a: CurveArgs) -> Result<()> {
     let decoded = c.set.at_level(level);
     let units = asset.meta.units.clone().unwrap_or_default();
     let text = fractile_codec::codecs::curve::geojson::write(&decoded, finest, &units);
-    fractile_codec::io::asset::write_atomic(&a.output, &text)?;
+    fractile_codec::asset::write_atomic(&a.output, &text)?;
     let points: usize = decoded.lines.iter().map(Vec::len).sum();
     let report = json!({"output": a.output, "level": level, "finest_level": finest,
         "polylines": decoded.lines.len(), "points": points, "error_bound": decoded.error_bound,
@@ -300,7 +300,7 @@ pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
         let n = a.iterations.unwrap_or(12);
         let mut planes = Vec::new();
         for p in &asset.planes {
-            let dev = g.upload_flat(&fractile_codec::core::pieces::Flatten::flat(&p.operator))?;
+            let dev = g.upload_flat(&fractile_codec::pieces::Flatten::flat(&p.operator))?;
             let grid = fractile_gpu::Grid::Window {
                 rect: window,
                 width: width as u32,
@@ -343,7 +343,7 @@ fn chunks_on(
                 n,
                 t| {
         let answer = gpu
-            .upload_flat(&fractile_codec::core::pieces::Flatten::flat(p.operator))
+            .upload_flat(&fractile_codec::pieces::Flatten::flat(p.operator))
             .and_then(|op| gpu.answer(&op, sites, n, t));
         match answer {
             Ok(a) => Some(a),

@@ -24,9 +24,9 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     if is_geojson(&a.inputs[0]) || a.codec.as_deref() == Some("curve") {
         return encode_curve(&a);
     }
-    let files = fractile_codec::io::mosaic::input_files(&a.inputs)?;
+    let files = fractile_codec::mosaic::input_files(&a.inputs)?;
     // Rows, not a raster: a chunked encode reads its input a band at a time.
-    let mut rows = fractile_codec::io::mosaic::open_rows(&a.inputs)?;
+    let mut rows = fractile_codec::mosaic::open_rows(&a.inputs)?;
     let (width, height) = (rows.header().width, rows.header().height);
     let a = a.with_default_codec(rows.header().kind);
     // The codec, its flags and the chunks, checked before anything is read.

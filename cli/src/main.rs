@@ -19,7 +19,7 @@ use std::time::Instant;
 use anyhow::{Context, Result, bail};
 use clap::{Parser, Subcommand, ValueEnum};
 use fractile_codec::{Asset, Method, Raster};
-use fractile_codec::{core::metrics, io::raster};
+use fractile_codec::{metrics, raster};
 use fractile_proto::{AssetKind, SampleFormat};
 use serde_json::json;
 

@@ -542,7 +542,7 @@ fn a_dem_without_a_codec_is_coded_projected_under_a_bounded_rate() {
 /// on another grid are refused by name and leave no output.
 #[test]
 fn geotiffs_that_tile_an_area_encode_as_one_asset() {
-    use fractile_codec::io::raster::write_geotiff_f32;
+    use fractile_codec::raster::write_geotiff_f32;
     let dir = tempdir("mosaic");
     let tiles = dir.join("tiles");
     std::fs::create_dir_all(&tiles).unwrap();

@@ -97,12 +97,12 @@ fn code(body: &[u8]) -> String {
 fn collision_pair_and_race(pa: u16, pb: u16, sound: &[u8]) {
     let asset = fractile_codec::Asset::from_bytes(sound).unwrap();
     let c = asset.chunks.as_ref().expect("a chunked file");
-    let files: Vec<Vec<Vec<u8>>> = fractile_codec::io::chunked::chunk_files(&c.table, sound);
+    let files: Vec<Vec<Vec<u8>>> = fractile_codec::chunked::chunk_files(&c.table, sound);
     let mut other = asset.meta.clone();
     let last = other.encoder.pop().expect("an encoder name");
     other.encoder.push(if last == 'x' { 'y' } else { 'x' });
-    let a = fractile_codec::io::chunked::assemble(&asset.meta, c.table.clone(), &files);
-    let b = fractile_codec::io::chunked::assemble(&other, c.table.clone(), &files);
+    let a = fractile_codec::chunked::assemble(&asset.meta, c.table.clone(), &files);
+    let b = fractile_codec::chunked::assemble(&other, c.table.clone(), &files);
     assert_eq!(a.len(), b.len());
     assert_eq!(
         a[a.len() - 4..],

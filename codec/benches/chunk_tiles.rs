@@ -18,9 +18,9 @@
 use std::time::Instant;
 
 use fractile_codec::Asset;
+use fractile_codec::asset::AssetLimits;
+use fractile_codec::chunked::ChunkCache;
 use fractile_codec::geo::{Pixels, Sites};
-use fractile_codec::io::asset::AssetLimits;
-use fractile_codec::io::chunked::ChunkCache;
 
 /// A deterministic generator (xorshift), so that runs draw the same tiles.
 struct Draw(u64);

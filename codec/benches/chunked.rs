@@ -27,7 +27,7 @@ use fractile_codec::{Asset, Raster, encode_default};
 fn mosaic(copies: usize) -> Raster {
     let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata");
     let src = Raster::open(&root.join("etopo20.tif")).expect("etopo20");
-    fractile_codec::io::mosaic::mirrored(&src, copies, copies).unwrap()
+    fractile_codec::mosaic::mirrored(&src, copies, copies).unwrap()
 }
 
 /// `r` as GeoTIFFs of 2 x 2 etopo20 copies each (float32), placed on one global grid.
@@ -52,15 +52,8 @@ fn write_tiffs(dir: &std::path::Path, r: &Raster) {
                 pixel_size: pixel,
             };
             let path = dir.join(format!("part-{ty}-{tx}.tif"));
-            fractile_codec::io::raster::write_geotiff_f32(
-                &path,
-                tw,
-                th,
-                &values,
-                Some(&georef),
-                None,
-            )
-            .unwrap();
+            fractile_codec::raster::write_geotiff_f32(&path, tw, th, &values, Some(&georef), None)
+                .unwrap();
         }
     }
     println!(

@@ -8,10 +8,10 @@ use std::path::{Path, PathBuf};
 use std::time::Instant;
 
 use fractile_codec::codecs::quadtree::{DEFAULT_SPEED, SPEEDS};
-use fractile_codec::core::decode::{self, DiscreteOptions};
-use fractile_codec::core::metrics;
-use fractile_codec::core::operator;
-use fractile_codec::core::operator::Operator;
+use fractile_codec::decode::{self, DiscreteOptions};
+use fractile_codec::metrics;
+use fractile_codec::operator;
+use fractile_codec::operator::Operator;
 use fractile_codec::{QuadtreeSettings, Raster, RateMode, SearchMode, encode};
 
 #[path = "support/baselines.rs"]
@@ -247,7 +247,7 @@ fn main() {
         });
         // The same chains stepped through `Operator::step` (the layout every codec has),
         // against the quadtree's own layout for the loop that `points` uses.
-        let fractile_codec::io::asset::PlaneOperator::Quadtree(quadtree) = op else {
+        let fractile_codec::asset::PlaneOperator::Quadtree(quadtree) = op else {
             unreachable!("images are coded as quadtrees")
         };
         let valid = op.valid();
@@ -590,9 +590,9 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> QuadtreeSet
 }
 
 /// The multiresolution a projected asset's first plane was coded with.
-fn kernel(asset: &fractile_codec::io::asset::Asset) -> String {
+fn kernel(asset: &fractile_codec::asset::Asset) -> String {
     match &asset.planes[0].coding {
-        fractile_codec::io::asset::Coding::Projected { header, .. } => {
+        fractile_codec::asset::Coding::Projected { header, .. } => {
             format!("{:?}", header.order)
         }
         _ => "-".into(),
@@ -718,7 +718,7 @@ fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
 /// would save ln(R / max) / ln(1 / rho) of them, the most any tighter bound can.
 fn residual_slack(a: &fractile_codec::Asset) {
     let op = match &a.planes[0].operator {
-        fractile_codec::io::asset::PlaneOperator::Projected(op) => op,
+        fractile_codec::asset::PlaneOperator::Projected(op) => op,
         _ => return,
     };
     let span = (a.meta.value_max - a.meta.value_min) as f32;

@@ -23,9 +23,9 @@ use std::path::{Path, PathBuf};
 use std::process::Command;
 use std::time::Instant;
 
+use fractile_codec::chunked::ChunkCache;
 use fractile_codec::encode::chunked::{DEFAULT_CHUNK, encode_chunked_at};
 use fractile_codec::encode::rate::FileRate;
-use fractile_codec::io::chunked::ChunkCache;
 use fractile_codec::{Asset, AssetLimits, Encoded, Method, Raster};
 
 fn raster(copies: usize, file: Option<&str>) -> Raster {
@@ -37,7 +37,7 @@ fn raster(copies: usize, file: Option<&str>) -> Raster {
     if copies <= 1 {
         return src;
     }
-    fractile_codec::io::mosaic::mirrored(&src, copies, copies).expect("a mirrored raster")
+    fractile_codec::mosaic::mirrored(&src, copies, copies).expect("a mirrored raster")
 }
 
 fn encode(r: &Raster, bounded: bool) -> (Encoded, f64) {

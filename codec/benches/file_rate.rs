@@ -51,7 +51,7 @@ fn raster(copies: usize, file: Option<&str>) -> Raster {
     if copies <= 1 {
         return src;
     }
-    fractile_codec::io::mosaic::mirrored(&src, copies, copies).unwrap()
+    fractile_codec::mosaic::mirrored(&src, copies, copies).unwrap()
 }
 
 /// The file's rate (new) or a rate a chunk (old), rate mode or bounded.
@@ -90,10 +90,9 @@ fn overview_share(enc: &Encoded) -> f64 {
     let Some(c) = &enc.asset.chunks else {
         return 0.0;
     };
-    let level =
-        |l: &fractile_codec::io::chunked::Level| l.chunks.iter().map(|e| e.length).sum::<u64>();
+    let level = |l: &fractile_codec::chunked::Level| l.chunks.iter().map(|e| e.length).sum::<u64>();
     // A view level's entries are level 0's bytes (format 7): counted once.
-    let coded = |&(i, _): &(usize, &fractile_codec::io::chunked::Level)| !c.table.is_view(i);
+    let coded = |&(i, _): &(usize, &fractile_codec::chunked::Level)| !c.table.is_view(i);
     let levels = || c.table.levels.iter().enumerate().filter(coded);
     let all: u64 = levels().map(|(_, l)| level(l)).sum();
     let overviews: u64 = levels().skip(1).map(|(_, l)| level(l)).sum();
@@ -160,8 +159,8 @@ fn jpegls_ratio(r: &Raster, e: f64) -> Option<f64> {
 /// (the coarse bands come first), in rate mode at each ratio: what a view would fetch if each
 /// chunk's coarse part lay apart (resolution-major), against the whole chunk it fetches now.
 fn views(r: &Raster) {
+    use fractile_codec::asset::Coding;
     use fractile_codec::codecs::projected::decode_coarse;
-    use fractile_codec::io::asset::Coding;
     println!(
         "\n| ratio | file bytes | source chunks' streams | a depth-1 view reads | a depth-2 view reads |"
     );

@@ -199,7 +199,7 @@ fn main() {
         .map_or(root.join("etopo20.tif"), std::path::PathBuf::from);
     let src = Raster::open(&path).expect("a DEM");
     let r = if copies > 1 {
-        fractile_codec::io::mosaic::mirrored(&src, copies, copies).expect("a mosaic")
+        fractile_codec::mosaic::mirrored(&src, copies, copies).expect("a mosaic")
     } else {
         src
     };

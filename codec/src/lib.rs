@@ -1,16 +1,16 @@
 //! fractile's codecs: images, height fields, volumes and curves as partitioned iterated function
 //! systems, with every decoder written once against one operator form,
-//! `(W f)(p) = g_c(p) + s_c(p) f(phi_c(p))` (see [`core::operator`]).
+//! `(W f)(p) = g_c(p) + s_c(p) f(phi_c(p))` (see [`operator`]).
 //!
 //! Data flows one way, and so do the imports, folder by folder:
 //!
 //! | stage | module | depends on |
 //! |---|---|---|
-//! | input | [`io::raster`] (images, DEMs), [`mesh`] (triangle meshes), [`geo`] | `core` |
+//! | input | `io::raster` (images, DEMs), [`mesh`] (triangle meshes), [`geo`] | `core` |
 //! | encode | [`mod@encode`] (rasters, meshes, curves: rate control, codec choice) | `codecs`, `io` |
 //! | codecs | [`codecs`] (one folder each; encoders return coded planes) | `core`, `mesh`, the input |
-//! | asset | [`io::asset`] (the container) | `codecs` |
-//! | operator, decode | [`core`] (the operator form, its decoders, entropy coder) | nothing |
+//! | asset | `io::asset` (the container) | `codecs` |
+//! | operator, decode | `core` (the operator form, its decoders, entropy coder) | nothing |
 //! | output | [`extract`] (tiles, points, regions, distances), [`render`] | `io`, `codecs`, `core` |
 //!
 //! No module imports one that imports it back, in this crate or any other of the workspace
@@ -18,28 +18,98 @@
 //!
 //! No HTTP and no async here: the server calls these functions.
 //!
-//! What is public is what other crates name: the root re-exports the common entry points
-//! (`Asset`, `Raster`, `encode`, `CodecSettings`, each codec's settings, decode options), and
-//! the modules they reach stay public. What only the codec uses is crate-private (issue 57,
-//! in part): the range coder and lattice coding (`core::entropy`, `core::lattice`), block
-//! transforms (`core::transform`; `Quantiser` is re-exported), each codec's `plane`, `fit`,
-//! `encode` and stream internals where no other crate names them, the projected codec's grid
-//! machinery, the SDF and marching of IFS3D, the source-error measure and colour conversion.
-//! Each codec's module publishes what a user of that codec needs, as image's `codecs::png`
-//! does: its settings (`codecs::fis::FisSettings`, encoded through [`encode()`]), its operator; its
-//! search, stream and pyramid internals are `#[doc(hidden)]`, public only for this crate's own
-//! integration tests and benches, and no other crate of the workspace names them
-//! (`codec/tests/layout.rs` checks, grouped imports included).
+//! What is public is a curated surface, as image-rs and rav1e publish theirs: the root
+//! re-exports the common entry points (`Asset`, `Raster`, `encode`, `CodecSettings`, each
+//! codec's settings, decode options), and the modules `core` (the operator form, its
+//! decoders, the entropy coder) and `io` (files, the container) are private, what other crates
+//! name of them published by concept below ([`asset`], [`chunked`], [`raster`], [`rows`],
+//! [`mosaic`]; [`operator`], [`decode`], [`pieces`], [`metrics`]): a name moved inside them
+//! changes no user's code, and a `pub` item no list names is an `unreachable_pub` warning.
+//! The range coder and lattice coding, block transforms (`Quantiser` is re-exported), each
+//! codec's `plane`, `fit`, `encode` and stream internals where no other crate names them, the
+//! projected codec's grid machinery, the SDF and marching of IFS3D, the source-error measure
+//! and colour conversion are crate-private. Each codec's module publishes what a user of that
+//! codec needs, as image's `codecs::png` does: its settings (`codecs::fis::FisSettings`,
+//! encoded through [`encode()`]), its operator; its search, stream and pyramid internals are
+//! `#[doc(hidden)]`, public only for this crate's own integration tests and benches, and no
+//! other crate of the workspace names them (`codec/tests/layout.rs` checks, grouped imports
+//! included).
 
 #[macro_use]
 pub mod codecs;
-pub mod core;
+mod core;
 pub mod encode;
 pub mod extract;
 pub mod geo;
-pub mod io;
+mod io;
 pub mod mesh;
 pub mod render;
+
+/// The asset file: an [`Asset`] read and checked, its planes' operators, and files written
+/// whole or not at all.
+pub mod asset {
+    pub use crate::io::asset::{
+        Asset, AssetLimits, ChunkCache, Chunked, Codec, Coding, FORMAT_VERSION, Mask,
+        OLDEST_CURVE_VERSION, OLDEST_READ_VERSION, Plane, PlaneOperator, check_magic, check_opens,
+        check_whole_file, temporary_owner, write_atomic, write_atomic_with,
+    };
+}
+
+/// Chunked assets: the layout of their files, the sources they are read from by range, and
+/// their assembly from chunks.
+pub mod chunked {
+    pub use crate::io::chunked::{
+        CHUNK_SIDES, CHUNKED_CODEC, CHUNKED_PIXELS_FACTOR, CHUNKED_VERSION, CODED_TOP_VERSION,
+        ChunkCache, ChunkEntry, ChunkSource, ChunkTable, Chunked, FileSource, InMemory, Level,
+        MAGIC, MAX_CHUNKS, OLDEST_CHUNKED_VERSION, OVERLAP, VIEW_DEPTH, VIEW_OVERLAP, ViewLevel,
+        assemble, chunk_files, file_crc, header, is_chunked, overlap_for,
+    };
+}
+
+/// Input rasters (images, GeoTIFF and PNG DEMs) whole, and rasters written.
+pub mod raster {
+    pub use crate::io::raster::{
+        MAX_MAGNITUDE, Raster, geotiff_f32, write_geotiff_f32, write_png8, write_png16,
+    };
+}
+
+/// Input rasters read a band of rows at a time (inputs larger than memory).
+pub mod rows {
+    pub use crate::io::rows::{GeoTiff, Header, InMemory, Rows, is_tiff};
+}
+
+/// Several input rasters on one grid, read as one.
+pub mod mosaic {
+    pub use crate::io::mosaic::{
+        MAX_HEIGHT, MAX_WIDTH, Mosaic, input_files, mirrored, open, open_rows,
+    };
+}
+
+/// The operator form every codec is written against, `(W f)(p) = g_c(p) + s_c(p) f(phi_c(p))`.
+pub mod operator {
+    pub use crate::core::operator::{
+        AffineCell, AxisAligned, AxisCell, Chain, ISOMETRY_MATRICES, Operator, Step, active,
+        invariant_interval, run_chains_stepwise,
+    };
+}
+
+/// The decoders written once against [`operator::Operator`]: discrete grids at any size,
+/// continuous points, windows and volumes.
+pub mod decode {
+    pub use crate::core::decode::*;
+}
+
+/// Piecewise tables of a plane's cells, flattened for a device (the GPU's kernels).
+pub mod pieces {
+    pub use crate::core::pieces::{
+        Ends, Flat, Flatten, Lattice, Offsets, Piece, PieceTable, SPLIT, bilinear,
+    };
+}
+
+/// Quality metrics of a decode against its source.
+pub mod metrics {
+    pub use crate::core::metrics::{Errors, compare};
+}
 
 pub use crate::core::decode::{DiscreteOptions, Method};
 pub use crate::core::format::FormatError;

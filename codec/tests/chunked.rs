@@ -3,10 +3,10 @@
 //! overview of their size, and corrupt or empty chunks answered by name without losing the
 //! rest.
 
+use fractile_codec::chunked::is_chunked;
 use fractile_codec::encode::chunked::encode_chunked;
 use fractile_codec::extract::{Resources, SampleError};
 use fractile_codec::geo::{Pixels, Sites};
-use fractile_codec::io::chunked::is_chunked;
 use fractile_codec::{Asset, Encoded, Raster, encode_default};
 
 fn testdata(name: &str) -> std::path::PathBuf {
@@ -282,7 +282,7 @@ fn chunks_without_data_answer_nodata_and_the_rest_answer_values() {
 /// before its budget when they do not; a corrupt chunk is skipped (its requests report it).
 #[test]
 fn prefetch_decodes_chunks_coarsest_first_within_its_budget() {
-    use fractile_codec::io::chunked::ChunkCache;
+    use fractile_codec::chunked::ChunkCache;
     let r = Raster::open(&testdata("etopo20.tif")).unwrap();
     let enc = chunked(&r);
     let path = file_of(&enc, "prefetch.fra");
@@ -339,7 +339,7 @@ fn prefetch_decodes_chunks_coarsest_first_within_its_budget() {
 /// name (a reader would otherwise place or decode a view from the wrong chunk).
 #[test]
 fn a_table_whose_views_do_not_match_the_layout_is_refused() {
-    use fractile_codec::io::chunked::{ChunkTable, header};
+    use fractile_codec::chunked::{ChunkTable, header};
     let r = Raster::open(&testdata("jacksboro.tif")).unwrap();
     let one = |part: &Raster| encode_default(part, 0.8, &|_, _| {});
     let bytes = encode_chunked(&r, 128, &one, &|_, _| {}).unwrap().bytes;
@@ -385,8 +385,8 @@ fn a_file_with_views_assembles_to_its_own_bytes() {
     let asset = Asset::from_bytes(&enc.bytes).unwrap();
     let c = asset.chunks.as_ref().unwrap();
     assert_eq!(c.table.views.len(), 2);
-    let files: Vec<Vec<Vec<u8>>> = fractile_codec::io::chunked::chunk_files(&c.table, &enc.bytes);
-    let again = fractile_codec::io::chunked::assemble(&asset.meta, c.table.clone(), &files);
+    let files: Vec<Vec<Vec<u8>>> = fractile_codec::chunked::chunk_files(&c.table, &enc.bytes);
+    let again = fractile_codec::chunked::assemble(&asset.meta, c.table.clone(), &files);
     assert!(
         again == enc.bytes,
         "{} bytes against {}",

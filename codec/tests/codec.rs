@@ -2,10 +2,10 @@
 
 use std::path::PathBuf;
 
-use fractile_codec::core::decode::{self, DiscreteOptions};
-use fractile_codec::core::metrics;
-use fractile_codec::core::operator;
-use fractile_codec::core::operator::Operator;
+use fractile_codec::decode::{self, DiscreteOptions};
+use fractile_codec::metrics;
+use fractile_codec::operator;
+use fractile_codec::operator::Operator;
 use fractile_codec::{Asset, QuadtreeSettings, Raster, RateMode, Roi, SearchMode, encode};
 use fractile_proto::AssetKind;
 use proptest::prelude::*;
@@ -147,7 +147,7 @@ proptest! {
         }).collect();
         pts.extend([[0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.5, -0.5], [f32::NAN, 0.5]]);
         for asset in [small_camera_asset(), small_terrain_asset()] {
-            let fractile_codec::io::asset::PlaneOperator::Quadtree(q) = &asset.planes[0].operator else {
+            let fractile_codec::asset::PlaneOperator::Quadtree(q) = &asset.planes[0].operator else {
                 panic!("quadtree assets");
             };
             let fast = decode::points(q, &pts, n, tol);
@@ -192,7 +192,7 @@ proptest! {
         };
         for asset in [small_camera_asset(), small_terrain_asset()] {
             let op = &asset.planes[0].operator;
-            let fractile_codec::io::asset::PlaneOperator::Quadtree(q) = op else {
+            let fractile_codec::asset::PlaneOperator::Quadtree(q) = op else {
                 panic!("quadtree assets");
             };
             let by_patch = op.patch(&patch, n, tol);
@@ -250,7 +250,7 @@ fn reference_chain(
     n: u32,
     tol: f32,
 ) -> decode::PointValue {
-    use fractile_codec::core::operator::{AxisAligned, ISOMETRY_MATRICES};
+    use fractile_codec::operator::{AxisAligned, ISOMETRY_MATRICES};
     let valid = op.valid();
     let (lo, hi) = op.invariant_interval();
     let (seed, half) = ((lo + hi) * 0.5, (hi - lo) * 0.5);
@@ -696,7 +696,7 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
             fractile_codec::codecs::fis::codec_name(scaling)
         );
         let step = match &back.planes[0].coding {
-            fractile_codec::io::asset::Coding::Fis { header, .. } => {
+            fractile_codec::asset::Coding::Fis { header, .. } => {
                 header.height_step as f64 * (back.meta.value_max - back.meta.value_min)
             }
             _ => panic!("not an FIS plane"),
@@ -834,9 +834,7 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
         let (w, h) = (r.width, r.height);
         let span = back.meta.value_max - back.meta.value_min;
         let step = match &back.planes[0].coding {
-            fractile_codec::io::asset::Coding::Psa { header, .. } => {
-                header.height_step as f64 * span
-            }
+            fractile_codec::asset::Coding::Psa { header, .. } => header.height_step as f64 * span,
             _ => panic!("not a psa2d plane"),
         };
         let exact = |k: usize, n: usize| {
@@ -867,8 +865,7 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
         let (d, _) = back.decode_native();
         let e = metrics::compare(&r.channels, &d.channels, None, back.meta.psnr_peak());
         assert!((e.psnr - enc.errors.psnr).abs() < 1e-9);
-        let fractile_codec::io::asset::Coding::Psa { header, stream } = &back.planes[0].coding
-        else {
+        let fractile_codec::asset::Coding::Psa { header, stream } = &back.planes[0].coding else {
             panic!("not a psa2d plane")
         };
         let mut params = fractile_codec::codecs::psa::decode_params(header, stream).unwrap();
@@ -1055,7 +1052,7 @@ fn slower_speed_presets_buy_quality_at_the_same_rate() {
 
 #[test]
 fn rate_control_sizes_are_the_sizes_of_the_files() {
-    use fractile_codec::io::asset::Coding;
+    use fractile_codec::asset::Coding;
     // A colour image (three planes) and a DEM with nodata (a mask): rate control sizes trial
     // partitions without building assets, and that size must be the file's.
     let dem = Raster::open(&data("jacksboro-utm.tif")).unwrap();

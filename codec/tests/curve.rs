@@ -2,9 +2,9 @@
 //! exact reconstruction, the tolerance and level bounds against measured Hausdorff distances,
 //! levels past the source, the file format's refusals, and the three deformations.
 
+use fractile_codec::asset::Asset;
 use fractile_codec::codecs::curve::geojson::Polyline;
 use fractile_codec::codecs::curve::{self, CurveSettings, Metric, Pt};
-use fractile_codec::io::asset::Asset;
 use fractile_proto::Deformation;
 
 fn coast() -> Vec<Polyline> {

@@ -26,7 +26,7 @@ fn a_corrupt_asset_is_an_asset_error_naming_the_file() {
     let e = Asset::open(
         &path,
         &fractile_codec::AssetLimits::default(),
-        fractile_codec::io::chunked::ChunkCache::shared(),
+        fractile_codec::chunked::ChunkCache::shared(),
     )
     .unwrap_err();
     assert!(matches!(e, Error::Asset { .. }), "{e:?}");
@@ -71,7 +71,7 @@ fn what_a_writer_checks_is_what_a_reader_opens() {
                 max_decode_bytes: mib << 20,
                 ..Default::default()
             };
-            let checked = fractile_codec::io::asset::check_opens(&bytes, &limits);
+            let checked = fractile_codec::asset::check_opens(&bytes, &limits);
             let opened = Asset::from_bytes_limited(&bytes, &limits);
             assert_eq!(
                 checked.is_ok(),

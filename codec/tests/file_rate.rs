@@ -7,7 +7,7 @@ use std::path::Path;
 use fractile_codec::encode::chunked::{chunk_bpp, encode_chunked, encode_chunked_at, quality_for};
 use fractile_codec::encode::rate::encode_at;
 use fractile_codec::encode::rate::{AIM, FileRate, Quality};
-use fractile_codec::io::rows::InMemory;
+use fractile_codec::rows::InMemory;
 use fractile_codec::{Encoded, Raster};
 
 fn testdata(name: &str) -> Raster {

@@ -5,7 +5,7 @@
 
 use std::path::PathBuf;
 
-use fractile_codec::core::metrics;
+use fractile_codec::metrics;
 use fractile_codec::{Asset, Raster};
 use fractile_proto::AssetKind;
 
@@ -89,8 +89,8 @@ fn every_format_version_is_read_as_it_was_written() {
         );
         // A projected file holds the multiresolution its name says.
         if name.contains("projected") {
+            use fractile_codec::asset::Coding;
             use fractile_codec::codecs::projected::pyramid::Order;
-            use fractile_codec::io::asset::Coding;
             let Coding::Projected { header, .. } = &asset.planes[0].coding else {
                 panic!("{name}: not a projected plane");
             };
@@ -105,7 +105,7 @@ fn every_format_version_is_read_as_it_was_written() {
         // A chunked file of version 9 holds chunks of version 9, whose pyramids are coded in
         // two-rate contexts; those of 6 to 8, chunks of version 5.
         if let Some(c) = &asset.chunks {
-            use fractile_codec::io::asset::Coding;
+            use fractile_codec::asset::Coding;
             let chunk = c.chunk(0, 0).unwrap().expect("a chunk with cells");
             let Coding::Projected { header, .. } = &chunk.planes[0].coding else {
                 panic!("{name}: not a projected chunk");
@@ -113,7 +113,7 @@ fn every_format_version_is_read_as_it_was_written() {
             if header.order.lifting().is_none() {
                 assert_eq!(header.order.two_rate(), version >= 9, "{name}");
             }
-            let files = fractile_codec::io::chunked::chunk_files(&c.table, &bytes);
+            let files = fractile_codec::chunked::chunk_files(&c.table, &bytes);
             let chunk_version = u16::from_le_bytes([files[0][0][8], files[0][0][9]]);
             assert_eq!(chunk_version, if version >= 9 { 9 } else { 5 }, "{name}");
         }

@@ -3,8 +3,8 @@
 
 use std::path::{Path, PathBuf};
 
-use fractile_codec::io::mosaic;
-use fractile_codec::io::raster::{Raster, write_geotiff_f32};
+use fractile_codec::mosaic;
+use fractile_codec::raster::{Raster, write_geotiff_f32};
 use fractile_proto::Georef;
 
 fn testdata(name: &str) -> PathBuf {

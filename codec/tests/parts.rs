@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 
 use fractile_codec::encode::chunked::{Share, encode_chunked_file};
 use fractile_codec::encode::parts::{assemble, encode_chunked_part};
-use fractile_codec::io::rows::GeoTiff;
+use fractile_codec::rows::GeoTiff;
 use fractile_codec::{Encoded, Raster, encode_default};
 
 fn testdata(name: &str) -> PathBuf {

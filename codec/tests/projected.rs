@@ -4,9 +4,9 @@
 //! PSNR against bicubic, and the power of the finest octave against the real finer DEM's).
 
 use fractile_codec::Method;
+use fractile_codec::asset::{Asset, Coding};
 use fractile_codec::codecs::projected::{ProjectedHeader, ProjectedSettings};
-use fractile_codec::io::asset::{Asset, Coding};
-use fractile_codec::io::raster::Raster;
+use fractile_codec::raster::Raster;
 use fractile_proto::AssetKind;
 
 fn testdata(name: &str) -> std::path::PathBuf {

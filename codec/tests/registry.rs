@@ -180,8 +180,8 @@ fn every_codec_name_encodes_under_that_name() {
 #[test]
 fn a_plane_codec_tells_a_bad_header_from_a_bad_stream() {
     use fractile_codec::FormatError;
+    use fractile_codec::asset::Coding;
     use fractile_codec::codecs::plane::{Build, PlaneCodec};
-    use fractile_codec::io::asset::Coding;
     let raster = dem();
     let mut kinds = 0;
     for &codec in Codec::ALL {

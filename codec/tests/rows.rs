@@ -3,7 +3,7 @@
 //! file to disk writes what the same encode of the raster in memory writes.
 
 use fractile_codec::encode::chunked::{encode_chunked, encode_chunked_file};
-use fractile_codec::io::rows::{GeoTiff, Rows};
+use fractile_codec::rows::{GeoTiff, Rows};
 use fractile_codec::{Encoded, Raster, encode_default};
 
 fn testdata(name: &str) -> std::path::PathBuf {

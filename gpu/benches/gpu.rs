@@ -9,8 +9,8 @@
 use std::path::PathBuf;
 use std::time::Instant;
 
-use fractile_codec::core::decode;
-use fractile_codec::core::pieces::Flatten;
+use fractile_codec::decode;
+use fractile_codec::pieces::Flatten;
 use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
 use fractile_gpu::{Gpu, Grid};
 use rayon::prelude::*;

@@ -1,7 +1,7 @@
 //! Dispatches of the kernels: points, grids and tiles in 2D, points and boxes in 3D, cut into
 //! chunks, recorded, submitted and pipelined.
 
-use fractile_codec::core::decode::PointValue;
+use fractile_codec::decode::PointValue;
 use fractile_codec::extract::{Answer, Sites};
 use wgpu::util::DeviceExt;
 
@@ -199,7 +199,7 @@ impl Gpu {
         let base = op
             .volume
             .ok_or_else(|| GpuError::Device("not a volume operator".into()))?;
-        let axes = fractile_codec::core::decode::volume_axes(lo, hi, dims.map(|d| d as usize));
+        let axes = fractile_codec::decode::volume_axes(lo, hi, dims.map(|d| d as usize));
         // x, then y, then z: the kernel reads sample (i, j, k) at `axes[i]`, `axes[nx + j]`,
         // `axes[nx + ny + k]`.
         let axes: Vec<f32> = axes.concat();

@@ -44,7 +44,7 @@ pub(crate) fn grid_axes(grid: &Grid) -> (u32, u32, Vec<f32>) {
             height,
         } => {
             let (xs, ys) =
-                fractile_codec::core::decode::window_axes(*rect, *width as usize, *height as usize);
+                fractile_codec::decode::window_axes(*rect, *width as usize, *height as usize);
             (
                 *width,
                 *height,

@@ -1,7 +1,7 @@
 //! GPU decoding of fractile's operators with wgpu compute, on any adapter (a discrete GPU,
 //! an integrated one, or Mesa's lavapipe on machines without one).
 //!
-//! A 2D operator is flattened once ([`fractile_codec::core::pieces`]) and uploaded as two storage
+//! A 2D operator is flattened once ([`fractile_codec::pieces`]) and uploaded as two storage
 //! buffers ([`GpuOperator`], resident until dropped); each request then dispatches the kernel of
 //! `shaders/decode2d.wgsl` over a list of points, a window's grid, or a Web Mercator tile's
 //! pixels (reprojected on the GPU). A 3D octree operator (IFS3D) is uploaded the same way, its

@@ -1,7 +1,7 @@
 //! What a dispatch reads back: buffers mapped for reading, points or a grid's values with
 //! their bound, and the wait for them.
 
-use fractile_codec::core::decode::PointValue;
+use fractile_codec::decode::PointValue;
 
 use crate::*;
 

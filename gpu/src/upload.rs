@@ -3,8 +3,8 @@
 
 use bytemuck::{Pod, Zeroable};
 use fractile_codec::codecs::ifs3d::OctreeOperator;
-use fractile_codec::core::operator::Operator;
-use fractile_codec::core::pieces::{Ends, Flat, Lattice, Offsets, PieceTable};
+use fractile_codec::operator::Operator;
+use fractile_codec::pieces::{Ends, Flat, Lattice, Offsets, PieceTable};
 use wgpu::util::DeviceExt;
 
 use crate::*;
@@ -29,7 +29,7 @@ pub(crate) struct Params {
     pub(crate) b: [f32; 2],
     pub(crate) row: u32,
     /// The fixed-point step of chain positions and its inverse (powers of two; see
-    /// `fractile_codec::core::decode::position_quantum`).
+    /// `fractile_codec::decode::position_quantum`).
     pub(crate) quantum: f32,
     pub(crate) inv_quantum: f32,
     /// 1: values and a reduced bound ([`Gpu::grid_values`]) instead of four floats a point.
@@ -91,7 +91,7 @@ impl Shape {
         lattice: Option<&Lattice>,
     ) -> GpuOperator {
         let ends: Option<&Ends> = lattice.and_then(|l| l.ends.as_ref());
-        let quantum = fractile_codec::core::decode::position_quantum(&self.frame);
+        let quantum = fractile_codec::decode::position_quantum(&self.frame);
         let (lo, hi) = self.interval;
         GpuOperator {
             lut,
@@ -219,7 +219,7 @@ impl Gpu {
         }
     }
 
-    /// Uploads an operator as [`fractile_codec::core::pieces::Flatten::flat`] gives it.
+    /// Uploads an operator as [`fractile_codec::pieces::Flatten::flat`] gives it.
     pub fn upload_flat(&self, flat: &Flat) -> Result<GpuOperator, GpuError> {
         match flat {
             Flat::Lattice(l) => self.upload_lattice(l),
@@ -305,8 +305,8 @@ impl Gpu {
                 side: (frame / cell as f32) as u32,
                 inv_cell: 1.0 / cell as f32,
                 valid: op.valid()[0],
-                quantum: fractile_codec::core::decode::position_quantum(&op.frame()),
-                inv_quantum: 1.0 / fractile_codec::core::decode::position_quantum(&op.frame()),
+                quantum: fractile_codec::decode::position_quantum(&op.frame()),
+                inv_quantum: 1.0 / fractile_codec::decode::position_quantum(&op.frame()),
                 ..Params3::default()
             }),
             bytes,

@@ -5,8 +5,8 @@ use std::path::PathBuf;
 
 use fractile_codec::codecs::fis::{FisSettings, Scaling};
 use fractile_codec::codecs::psa::{PsaSettings, Tiling};
-use fractile_codec::core::decode;
-use fractile_codec::core::pieces::Flatten;
+use fractile_codec::decode;
+use fractile_codec::pieces::Flatten;
 use fractile_codec::{Asset, QuadtreeSettings, Raster, RateMode, encode};
 use fractile_gpu::{Gpu, Grid};
 

@@ -5,8 +5,8 @@
 use std::path::PathBuf;
 use std::sync::Arc;
 
+use fractile_codec::chunked::ChunkCache;
 use fractile_codec::geo::Placement;
-use fractile_codec::io::chunked::ChunkCache;
 use fractile_codec::{AssetLimits, Method};
 use fractile_proto::{AssetKind, AssetMeta};
 use numpy::ndarray::{Array1, Array2, Array3};

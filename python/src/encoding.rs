@@ -10,8 +10,8 @@ use std::sync::Mutex;
 use std::time::{Duration, Instant};
 
 use fractile_codec::encode::{Options, Plan, Written};
-use fractile_codec::io::raster::MAX_MAGNITUDE;
-use fractile_codec::io::rows::{InMemory, Rows};
+use fractile_codec::raster::MAX_MAGNITUDE;
+use fractile_codec::rows::{InMemory, Rows};
 use fractile_codec::{CodecSettings, Raster};
 use fractile_proto::{AssetKind, Georef, SampleFormat};
 use numpy::{PyReadonlyArray2, PyReadonlyArray3};
@@ -223,7 +223,7 @@ pub(crate) fn encode_file<'py>(
     progress: Option<Py<PyAny>>,
 ) -> PyResult<Bound<'py, PyDict>> {
     let mut rows = py
-        .detach(|| fractile_codec::io::mosaic::open_rows(std::slice::from_ref(&source)))
+        .detach(|| fractile_codec::mosaic::open_rows(std::slice::from_ref(&source)))
         .map_err(raise)?;
     let req = Request::new(rows.header().kind, codec, target_bpp, max_error, chunk)?;
     let progress = Progress::new(progress);

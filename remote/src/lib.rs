@@ -7,7 +7,7 @@
 use std::sync::Arc;
 use std::time::Duration;
 
-use fractile_codec::io::chunked::ChunkSource;
+use fractile_codec::chunked::ChunkSource;
 use object_store::path::Path;
 use object_store::{GetOptions, ObjectStore, ObjectStoreExt};
 
@@ -87,9 +87,7 @@ pub fn open_with(url: &str, read_timeout: Duration) -> std::io::Result<Box<dyn C
         let (length, whole) = runtime.block_on(http_length(&http, url))?;
         if let Some(bytes) = whole {
             // A server that ignores ranges sent the file whole: keep it.
-            return Ok(Box::new(fractile_codec::io::chunked::InMemory(
-                bytes.into(),
-            )));
+            return Ok(Box::new(fractile_codec::chunked::InMemory(bytes.into())));
         }
         Remote::Http {
             http,

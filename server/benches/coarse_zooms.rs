@@ -31,7 +31,7 @@ use tower::ServiceExt;
 fn mosaic() -> Raster {
     let root = std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../testdata");
     let src = Raster::open(&root.join("etopo20.tif")).expect("etopo20");
-    let mut r = fractile_codec::io::mosaic::mirrored(&src, 4, 4).unwrap();
+    let mut r = fractile_codec::mosaic::mirrored(&src, 4, 4).unwrap();
     let (mw, mh) = (r.width, r.height);
     r.georef = Some(Georef {
         epsg: Some(4326),

@@ -22,8 +22,8 @@ use std::sync::Arc;
 use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Duration;
 
-use fractile_codec::core::pieces::Flatten;
 use fractile_codec::extract::{Answer, PlaneRef, Sites};
+use fractile_codec::pieces::Flatten;
 use fractile_gpu::{Gpu, GpuOperator};
 
 use crate::store::StoredAsset;

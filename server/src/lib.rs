@@ -297,7 +297,7 @@ pub async fn serve(opts: ServeOptions) -> anyhow::Result<()> {
             .unwrap_or(fractile_codec::AssetLimits::default().max_pixels),
         max_decode_bytes: u64::from(decode_mib) << 20,
     };
-    let chunks = fractile_codec::io::chunked::ChunkCache::new(
+    let chunks = fractile_codec::chunked::ChunkCache::new(
         opts.file
             .chunk_cache_mib
             .unwrap_or(store::DEFAULT_CHUNK_CACHE_MIB)

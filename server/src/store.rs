@@ -10,8 +10,8 @@ use std::collections::BTreeMap;
 use std::path::Path;
 use std::sync::{Arc, RwLock};
 
+use fractile_codec::chunked::{ChunkCache, ChunkSource};
 use fractile_codec::geo::Placement;
-use fractile_codec::io::chunked::{ChunkCache, ChunkSource};
 use fractile_codec::{Asset, AssetLimits};
 
 use crate::error::AppError;
@@ -491,9 +491,9 @@ fn load_from(
     let head = source
         .read(0, source.len().min(12) as usize)
         .map_err(|e| what(&e))?;
-    if !fractile_codec::io::chunked::is_chunked(&head) {
+    if !fractile_codec::chunked::is_chunked(&head) {
         // Before reading it whole (see `check_whole_file`).
-        fractile_codec::io::asset::check_whole_file(&head, source.len(), limits)
+        fractile_codec::asset::check_whole_file(&head, source.len(), limits)
             .map_err(|e| what(&e))?;
         let bytes = source
             .read(0, source.len() as usize)
@@ -514,8 +514,8 @@ pub fn load(
     limits: &AssetLimits,
     chunks: &ChunkCache,
 ) -> Result<StoredAsset, fractile_codec::Error> {
-    let asset = if fractile_codec::io::chunked::is_chunked(bytes) {
-        let source = fractile_codec::io::chunked::InMemory(bytes.into());
+    let asset = if fractile_codec::chunked::is_chunked(bytes) {
+        let source = fractile_codec::chunked::InMemory(bytes.into());
         Asset::open_chunked(Box::new(source), limits, chunks.clone())?
     } else {
         Asset::from_bytes_limited(bytes, limits)?

@@ -280,11 +280,11 @@ fn crafted_chunk_tables_are_refused_at_upload() {
     let c = asset.chunks.as_ref().unwrap();
     // Every chunk's file, by level and index.
     type Files = Vec<Vec<Vec<u8>>>;
-    let files: Files = fractile_codec::io::chunked::chunk_files(&c.table, &sound);
+    let files: Files = fractile_codec::chunked::chunk_files(&c.table, &sound);
     let craft = |edit: &dyn Fn(&mut Files)| {
         let mut f = files.clone();
         edit(&mut f);
-        fractile_codec::io::chunked::assemble(&asset.meta, c.table.clone(), &f)
+        fractile_codec::chunked::assemble(&asset.meta, c.table.clone(), &f)
     };
     let row = c.table.levels[0].chunks.len();
     let top = files.len() - 1;
@@ -323,7 +323,7 @@ fn crafted_chunk_tables_are_refused_at_upload() {
     (huge.width, huge.height) = (1 << 24, 8192);
     cases.push((
         "16,777,216 x 8,192 cells",
-        fractile_codec::io::chunked::assemble(&huge, c.table.clone(), &files),
+        fractile_codec::chunked::assemble(&huge, c.table.clone(), &files),
         "for a chunked asset",
     ));
     let mut north = asset.meta.clone();
@@ -334,7 +334,7 @@ fn crafted_chunk_tables_are_refused_at_upload() {
         .origin[1] = 400.0;
     cases.push((
         "a raster past the pole",
-        fractile_codec::io::chunked::assemble(&north, c.table.clone(), &files),
+        fractile_codec::chunked::assemble(&north, c.table.clone(), &files),
         "not on the globe",
     ));
     // A table of 21,845 empty chunks of 64 cells (8192^2 cells of nodata): 1.3 MB of table
@@ -343,15 +343,15 @@ fn crafted_chunk_tables_are_refused_at_upload() {
     (empty.width, empty.height) = (8192, 8192);
     let mut table = c.table.clone();
     table.chunk = 64;
-    table.levels = fractile_codec::io::chunked::ChunkTable::level_sizes(8192, 8192, 64, false)
+    table.levels = fractile_codec::chunked::ChunkTable::level_sizes(8192, 8192, 64, false)
         .into_iter()
         .map(|(w, h)| {
             let (nx, ny) = table.grid(w, h);
-            fractile_codec::io::chunked::Level {
+            fractile_codec::chunked::Level {
                 width: w,
                 height: h,
                 chunks: (0..nx * ny)
-                    .map(|i| fractile_codec::io::chunked::ChunkEntry {
+                    .map(|i| fractile_codec::chunked::ChunkEntry {
                         offset: 0,
                         length: 0,
                         cells: table.coded_cells(w, h, i % nx, i / nx),
@@ -365,7 +365,7 @@ fn crafted_chunk_tables_are_refused_at_upload() {
     let levels = vec![Vec::new(); table.levels.len()];
     cases.push((
         "a table of empty chunks",
-        fractile_codec::io::chunked::assemble(&empty, table, &levels),
+        fractile_codec::chunked::assemble(&empty, table, &levels),
         "bytes of chunks",
     ));
     let uploads = dir().join("crafted-uploads");

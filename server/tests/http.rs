@@ -165,12 +165,12 @@ async fn terrain_rgb_tile_matches_the_source_within_the_encoding_error() {
         if fx < 0.0 || fy < 0.0 || fx > (src.width - 1) as f32 || fy > (src.height - 1) as f32 {
             continue;
         }
-        let g = fractile_codec::core::decode::Grid {
+        let g = fractile_codec::decode::Grid {
             width: src.width,
             height: src.height,
             values: src.channels[0].clone(),
         };
-        let truth = fractile_codec::core::decode::sample_bilinear(&g, fx, fy) as f64;
+        let truth = fractile_codec::decode::sample_bilinear(&g, fx, fy) as f64;
         let got = terrain_rgb(img.get_pixel((k % 256) as u32, (k / 256) as u32).0);
         se += (got - truth).powi(2);
         n += 1;

@@ -6,7 +6,7 @@ use std::sync::Arc;
 
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
-use fractile_codec::core::decode::{Grid, sample_bilinear};
+use fractile_codec::decode::{Grid, sample_bilinear};
 use fractile_codec::geo;
 use fractile_codec::{Raster, encode_default};
 use fractile_server::api::AppState;

@@ -7,9 +7,9 @@
 use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, PoisonError};
 
+use fractile_codec::chunked::{ChunkCache, ChunkSource, is_chunked};
 use fractile_codec::extract::{PointSample, Request, Resources, SampleError};
 use fractile_codec::geo::{Pixels, Placement, map_bounds, native_zoom, tile_pixels};
-use fractile_codec::io::chunked::{ChunkCache, ChunkSource, is_chunked};
 use fractile_codec::{Asset, AssetLimits};
 use fractile_proto::AssetMeta;
 
@@ -185,7 +185,7 @@ impl Reader {
             } else {
                 // Before asking for it whole: a length no asset in one piece has (a lying
                 // server, a wrong URL) is refused, not fetched.
-                fractile_codec::io::asset::check_whole_file(&head, length, &limits)
+                fractile_codec::asset::check_whole_file(&head, length, &limits)
                     .map_err(|e| ReadError::Failed(e.to_string()))?;
                 let bytes = self
                     .ranges

@@ -145,7 +145,7 @@ fn a_zoom_zero_tile_reads_an_eighth_of_the_file_at_most() {
     use fractile_codec::encode::rate::FileRate;
     let path = concat!(env!("CARGO_MANIFEST_DIR"), "/../testdata/etopo20.tif");
     let src = fractile_codec::Raster::open(std::path::Path::new(path)).unwrap();
-    let mut r = fractile_codec::io::mosaic::mirrored(&src, 2, 2).unwrap();
+    let mut r = fractile_codec::mosaic::mirrored(&src, 2, 2).unwrap();
     r.georef = Some(fractile_proto::Georef {
         epsg: Some(4326),
         origin: [-180.0, 90.0],

@@ -6,7 +6,7 @@ use std::path::{Path, PathBuf};
 use anyhow::{Result, bail};
 use fractile_codec::encode::Plan;
 use fractile_codec::encode::chunked::Share;
-use fractile_codec::io::rows::Rows;
+use fractile_codec::rows::Rows;
 use serde_json::json;
 
 use super::args::EncodeArgs;

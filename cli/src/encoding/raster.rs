@@ -5,7 +5,7 @@ use std::path::Path;
 
 use anyhow::Result;
 use fractile_codec::encode::Plan;
-use fractile_codec::io::rows::Rows;
+use fractile_codec::rows::Rows;
 use fractile_codec::{Raster, encode};
 
 use super::args::EncodeArgs;

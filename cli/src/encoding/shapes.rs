@@ -51,7 +51,7 @@ pub(crate) fn encode_volume(a: &EncodeArgs) -> Result<()> {
     let mut bar = crate::progress::Progress::start("coding the volume", a.quiet || a.json);
     let enc = fractile_codec::encode::volume::encode_mesh(&mesh, &s, &name)?;
     bar.finish();
-    fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
+    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
     let file_bytes = std::fs::metadata(input).map(|m| m.len()).unwrap_or(0);
     let report = json!({
         "input": input, "output": a.output, "codec": enc.asset.codec_name(),
@@ -117,7 +117,7 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
     let mut bar = crate::progress::Progress::start("coding the curves", a.quiet || a.json);
     let enc = fractile_codec::encode::curve::encode_asset(&lines, &settings, &name)?;
     bar.finish();
-    fractile_codec::io::asset::write_atomic(&a.output, &enc.bytes)?;
+    fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
     let set = &enc.asset.curve.as_ref().expect("a curve asset").set;
     let m = &enc.asset.meta;
     let report = json!({

@@ -2,7 +2,7 @@
 //! encoder) and JPEG 2000 (OpenJPEG's reference tools), each at a rate not above a target.
 
 use fractile_codec::Raster;
-use fractile_codec::core::metrics;
+use fractile_codec::metrics;
 
 /// JPEG (image crate, baseline) at the highest quality whose size is at most `bpp`.
 pub(crate) fn jpeg_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {

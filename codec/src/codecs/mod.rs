@@ -1,7 +1,7 @@
 //! The codecs, one folder each: how a codec partitions its support, searches its maps, codes
-//! them and states them as an [`crate::core::operator::Operator`]. A codec depends on the
-//! layers below it ([`crate::core`]; `geo`, `mesh`, `render` and the input rasters, ARCHITECTURE.md
-//! "Layers"); the asset container ([`crate::io::asset`]) depends on the codecs. A plane codec's
+//! them and states them as an [`crate::operator::Operator`]. A codec depends on the
+//! layers below it (`core`; `geo`, `mesh`, `render` and the input rasters, ARCHITECTURE.md
+//! "Layers"); the asset container ([`crate::asset`]) depends on the codecs. A plane codec's
 //! encoder returns coded planes ([`coded::Coded`]) and asks what needs the layers above (its
 //! planes decoded as a reader decodes them, the source-error map) of a [`coded::Measure`].
 //!

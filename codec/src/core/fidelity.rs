@@ -25,7 +25,7 @@ use crate::core::entropy::{BitTree, Decoder, Encoder};
 
 /// Source cells a side of a block (a power of two; 16: a bound per 256 cells, a few bits each,
 /// about 1% of a DEM coded at 0.8 bits per cell).
-pub const BLOCK: usize = 16;
+pub(crate) const BLOCK: usize = 16;
 
 /// The smallest non-zero code stands for `span x 2^-24`; code `k` for `span x 2^((k-1)/8 - 24)`
 /// up to 254 (about 200 times the span); 255 for an unbounded error.
@@ -36,10 +36,10 @@ const SMALLEST: i32 = -24;
 /// control sets that much aside under a target size. (Measured at 0.8 bits a cell, about 5 bits
 /// a block of 16 x 16: 2.3% of jacksboro's file; at 0.2 bits a cell, 16 x 16 blocks would take
 /// 10% of camera's.)
-pub const SHARE: f64 = 0.02;
+pub(crate) const SHARE: f64 = 0.02;
 
 /// The bytes set aside for the map in a file of `bytes` (at least a few, for tiny files).
-pub fn reserve(bytes: usize) -> usize {
+pub(crate) fn reserve(bytes: usize) -> usize {
     ((bytes as f64 * SHARE) as usize).max(16)
 }
 

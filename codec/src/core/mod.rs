@@ -2,12 +2,12 @@
 //! entropy coder, the quality metrics and what a reader finds wrong with coded bytes
 //! ([`format::FormatError`]). Nothing here knows a codec or the asset file.
 
-pub mod decode;
+pub(crate) mod decode;
 pub(crate) mod entropy;
-pub mod fidelity;
-pub mod format;
+pub(crate) mod fidelity;
+pub(crate) mod format;
 pub(crate) mod lattice;
-pub mod metrics;
-pub mod operator;
-pub mod pieces;
+pub(crate) mod metrics;
+pub(crate) mod operator;
+pub(crate) mod pieces;
 pub(crate) mod transform;

@@ -288,7 +288,7 @@ impl Chunked {
         (iterations, tolerance): (u32, f32),
         resources: &Resources<'_>,
     ) -> Result<Option<PartAnswer>, SampleError> {
-        if resources.given_up() {
+        if resources.asker_gave_up() {
             return Err(SampleError::Cancelled);
         }
         let Some(chunk) = self.chunk(level, part.index).map_err(SampleError::Chunk)? else {

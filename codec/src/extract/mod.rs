@@ -1,4 +1,4 @@
-//! Asset-level decoding: the operator decoders of [`crate::core::decode`] applied to every plane, then
+//! Asset-level decoding: the operator decoders of [`crate::decode`] applied to every plane, then
 //! brought back to source terms — value units, RGB from YCbCr, nodata where the source had none.
 //! This is what the CLI and the server call.
 

@@ -41,7 +41,7 @@ impl Resources<'static> {
 
 impl Resources<'_> {
     /// Whether the asker has given up.
-    pub(crate) fn given_up(&self) -> bool {
+    pub(crate) fn asker_gave_up(&self) -> bool {
         self.given_up.is_some_and(|g| g.load(Ordering::Relaxed))
     }
 }

@@ -323,7 +323,7 @@ impl Asset {
         let snapped = self.snap_pixels(pixels);
         let pixels = snapped.as_ref().unwrap_or(pixels);
         let stop = || {
-            if resources.given_up() {
+            if resources.asker_gave_up() {
                 Err(Cancelled)
             } else {
                 Ok(())
@@ -504,7 +504,7 @@ impl Asset {
         resources: &Resources<'_>,
     ) -> Result<Answer, Cancelled> {
         let stop = || {
-            if resources.given_up() {
+            if resources.asker_gave_up() {
                 Err(Cancelled)
             } else {
                 Ok(())

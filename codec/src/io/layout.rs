@@ -86,7 +86,7 @@ pub struct Level {
 }
 
 /// An overview level that is a view of the source chunks (format 7): per chunk, its view's
-/// source-error map ([`crate::core::fidelity::SourceError`]'s encoding; empty for a chunk
+/// source-error map (`core::fidelity::SourceError`'s encoding; empty for a chunk
 /// with no valid cell).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct ViewLevel {

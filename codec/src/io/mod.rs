@@ -2,15 +2,15 @@
 //! which depends on the codecs whose payloads it holds. (Meshes, which the 3D codec itself
 //! works on, are [`crate::mesh`].)
 
-pub mod asset;
+pub(crate) mod asset;
 mod atomic;
 pub(crate) mod cache;
-pub mod chunked;
+pub(crate) mod chunked;
 mod container;
 mod cost;
 pub(crate) mod frame;
 pub(crate) mod layout;
 pub(crate) mod mask;
-pub mod mosaic;
-pub mod raster;
-pub mod rows;
+pub(crate) mod mosaic;
+pub(crate) mod raster;
+pub(crate) mod rows;

@@ -17,7 +17,7 @@ use axum::body::Body;
 use axum::extract::State;
 use axum::http::{HeaderMap, HeaderValue, Method, StatusCode, header};
 use axum::response::{IntoResponse, Response};
-use fractile_codec::io::chunked::ChunkSource;
+use fractile_codec::chunked::ChunkSource;
 use fractile_proto::ErrorCode;
 use std::sync::Arc;
 

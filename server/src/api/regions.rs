@@ -149,9 +149,8 @@ fn encode_region(
                     .collect(),
                 None => channels[0].clone(),
             };
-            let tif =
-                fractile_codec::io::raster::geotiff_f32(w, h, &values, georef.as_ref(), nodata)
-                    .map_err(|e| AppError::internal(e.to_string()))?;
+            let tif = fractile_codec::raster::geotiff_f32(w, h, &values, georef.as_ref(), nodata)
+                .map_err(|e| AppError::internal(e.to_string()))?;
             ("image/tiff", tif)
         }
         RegionFormat::F32 => (

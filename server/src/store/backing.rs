@@ -1,7 +1,7 @@
 //! Where asset files are kept, as the catalog sees it: the calls every backing answers (a
 //! folder, a bucket), and the ids they may hold.
 
-use fractile_codec::io::chunked::ChunkSource;
+use fractile_codec::chunked::ChunkSource;
 use fractile_proto::ErrorCode;
 
 use crate::error::AppError;

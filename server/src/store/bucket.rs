@@ -31,7 +31,7 @@ use sha2::Digest;
 use std::sync::Arc;
 use std::time::Duration;
 
-use fractile_codec::io::chunked::ChunkSource;
+use fractile_codec::chunked::ChunkSource;
 use object_store::path::Path;
 use object_store::{GetOptions, ObjectStore, ObjectStoreExt, PutPayload};
 

@@ -66,7 +66,7 @@ fn older_format(path: &Path) -> bool {
     std::fs::File::open(path)
         .and_then(|mut f| std::io::Read::read_exact(&mut f, &mut head))
         .is_ok_and(|()| {
-            u16::from_le_bytes([head[8], head[9]]) < fractile_codec::io::asset::FORMAT_VERSION
+            u16::from_le_bytes([head[8], head[9]]) < fractile_codec::asset::FORMAT_VERSION
         })
 }
 
@@ -86,7 +86,7 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
             &fractile_codec::encode::volume::MeshSettings::default(),
             name,
         )?;
-        fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
+        fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
         tracing::info!(
             "demo volume {id}: {} bytes, {:.2}:1 against i8, PSNR {:.2} dB",
             enc.bytes.len(),
@@ -106,7 +106,7 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
             ..Default::default()
         };
         let enc = fractile_codec::encode::curve::encode_asset(&lines, &settings, name)?;
-        fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
+        fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
         tracing::info!(
             "demo curves {id}: {} polylines, {} bytes",
             lines.len(),
@@ -125,11 +125,11 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
         }
         tracing::info!("encoding demo asset {id} from {name} (first start, or an older format)");
         let src = dir.join(format!(".{name}"));
-        fractile_codec::io::asset::write_atomic(&src, bytes)?;
+        fractile_codec::asset::write_atomic(&src, bytes)?;
         let raster = fractile_codec::Raster::open(&src)?;
         // As `fractile encode` codes them by default.
         let enc = fractile_codec::encode_default(&raster, *rate, &|_, _| {})?;
-        fractile_codec::io::asset::write_atomic(&out, &enc.bytes)?;
+        fractile_codec::asset::write_atomic(&out, &enc.bytes)?;
         let _ = std::fs::remove_file(&src);
         tracing::info!(
             "demo asset {id}: {} bytes, {:.2}:1, PSNR {:.2} dB",
@@ -139,7 +139,7 @@ pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
         );
     }
     if !current {
-        fractile_codec::io::asset::write_atomic(&revision, DEMO_REVISION.as_bytes())?;
+        fractile_codec::asset::write_atomic(&revision, DEMO_REVISION.as_bytes())?;
     }
     Ok(())
 }

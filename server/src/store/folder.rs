@@ -5,7 +5,7 @@
 
 use std::path::{Path, PathBuf};
 
-use fractile_codec::io::chunked::{ChunkSource, FileSource};
+use fractile_codec::chunked::{ChunkSource, FileSource};
 
 use super::backing::{Backing, Listing, validate_id};
 
@@ -94,7 +94,7 @@ impl Backing for Folder {
 
     fn put(&self, id: &str, bytes: &[u8]) -> std::io::Result<String> {
         let path = self.path(id);
-        fractile_codec::io::asset::write_atomic(&path, bytes).map_err(std::io::Error::other)?;
+        fractile_codec::asset::write_atomic(&path, bytes).map_err(std::io::Error::other)?;
         stamp(&path).ok_or_else(|| std::io::Error::other("the file stored is gone"))
     }
 
@@ -115,11 +115,11 @@ impl Backing for Folder {
     }
 }
 
-/// Whether `path` is a temporary file of [`fractile_codec::io::asset::write_atomic`] that no
+/// Whether `path` is a temporary file of [`fractile_codec::asset::write_atomic`] that no
 /// running writer owns (its process is gone, or it is over an hour old): its name, if so.
 fn stale_temporary(path: &Path) -> Option<String> {
     let name = path.file_name()?.to_str()?;
-    let owner = fractile_codec::io::asset::temporary_owner(name)?;
+    let owner = fractile_codec::asset::temporary_owner(name)?;
     // Our own pid counts as alive: another store of this process may be writing (a previous
     // process of the same pid left files that the age rule removes).
     let alive = Path::new(&format!("/proc/{owner}")).exists();
