@@ -6,8 +6,8 @@ use std::path::PathBuf;
 use std::sync::{Arc, OnceLock};
 
 use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
-use fractile_server::api::AppState;
-use fractile_server::store::Store;
+use fractile_server::AppState;
+use fractile_server::Store;
 
 /// The write token of the test server.
 pub const TOKEN: &str = "e2e-secret";
@@ -72,7 +72,7 @@ pub fn server() -> String {
                     .expect("bind");
                 let base = format!("http://{}", listener.local_addr().expect("addr"));
                 let mut state = AppState::new(store, base.clone());
-                state.writes = fractile_server::api::Writes::Token(TOKEN.into());
+                state.writes = fractile_server::Writes::Token(TOKEN.into());
                 state.limits.max_points = MAX_POINTS;
                 state.limits.max_iterations = MAX_ITERATIONS;
                 state.max_upload = 4 * 1024 * 1024;

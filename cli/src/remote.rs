@@ -86,7 +86,7 @@ fn block_on<F: std::future::Future>(f: F) -> F::Output {
 }
 
 async fn upload(file: &Path, url: &str) -> Result<()> {
-    let (store, key) = fractile_server::store::s3_store(url)?;
+    let (store, key) = fractile_server::s3_store(url)?;
     let mut from = tokio::fs::File::open(file).await?;
     let mut to = WriteMultipart::new(store.put_multipart(&key).await?);
     let mut buf = vec![0u8; 8 << 20];
@@ -104,7 +104,7 @@ async fn upload(file: &Path, url: &str) -> Result<()> {
 }
 
 async fn download(url: &str, file: &Path) -> Result<()> {
-    let (store, key) = fractile_server::store::s3_store(url)?;
+    let (store, key) = fractile_server::s3_store(url)?;
     let mut stream = store.get(&key).await?.into_stream();
     let mut to = tokio::fs::File::create(file).await?;
     while let Some(bytes) = stream.next().await {

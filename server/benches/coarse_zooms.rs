@@ -22,8 +22,8 @@ use axum::body::Body;
 use axum::http::Request;
 use fractile_codec::{Raster, encode_default};
 use fractile_proto::Georef;
-use fractile_server::api::AppState;
-use fractile_server::store::Store;
+use fractile_server::AppState;
+use fractile_server::Store;
 use http_body_util::BodyExt;
 use tower::ServiceExt;
 
@@ -112,13 +112,13 @@ fn main() {
     let coarse_mib = args
         .get(2)
         .map(|&m| m as u64)
-        .unwrap_or(fractile_server::api::DEFAULT_COARSE_CACHE_MIB);
+        .unwrap_or(fractile_server::DEFAULT_COARSE_CACHE_MIB);
     let dir = std::env::temp_dir().join(format!("fractile-coarse-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     std::fs::write(dir.join("mosaic.fra"), asset()).unwrap();
     let (store, _) = Store::open(&dir).unwrap();
     let mut state = AppState::new(store, "http://bench".into());
-    state.coarse = fractile_server::api::coarse_cache(coarse_mib);
+    state.coarse = fractile_server::coarse_cache(coarse_mib);
     let state = Arc::new(state);
     let rt = tokio::runtime::Runtime::new().unwrap();
     println!(

@@ -13,11 +13,11 @@ use std::time::Instant;
 use axum::body::Body;
 use axum::http::Request;
 use fractile_codec::{Raster, encode_default};
-use fractile_server::api::AppState;
+use fractile_server::AppState;
+use fractile_server::Store;
 use fractile_server::encoding::{
     Deflate, HeightEncoding, Rounding, TileFormat, encode_tile, relief,
 };
-use fractile_server::store::Store;
 use http_body_util::BodyExt;
 use tower::ServiceExt;
 

@@ -29,15 +29,15 @@ use fractile_gpu::{Gpu, GpuOperator};
 use crate::store::StoredAsset;
 
 /// Smallest continuous decode `auto` sends to a hardware GPU: one 256 x 256 tile.
-pub const AUTO_POINTS: usize = 256 * 256;
+pub(crate) const AUTO_POINTS: usize = 256 * 256;
 
 /// A backend choice: the API's own vocabulary (`cpu`, `gpu`, `auto`), from `fractile-proto`.
-pub use fractile_proto::query::Backend;
+pub(crate) use fractile_proto::query::Backend;
 
 /// How long an operator the device refused is decoded on the CPU before the device is asked
 /// again: a refusal is mostly for good (the tables' size), but one for memory the cache held
 /// at the time may pass later.
-pub const REFUSAL_TTL: Duration = Duration::from_secs(600);
+pub(crate) const REFUSAL_TTL: Duration = Duration::from_secs(600);
 
 /// An operator's key: asset id, its hash, the chunk (chunked assets: level and index), the
 /// plane (`usize::MAX`: the volume).

@@ -73,7 +73,7 @@ impl IntoResponse for AppError {
 /// [`AppError`] (`bad_query`) instead of axum's plain-text rejection, so that every 4xx a client
 /// sees has the same JSON shape.
 #[derive(Debug, Clone, Copy, Default)]
-pub struct Query<T>(pub T);
+pub(crate) struct Query<T>(pub T);
 
 impl<T, S> FromRequestParts<S> for Query<T>
 where
@@ -93,7 +93,7 @@ where
 /// axum's `Path`, answering a path segment that does not parse (a zoom of `abc` or `300`) with
 /// an [`AppError`] (`bad_path`, or axum's own status where it is not the client's fault).
 #[derive(Debug, Clone, Copy, Default)]
-pub struct Path<T>(pub T);
+pub(crate) struct Path<T>(pub T);
 
 impl<T, S> FromRequestParts<S> for Path<T>
 where
@@ -117,7 +117,7 @@ where
 }
 
 /// The answer to a path no route serves (the router's fallback).
-pub async fn no_route(method: Method, uri: Uri) -> AppError {
+pub(crate) async fn no_route(method: Method, uri: Uri) -> AppError {
     AppError::not_found(
         ErrorCode::NoRoute,
         format!(
@@ -128,7 +128,7 @@ pub async fn no_route(method: Method, uri: Uri) -> AppError {
 }
 
 /// The answer to a method a route does not serve (axum adds the `Allow` header).
-pub async fn method_not_allowed(method: Method, uri: Uri) -> AppError {
+pub(crate) async fn method_not_allowed(method: Method, uri: Uri) -> AppError {
     AppError {
         status: StatusCode::METHOD_NOT_ALLOWED,
         code: ErrorCode::MethodNotAllowed,
@@ -140,7 +140,7 @@ pub async fn method_not_allowed(method: Method, uri: Uri) -> AppError {
 /// Middleware: gives an error answered by a layer rather than a handler (the body limit's 413,
 /// the timeout's 503, a wrong content type's 415) the same JSON body as [`AppError`], keeping
 /// its status, headers and text as the detail. Answers that are JSON already pass untouched.
-pub async fn json_errors(resp: Response) -> Response {
+pub(crate) async fn json_errors(resp: Response) -> Response {
     let status = resp.status();
     let is_json = resp
         .headers()

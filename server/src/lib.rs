@@ -1,4 +1,4 @@
-//! The fractile service: an axum router over an asset store (see [`api`]), and `serve`, which
+//! The fractile service: an axum router over an asset store (the `api` module), and `serve`, which
 //! runs it with logging, timeouts, CORS and graceful shutdown. The binary `fractile` adds the
 //! command line (encode, decode, info, compare, serve).
 
@@ -7,16 +7,28 @@
 #![warn(clippy::unwrap_used, clippy::expect_used)]
 #![cfg_attr(test, allow(clippy::unwrap_used, clippy::expect_used))]
 
-pub mod api;
-pub mod backend;
+mod api;
+mod backend;
 pub mod encoding;
-pub mod error;
-pub mod memory;
-pub mod openapi;
-pub mod store;
-pub mod telemetry;
-pub mod web;
-pub mod work;
+mod error;
+mod memory;
+mod openapi;
+mod store;
+mod telemetry;
+mod web;
+mod work;
+
+// The service's surface, curated (as image-rs and rav1e publish theirs): the app and `serve`,
+// the state a test or an embedding builds it from, the store and its object-store opener, the
+// GPU backend and the decode lanes a state may be given, and `encoding`, the tile encodings a
+// bench measures. The modules stay private: a handler moved changes no caller.
+pub use api::{
+    AppState, Cached, CoarseCache, DEFAULT_COARSE_CACHE_MIB, Limits, REQUEST_TIMEOUT, Writes,
+    coarse_cache,
+};
+pub use backend::GpuBackend;
+pub use store::{Refreshed, Store, s3_store};
+pub use work::Lanes;
 
 use fractile_proto::ErrorCode;
 use std::net::SocketAddr;

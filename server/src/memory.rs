@@ -4,14 +4,14 @@
 /// Default of `max_decode_mib` where the memory limit is unknown: what the heavy lane may hold
 /// at once, and what one asset may cost to decode
 /// ([`fractile_codec::AssetLimits::max_decode_bytes`]).
-pub const DEFAULT_DECODE_MIB: u32 = 3 * 1024;
+pub(crate) const DEFAULT_DECODE_MIB: u32 = 3 * 1024;
 
 /// Default of `max_decode_mib` on this machine: half of what its memory limit leaves after
 /// 1 GiB for the caches' defaults and the process, within 256 MiB..16 GiB. The limit is the
 /// container's (cgroup v2 `memory.max`, or v1 `memory.limit_in_bytes`) where one is set, else
 /// the machine's (`MemTotal`): a fixed 3 GiB let a pod of 2 GiB be killed by the kernel under
 /// one burst of regions the budget admitted, and left most of a large machine unused.
-pub fn default_decode_mib() -> u32 {
+pub(crate) fn default_decode_mib() -> u32 {
     let Some(limit) = memory_limit() else {
         return DEFAULT_DECODE_MIB;
     };

@@ -26,7 +26,7 @@ fn names<C: Choice>() -> Vec<&'static str> {
 }
 
 /// The document.
-pub fn document() -> Value {
+pub(crate) fn document() -> Value {
     // Every error code, from the one list in `fractile-proto`.
     let codes: Vec<&str> = ErrorCode::ALL.iter().map(|c| c.as_str()).collect();
     let id = param(

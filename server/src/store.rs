@@ -21,10 +21,11 @@ mod breaker;
 mod bucket;
 mod demo;
 mod folder;
-pub use backing::{Backing, Listing, validate_id};
-pub use bucket::{Bucket, DiskCache, s3_store};
-pub use demo::ensure_demo_assets;
-pub use folder::Folder;
+pub(crate) use backing::{Backing, validate_id};
+pub use bucket::s3_store;
+pub(crate) use bucket::{Bucket, DiskCache};
+pub(crate) use demo::ensure_demo_assets;
+pub(crate) use folder::Folder;
 
 /// An asset with what the server derives from it once.
 pub struct StoredAsset {
@@ -61,7 +62,7 @@ pub struct StoredFile {
     pub version: String,
 }
 
-/// The asset catalog over a [`Backing`].
+/// The asset catalog over a `Backing`.
 pub struct Store {
     backing: Box<dyn Backing>,
     assets: RwLock<BTreeMap<String, Arc<StoredAsset>>>,
@@ -178,7 +179,7 @@ impl Store {
         self.backing.describe()
     }
 
-    /// Validates an uploaded asset and stores it (see [`Backing::put`]: readers see the old
+    /// Validates an uploaded asset and stores it (see `Backing::put`: readers see the old
     /// file or the new one), replacing any asset of that id. Writers of one id serialise: the
     /// file and the catalog are updated together, so the last writer's version is both.
     /// Blocking.
@@ -470,7 +471,7 @@ impl Store {
 /// 5.3 MB; the top level's one chunk is built whole, 44 bytes a cell), so that random tiles of
 /// a 37 Mpx mosaic decode each chunk once (measured: docs/benchmarks.md), with the server's
 /// resident memory under 500 MB.
-pub const DEFAULT_CHUNK_CACHE_MIB: u64 = 384;
+pub(crate) const DEFAULT_CHUNK_CACHE_MIB: u64 = 384;
 
 /// Whether the file of `id`, read as `version`, changed while it was read.
 fn changed_under(backing: &dyn Backing, id: &str, version: &str) -> bool {
@@ -508,7 +509,7 @@ fn load_from(
 
 /// Parses an asset file's bytes into a stored asset, under `limits`, a chunked one's chunks
 /// decoded into `chunks`.
-pub fn load(
+pub(crate) fn load(
     id: &str,
     bytes: &[u8],
     limits: &AssetLimits,

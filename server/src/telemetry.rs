@@ -16,7 +16,7 @@ use metrics_exporter_prometheus::{Matcher, PrometheusBuilder, PrometheusHandle};
     clippy::expect_used,
     reason = "fixed non-empty buckets, and the recorder installed once (the OnceLock) at the first use"
 )]
-pub fn handle() -> &'static PrometheusHandle {
+pub(crate) fn handle() -> &'static PrometheusHandle {
     static HANDLE: OnceLock<PrometheusHandle> = OnceLock::new();
     HANDLE.get_or_init(|| {
         let buckets = [
@@ -31,7 +31,7 @@ pub fn handle() -> &'static PrometheusHandle {
 }
 
 /// Middleware recording every request.
-pub async fn track(req: Request, next: Next) -> Response {
+pub(crate) async fn track(req: Request, next: Next) -> Response {
     let route = req
         .extensions()
         .get::<MatchedPath>()
@@ -53,7 +53,7 @@ pub async fn track(req: Request, next: Next) -> Response {
 /// The GPU's rounds of small grids (tiles) decoded together and the grids they held, as counted
 /// by the device (`fractile_gpu_rounds_total`, `fractile_gpu_round_grids_total`; their ratio is
 /// the mean round): set when `/metrics` is read.
-pub fn gpu_rounds((rounds, grids): (u64, u64)) {
+pub(crate) fn gpu_rounds((rounds, grids): (u64, u64)) {
     metrics::counter!("fractile_gpu_rounds_total").absolute(rounds);
     metrics::counter!("fractile_gpu_round_grids_total").absolute(grids);
 }
@@ -61,7 +61,7 @@ pub fn gpu_rounds((rounds, grids): (u64, u64)) {
 /// The coarse grids' answers (`fractile_codec::extract::CoarseGrids`): kept, derived from a
 /// finer kept grid by block means, or decoded, as `fractile_coarse_cache_total{result}`: set
 /// when `/metrics` is read.
-pub fn coarse_grids(c: fractile_codec::extract::CoarseCounts) {
+pub(crate) fn coarse_grids(c: fractile_codec::extract::CoarseCounts) {
     for (result, n) in [("hit", c.hits), ("derived", c.derived), ("miss", c.misses)] {
         metrics::counter!("fractile_coarse_cache_total", "result" => result).absolute(n);
     }
@@ -70,7 +70,7 @@ pub fn coarse_grids(c: fractile_codec::extract::CoarseCounts) {
 /// Operators uploaded to the GPU and operators it refused (their requests decoded on the CPU
 /// for a while: `backend::REFUSAL_TTL`), as `fractile_gpu_uploads_total{result}`: set when
 /// `/metrics` is read.
-pub fn gpu_uploads((resident, refused): (u64, u64)) {
+pub(crate) fn gpu_uploads((resident, refused): (u64, u64)) {
     metrics::counter!("fractile_gpu_uploads_total", "result" => "resident").absolute(resident);
     metrics::counter!("fractile_gpu_uploads_total", "result" => "refused").absolute(refused);
 }

@@ -17,7 +17,7 @@ fn asset(content_type: &'static str, body: &'static [u8]) -> impl IntoResponse {
 }
 
 /// Routes of the viewer.
-pub fn routes<S: Clone + Send + Sync + 'static>() -> Router<S> {
+pub(crate) fn routes<S: Clone + Send + Sync + 'static>() -> Router<S> {
     Router::new()
         .route(
             "/",

@@ -9,8 +9,8 @@ use axum::body::Body;
 use axum::http::{Request, StatusCode};
 use fractile_codec::encode::chunked::encode_chunked;
 use fractile_codec::{Raster, encode_default};
-use fractile_server::api::AppState;
-use fractile_server::store::Store;
+use fractile_server::AppState;
+use fractile_server::Store;
 use http_body_util::BodyExt;
 use tower::ServiceExt;
 
@@ -156,7 +156,7 @@ fn an_upload_with_a_corrupt_chunk_is_refused_whole() {
 async fn chunked_assets_decode_on_the_gpu_chunk_by_chunk() {
     let (store, _) = Store::open(dir()).unwrap();
     let mut st = AppState::new(store, "http://test".into());
-    let gpu = fractile_server::backend::GpuBackend::open(256 << 20)
+    let gpu = fractile_server::GpuBackend::open(256 << 20)
         .unwrap_or_else(|e| panic!("{e} (install mesa-vulkan-drivers)"));
     let gpu = Arc::new(gpu);
     st.gpu = Some(gpu.clone());

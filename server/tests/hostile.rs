@@ -10,8 +10,8 @@ use std::time::Duration;
 use axum::body::{Body, Bytes};
 use axum::http::{Request, StatusCode, header};
 use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
-use fractile_server::api::AppState;
-use fractile_server::store::Store;
+use fractile_server::AppState;
+use fractile_server::Store;
 use http_body_util::BodyExt;
 use tower::ServiceExt;
 
@@ -75,7 +75,7 @@ async fn an_unauthorised_upload_is_refused_before_its_body_is_read() {
     let dir = fresh_dir("auth");
     let (store, _) = Store::open(&dir).unwrap();
     let mut st = AppState::new(store, "http://test".into());
-    st.writes = fractile_server::api::Writes::Token("sesame".into());
+    st.writes = fractile_server::Writes::Token("sesame".into());
     let st = Arc::new(st);
     let read = Arc::new(AtomicUsize::new(0));
     let req = Request::put("/v1/assets/big")
@@ -255,7 +255,7 @@ async fn a_request_over_the_decode_budget_is_413() {
     std::fs::write(dir.join("camera.fra"), &good).unwrap();
     let (store, _) = Store::open(&dir).unwrap();
     let mut st = AppState::new(store, "http://test".into());
-    st.lanes = fractile_server::work::Lanes::new(2, 64);
+    st.lanes = fractile_server::Lanes::new(2, 64);
     let st = Arc::new(st);
     let req = Request::get("/v1/assets/camera/region?bbox=0,0,1,1&width=4096&height=4096")
         .body(Body::empty())
@@ -274,7 +274,7 @@ async fn a_request_over_the_decode_budget_is_413() {
 /// back only then.
 #[tokio::test(flavor = "multi_thread", worker_threads = 2)]
 async fn dropped_requests_cancel_their_work() {
-    let lanes = Arc::new(fractile_server::work::Lanes::new(2, 100));
+    let lanes = Arc::new(fractile_server::Lanes::new(2, 100));
     let (tx, rx) = std::sync::mpsc::channel();
     let l2 = lanes.clone();
     let request = tokio::spawn(async move {
@@ -363,7 +363,7 @@ async fn readiness_follows_the_decode_slots() {
     let dir = fresh_dir("ready");
     let (store, _) = Store::open(&dir).unwrap();
     let mut st = AppState::new(store, "http://test".into());
-    st.lanes = fractile_server::work::Lanes::new(1, 64);
+    st.lanes = fractile_server::Lanes::new(1, 64);
     let st = Arc::new(st);
     let ready = || Request::get("/readyz").body(Body::empty()).unwrap();
     assert_eq!(send(&st, ready()).await.0, StatusCode::OK);
@@ -395,7 +395,7 @@ async fn readiness_follows_the_decode_slots() {
 /// an upload holds, not about who sends it.
 fn anonymous_writes(store: Store) -> AppState {
     let mut st = AppState::new(store, "http://test".into());
-    st.writes = fractile_server::api::Writes::Anyone;
+    st.writes = fractile_server::Writes::Anyone;
     st
 }
 

@@ -6,8 +6,8 @@ use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
 use fractile_codec::geo::{self, Placement};
 use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
-use fractile_server::api::AppState;
-use fractile_server::store::Store;
+use fractile_server::AppState;
+use fractile_server::Store;
 use http_body_util::BodyExt;
 use tower::ServiceExt;
 
@@ -468,7 +468,7 @@ fn writable(token: Option<&str>, max_upload: usize) -> (Arc<AppState>, Vec<u8>) 
     std::fs::create_dir_all(&dir).unwrap();
     let (store, _) = Store::open(&dir).unwrap();
     let mut st = AppState::new(store, "http://test".into());
-    st.writes = fractile_server::api::Writes::from_options(token.map(str::to_string), true);
+    st.writes = fractile_server::Writes::from_options(token.map(str::to_string), true);
     st.max_upload = max_upload;
     let r = Raster::open(&data("topobathy.tif")).unwrap();
     let enc = encode(
@@ -561,7 +561,7 @@ async fn upload_replace_and_delete() {
 
 #[tokio::test]
 async fn with_no_token_writes_are_refused_unless_anonymous_writes_are_allowed() {
-    use fractile_server::api::Writes;
+    use fractile_server::Writes;
     // What `fractile serve` runs with when neither a token nor --allow-anonymous-writes is
     // given, and a state built with no policy at all: both refuse.
     assert_eq!(Writes::from_options(None, false), Writes::Refused);
@@ -1319,7 +1319,7 @@ async fn tiles_decode_alike_on_the_gpu_and_the_cpu() {
     let dir = std::env::temp_dir().join(format!("fractile-http-{}", std::process::id()));
     let (store, _) = Store::open(&dir).unwrap();
     let mut st = AppState::new(store, "http://test".into());
-    let gpu = fractile_server::backend::GpuBackend::open(64 << 20)
+    let gpu = fractile_server::GpuBackend::open(64 << 20)
         .unwrap_or_else(|e| panic!("{e} (install mesa-vulkan-drivers)"));
     st.gpu = Some(Arc::new(gpu));
     let st = Arc::new(st);
@@ -1526,7 +1526,7 @@ async fn gpu_uploads_happen_once_and_refusals_are_remembered() {
         let (store, _) = Store::open(&dir).unwrap();
         let mut st = AppState::new(store, "http://test".into());
         let gpu = Arc::new(
-            fractile_server::backend::GpuBackend::open(memory)
+            fractile_server::GpuBackend::open(memory)
                 .unwrap_or_else(|e| panic!("{e} (install mesa-vulkan-drivers)")),
         );
         st.gpu = Some(gpu.clone());

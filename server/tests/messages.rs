@@ -6,8 +6,8 @@ use std::sync::{Arc, OnceLock};
 use axum::body::Body;
 use axum::http::{Request, StatusCode};
 use fractile_codec::{Raster, encode_default};
-use fractile_server::api::{AppState, Writes};
-use fractile_server::store::Store;
+use fractile_server::Store;
+use fractile_server::{AppState, Writes};
 use http_body_util::BodyExt;
 use tower::ServiceExt;
 

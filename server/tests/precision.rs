@@ -9,8 +9,8 @@ use axum::http::{Request, StatusCode};
 use fractile_codec::decode::{Grid, sample_bilinear};
 use fractile_codec::geo;
 use fractile_codec::{Raster, encode_default};
-use fractile_server::api::AppState;
-use fractile_server::store::Store;
+use fractile_server::AppState;
+use fractile_server::Store;
 use http_body_util::BodyExt;
 use tower::ServiceExt;
 

@@ -7,8 +7,8 @@ use std::sync::Arc;
 use axum::body::Body;
 use axum::http::{Request, StatusCode, header};
 use fractile_codec::{QuadtreeSettings, Raster, RateMode, encode};
-use fractile_server::api::{AppState, Writes};
-use fractile_server::store::{Refreshed, Store};
+use fractile_server::{AppState, Writes};
+use fractile_server::{Refreshed, Store};
 use tower::ServiceExt;
 
 fn data(name: &str) -> std::path::PathBuf {

@@ -16,7 +16,7 @@ use crate::work::{BodyWriter, Bounds, Head};
 
 /// Query of `GET /v1/assets/{id}/curve`.
 #[derive(Deserialize)]
-pub struct CurveQuery {
+pub(super) struct CurveQuery {
     /// Asset level; the finest (the input's) when absent.
     level: Option<usize>,
     /// `true`: each ring's base control points (level 0 of the model, what a `control`

@@ -16,7 +16,6 @@ mod terrain;
 mod tiles;
 
 use assets::*;
-pub use curves::CurveQuery;
 use curves::*;
 use files::*;
 use fractile_proto::ErrorCode;
@@ -42,7 +41,7 @@ use axum::{Json, Router};
 use crate::error::AppError;
 
 /// The router of the whole API.
-pub fn router(state: Arc<AppState>) -> Router {
+pub(crate) fn router(state: Arc<AppState>) -> Router {
     // Read the build's id now rather than on the first tile request.
     tiles::build_id();
     Router::new()

@@ -43,7 +43,7 @@ pub struct Listing {
 
 /// Checks an asset id: 1-64 characters of letters, digits, `-` and `_`, not starting with `-`
 /// or `_` (so no paths, no `..`, no hidden files).
-pub fn validate_id(id: &str) -> Result<(), AppError> {
+pub(crate) fn validate_id(id: &str) -> Result<(), AppError> {
     if fractile_proto::valid_asset_id(id) {
         Ok(())
     } else {

@@ -43,7 +43,7 @@ use super::breaker::{BREAK, Breaker};
 pub(super) const GRACE: Duration = Duration::from_secs(120);
 
 /// A bucket (and prefix) of an object store holding asset files.
-pub struct Bucket {
+pub(crate) struct Bucket {
     remote: Arc<Remote>,
     prefix: Path,
     url: String,
@@ -104,7 +104,7 @@ impl Bucket {
     /// few seconds (two retries at most), so that a store that has gone away gives clear
     /// errors (503) rather than requests that hang. Ranges read are kept under `disk` when
     /// given. Nothing is read yet.
-    pub fn connect(url: &str, disk: Option<DiskCache>) -> std::io::Result<Bucket> {
+    pub(crate) fn connect(url: &str, disk: Option<DiskCache>) -> std::io::Result<Bucket> {
         let (store, prefix) = s3_store(url)?;
         let runtime = tokio::runtime::Builder::new_multi_thread()
             .worker_threads(2)
@@ -411,14 +411,14 @@ impl ChunkSource for ObjectSource {
 /// chunk evicted from the (decoded, in-memory) chunk cache is then read from disk, not from
 /// the store. The index is in memory, so the folder is emptied at start. Only immutable bytes
 /// are kept (a version's, or a plain object's under its ETag), so an entry is never stale.
-pub struct DiskCache {
+pub(crate) struct DiskCache {
     dir: PathBuf,
     index: moka::sync::Cache<u64, u32>,
 }
 
 impl DiskCache {
     /// A cache of at most `bytes` in `dir` (created; the files of an earlier run removed).
-    pub fn new(dir: &FsPath, bytes: u64) -> std::io::Result<DiskCache> {
+    pub(crate) fn new(dir: &FsPath, bytes: u64) -> std::io::Result<DiskCache> {
         std::fs::create_dir_all(dir)?;
         for e in std::fs::read_dir(dir)?.flatten() {
             let ours = e

@@ -71,7 +71,7 @@ fn older_format(path: &Path) -> bool {
 }
 
 /// Encodes the demo assets into `dir` unless they are there already (a progress line each).
-pub fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
+pub(crate) fn ensure_demo_assets(dir: &Path) -> Result<(), fractile_codec::Error> {
     std::fs::create_dir_all(dir)
         .map_err(|e| fractile_codec::Error::output(format!("{}: {e}", dir.display())))?;
     let (id, name, bytes) = DEMO_VOLUME;

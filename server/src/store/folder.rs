@@ -10,14 +10,14 @@ use fractile_codec::chunked::{ChunkSource, FileSource};
 use super::backing::{Backing, Listing, validate_id};
 
 /// A folder of asset files.
-pub struct Folder {
+pub(crate) struct Folder {
     dir: PathBuf,
 }
 
 impl Folder {
     /// The folder `dir`; temporary files left there by an interrupted write whose writer is
     /// gone are removed (see `stale_temporary`).
-    pub fn open(dir: &Path) -> std::io::Result<Folder> {
+    pub(crate) fn open(dir: &Path) -> std::io::Result<Folder> {
         for e in std::fs::read_dir(dir)? {
             let Ok(e) = e else { continue };
             let path = e.path();

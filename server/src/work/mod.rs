@@ -46,16 +46,16 @@ use slots::{SlotPermit, Slots};
 use crate::error::AppError;
 
 /// Work estimated under this many bytes runs in the light lane.
-pub const LIGHT_BYTES: u64 = 24 << 20;
+pub(crate) const LIGHT_BYTES: u64 = 24 << 20;
 
 /// How long heavy work may queue for room (memory and a run) before it is refused with 503
 /// and `Retry-After`: a client learns at once that it must come back, instead of holding a
 /// connection until the request timeout.
-pub const HEAVY_QUEUE_WAIT: Duration = Duration::from_millis(1500);
+pub(crate) const HEAVY_QUEUE_WAIT: Duration = Duration::from_millis(1500);
 
 /// How long a streamed body may wait for its reader to take a chunk before it is abandoned
 /// (a reader that stalls must not hold a heavy budget for ever).
-pub const STALLED_READER: Duration = Duration::from_secs(30);
+pub(crate) const STALLED_READER: Duration = Duration::from_secs(30);
 
 /// Chunks of a streamed body in flight between the writer and the connection.
 const STREAM_CHUNKS: usize = 4;
@@ -186,7 +186,7 @@ impl Lanes {
         })
     }
 
-    /// Runs `f` in the lane of `bytes`, on the blocking pool, with a [`Cancel`] that turns
+    /// Runs `f` in the lane of `bytes`, on the blocking pool, with a `Cancel` that turns
     /// true when this future is dropped (the request timed out or its client left).
     pub async fn run<T: Send + 'static>(
         &self,
@@ -221,7 +221,7 @@ impl Lanes {
     /// Runs `f` in the lane of `bytes` and streams what it writes as the response body: `f`
     /// returns the response's head (content type, error bound) and a writer of the body, which
     /// runs while the client reads, with the budget held until the last byte is taken, the
-    /// client leaves, or it stalls for [`STALLED_READER`]. Large bodies are never held whole.
+    /// client leaves, or it stalls for `STALLED_READER`. Large bodies are never held whole.
     pub async fn stream<F>(&self, bytes: u64, f: F) -> Result<Response, AppError>
     where
         F: FnOnce(&Cancel) -> Result<(Head, BodyWriter), AppError> + Send + 'static,
@@ -340,7 +340,7 @@ fn heavy_took(millis: &std::sync::atomic::AtomicU64, took: Duration) {
 }
 
 /// Writes a streamed body.
-pub type BodyWriter = Box<dyn FnOnce(&mut dyn Write) -> std::io::Result<()> + Send>;
+pub(crate) type BodyWriter = Box<dyn FnOnce(&mut dyn Write) -> std::io::Result<()> + Send>;
 
 fn closed(_: tokio::sync::AcquireError) -> AppError {
     AppError::internal("the decoding lanes are closed")
