@@ -933,3 +933,61 @@ fn no_other_crate_names_a_plane_codec() {
         named.join("\n")
     );
 }
+
+/// Each codec's errors are typed (issue 76): no function of the codec answers a bare `String`
+/// as its error (`core::format::FormatError` for coded bytes, `crate::Error` for the rest), so
+/// that a caller tells a bad header from a bad stream, or the input's fault from the file's,
+/// without reading a message.
+#[test]
+fn no_codec_function_answers_a_string_error() {
+    let found: Vec<String> = crate_texts(&root().join("codec/src"))
+        .iter()
+        .flat_map(|(m, text)| {
+            text.lines()
+                .enumerate()
+                .filter(|(_, l)| {
+                    let code = l.split("//").next().unwrap_or("");
+                    code.contains("Result<") && code.contains(", String>")
+                })
+                .map(move |(n, l)| format!("{m}:{}: {}", n + 1, l.trim()))
+        })
+        .collect();
+    assert!(found.is_empty(), "string errors:\n{}", found.join("\n"));
+}
+
+/// The codec's and the server's surfaces are curated: the modules under them are private, and
+/// what other crates name is re-exported by concept at the root (`codec/src/lib.rs`,
+/// `server/src/lib.rs`). A module made public again exposes its every `pub` item.
+#[test]
+fn the_crates_publish_a_curated_surface() {
+    let declared = |lib: &str, module: &str| -> Option<String> {
+        let text = std::fs::read_to_string(root().join(lib)).expect("lib.rs");
+        text.lines()
+            .map(str::trim)
+            .find(|l| l.ends_with(&format!("mod {module};")))
+            .map(str::to_string)
+    };
+    let private = [
+        ("codec/src/lib.rs", &["core", "io"][..]),
+        (
+            "server/src/lib.rs",
+            &[
+                "api",
+                "backend",
+                "error",
+                "memory",
+                "openapi",
+                "store",
+                "telemetry",
+                "web",
+                "work",
+            ][..],
+        ),
+    ];
+    for (lib, modules) in private {
+        for m in modules {
+            let line = declared(lib, m).unwrap_or_else(|| panic!("{lib}: no `mod {m};`"));
+            assert_eq!(line, format!("mod {m};"), "{lib}: {m} is to stay private");
+        }
+    }
+}

@@ -18,10 +18,7 @@ mod telemetry;
 mod web;
 mod work;
 
-// The service's surface, curated (as image-rs and rav1e publish theirs): the app and `serve`,
-// the state a test or an embedding builds it from, the store and its object-store opener, the
-// GPU backend and the decode lanes a state may be given, and `encoding`, the tile encodings a
-// bench measures. The modules stay private: a handler moved changes no caller.
+// A curated surface (as image-rs's); modules stay private: a handler moved changes no caller.
 pub use api::{
     AppState, Cached, CoarseCache, DEFAULT_COARSE_CACHE_MIB, Limits, REQUEST_TIMEOUT, Writes,
     coarse_cache,
@@ -34,7 +31,6 @@ use fractile_proto::ErrorCode;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
-
 use tower_http::cors::{Any, CorsLayer};
 use tower_http::timeout::TimeoutLayer;
 use tower_http::trace::TraceLayer;

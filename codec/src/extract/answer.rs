@@ -59,3 +59,24 @@ impl Asset {
         })
     }
 }
+
+impl Asset {
+    /// `pixels` made a mesh's vertices (a terrain tile's grid at or coarser than the source):
+    /// a projected asset (the DEM default) answers a vertex with its decoded samples filtered
+    /// over at least one source cell around it, which is bounded against the source filtered
+    /// the same way, the same footprint for every tile of a level, so that shared edge vertices
+    /// decode alike. Other codecs keep point decodes at the vertices: their filtered pixels
+    /// come through a discrete decode at the grid's size, and neighbours' shared edge vertices
+    /// came out up to 1.5 m apart.
+    pub fn vertex_pixels(&self, mut pixels: Pixels) -> Pixels {
+        if self.codec_name() == crate::codecs::projected::CODEC_NAME {
+            let (cw, ch) = (self.meta.width.max(1), self.meta.height.max(1));
+            let cell = [1.0001 / cw as f32, 1.0001 / ch as f32];
+            pixels.footprint = [
+                pixels.footprint[0].max(cell[0]),
+                pixels.footprint[1].max(cell[1]),
+            ];
+        }
+        pixels
+    }
+}

@@ -299,19 +299,10 @@ fn tile_grid(a: &StoredAsset, z: u8, [w, s, e, n]: [f64; 4], detail: bool) -> (g
         (side, |j| n - frac(j) * (n - s)),
         cell_size([w, s, e, n], side - 1, side - 1),
     );
-    // A vertex of a projected asset (the DEM default) is then its decoded samples filtered
-    // over (at least) one source cell around it, which is bounded against the source filtered
-    // the same way; the same footprint for every tile of the level, so shared edge vertices
-    // decode alike. Other codecs keep point decodes at the vertices: their filtered pixels
-    // come through the server's cache of discrete decodes, and with other requests alongside
-    // (the terrain tests), neighbours' shared edge vertices came out up to 1.5 m apart.
-    if !detail && a.asset.codec_name() == fractile_codec::codecs::projected::CODEC_NAME {
-        let (cw, ch) = (a.asset.meta.width.max(1), a.asset.meta.height.max(1));
-        let cell = [1.0001 / cw as f32, 1.0001 / ch as f32];
-        grid.footprint = [
-            grid.footprint[0].max(cell[0]),
-            grid.footprint[1].max(cell[1]),
-        ];
+    // Vertices at or coarser than the source are answered as the codec answers a mesh's
+    // (`Asset::vertex_pixels`: a projected asset's filtered over a source cell).
+    if !detail {
+        grid = a.asset.vertex_pixels(grid);
     }
     (grid, side)
 }
