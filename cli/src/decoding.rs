@@ -146,7 +146,7 @@ pub(crate) fn parse_window(s: &str) -> Result<[f32; 4], String> {
 
 pub(crate) fn run_mesh(a: MeshArgs) -> Result<()> {
     let asset = Asset::read(&a.asset)?;
-    let Some(volume) = &asset.volume else {
+    let Some(volume) = asset.volume() else {
         bail!(
             "{} is not a volume asset (terrain meshes: the server's /v1/assets/{{id}}/mesh)",
             a.asset.display()
@@ -212,7 +212,7 @@ pub(crate) fn run_mesh(a: MeshArgs) -> Result<()> {
 /// `fractile curve coast.fra -o out.geojson [--level N]`.
 pub(crate) fn run_curve(a: CurveArgs) -> Result<()> {
     let asset = Asset::read(&a.asset)?;
-    let Some(c) = &asset.curve else {
+    let Some(c) = asset.curves() else {
         bail!(
             "{} is not a curve asset (it is {:?})",
             a.asset.display(),
@@ -249,13 +249,13 @@ pub(crate) fn run_curve(a: CurveArgs) -> Result<()> {
 
 pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
     let asset = Asset::read(&a.asset)?;
-    if asset.volume.is_some() {
+    if asset.volume().is_some() {
         bail!(
             "{} is a volume: extract its surface with `fractile mesh`",
             a.asset.display()
         );
     }
-    if asset.curve.is_some() {
+    if asset.curves().is_some() {
         bail!(
             "{} holds curves: decode them to GeoJSON with `fractile curve {} -o out.geojson`",
             a.asset.display(),
@@ -290,16 +290,16 @@ pub(crate) fn run_decode(a: DecodeArgs) -> Result<()> {
     // The GPU runs continuous decoding: asked for, or (auto) a continuous-capable request of a
     // million pixels or more, where the transfer pays for itself. A chunked asset's pixels
     // are always continuous (see `Asset::window`).
-    let continuous = method != Method::Discrete || asset.chunks.is_some();
+    let continuous = method != Method::Discrete || asset.chunked().is_some();
     let gpu = gpu_for(a.backend, continuous && width * height >= 1 << 20)?;
-    let (decoded, used, backend) = if let (Some(g), Some(_)) = (&gpu, &asset.chunks) {
+    let (decoded, used, backend) = if let (Some(g), Some(_)) = (&gpu, &asset.chunked()) {
         let d = chunks_on(g, &asset, window, (width, height), (a.iterations, method))?;
         (d, Method::Continuous, g.adapter())
     } else if let Some(g) = &gpu {
         // As many steps as the CPU's continuous window takes by default.
         let n = a.iterations.unwrap_or(12);
         let mut planes = Vec::new();
-        for p in &asset.planes {
+        for p in asset.planes() {
             let dev = g.upload_flat(&fractile_codec::pieces::Flatten::flat(&p.operator))?;
             let grid = fractile_gpu::Grid::Window {
                 rect: window,
@@ -399,7 +399,7 @@ pub(crate) fn write_decoded(
                 georef.as_ref(),
                 // A chunked asset's masks are its chunks': the tag goes with any cell written
                 // as nodata, or rasterio would read -32768 as a height.
-                (asset.mask.is_some() || d.channels[0].iter().any(|v| v.is_nan()))
+                (asset.mask().is_some() || d.channels[0].iter().any(|v| v.is_nan()))
                     .then_some(nodata),
             )?;
         }

@@ -62,7 +62,7 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         // As asked, or what a bounded rate found (the promise the asset keeps, with the
         // f32 slack the server adds).
         "max_error_bound": a.max_error.or_else(|| {
-            enc.asset.planes.first().and_then(|p| p.promise()).map(f64::from)
+            enc.asset.planes().first().and_then(|p| p.promise()).map(f64::from)
         }),
     });
     if a.json {

@@ -237,14 +237,11 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
     let bytes = std::fs::metadata(path).context("asset size")?.len();
     let m = &asset.meta;
     let ranges: usize = asset
-        .planes
+        .planes()
         .iter()
         .map(|p| p.operator.transforms())
         .sum::<usize>()
-        + asset
-            .volume
-            .as_ref()
-            .map_or(0, |v| v.operator.leaves().len());
+        + asset.volume().map_or(0, |v| v.operator.leaves().len());
     // The file's own version (bytes 8-9), not this build's.
     let version = {
         let mut head = [0u8; 10];
@@ -252,7 +249,7 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
         u16::from_le_bytes([head[8], head[9]])
     };
     // A chunked asset's maps are its chunks': the encoder's count.
-    let ranges = if asset.chunks.is_some() {
+    let ranges = if asset.chunked().is_some() {
         m.stats.transforms as usize
     } else {
         ranges
@@ -271,7 +268,7 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
         "encode_stats": {"rmse": m.stats.rmse, "psnr": m.stats.psnr, "max_error": m.stats.max_error, "seconds": m.stats.seconds},
     });
     let mut info = info;
-    if let Some(c) = &asset.chunks {
+    if let Some(c) = &asset.chunked() {
         let t = &c.table;
         info["chunks"] = json!({"chunk": t.chunk, "overlap": t.overlap,
             "levels": t.levels.iter().enumerate().map(|(i, l)| json!({"width": l.width, "height": l.height,
@@ -279,14 +276,14 @@ fn run_info(path: &Path, as_json: bool) -> Result<()> {
                 "view": t.is_view(i)}))
                 .collect::<Vec<_>>()});
     }
-    if let Some(c) = &asset.curve {
+    if let Some(c) = &asset.curves() {
         let h = &c.header;
         info["curve"] = json!({"polylines": h.rings.len(), "finest_level": c.set.finest(),
             "tolerance": h.tolerance, "metric": format!("{:?}", h.metric),
             "level_bounds": c.set.level_bounds, "subdivision": h.scheme.t, "details": h.scheme.u,
             "ratio_f64": 2.0 * m.source_bytes() as f64 / bytes as f64});
     }
-    if let Some(v) = &asset.volume {
+    if let Some(v) = &asset.volume() {
         let (lo, hi) = v.bounds();
         info["volume"] = json!({"grid": v.size(), "bounds": [lo, hi], "voxel": v.placement.voxel,
             "band": m.value_max, "ratio_f32": 4.0 * m.source_bytes() as f64 / bytes as f64});

@@ -96,7 +96,7 @@ fn code(body: &[u8]) -> String {
 /// "immutable" object and the replicas served different versions, one of them 503.
 fn collision_pair_and_race(pa: u16, pb: u16, sound: &[u8]) {
     let asset = fractile_codec::Asset::from_bytes(sound).unwrap();
-    let c = asset.chunks.as_ref().expect("a chunked file");
+    let c = asset.chunked().expect("a chunked file");
     let files: Vec<Vec<Vec<u8>>> = fractile_codec::chunked::chunk_files(&c.table, sound);
     let mut other = asset.meta.clone();
     let last = other.encoder.pop().expect("an encoder name");

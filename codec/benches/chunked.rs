@@ -130,7 +130,7 @@ fn main() {
     );
     // Seams: 64 x 64 windows centred on chunk corners and edges, against windows centred
     // inside chunks (the same count), at native resolution.
-    if let Some(c) = enc.asset.chunks.as_ref() {
+    if let Some(c) = enc.asset.chunked() {
         let side = 64;
         let chunk = c.table.chunk as usize;
         let (nx, ny) = c.table.grid(r.width as u32, r.height as u32);

@@ -220,7 +220,7 @@ fn main() {
     if want("decode") {
         println!("\n## Decoders (camera at 0.48 bpp)\n");
         let enc = encode(&camera, &bpp(0.48), &quiet).expect("encode");
-        let op = &enc.asset.planes[0].operator;
+        let op = &enc.asset.planes()[0].operator;
         let reps = 10;
         let disc = median_ms(reps, || {
             std::hint::black_box(decode::discrete(op, 512, 512, DiscreteOptions::default()));
@@ -591,7 +591,7 @@ fn projected(root: &Path, camera: &Raster, quadtree: &dyn Fn(f64) -> QuadtreeSet
 
 /// The multiresolution a projected asset's first plane was coded with.
 fn kernel(asset: &fractile_codec::asset::Asset) -> String {
-    match &asset.planes[0].coding {
+    match &asset.planes()[0].coding {
         fractile_codec::asset::Coding::Projected { header, .. } => {
             format!("{:?}", header.order)
         }
@@ -637,7 +637,7 @@ fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
         })
         .collect();
     let time = |a: &fractile_codec::Asset, steps: u32, tolerance_m: f64| {
-        let op = &a.planes[0].operator;
+        let op = &a.planes()[0].operator;
         let tolerance = (tolerance_m / (a.meta.value_max - a.meta.value_min)) as f32;
         let mut n = 0u32;
         let ms = median_ms(15, || {
@@ -685,7 +685,7 @@ fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
             .flat_map(|&y| xs.iter().map(move |&x| [x, y]))
             .collect();
         let time = |a: &fractile_codec::Asset| {
-            let op = &a.planes[0].operator;
+            let op = &a.planes()[0].operator;
             let tolerance = (0.5 / (a.meta.value_max - a.meta.value_min)) as f32;
             let g = median_ms(15, || {
                 std::hint::black_box(op.grid(&xs, &ys, 64, tolerance));
@@ -717,7 +717,7 @@ fn projected_points(root: &Path, quadtree: &dyn Fn(f64) -> QuadtreeSettings) {
 /// chain takes ln(R / tolerance) / ln(1 / rho) steps; a bound as tight as the true maximum
 /// would save ln(R / max) / ln(1 / rho) of them, the most any tighter bound can.
 fn residual_slack(a: &fractile_codec::Asset) {
-    let op = match &a.planes[0].operator {
+    let op = match &a.planes()[0].operator {
         fractile_codec::asset::PlaneOperator::Projected(op) => op,
         _ => return,
     };

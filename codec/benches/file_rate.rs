@@ -87,7 +87,7 @@ fn encode(r: &Raster, bpp: f64, bounded: bool, old: bool) -> (Encoded, f64) {
 
 /// The overviews' share of a chunked file's bytes.
 fn overview_share(enc: &Encoded) -> f64 {
-    let Some(c) = &enc.asset.chunks else {
+    let Some(c) = enc.asset.chunked() else {
         return 0.0;
     };
     let level = |l: &fractile_codec::chunked::Level| l.chunks.iter().map(|e| e.length).sum::<u64>();
@@ -167,13 +167,13 @@ fn views(r: &Raster) {
     println!("|---|---|---|---|---|");
     for ratio in [10.0, 20.0, 40.0, 80.0] {
         let (enc, _) = encode(r, 16.0 / ratio, false, false);
-        let c = enc.asset.chunks.as_ref().expect("chunked");
+        let c = enc.asset.chunked().expect("chunked");
         let (mut all, mut read) = (0usize, [0usize; 2]);
         for i in 0..c.table.levels[0].chunks.len() {
             let Some(chunk) = c.chunk(0, i).expect("a chunk") else {
                 continue;
             };
-            let Coding::Projected { header, stream } = &chunk.planes[0].coding else {
+            let Coding::Projected { header, stream } = &chunk.planes()[0].coding else {
                 panic!("not projected");
             };
             all += stream.len();

@@ -87,7 +87,7 @@ fn main() {
                 .collect::<Vec<_>>()
         };
         let (xs, ys) = (axis(w), axis(h));
-        let op = &a.planes[0].operator;
+        let op = &a.planes()[0].operator;
         let raw: Vec<f32> = op
             .grid(&xs, &ys, 40, 0.0)
             .into_iter()
@@ -135,7 +135,7 @@ fn main() {
             .map(|_| {
                 let mut values = raw.clone();
                 let t = Instant::now();
-                a.planes[0].operator.limit_points(&pts, &mut values);
+                a.planes()[0].operator.limit_points(&pts, &mut values);
                 std::hint::black_box(&values);
                 t.elapsed().as_secs_f64() * 1e3
             })
@@ -175,7 +175,7 @@ fn main() {
                 tile += t.elapsed().as_secs_f64();
                 let mut values = vec![0.5f32; xs.len() * ys.len()];
                 let t = Instant::now();
-                a.planes[0].operator.limit_grid(&xs, &ys, &mut values);
+                a.planes()[0].operator.limit_grid(&xs, &ys, &mut values);
                 std::hint::black_box(&values);
                 clamp += t.elapsed().as_secs_f64();
             }

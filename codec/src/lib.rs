@@ -49,7 +49,7 @@ pub mod render;
 /// whole or not at all.
 pub mod asset {
     pub use crate::io::asset::{
-        Asset, AssetLimits, ChunkCache, Chunked, Codec, Coding, FORMAT_VERSION, Mask,
+        Asset, AssetLimits, Body, ChunkCache, Chunked, Codec, Coding, FORMAT_VERSION, Mask,
         OLDEST_CURVE_VERSION, OLDEST_READ_VERSION, Plane, PlaneOperator, check_magic, check_opens,
         check_whole_file, temporary_owner, write_atomic, write_atomic_with,
     };
@@ -118,7 +118,7 @@ pub use codecs::quadtree::search::SearchMode;
 pub use codecs::quadtree::settings::{QuadtreeSettings, RateMode, Roi};
 pub use codecs::registry::Codec;
 pub use encode::{CodecSettings, Encoded, PlaneEncoder, encode, encode_default};
-pub use io::asset::{Asset, AssetLimits};
+pub use io::asset::{Asset, AssetLimits, Body};
 pub use io::raster::Raster;
 
 /// The error beneath an [`Error`] (an I/O, TIFF or image error), shared so that an error stays

@@ -21,7 +21,7 @@ fn one_answer_is_the_calls_it_replaces() {
     let one = |part: &Raster| encode_default(part, 0.8, &|_, _| {});
     let chunked = encode_chunked(&r, 128, &one, &|_, _| {}).expect("chunked");
     let chunked = Asset::from_bytes(&chunked.bytes).expect("reads");
-    assert!(chunked.chunks.is_some());
+    assert!(chunked.chunked().is_some());
     let g = r.georef.as_ref().expect("a georeferenced DEM");
     // The answers keep their coarse grids; the calls they replace decode their own.
     let kept = CoarseGrids::new(64 << 20);

@@ -44,7 +44,7 @@ fn every_cell_of_a_chunked_dem_is_within_its_bound_and_chunks_meet_within_their_
     assert!(is_chunked(&enc.bytes));
     // Read by range from a file, as a server does.
     let asset = Asset::read(&file_of(&enc, "etopo20.fra")).unwrap();
-    let table = &asset.chunks.as_ref().expect("chunked").table;
+    let table = &asset.chunked().expect("chunked").table;
     assert!(
         table.levels[0].chunks.len() >= 6,
         "{:?}",
@@ -124,7 +124,7 @@ fn coarse_pixels_are_answered_from_the_overview_of_their_size() {
     let (w, h) = (r.width, r.height);
     let asset = Asset::from_bytes(&chunked(&r).bytes).unwrap();
     let centres = |n: usize| (0..n).map(|i| Some((i as f32 + 0.5) / n as f32)).collect();
-    let table = &asset.chunks.as_ref().unwrap().table;
+    let table = &asset.chunked().unwrap().table;
     let levels = table.levels.len();
     assert_eq!(
         (levels, table.views.len()),
@@ -175,11 +175,11 @@ fn coarse_pixels_are_answered_from_the_overview_of_their_size() {
                 worst = worst.max((values[0][j * pw + i] - stands_for as f32).abs());
             }
         }
-        let chunks = asset.chunks.as_ref().unwrap();
+        let chunks = asset.chunked().unwrap();
         let coded = if view { 0 } else { level };
         let promise = (0..chunks.table.levels[coded].chunks.len())
             .filter_map(|i| chunks.chunk(coded, i).unwrap())
-            .map(|c| c.planes[0].promise().expect("bounded") + c.bound_after(40))
+            .map(|c| c.planes()[0].promise().expect("bounded") + c.bound_after(40))
             .fold(0.0f32, f32::max);
         let slack = if view {
             0.0
@@ -210,7 +210,7 @@ fn a_corrupt_chunk_is_refused_by_name_and_the_other_chunks_still_answer() {
     let enc = chunked(&r);
     let table = Asset::from_bytes(&enc.bytes)
         .unwrap()
-        .chunks
+        .chunked()
         .unwrap()
         .table
         .clone();
@@ -268,10 +268,7 @@ fn chunks_without_data_answer_nodata_and_the_rest_answer_values() {
     r.valid = Some(valid);
     let enc = chunked(&r);
     let asset = Asset::from_bytes(&enc.bytes).unwrap();
-    assert_eq!(
-        asset.chunks.as_ref().unwrap().table.levels[0].chunks[0].length,
-        0
-    );
+    assert_eq!(asset.chunked().unwrap().table.levels[0].chunks[0].length, 0);
     let (u, v) = (10.0 / w as f32, 10.0 / r.height as f32);
     let p = asset.points(&[[u, v], [0.9, 0.9]], 20, 0.0);
     assert!(p[0].values[0].is_nan(), "{:?}", p[0]);
@@ -293,7 +290,7 @@ fn prefetch_decodes_chunks_coarsest_first_within_its_budget() {
         (a, cache)
     };
     let (asset, cache) = open(256);
-    let c = asset.chunks.as_ref().unwrap();
+    let c = asset.chunked().unwrap();
     let all: usize = c.table.levels.iter().map(|l| l.chunks.len()).sum();
     assert!(all > 4, "{all} chunks");
     assert_eq!(cache.weighted_bytes(), 0);
@@ -303,7 +300,7 @@ fn prefetch_decodes_chunks_coarsest_first_within_its_budget() {
     // A budget of a byte: the first chunk only, the top level's (built whole: 44 bytes a cell,
     // where the finer levels' hold about 5).
     let (asset, cache) = open(256);
-    let c = asset.chunks.as_ref().unwrap();
+    let c = asset.chunked().unwrap();
     let (n, top) = c.prefetch(1);
     let l = c.table.levels.last().unwrap();
     assert_eq!(n, 1);
@@ -329,7 +326,7 @@ fn prefetch_decodes_chunks_coarsest_first_within_its_budget() {
     let path = file_of(&Encoded { bytes, ..enc }, "prefetch-corrupt.fra");
     let cache = ChunkCache::new(256 << 20);
     let asset = Asset::open(&path, &limits, cache.clone()).unwrap();
-    let (n, _) = asset.chunks.as_ref().unwrap().prefetch(cache.capacity());
+    let (n, _) = asset.chunked().unwrap().prefetch(cache.capacity());
     assert_eq!(n, all - 1 - views);
 }
 
@@ -344,7 +341,7 @@ fn a_table_whose_views_do_not_match_the_layout_is_refused() {
     let one = |part: &Raster| encode_default(part, 0.8, &|_, _| {});
     let bytes = encode_chunked(&r, 128, &one, &|_, _| {}).unwrap().bytes;
     let asset = Asset::from_bytes(&bytes).unwrap();
-    let table = asset.chunks.as_ref().unwrap().table.clone();
+    let table = asset.chunked().unwrap().table.clone();
     assert_eq!((table.views.len(), table.levels.len()), (2, 4));
     // The same file with its header written again from a changed table (header() sets the
     // offsets, a view level's to level 0's, as an encoder does).
@@ -383,7 +380,7 @@ fn a_file_with_views_assembles_to_its_own_bytes() {
     let r = Raster::open(&testdata("etopo20.tif")).unwrap();
     let enc = chunked(&r);
     let asset = Asset::from_bytes(&enc.bytes).unwrap();
-    let c = asset.chunks.as_ref().unwrap();
+    let c = asset.chunked().unwrap();
     assert_eq!(c.table.views.len(), 2);
     let files: Vec<Vec<Vec<u8>>> = fractile_codec::chunked::chunk_files(&c.table, &enc.bytes);
     let again = fractile_codec::chunked::assemble(&asset.meta, c.table.clone(), &files);

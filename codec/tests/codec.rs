@@ -69,7 +69,7 @@ proptest! {
         let e = metrics::compare(&src.channels, &dec.channels, None, 255.0);
         prop_assert!((e.rmse - enc.errors.rmse).abs() < 1e-9, "{} vs reported {}", e.rmse, enc.errors.rmse);
         prop_assert!((e.rmse - asset.meta.stats.rmse).abs() < 1e-9);
-        for p in &asset.planes {
+        for p in asset.planes() {
             for r in p.operator.ranges() {
                 prop_assert!(r.contrast.abs() < 1.0);
             }
@@ -81,7 +81,7 @@ proptest! {
     #[test]
     fn error_bound_holds(u in 0.0f32..1.0, v in 0.0f32..1.0, n in 1u32..25) {
         for asset in [small_camera_asset(), small_terrain_asset()] {
-            let op = &asset.planes[0].operator;
+            let op = &asset.planes()[0].operator;
             let r = decode::point(op, [u, v], n);
             let reference = decode::point(op, [u, v], 200);
             prop_assert!((r.value - reference.value).abs() <= r.error_bound + 1e-5,
@@ -95,7 +95,7 @@ proptest! {
     #[test]
     fn per_point_tolerance_stops_early_and_stays_within_bound(seed in 0u32..1000, tol in 0.0005f32..0.05) {
         let asset = small_terrain_asset();
-        let op = &asset.planes[0].operator;
+        let op = &asset.planes()[0].operator;
         let pts: Vec<[f32; 2]> = (0..37).map(|i| {
             let h = (seed.wrapping_mul(2_654_435_761).wrapping_add(i * 40_503)) as f32;
             [(h * 1e-3).fract().abs(), (h * 7e-3).fract().abs()]
@@ -124,7 +124,7 @@ proptest! {
             xs.iter_mut().for_each(|x| *x = (*x + 0.5).fract());
         }
         for asset in [small_camera_asset(), small_terrain_asset()] {
-            let op = &asset.planes[0].operator;
+            let op = &asset.planes()[0].operator;
             let pts: Vec<[f32; 2]> = ys.iter().flat_map(|&y| xs.iter().map(move |&x| [x, y])).collect();
             let by_point = decode::points(op, &pts, n, tol);
             let by_grid = op.grid(&xs, &ys, n, tol);
@@ -147,7 +147,7 @@ proptest! {
         }).collect();
         pts.extend([[0.0, 0.0], [1.0, 1.0], [1.0, 0.0], [0.0, 1.0], [1.5, -0.5], [f32::NAN, 0.5]]);
         for asset in [small_camera_asset(), small_terrain_asset()] {
-            let fractile_codec::asset::PlaneOperator::Quadtree(q) = &asset.planes[0].operator else {
+            let fractile_codec::asset::PlaneOperator::Quadtree(q) = &asset.planes()[0].operator else {
                 panic!("quadtree assets");
             };
             let fast = decode::points(q, &pts, n, tol);
@@ -191,7 +191,7 @@ proptest! {
             height: ny,
         };
         for asset in [small_camera_asset(), small_terrain_asset()] {
-            let op = &asset.planes[0].operator;
+            let op = &asset.planes()[0].operator;
             let fractile_codec::asset::PlaneOperator::Quadtree(q) = op else {
                 panic!("quadtree assets");
             };
@@ -291,7 +291,7 @@ fn small_terrain_asset() -> Asset {
             s.quantiser.slope_bits = 6;
             let a = encode(&src, &s, &quiet).unwrap().asset;
             assert!(
-                a.planes[0]
+                a.planes()[0]
                     .operator
                     .ranges()
                     .iter()
@@ -584,11 +584,11 @@ fn colour_images_code_in_ycbcr_and_decode_to_rgb() {
         &quiet,
     )
     .unwrap();
-    assert_eq!(enc.asset.planes.len(), 3);
+    assert_eq!(enc.asset.planes().len(), 3);
     // Chroma is coded on a half-resolution frame.
     assert_eq!(
-        enc.asset.planes[1].header().unwrap().frame[0] * 2,
-        enc.asset.planes[0].header().unwrap().frame[0]
+        enc.asset.planes()[1].header().unwrap().frame[0] * 2,
+        enc.asset.planes()[0].header().unwrap().frame[0]
     );
     assert!(enc.errors.psnr > 24.0, "{}", enc.errors.psnr);
     let p = enc.asset.point(0.5, 0.5, 20);
@@ -659,7 +659,7 @@ fn awkward_and_bad_inputs() {
 fn window_methods_agree_on_smooth_terrain() {
     let r = Raster::open(&data("topobathy.tif")).unwrap();
     let enc = encode(&r, &tolerance(5.0), &quiet).unwrap();
-    let op = &enc.asset.planes[0].operator;
+    let op = &enc.asset.planes()[0].operator;
     let rect = [0.2, 0.3, 0.6, 0.7];
     let (a, _) = decode::window(op, rect, 40, 40, Some(30), decode::Method::Discrete);
     let (b, _) = decode::window(op, rect, 40, 40, Some(30), decode::Method::Continuous);
@@ -695,7 +695,7 @@ fn interpolation_surfaces_pass_through_their_nodes_on_a_real_dem() {
             back.codec_name(),
             fractile_codec::codecs::fis::codec_name(scaling)
         );
-        let step = match &back.planes[0].coding {
+        let step = match &back.planes()[0].coding {
             fractile_codec::asset::Coding::Fis { header, .. } => {
                 header.height_step as f64 * (back.meta.value_max - back.meta.value_min)
             }
@@ -833,7 +833,7 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
         );
         let (w, h) = (r.width, r.height);
         let span = back.meta.value_max - back.meta.value_min;
-        let step = match &back.planes[0].coding {
+        let step = match &back.planes()[0].coding {
             fractile_codec::asset::Coding::Psa { header, .. } => header.height_step as f64 * span,
             _ => panic!("not a psa2d plane"),
         };
@@ -865,7 +865,7 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
         let (d, _) = back.decode_native();
         let e = metrics::compare(&r.channels, &d.channels, None, back.meta.psnr_peak());
         assert!((e.psnr - enc.errors.psnr).abs() < 1e-9);
-        let fractile_codec::asset::Coding::Psa { header, stream } = &back.planes[0].coding else {
+        let fractile_codec::asset::Coding::Psa { header, stream } = &back.planes()[0].coding else {
             panic!("not a psa2d plane")
         };
         let mut params = fractile_codec::codecs::psa::decode_params(header, stream).unwrap();
@@ -893,7 +893,7 @@ fn piecewise_self_affine_surfaces_interpolate_real_data() {
 #[test]
 fn discrete_decoding_stops_at_its_a_posteriori_bound_and_the_bound_holds() {
     for asset in [small_camera_asset(), small_terrain_asset()] {
-        let op = &asset.planes[0].operator;
+        let op = &asset.planes()[0].operator;
         let (w, h) = (
             asset.meta.width as usize / 2,
             asset.meta.height as usize / 2,
@@ -1076,23 +1076,20 @@ fn rate_control_sizes_are_the_sizes_of_the_files() {
         .unwrap();
         let planes = e
             .asset
-            .planes
+            .planes()
             .iter()
             .map(|p| match &p.coding {
                 Coding::Quadtree { header, stream } => (header.clone(), stream.clone()),
                 _ => panic!("a quadtree asset"),
             })
             .collect();
-        let size = fractile_codec::encode::Coded::file_size_of(
-            &e.asset.meta,
-            planes,
-            e.asset.mask.as_ref(),
-        );
+        let size =
+            fractile_codec::encode::Coded::file_size_of(&e.asset.meta, planes, e.asset.mask());
         // The source-error map comes after what rate control sized.
         let map = e.asset.source_error.as_ref().unwrap().encode().len();
         assert_eq!(size + map, e.bytes.len());
         assert!(e.bpp() <= 1.0);
-        assert_eq!(e.asset.mask.is_some(), src.valid.is_some());
+        assert_eq!(e.asset.mask().is_some(), src.valid.is_some());
     }
 }
 
@@ -1218,7 +1215,11 @@ fn weighing_quantisers_keeps_the_closest_asset_within_the_target() {
         // The file says which quantiser it was coded with, and a reader decodes what was
         // reported.
         let (read, errors) = read_back(&src, &weighed.bytes);
-        assert_eq!(read.planes[0].header().unwrap().quantiser, best_q, "{name}");
+        assert_eq!(
+            read.planes()[0].header().unwrap().quantiser,
+            best_q,
+            "{name}"
+        );
         assert!((errors.rmse - best_rmse).abs() < 1e-9, "{name}");
         // Where the default step is not the best, weighing gains something real.
         assert!(best_q != base.quantiser, "{name}: the default step won");

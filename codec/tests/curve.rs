@@ -31,10 +31,7 @@ fn encode(lines: &[Polyline], tolerance: f64, fit: bool) -> Asset {
     let enc = fractile_codec::encode::curve::encode_asset(lines, &s, "coast5").unwrap();
     // What is served is what a reader of the file gets.
     let read = Asset::from_bytes(&enc.bytes).unwrap();
-    assert_eq!(
-        read.curve.as_ref().unwrap().set,
-        enc.asset.curve.as_ref().unwrap().set
-    );
+    assert_eq!(read.curves().unwrap().set, enc.asset.curves().unwrap().set);
     read
 }
 
@@ -43,7 +40,7 @@ fn tolerance_zero_reconstructs_every_input_vertex() {
     let lines = coast();
     for fit in [false, true] {
         let a = encode(&lines, 0.0, fit);
-        let set = &a.curve.as_ref().unwrap().set;
+        let set = &a.curves().unwrap().set;
         let out = set.at_level(set.finest());
         assert_eq!(out.lines.len(), lines.len());
         for (l, o) in lines.iter().zip(&out.lines) {
@@ -64,7 +61,7 @@ fn every_level_within_its_bound_and_the_finest_within_the_tolerance() {
     let lines = coast();
     let tol = 0.009;
     let a = encode(&lines, tol, true);
-    let c = a.curve.as_ref().unwrap();
+    let c = a.curves().unwrap();
     let set = &c.set;
     let finest = set.finest();
     for level in 0..=finest + 2 {
@@ -109,7 +106,7 @@ fn every_level_within_its_bound_and_the_finest_within_the_tolerance() {
 fn levels_past_the_source_keep_its_points_and_add_detail() {
     let lines = coast();
     let a = encode(&lines, 0.009, true);
-    let set = &a.curve.as_ref().unwrap().set;
+    let set = &a.curves().unwrap().set;
     let l = set.finest();
     for ring in &set.rings {
         let own = set.ring_level(ring, l);
@@ -170,8 +167,8 @@ fn older_curve_assets_are_refused_by_name() {
     let mut v5 = v9.clone();
     restamp(&mut v5, 5);
     assert_eq!(
-        Asset::from_bytes(&v5).unwrap().curve.unwrap().set,
-        Asset::from_bytes(&v9).unwrap().curve.unwrap().set
+        Asset::from_bytes(&v5).unwrap().curves().unwrap().set,
+        Asset::from_bytes(&v9).unwrap().curves().unwrap().set
     );
     // Version 5 added a source-error map after the payload (for rasters; a curve's is empty):
     // without its length field, the same bytes are a version-4 file.
@@ -181,15 +178,15 @@ fn older_curve_assets_are_refused_by_name() {
     current.drain(body..body + 4);
     restamp(&mut current, 4);
     assert_eq!(
-        Asset::from_bytes(&current).unwrap().curve.unwrap().set,
-        Asset::from_bytes(&v5).unwrap().curve.unwrap().set
+        Asset::from_bytes(&current).unwrap().curves().unwrap().set,
+        Asset::from_bytes(&v5).unwrap().curves().unwrap().set
     );
     // Version 4 only added antimeridian crossings: a version-3 curve asset (none) still reads.
     let mut v3 = current.clone();
     restamp(&mut v3, 3);
     assert_eq!(
-        Asset::from_bytes(&v3).unwrap().curve.unwrap().set,
-        Asset::from_bytes(&current).unwrap().curve.unwrap().set
+        Asset::from_bytes(&v3).unwrap().curves().unwrap().set,
+        Asset::from_bytes(&current).unwrap().curves().unwrap().set
     );
     for version in [1u8, 2] {
         let mut bytes = current.clone();
@@ -232,7 +229,7 @@ fn bad_polylines_get_clear_errors() {
 fn a_similarity_of_the_control_points_moves_the_whole_curve() {
     let lines = coast();
     let a = encode(&lines, 0.0, true);
-    let set = &a.curve.as_ref().unwrap().set;
+    let set = &a.curves().unwrap().set;
     // Rotate ring 0's control points by 90° about (0, 50), scale by 1.5, translate.
     let f = |p: Pt| [-(p[1] - 50.0) * 1.5 + 3.0, p[0] * 1.5 + 50.0 - 2.0];
     let points: Vec<Pt> = set.rings[0].base.iter().map(|&p| f(p)).collect();
@@ -253,7 +250,7 @@ fn a_similarity_of_the_control_points_moves_the_whole_curve() {
 fn detail_edits_touch_only_the_finer_levels() {
     let lines = coast();
     let a = encode(&lines, 0.0, false);
-    let set = &a.curve.as_ref().unwrap().set;
+    let set = &a.curves().unwrap().set;
     let finest = set.finest();
     let same = curve::deform::apply(
         set,
@@ -300,7 +297,7 @@ fn detail_edits_touch_only_the_finer_levels() {
 fn a_local_edit_moves_the_point_and_its_neighbours_only() {
     let lines = coast();
     let a = encode(&lines, 0.0, false);
-    let set = &a.curve.as_ref().unwrap().set;
+    let set = &a.curves().unwrap().set;
     let level = set.finest() - 3;
     let before = set.at_level(level).lines[0].clone();
     let to = [before[5][0] + 0.5, before[5][1] + 0.25];
@@ -376,7 +373,7 @@ fn moved(l: &Polyline, by: f64) -> Polyline {
 /// with the jump around the world where the source has it. Returns the payload bytes.
 fn check_across_the_antimeridian(l: &Polyline, tol: f64) -> usize {
     let a = encode(std::slice::from_ref(l), tol, false);
-    let c = a.curve.as_ref().unwrap();
+    let c = a.curves().unwrap();
     let src = closed(l);
     let set = &c.set;
     // Sampled every tol/4 along segments (the jumps around the world are long).

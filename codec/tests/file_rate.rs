@@ -123,7 +123,7 @@ fn a_rate_files_first_overviews_are_views_of_its_source_chunks() {
             bounded: false,
         },
     );
-    let chunks = enc.asset.chunks.as_ref().expect("chunked");
+    let chunks = enc.asset.chunked().expect("chunked");
     let t = &chunks.table;
     assert_eq!((t.levels.len(), t.views.len()), (4, 2));
     assert!(t.is_view(1) && t.is_view(2) && !t.is_view(3));

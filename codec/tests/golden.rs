@@ -63,10 +63,10 @@ fn every_format_version_is_read_as_it_was_written() {
         // version 9 numbers both containers (the pyramid's details in two-rate contexts).
         let raster = matches!(asset.meta.kind, AssetKind::Image | AssetKind::HeightField);
         let chunked = name.contains("chunked");
-        assert_eq!(asset.chunks.is_some(), chunked, "{name}");
+        assert_eq!(asset.chunked().is_some(), chunked, "{name}");
         // Versions 6 to 8 are chunked only, 1 to 5 never.
         assert!(version >= 9 || chunked == (version >= 6), "{name}");
-        if let Some(c) = &asset.chunks {
+        if let Some(c) = &asset.chunked() {
             // Version 7 viewed one level, version 8 views two below a coded one.
             let views = match () {
                 _ if !name.contains("views") => 0,
@@ -91,7 +91,7 @@ fn every_format_version_is_read_as_it_was_written() {
         if name.contains("projected") {
             use fractile_codec::asset::Coding;
             use fractile_codec::codecs::projected::pyramid::Order;
-            let Coding::Projected { header, .. } = &asset.planes[0].coding else {
+            let Coding::Projected { header, .. } = &asset.planes()[0].coding else {
                 panic!("{name}: not a projected plane");
             };
             let want = match () {
@@ -104,10 +104,10 @@ fn every_format_version_is_read_as_it_was_written() {
         }
         // A chunked file of version 9 holds chunks of version 9, whose pyramids are coded in
         // two-rate contexts; those of 6 to 8, chunks of version 5.
-        if let Some(c) = &asset.chunks {
+        if let Some(c) = &asset.chunked() {
             use fractile_codec::asset::Coding;
             let chunk = c.chunk(0, 0).unwrap().expect("a chunk with cells");
-            let Coding::Projected { header, .. } = &chunk.planes[0].coding else {
+            let Coding::Projected { header, .. } = &chunk.planes()[0].coding else {
                 panic!("{name}: not a projected chunk");
             };
             if header.order.lifting().is_none() {
@@ -132,7 +132,11 @@ fn every_format_version_is_read_as_it_was_written() {
                 // overlaps counted in both neighbours; in rate mode a chunk's edge cells carry
                 // more error than its inside, so the written figure is the lower (by 0.17 dB
                 // for chunks of 128 with an overlap of 4, measured).
-                let over = if asset.chunks.is_some() { 0.25 } else { 0.05 };
+                let over = if asset.chunked().is_some() {
+                    0.25
+                } else {
+                    0.05
+                };
                 assert!(
                     e.psnr - written > -0.05 && e.psnr - written < over,
                     "{name}: decodes to {:.3} dB, written at {written:.3} dB",
@@ -150,7 +154,7 @@ fn every_format_version_is_read_as_it_was_written() {
             AssetKind::Curve => {
                 let text = std::fs::read_to_string(data(source(&name))).unwrap();
                 let lines = fractile_codec::codecs::curve::geojson::read(&text).unwrap();
-                let set = &asset.curve.as_ref().unwrap().set;
+                let set = &asset.curves().unwrap().set;
                 // As a user gets it: GeoJSON of the finest level, one line per input ring with
                 // its points.
                 let doc = fractile_codec::codecs::curve::geojson::write(

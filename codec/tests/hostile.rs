@@ -96,7 +96,7 @@ fn a_flat_large_frame_in_a_few_ranges_is_read() {
         )
     };
     let asset = Asset::from_bytes(&flat).expect("a flat large frame is a valid asset");
-    assert_eq!(asset.planes[0].operator.transforms(), 4);
+    assert_eq!(asset.planes()[0].operator.transforms(), 4);
     // And the same claim with an empty stream is not.
     assert!(Asset::from_bytes(&frame_bomb(4096, 4, 11, Vec::new())).is_err());
 }

@@ -88,7 +88,7 @@ fn around_the_peak(r: &Raster, side: usize) -> [usize; 4] {
 fn check(r: &Raster, name: &str, chunk: u32, side: usize) {
     for chunked in [None, Some(chunk)] {
         let a = encode(r, chunked);
-        assert_eq!(a.chunks.is_some(), chunked.is_some());
+        assert_eq!(a.chunked().is_some(), chunked.is_some());
         let e = reported(r, &a);
         let what = format!(
             "{name} ({})",

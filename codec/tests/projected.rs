@@ -104,7 +104,7 @@ fn a_corrupt_or_truncated_stream_is_an_error() {
             &|_, _| {},
         )
         .expect("encode");
-        let Coding::Projected { header, stream } = &enc.asset.planes[0].coding else {
+        let Coding::Projected { header, stream } = &enc.asset.planes()[0].coding else {
             panic!("a projected plane");
         };
         let meta = enc.asset.meta.clone();
@@ -422,7 +422,7 @@ fn error_bounds_hold_and_are_tight_at_random_cell_centres() {
             let tolerance = asset.default_tolerance();
             let smallest = asset.source_error.as_ref().and_then(|m| m.smallest());
             // (or of the promise at sample centres, where that is smaller)
-            let promise = asset.planes[0].promise().unwrap_or(f32::INFINITY);
+            let promise = asset.planes()[0].promise().unwrap_or(f32::INFINITY);
             assert_eq!(
                 tolerance,
                 (0.5f32).max(smallest.expect("a map").min(promise) / 8.0),
@@ -469,13 +469,13 @@ fn error_bounds_hold_and_are_tight_at_random_cell_centres() {
                 assert_eq!(read.codec_name(), "projected", "{name}");
                 assert_eq!(default.bytes.len(), enc.bytes.len(), "{name}");
                 assert_eq!(
-                    read.planes[0].promise(),
-                    asset.planes[0].promise(),
+                    read.planes()[0].promise(),
+                    asset.planes()[0].promise(),
                     "{name}"
                 );
                 // The rate is kept, and the bound found is the one the asset keeps.
                 assert!(enc.bpp() <= 0.8, "{name} {label}: {} bpp", enc.bpp());
-                let promise = asset.planes[0]
+                let promise = asset.planes()[0]
                     .promise()
                     .expect("a bounded encode promises");
                 assert!(
@@ -504,8 +504,8 @@ fn colour_images_code_as_luma_and_chroma_at_the_resolution_that_codes_better() {
         )
         .expect("encode");
         let asset = Asset::from_bytes(&enc.bytes).expect("read back");
-        assert_eq!(asset.planes.len(), 3);
-        let Coding::Projected { header, .. } = &asset.planes[1].coding else {
+        assert_eq!(asset.planes().len(), 3);
+        let Coding::Projected { header, .. } = &asset.planes()[1].coding else {
             panic!("projected chroma");
         };
         // Half-resolution chroma codes better at low rates, full resolution at high ones

@@ -221,7 +221,7 @@ fn a_plane_codec_tells_a_bad_header_from_a_bad_stream() {
                 .map(|_| ());
             (header, stream)
         }
-        let (header, stream) = match &enc.asset.planes[0].coding {
+        let (header, stream) = match &enc.asset.planes()[0].coding {
             Coding::Quadtree { header, stream } => both(header, stream, &meta, &wider),
             Coding::Fis { header, stream } => both(header, stream, &meta, &wider),
             Coding::Psa { header, stream } => both(header, stream, &meta, &wider),

@@ -119,7 +119,7 @@ fn a_chunked_encode_streamed_from_a_file_writes_what_the_encode_in_memory_does()
         bytes == in_memory.bytes,
         "a streamed encode wrote other bytes"
     );
-    let table = &written.asset.chunks.as_ref().unwrap().table;
+    let table = &written.asset.chunked().unwrap().table;
     assert!(table.levels.len() >= 3, "overviews");
     assert_eq!(written.errors.rmse, in_memory.errors.rmse);
     // Nothing but the output is left beside it (the spilled chunks were in an unnamed file).

@@ -90,10 +90,7 @@ fn the_asset_file_round_trips_and_rejects_corruption() {
     let e = encoded();
     let back = Asset::from_bytes(&e.bytes).unwrap();
     assert_eq!(back.codec_name(), "ifs3d-octree");
-    let (a, b) = (
-        e.asset.volume.as_ref().unwrap(),
-        back.volume.as_ref().unwrap(),
-    );
+    let (a, b) = (e.asset.volume().unwrap(), back.volume().unwrap());
     assert_eq!(a.operator.leaves(), b.operator.leaves());
     assert_eq!(a.placement, b.placement);
     assert_eq!(back.to_bytes(), e.bytes);
@@ -219,7 +216,7 @@ fn point_distances_match_the_field_and_carry_their_bound() {
         last = s.error_bound;
     }
     // Outside the grid: no answer; far from the mesh inside the grid: the clamped band.
-    let v = e.asset.volume.as_ref().unwrap();
+    let v = e.asset.volume().unwrap();
     let (glo, _) = v.bounds();
     let out = e
         .asset

@@ -23,7 +23,7 @@ fn main() {
         ..QuadtreeSettings::default()
     };
     let asset = encode(&r, &s, &|_, _| {}).expect("encode").asset;
-    let op = &asset.planes[0].operator;
+    let op = &asset.planes()[0].operator;
     let n = 10;
     // `-- host`: the small dispatches alone (the rest takes minutes on a software adapter).
     // `-- volume`: the 3D box alone.
@@ -66,7 +66,7 @@ fn main() {
     // The CPU's own path for a window, what the server and `fractile decode` take: the grid
     // decoder (blocks of points that step together) on bands of 16 rows, on every core. Its
     // time is the baseline of the values-only readback below, the faster of the two CPU paths.
-    let plane = &asset.planes[0].operator;
+    let plane = &asset.planes()[0].operator;
     let (xs, ys) = decode::window_axes([0.0, 0.0, 1.0, 1.0], side as usize, side as usize);
     let t = Instant::now();
     let got: usize = ys
@@ -195,7 +195,7 @@ fn volume_box(gpu: &Result<Gpu, fractile_gpu::GpuError>, n: u32) {
     let vol = fractile_codec::encode::volume::encode_mesh(&mesh, &s, "bench")
         .expect("encode")
         .asset;
-    let vop = &vol.volume.as_ref().expect("volume").operator;
+    let vop = &vol.volume().expect("volume").operator;
     let dims = [256usize; 3];
     let t = Instant::now();
     let (v, _) = decode::volume_window(vop, [0.0; 3], [1.0; 3], dims, n, 0.0);

@@ -116,7 +116,7 @@ fn points_agree_on_images_and_dems_for_every_codec() {
         ),
     ];
     for (name, asset, n) in &assets {
-        let op = &asset.planes[0].operator;
+        let op = &asset.planes()[0].operator;
         // As the server uploads (the projected codec as a lattice that ends on its samples).
         let dev = gpu.upload_flat(&op.flat()).unwrap();
         // Sizes: a few points, an odd count, and more than one chunk.
@@ -136,7 +136,7 @@ fn points_agree_on_images_and_dems_for_every_codec() {
 fn windows_and_reprojected_tiles_agree_with_the_cpu() {
     let mut gpu = gpu();
     let asset = quadtree("jacksboro.tif", 1.0);
-    let op = &asset.planes[0].operator;
+    let op = &asset.planes()[0].operator;
     let dev = gpu.upload(&op.pieces()).unwrap();
     // A window at 300 x 200 (the kernel makes the points), dispatched in chunks of 7,000.
     gpu.set_chunk(7_000);
@@ -213,7 +213,7 @@ fn windows_and_reprojected_tiles_agree_with_the_cpu() {
 fn values_only_readback_is_the_full_readback_reduced() {
     let mut gpu = gpu();
     let asset = quadtree("jacksboro.tif", 1.0);
-    let op = &asset.planes[0].operator;
+    let op = &asset.planes()[0].operator;
     let dev = gpu.upload(&op.pieces()).unwrap();
     gpu.set_chunk(5_000);
     for grid in [
@@ -257,7 +257,7 @@ fn concurrent_small_grids_share_rounds_and_answer_as_alone() {
     let assets = [quadtree("jacksboro.tif", 1.0), quadtree("camera.png", 0.5)];
     let devs: Vec<_> = assets
         .iter()
-        .map(|a| gpu.upload(&a.planes[0].operator.pieces()).unwrap())
+        .map(|a| gpu.upload(&a.planes()[0].operator.pieces()).unwrap())
         .collect();
     // Tiles of different sizes and places, each with its operator and tolerance.
     let jobs: Vec<(usize, Grid, f32)> = (0..12)
@@ -364,7 +364,7 @@ fn dyadic_grids_and_points_on_cell_boundaries_agree_with_the_cpu() {
         ),
     ];
     for (name, asset, n) in &assets {
-        let op = &asset.planes[0].operator;
+        let op = &asset.planes()[0].operator;
         // As the server uploads: the projected codec as a lattice built directly.
         let dev = gpu.upload_flat(&op.flat()).unwrap();
         let (w, h) = (asset.meta.width as usize, asset.meta.height as usize);
@@ -446,7 +446,7 @@ fn volume_points_and_boxes_agree_with_the_cpu() {
             ..MeshSettings::default()
         };
         let asset = encode_mesh(&mesh, &s, file).unwrap().asset;
-        let op = &asset.volume.as_ref().unwrap().operator;
+        let op = &asset.volume().unwrap().operator;
         let dev = gpu.upload_volume(op).unwrap();
         // Scattered points in the unit cube, one chunk and several.
         for (count, chunk) in [(5usize, 1 << 22), (20_001, 1 << 22), (50_000, 12_345)] {

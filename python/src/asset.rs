@@ -93,7 +93,7 @@ impl Asset {
         d.set_item("channels", m.channels)?;
         d.set_item("kind", kind_name(m.kind))?;
         d.set_item("codec", self.asset.codec_name())?;
-        d.set_item("chunked", self.asset.chunks.is_some())?;
+        d.set_item("chunked", self.asset.chunked().is_some())?;
         d.set_item("units", m.units.clone())?;
         d.set_item("value_range", (m.value_min, m.value_max))?;
         d.set_item("nodata", m.nodata)?;
@@ -134,7 +134,7 @@ impl Asset {
             None => None,
         };
         d.set_item("transform", t)?;
-        let nodata = (m.nodata.is_some() || self.asset.mask.is_some()).then_some(f64::NAN);
+        let nodata = (m.nodata.is_some() || self.asset.mask().is_some()).then_some(f64::NAN);
         d.set_item("nodata", nodata)?;
         Ok(d)
     }
@@ -315,7 +315,7 @@ impl Asset {
             m.height,
             kind_name(m.kind),
             self.asset.codec_name(),
-            if self.asset.chunks.is_some() {
+            if self.asset.chunked().is_some() {
                 ", chunked"
             } else {
                 ""

@@ -170,7 +170,7 @@ fn report<'py>(py: Python<'py>, w: &Written) -> PyResult<Bound<'py, PyDict>> {
     d.set_item("rmse", w.errors.rmse)?;
     d.set_item("max_error", w.errors.max_error)?;
     d.set_item("seconds", w.seconds)?;
-    d.set_item("chunked", w.asset.chunks.is_some())?;
+    d.set_item("chunked", w.asset.chunked().is_some())?;
     Ok(d)
 }
 

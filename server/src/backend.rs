@@ -111,7 +111,7 @@ impl GpuBackend {
         match choice {
             Backend::Cpu => false,
             Backend::Gpu => true,
-            Backend::Auto => auto_takes(self.software, a.asset.chunks.is_some(), points),
+            Backend::Auto => auto_takes(self.software, a.asset.chunked().is_some(), points),
         }
     }
 
@@ -174,7 +174,7 @@ impl GpuBackend {
         iterations: u32,
         tolerance: f32,
     ) -> Option<(Vec<f32>, f32)> {
-        let volume = a.asset.volume.as_ref()?;
+        let volume = a.asset.volume()?;
         let op = self.resident(a, (None, usize::MAX), || {
             self.gpu.upload_volume(&volume.operator)
         })?;

@@ -203,7 +203,7 @@ impl Store {
             return Err(bad_asset(fractile_codec::Error::asset(e.to_string())));
         }
         // A chunked upload is checked whole: a file is stored only when every chunk is sound.
-        if let Some(c) = &stored.asset.chunks {
+        if let Some(c) = &stored.asset.chunked() {
             c.verify().map_err(bad_asset)?;
         }
         let stored = Arc::new(stored);
@@ -215,7 +215,7 @@ impl Store {
         // A chunked upload is served from where it is stored, read by range as any replica
         // reads it, not from the upload's bytes: the server's memory stays bounded by its
         // caches, not by what was uploaded to it. Should that read fail, the bytes serve.
-        let stored = match &stored.asset.chunks {
+        let stored = match &stored.asset.chunked() {
             Some(_) => match load_from(
                 self.backing.as_ref(),
                 id,
@@ -341,7 +341,7 @@ impl Store {
         let assets: Vec<Arc<StoredAsset>> = self
             .list()
             .into_iter()
-            .filter(|a| a.asset.chunks.is_some())
+            .filter(|a| a.asset.chunked().is_some())
             .collect();
         if assets.is_empty() {
             return;
@@ -352,7 +352,7 @@ impl Store {
             .spawn(move || {
                 let t = std::time::Instant::now();
                 for a in assets {
-                    if let Some(c) = &a.asset.chunks {
+                    if let Some(c) = &a.asset.chunked() {
                         let (n, bytes) = c.prefetch(budget);
                         tracing::info!(
                             "prefetched {n} chunks of {} ({} MiB) in {:.1} s",
@@ -503,7 +503,7 @@ fn load_from(
     }
     let size = source.len();
     let asset = Asset::open_chunked(source, limits, chunks.clone()).map_err(|e| what(&e))?;
-    let crc = asset.chunks.as_ref().map_or(0, |c| c.header_crc);
+    let crc = asset.chunked().map_or(0, |c| c.header_crc);
     Ok(stored(id, asset, size, crc))
 }
 
@@ -523,8 +523,7 @@ pub(crate) fn load(
     };
     // A chunked file's header checksum covers its table, which holds every chunk's.
     let hash = asset
-        .chunks
-        .as_ref()
+        .chunked()
         .map_or_else(|| crc32(bytes), |c| c.header_crc);
     Ok(stored(id, asset, bytes.len() as u64, hash))
 }

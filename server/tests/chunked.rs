@@ -42,7 +42,7 @@ fn write_assets() -> std::path::PathBuf {
     std::fs::write(dir.join("single.fra"), one(&r).unwrap().bytes).unwrap();
     let chunked = encode_chunked(&r, 256, &one, &|_, _| {}).unwrap();
     std::fs::write(dir.join("chunked.fra"), &chunked.bytes).unwrap();
-    let last = chunked.asset.chunks.as_ref().unwrap().table.levels[0]
+    let last = chunked.asset.chunked().unwrap().table.levels[0]
         .chunks
         .last()
         .unwrap()
@@ -71,7 +71,7 @@ fn floats(b: &[u8]) -> Vec<f32> {
 async fn tiles_across_chunk_edges_agree_with_the_whole_asset_within_their_bounds() {
     let st = state();
     let a = st.store.get("chunked").unwrap();
-    assert!(a.asset.chunks.is_some(), "served chunked");
+    assert!(a.asset.chunked().is_some(), "served chunked");
     // Zoom 3, tile (1, 3) spans -135 to -90 degrees: the chunk edge at -94.67 crosses it
     // (and the equator's chunk edge at 256 rows is near its north). Zoom 2 is coarser than
     // the source (its pixels from level 0 still); zoom 5 deeper.
@@ -144,7 +144,7 @@ fn an_upload_with_a_corrupt_chunk_is_refused_whole() {
     };
     assert_eq!(std::fs::read(uploads.join("etopo.fra")).unwrap(), sound);
     // Served from the stored file by range, not from the upload's bytes held in memory.
-    let source = format!("{:?}", served.asset.chunks.as_ref().unwrap());
+    let source = format!("{:?}", served.asset.chunked().unwrap());
     assert!(source.contains("etopo.fra"), "{source}");
 }
 
@@ -277,7 +277,7 @@ async fn coarse_pixels_of_a_chunked_asset_share_cached_grids() {
 fn crafted_chunk_tables_are_refused_at_upload() {
     let sound = std::fs::read(dir().join("chunked.fra")).unwrap();
     let asset = fractile_codec::Asset::from_bytes(&sound).unwrap();
-    let c = asset.chunks.as_ref().unwrap();
+    let c = asset.chunked().unwrap();
     // Every chunk's file, by level and index.
     type Files = Vec<Vec<Vec<u8>>>;
     let files: Files = fractile_codec::chunked::chunk_files(&c.table, &sound);

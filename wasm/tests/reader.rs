@@ -62,7 +62,7 @@ fn tiles_read_by_range_are_the_whole_files_answers() {
     };
     let whole = Asset::from_bytes(&bytes).unwrap();
     assert_eq!(meta, whole.meta);
-    assert!(whole.chunks.is_some(), "the golden file is chunked");
+    assert!(whole.chunked().is_some(), "the golden file is chunked");
     let g = whole.meta.georef.as_ref().unwrap();
     let placement = Placement::of(g, whole.meta.width, whole.meta.height).unwrap();
     let tiles = tiles(&r);
@@ -160,7 +160,7 @@ fn a_zoom_zero_tile_reads_an_eighth_of_the_file_at_most() {
         .unwrap()
         .bytes;
     let asset = Asset::from_bytes(&bytes).unwrap();
-    let table = &asset.chunks.as_ref().unwrap().table;
+    let table = &asset.chunked().unwrap().table;
     assert_eq!((table.levels.len(), table.views.len()), (4, 2));
     let mut reader = Reader::new(bytes.len() as u64, 64 << 20);
     let opened = loop {

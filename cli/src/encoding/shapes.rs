@@ -118,7 +118,7 @@ pub(crate) fn encode_curve(a: &EncodeArgs) -> Result<()> {
     let enc = fractile_codec::encode::curve::encode_asset(&lines, &settings, &name)?;
     bar.finish();
     fractile_codec::asset::write_atomic(&a.output, &enc.bytes)?;
-    let set = &enc.asset.curve.as_ref().expect("a curve asset").set;
+    let set = &enc.asset.curves().expect("a curve asset").set;
     let m = &enc.asset.meta;
     let report = json!({
         "input": input, "output": a.output, "codec": enc.asset.codec_name(),

@@ -127,7 +127,7 @@ pub(crate) fn measure(asset: &Asset, source: &Raster, budget: usize) -> SourceEr
 /// answer between lattice points has no closed form), and for colour (a projected image's
 /// planes are luma and chroma, not the source's channels).
 fn proven(asset: &Asset, source: &Raster) -> Option<Vec<f32>> {
-    let [plane] = asset.planes.as_slice() else {
+    let [plane] = asset.planes() else {
         return None;
     };
     let PlaneOperator::Projected(op) = &plane.operator else {

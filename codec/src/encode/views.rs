@@ -53,7 +53,7 @@ pub(super) fn viewed(header: &Header, encode: &EncodeLevel<'_>) -> bool {
     };
     let projected = |e: &Encoded| {
         e.asset
-            .planes
+            .planes()
             .iter()
             .all(|p| matches!(p.coding, crate::io::asset::Coding::Projected { .. }))
     };
@@ -77,7 +77,7 @@ pub(super) fn view_maps(enc: &Encoded, part: &Raster, views: usize) -> Result<Ve
     use crate::codecs::projected::lifting;
     let bytes = enc.asset.to_bytes();
     let Some(crate::io::asset::Coding::Projected { header, .. }) =
-        enc.asset.planes.first().map(|p| &p.coding)
+        enc.asset.planes().first().map(|p| &p.coding)
     else {
         return Ok(Vec::new());
     };

@@ -405,7 +405,7 @@ impl crate::Asset {
     /// chunks with no valid cell). A reader that fetches by range (a browser over HTTP) asks
     /// for these all at once before answering, instead of one round trip a chunk.
     pub fn chunk_ranges(&self, pixels: &Pixels) -> Vec<(u64, u64)> {
-        let Some(c) = &self.chunks else {
+        let Some(c) = self.chunked() else {
             return Vec::new();
         };
         let (level, parts) = c.split(&self.meta, pixels);
@@ -420,7 +420,7 @@ impl crate::Asset {
 
     /// [`Self::chunk_ranges`] of points (unit coordinates), which source chunks answer.
     pub fn point_chunk_ranges(&self, pts: &[[f32; 2]]) -> Vec<(u64, u64)> {
-        let Some(c) = &self.chunks else {
+        let Some(c) = self.chunked() else {
             return Vec::new();
         };
         let [ax, ay] = c.axes(&self.meta, 0);

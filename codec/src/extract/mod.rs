@@ -275,27 +275,27 @@ impl Asset {
 
     /// Largest |s| over every map, for choosing iteration counts.
     pub fn max_contrast(&self) -> f32 {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             return c.table.max_contrast;
         }
-        self.planes
+        self.planes()
             .iter()
             .map(|p| p.operator.max_contrast())
-            .chain(self.volume.iter().map(|v| v.operator.max_contrast()))
+            .chain(self.volume().iter().map(|v| v.operator.max_contrast()))
             .fold(0.0, f32::max)
     }
 
     /// A-priori bound (source units) after `n` iterations everywhere, from the largest |s|.
     pub fn bound_after(&self, n: u32) -> f32 {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             // The largest chunk's bound at n is at most max |s|^n times the largest seed bound.
             return c.table.max_contrast.powi(n as i32) * c.table.seed_bound;
         }
         let half = self
-            .planes
+            .planes()
             .iter()
             .map(|p| p.operator.invariant_interval())
-            .chain(self.volume.iter().map(|v| {
+            .chain(self.volume().iter().map(|v| {
                 use crate::core::operator::Operator;
                 v.operator.invariant_interval()
             }))
@@ -325,7 +325,7 @@ impl Asset {
                     self.meta.value_min,
                     self.meta.value_max - self.meta.value_min,
                 );
-                let onto = match self.planes.as_slice() {
+                let onto = match self.planes() {
                     [p] => match &p.coding {
                         crate::io::asset::Coding::Projected { header, .. } => {
                             header.delivered_quantum()
@@ -362,8 +362,7 @@ impl Asset {
         // A footprint (a box holding every point) with no nodata cell under it skips the
         // per-point lookups.
         let mask = self
-            .mask
-            .as_ref()
+            .mask()
             .filter(|m| !footprint.is_some_and(|f| m.all_valid(f)));
         if let Some(mask) = mask {
             // Once for every channel; in chunks of 16k points, so that a tile is a few tasks
@@ -395,11 +394,11 @@ impl Asset {
         height: usize,
         opts: DiscreteOptions,
     ) -> (Decoded, DiscreteReport) {
-        if self.chunks.is_some() {
+        if self.chunked().is_some() {
             return self.decode_chunked(width, height, opts);
         }
         let results: Vec<(Grid, DiscreteReport)> = self
-            .planes
+            .planes()
             .iter()
             .map(|p| self.discrete(&p.operator, width, height, opts))
             .collect();

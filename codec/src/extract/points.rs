@@ -12,12 +12,12 @@ use super::*;
 impl Asset {
     /// Continuous decoding of one unit point (u, v) with `iterations` inverse steps.
     pub fn point(&self, u: f32, v: f32, iterations: u32) -> PointSample {
-        if self.chunks.is_some() {
+        if self.chunked().is_some() {
             return self.points(&[[u, v]], iterations, 0.0).remove(0);
         }
         let [u, v] = self.snap_to_samples(&[[u, v]]).map_or([u, v], |p| p[0]);
         let pv: Vec<_> = self
-            .planes
+            .planes()
             .iter()
             .map(|p| {
                 let mut r = p.operator.point([u, v], iterations);
@@ -47,7 +47,7 @@ impl Asset {
     /// what the asset codes there (within its promise, under `--max-error`). `None`: no such
     /// asset.
     pub(super) fn snap_to_samples(&self, pts: &[[f32; 2]]) -> Option<Vec<[f32; 2]>> {
-        self.planes.first()?.operator.samples()?;
+        self.planes().first()?.operator.samples()?;
         let (w, h) = (self.meta.width, self.meta.height);
         Some(
             pts.iter()
@@ -59,7 +59,7 @@ impl Asset {
     /// [`Self::snap_to_samples`] of a raster's pixels (the points of patches stay as they are:
     /// they are off the centres of the source's grid).
     pub(super) fn snap_pixels(&self, pixels: &Pixels) -> Option<Pixels> {
-        self.planes.first()?.operator.samples()?;
+        self.planes().first()?.operator.samples()?;
         let (w, h) = (self.meta.width, self.meta.height);
         let axis = |ts: &[Option<f32>], n: u32| -> Vec<Option<f32>> {
             ts.iter().map(|t| t.map(|t| snap_axis(t, n))).collect()
@@ -107,8 +107,8 @@ impl Asset {
             .source_error
             .as_ref()
             .and_then(|map| map.smallest())
-            .or_else(|| self.chunks.as_ref()?.table.smallest_source_error)
-            .map(|e| match self.planes.first().and_then(|p| p.promise()) {
+            .or_else(|| self.chunked()?.table.smallest_source_error)
+            .map(|e| match self.planes().first().and_then(|p| p.promise()) {
                 Some(p) => e.min(p),
                 None => e,
             })
@@ -145,7 +145,7 @@ impl Asset {
             (x - x.round()).abs() < f64::from(sample_snap(n))
         };
         let promise = self
-            .planes
+            .planes()
             .first()
             .and_then(|p| p.promise())
             .filter(|_| on_sample(u, self.meta.width) && on_sample(v, self.meta.height));
@@ -189,14 +189,14 @@ impl Asset {
         tolerance: f32,
         continuous: &ChainDevice<'_>,
     ) -> Result<Vec<PointSample>, crate::Error> {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             return c.points(&self.meta, pts, (iterations, tolerance), continuous);
         }
         let tol = tolerance / self.span().max(f32::MIN_POSITIVE);
         let snapped = self.snap_to_samples(pts);
         let pts = snapped.as_deref().unwrap_or(pts);
         let per_plane: Vec<Vec<decode::PointValue>> = self
-            .planes
+            .planes()
             .iter()
             .enumerate()
             .map(|(k, p)| {

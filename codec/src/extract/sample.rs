@@ -30,7 +30,7 @@ impl Asset {
             && (v1 - v0).abs() * self.meta.height as f32 <= height as f32;
         if fine {
             let (xs, ys) = decode::window_axes(rect, width, height);
-            for (p, values) in self.planes.iter().zip(planes.iter_mut()) {
+            for (p, values) in self.planes().iter().zip(planes.iter_mut()) {
                 p.operator.limit_grid(&xs, &ys, values);
             }
         }
@@ -66,7 +66,7 @@ impl Asset {
         method: Method,
     ) -> Result<(Decoded, Method), crate::Error> {
         self.check_read(width, height, &crate::AssetLimits::default())?;
-        if self.chunks.is_some() {
+        if self.chunked().is_some() {
             let rect = window.unwrap_or([0.0, 0.0, 1.0, 1.0]);
             let channels = self
                 .chunked_window(rect, width, height, iterations, &|_, _, _, _| None)
@@ -187,7 +187,7 @@ impl Asset {
         (iterations, method): (Option<u32>, Method),
         continuous: &ChainDevice<'_>,
     ) -> (Decoded, Method) {
-        if self.chunks.is_some() {
+        if self.chunked().is_some() {
             // A chunk that cannot be read leaves the window NaN here; `raster` says why.
             let channels = self
                 .chunked_window(rect, width, height, iterations, continuous)
@@ -205,7 +205,7 @@ impl Asset {
         }
         let mut chosen = method;
         let planes = self
-            .planes
+            .planes()
             .iter()
             .map(|p| {
                 let (g, m) = decode::window(&p.operator, rect, width, height, iterations, method);
@@ -241,7 +241,7 @@ impl Asset {
     /// answer against the source filtered the same way. Fails where a chunk of a chunked
     /// asset under the pixels cannot be read (its map is in the chunk).
     pub fn source_error_over(&self, pixels: &Pixels) -> Result<Option<f32>, crate::Error> {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             return c.source_error_over(&self.meta, pixels);
         }
         Ok(self.source_error_map_over(pixels))
@@ -292,12 +292,12 @@ impl Asset {
         iterations: u32,
         tolerance: f32,
     ) -> Vec<(Grid, DiscreteReport)> {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             // Coarse pixels of a chunked asset are filtered from its top level, one chunk.
             return c.top_discrete_planes(width, height, iterations, tolerance);
         }
         let opts = DiscreteOptions::within(tolerance, iterations);
-        self.planes
+        self.planes()
             .iter()
             .map(|p| self.discrete(&p.operator, width, height, opts))
             .collect()
@@ -317,7 +317,7 @@ impl Asset {
         tolerance: f32,
         resources: &Resources<'_>,
     ) -> Result<(Vec<Vec<f32>>, f32), SampleError> {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             return c.sample(&self.meta, pixels, (iterations, tolerance), resources);
         }
         let snapped = self.snap_pixels(pixels);
@@ -345,8 +345,8 @@ impl Asset {
             coarse_bound = bound;
             planes
         } else {
-            let mut planes = Vec::with_capacity(self.planes.len());
-            for k in 0..self.planes.len() {
+            let mut planes = Vec::with_capacity(self.planes().len());
+            for k in 0..self.planes().len() {
                 let (values, bound) = self
                     .continuous_plane(k, &inside, (iterations, tol), resources)?
                     .into_values();
@@ -420,7 +420,7 @@ impl Asset {
             && [gw, gh] == native
         {
             let samples: Option<Vec<&[f32]>> = self
-                .planes
+                .planes()
                 .iter()
                 .map(|p| p.operator.samples().filter(|z| z.len() == gw * gh))
                 .collect();
@@ -510,7 +510,7 @@ impl Asset {
                 Ok(())
             }
         };
-        let p = &self.planes[k];
+        let p = &self.planes()[k];
         Ok(match inside {
             Inside::Grid { ix, iy, .. } => {
                 if let Some(values) = self.on_samples(&p.operator, ix, iy) {

@@ -30,8 +30,7 @@ pub const MAX_SAMPLES: usize = 1 << 27;
 
 impl Asset {
     fn volume_or_err(&self) -> Result<&Volume, Error> {
-        self.volume
-            .as_ref()
+        self.volume()
             .ok_or_else(|| Error::settings("this asset is not a volume"))
     }
 

@@ -37,25 +37,38 @@ struct VolumePayload {
     placement: crate::codecs::ifs3d::volume::Placement,
 }
 
-/// A decoded asset file: metadata, planes with their operators, and the nodata mask.
+/// A decoded asset file: metadata, and what it holds (one [`Body`]).
 #[derive(Clone, Debug)]
 pub struct Asset {
     /// What the asset is.
     pub meta: AssetMeta,
-    /// One plane per coded channel (Y, Cb, Cr for colour).
-    pub planes: Vec<Plane>,
-    /// Source validity, for height fields with nodata.
-    pub mask: Option<Mask>,
-    /// The coded volume, for volume assets (which have no planes).
-    pub volume: Option<crate::codecs::ifs3d::volume::Volume>,
-    /// The coded curves, for curve assets (which have no planes).
-    pub curve: Option<crate::codecs::curve::Curves>,
+    /// What it holds: planes, chunks, a volume or curves; answers go by this one type, as
+    /// martin's sources answer `get_tile` (an asset with planes and a volume at once is not
+    /// made).
+    pub body: Body,
     /// Each block's measured error against the source (format version 5 on; `None` in older
     /// files and for volumes and curves): what answers' `error_bound` adds to convergence.
     pub source_error: Option<SourceError>,
-    /// The chunks of a chunked asset (format version 6), read and decoded on demand; such an
-    /// asset has no planes of its own, and its answers are its chunks' (`extract::chunked`).
-    pub chunks: Option<Arc<Chunked>>,
+}
+
+/// What an [`Asset`] holds.
+#[derive(Clone, Debug)]
+pub enum Body {
+    /// One plane per coded channel (Y, Cb, Cr for colour), and the source's validity where it
+    /// had nodata.
+    Planes {
+        /// The planes with their operators.
+        planes: Vec<Plane>,
+        /// Source validity, for height fields with nodata.
+        mask: Option<Mask>,
+    },
+    /// The chunks of a chunked asset (format version 6), read and decoded on demand; its
+    /// answers are its chunks' (`extract::chunked`).
+    Chunked(Arc<Chunked>),
+    /// A coded volume.
+    Volume(crate::codecs::ifs3d::volume::Volume),
+    /// Coded curves.
+    Curves(crate::codecs::curve::Curves),
 }
 
 // The chunked container's own state and the cache of its decoded chunks are declared here,
@@ -90,6 +103,46 @@ pub struct Chunked {
 }
 
 impl Asset {
+    /// Its planes (none for chunked assets, volumes and curves).
+    pub fn planes(&self) -> &[Plane] {
+        match &self.body {
+            Body::Planes { planes, .. } => planes,
+            _ => &[],
+        }
+    }
+
+    /// The source's validity, for a height field of planes with nodata.
+    pub fn mask(&self) -> Option<&Mask> {
+        match &self.body {
+            Body::Planes { mask, .. } => mask.as_ref(),
+            _ => None,
+        }
+    }
+
+    /// Its chunks, for a chunked asset.
+    pub fn chunked(&self) -> Option<&Arc<Chunked>> {
+        match &self.body {
+            Body::Chunked(c) => Some(c),
+            _ => None,
+        }
+    }
+
+    /// Its volume, for a volume asset.
+    pub fn volume(&self) -> Option<&crate::codecs::ifs3d::volume::Volume> {
+        match &self.body {
+            Body::Volume(v) => Some(v),
+            _ => None,
+        }
+    }
+
+    /// Its curves, for a curve asset.
+    pub fn curves(&self) -> Option<&crate::codecs::curve::Curves> {
+        match &self.body {
+            Body::Curves(c) => Some(c),
+            _ => None,
+        }
+    }
+
     /// Builds an asset from coded planes of the codec whose header is `H`, decoding each
     /// stream (so that what is served is exactly what a reader of the file gets).
     pub fn from_coded<H: Registered>(
@@ -127,21 +180,21 @@ impl Asset {
         } = coded;
         Asset {
             meta,
-            planes,
-            mask,
-            volume: None,
-            curve: None,
+            body: Body::Planes { planes, mask },
             source_error,
-            chunks: None,
         }
     }
 
     /// The coded planes an asset of a plane codec holds, given back.
     pub(crate) fn into_planes(self) -> Coded {
+        let (planes, mask) = match self.body {
+            Body::Planes { planes, mask } => (planes, mask),
+            _ => (Vec::new(), None),
+        };
         Coded {
             meta: self.meta,
-            planes: self.planes,
-            mask: self.mask,
+            planes,
+            mask,
             source_error: self.source_error,
         }
     }
@@ -168,17 +221,13 @@ impl Asset {
             crate::codecs::ifs3d::octree::OctreeOperator::new(&header, leaves).map_err(bad)?;
         let asset = Asset {
             meta,
-            planes: Vec::new(),
-            mask: None,
-            volume: Some(crate::codecs::ifs3d::volume::Volume {
+            body: Body::Volume(crate::codecs::ifs3d::volume::Volume {
                 header,
                 stream,
                 operator,
                 placement,
             }),
-            curve: None,
             source_error: None,
-            chunks: None,
         };
         asset.check()?;
         Ok(asset)
@@ -199,16 +248,12 @@ impl Asset {
         let set = crate::codecs::curve::code::decode(&header, &stream).map_err(bad)?;
         let asset = Asset {
             meta,
-            planes: Vec::new(),
-            mask: None,
-            volume: None,
-            curve: Some(crate::codecs::curve::Curves {
+            body: Body::Curves(crate::codecs::curve::Curves {
                 header,
                 stream,
                 set,
             }),
             source_error: None,
-            chunks: None,
         };
         asset.check()?;
         Ok(asset)
@@ -216,23 +261,23 @@ impl Asset {
 
     /// The codec of the planes.
     pub fn codec(&self) -> Codec {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             return Codec::from_byte(c.table.codec).unwrap_or(Codec::Quadtree);
         }
-        if self.curve.is_some() {
+        if self.curves().is_some() {
             return Codec::Curve;
         }
-        if self.volume.is_some() {
+        if self.volume().is_some() {
             return Codec::Octree;
         }
-        self.planes
+        self.planes()
             .first()
             .map_or(Codec::Quadtree, |p| p.coding.codec())
     }
 
     /// The codec's name as the CLI and the API spell it.
     pub fn codec_name(&self) -> &'static str {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             // The chunks' codec: by its byte, or (a FIS or psa2d name needs a chunk's header)
             // from the first chunk with data.
             if let Some(name) = Codec::from_byte(c.table.codec).and_then(Codec::name) {
@@ -244,36 +289,36 @@ impl Asset {
                 _ => "chunked",
             };
         }
-        if self.curve.is_some() || self.volume.is_some() {
+        if self.curves().is_some() || self.volume().is_some() {
             return self.codec().name().unwrap_or("chunked");
         }
-        self.planes
+        self.planes()
             .first()
             .map_or("quadtree-pifs", |p| p.coding.name())
     }
 
     pub(crate) fn check(&self) -> Result<(), Error> {
         let m = &self.meta;
-        if (m.kind == AssetKind::Volume) != self.volume.is_some() {
+        if (m.kind == AssetKind::Volume) != self.volume().is_some() {
             return Err(Error::asset(
                 "a volume asset must hold a volume, and only it",
             ));
         }
-        if (m.kind == AssetKind::Curve) != self.curve.is_some() {
+        if (m.kind == AssetKind::Curve) != self.curves().is_some() {
             return Err(Error::asset("a curve asset must hold curves, and only it"));
         }
         let expected = match m.colour {
-            _ if self.volume.is_some() || self.curve.is_some() => 0,
+            _ if self.volume().is_some() || self.curves().is_some() => 0,
             fractile_proto::ColourModel::Grey => 1,
             fractile_proto::ColourModel::YCbCr => 3,
         };
-        if self.planes.len() != expected
+        if self.planes().len() != expected
             || (expected > 0 && m.channels as usize != expected)
-            || (self.curve.is_some() && m.channels != 2)
+            || (self.curves().is_some() && m.channels != 2)
         {
             return Err(Error::asset(format!(
                 "{} planes and {} channels for colour model {:?}",
-                self.planes.len(),
+                self.planes().len(),
                 m.channels,
                 m.colour
             )));
@@ -291,29 +336,22 @@ impl Asset {
 
     /// The file's bytes.
     pub fn to_bytes(&self) -> Vec<u8> {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             // Empty if its source cannot be read: `write` says why instead.
             return c.bytes().unwrap_or_default();
         }
         let codec = self.codec();
         let payload = match codec {
             Codec::Octree => {
-                let v = self
-                    .volume
-                    .as_ref()
-                    .expect("an octree asset holds a volume");
+                let v = self.volume().expect("an octree asset holds a volume");
                 fractile_proto::encode(&VolumePayload {
                     header: v.header.clone(),
                     stream: v.stream.clone(),
                     placement: v.placement.clone(),
                 })
             }
-            Codec::Curve => self
-                .curve
-                .as_ref()
-                .expect("a curve asset holds curves")
-                .payload(),
-            _ => payload(codec, &self.planes, self.mask.as_ref()),
+            Codec::Curve => self.curves().expect("a curve asset holds curves").payload(),
+            _ => payload(codec, self.planes(), self.mask()),
         };
         file_bytes(&self.meta, codec, &payload, self.source_error.as_ref())
     }
@@ -349,7 +387,7 @@ impl Asset {
         let span = (meta.value_max - meta.value_min) as f32;
         let mut asset = Asset::from_payload(codec, meta, payload, limits, build)?;
         if !section.is_empty() {
-            if asset.planes.is_empty() {
+            if asset.planes().is_empty() {
                 return Err(Error::asset(
                     "a source-error map in an asset without planes",
                 ));
@@ -415,12 +453,8 @@ impl Asset {
         let (meta, chunked) = Chunked::open(source, limits, cache)?;
         Ok(Asset {
             meta,
-            planes: Vec::new(),
-            mask: None,
-            volume: None,
-            curve: None,
+            body: Body::Chunked(Arc::new(chunked)),
             source_error: None,
-            chunks: Some(Arc::new(chunked)),
         })
     }
 
@@ -468,7 +502,7 @@ impl Asset {
 
     /// Writes the file atomically: a temporary file beside it, synced, then renamed over it.
     pub fn write(&self, path: &Path) -> Result<(), Error> {
-        if let Some(c) = &self.chunks {
+        if let Some(c) = &self.chunked() {
             return write_atomic(path, &c.bytes()?);
         }
         write_atomic(path, &self.to_bytes())

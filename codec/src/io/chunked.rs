@@ -34,7 +34,7 @@ use std::sync::atomic::{AtomicU64, Ordering};
 
 use fractile_proto::{AssetKind, AssetMeta};
 
-use super::asset::{Asset, AssetLimits, Plane};
+use super::asset::{Asset, AssetLimits, Body, Plane};
 pub use super::asset::{ChunkCache, Chunked};
 use super::container::container;
 use super::frame::kind_byte;
@@ -117,12 +117,12 @@ impl ChunkCache {
 fn resident_bytes(a: &Asset) -> u64 {
     let cells = u64::from(a.meta.width) * u64::from(a.meta.height);
     let operators: u64 = a
-        .planes
+        .planes()
         .iter()
         .map(|p| p.operator.resident_bytes(cells))
         .sum();
-    let streams: usize = a.planes.iter().map(|p| p.coding.stream().len()).sum();
-    operators + a.mask.as_ref().map_or(0, |_| cells) + streams as u64 + 4096
+    let streams: usize = a.planes().iter().map(|p| p.coding.stream().len()).sum();
+    operators + a.mask().map_or(0, |_| cells) + streams as u64 + 4096
 }
 
 impl std::fmt::Debug for Chunked {
@@ -294,7 +294,7 @@ impl Chunked {
                 })
                 .map_err(|e| Error::asset(format!("{what}: {e}")))?;
             let [x0, y0, x1, y1] = entry.cells;
-            if asset.chunks.is_some()
+            if asset.chunked().is_some()
                 || (asset.meta.width, asset.meta.height) != (x1 - x0, y1 - y0)
                 || asset.codec().byte() != self.table.codec
             {
@@ -503,18 +503,17 @@ impl Asset {
                 height: ch as u32,
                 ..meta
             },
-            planes: vec![Plane {
-                coding: Coding::Projected {
-                    header: view,
-                    stream: Vec::new(),
-                },
-                operator: PlaneOperator::Projected(operator),
-            }],
-            mask,
-            volume: None,
-            curve: None,
+            body: Body::Planes {
+                planes: vec![Plane {
+                    coding: Coding::Projected {
+                        header: view,
+                        stream: Vec::new(),
+                    },
+                    operator: PlaneOperator::Projected(operator),
+                }],
+                mask,
+            },
             source_error: None,
-            chunks: None,
         };
         asset.check()?;
         Ok(asset)

@@ -294,9 +294,9 @@ pub(crate) fn exercise(bytes: &[u8]) -> bool {
     let Ok(asset) = Asset::from_bytes_limited(bytes, &fuzz_limits()) else {
         return false;
     };
-    if asset.volume.is_some() {
+    if asset.volume().is_some() {
         let _ = asset.distances(&[[0.0, 0.0, 0.0], [0.3, -0.2, 0.1]], 8, 0.0);
-    } else if let Some(c) = &asset.curve {
+    } else if let Some(c) = &asset.curves() {
         for level in 0..=c.set.finest().min(3) {
             let _ = c.set.at_level(level);
         }

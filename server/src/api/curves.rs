@@ -34,7 +34,7 @@ pub(super) const DEFORM_BODY: usize = 16 * 1024 * 1024;
 const MAX_CURVE_POINTS: u128 = 1 << 22;
 
 fn curves_of(a: &StoredAsset) -> Result<&fractile_codec::codecs::curve::Curves, AppError> {
-    a.asset.curve.as_ref().ok_or_else(|| {
+    a.asset.curves().ok_or_else(|| {
         AppError::bad_request(
             ErrorCode::NotCurve,
             format!("{} is not a curve asset ({:?})", a.id, a.asset.meta.kind),
@@ -105,7 +105,7 @@ pub(super) async fn curve(
     state
         .lanes
         .stream(cost, move |_| {
-            let Some(c) = a2.asset.curve.as_ref() else {
+            let Some(c) = a2.asset.curves() else {
                 return Err(AppError::internal("a curve asset without its curves"));
             };
             let decoded = if control {
@@ -156,7 +156,7 @@ pub(super) async fn curve_deform(
     state
         .lanes
         .stream(cost, move |_| {
-            let Some(c) = a2.asset.curve.as_ref() else {
+            let Some(c) = a2.asset.curves() else {
                 return Err(AppError::internal("a curve asset without its curves"));
             };
             let deformed = fractile_codec::codecs::curve::deform::apply(&c.set, &req.deformations)

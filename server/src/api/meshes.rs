@@ -200,7 +200,7 @@ async fn volume_mesh(
             "max_error (an adaptive triangulation) is for height fields",
         ));
     }
-    let grid = a.asset.volume.as_ref().map_or(64, |v| v.size());
+    let grid = a.asset.volume().map_or(64, |v| v.size());
     let n = q.resolution.unwrap_or(grid);
     if !(2..=512).contains(&n) {
         return Err(AppError::bad_request(

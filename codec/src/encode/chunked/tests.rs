@@ -56,7 +56,7 @@ fn streamed_chunks_are_the_whole_rasters_chunks() {
         crate::encode_default(part, 0.8, &|_, _| {})
     };
     let enc = encode_chunked(&raster, 64, &one, &|_, _| {}).unwrap();
-    let table = &enc.asset.chunks.as_ref().unwrap().table;
+    let table = &enc.asset.chunked().unwrap().table;
     let mut level = raster.clone();
     let mut expected = Vec::new();
     for (l, lev) in table.levels.iter().enumerate() {
