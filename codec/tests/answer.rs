@@ -1,10 +1,11 @@
 //! `Asset::answer`, the one call a tile or a region is answered by (issue 76): the same values
 //! and bounds as the calls it replaces (the tolerance settled over the pixels, the sample at
 //! it, the source error over them), on an asset in one piece and in chunks, with the
-//! tolerance settled and asked.
+//! tolerance settled and asked; and points through the same call, as `Asset::points` answers
+//! them.
 
 use fractile_codec::encode::chunked::encode_chunked;
-use fractile_codec::extract::{CoarseGrids, Request, Resources};
+use fractile_codec::extract::{CoarseGrids, Points, Request, Resources};
 use fractile_codec::geo::{self, Placement};
 use fractile_codec::{Asset, Raster, encode_default};
 
@@ -74,4 +75,42 @@ fn one_answer_is_the_calls_it_replaces() {
     // The coarse zoom's grids went through the kept ones (the same bits as decoded).
     let counts = kept.counts();
     assert!(counts.misses >= 1 && !kept.is_empty(), "{counts:?}");
+}
+
+/// Points through the one call: each the value, bound, source error and steps `Asset::points`
+/// gives at the tolerance asked, or at the asset's default where none is, whole and chunked.
+#[test]
+fn points_are_answered_by_the_same_call() {
+    let r = Raster::open(&testdata("jacksboro.tif")).expect("jacksboro");
+    let whole = encode_default(&r, 0.8, &|_, _| {}).expect("whole").asset;
+    let one = |part: &Raster| encode_default(part, 0.8, &|_, _| {});
+    let chunked = encode_chunked(&r, 128, &one, &|_, _| {}).expect("chunked");
+    let chunked = Asset::from_bytes(&chunked.bytes).expect("reads");
+    // Sample centres, cell corners and points between, across the chunks' seams.
+    let pts: Vec<[f32; 2]> = (0..97)
+        .map(|k| {
+            let t = k as f32 / 96.0;
+            [0.03 + 0.94 * t, 0.9 - 0.8 * (t * 7.0).fract()]
+        })
+        .collect();
+    for asset in [&whole, &chunked] {
+        for asked in [None, Some(0.25f32), Some(0.0)] {
+            let question = Points {
+                points: &pts,
+                iterations: 40,
+                tolerance: asked,
+            };
+            let answer = asset.answer(&question, &Resources::CPU).expect("answers");
+            let tolerance = asked.unwrap_or_else(|| asset.default_tolerance());
+            let expected = asset.points(&pts, 40, tolerance);
+            assert_eq!(answer.len(), pts.len());
+            for (a, e) in answer.iter().zip(&expected) {
+                assert_eq!(a.values[0].to_bits(), e.values[0].to_bits(), "{asked:?}");
+                assert_eq!(a.error_bound.to_bits(), e.error_bound.to_bits());
+                assert_eq!(a.source_error, e.source_error);
+                assert_eq!(a.iterations, e.iterations);
+            }
+            assert!(answer.iter().all(|a| a.values[0].is_finite()));
+        }
+    }
 }

@@ -6,6 +6,7 @@ use std::path::PathBuf;
 use std::sync::Arc;
 
 use fractile_codec::chunked::ChunkCache;
+use fractile_codec::extract::{Points, Resources};
 use fractile_codec::geo::Placement;
 use fractile_codec::{AssetLimits, Method};
 use fractile_proto::{AssetKind, AssetMeta};
@@ -288,9 +289,14 @@ impl Asset {
                     None => (SERVER_ITERATIONS, asset.default_tolerance()),
                 };
                 let inside: Vec<[f32; 2]> = units.iter().map(|u| u.unwrap_or([0.0; 2])).collect();
-                asset.try_points_with(&inside, n, tolerance, &|_, _, _, _| None)
+                let question = Points {
+                    points: &inside,
+                    iterations: n,
+                    tolerance: Some(tolerance),
+                };
+                asset.answer(&question, &Resources::CPU)
             })
-            .map_err(raise)?;
+            .map_err(|e| raise(e.into_error()))?;
         let channels = usize::from(m.channels).max(1);
         let mut values = Vec::with_capacity(samples.len() * channels);
         let mut bounds = Vec::with_capacity(samples.len());

@@ -8,7 +8,7 @@ use std::collections::BTreeMap;
 use std::sync::{Arc, Mutex, PoisonError};
 
 use fractile_codec::chunked::{ChunkCache, ChunkSource, is_chunked};
-use fractile_codec::extract::{PointSample, Request, Resources, SampleError};
+use fractile_codec::extract::{PointSample, Points, Request, Resources, SampleError};
 use fractile_codec::geo::{Pixels, Placement, map_bounds, native_zoom, tile_pixels};
 use fractile_codec::{Asset, AssetLimits};
 use fractile_proto::AssetMeta;
@@ -290,14 +290,15 @@ impl Reader {
         {
             return Err(ReadError::Missing(o, l));
         }
+        // The server's one call; its tolerance the asset's default.
+        let question = Points {
+            points: &pts,
+            iterations: ITERATIONS,
+            tolerance: None,
+        };
         let mut answers = asset
-            .try_points_with(
-                &pts,
-                ITERATIONS,
-                asset.default_tolerance(),
-                &|_, _, _, _| None,
-            )
-            .map_err(|e| self.failed(e))?;
+            .answer(&question, &Resources::CPU)
+            .map_err(|e| self.failed(e.into_error()))?;
         Ok(answers.swap_remove(0))
     }
 }

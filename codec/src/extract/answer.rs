@@ -1,13 +1,23 @@
-//! A raster answer in one call ([`Asset::answer`]): a request (pixels, steps, a tolerance or
-//! none) in, the values, the bounds and the tolerance used out, as martin's sources answer
-//! `get_tile`. The source error over the pixels is found once and serves both the settled
-//! tolerance and the answer's bound (the server asked for it twice a tile, and a chunked
-//! asset split the pixels into its chunks for each).
+//! An answer in one call ([`Asset::answer`]): a request (pixels or points, steps, a tolerance
+//! or none) in, the values, the bounds and the tolerance used out, as martin's sources answer
+//! `get_tile`; each kind of request ([`Question`]) names its kind of answer. The source error
+//! over a raster's pixels is found once and serves both the settled tolerance and the
+//! answer's bound (the server asked for it twice a tile, and a chunked asset split the pixels
+//! into its chunks for each).
 
 use super::points::settled_over;
-use super::{Resources, SampleError};
+use super::{PointSample, Resources, SampleError};
 use crate::geo::Pixels;
 use crate::io::asset::Asset;
+
+/// A request an asset answers ([`Asset::answer`]), and the answer it gets.
+pub trait Question {
+    /// What the asset answers.
+    type Reply;
+
+    /// The answer of `asset`, using `resources`.
+    fn ask(&self, asset: &Asset, resources: &Resources<'_>) -> Result<Self::Reply, SampleError>;
+}
 
 /// What a raster answer asks.
 #[derive(Clone, Copy, Debug)]
@@ -35,28 +45,71 @@ pub struct Sampled {
     pub tolerance: f32,
 }
 
-impl Asset {
-    /// The answer at `request.pixels`, using `resources` (a device for its chains, coarse
-    /// grids kept, a flag to stop: see [`Asset::sample_with`]). Fails where a chunk under the
-    /// pixels cannot be read, or once `resources.given_up` is set.
-    pub fn answer(
-        &self,
-        request: &Request<'_>,
-        resources: &Resources<'_>,
-    ) -> Result<Sampled, SampleError> {
-        let pixels = request.pixels;
-        let source = self.source_error_over(pixels).map_err(SampleError::Chunk)?;
-        let tolerance = request
+impl Question for Request<'_> {
+    type Reply = Sampled;
+
+    /// The answer at `self.pixels`, with `resources` (a device for its chains, coarse grids
+    /// kept, a flag to stop: see [`Asset::sample_with`]). Fails where a chunk under the pixels
+    /// cannot be read, or once `resources.given_up` is set.
+    fn ask(&self, asset: &Asset, resources: &Resources<'_>) -> Result<Sampled, SampleError> {
+        let source = asset
+            .source_error_over(self.pixels)
+            .map_err(SampleError::Chunk)?;
+        let tolerance = self
             .tolerance
-            .unwrap_or_else(|| settled_over(self.default_tolerance(), source));
+            .unwrap_or_else(|| settled_over(asset.default_tolerance(), source));
         let (channels, convergence) =
-            self.sample_with(pixels, request.iterations, tolerance, resources)?;
+            asset.sample_with(self.pixels, self.iterations, tolerance, resources)?;
         Ok(Sampled {
             channels,
             convergence,
             source,
             tolerance,
         })
+    }
+}
+
+/// What a points answer asks: values one by one, each with its own bounds.
+#[derive(Clone, Copy, Debug)]
+pub struct Points<'a> {
+    /// Where, in unit coordinates of the asset.
+    pub points: &'a [[f32; 2]],
+    /// The most steps of a chain.
+    pub iterations: u32,
+    /// Each chain stops once its bound is under this (value units; 0: after `iterations`
+    /// steps exactly); `None`: the asset's default ([`Asset::default_tolerance`]), what a
+    /// point converges to when its request names neither steps nor a tolerance.
+    pub tolerance: Option<f32>,
+}
+
+impl Question for Points<'_> {
+    type Reply = Vec<PointSample>;
+
+    /// Each point's values and bounds, its chains offered to `resources.device`. Fails where a
+    /// chunk under the points cannot be read.
+    fn ask(
+        &self,
+        asset: &Asset,
+        resources: &Resources<'_>,
+    ) -> Result<Vec<PointSample>, SampleError> {
+        let tolerance = self.tolerance.unwrap_or_else(|| asset.default_tolerance());
+        let device = resources.device.unwrap_or(&|_, _, _, _| None);
+        asset
+            .try_points_with(self.points, self.iterations, tolerance, device)
+            .map_err(SampleError::Chunk)
+    }
+}
+
+impl Asset {
+    /// The answer to `question` (the pixels of a tile, a region or a mesh: [`Request`];
+    /// points one by one: [`Points`]), using `resources`: one call for every kind of answer a
+    /// raster asset gives.
+    pub fn answer<Q: Question>(
+        &self,
+        question: &Q,
+        resources: &Resources<'_>,
+    ) -> Result<Q::Reply, SampleError> {
+        question.ask(self, resources)
     }
 }
 

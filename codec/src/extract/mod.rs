@@ -10,7 +10,7 @@ mod resources;
 mod sample;
 pub mod volume;
 
-pub use answer::{Request, Sampled};
+pub use answer::{Points, Question, Request, Sampled};
 pub use resources::{CoarseCounts, CoarseGrids, Resources};
 
 use fractile_proto::{ColourModel, SampleFormat};
@@ -185,6 +185,17 @@ pub enum SampleError {
     /// A chunk of a chunked asset could not be read or decoded (a corrupt or missing part of
     /// the file, or its store unreachable).
     Chunk(crate::Error),
+}
+
+impl SampleError {
+    /// The crate's error for it: a chunk's own, or, given up, unavailable (asking again may
+    /// answer).
+    pub fn into_error(self) -> crate::Error {
+        match self {
+            SampleError::Cancelled => crate::Error::unavailable("the answer was given up"),
+            SampleError::Chunk(e) => e,
+        }
+    }
 }
 
 impl From<Cancelled> for SampleError {

@@ -6,6 +6,8 @@ use super::state::*;
 use fractile_proto::ErrorCode;
 use std::sync::Arc;
 
+use fractile_codec::extract::{PlaneRef, Points, Resources, Sites};
+
 use crate::error::{Path, Query};
 use axum::Json;
 use axum::extract::State;
@@ -219,13 +221,23 @@ async fn answer_points(
     decode(state, cost, move |cancel| {
         let inside: Vec<[f32; 2]> = units.iter().map(|u| u.unwrap_or([0.0, 0.0])).collect();
         let gpu = gpu.as_deref().filter(|g| g.takes(choice, &a, inside.len()));
+        let device = |k: PlaneRef<'_>, p: Sites<'_>, n, t| {
+            let (g, op) = gpu.and_then(|g| Some((g, g.operator(&a, k)?)))?;
+            cancel.off_core(|| g.points(&a, &op, p, n, t))
+        };
+        let question = Points {
+            points: &inside,
+            iterations: n,
+            tolerance: tolerance.asked(),
+        };
+        let resources = Resources {
+            device: Some(&device),
+            ..Resources::CPU
+        };
         let samples = a
             .asset
-            .try_points_with(&inside, n, tolerance.anywhere(&a), &|k, p, n, t| {
-                let (g, op) = gpu.and_then(|g| Some((g, g.operator(&a, k)?)))?;
-                cancel.off_core(|| g.points(&a, &op, p, n, t))
-            })
-            .map_err(super::request::chunk_unavailable)?;
+            .answer(&question, &resources)
+            .map_err(super::request::sample_error)?;
         Ok(coords
             .iter()
             .zip(&units)

@@ -139,15 +139,7 @@ pub(super) fn sample_on(
         iterations,
         tolerance: tolerance.asked(),
     };
-    let answer = a.asset.answer(&request, &resources).map_err(|e| match e {
-        fractile_codec::extract::SampleError::Cancelled => AppError {
-            status: StatusCode::SERVICE_UNAVAILABLE,
-            code: ErrorCode::Cancelled,
-            detail: "the request was given up before its decode finished".into(),
-            retry_after: None,
-        },
-        fractile_codec::extract::SampleError::Chunk(e) => chunk_unavailable(e),
-    })?;
+    let answer = a.asset.answer(&request, &resources).map_err(sample_error)?;
     Ok((
         answer.channels,
         Bounds {
@@ -155,6 +147,20 @@ pub(super) fn sample_on(
             source: answer.source,
         },
     ))
+}
+
+/// Why the codec gave no answer, as an HTTP answer: the request was given up (503
+/// `cancelled`), or a chunk could not be read ([`chunk_unavailable`]).
+pub(crate) fn sample_error(e: fractile_codec::extract::SampleError) -> AppError {
+    match e {
+        fractile_codec::extract::SampleError::Cancelled => AppError {
+            status: StatusCode::SERVICE_UNAVAILABLE,
+            code: ErrorCode::Cancelled,
+            detail: "the request was given up before its decode finished".into(),
+            retry_after: None,
+        },
+        fractile_codec::extract::SampleError::Chunk(e) => chunk_unavailable(e),
+    }
 }
 
 /// A chunk of a chunked asset that could not be read or decoded. Read failures (a store that
@@ -197,7 +203,7 @@ impl Tolerance {
     /// The tolerance asked for, or `None`: settled by the codec over what is answered
     /// (`Asset::answer`: an eighth of the largest source error the answer's bound carries
     /// anyway, or the asset's default where that is larger).
-    fn asked(self) -> Option<f32> {
+    pub(super) fn asked(self) -> Option<f32> {
         match self {
             Tolerance::Asked(t) => Some(t),
             Tolerance::Settled => None,
