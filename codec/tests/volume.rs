@@ -224,4 +224,30 @@ fn point_distances_match_the_field_and_carry_their_bound() {
         .unwrap();
     assert!(out[0].is_none());
     assert!((out[1].unwrap().distance - e.field.band as f32).abs() < 1e-3 * e.field.band as f32);
+    // The one call answers the same distances, at the asset's default tolerance where none is
+    // asked; a raster asked for distances refuses.
+    use fractile_codec::extract::{Distances, Resources, SampleError};
+    for asked in [Some(0.0), None] {
+        let question = Distances {
+            points: &on,
+            iterations: 20,
+            tolerance: asked,
+        };
+        let answered = e.asset.answer(&question, &Resources::CPU).unwrap();
+        let t = asked.unwrap_or_else(|| e.asset.default_tolerance());
+        assert_eq!(answered, e.asset.distances(&on, 20, t).unwrap());
+    }
+    let raster = fractile_codec::Asset::from_bytes(
+        &std::fs::read(data("../golden/v1-quadtree-camera.fra")).expect("a golden raster"),
+    )
+    .expect("reads");
+    let question = Distances {
+        points: &on,
+        iterations: 20,
+        tolerance: None,
+    };
+    assert!(matches!(
+        raster.answer(&question, &Resources::CPU),
+        Err(SampleError::Refused(_))
+    ));
 }

@@ -266,7 +266,7 @@ impl Reader {
                 heights: answer.channels.swap_remove(0),
                 bound: answer.convergence,
             }),
-            Err(SampleError::Chunk(e)) => Err(self.failed(e)),
+            Err(SampleError::Chunk(e) | SampleError::Refused(e)) => Err(self.failed(e)),
             Err(SampleError::Cancelled) => Err(ReadError::Failed("cancelled".into())),
         }
     }

@@ -6,6 +6,7 @@
 //! into its chunks for each).
 
 use super::points::settled_over;
+use super::volume::DistanceSample;
 use super::{PointSample, Resources, SampleError};
 use crate::geo::Pixels;
 use crate::io::asset::Asset;
@@ -100,10 +101,39 @@ impl Question for Points<'_> {
     }
 }
 
+/// What a volume's answer asks: signed distances at world points, each with its bound.
+#[derive(Clone, Copy, Debug)]
+pub struct Distances<'a> {
+    /// Where, in the mesh's (world) units.
+    pub points: &'a [[f64; 3]],
+    /// The most steps of a chain.
+    pub iterations: u32,
+    /// Each chain stops once its bound is under this (world units; 0: after `iterations`
+    /// steps exactly); `None`: the asset's default ([`Asset::default_tolerance`]).
+    pub tolerance: Option<f32>,
+}
+
+impl Question for Distances<'_> {
+    type Reply = Vec<Option<DistanceSample>>;
+
+    /// Each point's distance and bound (`None` outside the grid); refused by an asset that is
+    /// no volume.
+    fn ask(
+        &self,
+        asset: &Asset,
+        _resources: &Resources<'_>,
+    ) -> Result<Vec<Option<DistanceSample>>, SampleError> {
+        let tolerance = self.tolerance.unwrap_or_else(|| asset.default_tolerance());
+        asset
+            .distances(self.points, self.iterations, tolerance)
+            .map_err(SampleError::Refused)
+    }
+}
+
 impl Asset {
     /// The answer to `question` (the pixels of a tile, a region or a mesh: [`Request`];
-    /// points one by one: [`Points`]), using `resources`: one call for every kind of answer a
-    /// raster asset gives.
+    /// points one by one: [`Points`]; a volume's distances: [`Distances`]), using `resources`:
+    /// one call whatever the asset's body.
     pub fn answer<Q: Question>(
         &self,
         question: &Q,

@@ -10,7 +10,7 @@ mod resources;
 mod sample;
 pub mod volume;
 
-pub use answer::{Points, Question, Request, Sampled};
+pub use answer::{Distances, Points, Question, Request, Sampled};
 pub use resources::{CoarseCounts, CoarseGrids, Resources};
 
 use fractile_proto::{ColourModel, SampleFormat};
@@ -185,6 +185,8 @@ pub enum SampleError {
     /// A chunk of a chunked asset could not be read or decoded (a corrupt or missing part of
     /// the file, or its store unreachable).
     Chunk(crate::Error),
+    /// The asset answers no question of this kind (distances of a raster, a tile of a volume).
+    Refused(crate::Error),
 }
 
 impl SampleError {
@@ -193,7 +195,7 @@ impl SampleError {
     pub fn into_error(self) -> crate::Error {
         match self {
             SampleError::Cancelled => crate::Error::unavailable("the answer was given up"),
-            SampleError::Chunk(e) => e,
+            SampleError::Chunk(e) | SampleError::Refused(e) => e,
         }
     }
 }

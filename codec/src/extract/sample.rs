@@ -71,7 +71,7 @@ impl Asset {
             let channels = self
                 .chunked_window(rect, width, height, iterations, &|_, _, _, _| None)
                 .map_err(|e| match e {
-                    SampleError::Chunk(e) => e,
+                    SampleError::Chunk(e) | SampleError::Refused(e) => e,
                     SampleError::Cancelled => crate::Error::unavailable("the decode was cancelled"),
                 })?;
             let decoded = Decoded {

@@ -6,7 +6,7 @@ use super::state::*;
 use fractile_proto::ErrorCode;
 use std::sync::Arc;
 
-use fractile_codec::extract::{PlaneRef, Points, Resources, Sites};
+use fractile_codec::extract::{Distances, PlaneRef, Points, Resources, Sites};
 
 use crate::error::{Path, Query};
 use axum::Json;
@@ -91,10 +91,15 @@ async fn volume_point(
     }
     let (n, tolerance) = iterations_for(state, q.iterations, q.tolerance)?;
     let sample = decode(state, 0, move |_| {
-        a.asset.distances(&[p], n, tolerance.anywhere(&a))
+        let question = Distances {
+            points: &[p],
+            iterations: n,
+            tolerance: tolerance.asked(),
+        };
+        a.asset.answer(&question, &Resources::CPU)
     })
     .await?
-    .map_err(|e| AppError::internal(e.to_string()))?
+    .map_err(super::request::sample_error)?
     .remove(0);
     match sample {
         Some(s) => Ok(DistanceResult {

@@ -160,6 +160,8 @@ pub(crate) fn sample_error(e: fractile_codec::extract::SampleError) -> AppError 
             retry_after: None,
         },
         fractile_codec::extract::SampleError::Chunk(e) => chunk_unavailable(e),
+        // Handlers check an asset's kind before they ask: a refusal is this server's fault.
+        fractile_codec::extract::SampleError::Refused(e) => AppError::internal(e.to_string()),
     }
 }
 
