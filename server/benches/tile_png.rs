@@ -1,4 +1,5 @@
-//! Bytes and encode time of terrain-RGB tiles by precision and deflate effort, on the default
+//! Bytes and encode time of terrain-RGB tiles by precision and container (PNG at each deflate
+//! effort, lossless WebP), on the default
 //! DEM encode (0.8 bits a cell) of a real DEM, over a walk of zooms 10 to 16 (eight tiles a
 //! zoom along the asset's diagonal). Prints a table.
 //!
@@ -16,7 +17,7 @@ use fractile_codec::{Raster, encode_default};
 use fractile_server::AppState;
 use fractile_server::Store;
 use fractile_server::encoding::{
-    Deflate, HeightEncoding, Rounding, TileFormat, encode_tile, relief,
+    Container, Deflate, HeightEncoding, Rounding, TileFormat, encode_tile, relief,
 };
 use http_body_util::BodyExt;
 use tower::ServiceExt;
@@ -112,19 +113,20 @@ fn bench_dem(path: &std::path::Path) {
         zooms(),
         tiles.iter().map(|t| t.error_bound as f64).sum::<f64>() / tiles.len() as f64
     );
-    println!("| precision | deflate | mean bytes | vs full, fast | encode ms a tile |");
+    println!("| precision | container | mean bytes | vs full, fast | encode ms a tile |");
     println!("|---|---|---|---|---|");
     let format = TileFormat::Heights(HeightEncoding::TerrainRgb);
     let mut baseline = None;
     for bound in [false, true] {
         for deflate in [
-            Deflate::Fast,
-            Deflate::Level(1),
-            Deflate::Level(3),
-            Deflate::Level(4),
-            Deflate::Level(5),
-            Deflate::Level(6),
-            Deflate::Level(9),
+            Container::Png(Deflate::Fast),
+            Container::Png(Deflate::Level(1)),
+            Container::Png(Deflate::Level(3)),
+            Container::Png(Deflate::Level(4)),
+            Container::Png(Deflate::Level(5)),
+            Container::Png(Deflate::Level(6)),
+            Container::Png(Deflate::Level(9)),
+            Container::WebP,
         ] {
             let (mut bytes, start) = (0usize, Instant::now());
             let reps = 3;
@@ -182,7 +184,7 @@ fn bench_dem(path: &std::path::Path) {
                 256,
                 format,
                 None,
-                (rounding, Deflate::for_tile(rounding)),
+                (rounding, Container::Png(Deflate::for_tile(rounding))),
             );
             image::load_from_memory(&body).expect("a PNG").to_rgb8()
         })
@@ -236,7 +238,7 @@ fn bench_dem(path: &std::path::Path) {
                 256,
                 format,
                 None,
-                (rounding, Deflate::for_tile(rounding)),
+                (rounding, Container::Png(Deflate::for_tile(rounding))),
             );
             bytes += body.len();
             bound += f64::from(t.error_bound);

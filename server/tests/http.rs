@@ -140,6 +140,49 @@ async fn catalog_metadata_and_tilejson() {
     assert!(tj["maxzoom"].as_u64().unwrap() >= 14, "{tj}");
 }
 
+/// `.webp` tiles are lossless: the same pixels as the `.png` of the same tile (terrain-RGB,
+/// Terrarium, a visual one, a colour image), as `image/webp`, with their own ETag; 16-bit
+/// grey, which WebP has not, is refused by name.
+#[tokio::test]
+async fn webp_tiles_are_the_png_pixels_losslessly() {
+    use image::GenericImageView;
+    let (x, y) = geo::lonlat_tile(14, -84.25, 36.6);
+    let tiles = [
+        format!("jacksboro/tiles/14/{x}/{y}.{{}}?encoding=terrainrgb"),
+        format!("jacksboro/tiles/14/{x}/{y}.{{}}?encoding=terrarium"),
+        format!("jacksboro/tiles/14/{x}/{y}.{{}}?rescale=200,600"),
+        "camera/tiles/1/0/0.{}".to_string(),
+    ];
+    for t in &tiles {
+        let (sp, hp, png) = get(&format!("/v1/assets/{}", t.replace("{}", "png"))).await;
+        let (sw, hw, webp) = get(&format!("/v1/assets/{}", t.replace("{}", "webp"))).await;
+        assert_eq!((sp, sw), (StatusCode::OK, StatusCode::OK), "{t}");
+        assert_eq!(hw[header::CONTENT_TYPE], "image/webp", "{t}");
+        assert_ne!(hp[header::ETAG], hw[header::ETAG], "{t}");
+        assert_eq!(&webp[..4], b"RIFF", "{t}");
+        let (a, b) = (
+            image::load_from_memory_with_format(&png, image::ImageFormat::Png).unwrap(),
+            image::load_from_memory_with_format(&webp, image::ImageFormat::WebP).unwrap(),
+        );
+        assert_eq!(a.dimensions(), b.dimensions(), "{t}");
+        assert_eq!(
+            a.to_rgba8().as_raw(),
+            b.to_rgba8().as_raw(),
+            "{t}: other pixels"
+        );
+        assert!(
+            a.to_rgba8().pixels().any(|p| p.0 != [0, 0, 0, 0]),
+            "{t}: no picture"
+        );
+    }
+    let (s, _, b) = get(&format!(
+        "/v1/assets/jacksboro/tiles/14/{x}/{y}.webp?encoding=gray16"
+    ))
+    .await;
+    assert_eq!(s, StatusCode::BAD_REQUEST);
+    assert_eq!(json(&b)["code"], "bad_encoding");
+}
+
 #[tokio::test]
 async fn terrain_rgb_tile_matches_the_source_within_the_encoding_error() {
     let st = state();

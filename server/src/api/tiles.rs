@@ -129,6 +129,8 @@ struct TileJob {
     precision: Precision,
     iterations: u32,
     tolerance: super::request::Tolerance,
+    /// A lossless WebP (`.webp`) rather than a PNG.
+    webp: bool,
 }
 
 pub(super) async fn tile(
@@ -189,9 +191,9 @@ fn tile_address<'a>(
     x: &str,
     tile: &'a str,
 ) -> Result<(u8, u32, u32, &'a str), AppError> {
-    let (y, ext) = tile
-        .split_once('.')
-        .ok_or_else(|| AppError::bad_request(ErrorCode::BadTile, "expected {y}.png or {y}.f32"))?;
+    let (y, ext) = tile.split_once('.').ok_or_else(|| {
+        AppError::bad_request(ErrorCode::BadTile, "expected {y}.png, {y}.webp or {y}.f32")
+    })?;
     let (z, x, y) = super::request::tile_numbers(z, x, y, state.limits.max_zoom, 1)?;
     if z > state.limits.max_zoom || x >= (1u32 << z) || y >= (1u32 << z) {
         return Err(AppError::not_found(
@@ -225,7 +227,7 @@ fn tile_job(
     let heights = a.asset.meta.kind == AssetKind::HeightField;
     let format = tile_format(ext, heights, q, a)?;
     let (iterations, tolerance) = iterations_for(state, q.iterations, q.tolerance)?;
-    let visual_heights = heights && ext == "png" && q.encoding.is_none();
+    let visual_heights = heights && matches!(ext, "png" | "webp") && q.encoding.is_none();
     let colormap = match q.colormap.as_deref() {
         None => None,
         Some(name) if visual_heights => Some(ramp(name.parse().map_err(|_| {
@@ -265,6 +267,7 @@ fn tile_job(
         precision,
         iterations,
         tolerance,
+        webp: ext == "webp",
     })
 }
 
@@ -290,7 +293,9 @@ fn tile_format(
         ("f32", true, Some(e)) => {
             return Err(AppError::bad_request(
                 ErrorCode::BadEncoding,
-                format!("encoding={e} is for png tiles; an f32 tile is raw float32 heights"),
+                format!(
+                    "encoding={e} is for png and webp tiles; an f32 tile is raw float32 heights"
+                ),
             ));
         }
         ("f32", false, _) => {
@@ -299,12 +304,18 @@ fn tile_format(
                 "f32 tiles are for height fields",
             ));
         }
-        ("png", true, Some(e)) if let Ok(h) = e.parse::<HeightEncoding>() => {
+        ("webp", true, Some(e)) if e.parse::<HeightEncoding>() == Ok(HeightEncoding::Gray16) => {
+            return Err(AppError::bad_request(
+                ErrorCode::BadEncoding,
+                "gray16 is 16-bit grey, which WebP has not: ask {y}.png or {y}.f32",
+            ));
+        }
+        ("png" | "webp", true, Some(e)) if let Ok(h) = e.parse::<HeightEncoding>() => {
             encoding::TileFormat::Heights(h)
         }
-        ("png", true, None) => encoding::TileFormat::Visual(parse_rescale(&q.rescale, a)?),
-        ("png", false, None) => encoding::TileFormat::Visual(None),
-        ("png", _, Some(e)) => {
+        ("png" | "webp", true, None) => encoding::TileFormat::Visual(parse_rescale(&q.rescale, a)?),
+        ("png" | "webp", false, None) => encoding::TileFormat::Visual(None),
+        ("png" | "webp", _, Some(e)) => {
             return Err(AppError::bad_request(
                 ErrorCode::BadEncoding,
                 format!("unknown encoding {e:?} (terrainrgb, terrarium, gray16)"),
@@ -313,7 +324,7 @@ fn tile_format(
         (e, ..) => {
             return Err(AppError::bad_request(
                 ErrorCode::BadFormat,
-                format!("unknown tile format {e:?} (png, f32)"),
+                format!("unknown tile format {e:?} (png, webp, f32)"),
             ));
         }
     })
@@ -431,7 +442,13 @@ fn draw_tile(
         size,
         job.format,
         style,
-        (rounding, encoding::Deflate::for_tile(rounding)),
+        (
+            rounding,
+            match job.webp {
+                true => encoding::Container::WebP,
+                false => encoding::Container::Png(encoding::Deflate::for_tile(rounding)),
+            },
+        ),
     );
     stage("encode", encoded);
     Ok(Cached {
