@@ -81,7 +81,7 @@ pub(crate) fn document() -> Value {
                     param("z", "path", json!({"type": "integer", "minimum": 0, "maximum": 24}), "Zoom"),
                     param("x", "path", json!({"type": "integer"}), "Column"),
                     param("y", "path", json!({"type": "integer"}), "Row (from the north)"),
-                    param("format", "path", json!({"enum": ["png", "webp", "f32"]}), "png, webp (lossless: the same pixels in fewer bytes; not with encoding=gray16), or f32 (little-endian float32 heights)"),
+                    param("format", "path", json!({"enum": ["png", "webp", "f32"]}), "png, webp (lossless: the same pixels; not with encoding=gray16), or f32 (little-endian float32 heights)"),
                     iterations.clone(),
                     tolerance.clone(),
                     backend.clone(),
