@@ -15,13 +15,19 @@ fn testdata(name: &str) -> std::path::PathBuf {
         .join(name)
 }
 
-#[test]
-fn one_answer_is_the_calls_it_replaces() {
+/// jacksboro, and its default encode in one piece and in chunks of 128 cells.
+fn jacksboro_whole_and_chunked() -> (Raster, Asset, Asset) {
     let r = Raster::open(&testdata("jacksboro.tif")).expect("jacksboro");
     let whole = encode_default(&r, 0.8, &|_, _| {}).expect("whole").asset;
     let one = |part: &Raster| encode_default(part, 0.8, &|_, _| {});
     let chunked = encode_chunked(&r, 128, &one, &|_, _| {}).expect("chunked");
     let chunked = Asset::from_bytes(&chunked.bytes).expect("reads");
+    (r, whole, chunked)
+}
+
+#[test]
+fn one_answer_is_the_calls_it_replaces() {
+    let (r, whole, chunked) = jacksboro_whole_and_chunked();
     assert!(chunked.chunked().is_some());
     let g = r.georef.as_ref().expect("a georeferenced DEM");
     // The answers keep their coarse grids; the calls they replace decode their own.
@@ -81,11 +87,7 @@ fn one_answer_is_the_calls_it_replaces() {
 /// gives at the tolerance asked, or at the asset's default where none is, whole and chunked.
 #[test]
 fn points_are_answered_by_the_same_call() {
-    let r = Raster::open(&testdata("jacksboro.tif")).expect("jacksboro");
-    let whole = encode_default(&r, 0.8, &|_, _| {}).expect("whole").asset;
-    let one = |part: &Raster| encode_default(part, 0.8, &|_, _| {});
-    let chunked = encode_chunked(&r, 128, &one, &|_, _| {}).expect("chunked");
-    let chunked = Asset::from_bytes(&chunked.bytes).expect("reads");
+    let (_, whole, chunked) = jacksboro_whole_and_chunked();
     // Sample centres, cell corners and points between, across the chunks' seams.
     let pts: Vec<[f32; 2]> = (0..97)
         .map(|k| {

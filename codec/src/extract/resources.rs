@@ -11,7 +11,7 @@ use std::sync::atomic::{AtomicBool, AtomicU64, Ordering};
 use super::ChainDevice;
 use crate::core::decode::{DiscreteReport, Grid};
 use crate::io::asset::Asset;
-use crate::io::cache::{KeyedMap, get, get_or_make, keyed_map};
+use crate::io::cache::{KeyedMap, get_or_make, keyed_map};
 
 /// What [`Asset::sample_with`] and [`Asset::answer`] may use besides the calling thread.
 #[derive(Clone, Copy)]
@@ -134,7 +134,7 @@ impl CoarseGrids {
             let finer = (0..=3)
                 .flat_map(|i| (0..=3).map(move |j| (i, j)))
                 .filter(|&ij| ij != (0, 0))
-                .find_map(|(i, j)| Some(((i, j), get(&self.map, &at(width << i, height << j))?)));
+                .find_map(|(i, j)| Some(((i, j), self.map.get(&at(width << i, height << j))?)));
             if let Some(((i, j), fine)) = finer {
                 let shrunk: Option<Planes> = fine
                     .iter()

@@ -70,10 +70,7 @@ impl Asset {
             let rect = window.unwrap_or([0.0, 0.0, 1.0, 1.0]);
             let channels = self
                 .chunked_window(rect, width, height, iterations, &|_, _, _, _| None)
-                .map_err(|e| match e {
-                    SampleError::Chunk(e) | SampleError::Refused(e) => e,
-                    SampleError::Cancelled => crate::Error::unavailable("the decode was cancelled"),
-                })?;
+                .map_err(SampleError::into_error)?;
             let decoded = Decoded {
                 width,
                 height,

@@ -75,12 +75,3 @@ where
         .get_or_insert_with(&key, || Ok::<_, std::convert::Infallible>(make()))
         .unwrap_or_else(|never| match never {});
 }
-
-/// The value under `key`, if the map holds one.
-pub(crate) fn get<K, V>(map: &KeyedMap<K, V>, key: &K) -> Option<Arc<V>>
-where
-    K: Hash + Eq + Clone + Send + Sync + 'static,
-    V: Send + Sync + 'static,
-{
-    map.get(key)
-}
