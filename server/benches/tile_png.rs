@@ -252,7 +252,115 @@ fn bench_dem(path: &std::path::Path) {
             bytes as f64 / n
         );
     }
+    let cell_degrees = (e - w) / stored.asset.meta.width as f64;
+    what_smoother_tiles_cost(&tiles, cell_degrees, &stored.asset.meta);
     std::fs::remove_dir_all(&dir).ok();
+}
+
+/// The tile's heights at the lattice of `spacing` pixels (about a source cell): bilinear
+/// between the lattice's samples (`blocks` false: every detail finer than the source's cells
+/// removed, the smoothest tile the source justifies) or each lattice cell at its first sample
+/// (`blocks` true: nearest resampling, what TiTiler serves past the source's resolution).
+fn on_lattice(h: &[f32], spacing: usize, blocks: bool) -> Vec<f32> {
+    let side = 256;
+    let node = |k: usize| (k * spacing).min(side - 1);
+    (0..side * side)
+        .map(|i| {
+            let (x, y) = (i % side, i / side);
+            let (cx, cy) = (x / spacing, y / spacing);
+            if blocks {
+                return h[node(cy) * side + node(cx)];
+            }
+            let fx = (x - node(cx)) as f32 / (node(cx + 1) - node(cx)).max(1) as f32;
+            let fy = (y - node(cy)) as f32 / (node(cy + 1) - node(cy)).max(1) as f32;
+            let at = |a: usize, b: usize| h[node(b) * side + node(a)];
+            let top = at(cx, cy) * (1.0 - fx) + at(cx + 1, cy) * fx;
+            let bottom = at(cx, cy + 1) * (1.0 - fx) + at(cx + 1, cy + 1) * fx;
+            top * (1.0 - fy) + bottom * fy
+        })
+        .collect()
+}
+
+/// Issue 77's question: what rounding away the detail past the source's resolution would save.
+/// For each zoom, the served tile's bytes against the same tile with every detail finer than
+/// the source's cells removed (bilinear between samples a source cell apart, rounded by the
+/// same rule; no stairs, since the rule still keeps 256 levels over the relief) and against
+/// the source's cells as blocks (nearest resampling: TiTiler's tiles, stairs by construction).
+/// PNG at the server's deflate, then image's lossless WebP.
+fn what_smoother_tiles_cost(
+    tiles: &[Decoded],
+    cell_degrees: f64,
+    meta: &fractile_proto::AssetMeta,
+) {
+    println!(
+        "\n| zoom | source cell, pixels | served | detail past the source removed | at full precision | the source's cells as blocks | the same three, WebP |"
+    );
+    println!("|---|---|---|---|---|---|---|");
+    let format = TileFormat::Heights(HeightEncoding::TerrainRgb);
+    let encode = |h: &[f32], t: &Decoded, container: Option<Container>, full: bool| {
+        let rounding = match full {
+            true => Rounding::default(),
+            false => Rounding::for_tile(
+                HeightEncoding::TerrainRgb,
+                t.error_bound,
+                relief(h, 256),
+                meta.stats.rmse as f32,
+            ),
+        };
+        let container = container.unwrap_or(Container::Png(Deflate::for_tile(rounding)));
+        let (_, body) = encode_tile(
+            meta,
+            &[h.to_vec()],
+            256,
+            format,
+            None,
+            (rounding, container),
+        );
+        body.len()
+    };
+    let mut total = [0f64; 7];
+    let zs: Vec<u8> = zooms().collect();
+    for &z in &zs {
+        let at: Vec<&Decoded> = tiles.iter().filter(|t| t.zoom == z).collect();
+        if at.is_empty() {
+            continue;
+        }
+        let cell = cell_degrees / (360.0 / f64::from(1u32 << z) / 256.0);
+        let spacing = if cell >= 2.0 {
+            1usize << cell.log2().floor() as u32
+        } else {
+            1
+        };
+        let mut row = [0f64; 7];
+        for t in &at {
+            let smooth = on_lattice(&t.heights, spacing, false);
+            let blocks = on_lattice(&t.heights, spacing, true);
+            let webp = Some(Container::WebP);
+            let sizes = [
+                encode(&t.heights, t, None, false),
+                encode(&smooth, t, None, false),
+                encode(&smooth, t, None, true),
+                encode(&blocks, t, None, false),
+                encode(&t.heights, t, webp, false),
+                encode(&smooth, t, webp, false),
+                encode(&blocks, t, webp, false),
+            ];
+            for (r, s) in row.iter_mut().zip(sizes) {
+                *r += s as f64 / at.len() as f64;
+            }
+        }
+        for (a, r) in total.iter_mut().zip(row) {
+            *a += r / zs.len() as f64;
+        }
+        println!(
+            "| {z} | {cell:.1} | {:.0} | {:.0} | {:.0} | {:.0} | {:.0}, {:.0}, {:.0} |",
+            row[0], row[1], row[2], row[3], row[4], row[5], row[6]
+        );
+    }
+    println!(
+        "| mean | | {:.0} | {:.0} | {:.0} | {:.0} | {:.0}, {:.0}, {:.0} |",
+        total[0], total[1], total[2], total[3], total[4], total[5], total[6]
+    );
 }
 
 fn main() {
