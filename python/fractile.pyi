@@ -72,12 +72,11 @@ def encode(
     ``crs`` (an EPSG code, ``"EPSG:4326"`` or a rasterio ``CRS``) georeference it, as
     rasterio's ``dataset.transform`` and ``dataset.crs``.
 
-    ``codec``: ``"projected"`` (the height-field default), ``"quadtree-pifs"`` (the image
-    default), ``"fis-bilinear"``, ``"fis-rect"``, ``"fis-rect-global"``, ``"psa2d-rect"``,
+    ``codec``: ``"projected"`` (the default), ``"quadtree-pifs"`` (the seed's method), ``"fis-bilinear"``, ``"fis-rect"``, ``"fis-rect-global"``, ``"psa2d-rect"``,
     ``"psa2d-tri"``, or any other name ``fractile encode --codec`` takes (the codec's registry);
     a keyword the codec does not read is refused (``SettingsError``). The rate:
     ``target_bpp`` bits a cell (the height-field default is 0.8, bounded: every cell within
-    the bound it reports) or, for the projected codec,
+    the bound it reports; an image's 0.75) or, for the projected codec,
     ``max_error`` in value units (0: lossless, for integer samples). ``chunk``: cells a side
     of the chunks a large grid is coded in (default 1024 for grids over 2048 a side; 0 codes
     it whole, refused with ``SettingsError`` where readers would not open the file).

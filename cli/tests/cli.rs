@@ -487,7 +487,7 @@ fn projected_max_error_is_kept_through_encode_decode_and_compare() {
 /// cell unless given), so the asset reports the bound every cell keeps; a quadtree-only flag
 /// keeps it on the quadtree; an image goes to the quadtree.
 #[test]
-fn a_dem_without_a_codec_is_coded_projected_under_a_bounded_rate() {
+fn a_raster_without_a_codec_is_coded_projected() {
     let dir = std::env::temp_dir().join(format!("fractile-cli-auto-{}", std::process::id()));
     std::fs::create_dir_all(&dir).unwrap();
     let encode = |input: &str, args: &[&str]| {
@@ -528,10 +528,23 @@ fn a_dem_without_a_codec_is_coded_projected_under_a_bounded_rate() {
     for (input, args) in [
         ("jacksboro.tif", vec!["--tolerance", "3"]),
         ("jacksboro.tif", vec!["--speed", "3", "--target-bpp", "0.8"]),
-        ("camera.png", vec![]),
+        ("camera.png", vec!["--speed", "3"]),
     ] {
         let r = encode(input, &args);
         assert_eq!(r["codec"], "quadtree-pifs", "{input} {args:?}: {r}");
+        assert!(r["max_error_bound"].is_null(), "{r}");
+    }
+    // Images (issue 77): projected under the rate, 0.75 bits a pixel unless given, grey or
+    // colour; the rate buys PSNR, not a bound.
+    for (input, args, bpp) in [
+        ("camera.png", vec![], 0.75),
+        ("astronaut.png", vec![], 0.75),
+        ("camera.png", vec!["--target-bpp", "0.25"], 0.25),
+    ] {
+        let r = encode(input, &args);
+        assert_eq!(r["codec"], "projected", "{input} {args:?}: {r}");
+        let got = r["bpp"].as_f64().unwrap();
+        assert!(got <= bpp && got > 0.9 * bpp, "{input} {args:?}: {r}");
         assert!(r["max_error_bound"].is_null(), "{r}");
     }
     let _ = std::fs::remove_dir_all(&dir);

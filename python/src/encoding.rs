@@ -1,7 +1,7 @@
 //! `fractile.encode` and `fractile.encode_file`: NumPy arrays and raster files into asset
 //! files, with the command line's defaults: no codec named, a height field is coded by the
 //! projected IFS under a bounded rate of 0.8 bits a cell (every cell within the bound it
-//! answers) and an image by the quadtree PIFS; over twice the chunk size (1024) on a side,
+//! answers) and an image by the same codec under a rate of 0.75 bits a pixel; over twice the chunk size (1024) on a side,
 //! in chunks sharing one rate. The policy is `fractile encode`'s (cli/src/encoding/args.rs)
 //! for the few keywords Python takes; the codec's calls are the same ones.
 
@@ -23,6 +23,7 @@ use crate::errors::{SettingsError, raise};
 
 /// What the keywords ask, checked.
 struct Request {
+    kind: AssetKind,
     codec: String,
     target_bpp: Option<f64>,
     max_error: Option<f64>,
@@ -37,15 +38,9 @@ impl Request {
         max_error: Option<f64>,
         chunk: Option<u32>,
     ) -> PyResult<Request> {
-        // The defaults, as `fractile encode`'s: the projected codec for height fields and
-        // under a max error, the quadtree for images. Any codec of the registry by its name.
-        let codec = match codec {
-            Some(name) => name,
-            None if kind == AssetKind::HeightField || max_error.is_some() => {
-                fractile_codec::codecs::projected::CODEC_NAME
-            }
-            None => "quadtree-pifs",
-        };
+        // The default, as `fractile encode`'s: the projected codec. Any codec of the
+        // registry by its name.
+        let codec = codec.unwrap_or(fractile_codec::codecs::projected::CODEC_NAME);
         if target_bpp.is_some() && max_error.is_some() {
             return Err(SettingsError::new_err(
                 "settings: give target_bpp or max_error, not both",
@@ -62,6 +57,7 @@ impl Request {
             return Err(PyValueError::new_err("max_error must be a number >= 0"));
         }
         let req = Request {
+            kind,
             codec: codec.to_string(),
             target_bpp,
             max_error,
@@ -73,14 +69,16 @@ impl Request {
     }
 
     /// The codec's options (`None`: the codec's default rate); a codec reading `bounded`
-    /// codes a rate bounded (every cell within the bound it reports), as the height-field
-    /// default does.
+    /// codes a height field's rate bounded (every cell within the bound it reports), as the
+    /// height-field default does; an image's rate buys the best PSNR, as `fractile encode`'s.
     fn options(&self) -> Options {
         let takes = CodecSettings::takes(&self.codec).unwrap_or_default();
         Options {
             target_bpp: self.target_bpp,
             max_error: self.max_error,
-            bounded: self.max_error.is_none() && takes.contains(&"bounded"),
+            bounded: self.kind == AssetKind::HeightField
+                && self.max_error.is_none()
+                && takes.contains(&"bounded"),
             ..Options::default()
         }
     }

@@ -123,11 +123,12 @@ pub(crate) struct EncodeArgs {
     #[arg(long)]
     pub(crate) attractor_passes: Option<u32>,
     /// Codec: FIS codecs take height fields, psa2d grey images and height fields; GeoJSON input
-    /// is always `curve`, a mesh IFS3D. Default for a height field: `projected` under a bounded
-    /// rate (`--target-bpp B --bounded`, B = 0.8 unless given; or `--max-error E`), whose every
-    /// cell is within the bound it answers; for an image, or a height field with a flag only
-    /// the quadtree reads (--tolerance, --transforms, --const-range, --roi, --speed, ...):
-    /// `quadtree-pifs`. A flag the codec does not read is refused by name.
+    /// is always `curve`, a mesh IFS3D. Default: `projected`; for a height field under a
+    /// bounded rate (`--target-bpp B --bounded`, B = 0.8 unless given; or `--max-error E`),
+    /// whose every cell is within the bound it answers; for an image under the rate
+    /// (`--target-bpp B`, B = 0.75 unless given). With a flag only the quadtree reads
+    /// (--tolerance, --transforms, --const-range, --roi, --speed, ...): `quadtree-pifs`, the
+    /// seed's method. A flag the codec does not read is refused by name.
     #[arg(long, value_parser = codec_names())]
     pub(crate) codec: Option<String>,
     /// psa2d: touching or overlapping domains [default: overlapping].
@@ -214,18 +215,17 @@ pub(crate) fn parse_roi(s: &str) -> Result<Roi, String> {
 
 impl EncodeArgs {
     /// The arguments with `--codec` decided when none was given (see its help): `projected`
-    /// under a bounded rate for a height field unless a quadtree-only flag is given, or for
-    /// any raster with `--max-error` or `--bounded`; `quadtree-pifs` otherwise.
+    /// unless a quadtree-only flag is given, under a bounded rate for a height field, under
+    /// the rate (default [`fractile_codec::codecs::projected::DEFAULT_IMAGE_BPP`]) for an
+    /// image; `quadtree-pifs` with a quadtree-only flag.
     pub(crate) fn with_default_codec(mut self, kind: AssetKind) -> EncodeArgs {
         if self.codec.is_some() {
             return self;
         }
         let given = self.options().given();
-        let quadtree = given.iter().any(|o| quadtree_only(o));
-        let projected = !quadtree
-            && (kind == AssetKind::HeightField || self.max_error.is_some() || self.bounded);
+        let projected = !given.iter().any(|o| quadtree_only(o));
         self.codec = Some(if projected { PROJECTED } else { QUADTREE }.to_string());
-        if projected && self.max_error.is_none() {
+        if projected && kind == AssetKind::HeightField && self.max_error.is_none() {
             self.bounded = true;
             self.target_bpp = self
                 .target_bpp

@@ -167,3 +167,62 @@ pub(crate) fn jpeg2000_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
     let _ = std::fs::remove_dir_all(&dir);
     result.flatten()
 }
+
+/// AVIF at a size not above `bpp`: libavif through imagecodecs' `avif_encode`
+/// (`tools/avif_at.py`, the best quality level whose file fits, its other settings at their
+/// defaults), run by `FRACTILE_PYTHON` (default `python3`); `None` where that Python has no
+/// imagecodecs with AVIF, and for anything but 8-bit images. The peer the issue names; a
+/// Python helper rather than a crate, since the AV1 encoders crates wrap (rav1e, libaom) are
+/// not the build imagecodecs ships.
+pub(crate) fn avif_at(root: &std::path::Path, r: &Raster, bpp: f64) -> Option<(f64, f64)> {
+    if r.sample != fractile_proto::SampleFormat::U8 || r.valid.is_some() {
+        return None;
+    }
+    let (w, h) = (r.width as u32, r.height as u32);
+    let dir = std::env::temp_dir().join(format!("fractile-bench-avif-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).ok()?;
+    let (src, out) = (dir.join("in.png"), dir.join("out.png"));
+    let planes = r.channels.len();
+    let px: Vec<u8> = (0..r.width * r.height)
+        .flat_map(|i| (0..planes).map(move |c| (c, i)))
+        .map(|(c, i)| r.channels[c][i] as u8)
+        .collect();
+    let img: image::DynamicImage = match planes {
+        1 => image::GrayImage::from_raw(w, h, px)?.into(),
+        3 => image::RgbImage::from_raw(w, h, px)?.into(),
+        _ => return None,
+    };
+    img.save(&src).ok()?;
+    let max_bytes = (bpp * f64::from(w * h) / 8.0).floor() as u64;
+    let python = std::env::var("FRACTILE_PYTHON").unwrap_or_else(|_| "python3".into());
+    let run = std::process::Command::new(python)
+        .arg(root.join("tools/avif_at.py"))
+        .arg(&src)
+        .arg(max_bytes.to_string())
+        .arg(&out)
+        .output()
+        .ok()
+        .filter(|o| o.status.success())?;
+    let bytes: f64 = String::from_utf8_lossy(&run.stdout).trim().parse().ok()?;
+    let dec = image::open(&out).ok()?;
+    let chans: Vec<Vec<f32>> = match planes {
+        1 => vec![
+            dec.to_luma8()
+                .into_raw()
+                .into_iter()
+                .map(f32::from)
+                .collect(),
+        ],
+        _ => {
+            let d = dec.to_rgb8().into_raw();
+            (0..3)
+                .map(|c| d.iter().skip(c).step_by(3).map(|&v| v as f32).collect())
+                .collect()
+        }
+    };
+    let _ = std::fs::remove_dir_all(&dir);
+    Some((
+        bytes * 8.0 / f64::from(w * h),
+        metrics::compare(&r.channels, &chans, None, 255.0).psnr,
+    ))
+}

@@ -30,7 +30,6 @@ use fractile_proto::AssetKind;
 use crate::Error;
 
 use crate::codecs::projected::ProjectedSettings;
-use crate::codecs::quadtree::settings::{QuadtreeSettings, RateMode};
 use crate::codecs::registry::Codec;
 use crate::core::metrics::Errors;
 use crate::io::raster::Raster;
@@ -157,27 +156,19 @@ pub use crate::codecs::projected::DEFAULT_HEIGHT_FIELD_BPP;
 /// a height field the projected IFS with details under a bounded rate (the smallest max error
 /// whose file fits, so every cell is within the `error_bound` it answers: the quadtree's
 /// per-block bounds are 9 to 19 times its actual errors on DEMs, and its PSNR is 2-3 dB lower
-/// at the same bytes); for an image the quadtree PIFS with the kind's default quantisers (the
-/// projected codec has no colour path). The server's demo and the benches encode this way.
+/// at the same bytes); for an image the same codec under the rate (the best PSNR that fits:
+/// 1-3 dB over the quadtree PIFS at the same bytes, and no blocks when zoomed past its pixels;
+/// `QuadtreeSettings` keeps the seed's method). The server's demo and the benches encode this
+/// way.
 pub fn encode_default(
     raster: &Raster,
     target_bpp: f64,
     progress: &(dyn Fn(u64, u64) + Sync),
 ) -> Result<Encoded, Error> {
-    if raster.kind == AssetKind::HeightField {
-        let settings = ProjectedSettings {
-            bounded: true,
-            target_bpp: Some(target_bpp),
-            ..Default::default()
-        };
-        return encode(raster, &settings, progress);
-    }
-    let mut settings = QuadtreeSettings {
-        rate: RateMode::TargetBpp(target_bpp),
-        ..QuadtreeSettings::default()
+    let settings = ProjectedSettings {
+        bounded: raster.kind == AssetKind::HeightField,
+        target_bpp: Some(target_bpp),
+        ..Default::default()
     };
-    settings.quantiser.slope_bits = QuadtreeSettings::default_slope_bits(raster.kind);
-    settings.quantiser_choices =
-        QuadtreeSettings::default_quantiser_choices(raster.kind, settings.quantiser);
     encode(raster, &settings, progress)
 }

@@ -42,7 +42,7 @@ const DEMO: &[(&str, &str, &[u8], f64)] = &[
 
 /// The revision of the demo's raster encodes, kept beside them: a folder of another revision
 /// is encoded again. Bump it when [`fractile_codec::encode_default`] changes what it writes.
-const DEMO_REVISION: &str = "2 (height fields: projected, bounded rate)";
+const DEMO_REVISION: &str = "3 (images: projected)";
 
 /// The demo volume: fandisk (a CAD part with sharp features) as a 64^3 distance field.
 const DEMO_VOLUME: (&str, &str, &[u8]) = (

@@ -4,7 +4,7 @@
 
 use rayon::prelude::*;
 
-use fractile_proto::ColourModel;
+use fractile_proto::{AssetKind, ColourModel};
 
 use crate::Error;
 use crate::codecs::coded::PlaneEncoder;
@@ -170,7 +170,7 @@ fn encode_within(
             ));
         }
     };
-    header.roughness = projected::fit_roughness(&grid, w, h);
+    header.roughness = continued_roughness(raster, &grid, w, h);
     let mut meta = source_meta(raster, String::new(), (lo, hi), ColourModel::Grey);
     meta.encoder = format!(
         "{CODEC_NAME} levels={} order={:?} step={} quantum={} max_error={} roughness={:.3}",
@@ -391,6 +391,20 @@ fn fit_bound(
     (e, best)
 }
 
+/// The roughness the surface continues with past its finest level: the fitted one for a
+/// height field (terrain keeps its roughness at every scale, which is what deeper-than-the-
+/// source tiles show), none for an image, which past its pixels is the bilinear surface
+/// through its decoded samples. Why: an image's roughness sits at its edges and textures, and
+/// continued through the operator's even-aligned 2 x 2 blocks it draws their lattice (camera
+/// at 8x: steps between neighbours piled 2.2 times their mean on the even samples' phase,
+/// a grid of small squares in textured areas; issue 77 asks that a zoomed image stay smooth).
+fn continued_roughness(raster: &Raster, grid: &[f64], w: usize, h: usize) -> f32 {
+    match raster.kind {
+        AssetKind::Image => 0.0,
+        _ => projected::fit_roughness(grid, w, h),
+    }
+}
+
 /// What a unit of error in Y, Cb and Cr adds to the squared error summed over R, G and B: the
 /// sums of the squared weights of each plane in the conversion back (`1 + 1 + 1`,
 /// `0.344136^2 + 1.772^2`, `1.402^2 + 0.714136^2`).
@@ -471,7 +485,7 @@ fn encode_colour(
                 .zip(coded)
                 .zip(&planes)
                 .map(|(((mut header, ..), (stream, grid)), p)| {
-                    header.roughness = projected::fit_roughness(&grid, p.0, p.1);
+                    header.roughness = continued_roughness(raster, &grid, p.0, p.1);
                     (header, stream)
                 })
                 .collect();

@@ -359,17 +359,24 @@ impl ProjectedSettings {
 /// within 1.4x of TiTiler's bytes).
 pub const DEFAULT_HEIGHT_FIELD_BPP: f64 = 0.8;
 
+/// The rate of an image's default encode when none is given: 0.75 bits a pixel, about the
+/// bytes the quadtree PIFS wrote by default before images moved to this codec (0.65 bits on
+/// camera, 0.70 on astronaut), so that the change of default is a change of quality (+3 to
+/// +5 dB there) and not of size. Grey or colour: a colour image's rate counts its pixels.
+pub const DEFAULT_IMAGE_BPP: f64 = 0.75;
+
 impl Named for ProjectedSettings {
     const NAMES: &'static [(&'static str, &'static str)] = &[(
         CODEC_NAME,
         "Projected IFS with details on a grid: fitted subdivision plus details (height fields \
-         and grey images; --max-error or --target-bpp).",
+         and images; --max-error or --target-bpp).",
     )];
     const TAKES: &'static [&'static str] = &["target-bpp", "max-error", "bounded"];
 
     /// A max error, or a rate (`bounded`: the smallest max error that fits it; bounded
-    /// alone, the height-field default's rate, [`DEFAULT_HEIGHT_FIELD_BPP`]).
-    fn named(_name: &str, o: &Options, _kind: AssetKind) -> Result<Self, Error> {
+    /// alone, the height-field default's rate, [`DEFAULT_HEIGHT_FIELD_BPP`]); an image with
+    /// neither, [`DEFAULT_IMAGE_BPP`].
+    fn named(_name: &str, o: &Options, kind: AssetKind) -> Result<Self, Error> {
         match (o.max_error, o.target_bpp, o.bounded) {
             (Some(_), Some(_), _) => Err(Error::settings(
                 "projected takes --max-error or --target-bpp, not both",
@@ -377,6 +384,10 @@ impl Named for ProjectedSettings {
             (Some(_), None, true) => Err(Error::settings(
                 "--bounded bounds the error under a rate (--target-bpp B), not under --max-error",
             )),
+            (None, None, false) if kind == AssetKind::Image => Ok(ProjectedSettings {
+                target_bpp: Some(DEFAULT_IMAGE_BPP),
+                ..Default::default()
+            }),
             (None, None, false) => Err(Error::settings(
                 "projected takes --max-error E (source units) or --target-bpp B",
             )),
