@@ -107,6 +107,14 @@ pub(crate) enum Command {
     Mesh(MeshArgs),
     /// View-dependent fetch: tiles of a region chosen by distance from a camera, nearest first.
     View(ViewArgs),
+    /// A volume's 3D Tiles (tileset.json, its subtrees and tiles) fetched to a folder, for
+    /// offline use: the folder is the same tileset for any static file server.
+    Tileset {
+        id: String,
+        /// The folder to write (created if need be).
+        #[arg(short, long)]
+        output: PathBuf,
+    },
     /// Load test: each kind for --duration at --concurrency; prints a table per kind.
     Bench(BenchArgs),
 }

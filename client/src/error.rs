@@ -62,6 +62,15 @@ pub enum ClientError {
     /// The request never got an answer (connection refused, timeout, TLS).
     #[error("transport: {0}")]
     Transport(#[source] reqwest::Error),
+    /// A fetched file that could not be written where it was asked to go.
+    #[error("writing {path}: {source}")]
+    Write {
+        /// The file.
+        path: String,
+        /// Why.
+        #[source]
+        source: std::io::Error,
+    },
     /// An answer or an argument that cannot be read.
     #[error("malformed {what}: {reason}")]
     Malformed {

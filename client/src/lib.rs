@@ -12,6 +12,7 @@ mod error;
 pub mod refine;
 mod request;
 pub mod tile;
+mod tileset;
 pub mod view;
 
 use std::time::{Duration, Instant};
@@ -27,6 +28,7 @@ pub use request::{
 };
 use reqwest::header;
 pub use tile::{Tile, TileAddress, TileEncoding, TileRequest};
+pub use tileset::Fetched;
 
 /// A server's base URL plus the credentials writes need.
 #[derive(Clone, Debug)]
@@ -145,6 +147,12 @@ impl Client {
         let status = r.status().as_u16();
         let text = r.text().await.unwrap_or_default();
         Err(ClientError::from_answer(status, &text))
+    }
+
+    /// The body of a `GET` of `path`.
+    async fn get_bytes(&self, path: &str) -> Result<Vec<u8>, ClientError> {
+        let r = self.send(self.http.get(self.url(path))).await?;
+        Ok(r.bytes().await.map_err(ClientError::Transport)?.to_vec())
     }
 
     async fn get_json<T: serde::de::DeserializeOwned>(&self, path: &str) -> Result<T, ClientError> {

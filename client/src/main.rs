@@ -103,6 +103,24 @@ async fn run(cli: Cli) -> Result<()> {
         Command::Region(a) => region(&client, json, a).await?,
         Command::Mesh(a) => mesh(&client, json, a).await?,
         Command::View(a) => view(&client, json, a).await?,
+        Command::Tileset { id, output } => {
+            let f = client.fetch_tileset(&id, &output).await?;
+            if json {
+                println!(
+                    "{}",
+                    json!({"subtrees": f.subtrees, "contents": f.contents, "bytes": f.bytes,
+                           "output": output})
+                );
+            } else {
+                println!(
+                    "{}: tileset.json, {} subtrees, {} tiles, {} bytes",
+                    output.display(),
+                    f.subtrees,
+                    f.contents,
+                    f.bytes
+                );
+            }
+        }
         Command::Bench(a) => run_bench(&client, json, a).await?,
     }
     Ok(())

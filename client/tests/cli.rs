@@ -149,3 +149,58 @@ fn a_server_without_a_scheme_is_plain_http_and_errors_print_one_line() {
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(err.contains("backtrace"), "{err}");
 }
+
+/// A volume's 3D Tiles fetched to a folder (issue 79): the folder holds the tileset, every
+/// subtree and tile it reaches, byte for byte what the server answers at the same paths.
+#[test]
+fn a_tileset_fetched_to_a_folder_is_the_servers_files() {
+    let dir = tempfile::tempdir().unwrap();
+    let out = dir.path().join("fandisk");
+    let o = cli(&["--json", "tileset", "fandisk", "-o", out.to_str().unwrap()]);
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    let report: serde_json::Value = serde_json::from_str(stdout(&o).trim()).unwrap();
+    let files: Vec<std::path::PathBuf> = walk(&out);
+    let glbs: Vec<&std::path::PathBuf> = files
+        .iter()
+        .filter(|p| p.extension().is_some_and(|e| e == "glb"))
+        .collect();
+    let subtrees = files
+        .iter()
+        .filter(|p| p.extension().is_some_and(|e| e == "subtree"))
+        .count();
+    assert_eq!(report["contents"].as_u64(), Some(glbs.len() as u64));
+    assert_eq!(report["subtrees"].as_u64(), Some(subtrees as u64));
+    assert!(glbs.len() > 20 && subtrees > 2, "{report}");
+    let total: u64 = files
+        .iter()
+        .map(|p| std::fs::metadata(p).unwrap().len())
+        .sum();
+    assert_eq!(report["bytes"].as_u64(), Some(total));
+    // The same bytes as the server's, at the same relative paths.
+    let server = fractile_e2e::server();
+    let rt = tokio::runtime::Runtime::new().unwrap();
+    for p in files.iter().step_by(files.len() / 12 + 1) {
+        let rel = p
+            .strip_prefix(&out)
+            .unwrap()
+            .to_string_lossy()
+            .replace('\\', "/");
+        let url = format!("{server}/v1/assets/fandisk/{rel}");
+        let body = rt.block_on(async { reqwest::get(&url).await?.bytes().await });
+        assert_eq!(&body.unwrap()[..], &std::fs::read(p).unwrap()[..], "{rel}");
+    }
+}
+
+/// Every file under `dir`.
+fn walk(dir: &Path) -> Vec<std::path::PathBuf> {
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_dir() {
+            out.extend(walk(&p));
+        } else {
+            out.push(p);
+        }
+    }
+    out
+}

@@ -237,6 +237,7 @@ error_codes! {
     NoTile => "no_tile",
     NotCurve => "not_curve",
     NotTerrain => "not_terrain",
+    NotVolume => "not_volume",
     Outside => "outside",
     PreconditionFailed => "precondition_failed",
     StorageUnavailable => "storage_unavailable",

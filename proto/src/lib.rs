@@ -9,6 +9,7 @@ pub mod curve;
 pub mod heights;
 pub mod points;
 pub mod query;
+pub mod subtree;
 pub mod tiles;
 pub mod wire;
 

@@ -56,7 +56,7 @@ pub(crate) fn document() -> Value {
     let mut ok_tile = error_responses();
     ok_tile["200"] = json!({"description": "The tile", "headers": {"X-Error-Bound": {"schema": {"type": "number"}, "description": "Bound on |value - source| (the asset's measured source error over the tile plus X-Convergence-Bound), value units; absent for assets encoded before format version 5"}, "X-Convergence-Bound": {"schema": {"type": "number"}, "description": "Bound on the distance to the fractal's attractor (what more iterations shrink), value units"}, "ETag": {"schema": {"type": "string"}}}, "content": {"image/png": {}, "application/octet-stream": {}}});
     ok_tile["304"] = json!({"description": "Not modified (If-None-Match)"});
-    json!({
+    let mut doc = json!({
         "openapi": "3.1.0",
         "info": {"title": "fractile", "version": env!("CARGO_PKG_VERSION"), "description": "Images and terrain stored as fractals, decoded on request at any resolution. Every decoded answer carries an a-priori error bound."},
         "paths": {
@@ -141,5 +141,42 @@ pub(crate) fn document() -> Value {
                 "PointResult": {"type": "object", "properties": {"coordinates": {"type": "array"}, "values": {"type": ["array", "null"]}, "error_bound": {"type": ["number", "null"], "description": "Bound on |value - source|: the asset's measured source error where the point lies (between cells, against the source's bilinear interpolation; on a cell centre of an asset encoded with a largest error E, at most E) plus convergence_bound; null outside and for assets encoded before format version 5"}, "convergence_bound": {"type": ["number", "null"], "description": "Bound on the distance to the fractal's attractor: what progressive refinement stops on"}, "iterations": {"type": "integer"}, "outside": {"type": "boolean"}}}
             }
         }
-    })
+    });
+    let paths = doc["paths"].as_object_mut().expect("paths");
+    paths.extend(volume_tiles(&id, &iterations, &tolerance, &backend));
+    doc
+}
+
+/// The paths of a volume's 3D Tiles (tileset, content, subtrees), beside [`document`]'s.
+fn volume_tiles(
+    id: &Value,
+    iterations: &Value,
+    tolerance: &Value,
+    backend: &Value,
+) -> serde_json::Map<String, Value> {
+    let paths = json!({
+    "/v1/assets/{id}/tileset.json": {"get": {"summary": "A volume as OGC 3D Tiles 1.1: implicit octree tiling (subtreeLevels 3), the root box the volume's grid cube, each level's geometricError half its parent's and at least its sampling's (sqrt(3) x the sample spacing) plus the decode's bound and the encode's largest field error, in mesh units; levels down to 4 times finer than the encoded grid (continuous decoding)", "parameters": [id,
+                    param("lon", "query", json!({"type": "number"}), "longitude of the volume's origin on WGS84 (with lat): the root's transform is the east-north-up frame there"),
+                    param("lat", "query", json!({"type": "number"}), "latitude of the volume's origin (with lon)"),
+                    param("height", "query", json!({"type": "number"}), "metres above the ellipsoid (default 0)"),
+                    param("scale", "query", json!({"type": "number", "exclusiveMinimum": 0}), "metres a mesh unit (default 1)"),
+                    iterations.clone(), tolerance.clone()],
+                "responses": {"200": {"description": "tileset.json", "content": {"application/json": {}}}, "400": {"description": "not_volume: the asset is not a volume; bad_point: a placement out of range", "$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/3dtiles/{level}/{x}/{y}/{file}": {"get": {"summary": "A 3D tile's content: the surface inside the tile's box, 16 cells a side (glTF 2.0 binary: positions, normals, indices; y up as glTF has it)", "parameters": [id,
+                    param("level", "path", json!({"type": "integer"}), "octree level"),
+                    param("x", "path", json!({"type": "integer"}), "index along x"), param("y", "path", json!({"type": "integer"}), "index along y"),
+                    param("file", "path", json!({"type": "string"}), "{z}.glb, z the index along z"),
+                    iterations.clone(), tolerance.clone(), backend.clone()],
+                "responses": {"200": {"description": "GLB", "headers": {"X-Error-Bound": {"schema": {"type": "number"}}, "ETag": {"schema": {"type": "string"}}}, "content": {"model/gltf-binary": {}}}, "304": {"description": "Not modified (If-None-Match)"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"description": "no_tile: no such tile, or its box holds no surface (its subtree lists no content)", "$ref": "#/components/responses/Error"}, "503": {"$ref": "#/components/responses/Error"}}}},
+            "/v1/assets/{id}/3dtiles/subtrees/{level}/{x}/{y}/{file}": {"get": {"summary": "A subtree of the implicit octree (3D Tiles 1.1 binary .subtree): which tiles exist, which hold a surface, which child subtrees exist", "parameters": [id,
+                    param("level", "path", json!({"type": "integer"}), "a multiple of 3"),
+                    param("x", "path", json!({"type": "integer"}), "index along x"), param("y", "path", json!({"type": "integer"}), "index along y"),
+                    param("file", "path", json!({"type": "string"}), "{z}.subtree"),
+                    iterations.clone(), tolerance.clone(), backend.clone()],
+                "responses": {"200": {"description": "subtree", "content": {"application/octet-stream": {}}}, "304": {"description": "Not modified (If-None-Match)"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}, "503": {"$ref": "#/components/responses/Error"}}}}
+    });
+    match paths {
+        Value::Object(m) => m,
+        _ => unreachable!("an object literal"),
+    }
 }

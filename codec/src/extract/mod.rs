@@ -5,6 +5,7 @@
 mod answer;
 mod chunked;
 mod filter;
+pub mod octree;
 mod points;
 mod resources;
 mod sample;

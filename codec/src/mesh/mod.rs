@@ -10,6 +10,7 @@
 use crate::Error;
 use crate::mesh::rtin::{check_rtin, edge_chords, rtin_error, rtin_triangle};
 
+pub mod distance;
 mod files;
 pub mod quantized;
 mod rtin;

@@ -14,6 +14,7 @@ mod request;
 mod state;
 mod terrain;
 mod tiles;
+mod tilesets;
 
 use assets::*;
 use curves::*;
@@ -24,6 +25,7 @@ use points::*;
 use regions::*;
 use terrain::*;
 use tiles::*;
+use tilesets::*;
 
 use state::Shared;
 pub use state::{
@@ -70,6 +72,15 @@ pub(crate) fn router(state: Arc<AppState>) -> Router {
         .route("/v1/assets/{id}/points", post(points))
         .route("/v1/assets/{id}/region", get(region))
         .route("/v1/assets/{id}/mesh", get(mesh))
+        .route("/v1/assets/{id}/tileset.json", get(tileset))
+        .route(
+            "/v1/assets/{id}/3dtiles/{level}/{x}/{y}/{file}",
+            get(content),
+        )
+        .route(
+            "/v1/assets/{id}/3dtiles/subtrees/{level}/{x}/{y}/{file}",
+            get(subtree),
+        )
         .route("/v1/assets/{id}/curve", get(curve))
         .route(
             "/v1/assets/{id}/curve/deform",

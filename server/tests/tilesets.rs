@@ -1,0 +1,372 @@
+//! Volumes as 3D Tiles (issue 79): the tileset of a real mesh's volume walked as a viewer
+//! walks it (subtrees, then the content they list), each tile's surface inside its box and
+//! whole, neighbours meeting without cracks, every level within the geometric error it
+//! states of the source mesh, and the GLBs read by the Khronos glTF validator (npm), which we
+//! did not write.
+
+use std::collections::{BTreeMap, HashSet};
+use std::sync::Arc;
+
+use axum::body::Body;
+use axum::http::{Request, StatusCode};
+use fractile_codec::mesh::Mesh;
+use fractile_codec::mesh::distance::surface_distance;
+use fractile_server::{AppState, Store};
+use http_body_util::BodyExt;
+use tower::ServiceExt;
+
+fn root() -> std::path::PathBuf {
+    std::path::PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("..")
+}
+
+async fn get(state: &Arc<AppState>, uri: &str) -> (StatusCode, Vec<u8>) {
+    let req = Request::get(uri).body(Body::empty()).unwrap();
+    let resp = fractile_server::app(state.clone())
+        .oneshot(req)
+        .await
+        .unwrap();
+    let status = resp.status();
+    let body = resp.into_body().collect().await.unwrap().to_bytes();
+    (status, body.to_vec())
+}
+
+/// A subtree file's availability sets: (tiles, content, child subtrees).
+fn read_subtree(raw: &[u8], levels: u32) -> (Vec<bool>, Vec<bool>, Vec<bool>) {
+    assert_eq!(&raw[..4], b"subt");
+    assert_eq!(u32::from_le_bytes(raw[4..8].try_into().unwrap()), 1);
+    let json_len = u64::from_le_bytes(raw[8..16].try_into().unwrap()) as usize;
+    let bin_len = u64::from_le_bytes(raw[16..24].try_into().unwrap()) as usize;
+    assert_eq!(json_len % 8, 0, "the JSON chunk is padded to 8 bytes");
+    assert_eq!(raw.len(), 24 + json_len + bin_len);
+    let json: serde_json::Value = serde_json::from_slice(&raw[24..24 + json_len]).unwrap();
+    let bin = &raw[24 + json_len..];
+    let bits = |av: &serde_json::Value, n: usize| -> Vec<bool> {
+        if let Some(c) = av.get("constant") {
+            return vec![c.as_u64() == Some(1); n];
+        }
+        let view = &json["bufferViews"][av["bitstream"].as_u64().unwrap() as usize];
+        let offset = view["byteOffset"].as_u64().unwrap() as usize;
+        assert_eq!(offset % 8, 0, "bitstreams start on 8 bytes");
+        let bits: Vec<bool> = (0..n)
+            .map(|i| bin[offset + i / 8] >> (i % 8) & 1 == 1)
+            .collect();
+        let count = bits.iter().filter(|&&b| b).count() as u64;
+        assert_eq!(av["availableCount"].as_u64(), Some(count));
+        bits
+    };
+    let tiles = ((1usize << (3 * levels)) - 1) / 7;
+    (
+        bits(&json["tileAvailability"], tiles),
+        bits(&json["contentAvailability"][0], tiles),
+        bits(&json["childSubtreeAvailability"], 1 << (3 * levels)),
+    )
+}
+
+/// The tile `k` (Morton order) `depth` levels under (x, y, z).
+fn descendant([x, y, z]: [u32; 3], depth: u32, k: usize) -> [u32; 3] {
+    let axis = |a: usize| {
+        (0..depth).fold(0u32, |v, b| {
+            v | ((k >> (3 * b as usize + a) & 1) as u32) << b
+        })
+    };
+    [
+        x << depth | axis(0),
+        y << depth | axis(1),
+        z << depth | axis(2),
+    ]
+}
+
+/// A GLB's positions and triangles, turned back from glTF's y-up to the tiles' z-up.
+fn read_glb(glb: &[u8]) -> Mesh {
+    assert_eq!(&glb[..4], b"glTF");
+    let json_len = u32::from_le_bytes(glb[12..16].try_into().unwrap()) as usize;
+    let json: serde_json::Value = serde_json::from_slice(&glb[20..20 + json_len]).unwrap();
+    let bin = &glb[20 + json_len + 8..];
+    let view = |accessor: usize| {
+        let a = &json["accessors"][accessor];
+        let v = &json["bufferViews"][a["bufferView"].as_u64().unwrap() as usize];
+        let (o, n) = (
+            v["byteOffset"].as_u64().unwrap() as usize,
+            a["count"].as_u64().unwrap() as usize,
+        );
+        (o, n)
+    };
+    let prim = &json["meshes"][0]["primitives"][0];
+    let (po, pn) = view(prim["attributes"]["POSITION"].as_u64().unwrap() as usize);
+    let f = |at: usize| f32::from_le_bytes(bin[at..at + 4].try_into().unwrap());
+    let positions = (0..pn)
+        .map(|i| {
+            let [x, y, z] = [f(po + 12 * i), f(po + 12 * i + 4), f(po + 12 * i + 8)];
+            [x, -z, y]
+        })
+        .collect();
+    let (io, n) = view(prim["indices"].as_u64().unwrap() as usize);
+    let u = |at: usize| u32::from_le_bytes(bin[at..at + 4].try_into().unwrap());
+    let triangles = (0..n / 3)
+        .map(|t| [u(io + 12 * t), u(io + 12 * t + 4), u(io + 12 * t + 8)])
+        .collect();
+    Mesh {
+        positions,
+        triangles,
+        normals: Vec::new(),
+    }
+}
+
+/// The Khronos glTF validator (npm `gltf-validator`), installed under target/test-tools on
+/// first use, and a script that validates every GLB of a folder and prints the counts as
+/// JSON; `None` without node and npm.
+fn gltf_validator() -> Option<std::path::PathBuf> {
+    let tools = root().join("target/test-tools/gltf-validator");
+    if !tools.join("node_modules/gltf-validator").exists() {
+        std::fs::create_dir_all(&tools).ok()?;
+        let ok = std::process::Command::new("npm")
+            .args(["install", "--silent", "--prefix"])
+            .arg(&tools)
+            .arg("gltf-validator@2.0.0-dev.3.10")
+            .status()
+            .ok()?
+            .success();
+        if !ok {
+            return None;
+        }
+    }
+    let script = tools.join("validate.mjs");
+    std::fs::write(
+        &script,
+        r#"import validator from 'gltf-validator';
+import fs from 'fs';
+import path from 'path';
+const dir = process.argv[2];
+let files = 0, errors = 0, warnings = 0;
+for (const f of fs.readdirSync(dir)) {
+  const r = await validator.validateBytes(new Uint8Array(fs.readFileSync(path.join(dir, f))));
+  files++; errors += r.issues.numErrors; warnings += r.issues.numWarnings;
+  for (const m of r.issues.messages) if (m.severity === 0) console.error(f, m.code, m.message);
+}
+console.log(JSON.stringify({files, errors, warnings}));
+"#,
+    )
+    .ok()?;
+    Some(script)
+}
+
+#[tokio::test]
+async fn a_volume_streams_as_3d_tiles_whole_and_within_its_errors() {
+    let text = std::fs::read_to_string(root().join("testdata/mesh/fandisk.off")).unwrap();
+    let source = Mesh::parse_off(&text).unwrap();
+    let enc = fractile_codec::encode::volume::encode_mesh(
+        &source,
+        &fractile_codec::encode::volume::MeshSettings::default(),
+        "fandisk.off",
+    )
+    .unwrap();
+    let dir = std::env::temp_dir().join(format!("fractile-3dtiles-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("fandisk.fra"), &enc.bytes).unwrap();
+    let (store, _) = Store::open(&dir).unwrap();
+    let state = Arc::new(AppState::new(store, "http://test".into()));
+    let base = "/v1/assets/fandisk";
+
+    let (status, body) = get(&state, &format!("{base}/tileset.json")).await;
+    assert_eq!(status, StatusCode::OK);
+    let tileset: serde_json::Value = serde_json::from_slice(&body).unwrap();
+    assert_eq!(tileset["asset"]["version"], "1.1");
+    let root_tile = &tileset["root"];
+    let implicit = &root_tile["implicitTiling"];
+    assert_eq!(implicit["subdivisionScheme"], "OCTREE");
+    let (levels, per) = (
+        implicit["availableLevels"].as_u64().unwrap() as u32,
+        implicit["subtreeLevels"].as_u64().unwrap() as u32,
+    );
+    let b: Vec<f64> = root_tile["boundingVolume"]["box"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| v.as_f64().unwrap())
+        .collect();
+    let (centre, half) = ([b[0], b[1], b[2]], b[3]);
+    let root_error = root_tile["geometricError"].as_f64().unwrap();
+    assert!(tileset["geometricError"].as_f64().unwrap() > root_error);
+    // The root box bounds the source mesh (the volume's grid is around it).
+    for p in &source.positions {
+        for a in 0..3 {
+            assert!(
+                (f64::from(p[a]) - centre[a]).abs() <= half,
+                "{p:?} outside the root"
+            );
+        }
+    }
+    let tile_box = |level: u32, t: [u32; 3]| {
+        let side = 2.0 * half / f64::from(1u32 << level);
+        let lo: [f64; 3] = std::array::from_fn(|a| centre[a] - half + f64::from(t[a]) * side);
+        (lo, lo.map(|v| v + side))
+    };
+
+    // Walk every subtree a viewer can reach; fetch every content tile they list.
+    let mut meshes: BTreeMap<(u32, [u32; 3]), Mesh> = BTreeMap::new();
+    let mut glbs: Vec<(String, Vec<u8>)> = Vec::new();
+    let mut empty: Vec<(u32, [u32; 3])> = Vec::new();
+    let mut pending = vec![(0u32, [0u32; 3])];
+    while let Some((level, at)) = pending.pop() {
+        let uri = format!(
+            "{base}/3dtiles/subtrees/{level}/{}/{}/{}.subtree",
+            at[0], at[1], at[2]
+        );
+        let (status, raw) = get(&state, &uri).await;
+        assert_eq!(status, StatusCode::OK, "{uri}");
+        let (tiles, content, children) = read_subtree(&raw, per);
+        assert!(tiles[0], "{uri}: a subtree's root exists");
+        let mut i = 0;
+        for r in 0..per {
+            for k in 0..1usize << (3 * r) {
+                let (l, t) = (level + r, descendant(at, r, k));
+                assert!(
+                    !content[i] || tiles[i],
+                    "content without its tile at {l} {t:?}"
+                );
+                if r > 0 && tiles[i] {
+                    let parent = ((1usize << (3 * (r - 1))) - 1) / 7 + (k >> 3);
+                    assert!(tiles[parent], "a tile without its parent at {l} {t:?}");
+                }
+                if l >= levels {
+                    assert!(!tiles[i], "a tile past the available levels");
+                } else if content[i] {
+                    let uri = format!("{base}/3dtiles/{l}/{}/{}/{}.glb", t[0], t[1], t[2]);
+                    let (status, glb) = get(&state, &uri).await;
+                    assert_eq!(status, StatusCode::OK, "{uri}");
+                    meshes.insert((l, t), read_glb(&glb));
+                    glbs.push((format!("{l}_{}_{}_{}.glb", t[0], t[1], t[2]), glb));
+                } else if tiles[i] && empty.len() < 8 {
+                    empty.push((l, t));
+                }
+                i += 1;
+            }
+        }
+        if level + per < levels {
+            for (k, &c) in children.iter().enumerate() {
+                if c {
+                    pending.push((level + per, descendant(at, per, k)));
+                }
+            }
+        } else {
+            assert!(
+                children.iter().all(|&c| !c),
+                "child subtrees past the last level"
+            );
+        }
+    }
+    // A tile that exists without content has no surface to send.
+    for (l, t) in &empty {
+        let uri = format!("{base}/3dtiles/{l}/{}/{}/{}.glb", t[0], t[1], t[2]);
+        assert_eq!(get(&state, &uri).await.0, StatusCode::NOT_FOUND, "{uri}");
+    }
+
+    // Each tile: a surface (no empty content), inside its box.
+    for ((l, t), m) in &meshes {
+        assert!(!m.triangles.is_empty(), "empty content at {l} {t:?}");
+        let (lo, hi) = tile_box(*l, *t);
+        for p in &m.positions {
+            for a in 0..3 {
+                let v = f64::from(p[a]);
+                assert!(
+                    v >= lo[a] - 1e-5 && v <= hi[a] + 1e-5,
+                    "{p:?} outside {l} {t:?}"
+                );
+            }
+        }
+    }
+    // No cracks: where two tiles of a level touch, their surfaces cross the shared face at
+    // the same vertices.
+    let mut faces = 0;
+    for ((l, t), m) in &meshes {
+        let (_, hi) = tile_box(*l, *t);
+        for a in 0..3 {
+            let mut n = *t;
+            n[a] += 1;
+            let Some(other) = meshes.get(&(*l, n)) else {
+                continue;
+            };
+            let on_face = |m: &Mesh| -> HashSet<[i64; 3]> {
+                m.positions
+                    .iter()
+                    .filter(|p| (f64::from(p[a]) - hi[a]).abs() < 1e-7)
+                    .map(|p| p.map(|v| (f64::from(v) * 1e5).round() as i64))
+                    .collect()
+            };
+            let (mine, theirs) = (on_face(m), on_face(other));
+            assert_eq!(mine, theirs, "a crack between {l} {t:?} and {n:?}");
+            faces += usize::from(!mine.is_empty());
+        }
+    }
+    assert!(
+        faces > 10,
+        "only {faces} shared faces crossed by the surface"
+    );
+
+    // Every level within the geometric error it states, of the source mesh (Hausdorff,
+    // sampled both ways).
+    println!("| level | tiles | mean GLB bytes | geometricError | Hausdorff to the source |");
+    println!("|---|---|---|---|---|");
+    for level in 0..levels {
+        let mut whole = Mesh::default();
+        let mut tiles = 0;
+        let bytes: usize = glbs
+            .iter()
+            .filter(|(name, _)| name.starts_with(&format!("{level}_")))
+            .map(|(_, g)| g.len())
+            .sum();
+        for ((l, _), m) in meshes.range((level, [0; 3])..(level + 1, [0; 3])) {
+            debug_assert_eq!(*l, level);
+            let base = whole.positions.len() as u32;
+            whole.positions.extend_from_slice(&m.positions);
+            whole
+                .triangles
+                .extend(m.triangles.iter().map(|t| t.map(|v| v + base)));
+            tiles += 1;
+        }
+        let error = root_error / f64::from(1u32 << level);
+        let d = surface_distance(&whole, &source, 100_000);
+        println!(
+            "| {level} | {tiles} | {} | {error:.4} | {:.4} |",
+            bytes / tiles.max(1),
+            d.hausdorff
+        );
+        assert!(tiles > 0, "level {level} has no content");
+        assert!(
+            d.hausdorff <= error,
+            "level {level}: {} from the source, stating {error}",
+            d.hausdorff
+        );
+    }
+
+    // The GLBs, read by a validator we did not write: the Khronos glTF validator.
+    let files = dir.join("glb");
+    std::fs::create_dir_all(&files).unwrap();
+    for (name, glb) in &glbs {
+        std::fs::write(files.join(name), glb).unwrap();
+    }
+    match gltf_validator() {
+        Some(script) => {
+            let out = std::process::Command::new("node")
+                .arg(&script)
+                .arg(&files)
+                .output()
+                .unwrap();
+            let report = String::from_utf8_lossy(&out.stdout);
+            println!("gltf-validator: {report}");
+            assert!(
+                out.status.success(),
+                "{report} {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            let r: serde_json::Value = serde_json::from_str(report.trim()).unwrap();
+            assert_eq!(r["files"].as_u64(), Some(glbs.len() as u64));
+            assert_eq!(r["errors"].as_u64(), Some(0), "{report}");
+        }
+        None if std::env::var_os("CI").is_some() => {
+            panic!("the glTF validator (npm gltf-validator) is needed under CI")
+        }
+        None => println!("no node/npm here: the glTF validator was not run"),
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
