@@ -142,19 +142,13 @@ pub(crate) fn document() -> Value {
             }
         }
     });
-    let paths = doc["paths"].as_object_mut().expect("paths");
-    paths.extend(volume_tiles(&id, &iterations, &tolerance, &backend));
+    add_volume_tiles(&mut doc, [id, iterations, tolerance, backend]);
     doc
 }
 
-/// The paths of a volume's 3D Tiles (tileset, content, subtrees), beside [`document`]'s.
-fn volume_tiles(
-    id: &Value,
-    iterations: &Value,
-    tolerance: &Value,
-    backend: &Value,
-) -> serde_json::Map<String, Value> {
-    let paths = json!({
+/// The paths of a volume's 3D Tiles (tileset, content, subtrees) added to [`document`]'s.
+fn add_volume_tiles(doc: &mut Value, [id, iterations, tolerance, backend]: [Value; 4]) {
+    let volumes = json!({
     "/v1/assets/{id}/tileset.json": {"get": {"summary": "A volume as OGC 3D Tiles 1.1: implicit octree tiling (subtreeLevels 3), the root box the volume's grid cube, each level's geometricError half its parent's and at least its sampling's (sqrt(3) x the sample spacing) plus the decode's bound and the encode's largest field error, in mesh units; levels down to 4 times finer than the encoded grid (continuous decoding)", "parameters": [id,
                     param("lon", "query", json!({"type": "number"}), "longitude of the volume's origin on WGS84 (with lat): the root's transform is the east-north-up frame there"),
                     param("lat", "query", json!({"type": "number"}), "latitude of the volume's origin (with lon)"),
@@ -175,8 +169,7 @@ fn volume_tiles(
                     iterations.clone(), tolerance.clone(), backend.clone()],
                 "responses": {"200": {"description": "subtree", "content": {"application/octet-stream": {}}}, "304": {"description": "Not modified (If-None-Match)"}, "400": {"$ref": "#/components/responses/Error"}, "404": {"$ref": "#/components/responses/Error"}, "503": {"$ref": "#/components/responses/Error"}}}}
     });
-    match paths {
-        Value::Object(m) => m,
-        _ => unreachable!("an object literal"),
+    if let (Some(paths), Value::Object(volumes)) = (doc["paths"].as_object_mut(), volumes) {
+        paths.extend(volumes);
     }
 }

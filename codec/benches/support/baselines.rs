@@ -174,6 +174,8 @@ pub(crate) fn jpeg2000_at(r: &Raster, bpp: f64) -> Option<(f64, f64)> {
 /// imagecodecs with AVIF, and for anything but 8-bit images. The peer the issue names; a
 /// Python helper rather than a crate, since the AV1 encoders crates wrap (rav1e, libaom) are
 /// not the build imagecodecs ships.
+// The images bench reads it; the other benches that share this file do not.
+#[allow(dead_code)]
 pub(crate) fn avif_at(root: &std::path::Path, r: &Raster, bpp: f64) -> Option<(f64, f64)> {
     if r.sample != fractile_proto::SampleFormat::U8 || r.valid.is_some() {
         return None;

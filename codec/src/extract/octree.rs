@@ -7,9 +7,11 @@
 //! Errors are world units (mesh units). A tile's `geometricError` bounds how far its surface
 //! is from the surface of the encoded field: marching tetrahedra on samples `c` apart put
 //! every vertex on an edge whose ends straddle the surface, within `c` of it, and each sample
-//! is within the decode's bound plus the encode's largest error of the field; the tile states
-//! `sqrt(3) c` plus those (a cell's diagonal: conservative). Implicit tiling halves the error
-//! a level, so the root's is chosen for every level to hold: `sqrt(3) c_0 + 2^(L-1) e`.
+//! is within the decode's bound plus the encode's largest error of the field (and the field
+//! places the source's surface to half a voxel's diagonal between its samples); the tile states
+//! `sqrt(3) c` plus those (a cell's diagonal: conservative), plus what simplifying the tile's
+//! surface may move it ([`SIMPLIFIED_CELLS`] cells). Implicit tiling halves the error a level,
+//! so the root's is chosen for every level to hold: `(sqrt(3) + s) c_0 + 2^(L-1) e`.
 //!
 //! Neighbours at a level sample the same lattice on their shared face (their boxes are
 //! exact binary fractions of the root's), so their surfaces meet edge to edge: no cracks.
@@ -27,6 +29,11 @@ pub const CELLS: usize = 16;
 /// Levels a subtree file holds (1 + 8 + 64 tiles, their availability from one lattice of
 /// `CELLS * 4 + 1` samples a side: a 65^3 decode).
 pub const SUBTREE_LEVELS: u32 = 3;
+
+/// How far a tile's surface may move when it is simplified, in cells of its level: one cell,
+/// which leaves a flat face a few triangles where marching gave it hundreds (fandisk's tiles:
+/// see docs/benchmarks.md), and adds a cell to the error each tile states.
+pub const SIMPLIFIED_CELLS: f64 = 1.0;
 
 /// How far past the encoded grid the deepest level samples: 4 times finer than its cells.
 const PAST_THE_GRID: usize = 4;
@@ -80,7 +87,7 @@ pub struct Octree {
     /// Levels that exist (0 to `levels - 1`).
     pub levels: u32,
     /// The field's error every tile adds to its sampling's: the encode's largest error of the
-    /// field (world units).
+    /// field at its samples plus half a voxel's diagonal (world units).
     pub field_error: f64,
 }
 
@@ -106,11 +113,14 @@ impl Octree {
 
     /// The root's `geometricError` (every level's is it halved, as implicit tiling has it),
     /// for a decode whose samples are within `bound` of the encoded field: at least each
-    /// level's own `sqrt(3) c + bound + field_error` (see the module's note).
+    /// level's own `(sqrt(3) + SIMPLIFIED_CELLS) c + bound + field_error` (see the module's
+    /// note).
     pub fn root_error(&self, bound: f64) -> f64 {
         let e = bound + self.field_error;
         (0..self.levels)
-            .map(|l| (3f64.sqrt() * self.spacing(l) + e) * f64::from(1u32 << l))
+            .map(|l| {
+                ((3f64.sqrt() + SIMPLIFIED_CELLS) * self.spacing(l) + e) * f64::from(1u32 << l)
+            })
             .fold(0.0, f64::max)
     }
 
@@ -145,20 +155,105 @@ impl Octree {
     }
 }
 
-/// The glTF 2.0 binary of a tile's mesh, its positions and normals turned to glTF's y-up
-/// (`(x, z, -y)`), which 3D Tiles turns back to z-up when it draws glTF content.
-pub fn tile_glb(mesh: &Mesh) -> Vec<u8> {
-    let up = |p: &[f32; 3]| [p[0], p[2], -p[1]];
-    Mesh {
-        positions: mesh.positions.iter().map(up).collect(),
-        triangles: mesh.triangles.clone(),
-        normals: mesh.normals.iter().map(up).collect(),
+/// The glTF 2.0 binary of tile `t`'s mesh: positions and normals turned to glTF's y-up
+/// (`(x, z, -y)`, which 3D Tiles turns back to z-up when it draws glTF content) and quantized
+/// (KHR_mesh_quantization, which CesiumJS, three.js and the Khronos validator read):
+/// positions as 16-bit steps of the tile's box (the node's translation and scale map them
+/// back; a step is the box's side / 65535, under a thousandth of a cell), normals as 8-bit
+/// normalized, indices 16-bit where the vertices allow: 12 bytes a vertex and 6 a triangle
+/// where the plain GLB takes 24 and 12.
+pub fn tile_glb(octree: &Octree, t: TileId, mesh: &Mesh) -> Vec<u8> {
+    let (lo, hi) = octree.tile_box(t);
+    let side = hi[0] - lo[0];
+    // The box's lowest corner in glTF's axes.
+    let origin = [lo[0], lo[2], -hi[1]];
+    let step = side / 65535.0;
+    let mut bin: Vec<u8> = Vec::new();
+    let (mut qlo, mut qhi) = ([u16::MAX; 3], [0u16; 3]);
+    for p in &mesh.positions {
+        let up = [f64::from(p[0]), f64::from(p[2]), -f64::from(p[1])];
+        for a in 0..3 {
+            // The box's faces are steps 0 and 65535, and only vertices on them (the ones a
+            // neighbour shares) land there: one near a face is not rounded onto it.
+            let at = (up[a] - origin[a]) / step;
+            let q = match at {
+                v if v.abs() < 1e-3 => 0,
+                v if (v - 65535.0).abs() < 1e-3 => 65535,
+                v => v.round().clamp(1.0, 65534.0) as u16,
+            };
+            qlo[a] = qlo[a].min(q);
+            qhi[a] = qhi[a].max(q);
+            bin.extend_from_slice(&q.to_le_bytes());
+        }
+        bin.extend_from_slice(&[0, 0]);
     }
-    .to_glb()
+    let positions_len = bin.len();
+    let normals = mesh.has_normals();
+    if normals {
+        for n in &mesh.normals {
+            for v in [n[0], n[2], -n[1]] {
+                bin.push(((v.clamp(-1.0, 1.0) * 127.0).round() as i8) as u8);
+            }
+            bin.push(0);
+        }
+    }
+    let normals_len = bin.len() - positions_len;
+    let wide = mesh.positions.len() > usize::from(u16::MAX);
+    for i in mesh.triangles.iter().flatten() {
+        match wide {
+            true => bin.extend_from_slice(&i.to_le_bytes()),
+            false => bin.extend_from_slice(&(*i as u16).to_le_bytes()),
+        }
+    }
+    let indices_len = bin.len() - positions_len - normals_len;
+    bin.resize(bin.len().div_ceil(4) * 4, 0);
+    let count = mesh.positions.len();
+    let mut attributes = serde_json::json!({"POSITION": 0});
+    let mut views = vec![
+        serde_json::json!({"buffer": 0, "byteOffset": 0, "byteLength": positions_len, "byteStride": 8, "target": 34962}),
+        serde_json::json!({"buffer": 0, "byteOffset": positions_len + normals_len, "byteLength": indices_len, "target": 34963}),
+    ];
+    let mut accessors = vec![
+        serde_json::json!({"bufferView": 0, "componentType": 5123, "count": count, "type": "VEC3",
+                           "min": qlo, "max": qhi}),
+        serde_json::json!({"bufferView": 1, "componentType": if wide { 5125 } else { 5123 },
+                           "count": mesh.triangles.len() * 3, "type": "SCALAR"}),
+    ];
+    if normals {
+        attributes["NORMAL"] = serde_json::json!(2);
+        views.push(serde_json::json!({"buffer": 0, "byteOffset": positions_len, "byteLength": normals_len, "byteStride": 4, "target": 34962}));
+        accessors.push(serde_json::json!({"bufferView": 2, "componentType": 5120, "normalized": true, "count": count, "type": "VEC3"}));
+    }
+    let json = serde_json::json!({
+        "asset": {"version": "2.0", "generator": "fractile"},
+        "extensionsUsed": ["KHR_mesh_quantization"],
+        "extensionsRequired": ["KHR_mesh_quantization"],
+        "scene": 0,
+        "scenes": [{"nodes": [0]}],
+        "nodes": [{"mesh": 0, "translation": origin, "scale": [step, step, step]}],
+        "meshes": [{"primitives": [{"attributes": attributes, "indices": 1, "mode": 4}]}],
+        "buffers": [{"byteLength": bin.len()}],
+        "bufferViews": views,
+        "accessors": accessors,
+    });
+    let mut text = json.to_string().into_bytes();
+    text.resize(text.len().div_ceil(4) * 4, b' ');
+    let total = 12 + 8 + text.len() + 8 + bin.len();
+    let mut out = Vec::with_capacity(total);
+    out.extend_from_slice(b"glTF");
+    out.extend_from_slice(&2u32.to_le_bytes());
+    out.extend_from_slice(&(total as u32).to_le_bytes());
+    out.extend_from_slice(&(text.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"JSON");
+    out.extend_from_slice(&text);
+    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
+    out.extend_from_slice(b"BIN\0");
+    out.extend_from_slice(&bin);
+    out
 }
 
 impl Asset {
-    /// The octree of a volume asset: its grid's cube, levels down to [`PAST_THE_GRID`] times
+    /// The octree of a volume asset: its grid's cube, levels down to 4 times
     /// finer than the encoded grid.
     pub fn octree(&self) -> Result<Octree, Error> {
         let v = self
@@ -170,7 +265,13 @@ impl Asset {
             lo,
             side: hi[0] - lo[0],
             levels: finest.next_power_of_two().trailing_zeros() + 1,
-            field_error: self.meta.stats.max_error.max(0.0),
+            // The field's largest error at the grid's samples (what the encoder measured),
+            // plus half a voxel's diagonal: the sampled distance field places the source's
+            // surface only to about that between its samples (a tube thinner than a voxel,
+            // a sharp edge). Measured on knot2 at 4x past its grid: 0.045 from the source,
+            // where the samples' error alone would have stated 0.036.
+            field_error: self.meta.stats.max_error.max(0.0)
+                + 0.5 * 3f64.sqrt() * (hi[0] - lo[0]) / v.size() as f64,
         })
     }
 
@@ -191,6 +292,14 @@ impl Asset {
         let (values, bound) = self.distance_grid_with(lo, hi, dims, iterations, tolerance, hook)?;
         let spacing = [octree.spacing(t.level); 3];
         let mesh = crate::codecs::ifs3d::isosurface::extract(&values, dims, 0.0, lo, spacing);
+        // Simplified within SIMPLIFIED_CELLS, its border (on the box's faces) kept: the
+        // neighbours still meet. A surface thinner than that may collapse whole (knot2's tube
+        // at level 0): the tile keeps its marching then, since its subtree lists it as content.
+        #[cfg(feature = "simplify")]
+        let mesh = match mesh.simplified(SIMPLIFIED_CELLS * spacing[0]) {
+            m if m.triangles.is_empty() => mesh,
+            m => m,
+        };
         Ok((mesh, bound))
     }
 
@@ -207,7 +316,7 @@ impl Asset {
         (iterations, tolerance): (u32, f32),
         hook: Option<&VolumeGridHook>,
     ) -> Result<(Subtree, f32), Error> {
-        if !octree.holds(root) || root.level % SUBTREE_LEVELS != 0 {
+        if !octree.holds(root) || !root.level.is_multiple_of(SUBTREE_LEVELS) {
             return Err(Error::settings(format!("no subtree at {root:?}")));
         }
         let depth = SUBTREE_LEVELS.min(octree.levels - root.level);

@@ -14,6 +14,8 @@ pub mod distance;
 mod files;
 pub mod quantized;
 mod rtin;
+#[cfg(feature = "simplify")]
+mod simplify;
 mod tin;
 
 /// Vertices and triangles.
@@ -419,7 +421,7 @@ impl Mesh {
 }
 
 impl Mesh {
-    fn has_normals(&self) -> bool {
+    pub(crate) fn has_normals(&self) -> bool {
         !self.normals.is_empty() && self.normals.len() == self.positions.len()
     }
 }

@@ -174,7 +174,7 @@ pub(super) async fn subtree(
         ));
     };
     let t = tile_of(&octree, &level, &x, &y, z)?;
-    if t.level % SUBTREE_LEVELS != 0 {
+    if !t.level.is_multiple_of(SUBTREE_LEVELS) {
         return Err(AppError::not_found(
             ErrorCode::NoTile,
             format!("subtrees start at levels that are multiples of {SUBTREE_LEVELS}"),
@@ -240,7 +240,7 @@ async fn answer(
                         "this tile's box holds no surface (its subtree lists no content)",
                     ));
                 }
-                ("model/gltf-binary", tile_glb(&mesh), bound)
+                ("model/gltf-binary", tile_glb(&octree, t, &mesh), bound)
             }
             Made::Subtree(t) => {
                 let (s, bound) = a
