@@ -437,3 +437,116 @@ async fn walk_the_tileset_of(path: &std::path::Path) {
     }
     std::fs::remove_dir_all(&dir).ok();
 }
+
+/// What a viewer or a hand can get wrong gets a clear error, never a panic or a tile: levels
+/// past the last, indices past a level, words for numbers, another extension, subtrees off
+/// their levels, a placement half given, and a raster asked for 3D Tiles.
+#[tokio::test]
+async fn bad_3d_tiles_requests_get_clear_errors() {
+    let text = std::fs::read_to_string(root().join("testdata/mesh/knot2.off")).unwrap();
+    let mesh = Mesh::parse_off(&text).unwrap();
+    let settings = fractile_codec::encode::volume::MeshSettings {
+        grid: 32,
+        ..Default::default()
+    };
+    let enc = fractile_codec::encode::volume::encode_mesh(&mesh, &settings, "knot2").unwrap();
+    let dir = std::env::temp_dir().join(format!("fractile-3dtiles-bad-{}", std::process::id()));
+    std::fs::create_dir_all(&dir).unwrap();
+    std::fs::write(dir.join("knot.fra"), &enc.bytes).unwrap();
+    let raster = fractile_codec::Raster::open(&root().join("testdata/camera.png")).unwrap();
+    let image = fractile_codec::encode_default(&raster, 0.25, &|_, _| {}).unwrap();
+    std::fs::write(dir.join("camera.fra"), &image.bytes).unwrap();
+    let (store, _) = Store::open(&dir).unwrap();
+    let state = Arc::new(AppState::new(store, "http://test".into()));
+    let (status, body) = get(&state, "/v1/assets/knot/tileset.json").await;
+    assert_eq!(status, StatusCode::OK);
+    let levels = serde_json::from_slice::<serde_json::Value>(&body).unwrap()["root"]
+        ["implicitTiling"]["availableLevels"]
+        .as_u64()
+        .unwrap();
+    let cases = [
+        (
+            format!("/v1/assets/knot/3dtiles/{levels}/0/0/0.glb"),
+            404,
+            "no_tile",
+        ),
+        ("/v1/assets/knot/3dtiles/1/2/0/0.glb".into(), 404, "no_tile"),
+        (
+            "/v1/assets/knot/3dtiles/1/0/0/x.glb".into(),
+            400,
+            "bad_path",
+        ),
+        (
+            "/v1/assets/knot/3dtiles/1/0/0/99999999999.glb".into(),
+            400,
+            "bad_path",
+        ),
+        (
+            "/v1/assets/knot/3dtiles/0/0/0/0.png".into(),
+            404,
+            "no_route",
+        ),
+        (
+            "/v1/assets/knot/3dtiles/subtrees/1/0/0/0.subtree".into(),
+            404,
+            "no_tile",
+        ),
+        (
+            "/v1/assets/knot/3dtiles/subtrees/0/0/0/0.glb".into(),
+            404,
+            "no_route",
+        ),
+        (
+            "/v1/assets/knot/tileset.json?lon=10".into(),
+            400,
+            "bad_point",
+        ),
+        (
+            "/v1/assets/knot/tileset.json?lon=10&lat=95".into(),
+            400,
+            "bad_point",
+        ),
+        (
+            "/v1/assets/knot/tileset.json?lon=10&lat=5&scale=0".into(),
+            400,
+            "bad_point",
+        ),
+        ("/v1/assets/camera/tileset.json".into(), 400, "not_volume"),
+        (
+            "/v1/assets/camera/3dtiles/0/0/0/0.glb".into(),
+            400,
+            "not_volume",
+        ),
+        (
+            "/v1/assets/nothing/tileset.json".into(),
+            404,
+            "unknown_asset",
+        ),
+    ];
+    for (uri, want, code) in cases {
+        let (status, body) = get(&state, &uri).await;
+        assert_eq!(
+            status.as_u16(),
+            want,
+            "{uri}: {}",
+            String::from_utf8_lossy(&body)
+        );
+        let err: serde_json::Value = serde_json::from_slice(&body).unwrap();
+        assert_eq!(err["code"], code, "{uri}");
+    }
+    // A placement: the root's transform is the east-north-up frame there (its origin on the
+    // ellipsoid's surface, its up axis the ellipsoid's normal).
+    let (_, body) = get(&state, "/v1/assets/knot/tileset.json?lon=0&lat=90&scale=2").await;
+    let t: Vec<f64> =
+        serde_json::from_slice::<serde_json::Value>(&body).unwrap()["root"]["transform"]
+            .as_array()
+            .unwrap()
+            .iter()
+            .map(|v| v.as_f64().unwrap())
+            .collect();
+    assert_eq!(t.len(), 16);
+    // Up (the third column) is +z at the pole, scaled by 2; the origin 6,356,752 m up z.
+    assert!((t[8]).abs() < 1e-9 && (t[9]).abs() < 1e-9 && (t[10] - 2.0).abs() < 1e-9);
+    assert!((t[14] - 6_356_752.3).abs() < 1.0, "{t:?}");
+    std::fs::remove_dir_all(&dir).ok();
+}
