@@ -7,7 +7,7 @@ Waiting on the page's own state, in wall time, is what makes the check determini
 busy machine, and the screenshot then catches a map before it drew.
 
 Usage: browser.py URL OUT_DIR [SECONDS]. Waits until #status says data-loaded="true", the
-coast has points and the globe is ready or absent (or until the expression in READY_JS is true) (at most SECONDS, default 90), lets one more second of frames run, then
+coast has points and the globe and the volume are ready or absent (or until the expression in READY_JS is true) (at most SECONDS, default 90), lets one more second of frames run, then
 writes OUT_DIR/shot.png (1200 x 700), OUT_DIR/dom.html and OUT_DIR/console.txt: what the page
 logged as errors, as Chromium saw them (uncaught exceptions, console.error), one per line, so
 that the check does not rest on the page's own error counter. Exits 1 if the page never got
@@ -108,7 +108,8 @@ try:
     ready = os.environ.get("READY_JS") or (
         "(() => { const s = document.getElementById('status');"
         " return !!s && s.dataset.loaded === 'true' && Number(s.dataset.coastPoints) > 0"
-        " && (s.dataset.globe === 'ready' || s.dataset.globe === 'absent'); })()"
+        " && (s.dataset.globe === 'ready' || s.dataset.globe === 'absent')"
+        " && (s.dataset.volume === 'ready' || s.dataset.volume === 'absent'); })()"
     )
     while time.monotonic() < deadline:
         if evaluate(session, ready):

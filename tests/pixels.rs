@@ -7,6 +7,8 @@
 //!
 //! Usage: `browser-pixels SHOT.png BAR_PX LABEL_PX FOOT_PX name:min_share ...` (one per panel, left to
 //! right). Prints one line per panel and exits 1 if any panel is under its minimum.
+//! `browser-pixels --changed BEFORE.png SHOT.png ...` (the same arguments after) counts instead
+//! the pixels of each panel that differ between the two screenshots: a view that changed.
 
 use std::collections::HashMap;
 use std::process::ExitCode;
@@ -16,7 +18,21 @@ use std::process::ExitCode;
 const SAME_COLOUR: i32 = 12;
 
 fn main() -> ExitCode {
-    let args: Vec<String> = std::env::args().skip(1).collect();
+    let mut args: Vec<String> = std::env::args().skip(1).collect();
+    let before = match args.first().map(String::as_str) {
+        Some("--changed") if args.len() > 2 => {
+            let path = args.remove(1);
+            args.remove(0);
+            match image::open(&path) {
+                Ok(img) => Some(img.to_rgb8()),
+                Err(e) => {
+                    eprintln!("{path}: {e}");
+                    return ExitCode::from(2);
+                }
+            }
+        }
+        _ => None,
+    };
     if args.len() < 5 {
         eprintln!("usage: browser-pixels SHOT.png BAR_PX LABEL_PX FOOT_PX name:min_share ...");
         return ExitCode::from(2);
@@ -74,17 +90,30 @@ fn main() -> ExitCode {
             .max_by_key(|(_, n)| **n)
             .map(|(c, _)| *c)
             .unwrap_or_default();
-        let drawn = pixels
-            .iter()
-            .filter(|p| (0..3).any(|c| (p[c] as i32 - background[c] as i32).abs() > SAME_COLOUR))
-            .count();
+        let differs = |p: &[u8; 3], q: &[u8; 3]| {
+            (0..3).any(|c| (p[c] as i32 - q[c] as i32).abs() > SAME_COLOUR)
+        };
+        let drawn = match &before {
+            None => pixels.iter().filter(|p| differs(p, &background)).count(),
+            Some(b) if b.dimensions() == shot.dimensions() => (i as u32 * width
+                ..(i as u32 + 1) * width)
+                .flat_map(|x| (top..bottom).map(move |y| (x, y)))
+                .filter(|&(x, y)| differs(&shot.get_pixel(x, y).0, &b.get_pixel(x, y).0))
+                .count(),
+            Some(_) => 0,
+        };
         let share = drawn as f64 / pixels.len().max(1) as f64;
         let pass = share >= *min_share;
         ok &= pass;
         println!(
-            "{}: {name}: {:.2}% of its pixels differ from its background #{:02x}{:02x}{:02x} (at least {:.2}% wanted)",
+            "{}: {name}: {:.2}% of its pixels differ from {} #{:02x}{:02x}{:02x} (at least {:.2}% wanted)",
             if pass { "ok" } else { "FAILED" },
             share * 100.0,
+            if before.is_some() {
+                "the first screenshot; its background"
+            } else {
+                "its background"
+            },
             background[0],
             background[1],
             background[2],

@@ -15,6 +15,10 @@
   const dem = params.get('dem') || 'jacksboro';
   const picture = params.get('image') || 'camera';
   const coastline = params.get('curve') || 'coast';
+  const volume = params.get('volume') || 'fandisk';
+  // `?near` puts the volume's camera close: the browser test's second look, which must fetch
+  // deeper tiles than the first.
+  const near = params.has('near');
   const withIterations = (url, n) => n === 'auto' ? url : url + (url.includes('?') ? '&' : '?') + 'iterations=' + n;
   const demTiles = (n) => [withIterations(`${origin}/v1/assets/${dem}/tiles/{z}/{x}/{y}.png?encoding=terrainrgb`, n)];
   const imageTiles = (n) => [withIterations(`${origin}/v1/assets/${picture}/tiles/{z}/{x}/{y}.png`, n)];
@@ -128,9 +132,46 @@
       }
     });
   };
+  // The volume: its 3D Tiles (tileset.json, implicit octree) streamed by CesiumJS in mesh
+  // units, with no globe, refined where the camera looks. #status says 'absent', 'loading'
+  // or 'ready' (every tile the view wants loaded) and how many tiles Cesium took.
+  const startVolume = async () => {
+    status.dataset.volume = 'loading';
+    const widget = new Cesium.CesiumWidget('volume', {
+      globe: false,
+      baseLayer: false,
+      skyBox: false,
+      skyAtmosphere: false,
+      contextOptions: { webgl: { preserveDrawingBuffer: true } },
+    });
+    const scene = widget.scene;
+    scene.backgroundColor = Cesium.Color.fromCssColorString('#dfe6ee');
+    // A fixed light from over the viewer's shoulder: the same picture at any time of day.
+    scene.light = new Cesium.DirectionalLight({ direction: new Cesium.Cartesian3(-0.4, 0.6, -0.7) });
+    const tileset = await Cesium.Cesium3DTileset.fromUrl(`${origin}/v1/assets/${volume}/tileset.json`);
+    // A colour of its own: untextured white under the light is hard to tell from the sky.
+    tileset.style = new Cesium.Cesium3DTileStyle({ color: "color('#c08a4a')" });
+    scene.primitives.add(tileset);
+    let loaded = 0;
+    tileset.tileLoad.addEventListener(() => {
+      loaded += 1;
+      status.dataset.volumeTiles = String(loaded);
+    });
+    tileset.tileFailed.addEventListener((e) => fail(`volume tile ${e.url}: ${e.message}`));
+    const sphere = tileset.boundingSphere;
+    widget.camera.viewBoundingSphere(sphere,
+      new Cesium.HeadingPitchRange(0.6, -0.5, sphere.radius * (near ? 1.3 : 5.0)));
+    widget.camera.lookAtTransform(Cesium.Matrix4.IDENTITY);
+    tileset.allTilesLoaded.addEventListener(() => {
+      if (loaded > 0) {
+        status.dataset.volume = 'ready';
+      }
+    });
+  };
   fetch(`${origin}/vendor/cesium/Cesium.js`, { method: 'HEAD' }).then((r) => {
     if (!r.ok) {
       status.dataset.globe = 'absent';
+      status.dataset.volume = 'absent';
       note('needs CesiumJS on the server: tools/fetch-cesium.sh, then fractile serve --cesium target/cesium/Cesium');
       return;
     }
@@ -141,7 +182,10 @@
     document.head.appendChild(css);
     const script = document.createElement('script');
     script.src = `${origin}/vendor/cesium/Cesium.js`;
-    script.onload = () => startGlobe().catch((e) => fail(`globe: ${e}`));
+    script.onload = () => {
+      startGlobe().catch((e) => fail(`globe: ${e}`));
+      startVolume().catch((e) => fail(`volume: ${e}`));
+    };
     script.onerror = () => fail('CesiumJS did not load');
     document.head.appendChild(script);
   }).catch((e) => fail(String(e)));
