@@ -6,7 +6,7 @@
 
 use std::path::Path;
 
-use fractile_proto::subtree::Subtree;
+use fractile_proto::subtree::{Subtree, descendant};
 
 use crate::{Client, ClientError};
 
@@ -19,20 +19,6 @@ pub struct Fetched {
     pub contents: usize,
     /// Bytes of every file written, `tileset.json` included.
     pub bytes: u64,
-}
-
-/// The tile `k` (Morton order) `depth` levels under `(x, y, z)`.
-fn descendant([x, y, z]: [u32; 3], depth: u32, k: usize) -> [u32; 3] {
-    let axis = |a: usize| {
-        (0..depth).fold(0u32, |v, b| {
-            v | (((k >> (3 * b as usize + a)) & 1) as u32) << b
-        })
-    };
-    [
-        (x << depth) | axis(0),
-        (y << depth) | axis(1),
-        (z << depth) | axis(2),
-    ]
 }
 
 impl Client {
@@ -89,7 +75,7 @@ impl Client {
             for r in 0..per {
                 for k in 0..1usize << (3 * r) {
                     if s.content[i] && level + r < levels {
-                        let t = descendant(at, r, k);
+                        let t = descendant(at, r, k as u64);
                         let rel = format!("3dtiles/{}/{}/{}/{}.glb", level + r, t[0], t[1], t[2]);
                         let glb = self.get_bytes(&format!("{base}/{rel}")).await?;
                         write(&rel, &glb, &mut fetched)?;
@@ -100,7 +86,7 @@ impl Client {
             }
             if level + per < levels {
                 for (k, _) in s.children.iter().enumerate().filter(|(_, c)| **c) {
-                    pending.push((level + per, descendant(at, per, k)));
+                    pending.push((level + per, descendant(at, per, k as u64)));
                 }
             }
         }

@@ -17,6 +17,17 @@ pub struct Subtree {
     pub children: Vec<bool>,
 }
 
+/// The tile `k` (a Morton index: `x` in bit 0 of each triple, `y` in bit 1, `z` in bit 2)
+/// `depth` levels under the tile at `(x, y, z)`: where the subtree's bits point.
+pub fn descendant([x, y, z]: [u32; 3], depth: u32, k: u64) -> [u32; 3] {
+    let axis = |a: u32| (0..depth).fold(0u32, |v, b| v | (((k >> (3 * b + a)) & 1) as u32) << b);
+    [
+        (x << depth) | axis(0),
+        (y << depth) | axis(1),
+        (z << depth) | axis(2),
+    ]
+}
+
 /// Why a subtree file does not read.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct SubtreeError(pub String);
@@ -154,6 +165,9 @@ mod tests {
         let raw = all.to_bytes();
         assert!(String::from_utf8_lossy(&raw).contains(r#""constant":1"#));
         assert_eq!(Subtree::from_bytes(&raw, 2).unwrap(), all);
+        // Morton order: k = 0b110_001 two levels down is x = 1 (bit 0), y = 2 (bit 4), z = 2
+        // (bit 5), under (1, 0, 0): x = 1 * 4 + 1.
+        assert_eq!(descendant([1, 0, 0], 2, 0b110_001), [5, 2, 2]);
         // Truncated or foreign files are errors, not panics.
         for bad in [&raw[..10], &raw[..30], b"glTF\x02\0\0\0".as_slice()] {
             assert!(Subtree::from_bytes(bad, 2).is_err());

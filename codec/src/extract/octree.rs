@@ -62,17 +62,12 @@ impl TileId {
 
     /// The tile `k` (a Morton index over `depth` levels) below this one, `depth` levels down.
     fn descendant(self, depth: u32, k: u64) -> TileId {
-        let (mut x, mut y, mut z) = (0u32, 0u32, 0u32);
-        for bit in 0..depth {
-            x |= ((k >> (3 * bit)) & 1) as u32 * (1 << bit);
-            y |= ((k >> (3 * bit + 1)) & 1) as u32 * (1 << bit);
-            z |= ((k >> (3 * bit + 2)) & 1) as u32 * (1 << bit);
-        }
+        let [x, y, z] = fractile_proto::subtree::descendant([self.x, self.y, self.z], depth, k);
         TileId {
             level: self.level + depth,
-            x: (self.x << depth) | x,
-            y: (self.y << depth) | y,
-            z: (self.z << depth) | z,
+            x,
+            y,
+            z,
         }
     }
 }
