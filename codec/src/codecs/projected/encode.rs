@@ -539,9 +539,15 @@ impl PlaneEncoder for ProjectedSettings {
         &self,
         raster: &Raster,
         measure: &dyn Measure,
-        _progress: &(dyn Fn(u64, u64) + Sync),
+        progress: &(dyn Fn(u64, u64) + Sync),
     ) -> Result<(Coded, Errors), Error> {
-        encode_projected(raster, self, measure)
+        // One unit of work: the rate's bisections run side by side and have no count worth
+        // showing, but a caller's progress (Python's callback, a bar) sees the start and the
+        // end.
+        progress(0, 1);
+        let coded = encode_projected(raster, self, measure)?;
+        progress(1, 1);
+        Ok(coded)
     }
 
     /// The operator's 48 bytes a sample (`ProjectedHeader::cost`) and the discrete decode's 8.
