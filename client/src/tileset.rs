@@ -54,12 +54,6 @@ impl Client {
                 "no implicit tiling's subtreeLevels and availableLevels",
             ));
         };
-        if !(1..=6).contains(&per) {
-            return Err(ClientError::malformed(
-                "tileset.json",
-                format!("subtreeLevels {per}: 1 to 6 are read"),
-            ));
-        }
         let mut pending = vec![(0u32, [0u32; 3])];
         while let Some((level, at)) = pending.pop() {
             let rel = format!(

@@ -28,6 +28,9 @@ pub fn descendant([x, y, z]: [u32; 3], depth: u32, k: u64) -> [u32; 3] {
     ]
 }
 
+/// The most levels a subtree read here may have.
+pub const MAX_LEVELS: u32 = 6;
+
 /// Why a subtree file does not read.
 #[derive(Clone, Debug, PartialEq, Eq)]
 pub struct SubtreeError(pub String);
@@ -126,7 +129,13 @@ impl Subtree {
                 .ok_or_else(|| err("a bitstream runs past the buffer"))?;
             Ok((0..n).map(|i| bytes[i / 8] >> (i % 8) & 1 == 1).collect())
         };
-        let levels = levels.min(10);
+        // 8^levels child bits are allocated: refused past what any tileset here names (6:
+        // 262,144 bits) before anything is.
+        if !(1..=MAX_LEVELS).contains(&levels) {
+            return Err(SubtreeError(format!(
+                "{levels} levels a subtree: 1 to {MAX_LEVELS} are read"
+            )));
+        }
         let tiles = ((1usize << (3 * levels)) - 1) / 7;
         Ok(Subtree {
             tiles: bits(&json["tileAvailability"], tiles)?,
@@ -172,5 +181,6 @@ mod tests {
         for bad in [&raw[..10], &raw[..30], b"glTF\x02\0\0\0".as_slice()] {
             assert!(Subtree::from_bytes(bad, 2).is_err());
         }
+        assert!(Subtree::from_bytes(&raw, 7).is_err() && Subtree::from_bytes(&raw, 0).is_err());
     }
 }

@@ -201,7 +201,6 @@ pub fn tile_glb(octree: &Octree, t: TileId, mesh: &Mesh) -> Vec<u8> {
         }
     }
     let indices_len = bin.len() - positions_len - normals_len;
-    bin.resize(bin.len().div_ceil(4) * 4, 0);
     let count = mesh.positions.len();
     let mut attributes = serde_json::json!({"POSITION": 0});
     let mut views = vec![
@@ -231,20 +230,7 @@ pub fn tile_glb(octree: &Octree, t: TileId, mesh: &Mesh) -> Vec<u8> {
         "bufferViews": views,
         "accessors": accessors,
     });
-    let mut text = json.to_string().into_bytes();
-    text.resize(text.len().div_ceil(4) * 4, b' ');
-    let total = 12 + 8 + text.len() + 8 + bin.len();
-    let mut out = Vec::with_capacity(total);
-    out.extend_from_slice(b"glTF");
-    out.extend_from_slice(&2u32.to_le_bytes());
-    out.extend_from_slice(&(total as u32).to_le_bytes());
-    out.extend_from_slice(&(text.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"JSON");
-    out.extend_from_slice(&text);
-    out.extend_from_slice(&(bin.len() as u32).to_le_bytes());
-    out.extend_from_slice(b"BIN\0");
-    out.extend_from_slice(&bin);
-    out
+    crate::mesh::glb(json.to_string().into_bytes(), bin)
 }
 
 impl Asset {

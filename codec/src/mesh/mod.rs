@@ -12,6 +12,7 @@ use crate::mesh::rtin::{check_rtin, edge_chords, rtin_error, rtin_triangle};
 
 pub mod distance;
 mod files;
+pub(crate) use files::glb;
 pub mod quantized;
 mod rtin;
 #[cfg(feature = "simplify")]

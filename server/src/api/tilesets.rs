@@ -136,6 +136,27 @@ fn tile_of(octree: &Octree, level: &str, x: &str, y: &str, z: &str) -> Result<Ti
     Ok(t)
 }
 
+/// The asset, its octree and the tile a 3D Tiles path names: `{level}/{x}/{y}/{z}{extension}`
+/// (another extension: 404 `no_route`).
+fn tile_at(
+    state: &AppState,
+    id: &str,
+    [level, x, y]: [&str; 3],
+    file: &str,
+    extension: &str,
+) -> Result<(Arc<StoredAsset>, Octree, TileId), AppError> {
+    let a = state.store.get(id)?;
+    let octree = octree_of(&a)?;
+    let Some(z) = file.strip_suffix(extension) else {
+        return Err(AppError::not_found(
+            ErrorCode::NoRoute,
+            format!("this path ends in {{z}}{extension}"),
+        ));
+    };
+    let t = tile_of(&octree, level, x, y, z)?;
+    Ok((a, octree, t))
+}
+
 /// A tile's content: `GET /v1/assets/{id}/3dtiles/{level}/{x}/{y}/{z}.glb`, the surface in
 /// its box (glTF 2.0 binary, y up); 404 where the box holds no surface (its subtree says so).
 /// `GET /v1/assets/{id}/3dtiles/subtrees/{level}/{x}/{y}/{z}.subtree` is a subtree.
@@ -145,15 +166,7 @@ pub(super) async fn content(
     Query(q): Query<ContentQuery>,
     headers: HeaderMap,
 ) -> Result<Response, AppError> {
-    let a = state.store.get(&id)?;
-    let octree = octree_of(&a)?;
-    let Some(z) = file.strip_suffix(".glb") else {
-        return Err(AppError::not_found(
-            ErrorCode::NoRoute,
-            "a 3D tile's content is {z}.glb",
-        ));
-    };
-    let t = tile_of(&octree, &level, &x, &y, z)?;
+    let (a, octree, t) = tile_at(&state, &id, [&level, &x, &y], &file, ".glb")?;
     answer(&state, a, octree, Made::Tile(t), &q, &headers).await
 }
 
@@ -165,15 +178,7 @@ pub(super) async fn subtree(
     Query(q): Query<ContentQuery>,
     headers: HeaderMap,
 ) -> Result<Response, AppError> {
-    let a = state.store.get(&id)?;
-    let octree = octree_of(&a)?;
-    let Some(z) = file.strip_suffix(".subtree") else {
-        return Err(AppError::not_found(
-            ErrorCode::NoRoute,
-            "a subtree is {z}.subtree",
-        ));
-    };
-    let t = tile_of(&octree, &level, &x, &y, z)?;
+    let (a, octree, t) = tile_at(&state, &id, [&level, &x, &y], &file, ".subtree")?;
     if !t.level.is_multiple_of(SUBTREE_LEVELS) {
         return Err(AppError::not_found(
             ErrorCode::NoTile,
