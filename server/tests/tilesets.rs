@@ -20,14 +20,57 @@ fn root() -> std::path::PathBuf {
 }
 
 async fn get(state: &Arc<AppState>, uri: &str) -> (StatusCode, Vec<u8>) {
-    let req = Request::get(uri).body(Body::empty()).unwrap();
+    let (status, _, body) = get_gzip(state, uri, false).await;
+    (status, body)
+}
+
+/// `uri`'s status, content encoding and body, asked with `Accept-Encoding: gzip` or not.
+async fn get_gzip(
+    state: &Arc<AppState>,
+    uri: &str,
+    gzip: bool,
+) -> (StatusCode, Option<String>, Vec<u8>) {
+    let mut req = Request::get(uri);
+    if gzip {
+        req = req.header("accept-encoding", "gzip, deflate, br");
+    }
     let resp = fractile_server::app(state.clone())
-        .oneshot(req)
+        .oneshot(req.body(Body::empty()).unwrap())
         .await
         .unwrap();
     let status = resp.status();
+    let encoding = resp
+        .headers()
+        .get("content-encoding")
+        .map(|v| v.to_str().unwrap().to_string());
     let body = resp.into_body().collect().await.unwrap().to_bytes();
-    (status, body.to_vec())
+    (status, encoding, body.to_vec())
+}
+
+/// The length of `bytes` gzipped as the server gzips (flate2's default level).
+fn gzip_len(bytes: &[u8]) -> usize {
+    let mut z = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
+    std::io::Write::write_all(&mut z, bytes).unwrap();
+    z.finish().unwrap().len()
+}
+
+/// A mesh's triangles as corner positions, each turned to start at its least corner (the
+/// winding kept), sorted: equal for two meshes that differ only in vertex and triangle order.
+fn triangle_set(m: &Mesh) -> Vec<[[u32; 3]; 3]> {
+    let mut out: Vec<[[u32; 3]; 3]> = m
+        .triangles
+        .iter()
+        .map(|t| {
+            let c = t.map(|v| m.positions[v as usize].map(f32::to_bits));
+            // The least of its three rotations (two corners may share a position).
+            (0..3)
+                .map(|k| [c[k], c[(k + 1) % 3], c[(k + 2) % 3]])
+                .min()
+                .unwrap()
+        })
+        .collect();
+    out.sort();
+    out
 }
 
 /// A subtree file's availability sets: (tiles, content, child subtrees).
@@ -89,11 +132,47 @@ fn read_glb(glb: &[u8]) -> Mesh {
         std::array::from_fn(|a| v.get(a).and_then(|x| x.as_f64()).unwrap_or(default))
     };
     let (t, s) = (vec3(&node["translation"], 0.0), vec3(&node["scale"], 1.0));
-    // Each element of an accessor as f64 (component type, view offset and stride).
+    // Each view's bytes, decoded by meshoptimizer's decoder where the view is compressed
+    // (EXT_meshopt_compression), as a viewer decodes them.
+    let views: Vec<Vec<u8>> = json["bufferViews"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .map(|v| {
+            let number = |v: &serde_json::Value, key: &str| v[key].as_u64().unwrap() as usize;
+            let Some(m) = v["extensions"].get("EXT_meshopt_compression") else {
+                let offset = number(v, "byteOffset");
+                return bin[offset..offset + number(v, "byteLength")].to_vec();
+            };
+            let offset = number(m, "byteOffset");
+            let stream = &bin[offset..offset + number(m, "byteLength")];
+            let (count, stride) = (number(m, "count"), number(m, "byteStride"));
+            match (m["mode"].as_str().unwrap(), stride) {
+                ("ATTRIBUTES", 8) => meshopt::decode_vertex_buffer::<[u8; 8]>(stream, count)
+                    .unwrap()
+                    .concat(),
+                ("ATTRIBUTES", 4) => meshopt::decode_vertex_buffer::<[u8; 4]>(stream, count)
+                    .unwrap()
+                    .concat(),
+                ("TRIANGLES", 2) => meshopt::decode_index_buffer::<u16>(stream, count)
+                    .unwrap()
+                    .iter()
+                    .flat_map(|i| i.to_le_bytes())
+                    .collect(),
+                ("TRIANGLES", 4) => meshopt::decode_index_buffer::<u32>(stream, count)
+                    .unwrap()
+                    .iter()
+                    .flat_map(|i| i.to_le_bytes())
+                    .collect(),
+                (mode, stride) => panic!("meshopt mode {mode}, stride {stride}"),
+            }
+        })
+        .collect();
+    // Each element of an accessor as f64 (component type, view and stride).
     let read = |accessor: usize| -> Vec<Vec<f64>> {
         let a = &json["accessors"][accessor];
-        let v = &json["bufferViews"][a["bufferView"].as_u64().unwrap() as usize];
-        let offset = v["byteOffset"].as_u64().unwrap() as usize;
+        let k = a["bufferView"].as_u64().unwrap() as usize;
+        let (v, data) = (&json["bufferViews"][k], &views[k]);
         let n = a["count"].as_u64().unwrap() as usize;
         let width = if a["type"] == "VEC3" { 3 } else { 1 };
         let (size, get): (usize, fn(&[u8]) -> f64) = match a["componentType"].as_u64().unwrap() {
@@ -108,7 +187,7 @@ fn read_glb(glb: &[u8]) -> Mesh {
         (0..n)
             .map(|i| {
                 (0..width)
-                    .map(|c| get(&bin[offset + i * stride + c * size..][..size]))
+                    .map(|c| get(&data[i * stride + c * size..][..size]))
                     .collect()
             })
             .collect()
@@ -136,17 +215,17 @@ fn read_glb(glb: &[u8]) -> Mesh {
     }
 }
 
-/// The Khronos glTF validator (npm `gltf-validator`), installed under target/test-tools on
-/// first use, and a script that validates every GLB of a folder and prints the counts as
-/// JSON; `None` without node and npm.
-fn gltf_validator() -> Option<std::path::PathBuf> {
-    let tools = root().join("target/test-tools/gltf-validator");
-    if !tools.join("node_modules/gltf-validator").exists() {
+/// An npm package installed under target/test-tools/`name` on first use, with `script`
+/// written beside it; the script's path, or `None` without node and npm.
+fn npm_tool(name: &str, package: &str, script: &str) -> Option<std::path::PathBuf> {
+    let tools = root().join("target/test-tools").join(name);
+    if !tools.join("node_modules").join(name).exists() {
         std::fs::create_dir_all(&tools).ok()?;
+        // Install scripts stay off (npm's default): the parts used here are plain JavaScript.
         let ok = std::process::Command::new("npm")
-            .args(["install", "--silent", "--prefix"])
+            .args(["install", "--silent", "--no-audit", "--no-fund", "--prefix"])
             .arg(&tools)
-            .arg("gltf-validator@2.0.0-dev.3.10")
+            .arg(package)
             .status()
             .ok()?
             .success();
@@ -154,9 +233,45 @@ fn gltf_validator() -> Option<std::path::PathBuf> {
             return None;
         }
     }
-    let script = tools.join("validate.mjs");
-    std::fs::write(
-        &script,
+    let path = tools.join("check.mjs");
+    std::fs::write(&path, script).ok()?;
+    Some(path)
+}
+
+/// CesiumGS's 3D Tiles tools (npm `3d-tiles-tools`) and a script that traverses a tileset
+/// folder as they do (implicit tiling through its subtree files), checks that each content
+/// it names is a file there, and prints each content tile's URI, box and geometric error.
+/// (Their validator, `3d-tiles-validator`, is not in this machine's npm registry.)
+fn tiles_tools() -> Option<std::path::PathBuf> {
+    npm_tool(
+        "3d-tiles-tools",
+        "3d-tiles-tools@0.5.4",
+        r#"import { TilesetSources, TilesetTraversers } from '3d-tiles-tools';
+import fs from 'fs';
+import path from 'path';
+const dir = process.argv[2];
+const source = await TilesetSources.createAndOpen(dir);
+const root = await TilesetTraversers.createTraversedRootTile(source, 'tileset.json');
+const out = [];
+for await (const t of TilesetTraversers.createIterableFromTraversedTile(root, false, false)) {
+  if (t.isImplicitTilesetRoot()) continue;
+  const tile = t.asFinalTile();
+  for (const c of t.getFinalContents()) {
+    if (!fs.existsSync(path.join(dir, c.uri))) throw new Error(`no file for ${c.uri}`);
+    out.push({ content: c.uri, box: tile.boundingVolume.box, error: tile.geometricError });
+  }
+}
+console.log(JSON.stringify(out));
+"#,
+    )
+}
+
+/// The Khronos glTF validator (npm `gltf-validator`) and a script that validates every GLB
+/// of a folder and prints the counts as JSON.
+fn gltf_validator() -> Option<std::path::PathBuf> {
+    npm_tool(
+        "gltf-validator",
+        "gltf-validator@2.0.0-dev.3.10",
         r#"import validator from 'gltf-validator';
 import fs from 'fs';
 import path from 'path';
@@ -170,8 +285,6 @@ for (const f of fs.readdirSync(dir)) {
 console.log(JSON.stringify({files, errors, warnings}));
 "#,
     )
-    .ok()?;
-    Some(script)
 }
 
 #[tokio::test]
@@ -216,6 +329,13 @@ async fn walk_the_tileset_of(path: &std::path::Path) {
     let tileset: serde_json::Value = serde_json::from_slice(&body).unwrap();
     assert_eq!(tileset["asset"]["version"], "1.1");
     let root_tile = &tileset["root"];
+    // Plain tiles asked of the tileset are what its content template asks for.
+    let (_, plain) = get(&state, &format!("{base}/tileset.json?compression=plain")).await;
+    let plain: serde_json::Value = serde_json::from_slice(&plain).unwrap();
+    assert_eq!(
+        plain["root"]["content"]["uri"],
+        "3dtiles/{level}/{x}/{y}/{z}.glb?compression=plain"
+    );
     let implicit = &root_tile["implicitTiling"];
     assert_eq!(implicit["subdivisionScheme"], "OCTREE");
     let (levels, per) = (
@@ -249,6 +369,15 @@ async fn walk_the_tileset_of(path: &std::path::Path) {
     // Walk every subtree a viewer can reach; fetch every content tile they list.
     let mut meshes: BTreeMap<(u32, [u32; 3]), Mesh> = BTreeMap::new();
     let mut glbs: Vec<(String, Vec<u8>)> = Vec::new();
+    let mut gzipped: BTreeMap<(u32, [u32; 3]), usize> = BTreeMap::new();
+    // Every file at the path the tileset names, for 3D Tiles tools to read as a folder.
+    let folder = dir.join("tileset");
+    let keep = |rel: &str, bytes: &[u8]| {
+        let path = folder.join(rel);
+        std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+        std::fs::write(path, bytes).unwrap();
+    };
+    keep("tileset.json", &body);
     let mut empty: Vec<(u32, [u32; 3])> = Vec::new();
     let mut pending = vec![(0u32, [0u32; 3])];
     while let Some((level, at)) = pending.pop() {
@@ -258,6 +387,7 @@ async fn walk_the_tileset_of(path: &std::path::Path) {
         );
         let (status, raw) = get(&state, &uri).await;
         assert_eq!(status, StatusCode::OK, "{uri}");
+        keep(&uri[base.len() + 1..], &raw);
         let (tiles, content, children) = read_subtree(&raw, per);
         assert!(tiles[0], "{uri}: a subtree's root exists");
         let mut i = 0;
@@ -278,8 +408,32 @@ async fn walk_the_tileset_of(path: &std::path::Path) {
                     let uri = format!("{base}/3dtiles/{l}/{}/{}/{}.glb", t[0], t[1], t[2]);
                     let (status, glb) = get(&state, &uri).await;
                     assert_eq!(status, StatusCode::OK, "{uri}");
-                    meshes.insert((l, t), read_glb(&glb));
-                    glbs.push((format!("{l}_{}_{}_{}.glb", t[0], t[1], t[2]), glb));
+                    let mesh = read_glb(&glb);
+                    let name = format!("{l}_{}_{}_{}", t[0], t[1], t[2]);
+                    // Every third tile also plain (what the validator reads whole) and
+                    // gzipped: the same surface, the same bytes.
+                    if meshes.len().is_multiple_of(3) {
+                        let plain = format!("{uri}?compression=plain");
+                        let (status, raw) = get(&state, &plain).await;
+                        assert_eq!(status, StatusCode::OK, "{plain}");
+                        let same = triangle_set(&read_glb(&raw)) == triangle_set(&mesh);
+                        assert!(same, "{uri}: meshopt's surface is not the plain tile's");
+                        assert!(raw.len() >= glb.len(), "{uri}: meshopt larger");
+                        glbs.push((format!("{name}_plain.glb"), raw));
+                        let (status, coding, zipped) = get_gzip(&state, &uri, true).await;
+                        assert_eq!((status, coding.as_deref()), (StatusCode::OK, Some("gzip")));
+                        let mut unzipped = Vec::new();
+                        std::io::Read::read_to_end(
+                            &mut flate2::read::GzDecoder::new(&zipped[..]),
+                            &mut unzipped,
+                        )
+                        .unwrap();
+                        assert_eq!(unzipped, glb, "{uri} gzipped");
+                    }
+                    meshes.insert((l, t), mesh);
+                    keep(&uri[base.len() + 1..], &glb);
+                    gzipped.insert((l, t), gzip_len(&glb));
+                    glbs.push((format!("{name}.glb"), glb));
                 } else if tiles[i] && empty.len() < 8 {
                     empty.push((l, t));
                 }
@@ -360,19 +514,23 @@ async fn walk_the_tileset_of(path: &std::path::Path) {
     let source_level = (grid / fractile_codec::extract::octree::CELLS)
         .max(1)
         .ilog2();
-    let mut fetched = 0usize;
+    let (mut fetched, mut fetched_gzip) = (0usize, 0usize);
     println!(
-        "| level | tiles | mean GLB bytes | bytes fetched to this level | geometricError | Hausdorff to the source |"
+        "| level | tiles | mean GLB bytes | bytes fetched to this level | gzipped | geometricError | Hausdorff to the source |"
     );
-    println!("|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|");
     for level in 0..levels {
         let mut whole = Mesh::default();
         let mut tiles = 0;
         let bytes: usize = glbs
             .iter()
-            .filter(|(name, _)| name.starts_with(&format!("{level}_")))
+            .filter(|(name, _)| name.starts_with(&format!("{level}_")) && !name.contains("plain"))
             .map(|(_, g)| g.len())
             .sum();
+        fetched_gzip += gzipped
+            .range((level, [0; 3])..(level + 1, [0; 3]))
+            .map(|(_, n)| n)
+            .sum::<usize>();
         for ((l, _), m) in meshes.range((level, [0; 3])..(level + 1, [0; 3])) {
             debug_assert_eq!(*l, level);
             let base = whole.positions.len() as u32;
@@ -386,13 +544,17 @@ async fn walk_the_tileset_of(path: &std::path::Path) {
         let d = surface_distance(&whole, &source, 100_000);
         fetched += bytes;
         println!(
-            "| {level} | {tiles} | {} | {fetched} | {error:.4} | {:.4} |",
+            "| {level} | {tiles} | {} | {fetched} | {fetched_gzip} | {error:.4} | {:.4} |",
             bytes / tiles.max(1),
             d.hausdorff
         );
         if level == source_level {
             let source_glb = source.to_glb().len();
-            println!("the source mesh as GLB: {source_glb} bytes; to level {level}: {fetched}");
+            println!(
+                "the source mesh as GLB: {source_glb} bytes ({} gzipped); to level {level}: \
+                 {fetched} ({fetched_gzip} gzipped)",
+                gzip_len(&source.to_glb())
+            );
             assert!(
                 fetched <= source_glb,
                 "{fetched} bytes to reach the encoded grid's detail, the source is {source_glb}"
@@ -404,6 +566,63 @@ async fn walk_the_tileset_of(path: &std::path::Path) {
             "level {level}: {} from the source, stating {error}",
             d.hausdorff
         );
+    }
+
+    // The tileset, read by CesiumGS's 3D Tiles tools: their implicit tiling reads our
+    // subtrees and names the content tiles, their boxes and geometric errors, which must be
+    // ours (every tile's surface inside the box they compute, the error they halve).
+    match tiles_tools() {
+        Some(script) => {
+            let out = std::process::Command::new("node")
+                .arg(&script)
+                .arg(&folder)
+                .output()
+                .unwrap();
+            assert!(
+                out.status.success(),
+                "3d-tiles-tools: {}",
+                String::from_utf8_lossy(&out.stderr)
+            );
+            let listed: Vec<serde_json::Value> = serde_json::from_slice(&out.stdout).unwrap();
+            let mut seen = HashSet::new();
+            for tile in &listed {
+                let uri = tile["content"].as_str().unwrap();
+                let at: Vec<u32> = uri
+                    .trim_start_matches("3dtiles/")
+                    .trim_end_matches(".glb")
+                    .split('/')
+                    .map(|v| v.parse().unwrap())
+                    .collect();
+                let (l, t) = (at[0], [at[1], at[2], at[3]]);
+                let m = meshes
+                    .get(&(l, t))
+                    .unwrap_or_else(|| panic!("3d-tiles-tools lists {uri}, the walk did not"));
+                let b: Vec<f64> = tile["box"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|v| v.as_f64().unwrap())
+                    .collect();
+                let (c, h) = ([b[0], b[1], b[2]], [b[3], b[7], b[11]]);
+                for p in &m.positions {
+                    for a in 0..3 {
+                        let d = (f64::from(p[a]) - c[a]).abs();
+                        assert!(d <= h[a] + 1e-5, "{p:?} outside {uri}'s box by 3d-tiles-tools");
+                    }
+                }
+                let error = tile["error"].as_f64().unwrap();
+                let ours = root_error / f64::from(1u32 << l);
+                assert!((error - ours).abs() <= 1e-9 * ours, "{uri}: {error} against {ours}");
+                seen.insert((l, t));
+            }
+            assert_eq!(seen.len(), listed.len(), "a content listed twice");
+            assert_eq!(seen.len(), meshes.len(), "3d-tiles-tools and the walk differ");
+            println!("3d-tiles-tools: {} content tiles, as walked", listed.len());
+        }
+        None if std::env::var_os("CI").is_some() => {
+            panic!("3D Tiles tools (npm 3d-tiles-tools) are needed under CI")
+        }
+        None => println!("no node/npm here: 3d-tiles-tools were not run"),
     }
 
     // The GLBs, read by a validator we did not write: the Khronos glTF validator.
@@ -510,6 +729,16 @@ async fn bad_3d_tiles_requests_get_clear_errors() {
             "/v1/assets/knot/tileset.json?lon=10&lat=5&scale=0".into(),
             400,
             "bad_point",
+        ),
+        (
+            "/v1/assets/knot/3dtiles/0/0/0/0.glb?compression=draco".into(),
+            400,
+            "bad_encoding",
+        ),
+        (
+            "/v1/assets/knot/tileset.json?compression=zip".into(),
+            400,
+            "bad_encoding",
         ),
         ("/v1/assets/camera/tileset.json".into(), 400, "not_volume"),
         (

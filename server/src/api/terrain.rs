@@ -321,7 +321,7 @@ fn grid_side(a: &StoredAsset, z: u8) -> usize {
 }
 
 /// Whether `Accept-Encoding` allows gzip (with a non-zero weight).
-fn accepts_gzip(headers: &HeaderMap) -> bool {
+pub(super) fn accepts_gzip(headers: &HeaderMap) -> bool {
     headers
         .get_all(header::ACCEPT_ENCODING)
         .iter()
@@ -337,7 +337,7 @@ fn accepts_gzip(headers: &HeaderMap) -> bool {
 }
 
 /// `bytes` gzipped (flate2, level 6).
-fn gzipped(bytes: &[u8]) -> Result<Vec<u8>, AppError> {
+pub(super) fn gzipped(bytes: &[u8]) -> Result<Vec<u8>, AppError> {
     use std::io::Write;
     let mut z = flate2::write::GzEncoder::new(Vec::new(), flate2::Compression::default());
     z.write_all(bytes)

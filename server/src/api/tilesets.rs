@@ -2,11 +2,12 @@
 //! tiles' GLB content, made by the codec (`fractile_codec::extract::octree`) within the
 //! request budgets, cached and tagged as map tiles are.
 
-use fractile_codec::extract::octree::{Octree, SUBTREE_LEVELS, TileId, tile_glb};
+use fractile_codec::extract::octree::{Compression, Octree, SUBTREE_LEVELS, TileId, tile_glb};
 use fractile_proto::{AssetKind, ErrorCode};
 
 use super::request::*;
 use super::state::*;
+use super::terrain::{accepts_gzip, gzipped};
 use super::tiles::{cached_response, etag, not_modified};
 use std::sync::Arc;
 
@@ -16,7 +17,7 @@ use crate::work::Bounds;
 use axum::Json;
 use axum::body::Bytes;
 use axum::extract::State;
-use axum::http::{HeaderMap, StatusCode, header};
+use axum::http::{HeaderMap, HeaderValue, StatusCode, header};
 use axum::response::{IntoResponse, Response};
 use serde::Deserialize;
 
@@ -31,6 +32,8 @@ pub(super) struct TilesetQuery {
     scale: Option<f64>,
     iterations: Option<u32>,
     tolerance: Option<f32>,
+    /// `plain` for tiles every glTF reader takes (the content template then asks for them).
+    compression: Option<String>,
 }
 
 #[derive(Deserialize)]
@@ -38,6 +41,23 @@ pub(super) struct ContentQuery {
     iterations: Option<u32>,
     tolerance: Option<f32>,
     backend: Option<String>,
+    /// How a tile's GLB packs its buffers: `meshopt` (the default) or `plain`.
+    compression: Option<String>,
+}
+
+/// The compression a query names: meshopt unless `plain` is asked.
+fn compression_of(asked: Option<&str>) -> Result<Compression, AppError> {
+    match asked {
+        None | Some("meshopt") => Ok(Compression::Meshopt),
+        Some("plain") => Ok(Compression::Plain),
+        Some(other) => Err(AppError::bad_request(
+            ErrorCode::BadEncoding,
+            format!(
+                "compression={other}: tiles are meshopt (EXT_meshopt_compression, the default) \
+                 or plain (KHR_mesh_quantization alone)"
+            ),
+        )),
+    }
 }
 
 /// The octree of a volume asset, or a 400 naming what the asset is.
@@ -105,7 +125,14 @@ pub(super) async fn tileset(
     // asset's seed bound shrinks to in those steps where none is asked.
     let (_, tolerance) = iterations_for(&state, q.iterations, q.tolerance)?;
     let bound = f64::from(tolerance.anywhere(&a));
-    Ok(Json(octree.tileset(bound, transform)).into_response())
+    let mut tileset = octree.tileset(bound, transform);
+    // Plain tiles asked of the tileset are asked by its content template (a static copy of
+    // the folder ignores the query and serves what was fetched).
+    if compression_of(q.compression.as_deref())? == Compression::Plain {
+        let uri = &mut tileset["root"]["content"]["uri"];
+        *uri = format!("{}?compression=plain", uri.as_str().unwrap_or_default()).into();
+    }
+    Ok(Json(tileset).into_response())
 }
 
 /// The tile named by a path's level, x, y and `{z}.{extension}`, or a 400 / 404.
@@ -208,16 +235,26 @@ async fn answer(
     // One tolerance for every tile: neighbours share their faces' samples (no cracks).
     let tolerance = tolerance.anywhere(&a);
     let choice = backend_for(state, q.backend.as_deref())?;
+    let compression = compression_of(q.compression.as_deref())?;
+    // A GLB's JSON is up to half its bytes, and meshopt's streams are made to be deflated
+    // further: to clients that accept it (browsers do) a tile goes gzipped, as a variant of
+    // its own (key and ETag). Subtrees are mostly constant bits, small either way.
+    let gzip = matches!(made, Made::Tile(_)) && accepts_gzip(headers);
     let key = format!(
-        "{}@{:08x}/3dtiles/{made:?}?{:?}&{:?}",
+        "{}@{:08x}/3dtiles/{made:?}?{:?}&{:?}&{compression:?}&{gzip}",
         a.id, a.hash, q.iterations, q.tolerance
     );
     let tag = etag(&a, &key);
+    let vary = |mut r: Response| {
+        r.headers_mut()
+            .insert(header::VARY, HeaderValue::from_static("accept-encoding"));
+        r
+    };
     if not_modified(headers, &tag) {
         return Ok((StatusCode::NOT_MODIFIED, [(header::ETAG, tag)]).into_response());
     }
     if let Some(c) = state.cache.get(&key) {
-        return Ok(cached_response(state, &tag, &c));
+        return Ok(vary(cached_response(state, &tag, &c)));
     }
     let samples = match made {
         Made::Tile(_) => (fractile_codec::extract::octree::CELLS + 1).pow(3),
@@ -245,7 +282,9 @@ async fn answer(
                         "this tile's box holds no surface (its subtree lists no content)",
                     ));
                 }
-                ("model/gltf-binary", tile_glb(&octree, t, &mesh), bound)
+                let glb = tile_glb(&octree, t, &mesh, compression);
+                let glb = if gzip { gzipped(&glb)? } else { glb };
+                ("model/gltf-binary", glb, bound)
             }
             Made::Subtree(t) => {
                 let (s, bound) = a
@@ -257,7 +296,7 @@ async fn answer(
         };
         Ok::<_, AppError>(Cached {
             content_type,
-            content_encoding: None,
+            content_encoding: gzip.then_some("gzip"),
             body: Bytes::from(body),
             // Volumes hold no source-error map.
             bounds: Bounds {
@@ -269,5 +308,5 @@ async fn answer(
     .await??;
     let cached = Arc::new(made_now);
     state.cache.insert(key, cached.clone());
-    Ok(cached_response(state, &tag, &cached))
+    Ok(vary(cached_response(state, &tag, &cached)))
 }
