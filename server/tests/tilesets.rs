@@ -607,16 +607,26 @@ async fn walk_the_tileset_of(path: &std::path::Path) {
                 for p in &m.positions {
                     for a in 0..3 {
                         let d = (f64::from(p[a]) - c[a]).abs();
-                        assert!(d <= h[a] + 1e-5, "{p:?} outside {uri}'s box by 3d-tiles-tools");
+                        assert!(
+                            d <= h[a] + 1e-5,
+                            "{p:?} outside {uri}'s box by 3d-tiles-tools"
+                        );
                     }
                 }
                 let error = tile["error"].as_f64().unwrap();
                 let ours = root_error / f64::from(1u32 << l);
-                assert!((error - ours).abs() <= 1e-9 * ours, "{uri}: {error} against {ours}");
+                assert!(
+                    (error - ours).abs() <= 1e-9 * ours,
+                    "{uri}: {error} against {ours}"
+                );
                 seen.insert((l, t));
             }
             assert_eq!(seen.len(), listed.len(), "a content listed twice");
-            assert_eq!(seen.len(), meshes.len(), "3d-tiles-tools and the walk differ");
+            assert_eq!(
+                seen.len(),
+                meshes.len(),
+                "3d-tiles-tools and the walk differ"
+            );
             println!("3d-tiles-tools: {} content tiles, as walked", listed.len());
         }
         None if std::env::var_os("CI").is_some() => {

@@ -220,15 +220,25 @@ fn glb_of(octree: &Octree, t: TileId, mesh: &Mesh, meshopt: bool) -> Vec<u8> {
         .flat_map(|(q, _)| q.iter().flat_map(|v| v.to_le_bytes()))
         .collect();
     let normal_bytes: Vec<u8> = match normals {
-        true => vertices.iter().flat_map(|(_, n)| n.map(|v| v as u8)).collect(),
+        true => vertices
+            .iter()
+            .flat_map(|(_, n)| n.map(|v| v as u8))
+            .collect(),
         false => Vec::new(),
     };
     let index_bytes: Vec<u8> = match wide {
         true => indices.iter().flat_map(|i| i.to_le_bytes()).collect(),
-        false => indices.iter().flat_map(|&i| (i as u16).to_le_bytes()).collect(),
+        false => indices
+            .iter()
+            .flat_map(|&i| (i as u16).to_le_bytes())
+            .collect(),
     };
     // The views as a reader sees them (decoded), and the streams the binary chunk holds.
-    let layout = [(positions, 8, 34962), (normal_bytes, 4, 34962), (index_bytes, 0, 34963)];
+    let layout = [
+        (positions, 8, 34962),
+        (normal_bytes, 4, 34962),
+        (index_bytes, 0, 34963),
+    ];
     let mut bin: Vec<u8> = Vec::new();
     let mut views = Vec::new();
     let mut decoded = 0;
@@ -333,11 +343,21 @@ fn meshopt_stream(
     match k {
         0 => {
             let p: Vec<[u16; 4]> = vertices.iter().map(|v| v.0).collect();
-            (or_empty(meshopt::encode_vertex_buffer(&p)), "ATTRIBUTES", 8, p.len())
+            (
+                or_empty(meshopt::encode_vertex_buffer(&p)),
+                "ATTRIBUTES",
+                8,
+                p.len(),
+            )
         }
         1 => {
             let n: Vec<[i8; 4]> = vertices.iter().map(|v| v.1).collect();
-            (or_empty(meshopt::encode_vertex_buffer(&n)), "ATTRIBUTES", 4, n.len())
+            (
+                or_empty(meshopt::encode_vertex_buffer(&n)),
+                "ATTRIBUTES",
+                4,
+                n.len(),
+            )
         }
         _ => {
             let stream = or_empty(meshopt::encode_index_buffer(indices, vertices.len()));
