@@ -8,6 +8,7 @@ use fractile_codec::encode::chunked::Share;
 use crate::progress::Progress;
 
 mod args;
+mod inputs;
 mod parts;
 mod raster;
 mod shapes;
@@ -21,12 +22,15 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     if is_mesh(&a.inputs[0]) {
         return encode_volume(&a);
     }
-    if is_geojson(&a.inputs[0]) || a.codec.as_deref() == Some("curve") {
+    if (is_geojson(&a.inputs[0]) && !inputs::is_stac(&a.inputs[0]))
+        || a.codec.as_deref() == Some("curve")
+    {
         return encode_curve(&a);
     }
-    let files = fractile_codec::mosaic::input_files(&a.inputs)?;
     // Rows, not a raster: a chunked encode reads its input a band at a time.
-    let mut rows = fractile_codec::mosaic::open_rows(&a.inputs)?;
+    let mut inputs = inputs::open(&a.inputs)?;
+    let files = inputs.names.clone();
+    let rows = &mut inputs.rows;
     let (width, height) = (rows.header().width, rows.header().height);
     let a = a.with_default_codec(rows.header().kind);
     // The codec, its flags and the chunks, checked before anything is read.
@@ -52,8 +56,12 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         Some(_) => encode_chunks(&a, &plan, rows.as_mut(), out.path())?,
     };
     out.finish()?;
+    let (fetched, requests) = inputs.fetched();
     let report = json!({
         "input": a.inputs[0], "inputs": files, "output": a.output, "codec": enc.asset.codec_name(),
+        // Read by range (remote inputs): what crossed the network.
+        "fetched_bytes": inputs.remote().then_some(fetched),
+        "fetched_requests": inputs.remote().then_some(requests),
         "width": width, "height": height,
         "bytes": enc.length, "source_bytes": enc.asset.meta.source_bytes(),
         "ratio": enc.ratio(), "bpp": enc.bpp(), "transforms": enc.transforms,

@@ -75,7 +75,8 @@ pub mod raster {
 
 /// Input rasters read a band of rows at a time (inputs larger than memory).
 pub mod rows {
-    pub use crate::io::rows::{GeoTiff, Header, InMemory, Rows, is_tiff};
+    pub use crate::io::ranged::{KeptBudget, RangeReader, RangedFile};
+    pub use crate::io::rows::{GeoTiff, Header, InMemory, Rows, TiffSource, is_tiff};
 }
 
 /// Several input rasters on one grid, read as one.

@@ -11,6 +11,8 @@ use fractile_codec::chunked::ChunkSource;
 use object_store::path::Path;
 use object_store::{GetOptions, ObjectStore, ObjectStoreExt};
 
+pub mod inputs;
+
 /// The object store of `url` (`s3://bucket` or `s3://bucket/key`) and the key under it, its
 /// credentials and endpoint from the standard AWS variables (`AWS_ENDPOINT_URL`,
 /// `AWS_ACCESS_KEY_ID`, `AWS_SECRET_ACCESS_KEY`, `AWS_REGION`, `AWS_ALLOW_HTTP=true` for a
@@ -65,35 +67,81 @@ pub const READ_TIMEOUT: Duration = Duration::from_secs(30);
 
 /// [`open`], an HTTP answer that sends nothing for `read_timeout` failing as timed out.
 pub fn open_with(url: &str, read_timeout: Duration) -> std::io::Result<Box<dyn ChunkSource>> {
-    let runtime = tokio::runtime::Builder::new_multi_thread()
-        .worker_threads(2)
-        .thread_name("fractile-remote")
-        .enable_all()
-        .build()?;
-    let remote = if url.starts_with("s3://") {
-        let (store, key) = s3_store(url)?;
-        let head = runtime.block_on(store.head(&key)).map_err(io)?;
-        Remote::Object { store, key }.with(runtime, head.size, url)
+    let runtime = Runtime::new()?;
+    let http = http_client(read_timeout)?;
+    let store = match url.starts_with("s3://") {
+        true => Some(s3_store(url)?),
+        false => None,
+    };
+    open_on(&runtime, &http, store, url)
+}
+
+/// The small runtime that drives a reader's requests to their end (the codec's reads are
+/// blocking, on decoding threads; `object_store` and `reqwest` are async), shared by the
+/// readers one [`inputs::Opener`] opens.
+pub(crate) struct Runtime(Option<tokio::runtime::Runtime>);
+
+impl Runtime {
+    pub(crate) fn new() -> std::io::Result<Arc<Runtime>> {
+        let runtime = tokio::runtime::Builder::new_multi_thread()
+            .worker_threads(2)
+            .thread_name("fractile-remote")
+            .enable_all()
+            .build()?;
+        Ok(Arc::new(Runtime(Some(runtime))))
+    }
+
+    pub(crate) fn block_on<F: std::future::Future>(&self, f: F) -> std::io::Result<F::Output> {
+        match &self.0 {
+            Some(rt) => Ok(rt.block_on(f)),
+            None => Err(std::io::Error::other("the reader is closed")),
+        }
+    }
+}
+
+impl Drop for Runtime {
+    fn drop(&mut self) {
+        // Dropping a runtime waits for its tasks, which may not happen inside another one.
+        if let Some(rt) = self.0.take() {
+            rt.shutdown_background();
+        }
+    }
+}
+
+/// The HTTP client of readers: a server that stalls mid-body is left after `read_timeout`
+/// without a byte, and no answer takes over 120 s in all.
+pub(crate) fn http_client(read_timeout: Duration) -> std::io::Result<reqwest::Client> {
+    reqwest::Client::builder()
+        .user_agent(concat!("fractile/", env!("CARGO_PKG_VERSION")))
+        .connect_timeout(Duration::from_secs(10))
+        .read_timeout(read_timeout)
+        .timeout(Duration::from_secs(120))
+        .build()
+        .map_err(std::io::Error::other)
+}
+
+/// `url` opened on `runtime`: through `store` (its object store and key) for `s3://`, through
+/// `http` otherwise.
+pub(crate) fn open_on(
+    runtime: &Arc<Runtime>,
+    http: &reqwest::Client,
+    store: Option<(Arc<dyn ObjectStore>, Path)>,
+    url: &str,
+) -> std::io::Result<Box<dyn ChunkSource>> {
+    let remote = if let Some((store, key)) = store {
+        let head = runtime.block_on(store.head(&key))?.map_err(io)?;
+        Remote::Object { store, key }.with(runtime.clone(), head.size, url)
     } else if url.starts_with("http://") || url.starts_with("https://") {
-        let http = reqwest::Client::builder()
-            .user_agent(concat!("fractile/", env!("CARGO_PKG_VERSION")))
-            .connect_timeout(Duration::from_secs(10))
-            // A server that stalls mid-body is left after `read_timeout` without a byte, and
-            // no answer takes over 120 s in all.
-            .read_timeout(read_timeout)
-            .timeout(Duration::from_secs(120))
-            .build()
-            .map_err(std::io::Error::other)?;
-        let (length, whole) = runtime.block_on(http_length(&http, url))?;
+        let (length, whole) = runtime.block_on(http_length(http, url))??;
         if let Some(bytes) = whole {
             // A server that ignores ranges sent the file whole: keep it.
             return Ok(Box::new(fractile_codec::chunked::InMemory(bytes.into())));
         }
         Remote::Http {
-            http,
+            http: http.clone(),
             url: url.to_string(),
         }
-        .with(runtime, length, url)
+        .with(runtime.clone(), length, url)
     } else {
         return Err(std::io::Error::other(format!(
             "{url}: not a remote location (s3://, http:// or https://)"
@@ -208,22 +256,21 @@ enum Remote {
 }
 
 impl Remote {
-    fn with(self, runtime: tokio::runtime::Runtime, length: u64, url: &str) -> Ranged {
+    fn with(self, runtime: Arc<Runtime>, length: u64, url: &str) -> Ranged {
         Ranged {
             remote: self,
-            runtime: Some(runtime),
+            runtime,
             length,
             url: url.to_string(),
         }
     }
 }
 
-/// A remote file read by range, each read driven to its end on a small runtime of its own:
-/// the codec's reads are blocking (they run on decoding threads) and `object_store` and
-/// `reqwest` are async.
+/// A remote file read by range, each read driven to its end on a small runtime (its own, or
+/// shared by the inputs of an encode).
 struct Ranged {
     remote: Remote,
-    runtime: Option<tokio::runtime::Runtime>,
+    runtime: Arc<Runtime>,
     length: u64,
     url: String,
 }
@@ -238,14 +285,12 @@ impl ChunkSource for Ranged {
         if len == 0 {
             return Ok(Vec::new());
         }
-        let Some(runtime) = &self.runtime else {
-            return Err(std::io::Error::other("the reader is closed"));
-        };
+        let runtime = &self.runtime;
         let bytes = match &self.remote {
             Remote::Object { store, key } => runtime.block_on(async {
                 let options = GetOptions::new().with_range(Some(offset..end));
                 store.get_opts(key, options).await?.bytes().await
-            })?,
+            })??,
             Remote::Http { http, url } => runtime.block_on(async {
                 let r = http
                     .get(url)
@@ -260,7 +305,7 @@ impl ChunkSource for Ranged {
                     return Err(status_error(url, r.status()));
                 }
                 body_at_most(r, len, url).await.map(Into::into)
-            })?,
+            })??,
         };
         if bytes.len() != len {
             return Err(std::io::Error::new(
@@ -273,14 +318,5 @@ impl ChunkSource for Ranged {
 
     fn describe(&self) -> String {
         self.url.clone()
-    }
-}
-
-impl Drop for Ranged {
-    fn drop(&mut self) {
-        // Dropping a runtime waits for its tasks, which may not happen inside another one.
-        if let Some(rt) = self.runtime.take() {
-            rt.shutdown_background();
-        }
     }
 }

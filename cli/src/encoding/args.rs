@@ -51,6 +51,8 @@ pub(crate) enum DomainsArg {
 pub(crate) struct EncodeArgs {
     /// Input: a raster, a mesh or a GeoJSON file; or, for a mosaic, several GeoTIFFs (or a
     /// folder of them) on one grid, read as one raster (cells none covers are nodata).
+    /// GeoTIFFs may be `s3://bucket/key.tif`, every `.tif` under `s3://bucket/prefix/`,
+    /// `https://...tif` (read by range), or named by a `.txt` list or a STAC ItemCollection.
     #[arg(required = true, num_args = 1..)]
     pub(crate) inputs: Vec<PathBuf>,
     /// Output asset file, or object (`s3://bucket/key`, the AWS variables as for `serve`).

@@ -12,5 +12,6 @@ pub(crate) mod frame;
 pub(crate) mod layout;
 pub(crate) mod mask;
 pub(crate) mod mosaic;
+pub(crate) mod ranged;
 pub(crate) mod raster;
 pub(crate) mod rows;

@@ -104,7 +104,13 @@ impl Mosaic {
             }
             parts.push(GeoTiff::open(f)?);
         }
-        let headers: Vec<(&Path, &Header)> = files
+        Mosaic::of(parts)
+    }
+
+    /// The mosaic of GeoTIFFs already opened (local or read by range), placed on their grid.
+    pub fn of(parts: Vec<GeoTiff>) -> Result<Mosaic, Error> {
+        let names: Vec<PathBuf> = parts.iter().map(|p| p.source().name().into()).collect();
+        let headers: Vec<(&Path, &Header)> = names
             .iter()
             .zip(&parts)
             .map(|(f, p)| (f.as_path(), p.header()))

@@ -8,7 +8,10 @@ use std::path::{Path, PathBuf};
 
 use fractile_proto::{AssetKind, Georef, SampleFormat};
 
+use std::sync::Arc;
+
 use crate::Error;
+use crate::io::ranged::{RangeReader, RangedFile};
 use crate::io::raster::Raster;
 
 /// What a raster is without its cells: everything its file's header says.
@@ -147,25 +150,58 @@ impl Rows for InMemory<'_> {
     }
 }
 
+/// Where a GeoTIFF's bytes are.
+#[derive(Clone)]
+pub enum TiffSource {
+    /// A local file.
+    File(PathBuf),
+    /// A file read by range (an object in a bucket, a file on a web server).
+    Ranged(Arc<RangedFile>),
+}
+
+impl TiffSource {
+    /// The file's path or address, for messages.
+    pub fn name(&self) -> String {
+        match self {
+            TiffSource::File(p) => p.display().to_string(),
+            TiffSource::Ranged(r) => r.describe(),
+        }
+    }
+}
+
 /// A GeoTIFF read by its own strips or tiles. The file is opened again for each band (a
 /// mosaic of thousands of tiles would otherwise hold thousands of descriptors), and the
-/// row of strips or tiles a band ends inside is kept for the next band.
+/// row of strips or tiles a band ends inside is kept for the next band. A file read by range
+/// fetches each band's chunks ahead, in as few requests as their layout allows.
 pub struct GeoTiff {
-    path: PathBuf,
+    source: TiffSource,
     header: Header,
     /// Rows of one strip or one row of tiles.
     chunk_rows: usize,
     /// The last row of chunks decoded: its index and its values (full width).
     last: Option<(usize, Vec<f32>)>,
+    /// Each chunk's byte offset and length (a file read by range; read once).
+    spans: Option<Vec<(u64, u64)>>,
 }
 
-type Decoder = tiff::decoder::Decoder<std::io::BufReader<std::fs::File>>;
+/// What `tiff` reads through: a buffered file or a [`RangeReader`].
+trait ReadSeek: std::io::Read + std::io::Seek + Send {}
+impl<T: std::io::Read + std::io::Seek + Send> ReadSeek for T {}
+
+type Decoder = tiff::decoder::Decoder<Box<dyn ReadSeek>>;
 
 impl GeoTiff {
     /// Reads the header of the GeoTIFF at `path` (none of its cells).
     pub fn open(path: &Path) -> Result<GeoTiff, Error> {
+        GeoTiff::open_source(TiffSource::File(path.to_path_buf()))
+    }
+
+    /// Reads the header of the GeoTIFF `source` holds (none of its cells).
+    pub fn open_source(source: TiffSource) -> Result<GeoTiff, Error> {
         use tiff::tags::Tag;
-        let mut dec = decoder(path)?;
+        let name = source.name();
+        let path = Path::new(&name);
+        let mut dec = decoder(&source)?;
         let bad = |e: tiff::TiffError| {
             Error::input(format!("{}: {e}", path.display()))
                 .at(path)
@@ -204,7 +240,8 @@ impl GeoTiff {
         };
         let chunk_rows = dec.chunk_dimensions().1.max(1) as usize;
         Ok(GeoTiff {
-            path: path.to_path_buf(),
+            source,
+            spans: None,
             header: Header {
                 width: w as usize,
                 height: h as usize,
@@ -222,6 +259,11 @@ impl GeoTiff {
         })
     }
 
+    /// Where the file's bytes are.
+    pub fn source(&self) -> &TiffSource {
+        &self.source
+    }
+
     /// Row `row` of the file's chunks (one strip, or one row of tiles), full width.
     fn chunk_row(&mut self, dec: &mut Decoder, row: usize) -> Result<&[f32], Error> {
         if self.last.as_ref().is_none_or(|(r, _)| *r != row) {
@@ -231,8 +273,9 @@ impl GeoTiff {
         Ok(&self.last.as_ref().expect("just decoded").1)
     }
 
-    fn decode_chunk_row(&self, dec: &mut Decoder, row: usize) -> Result<Vec<f32>, Error> {
-        let path = &self.path;
+    fn decode_chunk_row(&mut self, dec: &mut Decoder, row: usize) -> Result<Vec<f32>, Error> {
+        let name = self.source.name();
+        let path = Path::new(&name);
         let bad = |e: tiff::TiffError| {
             Error::input(format!("{}: {e}", path.display()))
                 .at(path)
@@ -249,13 +292,53 @@ impl GeoTiff {
             .min(self.header.height - row * self.chunk_rows);
         let mut out = vec![0f32; w * rows];
         let mut x0 = 0;
+        if let TiffSource::Ranged(file) = &self.source {
+            if self.spans.is_none() {
+                self.spans = Some(chunk_spans(dec).map_err(bad)?);
+            }
+            let spans = self.spans.as_deref().unwrap_or_default();
+            let row_spans = spans
+                .get(row * across..(row + 1) * across)
+                .unwrap_or_default();
+            file.fetch_ahead(row_spans).map_err(|e| {
+                Error::input(format!("{}: {e}", path.display()))
+                    .at(path)
+                    .caused_by(e)
+            })?;
+        }
+        let decoded = self.decode_chunks(dec, row, across, rows, &mut out, &mut x0);
+        if let TiffSource::Ranged(file) = &self.source {
+            file.release();
+        }
+        decoded?;
+        Ok(out)
+    }
+
+    /// The `across` chunks of chunk row `row`, `rows` high, into `out` from column `x0` on.
+    fn decode_chunks(
+        &self,
+        dec: &mut Decoder,
+        row: usize,
+        across: usize,
+        rows: usize,
+        out: &mut [f32],
+        x0: &mut usize,
+    ) -> Result<(), Error> {
+        let name = self.source.name();
+        let path = Path::new(&name);
+        let bad = |e: tiff::TiffError| {
+            Error::input(format!("{}: {e}", path.display()))
+                .at(path)
+                .caused_by(e)
+        };
+        let w = self.header.width;
         for k in 0..across {
             let index = (row * across + k) as u32;
             let data = dec.read_chunk(index).map_err(bad)?;
             let (cw, ch) = dec.chunk_data_dimensions(index);
             let (cw, ch) = (cw as usize, ch as usize);
             let values = values_of(data);
-            if values.len() != cw * ch || ch != rows || x0 + cw > w {
+            if values.len() != cw * ch || ch != rows || *x0 + cw > w {
                 return Err(Error::input(format!(
                     "{}: chunk {index} holds {} samples for {cw}x{ch}: only single-band GeoTIFFs are supported",
                     path.display(),
@@ -263,11 +346,11 @@ impl GeoTiff {
                 )));
             }
             for y in 0..rows {
-                out[y * w + x0..y * w + x0 + cw].copy_from_slice(&values[y * cw..(y + 1) * cw]);
+                out[y * w + *x0..y * w + *x0 + cw].copy_from_slice(&values[y * cw..(y + 1) * cw]);
             }
-            x0 += cw;
+            *x0 += cw;
         }
-        Ok(out)
+        Ok(())
     }
 }
 
@@ -280,7 +363,7 @@ impl Rows for GeoTiff {
         let (w, h) = (self.header.width, self.header.height);
         let y1 = y1.min(h);
         let mut values = Vec::with_capacity(w * (y1.saturating_sub(y0)));
-        let mut dec = decoder(&self.path)?;
+        let mut dec = decoder(&self.source)?;
         let per = self.chunk_rows;
         let mut y = y0;
         while y < y1 {
@@ -306,19 +389,38 @@ impl Rows for GeoTiff {
     }
 }
 
-fn decoder(path: &Path) -> Result<Decoder, Error> {
-    let file = std::fs::File::open(path).map_err(|e| {
-        Error::input(format!("{}: {e}", path.display()))
-            .at(path)
-            .caused_by(e)
-    })?;
+fn decoder(source: &TiffSource) -> Result<Decoder, Error> {
+    let name = source.name();
+    let path = Path::new(&name);
+    let reader: Box<dyn ReadSeek> = match source {
+        TiffSource::File(p) => Box::new(std::io::BufReader::new(std::fs::File::open(p).map_err(
+            |e| {
+                Error::input(format!("{}: {e}", p.display()))
+                    .at(p)
+                    .caused_by(e)
+            },
+        )?)),
+        TiffSource::Ranged(file) => Box::new(RangeReader::new(file.clone())),
+    };
     // The decoder's default limits stay: they bound one strip or tile (256 MiB), not the
     // raster, since nothing here reads a whole image at once.
-    tiff::decoder::Decoder::new(std::io::BufReader::new(file)).map_err(|e| {
+    tiff::decoder::Decoder::new(reader).map_err(|e| {
         Error::input(format!("{}: {e}", path.display()))
             .at(path)
             .caused_by(e)
     })
+}
+
+/// Each chunk's (strip's or tile's) byte offset and length, from the file's tags.
+fn chunk_spans(dec: &mut Decoder) -> Result<Vec<(u64, u64)>, tiff::TiffError> {
+    use tiff::tags::Tag;
+    let (offsets, counts) = match dec.get_chunk_type() {
+        tiff::decoder::ChunkType::Tile => (Tag::TileOffsets, Tag::TileByteCounts),
+        _ => (Tag::StripOffsets, Tag::StripByteCounts),
+    };
+    let offsets = dec.get_tag_u64_vec(offsets)?;
+    let counts = dec.get_tag_u64_vec(counts)?;
+    Ok(offsets.into_iter().zip(counts).collect())
 }
 
 /// The sample type a GeoTIFF's tags announce, as [`values_of`] converts it: integers of up to

@@ -1,0 +1,163 @@
+//! The rasters an encode reads, where they lie (issue 78): local files and folders (the
+//! codec's `mosaic::open_rows`), and GeoTIFFs by URL (`s3://bucket/key.tif`, every TIFF under
+//! `s3://bucket/prefix/`, `https://...tif`) or named by a list (a `.txt` of locations, a STAC
+//! ItemCollection), read by range: a cloud-optimized GeoTIFF's header, then the tiles each
+//! band of rows crosses (`fractile_codec::rows::RangedFile`). Listing and opening are
+//! `fractile_remote::inputs`; the mosaic of them is the codec's.
+
+use std::path::{Path, PathBuf};
+use std::sync::Arc;
+
+use anyhow::{Context, Result, bail};
+use fractile_codec::mosaic::Mosaic;
+use fractile_codec::rows::{GeoTiff, KeptBudget, RangedFile, Rows, TiffSource};
+use fractile_remote::inputs::Opener;
+
+/// An encode's inputs: their names (for the report) and their rows.
+pub(super) struct Inputs {
+    /// Each input file or object, in the mosaic's order.
+    pub(super) names: Vec<String>,
+    pub(super) rows: Box<dyn Rows>,
+    /// The inputs read by range, for what they fetched.
+    ranged: Vec<Arc<RangedFile>>,
+}
+
+impl Inputs {
+    /// Bytes fetched by range so far, and in how many requests.
+    pub(super) fn fetched(&self) -> (u64, u64) {
+        self.ranged
+            .iter()
+            .map(|r| r.fetched())
+            .fold((0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+    }
+
+    /// Whether any input is read by range.
+    pub(super) fn remote(&self) -> bool {
+        !self.ranged.is_empty()
+    }
+}
+
+/// Whether `p` is a STAC ItemCollection rather than a GeoJSON of curves: a remote `.json`,
+/// or a local one whose features carry STAC `assets` (or that says its `stac_version`).
+pub(crate) fn is_stac(p: &Path) -> bool {
+    let Some(s) = p.to_str() else { return false };
+    let lower = s.to_ascii_lowercase();
+    if !(lower.ends_with(".json") || lower.ends_with(".geojson")) {
+        return false;
+    }
+    if fractile_remote::is_remote(s) {
+        return true;
+    }
+    let Ok(text) = std::fs::read_to_string(p) else {
+        return false;
+    };
+    serde_json::from_str::<serde_json::Value>(&text).is_ok_and(|j| {
+        j.get("stac_version").is_some()
+            || j["features"]
+                .as_array()
+                .and_then(|f| f.first())
+                .is_some_and(|f| f["assets"].is_object())
+    })
+}
+
+/// Whether `inputs` need the opener: a URL, a list, a STAC ItemCollection.
+fn by_location(inputs: &[PathBuf]) -> bool {
+    inputs.iter().any(|p| {
+        let s = p.to_string_lossy();
+        fractile_remote::is_remote(&s) || s.to_ascii_lowercase().ends_with(".txt") || is_stac(p)
+    })
+}
+
+/// Opens `inputs` as one raster read by bands of rows.
+pub(super) fn open(inputs: &[PathBuf]) -> Result<Inputs> {
+    if !by_location(inputs) {
+        let names = fractile_codec::mosaic::input_files(inputs)?
+            .iter()
+            .map(|p| p.display().to_string())
+            .collect();
+        let rows = fractile_codec::mosaic::open_rows(inputs)?;
+        return Ok(Inputs {
+            names,
+            rows,
+            ranged: Vec::new(),
+        });
+    }
+    let opener = Opener::new().context("starting the reader of remote inputs")?;
+    let mut names = Vec::new();
+    for p in inputs {
+        let s = p.to_string_lossy();
+        let listed = opener.list(&s).with_context(|| format!("listing {s}"))?;
+        for l in listed {
+            // A local folder in a list stays a folder of GeoTIFFs.
+            if !fractile_remote::is_remote(&l) && Path::new(&l).is_dir() {
+                let files = fractile_codec::mosaic::input_files(&[PathBuf::from(&l)])?;
+                names.extend(files.iter().map(|f| f.display().to_string()));
+            } else {
+                names.push(l);
+            }
+        }
+    }
+    if names.is_empty() {
+        bail!("the inputs name no raster");
+    }
+    let (parts, ranged) = open_headers(&opener, &names)?;
+    let rows: Box<dyn Rows> = match parts.len() {
+        1 => Box::new(parts.into_iter().next().expect("one part")),
+        _ => Box::new(Mosaic::of(parts)?),
+    };
+    Ok(Inputs {
+        names,
+        rows,
+        ranged,
+    })
+}
+
+/// Bytes of remote inputs' chunks an encode keeps once decoded (`KeptBudget`): 256 MiB, so
+/// that the rate's sample and the chunks read the same bytes once where they fit, and a
+/// part's memory stays bounded whatever its inputs.
+const KEPT_BYTES: u64 = 256 << 20;
+
+/// An input with its header read, and its ranged file if read by range.
+type Opened = (GeoTiff, Option<Arc<RangedFile>>);
+
+/// Each of `names` opened and its header read, a few at a time (thousands of small COGs
+/// would otherwise wait on one request after another).
+fn open_headers(opener: &Opener, names: &[String]) -> Result<(Vec<GeoTiff>, Vec<Arc<RangedFile>>)> {
+    let budget = KeptBudget::new(KEPT_BYTES);
+    let open_one = |name: &String| -> Result<Opened> {
+        if !fractile_remote::is_remote(name) {
+            let tiff = GeoTiff::open_source(TiffSource::File(PathBuf::from(name)))?;
+            return Ok((tiff, None));
+        }
+        let source = opener
+            .open(name)
+            .with_context(|| format!("opening {name}"))?;
+        let file = Arc::new(RangedFile::with_budget(source, budget.clone()));
+        let tiff = GeoTiff::open_source(TiffSource::Ranged(file.clone()))?;
+        Ok((tiff, Some(file)))
+    };
+    const AT_ONCE: usize = 8;
+    let per = names.len().div_ceil(AT_ONCE).max(1);
+    let opened: Vec<Result<Vec<Opened>>> = std::thread::scope(|s| {
+        let handles: Vec<_> = names
+            .chunks(per)
+            .map(|some| s.spawn(move || some.iter().map(open_one).collect::<Result<Vec<_>>>()))
+            .collect();
+        handles
+            .into_iter()
+            .map(|h| {
+                h.join()
+                    .unwrap_or_else(|_| Err(anyhow::anyhow!("a reader panicked")))
+            })
+            .collect()
+    });
+    let mut parts = Vec::with_capacity(names.len());
+    let mut ranged = Vec::new();
+    for batch in opened {
+        for (tiff, file) in batch? {
+            parts.push(tiff);
+            ranged.extend(file);
+        }
+    }
+    Ok((parts, ranged))
+}

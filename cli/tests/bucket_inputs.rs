@@ -1,0 +1,246 @@
+//! Encodes from a bucket (issue 78): cloud-optimized GeoTIFFs made by GDAL (rasterio's COG
+//! driver, `tools/make_cogs.py`) from the repository's etopo20, put in a real S3 server
+//! (SeaweedFS on loopback), and encoded from `s3://` by prefix, by a text list and by a STAC
+//! ItemCollection, whole and split in 4 parts written to and assembled in the bucket: always
+//! the same bytes as the encode of local copies of the same files. What crosses the network
+//! is counted (at most 1.3 times the inputs' compressed cells), and a part's peak memory
+//! stays under 1 GB with 200 inputs and with 2,000.
+//!
+//! One sequential test (the steps share the bucket). Without `weed` or a Python with rasterio
+//! (`FRACTILE_RASTERIO_PYTHON`; `.ci/run` installs both) it says so and passes, except under CI.
+
+#[path = "harness/mod.rs"]
+mod harness;
+
+use std::path::{Path, PathBuf};
+use std::process::Command;
+
+use harness::{Server, Weed, binary, data, free_port, get, request};
+
+/// A Python with rasterio: `FRACTILE_RASTERIO_PYTHON`.
+fn rasterio_python() -> Option<PathBuf> {
+    let p = PathBuf::from(std::env::var_os("FRACTILE_RASTERIO_PYTHON")?);
+    p.exists().then_some(p)
+}
+
+/// COGs of `side` cells a side cut from etopo20 into `dir` (every 10th with a void): how many.
+fn cogs(python: &Path, dir: &Path, side: usize) -> usize {
+    let script = data("../tools/make_cogs.py");
+    let out = Command::new(python)
+        .arg(script)
+        .arg(data("etopo20.tif"))
+        .arg(dir)
+        .args([side.to_string(), "10".into()])
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    report["pieces"].as_u64().unwrap() as usize
+}
+
+/// Every file of `dir` (name order) put under `s3://{bucket}/{prefix}/`.
+fn upload(weed: &Weed, bucket: &str, prefix: &str, dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    for n in &names {
+        let body = std::fs::read(dir.join(n)).unwrap();
+        put_object(weed, &format!("{bucket}/{prefix}/{n}"), &body);
+    }
+    names
+        .iter()
+        .map(|n| format!("s3://{bucket}/{prefix}/{n}"))
+        .collect()
+}
+
+fn put_object(weed: &Weed, key: &str, body: &[u8]) {
+    let head = format!(
+        "PUT /{key} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+        body.len()
+    );
+    let status = request(weed.s3_port(), &head, body).map(|r| r.0);
+    assert_eq!(status, Some(200), "PUT {key}");
+}
+
+fn get_object(weed: &Weed, key: &str) -> Vec<u8> {
+    let (status, _, body) = get(weed.s3_port(), &format!("/{key}")).unwrap();
+    assert_eq!(status, 200, "GET {key}");
+    body
+}
+
+/// `fractile` with `args` and the bucket's environment: its JSON report.
+fn fractile(weed: &Weed, args: &[&str]) -> serde_json::Value {
+    let out = Command::new(binary())
+        .args(args)
+        .arg("--json")
+        .envs(weed.env())
+        .output()
+        .expect("the fractile binary runs");
+    assert!(
+        out.status.success(),
+        "fractile {args:?}: {}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let text = String::from_utf8_lossy(&out.stdout);
+    serde_json::from_str(text.lines().last().unwrap_or_default()).unwrap()
+}
+
+/// The bytes of every strip or tile of the TIFFs in `dir`: their compressed cells.
+fn compressed_cells(dir: &Path) -> u64 {
+    use tiff::tags::Tag;
+    let mut total = 0;
+    for e in std::fs::read_dir(dir).unwrap() {
+        let file = std::fs::File::open(e.unwrap().path()).unwrap();
+        let mut dec = tiff::decoder::Decoder::new(std::io::BufReader::new(file)).unwrap();
+        let counts = dec
+            .get_tag_u64_vec(Tag::TileByteCounts)
+            .or_else(|_| dec.get_tag_u64_vec(Tag::StripByteCounts))
+            .unwrap();
+        total += counts.iter().sum::<u64>();
+    }
+    total
+}
+
+/// The largest resident memory of any child process waited for so far, in bytes.
+fn children_peak() -> u64 {
+    let mut usage = std::mem::MaybeUninit::<libc::rusage>::zeroed();
+    // SAFETY: getrusage fills the struct it is given.
+    let usage = unsafe {
+        libc::getrusage(libc::RUSAGE_CHILDREN, usage.as_mut_ptr());
+        usage.assume_init()
+    };
+    usage.ru_maxrss as u64 * 1024
+}
+
+#[test]
+fn an_encode_from_a_bucket_is_the_encode_of_its_local_copies() {
+    let (Some(python), Some(_)) = (rasterio_python(), harness::weed_binary()) else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "under CI the bucket test needs weed and FRACTILE_RASTERIO_PYTHON"
+        );
+        println!("no weed or no Python with rasterio: the bucket test was not run");
+        return;
+    };
+    let work = tempfile::tempdir().unwrap();
+    let weed = Weed::start(&work.path().join("weed"), "dem").expect("weed starts");
+    let local = work.path().join("etopo");
+    let pieces = cogs(&python, &local, 48);
+    assert!(pieces >= 200, "{pieces} COGs");
+    let urls = upload(&weed, "dem", "etopo", &local);
+    let out = |name: &str| work.path().join(name).display().to_string();
+
+    // Whole, from local copies and from the bucket: the same asset.
+    // A bound, not a rate: a split encode under a bound is the whole one, byte for byte.
+    let chunked = ["--chunk", "256", "--max-error", "2"];
+    let from_local = out("local.fra");
+    let mut args = vec!["encode", local.to_str().unwrap(), "-o", &from_local];
+    args.extend(chunked);
+    fractile(&weed, &args);
+    let expected = std::fs::read(&from_local).unwrap();
+    let from_bucket = out("bucket.fra");
+    let mut args = vec!["encode", "s3://dem/etopo/", "-o", &from_bucket];
+    args.extend(chunked);
+    let report = fractile(&weed, &args);
+    assert_eq!(report["inputs"].as_array().unwrap().len(), pieces);
+    assert!(
+        std::fs::read(&from_bucket).unwrap() == expected,
+        "the bucket's encode differs"
+    );
+    let fetched = report["fetched_bytes"].as_u64().unwrap();
+    let cells = compressed_cells(&local);
+    println!(
+        "{pieces} COGs: {fetched} bytes fetched in {} requests for {cells} bytes of compressed cells ({:.2}x)",
+        report["fetched_requests"],
+        fetched as f64 / cells as f64
+    );
+    assert!(
+        fetched as f64 <= 1.3 * cells as f64,
+        "{fetched} bytes fetched for {cells} of cells"
+    );
+
+    // By a text list in the bucket and by a STAC ItemCollection: the same asset.
+    put_object(&weed, "dem/lists/etopo.txt", urls.join("\n").as_bytes());
+    let items: Vec<serde_json::Value> = urls
+        .iter()
+        .enumerate()
+        .map(|(i, u)| {
+            serde_json::json!({"type": "Feature", "stac_version": "1.0.0", "id": format!("piece-{i}"),
+                "assets": {"thumbnail": {"href": "thumb.png", "roles": ["thumbnail"]},
+                           "data": {"href": u, "roles": ["data"],
+                                    "type": "image/tiff; application=geotiff; profile=cloud-optimized"}}})
+        })
+        .collect();
+    let stac = work.path().join("items.json");
+    let collection = serde_json::json!({"type": "FeatureCollection", "features": items});
+    std::fs::write(&stac, collection.to_string()).unwrap();
+    for list in ["s3://dem/lists/etopo.txt", stac.to_str().unwrap()] {
+        let o = out("listed.fra");
+        let mut args = vec!["encode", list, "-o", &o];
+        args.extend(chunked);
+        fractile(&weed, &args);
+        assert!(
+            std::fs::read(&o).unwrap() == expected,
+            "{list}: another asset"
+        );
+    }
+
+    // Split in 4 parts from the bucket to the bucket, assembled there: the same asset, which
+    // a server on the bucket serves.
+    let parts: Vec<String> = (0..4)
+        .map(|i| format!("s3://dem/parts/etopo.{i}.fra"))
+        .collect();
+    for (i, part) in parts.iter().enumerate() {
+        let share = format!("{i}/4");
+        let mut args = vec!["encode", "s3://dem/etopo/", "-o", part, "--part", &share];
+        args.extend(chunked);
+        fractile(&weed, &args);
+    }
+    let mut args = vec!["assemble"];
+    args.extend(parts.iter().map(String::as_str));
+    args.extend(["-o", "s3://dem/assets/etopo.fra"]);
+    fractile(&weed, &args);
+    assert!(
+        get_object(&weed, "dem/assets/etopo.fra") == expected,
+        "the assembled asset differs"
+    );
+    let port = free_port();
+    let env: Vec<(&str, String)> = weed.env();
+    let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();
+    let server = Server::try_start(
+        "s3://dem/assets",
+        port,
+        &[],
+        &env,
+        &work.path().join("serve.log"),
+    )
+    .expect("a server on the bucket");
+    let (status, _, png) = get(port, "/v1/assets/etopo/tiles/1/1/0.png").unwrap();
+    assert_eq!(status, 200);
+    assert!(png.starts_with(b"\x89PNG"));
+    server.stop();
+    let peak_200 = children_peak();
+
+    // 2,000 small COGs: a part's memory is bounded by its chunks, not by its inputs.
+    let small = work.path().join("small");
+    let many = cogs(&python, &small, 16);
+    assert!(many >= 2000, "{many} COGs");
+    upload(&weed, "dem", "small", &small);
+    let o = out("small.fra");
+    let mut args = vec!["encode", "s3://dem/small/", "-o", &o, "--part", "0/4"];
+    args.extend(chunked);
+    fractile(&weed, &args);
+    let peak = children_peak();
+    println!(
+        "peak resident memory of a child: {:.0} MB with {pieces} inputs, {:.0} MB with {many}",
+        peak_200 as f64 / 1e6,
+        peak as f64 / 1e6
+    );
+    assert!(peak < 1 << 30, "{peak} bytes resident");
+}
