@@ -27,6 +27,8 @@ pub struct Opener {
     http: reqwest::Client,
     /// One object store a bucket (its connection pool shared by every object in it).
     stores: Mutex<HashMap<String, Arc<dyn ObjectStore>>>,
+    /// The lengths of the objects a listing named (no request to ask them again).
+    sizes: Mutex<HashMap<String, u64>>,
 }
 
 impl Opener {
@@ -36,21 +38,25 @@ impl Opener {
             runtime: Runtime::new()?,
             http: http_client(READ_TIMEOUT)?,
             stores: Mutex::new(HashMap::new()),
+            sizes: Mutex::new(HashMap::new()),
         })
     }
 
-    /// The object store of `url`'s bucket (made on first use) and `url`'s key.
+    /// The object store of `url`'s bucket (made on first use: building one costs about as
+    /// much as a request) and `url`'s key.
     fn store(&self, url: &str) -> std::io::Result<(Arc<dyn ObjectStore>, Path)> {
-        let bucket = url
+        let (bucket, key) = url
             .trim_start_matches("s3://")
-            .split('/')
-            .next()
-            .unwrap_or_default()
-            .to_string();
+            .split_once('/')
+            .unwrap_or((url, ""));
+        let key = Path::from(key.trim_matches('/'));
         let mut stores = self.stores.lock().unwrap_or_else(|e| e.into_inner());
-        let (made, key) = s3_store(url)?;
-        let store = stores.entry(bucket).or_insert(made).clone();
-        Ok((store, key))
+        if let Some(store) = stores.get(bucket) {
+            return Ok((store.clone(), key));
+        }
+        let (made, _) = s3_store(url)?;
+        stores.insert(bucket.to_string(), made.clone());
+        Ok((made, key))
     }
 
     /// `location` (a path, an `s3://` object or an `http(s)://` file) opened by range.
@@ -64,7 +70,13 @@ impl Opener {
             true => Some(self.store(location)?),
             false => None,
         };
-        open_on(&self.runtime, &self.http, store, location)
+        let known = self
+            .sizes
+            .lock()
+            .unwrap_or_else(|e| e.into_inner())
+            .get(location)
+            .copied();
+        open_on(&self.runtime, &self.http, store, location, known)
     }
 
     /// The inputs `location` names, in order: every `.tif` / `.tiff` object under an `s3://`
@@ -101,14 +113,16 @@ impl Opener {
             .runtime
             .block_on(store.list(prefix).try_collect::<Vec<_>>())?
             .map_err(std::io::Error::from)?;
-        let mut keys: Vec<String> = objects
-            .into_iter()
-            .map(|o| o.location.to_string())
-            .filter(|k| {
-                let k = k.to_ascii_lowercase();
-                k.ends_with(".tif") || k.ends_with(".tiff")
-            })
-            .collect();
+        let mut keys: Vec<String> = Vec::with_capacity(objects.len());
+        let mut sizes = self.sizes.lock().unwrap_or_else(|e| e.into_inner());
+        for o in objects {
+            let k = o.location.to_string();
+            let lower = k.to_ascii_lowercase();
+            if lower.ends_with(".tif") || lower.ends_with(".tiff") {
+                sizes.insert(format!("s3://{bucket}/{k}"), o.size);
+                keys.push(k);
+            }
+        }
         if keys.is_empty() {
             return Err(std::io::Error::new(
                 std::io::ErrorKind::NotFound,

@@ -73,7 +73,7 @@ pub fn open_with(url: &str, read_timeout: Duration) -> std::io::Result<Box<dyn C
         true => Some(s3_store(url)?),
         false => None,
     };
-    open_on(&runtime, &http, store, url)
+    open_on(&runtime, &http, store, url, None)
 }
 
 /// The small runtime that drives a reader's requests to their end (the codec's reads are
@@ -121,16 +121,20 @@ pub(crate) fn http_client(read_timeout: Duration) -> std::io::Result<reqwest::Cl
 }
 
 /// `url` opened on `runtime`: through `store` (its object store and key) for `s3://`, through
-/// `http` otherwise.
+/// `http` otherwise; an object's length asked unless `known` (a listing gave it).
 pub(crate) fn open_on(
     runtime: &Arc<Runtime>,
     http: &reqwest::Client,
     store: Option<(Arc<dyn ObjectStore>, Path)>,
     url: &str,
+    known: Option<u64>,
 ) -> std::io::Result<Box<dyn ChunkSource>> {
     let remote = if let Some((store, key)) = store {
-        let head = runtime.block_on(store.head(&key))?.map_err(io)?;
-        Remote::Object { store, key }.with(runtime.clone(), head.size, url)
+        let size = match known {
+            Some(size) => size,
+            None => runtime.block_on(store.head(&key))?.map_err(io)?.size,
+        };
+        Remote::Object { store, key }.with(runtime.clone(), size, url)
     } else if url.starts_with("http://") || url.starts_with("https://") {
         let (length, whole) = runtime.block_on(http_length(http, url))??;
         if let Some(bytes) = whole {

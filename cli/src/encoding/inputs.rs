@@ -60,12 +60,40 @@ pub(crate) fn is_stac(p: &Path) -> bool {
     })
 }
 
+/// Whether `p` is a list of locations: a remote `.txt`, or a local one whose every line (but
+/// blanks and `#` comments) names a GeoTIFF, a folder or a remote location. Any other text
+/// file is an input the encoder does not read, and is told so as such.
+fn is_list(p: &Path) -> bool {
+    let s = p.to_string_lossy();
+    if !s.to_ascii_lowercase().ends_with(".txt") {
+        return false;
+    }
+    if fractile_remote::is_remote(&s) {
+        return true;
+    }
+    let Ok(text) = std::fs::read_to_string(p) else {
+        return false;
+    };
+    let mut lines = text
+        .lines()
+        .map(str::trim)
+        .filter(|l| !l.is_empty() && !l.starts_with('#'))
+        .peekable();
+    lines.peek().is_some()
+        && lines.all(|l| {
+            let lower = l.to_ascii_lowercase();
+            fractile_remote::is_remote(l)
+                || lower.ends_with(".tif")
+                || lower.ends_with(".tiff")
+                || l.ends_with('/')
+        })
+}
+
 /// Whether `inputs` need the opener: a URL, a list, a STAC ItemCollection.
 fn by_location(inputs: &[PathBuf]) -> bool {
-    inputs.iter().any(|p| {
-        let s = p.to_string_lossy();
-        fractile_remote::is_remote(&s) || s.to_ascii_lowercase().ends_with(".txt") || is_stac(p)
-    })
+    inputs
+        .iter()
+        .any(|p| fractile_remote::is_remote(&p.to_string_lossy()) || is_list(p) || is_stac(p))
 }
 
 /// Opens `inputs` as one raster read by bands of rows.
@@ -136,7 +164,8 @@ fn open_headers(opener: &Opener, names: &[String]) -> Result<(Vec<GeoTiff>, Vec<
         let tiff = GeoTiff::open_source(TiffSource::Ranged(file.clone()))?;
         Ok((tiff, Some(file)))
     };
-    const AT_ONCE: usize = 8;
+    // Requests in flight: latency-bound, not CPU-bound.
+    const AT_ONCE: usize = 32;
     let per = names.len().div_ceil(AT_ONCE).max(1);
     let opened: Vec<Result<Vec<Opened>>> = std::thread::scope(|s| {
         let handles: Vec<_> = names

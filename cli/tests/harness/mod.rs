@@ -292,3 +292,54 @@ impl Drop for Weed {
         self.pause();
     }
 }
+
+/// A Python with rasterio: `FRACTILE_RASTERIO_PYTHON`.
+pub(crate) fn rasterio_python() -> Option<PathBuf> {
+    let p = PathBuf::from(std::env::var_os("FRACTILE_RASTERIO_PYTHON")?);
+    p.exists().then_some(p)
+}
+
+/// COGs of `side` cells a side cut from etopo20 into `dir` (every 10th with a void): how many.
+pub(crate) fn cogs(python: &Path, dir: &Path, side: usize) -> usize {
+    let script = data("../tools/make_cogs.py");
+    let out = Command::new(python)
+        .arg(script)
+        .arg(data("etopo20.tif"))
+        .arg(dir)
+        .args([side.to_string(), "10".into()])
+        .output()
+        .expect("python runs");
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let report: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    report["pieces"].as_u64().unwrap() as usize
+}
+
+/// Every file of `dir` (name order) put under `s3://{bucket}/{prefix}/`.
+pub(crate) fn upload(weed: &Weed, bucket: &str, prefix: &str, dir: &Path) -> Vec<String> {
+    let mut names: Vec<String> = std::fs::read_dir(dir)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .collect();
+    names.sort();
+    for n in &names {
+        let body = std::fs::read(dir.join(n)).unwrap();
+        put_object(weed, &format!("{bucket}/{prefix}/{n}"), &body);
+    }
+    names
+        .iter()
+        .map(|n| format!("s3://{bucket}/{prefix}/{n}"))
+        .collect()
+}
+
+pub(crate) fn put_object(weed: &Weed, key: &str, body: &[u8]) {
+    let head = format!(
+        "PUT /{key} HTTP/1.1\r\nHost: 127.0.0.1\r\nContent-Length: {}\r\nConnection: close\r\n\r\n",
+        body.len()
+    );
+    let status = request(weed.s3_port(), &head, body).map(|r| r.0);
+    assert_eq!(status, Some(200), "PUT {key}");
+}

@@ -16,6 +16,13 @@ use crate::Error;
 use crate::io::raster::Raster;
 use crate::io::rows::{GeoTiff, Header, InMemory, Rows, is_tiff};
 
+/// A part's rows of a band: its column on the mosaic, its first row, its cells.
+type PartBand = (usize, usize, Raster);
+
+/// Parts of a mosaic read at once for a band: reads by range wait on the network far more
+/// than on a core.
+const READERS: usize = 16;
+
 /// How far (in pixels) two origins may be from a whole number of pixels apart, or two pixel
 /// sizes apart relative to their size, and still count as one grid: far above the rounding of
 /// coordinates a GeoTIFF stores in f64, far below any real misalignment.
@@ -134,16 +141,50 @@ impl Rows for Mosaic {
         let n = w * y1.saturating_sub(y0);
         let mut values = vec![f32::NAN; n];
         let mut valid = vec![false; n];
-        for ([ox, oy], part) in &mut self.parts {
-            let (pw, ph) = (part.header().width, part.header().height);
-            let (from, to) = (y0.max(*oy), y1.min(*oy + ph));
-            if from >= to {
-                continue;
-            }
-            let band = part.read(from - *oy, to - *oy)?;
+        // The parts the band crosses, read side by side (a part read by range waits on the
+        // network, a local one on inflate), then laid down in order: the first input with
+        // data at a cell keeps it.
+        let crossing: Vec<&mut ([usize; 2], GeoTiff)> = self
+            .parts
+            .iter_mut()
+            .filter(|(at, part)| y0.max(at[1]) < y1.min(at[1] + part.header().height))
+            .collect();
+        let per = crossing.len().div_ceil(READERS).max(1);
+        let mut crossing = crossing;
+        let bands: Vec<Result<Vec<PartBand>, Error>> = std::thread::scope(|s| {
+            let workers: Vec<_> = crossing
+                .chunks_mut(per)
+                .map(|some| {
+                    s.spawn(move || {
+                        some.iter_mut()
+                            .map(|([ox, oy], part)| {
+                                let to = y1.min(*oy + part.header().height);
+                                let from = y0.max(*oy);
+                                Ok((*ox, from, part.read(from - *oy, to - *oy)?))
+                            })
+                            .collect()
+                    })
+                })
+                .collect();
+            workers
+                .into_iter()
+                .map(|w| {
+                    w.join()
+                        .unwrap_or_else(|_| Err(Error::input("a reader of the mosaic panicked")))
+                })
+                .collect()
+        });
+        for (ox, from, band) in bands
+            .into_iter()
+            .collect::<Result<Vec<_>, _>>()?
+            .into_iter()
+            .flatten()
+        {
+            let pw = band.width;
+            let to = from + band.height;
             for y in from..to {
                 for x in 0..pw {
-                    let (i, k) = ((y - from) * pw + x, (y - y0) * w + *ox + x);
+                    let (i, k) = ((y - from) * pw + x, (y - y0) * w + ox + x);
                     // The first input with data here keeps the cell.
                     if valid[k] || !band.is_valid(i) {
                         continue;

@@ -1,0 +1,77 @@
+//! Issue 78's speed bar: cells a second of an encode that reads its inputs from a bucket
+//! (SeaweedFS on loopback, range reads) against the same encode from local copies of the
+//! same files, in the same run, on the same machine.
+//!
+//! `cargo bench -p fractile-cli --bench bucket_inputs -- [runs, default 3]` (needs `weed` and
+//! a Python with rasterio, `FRACTILE_RASTERIO_PYTHON`, to make the COGs with GDAL).
+//!
+//! COGs cut from etopo20 (1080 x 540 cells) at three sizes (`tools/make_cogs.py`: 135, 48 and
+//! 16 cells a side: 32, 276 and 2,312 files), each set encoded (`--chunk 256 --max-error 2`)
+//! from its folder and from its `s3://` prefix, alternately, `runs` times; the best time of
+//! each. Prints a table: seconds, cells a second, the ratio, and bytes fetched against the
+//! files' bytes.
+
+#[path = "../tests/harness/mod.rs"]
+mod harness;
+
+use std::process::Command;
+use std::time::Instant;
+
+use harness::{Weed, binary, cogs, rasterio_python, upload};
+
+fn main() {
+    let runs: usize = std::env::args()
+        .skip(1)
+        .find_map(|a| a.parse().ok())
+        .unwrap_or(3);
+    let (Some(python), Some(_)) = (rasterio_python(), harness::weed_binary()) else {
+        eprintln!("needs weed (FRACTILE_WEED) and FRACTILE_RASTERIO_PYTHON");
+        return;
+    };
+    let work = tempfile::tempdir().unwrap();
+    let weed = Weed::start(&work.path().join("weed"), "dem").expect("weed starts");
+    println!(
+        "| COGs | cells a side | local s | bucket s | local cells/s | bucket cells/s | bucket / local | fetched / files' bytes |"
+    );
+    println!("|---|---|---|---|---|---|---|---|");
+    for side in [135, 48, 16] {
+        let dir = work.path().join(format!("cogs{side}"));
+        let n = cogs(&python, &dir, side);
+        upload(&weed, "dem", &format!("c{side}"), &dir);
+        let files: u64 = std::fs::read_dir(&dir)
+            .unwrap()
+            .map(|e| e.unwrap().metadata().unwrap().len())
+            .sum();
+        let out = work.path().join("out.fra");
+        let encode = |input: &str| {
+            let t = Instant::now();
+            let o = Command::new(binary())
+                .args(["encode", input, "-o"])
+                .arg(&out)
+                .args(["--chunk", "256", "--max-error", "2", "--json"])
+                .envs(weed.env())
+                .output()
+                .unwrap();
+            assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+            let v: serde_json::Value =
+                serde_json::from_str(String::from_utf8_lossy(&o.stdout).trim()).unwrap();
+            (t.elapsed().as_secs_f64(), v)
+        };
+        let (mut local, mut bucket, mut fetched) = (f64::MAX, f64::MAX, 0);
+        let prefix = format!("s3://dem/c{side}/");
+        for _ in 0..runs {
+            local = local.min(encode(dir.to_str().unwrap()).0);
+            let (s, v) = encode(&prefix);
+            bucket = bucket.min(s);
+            fetched = v["fetched_bytes"].as_u64().unwrap_or(0);
+        }
+        let cells = 1080.0 * 540.0;
+        println!(
+            "| {n} | {side} | {local:.2} | {bucket:.2} | {:.0} | {:.0} | {:.2} | {:.2} |",
+            cells / local,
+            cells / bucket,
+            local / bucket,
+            fetched as f64 / files as f64
+        );
+    }
+}
