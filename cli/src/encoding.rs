@@ -59,6 +59,9 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     let (fetched, requests) = inputs.fetched();
     let report = json!({
         "input": a.inputs[0], "inputs": files, "output": a.output, "codec": enc.asset.codec_name(),
+        // Inputs of another pixel size or alignment, resampled onto the finest input's grid
+        // (bilinear; each cell between the input cells it is made of).
+        "resampled_inputs": inputs.resampled,
         // Read by range (remote inputs): what crossed the network.
         "fetched_bytes": inputs.remote().then_some(fetched),
         "fetched_requests": inputs.remote().then_some(requests),

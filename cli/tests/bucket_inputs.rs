@@ -4,9 +4,10 @@
 //! ItemCollection, whole and split in 4 parts written to and assembled in the bucket: always
 //! the same bytes as the encode of local copies of the same files. What crosses the network
 //! is counted (at most 1.3 times the inputs' compressed cells), and a part's peak memory
-//! stays under 1 GB with 200 inputs and with 2,000.
+//! stays under 1 GB with 200 inputs and with 2,000. And inputs on other grids of one CRS are
+//! resampled as GDAL resamples them (rasterio's `reproject`, `tools/resample_reference.py`).
 //!
-//! One sequential test (the steps share the bucket). Without `weed` or a Python with rasterio
+//! The bucket's steps are one sequential test (they share the bucket). Without `weed` or a Python with rasterio
 //! (`FRACTILE_RASTERIO_PYTHON`; `.ci/run` installs both) it says so and passes, except under CI.
 
 #[path = "harness/mod.rs"]
@@ -192,4 +193,77 @@ fn an_encode_from_a_bucket_is_the_encode_of_its_local_copies() {
         peak as f64 / 1e6
     );
     assert!(peak < 1 << 30, "{peak} bytes resident");
+}
+
+/// Inputs on different grids of one CRS (issue 78): jacksboro's west half on its grid and its
+/// east part made 1.5 times coarser and 0.37 of a cell off by GDAL; the mosaic resamples the
+/// second onto the first's grid, and its cells (through an encode bounded at 0.001 m and its
+/// decode) are GDAL's bilinear reprojection of the same input (rasterio's `reproject`) within
+/// that bound, every cell 2 or more inside the resampled input's footprint.
+#[test]
+fn inputs_on_other_grids_are_resampled_as_gdal_resamples_them() {
+    let Some(python) = rasterio_python() else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "under CI the resampling test needs FRACTILE_RASTERIO_PYTHON"
+        );
+        println!("no Python with rasterio: the resampling test was not run");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let script = harness::data("../tools/resample_reference.py");
+    let out = Command::new(&python)
+        .arg(&script)
+        .args(["make"])
+        .arg(harness::data("jacksboro.tif"))
+        .arg(d)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let made: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let a_cols = made["a"][0].as_u64().unwrap().to_string();
+    let run = |args: &[&str]| {
+        let o = Command::new(binary()).args(args).output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let p = |name: &str| d.join(name).display().to_string();
+    let report = run(&[
+        "encode",
+        &p("a.tif"),
+        &p("b.tif"),
+        "-o",
+        &p("m.fra"),
+        "--codec",
+        "projected",
+        "--max-error",
+        "0.001",
+        "--json",
+    ]);
+    let report: serde_json::Value = serde_json::from_str(report.trim()).unwrap();
+    assert_eq!(report["resampled_inputs"], 1, "{report}");
+    run(&["decode", &p("m.fra"), "-o", &p("m.tif")]);
+    let out = Command::new(&python)
+        .arg(&script)
+        .args(["compare", &p("ref.tif"), &p("m.tif"), "2", &a_cols])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let cmp: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    println!("against GDAL's bilinear: {cmp}");
+    assert!(cmp["cells"].as_u64().unwrap() > 50_000, "{cmp}");
+    // The encode's bound, and f32's rounding of heights of a few hundred metres.
+    assert!(
+        cmp["max_abs_diff"].as_f64().unwrap() <= 0.001 + 1e-4,
+        "{cmp}"
+    );
 }

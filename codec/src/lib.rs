@@ -79,11 +79,13 @@ pub mod rows {
     pub use crate::io::rows::{GeoTiff, Header, InMemory, Rows, TiffSource, is_tiff};
 }
 
-/// Several input rasters on one grid, read as one.
+/// Several input rasters read as one, on one grid (inputs of another pixel size or alignment
+/// in the same CRS resampled onto it).
 pub mod mosaic {
     pub use crate::io::mosaic::{
         MAX_HEIGHT, MAX_WIDTH, Mosaic, input_files, mirrored, open, open_rows,
     };
+    pub use crate::io::resample::Resampled;
 }
 
 /// The operator form every codec is written against, `(W f)(p) = g_c(p) + s_c(p) f(phi_c(p))`.

@@ -94,8 +94,75 @@ fn a_dem_cut_into_tiles_reads_back_as_itself() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// Inputs of another pixel size or alignment (one CRS) are resampled onto the finest input's
+/// grid: bilinear between the four cells around each target centre, so every resampled cell
+/// is the weighted mean of its input cells, never outside them.
 #[test]
-fn inputs_on_different_grids_are_refused_by_name() {
+fn inputs_off_the_grid_are_resampled_onto_the_finest() {
+    let src = Raster::open(&testdata("etopo20.tif")).expect("testdata");
+    let g = src.georef.clone().expect("georeferenced");
+    let dir = scratch("resampled");
+    let a = dir.join("a.tif");
+    cut(&src, [0, 0, 40, 30], 0.0, &a);
+    // The same cells as a's, placed 50.3 cells east: 0.3 of a cell off a's grid.
+    let window: Vec<f32> = (0..30)
+        .flat_map(|y| (0..40).map(move |x| (x, y)))
+        .map(|(x, y)| src.channels[0][y * src.width + x])
+        .collect();
+    let shifted = dir.join("shifted.tif");
+    let georef = Georef {
+        origin: [g.origin[0] + 50.3 * g.pixel_size[0], g.origin[1]],
+        ..g.clone()
+    };
+    write_geotiff_f32(&shifted, 40, 30, &window, Some(&georef), None).unwrap();
+    let m = mosaic::open(&[a.clone(), shifted.clone()]).expect("resampled");
+    assert_eq!(m.georef.as_ref().unwrap().pixel_size, g.pixel_size);
+    assert_eq!(m.georef.as_ref().unwrap().origin, g.origin, "a's grid");
+    // Target column 50 + i has its centre at input x = i + 0.2 cells: 0.3 of cell i - 1 and
+    // 0.7 of cell i.
+    for y in 0..30 {
+        for i in 1..40 {
+            let (left, right) = (window[y * 40 + i - 1], window[y * 40 + i]);
+            let got = m.channels[0][y * m.width + 50 + i];
+            let want = 0.3 * f64::from(left) + 0.7 * f64::from(right);
+            assert!(
+                (f64::from(got) - want).abs() < 1e-3,
+                "({i}, {y}): {got} for {want}"
+            );
+            assert!(got >= left.min(right) - 1e-3 && got <= left.max(right) + 1e-3);
+        }
+    }
+    // A finer input: the mosaic takes its grid, and a's cells are resampled onto it.
+    let finer = dir.join("finer.tif");
+    let fine = Georef {
+        pixel_size: [g.pixel_size[0] / 2.0, g.pixel_size[1] / 2.0],
+        origin: [g.origin[0] + 100.0 * g.pixel_size[0], g.origin[1]],
+        ..g.clone()
+    };
+    write_geotiff_f32(&finer, 20, 10, &[1.0f32; 200], Some(&fine), None).unwrap();
+    let m = mosaic::open(&[a.clone(), finer]).expect("resampled");
+    assert_eq!(m.georef.as_ref().unwrap().pixel_size, fine.pixel_size);
+    for y in 2..58 {
+        for x in 2..78 {
+            let got = m.channels[0][y * m.width + x];
+            let near: Vec<f32> = [(x - 1) / 2, x / 2, x.div_ceil(2)]
+                .iter()
+                .flat_map(|&cx| [(y - 1) / 2, y.div_ceil(2)].map(|cy| window[cy * 40 + cx]))
+                .collect();
+            let (lo, hi) = near
+                .iter()
+                .fold((f32::MAX, f32::MIN), |(l, h), &v| (l.min(v), h.max(v)));
+            assert!(
+                got >= lo - 1e-3 && got <= hi + 1e-3,
+                "({x}, {y}): {got} outside {lo}..{hi}"
+            );
+        }
+    }
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+#[test]
+fn inputs_in_another_crs_are_refused_by_name() {
     let src = Raster::open(&testdata("etopo20.tif")).expect("testdata");
     let g = src.georef.clone().expect("georeferenced");
     let dir = scratch("refused");
@@ -107,20 +174,6 @@ fn inputs_on_different_grids_are_refused_by_name() {
         write_geotiff_f32(&path, 20, 10, &values, Some(&georef), None).unwrap();
         path
     };
-    let finer = write(
-        "finer.tif",
-        Georef {
-            pixel_size: [g.pixel_size[0] / 2.0, g.pixel_size[1] / 2.0],
-            ..g.clone()
-        },
-    );
-    let shifted = write(
-        "shifted.tif",
-        Georef {
-            origin: [g.origin[0] + 0.3 * g.pixel_size[0], g.origin[1]],
-            ..g.clone()
-        },
-    );
     let other_crs = write(
         "utm.tif",
         Georef {
@@ -128,11 +181,9 @@ fn inputs_on_different_grids_are_refused_by_name() {
             ..g.clone()
         },
     );
-    for (b, says) in [
-        (&finer, "resolution"),
-        (&shifted, "pixels off the grid"),
-        (&other_crs, "CRS"),
-    ] {
+    // Another pixel size or alignment is resampled (above); another CRS is refused.
+    {
+        let (b, says) = (&other_crs, "CRS");
         let err = mosaic::open(&[a.clone(), b.clone()])
             .expect_err("refused")
             .to_string();

@@ -20,6 +20,8 @@ pub(super) struct Inputs {
     pub(super) rows: Box<dyn Rows>,
     /// The inputs read by range, for what they fetched.
     ranged: Vec<Arc<RangedFile>>,
+    /// How many inputs were resampled onto the mosaic's grid.
+    pub(super) resampled: usize,
 }
 
 impl Inputs {
@@ -99,15 +101,23 @@ fn by_location(inputs: &[PathBuf]) -> bool {
 /// Opens `inputs` as one raster read by bands of rows.
 pub(super) fn open(inputs: &[PathBuf]) -> Result<Inputs> {
     if !by_location(inputs) {
-        let names = fractile_codec::mosaic::input_files(inputs)?
-            .iter()
-            .map(|p| p.display().to_string())
-            .collect();
+        let files = fractile_codec::mosaic::input_files(inputs)?;
+        let names = files.iter().map(|p| p.display().to_string()).collect();
+        if files.len() > 1 && files.iter().all(|f| fractile_codec::rows::is_tiff(f)) {
+            let mosaic = Mosaic::open(&files)?;
+            return Ok(Inputs {
+                names,
+                resampled: mosaic.resampled(),
+                rows: Box::new(mosaic),
+                ranged: Vec::new(),
+            });
+        }
         let rows = fractile_codec::mosaic::open_rows(inputs)?;
         return Ok(Inputs {
             names,
             rows,
             ranged: Vec::new(),
+            resampled: 0,
         });
     }
     let opener = Opener::new().context("starting the reader of remote inputs")?;
@@ -129,14 +139,19 @@ pub(super) fn open(inputs: &[PathBuf]) -> Result<Inputs> {
         bail!("the inputs name no raster");
     }
     let (parts, ranged) = open_headers(&opener, &names)?;
-    let rows: Box<dyn Rows> = match parts.len() {
-        1 => Box::new(parts.into_iter().next().expect("one part")),
-        _ => Box::new(Mosaic::of(parts)?),
+    let (rows, resampled): (Box<dyn Rows>, usize) = match parts.len() {
+        1 => (Box::new(parts.into_iter().next().expect("one part")), 0),
+        _ => {
+            let mosaic = Mosaic::of(parts)?;
+            let resampled = mosaic.resampled();
+            (Box::new(mosaic), resampled)
+        }
     };
     Ok(Inputs {
         names,
         rows,
         ranged,
+        resampled,
     })
 }
 

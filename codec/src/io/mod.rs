@@ -14,4 +14,5 @@ pub(crate) mod mask;
 pub(crate) mod mosaic;
 pub(crate) mod ranged;
 pub(crate) mod raster;
+pub(crate) mod resample;
 pub(crate) mod rows;

@@ -1,10 +1,12 @@
 //! Mosaics: many GeoTIFFs that tile an area (SRTM and Copernicus DEMs come as 1-degree
 //! tiles) read as one raster, by bands of rows ([`Mosaic`]) or whole ([`open`]).
 //!
-//! The inputs must share a grid: the same CRS, the same pixel size, and origins a whole number
-//! of pixels apart. Reprojection and resampling are out of scope: inputs that would need them
-//! get an error that says which input differs and how, rather than a mosaic that is silently
-//! shifted or stretched. Cells no input covers are nodata. Where inputs overlap (SRTM tiles
+//! The inputs must share a CRS. Those on the grid of the finest input (the same pixel size,
+//! origins a whole number of pixels apart) are read as they are; the others (another pixel
+//! size, or an origin off by a fraction of a cell) are resampled onto it ([`Resampled`]:
+//! bilinear, or the area average where coarser), never silently shifted. Inputs in another
+//! CRS get an error that names them (reprojection is not done yet). Cells no input covers are
+//! nodata. Where inputs overlap (SRTM tiles
 //! share their edge rows and columns), the first input in the order given that has data there
 //! wins; a folder's files are taken in name order.
 
@@ -14,6 +16,7 @@ use fractile_proto::{Georef, SampleFormat};
 
 use crate::Error;
 use crate::io::raster::Raster;
+use crate::io::resample::Resampled;
 use crate::io::rows::{GeoTiff, Header, InMemory, Rows, is_tiff};
 
 /// A part's rows of a band: its column on the mosaic, its first row, its cells.
@@ -94,8 +97,10 @@ pub fn open_rows(paths: &[PathBuf]) -> Result<Box<dyn Rows>, Error> {
 /// each read by its own strips or tiles.
 pub struct Mosaic {
     header: Header,
-    /// Each input and its column and row on the mosaic.
-    parts: Vec<([usize; 2], GeoTiff)>,
+    /// Each input (on the mosaic's grid, or resampled onto it) and its column and row on it.
+    parts: Vec<([usize; 2], Box<dyn Rows>)>,
+    /// How many inputs were resampled onto the mosaic's grid.
+    resampled: usize,
 }
 
 impl Mosaic {
@@ -114,19 +119,46 @@ impl Mosaic {
         Mosaic::of(parts)
     }
 
-    /// The mosaic of GeoTIFFs already opened (local or read by range), placed on their grid.
+    /// The mosaic of GeoTIFFs already opened (local or read by range), placed on one grid:
+    /// theirs, or where they differ in pixel size or alignment (one CRS), the finest input's
+    /// (the first of the finest), the others resampled onto it ([`crate::mosaic::Resampled`]).
     pub fn of(parts: Vec<GeoTiff>) -> Result<Mosaic, Error> {
         let names: Vec<PathBuf> = parts.iter().map(|p| p.source().name().into()).collect();
+        let target = finest(&parts);
+        let mut resampled = 0;
+        let mut boxed: Vec<Box<dyn Rows>> = Vec::with_capacity(parts.len());
+        for (name, part) in names.iter().zip(parts) {
+            let on_grid = match (&target, &part.header().georef) {
+                (Some((first, t)), Some(g)) => {
+                    g.epsg != t.epsg || offset((first.as_path(), t), (name.as_path(), g)).is_ok()
+                }
+                _ => true,
+            };
+            match (&target, on_grid) {
+                (Some((_, t)), false) => {
+                    boxed.push(Box::new(Resampled::new(Box::new(part), t)?));
+                    resampled += 1;
+                }
+                _ => boxed.push(Box::new(part)),
+            }
+        }
         let headers: Vec<(&Path, &Header)> = names
             .iter()
-            .zip(&parts)
+            .zip(&boxed)
             .map(|(f, p)| (f.as_path(), p.header()))
             .collect();
         let (header, at) = place(&headers)?;
         Ok(Mosaic {
             header,
-            parts: at.into_iter().zip(parts).collect(),
+            parts: at.into_iter().zip(boxed).collect(),
+            resampled,
         })
+    }
+
+    /// How many inputs were resampled onto the mosaic's grid (bilinear, or averaged where
+    /// coarser): each resampled cell lies between the input cells it is made from.
+    pub fn resampled(&self) -> usize {
+        self.resampled
     }
 }
 
@@ -144,7 +176,7 @@ impl Rows for Mosaic {
         // The parts the band crosses, read side by side (a part read by range waits on the
         // network, a local one on inflate), then laid down in order: the first input with
         // data at a cell keeps it.
-        let crossing: Vec<&mut ([usize; 2], GeoTiff)> = self
+        let crossing: Vec<&mut ([usize; 2], Box<dyn Rows>)> = self
             .parts
             .iter_mut()
             .filter(|(at, part)| y0.max(at[1]) < y1.min(at[1] + part.header().height))
@@ -197,6 +229,19 @@ impl Rows for Mosaic {
         let valid = valid.contains(&false).then_some(valid);
         Ok(self.header.band([0, y0], w, vec![values], valid))
     }
+}
+
+/// The grid a mosaic of `parts` is made on: the georeference of the input with the smallest
+/// cells (the first of them), with its name for messages; `None` without georeferences.
+fn finest(parts: &[GeoTiff]) -> Option<(PathBuf, Georef)> {
+    parts
+        .iter()
+        .filter_map(|p| Some((p.source().name(), p.header().georef.clone()?)))
+        .min_by(|a, b| {
+            let area = |g: &Georef| (g.pixel_size[0] * g.pixel_size[1]).abs();
+            area(&a.1).total_cmp(&area(&b.1))
+        })
+        .map(|(n, g)| (PathBuf::from(n), g))
 }
 
 /// Where a part lies on the first part's grid: its column and row offsets.

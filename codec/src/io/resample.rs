@@ -1,0 +1,211 @@
+//! An input on another grid of the same CRS (another pixel size, or an origin off the grid by
+//! a fraction of a cell) read on the mosaic's grid (issue 78): heights bilinear between the
+//! four input cells around a target cell's centre where the target is as fine as the input or
+//! finer, the area-weighted average of the input cells a target cell covers where it is
+//! coarser (as GDAL's `bilinear` and `average` resamplings do). Nodata cells take no weight
+//! (the others' are renormalised); a target cell none reaches is nodata. Separable: each axis
+//! has its taps, computed once.
+//!
+//! Every resampled value is a weighted mean of input cells, so it lies between the least and
+//! the greatest of the cells it is made from: that is the bound it keeps against the inputs.
+
+use fractile_proto::{Georef, SampleFormat};
+
+use crate::Error;
+use crate::io::raster::Raster;
+use crate::io::rows::{Header, Rows};
+
+/// The input cells one target cell is made of along one axis: the first index and a weight
+/// for it and each next one.
+#[derive(Clone, Debug, PartialEq)]
+struct Taps {
+    first: usize,
+    weights: Vec<f64>,
+}
+
+/// The taps of `count` target cells from `start` (target cell index of the first) along an
+/// axis where the input's first edge is at `edge` in target cells and each input cell is
+/// `ratio` target cells wide, the input `cells` long: bilinear when `ratio >= 1` (the target
+/// as fine or finer), area average otherwise. `None` for a cell the input does not reach.
+fn taps(start: i64, count: usize, edge: f64, ratio: f64, cells: usize) -> Vec<Option<Taps>> {
+    let n = cells as f64;
+    (0..count)
+        .map(|k| {
+            let centre = (start + k as i64) as f64 + 0.5;
+            // In input cells, edges at integers.
+            let u = (centre - edge) / ratio;
+            if ratio >= 1.0 - 1e-9 {
+                if !(0.0..=n).contains(&u) {
+                    return None;
+                }
+                let s = (u - 0.5).clamp(0.0, n - 1.0);
+                let k0 = s.floor();
+                let f = s - k0;
+                let k0 = k0 as usize;
+                Some(match f > 1e-12 && k0 + 1 < cells {
+                    true => Taps {
+                        first: k0,
+                        weights: vec![1.0 - f, f],
+                    },
+                    false => Taps {
+                        first: k0,
+                        weights: vec![1.0],
+                    },
+                })
+            } else {
+                let half = 0.5 / ratio;
+                let (lo, hi) = ((u - half).max(0.0), (u + half).min(n));
+                if hi <= lo {
+                    return None;
+                }
+                let first = lo.floor() as usize;
+                let last = (hi.ceil() as usize).min(cells);
+                let weights = (first..last)
+                    .map(|p| (hi.min(p as f64 + 1.0) - lo.max(p as f64)).max(0.0))
+                    .collect();
+                Some(Taps { first, weights })
+            }
+        })
+        .collect()
+}
+
+/// An input read on another grid of its CRS: the window of target cells whose centres lie
+/// on it.
+pub struct Resampled {
+    inner: Box<dyn Rows>,
+    header: Header,
+    cols: Vec<Option<Taps>>,
+    rows: Vec<Option<Taps>>,
+}
+
+impl Resampled {
+    /// `inner` on the grid of `target` (the same CRS: the caller checks): its window there.
+    pub fn new(inner: Box<dyn Rows>, target: &Georef) -> Result<Resampled, Error> {
+        let h = inner.header().clone();
+        let Some(g) = h.georef.clone() else {
+            return Err(Error::input(
+                "a raster with no georeference cannot be resampled",
+            ));
+        };
+        let axis = |a: usize, cells: usize| {
+            // The input's first edge and its cell, in target cells.
+            let edge = (g.origin[a] - target.origin[a]) / target.pixel_size[a];
+            let ratio = g.pixel_size[a] / target.pixel_size[a];
+            if !(edge.is_finite() && ratio.is_finite() && ratio > 0.0) {
+                return Err(Error::input(format!(
+                    "pixels of {:?} against {:?}: axes that run opposite ways are not resampled",
+                    g.pixel_size, target.pixel_size
+                )));
+            }
+            let far = edge + ratio * cells as f64;
+            let start = (edge - 0.5).ceil() as i64;
+            let end = (far - 0.5).floor() as i64;
+            let count = (end - start + 1).max(0) as usize;
+            Ok((start, taps(start, count, edge, ratio, cells)))
+        };
+        let (x0, cols) = axis(0, h.width)?;
+        let (y0, rows) = axis(1, h.height)?;
+        let header = Header {
+            width: cols.len(),
+            height: rows.len(),
+            // Weighted means are not integers.
+            sample: SampleFormat::F32,
+            georef: Some(Georef {
+                epsg: g.epsg,
+                origin: [
+                    target.origin[0] + x0 as f64 * target.pixel_size[0],
+                    target.origin[1] + y0 as f64 * target.pixel_size[1],
+                ],
+                pixel_size: target.pixel_size,
+            }),
+            ..h
+        };
+        Ok(Resampled {
+            inner,
+            header,
+            cols,
+            rows,
+        })
+    }
+}
+
+impl Rows for Resampled {
+    fn header(&self) -> &Header {
+        &self.header
+    }
+
+    fn read(&mut self, y0: usize, y1: usize) -> Result<Raster, Error> {
+        let (w, y1) = (self.header.width, y1.min(self.header.height));
+        let span = |t: &Taps| (t.first, t.first + t.weights.len());
+        let needed = self.rows[y0..y1].iter().flatten().map(span);
+        let (r0, r1) = needed.fold((usize::MAX, 0), |(a, b), (s, e)| (a.min(s), b.max(e)));
+        let n = w * y1.saturating_sub(y0);
+        let (mut values, mut valid) = (vec![f32::NAN; n], vec![false; n]);
+        if r0 < r1 {
+            let band = self.inner.read(r0, r1)?;
+            let iw = band.width;
+            for (j, row) in self.rows[y0..y1].iter().enumerate() {
+                let Some(row) = row else { continue };
+                for (i, col) in self.cols.iter().enumerate() {
+                    let Some(col) = col else { continue };
+                    let (mut sum, mut weight) = (0.0f64, 0.0f64);
+                    for (dr, wr) in row.weights.iter().enumerate() {
+                        for (dc, wc) in col.weights.iter().enumerate() {
+                            let at = (row.first + dr - r0) * iw + col.first + dc;
+                            if band.is_valid(at) {
+                                sum += wr * wc * f64::from(band.channels[0][at]);
+                                weight += wr * wc;
+                            }
+                        }
+                    }
+                    if weight > 1e-12 {
+                        values[j * w + i] = (sum / weight) as f32;
+                        valid[j * w + i] = true;
+                    }
+                }
+            }
+        }
+        let valid = valid.contains(&false).then_some(valid);
+        Ok(self.header.band([0, y0], w, vec![values], valid))
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn taps_are_bilinear_finer_and_area_weighted_coarser() {
+        // The same grid: each target cell is its input cell.
+        let same = taps(0, 4, 0.0, 1.0, 4);
+        for (k, t) in same.iter().enumerate() {
+            assert_eq!(
+                t.as_ref().unwrap(),
+                &Taps {
+                    first: k,
+                    weights: vec![1.0]
+                }
+            );
+        }
+        // Half a cell off: halfway between two input cells.
+        let off = taps(0, 3, -0.5, 1.0, 4);
+        assert_eq!(
+            off[1].as_ref().unwrap(),
+            &Taps {
+                first: 1,
+                weights: vec![0.5, 0.5]
+            }
+        );
+        // Twice as coarse: two input cells a target cell, equal weights.
+        let coarse = taps(0, 2, 0.0, 0.5, 4);
+        assert_eq!(
+            coarse[1].as_ref().unwrap(),
+            &Taps {
+                first: 2,
+                weights: vec![1.0, 1.0]
+            }
+        );
+        // Past the input: nothing.
+        assert!(taps(10, 1, 0.0, 1.0, 4)[0].is_none());
+    }
+}
