@@ -5,6 +5,15 @@ SOURCE, on its grid) and DIR/b.tif (the east part, resampled by GDAL to cells 1.
 wide, its origin 0.37 of a cell off: another grid of the same CRS), and DIR/ref.tif: b.tif
 brought back onto a.tif's grid by rasterio's reproject (bilinear), float32, NaN outside.
 
+`python tools/resample_reference.py utm SOURCE.tif UTM.tif DIR`: writes DIR/a.tif (SOURCE's
+west half on a longitude/latitude grid of half its cells: the finest input, whose grid the
+mosaic takes) and DIR/ref.tif: UTM.tif (another CRS) brought onto that grid by rasterio's
+reproject, bilinear, with the exact transform (tolerance 0), and DIR/bilinear.tif: the
+textbook bilinear between the four UTM cells around each target centre, the centre taken to
+UTM by PROJ (rasterio's `transform`). GDAL's warper departs from the textbook bilinear here by
+up to metres (a rotated grid: it seems to widen its kernel), so bilinear.tif is the reference
+that holds to float precision and ref.tif the peer's figure.
+
 `python tools/resample_reference.py compare DIR/ref.tif DECODED.tif BORDER`: the largest
 |decoded - ref| over ref's cells at least BORDER cells inside b's footprint and east of
 a.tif (where the mosaic's first input does not win), as one JSON line.
@@ -16,7 +25,7 @@ import sys
 import numpy as np
 import rasterio
 from rasterio.transform import Affine
-from rasterio.warp import Resampling, reproject
+from rasterio.warp import Resampling, reproject, transform
 from rasterio.windows import Window
 
 
@@ -50,6 +59,51 @@ def make(source, out):
     print(json.dumps({"a": [half, h], "b": [bw, bh], "ref": [cols, h]}))
 
 
+def utm(source, projected, out):
+    with rasterio.open(source) as src:
+        data = src.read(1).astype("float32")
+        st, crs = src.transform, src.crs
+    sh, sw = data.shape
+    t = Affine(st.a / 2, 0, st.c, 0, st.e / 2, st.f)
+    h, w = 2 * sh, 2 * sw
+    half = w // 2
+    fine = np.full((h, half), np.nan, dtype="float32")
+    reproject(data, fine, src_transform=st, src_crs=crs, dst_transform=t, dst_crs=crs,
+              resampling=Resampling.bilinear)
+    prof = {"driver": "GTiff", "count": 1, "dtype": "float32", "crs": crs}
+    with rasterio.open(f"{out}/a.tif", "w", width=half, height=h, transform=t, **prof) as d:
+        d.write(fine, 1)
+    with rasterio.open(projected) as p:
+        pdata = p.read(1).astype("float32")
+        nodata = p.nodata
+        if nodata is not None:
+            pdata[pdata == nodata] = np.nan
+        ref = np.full((h, w), np.nan, dtype="float32")
+        reproject(pdata, ref, src_transform=p.transform, src_crs=p.crs, dst_transform=t,
+                  dst_crs=crs, resampling=Resampling.bilinear, src_nodata=np.nan,
+                  dst_nodata=np.nan, tolerance=0)
+        # The textbook bilinear at the same points, through PROJ's transform (rasterio's):
+        # GDAL's warper departs from it on this rotated grid (it widens its kernel).
+        xs, ys = np.meshgrid(t.c + (np.arange(w) + 0.5) * t.a, t.f + (np.arange(h) + 0.5) * t.e)
+        px, py = transform(crs, p.crs, xs.ravel().tolist(), ys.ravel().tolist())
+        pt = p.transform
+        sx = (np.array(px) - pt.c) / pt.a - 0.5
+        sy = (np.array(py) - pt.f) / pt.e - 0.5
+        i, j = np.floor(sx).astype(int), np.floor(sy).astype(int)
+        fx, fy = sx - i, sy - j
+        ph, pw = pdata.shape
+        inside = (i >= 0) & (j >= 0) & (i + 1 < pw) & (j + 1 < ph)
+        i, j = np.where(inside, i, 0), np.where(inside, j, 0)
+        bil = ((1 - fx) * (1 - fy) * pdata[j, i] + fx * (1 - fy) * pdata[j, i + 1]
+               + (1 - fx) * fy * pdata[j + 1, i] + fx * fy * pdata[j + 1, i + 1])
+        bil = np.where(inside, bil, np.nan).reshape(h, w).astype("float32")
+    for name, grid in [("ref", ref), ("bilinear", bil)]:
+        with rasterio.open(f"{out}/{name}.tif", "w", width=w, height=h, transform=t,
+                           nodata=np.nan, **prof) as d:
+            d.write(grid, 1)
+    print(json.dumps({"a": [half, h], "ref": [w, h]}))
+
+
 def compare(ref_path, decoded_path, border):
     with rasterio.open(ref_path) as r, rasterio.open(decoded_path) as d:
         ref, t = r.read(1), r.transform
@@ -78,5 +132,7 @@ def compare(ref_path, decoded_path, border):
 if __name__ == "__main__":
     if sys.argv[1] == "make":
         make(sys.argv[2], sys.argv[3])
+    elif sys.argv[1] == "utm":
+        utm(sys.argv[2], sys.argv[3], sys.argv[4])
     else:
         compare(sys.argv[2], sys.argv[3], int(sys.argv[4]))

@@ -85,7 +85,7 @@ pub mod mosaic {
     pub use crate::io::mosaic::{
         MAX_HEIGHT, MAX_WIDTH, Mosaic, input_files, mirrored, open, open_rows,
     };
-    pub use crate::io::resample::Resampled;
+    pub use crate::io::resample::{Reprojected, Resampled};
 }
 
 /// The operator form every codec is written against, `(W f)(p) = g_c(p) + s_c(p) f(phi_c(p))`.

@@ -162,7 +162,7 @@ fn inputs_off_the_grid_are_resampled_onto_the_finest() {
 }
 
 #[test]
-fn inputs_in_another_crs_are_refused_by_name() {
+fn inputs_in_projected_crss_alone_are_refused_by_name() {
     let src = Raster::open(&testdata("etopo20.tif")).expect("testdata");
     let g = src.georef.clone().expect("georeferenced");
     let dir = scratch("refused");
@@ -181,15 +181,23 @@ fn inputs_in_another_crs_are_refused_by_name() {
             ..g.clone()
         },
     );
-    // Another pixel size or alignment is resampled (above); another CRS is refused.
-    {
-        let (b, says) = (&other_crs, "CRS");
-        let err = mosaic::open(&[a.clone(), b.clone()])
-            .expect_err("refused")
-            .to_string();
-        let name = b.file_name().unwrap().to_string_lossy().into_owned();
-        assert!(err.contains(says) && err.contains(&name), "{name}: {err}");
-    }
+    // Another pixel size or alignment is resampled (above), another CRS reprojected onto a
+    // longitude/latitude input's grid (cli/tests/bucket_inputs.rs); projected CRSs with no
+    // such input are refused by name.
+    let utm17 = write(
+        "utm17.tif",
+        Georef {
+            epsg: Some(32617),
+            ..g.clone()
+        },
+    );
+    let err = mosaic::open(&[other_crs.clone(), utm17])
+        .expect_err("refused")
+        .to_string();
+    assert!(
+        err.contains("projected CRSs") && err.contains("utm.tif") && err.contains("utm17.tif"),
+        "{err}"
+    );
     // Far apart: a mosaic of mostly nothing, bigger than the encoder takes.
     let far = write(
         "far.tif",

@@ -226,6 +226,11 @@ impl Placement {
         self.bounds
     }
 
+    /// Whether the grid is in longitude/latitude degrees.
+    pub fn is_geographic(&self) -> bool {
+        matches!(self.crs, Crs::Geographic { .. })
+    }
+
     /// Unit coordinates of (lon, lat); `None` outside the asset.
     pub fn unit(&self, lon: f64, lat: f64) -> Option<[f32; 2]> {
         let [u, v] = self.unit_f64(lon, lat)?;
@@ -235,7 +240,7 @@ impl Placement {
     /// Unit coordinates of (lon, lat), not clipped to the unit square; `None` far outside the
     /// asset (outside its lon/lat box, where a projection may fold distant points onto it) or
     /// where the projection fails.
-    pub(super) fn unit_f64(&self, lon: f64, lat: f64) -> Option<[f64; 2]> {
+    pub(crate) fn unit_f64(&self, lon: f64, lat: f64) -> Option<[f64; 2]> {
         match &self.crs {
             Crs::Geographic { global } => {
                 let mut u = (lon - self.west) / self.width;

@@ -16,7 +16,7 @@ use fractile_proto::{Georef, SampleFormat};
 
 use crate::Error;
 use crate::io::raster::Raster;
-use crate::io::resample::Resampled;
+use crate::io::resample::{Reprojected, Resampled};
 use crate::io::rows::{GeoTiff, Header, InMemory, Rows, is_tiff};
 
 /// A part's rows of a band: its column on the mosaic, its first row, its cells.
@@ -124,22 +124,26 @@ impl Mosaic {
     /// (the first of the finest), the others resampled onto it ([`crate::mosaic::Resampled`]).
     pub fn of(parts: Vec<GeoTiff>) -> Result<Mosaic, Error> {
         let names: Vec<PathBuf> = parts.iter().map(|p| p.source().name().into()).collect();
-        let target = finest(&parts);
+        let target = finest(&names, &parts)?;
         let mut resampled = 0;
         let mut boxed: Vec<Box<dyn Rows>> = Vec::with_capacity(parts.len());
         for (name, part) in names.iter().zip(parts) {
-            let on_grid = match (&target, &part.header().georef) {
-                (Some((first, t)), Some(g)) => {
-                    g.epsg != t.epsg || offset((first.as_path(), t), (name.as_path(), g)).is_ok()
-                }
-                _ => true,
+            let (Some((first, t)), Some(g)) = (&target, part.header().georef.clone()) else {
+                boxed.push(Box::new(part));
+                continue;
             };
-            match (&target, on_grid) {
-                (Some((_, t)), false) => {
-                    boxed.push(Box::new(Resampled::new(Box::new(part), t)?));
-                    resampled += 1;
-                }
-                _ => boxed.push(Box::new(part)),
+            let at = |e: Error| {
+                let p = name.display();
+                Error::input(format!("{p}: {e}")).at(name)
+            };
+            if g.epsg != t.epsg {
+                boxed.push(Box::new(Reprojected::new(Box::new(part), t).map_err(at)?));
+                resampled += 1;
+            } else if offset((first.as_path(), t), (name.as_path(), &g)).is_err() {
+                boxed.push(Box::new(Resampled::new(Box::new(part), t).map_err(at)?));
+                resampled += 1;
+            } else {
+                boxed.push(Box::new(part));
             }
         }
         let headers: Vec<(&Path, &Header)> = names
@@ -231,17 +235,43 @@ impl Rows for Mosaic {
     }
 }
 
-/// The grid a mosaic of `parts` is made on: the georeference of the input with the smallest
-/// cells (the first of them), with its name for messages; `None` without georeferences.
-fn finest(parts: &[GeoTiff]) -> Option<(PathBuf, Georef)> {
-    parts
+/// The grid a mosaic of `parts` is made on, with its input's name for messages: the
+/// georeference of the input with the smallest cells (the first of them); where the inputs
+/// are in more than one CRS, of the longitude/latitude inputs only (the others are
+/// reprojected onto it: cells in degrees and in metres do not compare, and a lon/lat grid is
+/// what global collections share). `None` without georeferences.
+fn finest(names: &[PathBuf], parts: &[GeoTiff]) -> Result<Option<(PathBuf, Georef)>, Error> {
+    let placed: Vec<(&PathBuf, Georef)> = names
         .iter()
-        .filter_map(|p| Some((p.source().name(), p.header().georef.clone()?)))
+        .zip(parts)
+        .filter_map(|(n, p)| Some((n, p.header().georef.clone()?)))
+        .collect();
+    let one_crs = placed.windows(2).all(|w| w[0].1.epsg == w[1].1.epsg);
+    let lonlat = |g: &Georef| {
+        g.epsg
+            .is_none_or(|c| crate::geo::epsg_is_geographic(c) == Some(true))
+    };
+    let candidates: Vec<&(&PathBuf, Georef)> = placed
+        .iter()
+        .filter(|(_, g)| one_crs || lonlat(g))
+        .collect();
+    if candidates.is_empty() && !placed.is_empty() {
+        return Err(Error::input(format!(
+            "{} is in {} and {} in {}: inputs in several projected CRSs need one on a \
+             longitude/latitude grid, which the others are reprojected onto",
+            placed[0].0.display(),
+            crs_name(placed[0].1.epsg),
+            placed[placed.len() - 1].0.display(),
+            crs_name(placed[placed.len() - 1].1.epsg)
+        )));
+    }
+    Ok(candidates
+        .into_iter()
         .min_by(|a, b| {
             let area = |g: &Georef| (g.pixel_size[0] * g.pixel_size[1]).abs();
             area(&a.1).total_cmp(&area(&b.1))
         })
-        .map(|(n, g)| (PathBuf::from(n), g))
+        .map(|(n, g)| ((*n).clone(), g.clone())))
 }
 
 /// Where a part lies on the first part's grid: its column and row offsets.

@@ -170,6 +170,152 @@ impl Rows for Resampled {
     }
 }
 
+/// An input in another CRS (UTM, Web Mercator, a national grid: any the placement knows) read
+/// on a longitude/latitude grid (issue 78): each target cell's centre taken to the input's
+/// CRS (proj4rs) and its height bilinear between the four input cells around it, or, where a
+/// target cell covers more than an input cell each way, the average of the input cells its
+/// footprint's box covers. Nodata as in [`Resampled`]; every value a weighted mean of input
+/// cells, as there.
+pub struct Reprojected {
+    inner: Box<dyn Rows>,
+    header: Header,
+    input: crate::geo::Placement,
+    target: Georef,
+    size: [usize; 2],
+}
+
+impl Reprojected {
+    /// `inner` on the longitude/latitude grid `target`: its window there (the cells whose
+    /// centres lie in the input's longitude/latitude box).
+    pub fn new(inner: Box<dyn Rows>, target: &Georef) -> Result<Reprojected, Error> {
+        let h = inner.header().clone();
+        let Some(g) = h.georef.clone() else {
+            return Err(Error::input(
+                "a raster with no georeference cannot be reprojected",
+            ));
+        };
+        let input = crate::geo::Placement::of(&g, h.width as u32, h.height as u32)
+            .map_err(|e| Error::input(format!("its CRS cannot be placed: {e}")))?;
+        let [w, s, e, n] = input.bounds();
+        let (px, py) = (target.pixel_size[0], target.pixel_size[1]);
+        if !(px > 0.0 && py < 0.0) {
+            return Err(Error::input("a target grid that is not north-up"));
+        }
+        let x0 = ((w - target.origin[0]) / px - 0.5).ceil() as i64;
+        let x1 = ((e - target.origin[0]) / px - 0.5).floor() as i64;
+        let y0 = ((n - target.origin[1]) / py - 0.5).ceil() as i64;
+        let y1 = ((s - target.origin[1]) / py - 0.5).floor() as i64;
+        let (width, height) = ((x1 - x0 + 1).max(0) as usize, (y1 - y0 + 1).max(0) as usize);
+        let window = Georef {
+            epsg: target.epsg,
+            origin: [
+                target.origin[0] + x0 as f64 * px,
+                target.origin[1] + y0 as f64 * py,
+            ],
+            pixel_size: target.pixel_size,
+        };
+        let header = Header {
+            width,
+            height,
+            sample: SampleFormat::F32,
+            georef: Some(window.clone()),
+            ..h.clone()
+        };
+        Ok(Reprojected {
+            inner,
+            header,
+            input,
+            target: window,
+            size: [h.width, h.height],
+        })
+    }
+
+    /// Input cell coordinates (edges at integers) of (lon, lat).
+    fn at(&self, lon: f64, lat: f64) -> Option<[f64; 2]> {
+        let [u, v] = self.input.unit_f64(lon, lat)?;
+        Some([u * self.size[0] as f64, v * self.size[1] as f64])
+    }
+}
+
+impl Rows for Reprojected {
+    fn header(&self) -> &Header {
+        &self.header
+    }
+
+    fn read(&mut self, y0: usize, y1: usize) -> Result<Raster, Error> {
+        let (w, y1) = (self.header.width, y1.min(self.header.height));
+        let (px, py) = (self.target.pixel_size[0], self.target.pixel_size[1]);
+        let [iw, ih] = self.size;
+        // Each target cell's box in input cells: its centre's position and, from its corners,
+        // how many input cells it spans each way.
+        let mut boxes: Vec<Option<([f64; 2], [f64; 2])>> = Vec::with_capacity(w * (y1 - y0));
+        for j in y0..y1 {
+            let lat = self.target.origin[1] + (j as f64 + 0.5) * py;
+            for i in 0..w {
+                let lon = self.target.origin[0] + (i as f64 + 0.5) * px;
+                let corners = [(-0.5, -0.5), (0.5, -0.5), (-0.5, 0.5), (0.5, 0.5)]
+                    .map(|(a, b)| self.at(lon + a * px, lat + b * py));
+                let (Some(c), [Some(a), Some(b), Some(d), Some(e)]) = (self.at(lon, lat), corners)
+                else {
+                    boxes.push(None);
+                    continue;
+                };
+                let span = |k: usize| {
+                    let v = [a[k], b[k], d[k], e[k]];
+                    v.iter().fold(f64::MIN, |m, &x| m.max(x))
+                        - v.iter().fold(f64::MAX, |m, &x| m.min(x))
+                };
+                boxes.push(Some((c, [span(0), span(1)])));
+            }
+        }
+        let axis = |centre: f64, span: f64, cells: usize| -> Option<Taps> {
+            match span > 1.0 {
+                false => taps(0, 1, -centre + 0.5, 1.0, cells).pop().flatten(),
+                true => taps(0, 1, 0.5 - centre / span, 1.0 / span, cells)
+                    .pop()
+                    .flatten(),
+            }
+        };
+        let cells: Vec<Option<(Taps, Taps)>> = boxes
+            .iter()
+            .map(|b| {
+                let ([cx, cy], [sx, sy]) = (*b)?;
+                Some((axis(cx, sx, iw)?, axis(cy, sy, ih)?))
+            })
+            .collect();
+        let (r0, r1) = cells
+            .iter()
+            .flatten()
+            .fold((usize::MAX, 0), |(a, b), (_, r)| {
+                (a.min(r.first), b.max(r.first + r.weights.len()))
+            });
+        let n = w * (y1 - y0);
+        let (mut values, mut valid) = (vec![f32::NAN; n], vec![false; n]);
+        if r0 < r1 {
+            let band = self.inner.read(r0, r1)?;
+            for (k, taps) in cells.iter().enumerate() {
+                let Some((col, row)) = taps else { continue };
+                let (mut sum, mut weight) = (0.0f64, 0.0f64);
+                for (dr, wr) in row.weights.iter().enumerate() {
+                    for (dc, wc) in col.weights.iter().enumerate() {
+                        let at = (row.first + dr - r0) * iw + col.first + dc;
+                        if band.is_valid(at) {
+                            sum += wr * wc * f64::from(band.channels[0][at]);
+                            weight += wr * wc;
+                        }
+                    }
+                }
+                if weight > 1e-12 {
+                    values[k] = (sum / weight) as f32;
+                    valid[k] = true;
+                }
+            }
+        }
+        let valid = valid.contains(&false).then_some(valid);
+        Ok(self.header.band([0, y0], w, vec![values], valid))
+    }
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
