@@ -104,6 +104,28 @@ def utm(source, projected, out):
     print(json.dumps({"a": [half, h], "ref": [w, h]}))
 
 
+def coarse(source, out, factor, shift):
+    """DIR/grid.tif: a grid FACTOR times coarser than SOURCE's, SHIFT of a coarse cell off
+    (a few cells: it only names the grid), and DIR/ref.tif: SOURCE averaged onto that grid
+    over SOURCE's extent by rasterio's reproject (Resampling.average)."""
+    with rasterio.open(source) as src:
+        data = src.read(1).astype("float32")
+        t, crs = src.transform, src.crs
+    h, w = data.shape
+    ct = Affine(t.a * factor, 0, t.c + shift * t.a * factor, 0, t.e * factor, t.f)
+    prof = {"driver": "GTiff", "count": 1, "dtype": "float32", "crs": crs}
+    with rasterio.open(f"{out}/grid.tif", "w", width=4, height=4, transform=ct, **prof) as d:
+        d.write(np.zeros((4, 4), dtype="float32"), 1)
+    cw, ch = int(w / factor) - 1, int(h / factor) - 1
+    ref = np.full((ch, cw), np.nan, dtype="float32")
+    reproject(data, ref, src_transform=t, src_crs=crs, dst_transform=ct, dst_crs=crs,
+              resampling=Resampling.average, dst_nodata=np.nan)
+    with rasterio.open(f"{out}/ref.tif", "w", width=cw, height=ch, transform=ct, nodata=np.nan,
+                       **prof) as d:
+        d.write(ref, 1)
+    print(json.dumps({"ref": [cw, ch]}))
+
+
 def compare(ref_path, decoded_path, border):
     with rasterio.open(ref_path) as r, rasterio.open(decoded_path) as d:
         ref, t = r.read(1), r.transform
@@ -132,6 +154,8 @@ def compare(ref_path, decoded_path, border):
 if __name__ == "__main__":
     if sys.argv[1] == "make":
         make(sys.argv[2], sys.argv[3])
+    elif sys.argv[1] == "coarse":
+        coarse(sys.argv[2], sys.argv[3], float(sys.argv[4]), float(sys.argv[5]))
     elif sys.argv[1] == "utm":
         utm(sys.argv[2], sys.argv[3], sys.argv[4])
     else:

@@ -28,7 +28,7 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
         return encode_curve(&a);
     }
     // Rows, not a raster: a chunked encode reads its input a band at a time.
-    let mut inputs = inputs::open(&a.inputs)?;
+    let mut inputs = inputs::open(&a.inputs, a.target_grid.as_deref())?;
     let files = inputs.names.clone();
     let rows = &mut inputs.rows;
     let (width, height) = (rows.header().width, rows.header().height);

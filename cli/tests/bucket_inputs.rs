@@ -352,3 +352,71 @@ fn an_input_in_another_crs_is_reprojected_onto_the_lonlat_grid() {
         "{bilinear}"
     );
 }
+
+/// `--target-grid` (issue 78): jacksboro onto a grid 3 times coarser and 0.37 of a coarse cell
+/// off, named by a GeoTIFF: each cell the area-weighted average of the input cells it covers,
+/// GDAL's `average` (rasterio's `reproject`) within the encode's bound of 0.001 m.
+#[test]
+fn a_target_grid_coarser_than_the_input_averages_as_gdal_does() {
+    let Some(python) = rasterio_python() else {
+        assert!(
+            std::env::var_os("CI").is_none(),
+            "under CI the averaging test needs FRACTILE_RASTERIO_PYTHON"
+        );
+        println!("no Python with rasterio: the averaging test was not run");
+        return;
+    };
+    let dir = tempfile::tempdir().unwrap();
+    let d = dir.path();
+    let script = harness::data("../tools/resample_reference.py");
+    let out = Command::new(&python)
+        .arg(&script)
+        .arg("coarse")
+        .arg(harness::data("jacksboro.tif"))
+        .arg(d)
+        .args(["3", "0.37"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let p = |name: &str| d.join(name).display().to_string();
+    let source = harness::data("jacksboro.tif").display().to_string();
+    for args in [
+        vec![
+            "encode",
+            &source,
+            "--target-grid",
+            &p("grid.tif"),
+            "-o",
+            &p("m.fra"),
+            "--codec",
+            "projected",
+            "--max-error",
+            "0.001",
+        ],
+        vec!["decode", &p("m.fra"), "-o", &p("m.tif")],
+    ] {
+        let o = Command::new(binary()).args(&args).output().unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    }
+    let out = Command::new(&python)
+        .arg(&script)
+        .args(["compare", &p("ref.tif"), &p("m.tif"), "1", "0"])
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    let cmp: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    println!("against GDAL's average: {cmp}");
+    assert!(cmp["cells"].as_u64().unwrap() > 10_000, "{cmp}");
+    assert!(
+        cmp["max_abs_diff"].as_f64().unwrap() <= 0.001 + 1e-4,
+        "{cmp}"
+    );
+}

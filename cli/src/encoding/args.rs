@@ -168,6 +168,12 @@ pub(crate) struct EncodeArgs {
     /// parts into the asset, the same bytes as one encode. Runs N processes or machines.
     #[arg(long, value_name = "I/N")]
     pub(crate) part: Option<String>,
+    /// The grid GeoTIFF inputs are mosaicked on: that of this GeoTIFF (its CRS, cell size and
+    /// alignment; a path or a URL), every input resampled onto it (bilinear, the area average
+    /// where coarser) or reprojected. Default: the finest input's grid. (`--grid` is the
+    /// volume's voxels.)
+    #[arg(long, value_name = "GEOTIFF")]
+    pub(crate) target_grid: Option<String>,
     /// Print JSON (and no progress).
     #[arg(long)]
     pub(crate) json: bool,

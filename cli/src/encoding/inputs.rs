@@ -98,9 +98,10 @@ fn by_location(inputs: &[PathBuf]) -> bool {
         .any(|p| fractile_remote::is_remote(&p.to_string_lossy()) || is_list(p) || is_stac(p))
 }
 
-/// Opens `inputs` as one raster read by bands of rows.
-pub(super) fn open(inputs: &[PathBuf]) -> Result<Inputs> {
-    if !by_location(inputs) {
+/// Opens `inputs` as one raster read by bands of rows, on the grid of the GeoTIFF `grid`
+/// names if given.
+pub(super) fn open(inputs: &[PathBuf], grid: Option<&str>) -> Result<Inputs> {
+    if !by_location(inputs) && grid.is_none() {
         let files = fractile_codec::mosaic::input_files(inputs)?;
         let names = files.iter().map(|p| p.display().to_string()).collect();
         if files.len() > 1 && files.iter().all(|f| fractile_codec::rows::is_tiff(f)) {
@@ -121,6 +122,17 @@ pub(super) fn open(inputs: &[PathBuf]) -> Result<Inputs> {
         });
     }
     let opener = Opener::new().context("starting the reader of remote inputs")?;
+    let grid = match grid {
+        Some(g) => {
+            let (mut tiff, _) = open_headers(&opener, &[g.to_string()])?;
+            let georef = tiff.pop().and_then(|t| t.header().georef.clone());
+            let Some(georef) = georef else {
+                bail!("--grid {g}: a GeoTIFF with a georeference is needed");
+            };
+            Some((PathBuf::from(g), georef))
+        }
+        None => None,
+    };
     let mut names = Vec::new();
     for p in inputs {
         let s = p.to_string_lossy();
@@ -140,9 +152,9 @@ pub(super) fn open(inputs: &[PathBuf]) -> Result<Inputs> {
     }
     let (parts, ranged) = open_headers(&opener, &names)?;
     let (rows, resampled): (Box<dyn Rows>, usize) = match parts.len() {
-        1 => (Box::new(parts.into_iter().next().expect("one part")), 0),
+        1 if grid.is_none() => (Box::new(parts.into_iter().next().expect("one part")), 0),
         _ => {
-            let mosaic = Mosaic::of(parts)?;
+            let mosaic = Mosaic::on(parts, grid)?;
             let resampled = mosaic.resampled();
             (Box::new(mosaic), resampled)
         }

@@ -123,8 +123,17 @@ impl Mosaic {
     /// theirs, or where they differ in pixel size or alignment (one CRS), the finest input's
     /// (the first of the finest), the others resampled onto it ([`crate::mosaic::Resampled`]).
     pub fn of(parts: Vec<GeoTiff>) -> Result<Mosaic, Error> {
+        Mosaic::on(parts, None)
+    }
+
+    /// [`Mosaic::of`] on the grid `grid` names (its input's name and georeference) when given:
+    /// every input not on it resampled or reprojected onto it.
+    pub fn on(parts: Vec<GeoTiff>, grid: Option<(PathBuf, Georef)>) -> Result<Mosaic, Error> {
         let names: Vec<PathBuf> = parts.iter().map(|p| p.source().name().into()).collect();
-        let target = finest(&names, &parts)?;
+        let target = match grid {
+            Some(g) => Some(g),
+            None => finest(&names, &parts)?,
+        };
         let mut resampled = 0;
         let mut boxed: Vec<Box<dyn Rows>> = Vec::with_capacity(parts.len());
         for (name, part) in names.iter().zip(parts) {
