@@ -30,6 +30,7 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     // Rows, not a raster: a chunked encode reads its input a band at a time.
     let mut inputs = inputs::open(&a.inputs, a.target_grid.as_deref())?;
     let files = inputs.names.clone();
+    let meter = inputs.meter();
     let rows = &mut inputs.rows;
     let (width, height) = (rows.header().width, rows.header().height);
     let a = a.with_default_codec(rows.header().kind);
@@ -39,7 +40,7 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
     }
     let plan = Plan::new(a.codec(), &a.options(), a.chunk, rows.header())?;
     if let Some(text) = &a.part {
-        return encode_part(&a, &plan, rows.as_mut(), Share::parse(text)?);
+        return encode_part(&a, &plan, rows.as_mut(), Share::parse(text)?, &meter);
     }
     // An s3:// output is written here first, then uploaded.
     let out = crate::remote::Local::output(&a.output)?;

@@ -153,12 +153,18 @@ fn an_encode_from_a_bucket_is_the_encode_of_its_local_copies() {
     let parts: Vec<String> = (0..4)
         .map(|i| format!("s3://dem/parts/etopo.{i}.fra"))
         .collect();
+    let mut part_fetched = 0;
     for (i, part) in parts.iter().enumerate() {
         let share = format!("{i}/4");
         let mut args = vec!["encode", "s3://dem/etopo/", "-o", part, "--part", &share];
         args.extend(chunked);
-        fractile(&weed, &args);
+        // Each part's summary says what it fetched.
+        let report = fractile(&weed, &args);
+        part_fetched += report["fetched_bytes"]
+            .as_u64()
+            .expect("a part's fetched bytes");
     }
+    println!("the 4 parts fetched {part_fetched} bytes in all");
     let mut args = vec!["assemble"];
     args.extend(parts.iter().map(String::as_str));
     args.extend(["-o", "s3://dem/assets/etopo.fra"]);

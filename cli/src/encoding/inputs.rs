@@ -33,9 +33,29 @@ impl Inputs {
             .fold((0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
     }
 
+    /// A handle on what the inputs fetch, which outlives a borrow of their rows.
+    pub(super) fn meter(&self) -> Meter {
+        Meter(self.ranged.clone())
+    }
+
     /// Whether any input is read by range.
     pub(super) fn remote(&self) -> bool {
         !self.ranged.is_empty()
+    }
+}
+
+/// What an encode's inputs read by range have fetched.
+pub(super) struct Meter(Vec<Arc<RangedFile>>);
+
+impl Meter {
+    /// Bytes and requests so far; `None` where no input is read by range.
+    pub(super) fn fetched(&self) -> Option<(u64, u64)> {
+        (!self.0.is_empty()).then(|| {
+            self.0
+                .iter()
+                .map(|r| r.fetched())
+                .fold((0, 0), |a, b| (a.0 + b.0, a.1 + b.1))
+        })
     }
 }
 

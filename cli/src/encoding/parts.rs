@@ -18,6 +18,7 @@ pub(super) fn encode_part(
     plan: &Plan,
     rows: &mut dyn Rows,
     share: Share,
+    meter: &super::inputs::Meter,
 ) -> Result<()> {
     let Some(chunk) = plan.chunk() else {
         bail!("--part splits an encode in chunks, and this one is whole: give --chunk N")
@@ -29,9 +30,12 @@ pub(super) fn encode_part(
     let w = plan.encode_part(rows, share, out.path(), &progress)?;
     bar.finish();
     out.finish()?;
+    let fetched = meter.fetched();
+    // One line a part, the summary an operator reads in a pod's log.
     let report = json!({
         "output": a.output, "part": format!("{}/{}", share.index, share.count),
         "chunks": w.chunks, "bytes": w.length, "seconds": w.seconds,
+        "fetched_bytes": fetched.map(|f| f.0), "fetched_requests": fetched.map(|f| f.1),
     });
     if a.json {
         println!("{report}");
