@@ -69,6 +69,22 @@ fn taps(start: i64, count: usize, edge: f64, ratio: f64, cells: usize) -> Vec<Op
         .collect()
 }
 
+/// The weighted mean of the valid input cells `row` x `col` of `band` (whose first row is
+/// input row `r0`): nodata cells take no weight; `None` where none is valid.
+fn weighted(band: &Raster, r0: usize, row: &Taps, col: &Taps) -> Option<f32> {
+    let (mut sum, mut weight) = (0.0f64, 0.0f64);
+    for (dr, wr) in row.weights.iter().enumerate() {
+        for (dc, wc) in col.weights.iter().enumerate() {
+            let at = (row.first + dr - r0) * band.width + col.first + dc;
+            if band.is_valid(at) {
+                sum += wr * wc * f64::from(band.channels[0][at]);
+                weight += wr * wc;
+            }
+        }
+    }
+    (weight > 1e-12).then(|| (sum / weight) as f32)
+}
+
 /// An input read on another grid of its CRS: the window of target cells whose centres lie
 /// on it.
 pub struct Resampled {
@@ -143,23 +159,12 @@ impl Rows for Resampled {
         let (mut values, mut valid) = (vec![f32::NAN; n], vec![false; n]);
         if r0 < r1 {
             let band = self.inner.read(r0, r1)?;
-            let iw = band.width;
             for (j, row) in self.rows[y0..y1].iter().enumerate() {
                 let Some(row) = row else { continue };
                 for (i, col) in self.cols.iter().enumerate() {
                     let Some(col) = col else { continue };
-                    let (mut sum, mut weight) = (0.0f64, 0.0f64);
-                    for (dr, wr) in row.weights.iter().enumerate() {
-                        for (dc, wc) in col.weights.iter().enumerate() {
-                            let at = (row.first + dr - r0) * iw + col.first + dc;
-                            if band.is_valid(at) {
-                                sum += wr * wc * f64::from(band.channels[0][at]);
-                                weight += wr * wc;
-                            }
-                        }
-                    }
-                    if weight > 1e-12 {
-                        values[j * w + i] = (sum / weight) as f32;
+                    if let Some(v) = weighted(&band, r0, row, col) {
+                        values[j * w + i] = v;
                         valid[j * w + i] = true;
                     }
                 }
@@ -295,18 +300,8 @@ impl Rows for Reprojected {
             let band = self.inner.read(r0, r1)?;
             for (k, taps) in cells.iter().enumerate() {
                 let Some((col, row)) = taps else { continue };
-                let (mut sum, mut weight) = (0.0f64, 0.0f64);
-                for (dr, wr) in row.weights.iter().enumerate() {
-                    for (dc, wc) in col.weights.iter().enumerate() {
-                        let at = (row.first + dr - r0) * iw + col.first + dc;
-                        if band.is_valid(at) {
-                            sum += wr * wc * f64::from(band.channels[0][at]);
-                            weight += wr * wc;
-                        }
-                    }
-                }
-                if weight > 1e-12 {
-                    values[k] = (sum / weight) as f32;
+                if let Some(v) = weighted(&band, r0, row, col) {
+                    values[k] = v;
                     valid[k] = true;
                 }
             }
