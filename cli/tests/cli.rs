@@ -551,8 +551,8 @@ fn a_raster_without_a_codec_is_coded_projected() {
 }
 
 /// Issue 30's mosaics: a real DEM cut into four GeoTIFFs (sharing an edge row and column, as
-/// SRTM tiles do), given as files or as their folder, encodes as the DEM itself does; inputs
-/// on another grid are refused by name and leave no output.
+/// SRTM tiles do), given as files or as their folder, encodes as the DEM itself does; an input
+/// on another grid is resampled onto theirs.
 #[test]
 fn geotiffs_that_tile_an_area_encode_as_one_asset() {
     use fractile_codec::raster::write_geotiff_f32;
@@ -624,7 +624,8 @@ fn geotiffs_that_tile_an_area_encode_as_one_asset() {
             "{label}"
         );
     }
-    // A tile on another grid (half a pixel off): refused, named, and nothing written.
+    // A tile on another grid (half a pixel off), last by name: resampled onto the others'
+    // grid (issue 78), where the earlier tiles' cells win: the same raster, the same bytes.
     let off = tiles.join("t9.tif");
     let values = vec![300.0f32; 64];
     let georef = fractile_proto::Georef {
@@ -632,14 +633,10 @@ fn geotiffs_that_tile_an_area_encode_as_one_asset() {
         ..g.clone()
     };
     write_geotiff_f32(&off, 8, 8, &values, Some(&georef), None).unwrap();
-    let out = dir.join("refused.fra");
-    let res = encode(std::slice::from_ref(&tiles), &out);
-    let err = String::from_utf8_lossy(&res.stderr);
-    assert!(
-        !res.status.success() && err.contains("t9.tif") && err.contains("grid"),
-        "{err}"
-    );
-    assert!(!out.exists());
+    let out = dir.join("resampled.fra");
+    let m = json(&encode(std::slice::from_ref(&tiles), &out));
+    assert_eq!(m["resampled_inputs"], 1, "{m}");
+    assert_eq!(m["bytes"], one["bytes"], "{m}");
     std::fs::remove_dir_all(&dir).ok();
 }
 
