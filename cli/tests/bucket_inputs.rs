@@ -208,6 +208,73 @@ fn an_encode_from_a_bucket_is_the_encode_of_its_local_copies() {
     assert!(peak < 1 << 30, "{peak} bytes resident");
 }
 
+/// A Python with rasterio for `test`, or `None` (said) where there is none outside CI.
+fn python_for(test: &str) -> Option<std::path::PathBuf> {
+    let python = rasterio_python();
+    assert!(
+        python.is_some() || std::env::var_os("CI").is_none(),
+        "under CI the {test} test needs FRACTILE_RASTERIO_PYTHON"
+    );
+    if python.is_none() {
+        println!("no Python with rasterio: the {test} test was not run");
+    }
+    python
+}
+
+/// `tools/resample_reference.py` with `args`: its JSON line.
+fn reference(python: &Path, args: &[&str]) -> serde_json::Value {
+    let out = Command::new(python)
+        .arg(data("../tools/resample_reference.py"))
+        .args(args)
+        .output()
+        .unwrap();
+    assert!(
+        out.status.success(),
+        "{}",
+        String::from_utf8_lossy(&out.stderr)
+    );
+    serde_json::from_slice(&out.stdout).unwrap()
+}
+
+/// `fractile` with `args` (no bucket): its standard output.
+fn run(args: &[&str]) -> String {
+    let o = Command::new(binary()).args(args).output().unwrap();
+    assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+    String::from_utf8_lossy(&o.stdout).into_owned()
+}
+
+/// `inputs` encoded (`extra` flags added) bounded at 0.001 m into `dir/m.fra` and decoded to
+/// `dir/m.tif`: the encode's report.
+fn encode_and_decode(dir: &Path, inputs: &[&str], extra: &[&str]) -> serde_json::Value {
+    let (fra, tif) = (dir.join("m.fra"), dir.join("m.tif"));
+    let (fra, tif) = (fra.to_str().unwrap(), tif.to_str().unwrap());
+    let mut args = vec!["encode"];
+    args.extend(inputs);
+    args.extend(extra);
+    args.extend([
+        "-o",
+        fra,
+        "--codec",
+        "projected",
+        "--max-error",
+        "0.001",
+        "--json",
+    ]);
+    let report = serde_json::from_str(run(&args).trim()).unwrap();
+    run(&["decode", fra, "-o", tif]);
+    report
+}
+
+/// The decode's cells against a reference of `resample_reference.py compare`, within the
+/// encode's bound (and f32's rounding of heights of a few hundred metres), on more than `cells`.
+fn within_the_bound(cmp: &serde_json::Value, cells: u64) {
+    assert!(cmp["cells"].as_u64().unwrap() > cells, "{cmp}");
+    assert!(
+        cmp["max_abs_diff"].as_f64().unwrap() <= 0.001 + 1e-4,
+        "{cmp}"
+    );
+}
+
 /// Inputs on different grids of one CRS (issue 78): jacksboro's west half on its grid and its
 /// east part made 1.5 times coarser and 0.37 of a cell off by GDAL; the mosaic resamples the
 /// second onto the first's grid, and its cells (through an encode bounded at 0.001 m and its
@@ -215,70 +282,22 @@ fn an_encode_from_a_bucket_is_the_encode_of_its_local_copies() {
 /// that bound, every cell 2 or more inside the resampled input's footprint.
 #[test]
 fn inputs_on_other_grids_are_resampled_as_gdal_resamples_them() {
-    let Some(python) = rasterio_python() else {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "under CI the resampling test needs FRACTILE_RASTERIO_PYTHON"
-        );
-        println!("no Python with rasterio: the resampling test was not run");
+    let Some(python) = python_for("resampling") else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let script = harness::data("../tools/resample_reference.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .args(["make"])
-        .arg(harness::data("jacksboro.tif"))
-        .arg(d)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let made: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let p = |name: &str| dir.path().join(name).display().to_string();
+    let source = data("jacksboro.tif").display().to_string();
+    let made = reference(&python, &["make", &source, &p("")]);
     let a_cols = made["a"][0].as_u64().unwrap().to_string();
-    let run = |args: &[&str]| {
-        let o = Command::new(binary()).args(args).output().unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        String::from_utf8_lossy(&o.stdout).into_owned()
-    };
-    let p = |name: &str| d.join(name).display().to_string();
-    let report = run(&[
-        "encode",
-        &p("a.tif"),
-        &p("b.tif"),
-        "-o",
-        &p("m.fra"),
-        "--codec",
-        "projected",
-        "--max-error",
-        "0.001",
-        "--json",
-    ]);
-    let report: serde_json::Value = serde_json::from_str(report.trim()).unwrap();
+    let report = encode_and_decode(dir.path(), &[&p("a.tif"), &p("b.tif")], &[]);
     assert_eq!(report["resampled_inputs"], 1, "{report}");
-    run(&["decode", &p("m.fra"), "-o", &p("m.tif")]);
-    let out = Command::new(&python)
-        .arg(&script)
-        .args(["compare", &p("ref.tif"), &p("m.tif"), "2", &a_cols])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let cmp = reference(
+        &python,
+        &["compare", &p("ref.tif"), &p("m.tif"), "2", &a_cols],
     );
-    let cmp: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
     println!("against GDAL's bilinear: {cmp}");
-    assert!(cmp["cells"].as_u64().unwrap() > 50_000, "{cmp}");
-    // The encode's bound, and f32's rounding of heights of a few hundred metres.
-    assert!(
-        cmp["max_abs_diff"].as_f64().unwrap() <= 0.001 + 1e-4,
-        "{cmp}"
-    );
+    within_the_bound(&cmp, 50_000);
 }
 
 /// An input in another CRS (issue 78): jacksboro's UTM grid (EPSG:32616, 90 m) beside a
@@ -289,74 +308,24 @@ fn inputs_on_other_grids_are_resampled_as_gdal_resamples_them() {
 /// on this rotated grid.
 #[test]
 fn an_input_in_another_crs_is_reprojected_onto_the_lonlat_grid() {
-    let Some(python) = rasterio_python() else {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "under CI the reprojection test needs FRACTILE_RASTERIO_PYTHON"
-        );
-        println!("no Python with rasterio: the reprojection test was not run");
+    let Some(python) = python_for("reprojection") else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let script = harness::data("../tools/resample_reference.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg("utm")
-        .arg(harness::data("jacksboro.tif"))
-        .arg(harness::data("jacksboro-utm.tif"))
-        .arg(d)
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
+    let p = |name: &str| dir.path().join(name).display().to_string();
+    let (source, utm) = (
+        data("jacksboro.tif").display().to_string(),
+        data("jacksboro-utm.tif").display().to_string(),
     );
-    let made: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let made = reference(&python, &["utm", &source, &utm, &p("")]);
     let a_cols = made["a"][0].as_u64().unwrap().to_string();
-    let p = |name: &str| d.join(name).display().to_string();
-    let utm = harness::data("jacksboro-utm.tif").display().to_string();
-    let run = |args: &[&str]| {
-        let o = Command::new(binary()).args(args).output().unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-        String::from_utf8_lossy(&o.stdout).into_owned()
-    };
-    let report = run(&[
-        "encode",
-        &p("a.tif"),
-        &utm,
-        "-o",
-        &p("m.fra"),
-        "--codec",
-        "projected",
-        "--max-error",
-        "0.001",
-        "--json",
-    ]);
-    let report: serde_json::Value = serde_json::from_str(report.trim()).unwrap();
+    let report = encode_and_decode(dir.path(), &[&p("a.tif"), &utm], &[]);
     assert_eq!(report["resampled_inputs"], 1, "{report}");
-    run(&["decode", &p("m.fra"), "-o", &p("m.tif")]);
-    let compare = |reference: &str| -> serde_json::Value {
-        let out = Command::new(&python)
-            .arg(&script)
-            .args(["compare", &p(reference), &p("m.tif"), "3", &a_cols])
-            .output()
-            .unwrap();
-        assert!(
-            out.status.success(),
-            "{}",
-            String::from_utf8_lossy(&out.stderr)
-        );
-        serde_json::from_slice(&out.stdout).unwrap()
-    };
+    let compare =
+        |with: &str| reference(&python, &["compare", &p(with), &p("m.tif"), "3", &a_cols]);
     let (bilinear, gdal) = (compare("bilinear.tif"), compare("ref.tif"));
     println!("against PROJ + bilinear: {bilinear}; against GDAL's warp: {gdal}");
-    assert!(bilinear["cells"].as_u64().unwrap() > 200_000, "{bilinear}");
-    assert!(
-        bilinear["max_abs_diff"].as_f64().unwrap() <= 0.001 + 1e-4,
-        "{bilinear}"
-    );
+    within_the_bound(&bilinear, 200_000);
 }
 
 /// `--target-grid` (issue 78): jacksboro onto a grid 3 times coarser and 0.37 of a coarse cell
@@ -364,65 +333,15 @@ fn an_input_in_another_crs_is_reprojected_onto_the_lonlat_grid() {
 /// GDAL's `average` (rasterio's `reproject`) within the encode's bound of 0.001 m.
 #[test]
 fn a_target_grid_coarser_than_the_input_averages_as_gdal_does() {
-    let Some(python) = rasterio_python() else {
-        assert!(
-            std::env::var_os("CI").is_none(),
-            "under CI the averaging test needs FRACTILE_RASTERIO_PYTHON"
-        );
-        println!("no Python with rasterio: the averaging test was not run");
+    let Some(python) = python_for("averaging") else {
         return;
     };
     let dir = tempfile::tempdir().unwrap();
-    let d = dir.path();
-    let script = harness::data("../tools/resample_reference.py");
-    let out = Command::new(&python)
-        .arg(&script)
-        .arg("coarse")
-        .arg(harness::data("jacksboro.tif"))
-        .arg(d)
-        .args(["3", "0.37"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let p = |name: &str| d.join(name).display().to_string();
-    let source = harness::data("jacksboro.tif").display().to_string();
-    for args in [
-        vec![
-            "encode",
-            &source,
-            "--target-grid",
-            &p("grid.tif"),
-            "-o",
-            &p("m.fra"),
-            "--codec",
-            "projected",
-            "--max-error",
-            "0.001",
-        ],
-        vec!["decode", &p("m.fra"), "-o", &p("m.tif")],
-    ] {
-        let o = Command::new(binary()).args(&args).output().unwrap();
-        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
-    }
-    let out = Command::new(&python)
-        .arg(&script)
-        .args(["compare", &p("ref.tif"), &p("m.tif"), "1", "0"])
-        .output()
-        .unwrap();
-    assert!(
-        out.status.success(),
-        "{}",
-        String::from_utf8_lossy(&out.stderr)
-    );
-    let cmp: serde_json::Value = serde_json::from_slice(&out.stdout).unwrap();
+    let p = |name: &str| dir.path().join(name).display().to_string();
+    let source = data("jacksboro.tif").display().to_string();
+    reference(&python, &["coarse", &source, &p(""), "3", "0.37"]);
+    encode_and_decode(dir.path(), &[&source], &["--target-grid", &p("grid.tif")]);
+    let cmp = reference(&python, &["compare", &p("ref.tif"), &p("m.tif"), "1", "0"]);
     println!("against GDAL's average: {cmp}");
-    assert!(cmp["cells"].as_u64().unwrap() > 10_000, "{cmp}");
-    assert!(
-        cmp["max_abs_diff"].as_f64().unwrap() <= 0.001 + 1e-4,
-        "{cmp}"
-    );
+    within_the_bound(&cmp, 10_000);
 }

@@ -31,14 +31,8 @@ const READERS: usize = 16;
 /// coordinates a GeoTIFF stores in f64, far below any real misalignment.
 const SAME_GRID: f64 = 1e-6;
 
-/// The widest mosaic in cells: a band of rows of it is held in memory while it encodes
-/// (about 5 bytes a cell for 1,030 rows of each overview level). Inputs far apart would
-/// otherwise ask for a grid of mostly nodata. The same side limit as a single raster has.
-pub const MAX_WIDTH: usize = 1 << 15;
-
-/// The tallest mosaic in cells: rows are read a band at a time, so height costs time, not
-/// memory; this bounds the time that inputs far apart would spend on nodata.
-pub const MAX_HEIGHT: usize = 1 << 20;
+// The widest and tallest mosaics: with the rows they bound (their resampled inputs too).
+pub use crate::io::rows::{MAX_HEIGHT, MAX_WIDTH};
 
 /// The rasters a list of paths names: each file as given, each folder's `.tif` / `.tiff` files
 /// in name order.

@@ -59,6 +59,10 @@ impl KeptBudget {
     }
 }
 
+/// The most bytes one band's chunks may ask to fetch ahead: a file whose byte counts lie (or a
+/// band of tiles larger than any real DEM's) is refused before anything is allocated.
+const MOST_AHEAD: u64 = 512 << 20;
+
 /// A file read by range, with what it has fetched so far counted.
 pub struct RangedFile {
     source: Box<dyn ChunkSource>,
@@ -146,6 +150,13 @@ impl RangedFile {
                 Some((o, l)) if offset <= *o + *l + GAP => *l = (*l).max(offset + len - *o),
                 _ => merged.push((offset, len)),
             }
+        }
+        let total: u64 = merged.iter().map(|s| s.1).sum();
+        if total > MOST_AHEAD {
+            return Err(std::io::Error::new(
+                std::io::ErrorKind::InvalidData,
+                format!("{total} bytes of chunks in one band (at most {MOST_AHEAD} are read)"),
+            ));
         }
         let mut ahead = Vec::with_capacity(merged.len());
         for (offset, len) in merged {
@@ -306,5 +317,9 @@ mod tests {
         file.fetch_ahead(&[(60_000, 1000)]).unwrap();
         assert_eq!(file.fetched(), (3000, 3), "over the budget: fetched again");
         assert_eq!(budget.used(), 1000);
+        // Byte counts no real band has are refused before anything is fetched.
+        let (fetched, _) = file.fetched();
+        assert!(file.fetch_ahead(&[(0, MOST_AHEAD + 1)]).is_err());
+        assert_eq!(file.fetched().0, fetched);
     }
 }

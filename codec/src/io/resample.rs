@@ -69,6 +69,21 @@ fn taps(start: i64, count: usize, edge: f64, ratio: f64, cells: usize) -> Vec<Op
         .collect()
 }
 
+/// An error where `count` target cells along axis `a` (0 across, 1 down) are more than a
+/// mosaic takes ([`crate::mosaic::MAX_WIDTH`], [`crate::mosaic::MAX_HEIGHT`]).
+fn too_large(count: usize, a: usize) -> Result<(), Error> {
+    use crate::io::rows::{MAX_HEIGHT, MAX_WIDTH};
+    let most = if a == 0 { MAX_WIDTH } else { MAX_HEIGHT };
+    match count <= most {
+        true => Ok(()),
+        false => Err(Error::input(format!(
+            "{count} cells {} on the target grid, more than the {most} a mosaic takes (is the \
+             target grid far finer than the input?)",
+            if a == 0 { "across" } else { "down" }
+        ))),
+    }
+}
+
 /// The weighted mean of the valid input cells `row` x `col` of `band` (whose first row is
 /// input row `r0`): nodata cells take no weight; `None` where none is valid.
 fn weighted(band: &Raster, r0: usize, row: &Taps, col: &Taps) -> Option<f32> {
@@ -117,6 +132,8 @@ impl Resampled {
             let start = (edge - 0.5).ceil() as i64;
             let end = (far - 0.5).floor() as i64;
             let count = (end - start + 1).max(0) as usize;
+            // Checked before the taps are made: a grid far finer than the input's.
+            too_large(count, a)?;
             Ok((start, taps(start, count, edge, ratio, cells)))
         };
         let (x0, cols) = axis(0, h.width)?;
@@ -211,6 +228,8 @@ impl Reprojected {
         let y0 = ((n - target.origin[1]) / py - 0.5).ceil() as i64;
         let y1 = ((s - target.origin[1]) / py - 0.5).floor() as i64;
         let (width, height) = ((x1 - x0 + 1).max(0) as usize, (y1 - y0 + 1).max(0) as usize);
+        too_large(width, 0)?;
+        too_large(height, 1)?;
         let window = Georef {
             epsg: target.epsg,
             origin: [
@@ -348,5 +367,30 @@ mod tests {
         );
         // Past the input: nothing.
         assert!(taps(10, 1, 0.0, 1.0, 4)[0].is_none());
+    }
+
+    /// A target grid so fine that the input would span more cells than a mosaic takes is
+    /// refused before its taps are made.
+    #[test]
+    fn a_target_grid_far_finer_than_the_input_is_refused() {
+        let mut r =
+            Raster::from_values(4, 4, vec![1.0; 16], fractile_proto::AssetKind::HeightField)
+                .unwrap();
+        let g = Georef {
+            epsg: Some(4326),
+            origin: [0.0, 1.0],
+            pixel_size: [0.25, -0.25],
+        };
+        r.georef = Some(g.clone());
+        let fine = Georef {
+            pixel_size: [1e-6, -1e-6],
+            ..g
+        };
+        let inner = Box::new(crate::io::rows::InMemory::owned(r));
+        let err = Resampled::new(inner, &fine)
+            .err()
+            .expect("refused")
+            .to_string();
+        assert!(err.contains("more than"), "{err}");
     }
 }

@@ -14,6 +14,15 @@ use crate::Error;
 use crate::io::ranged::{RangeReader, RangedFile};
 use crate::io::raster::Raster;
 
+/// The widest mosaic in cells: a band of rows of it is held in memory while it encodes
+/// (about 5 bytes a cell for 1,030 rows of each overview level). Inputs far apart would
+/// otherwise ask for a grid of mostly nodata. The same side limit as a single raster has.
+pub const MAX_WIDTH: usize = 1 << 15;
+
+/// The tallest mosaic in cells: rows are read a band at a time, so height costs time, not
+/// memory; this bounds the time that inputs far apart would spend on nodata.
+pub const MAX_HEIGHT: usize = 1 << 20;
+
 /// What a raster is without its cells: everything its file's header says.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Header {
@@ -275,12 +284,6 @@ impl GeoTiff {
 
     fn decode_chunk_row(&mut self, dec: &mut Decoder, row: usize) -> Result<Vec<f32>, Error> {
         let name = self.source.name();
-        let path = Path::new(&name);
-        let bad = |e: tiff::TiffError| {
-            Error::input(format!("{}: {e}", path.display()))
-                .at(path)
-                .caused_by(e)
-        };
         let w = self.header.width;
         let (tw, _) = dec.chunk_dimensions();
         let across = match dec.get_chunk_type() {
@@ -290,55 +293,45 @@ impl GeoTiff {
         let rows = self
             .chunk_rows
             .min(self.header.height - row * self.chunk_rows);
-        let mut out = vec![0f32; w * rows];
-        let mut x0 = 0;
-        if let TiffSource::Ranged(file) = &self.source {
-            if self.spans.is_none() {
-                self.spans = Some(chunk_spans(dec).map_err(bad)?);
-            }
-            let spans = self.spans.as_deref().unwrap_or_default();
-            let row_spans = spans
-                .get(row * across..(row + 1) * across)
-                .unwrap_or_default();
-            file.fetch_ahead(row_spans).map_err(|e| {
-                Error::input(format!("{}: {e}", path.display()))
-                    .at(path)
-                    .caused_by(e)
-            })?;
+        let TiffSource::Ranged(file) = &self.source else {
+            return self.decode_chunks(dec, row, across, rows);
+        };
+        let file = file.clone();
+        if self.spans.is_none() {
+            self.spans = Some(chunk_spans(dec).map_err(|e| input_error(&name, e))?);
         }
-        let decoded = self.decode_chunks(dec, row, across, rows, &mut out, &mut x0);
-        if let TiffSource::Ranged(file) = &self.source {
-            file.release();
-        }
-        decoded?;
-        Ok(out)
+        let spans = self.spans.as_deref().unwrap_or_default();
+        let row_spans = spans
+            .get(row * across..(row + 1) * across)
+            .unwrap_or_default();
+        file.fetch_ahead(row_spans)
+            .map_err(|e| input_error(&name, e))?;
+        let decoded = self.decode_chunks(dec, row, across, rows);
+        file.release();
+        decoded
     }
 
-    /// The `across` chunks of chunk row `row`, `rows` high, into `out` from column `x0` on.
+    /// The `across` chunks of chunk row `row`, `rows` high, side by side (full width).
     fn decode_chunks(
         &self,
         dec: &mut Decoder,
         row: usize,
         across: usize,
         rows: usize,
-        out: &mut [f32],
-        x0: &mut usize,
-    ) -> Result<(), Error> {
+    ) -> Result<Vec<f32>, Error> {
         let name = self.source.name();
         let path = Path::new(&name);
-        let bad = |e: tiff::TiffError| {
-            Error::input(format!("{}: {e}", path.display()))
-                .at(path)
-                .caused_by(e)
-        };
+        let bad = |e: tiff::TiffError| input_error(&name, e);
         let w = self.header.width;
+        let mut out = vec![0f32; w * rows];
+        let mut x0 = 0;
         for k in 0..across {
             let index = (row * across + k) as u32;
             let data = dec.read_chunk(index).map_err(bad)?;
             let (cw, ch) = dec.chunk_data_dimensions(index);
             let (cw, ch) = (cw as usize, ch as usize);
             let values = values_of(data);
-            if values.len() != cw * ch || ch != rows || *x0 + cw > w {
+            if values.len() != cw * ch || ch != rows || x0 + cw > w {
                 return Err(Error::input(format!(
                     "{}: chunk {index} holds {} samples for {cw}x{ch}: only single-band GeoTIFFs are supported",
                     path.display(),
@@ -346,11 +339,11 @@ impl GeoTiff {
                 )));
             }
             for y in 0..rows {
-                out[y * w + *x0..y * w + *x0 + cw].copy_from_slice(&values[y * cw..(y + 1) * cw]);
+                out[y * w + x0..y * w + x0 + cw].copy_from_slice(&values[y * cw..(y + 1) * cw]);
             }
-            *x0 += cw;
+            x0 += cw;
         }
-        Ok(())
+        Ok(out)
     }
 }
 
@@ -409,6 +402,11 @@ fn decoder(source: &TiffSource) -> Result<Decoder, Error> {
             .at(path)
             .caused_by(e)
     })
+}
+
+/// An input error about the file `name`, caused by `e`.
+fn input_error(name: &str, e: impl std::error::Error + Send + Sync + 'static) -> Error {
+    Error::input(format!("{name}: {e}")).at(name).caused_by(e)
 }
 
 /// Each chunk's (strip's or tile's) byte offset and length, from the file's tags.
