@@ -1,9 +1,11 @@
 """Cloud-optimized GeoTIFFs cut from a DEM, for the tests and benches of encodes from a bucket
-(issue 78): `python tools/make_cogs.py SOURCE.tif OUT_DIR SIDE [NODATA_EVERY]`.
+(issue 78): `python tools/make_cogs.py SOURCE.tif OUT_DIR SIDE [NODATA_EVERY [SCALE [TILE]]]`.
 
 Cuts SOURCE into pieces of SIDE x SIDE cells (the last row and column of pieces narrower),
 each written by GDAL's COG driver (rasterio): DEFLATE with the horizontal predictor, internal
-tiles of SIDE rounded up to 16, the georeference of its window. Every NODATA_EVERY-th piece
+tiles of TILE cells (default: SIDE rounded up to 16, one tile a piece), the georeference of
+its window. SCALE > 1 first resamples SOURCE SCALE times finer (GDAL's bilinear), for pieces
+of the size real DEM tiles have (a test DEM is small). Every NODATA_EVERY-th piece
 (0: none) declares nodata -32768 and holds it in its top-left quarter, as real DEM tiles hold
 voids. Prints one JSON line: the pieces written and their total bytes.
 """
@@ -14,27 +16,32 @@ import sys
 
 import numpy as np
 import rasterio
+from rasterio.enums import Resampling
 from rasterio.windows import Window
 
 
 def main():
     source, out, side = sys.argv[1], sys.argv[2], int(sys.argv[3])
     every = int(sys.argv[4]) if len(sys.argv) > 4 else 0
+    scale = int(sys.argv[5]) if len(sys.argv) > 5 else 1
     os.makedirs(out, exist_ok=True)
-    block = max(16, -(-side // 16) * 16)
+    block = int(sys.argv[6]) if len(sys.argv) > 6 else max(16, -(-side // 16) * 16)
     written, total = 0, 0
     with rasterio.open(source) as src:
-        rows = -(-src.height // side)
-        cols = -(-src.width // side)
+        height, width = src.height * scale, src.width * scale
+        whole = src.read(1, out_shape=(height, width), resampling=Resampling.bilinear)
+        transform = src.transform * src.transform.scale(1 / scale, 1 / scale)
+        rows = -(-height // side)
+        cols = -(-width // side)
         for r in range(rows):
             for c in range(cols):
-                w = Window(c * side, r * side, min(side, src.width - c * side),
-                           min(side, src.height - r * side))
-                data = src.read(1, window=w)
+                w = Window(c * side, r * side, min(side, width - c * side),
+                           min(side, height - r * side))
+                data = whole[r * side:r * side + int(w.height), c * side:c * side + int(w.width)]
                 profile = {
                     "driver": "COG", "width": int(w.width), "height": int(w.height),
                     "count": 1, "dtype": data.dtype.name, "crs": src.crs,
-                    "transform": src.window_transform(w), "compress": "DEFLATE",
+                    "transform": rasterio.windows.transform(w, transform), "compress": "DEFLATE",
                     "predictor": 2, "blocksize": block, "overviews": "NONE",
                 }
                 k = r * cols + c

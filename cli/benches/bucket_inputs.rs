@@ -6,10 +6,13 @@
 //! a Python with rasterio, `FRACTILE_RASTERIO_PYTHON`, to make the COGs with GDAL).
 //!
 //! COGs cut from etopo20 (1080 x 540 cells) at three sizes (`tools/make_cogs.py`: 135, 48 and
-//! 16 cells a side: 32, 276 and 2,312 files), each set encoded (`--chunk 256 --max-error 2`)
-//! from its folder and from its `s3://` prefix, alternately, `runs` times; the best time of
-//! each. Prints a table: seconds, cells a second, the ratio, and bytes fetched against the
-//! files' bytes.
+//! 16 cells a side: 32, 276 and 2,312 files, a tile each), and from etopo20 resampled 8 times
+//! finer (8640 x 4320) in 32 pieces of 1080 cells with tiles of 256, the size of real DEM
+//! tiles; each set encoded (`--chunk 256 --max-error 2`) from its folder and from its `s3://`
+//! prefix, alternately, `runs` times; the best time of each. Then split in 4 parts from the
+//! bucket (`--chunk 128`: the small sets have 4 rows of chunks). Prints a table: seconds,
+//! cells a second, the ratio, and the bytes fetched, whole and by the 4 parts together,
+//! against the files' bytes.
 
 #[path = "../tests/harness/mod.rs"]
 mod harness;
@@ -17,7 +20,7 @@ mod harness;
 use std::process::Command;
 use std::time::Instant;
 
-use harness::{Weed, binary, cogs, rasterio_python, upload};
+use harness::{Weed, binary, cogs_scaled, rasterio_python, upload};
 
 fn main() {
     let runs: usize = std::env::args()
@@ -31,24 +34,30 @@ fn main() {
     let work = tempfile::tempdir().unwrap();
     let weed = Weed::start(&work.path().join("weed"), "dem").expect("weed starts");
     println!(
-        "| COGs | cells a side | local s | bucket s | local cells/s | bucket cells/s | bucket / local | fetched / files' bytes |"
+        "| COGs | cells a side | local s | bucket s | local cells/s | bucket cells/s | bucket / local | fetched / files' bytes | 4 parts fetched / files' bytes |"
     );
-    println!("|---|---|---|---|---|---|---|---|");
-    for side in [135, 48, 16] {
+    println!("|---|---|---|---|---|---|---|---|---|");
+    for (side, scale, tile) in [
+        (1080, 8, Some(256)),
+        (135, 1, None),
+        (48, 1, None),
+        (16, 1, None),
+    ] {
         let dir = work.path().join(format!("cogs{side}"));
-        let n = cogs(&python, &dir, side);
+        let n = cogs_scaled(&python, &dir, side, (scale, tile));
         upload(&weed, "dem", &format!("c{side}"), &dir);
         let files: u64 = std::fs::read_dir(&dir)
             .unwrap()
             .map(|e| e.unwrap().metadata().unwrap().len())
             .sum();
         let out = work.path().join("out.fra");
-        let encode = |input: &str| {
+        let encode_with = |input: &str, more: &[&str]| {
             let t = Instant::now();
             let o = Command::new(binary())
                 .args(["encode", input, "-o"])
                 .arg(&out)
-                .args(["--chunk", "256", "--max-error", "2", "--json"])
+                .args(["--max-error", "2", "--json"])
+                .args(more)
                 .envs(weed.env())
                 .output()
                 .unwrap();
@@ -57,6 +66,7 @@ fn main() {
                 serde_json::from_str(String::from_utf8_lossy(&o.stdout).trim()).unwrap();
             (t.elapsed().as_secs_f64(), v)
         };
+        let encode = |input: &str| encode_with(input, &["--chunk", "256"]);
         let (mut local, mut bucket, mut fetched) = (f64::MAX, f64::MAX, 0);
         let prefix = format!("s3://dem/c{side}/");
         for _ in 0..runs {
@@ -65,13 +75,21 @@ fn main() {
             bucket = bucket.min(s);
             fetched = v["fetched_bytes"].as_u64().unwrap_or(0);
         }
-        let cells = 1080.0 * 540.0;
+        let parts: u64 = (0..4)
+            .map(|i| {
+                let share = format!("{i}/4");
+                let (_, v) = encode_with(&prefix, &["--chunk", "128", "--part", &share]);
+                v["fetched_bytes"].as_u64().unwrap_or(0)
+            })
+            .sum();
+        let cells = 1080.0 * 540.0 * (scale * scale) as f64;
         println!(
-            "| {n} | {side} | {local:.2} | {bucket:.2} | {:.0} | {:.0} | {:.2} | {:.2} |",
+            "| {n} | {side} | {local:.2} | {bucket:.2} | {:.0} | {:.0} | {:.2} | {:.2} | {:.2} |",
             cells / local,
             cells / bucket,
             local / bucket,
-            fetched as f64 / files as f64
+            fetched as f64 / files as f64,
+            parts as f64 / files as f64
         );
     }
 }

@@ -50,7 +50,8 @@ pub(crate) fn run_encode(a: EncodeArgs) -> Result<()> {
             // shows how long they have run.
             let quadtree = a.codec() == "quadtree-pifs";
             let mut bar = Progress::start("coding", a.quiet || a.json || quadtree);
-            let enc = encode_with(&a, &plan, &rows.read_all()?)?;
+            let lineage = rows.header().lineage.clone();
+            let enc = encode_with(&a, &plan, &rows.read_all()?)?.with_lineage(lineage.as_deref());
             bar.finish();
             enc.write(out.path())?
         }

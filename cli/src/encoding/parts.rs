@@ -63,7 +63,10 @@ pub(crate) fn run_assemble(parts: &[PathBuf], output: &Path, as_json: bool) -> R
         .collect::<Result<_>>()?;
     let files: Vec<PathBuf> = local.iter().map(|l| l.path().to_path_buf()).collect();
     let out = crate::remote::Local::output(output)?;
-    let w = fractile_codec::encode::parts::assemble(&files, out.path())?;
+    let mut bar = crate::progress::Progress::start("coding overviews", as_json);
+    let progress = |done: u64, total: u64| bar.update(done, total);
+    let w = fractile_codec::encode::plan::assemble(&files, out.path(), &progress)?;
+    bar.finish();
     out.finish()?;
     let m = &w.asset.meta;
     let report = json!({

@@ -301,12 +301,24 @@ pub(crate) fn rasterio_python() -> Option<PathBuf> {
 
 /// COGs of `side` cells a side cut from etopo20 into `dir` (every 10th with a void): how many.
 pub(crate) fn cogs(python: &Path, dir: &Path, side: usize) -> usize {
+    cogs_scaled(python, dir, side, (1, None))
+}
+
+/// [`cogs`] of etopo20 resampled `scale` times finer (GDAL's bilinear), with internal tiles
+/// of `tile` cells (default: one a piece): pieces the size of real DEM tiles.
+pub(crate) fn cogs_scaled(
+    python: &Path,
+    dir: &Path,
+    side: usize,
+    (scale, tile): (usize, Option<usize>),
+) -> usize {
     let script = data("../tools/make_cogs.py");
+    let tile = tile.unwrap_or(side.div_ceil(16).max(1) * 16);
     let out = Command::new(python)
         .arg(script)
         .arg(data("etopo20.tif"))
         .arg(dir)
-        .args([side.to_string(), "10".into()])
+        .args([side, 10, scale, tile].map(|v| v.to_string()))
         .output()
         .expect("python runs");
     assert!(

@@ -15,7 +15,7 @@ use crate::Error;
 
 /// The options of an encode, each `None` (or empty, or false) where not given: the codec's own
 /// default then.
-#[derive(Clone, Debug, Default, PartialEq)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Options {
     /// Largest file size in bits per source cell (rate control).
     pub target_bpp: Option<f64>,
@@ -137,7 +137,7 @@ pub trait Named: Sized {
 }
 
 /// A domain search, as an option names it (the candidates are an option of their own).
-#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub enum Search {
     /// Every domain and isometry (slow; the reference).
     Full,
@@ -157,7 +157,7 @@ pub enum Domains {
 }
 
 /// A region of interest with its own tolerance (the quadtree PIFS's).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Roi {
     /// `[x0, y0, x1, y1]` in source pixels.
     pub rect: [f32; 4],

@@ -13,10 +13,8 @@
 //! measured here (`viewed`, `view_maps`).
 
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
 use std::time::Instant;
 
-use rayon::prelude::*;
 use serde::{Deserialize, Serialize};
 
 use super::encoded::{Encoded, Written};
@@ -24,12 +22,15 @@ use super::pyramid::Pyramid;
 use super::rate::{self, EncodeAt, Search, Target};
 use super::spill::{Spill, write_spilled};
 use super::summary::{ChunkRecord, summarise};
-use super::summary::{Coded, blank, header_allowance, new_table, table_of};
-use super::views::{EncodeLevel, view_maps, viewed};
+use super::summary::{blank, header_allowance, new_table, table_of};
+pub use super::tally::Progress;
+use super::tally::Tally;
+pub use super::views::EncodeLevel;
+use super::views::viewed;
 use crate::Error;
 use crate::core::metrics::Errors;
 use crate::io::asset::Asset;
-use crate::io::chunked::{self, ChunkEntry, ChunkTable};
+use crate::io::chunked::{self, ChunkTable};
 use crate::io::mosaic;
 use crate::io::raster::Raster;
 use crate::io::rows::{Header, InMemory, Rows};
@@ -66,9 +67,6 @@ pub fn chunk_bpp(width: usize, height: usize, chunk: u32, bpp: f64) -> f64 {
 /// Codes one chunk (a raster of its own) by whichever 2D codec and settings the caller chose.
 pub type EncodeOne<'a> = dyn Fn(&Raster) -> Result<Encoded, Error> + Sync + 'a;
 
-/// Counts chunks coded: `progress(done, total)`.
-pub type Progress<'a> = dyn Fn(u64, u64) + Sync + 'a;
-
 /// Rows read from the source at a time: a level holds its chunk row in progress and at most
 /// this many rows more.
 const READ_ROWS: usize = 128;
@@ -86,7 +84,7 @@ pub fn encode_chunked(
     let mut spill = Spill::Memory(Vec::new());
     let coded = code_streamed(
         &mut InMemory::new(raster),
-        (chunk, Share::WHOLE),
+        chunk,
         (&|_, r: &Raster| encode_one(r), progress),
         &mut spill,
     )?;
@@ -123,7 +121,7 @@ pub fn encode_chunked_file(
     let mut spill = Spill::beside(output)?;
     let coded = code_streamed(
         rows,
-        (chunk, Share::WHOLE),
+        chunk,
         (&|_, r: &Raster| encode_one(r), progress),
         &mut spill,
     )?;
@@ -254,7 +252,7 @@ fn code_at_rate(
     for _ in 0..RATE_PASSES {
         let mut sp = spill()?;
         let one = |l: usize, r: &Raster| encode_at(r, quality.at_level(l), false);
-        let coded = code_streamed(rows, (chunk, Share::WHOLE), (&one, progress), &mut sp)?;
+        let coded = code_streamed(rows, chunk, (&one, progress), &mut sp)?;
         let (meta, mut table, errors, transforms) =
             summarise(coded.size(), chunk, &coded.sizes, coded.records())?;
         let head = chunked::header(&meta, &mut table);
@@ -289,12 +287,13 @@ pub(super) struct Streamed {
 }
 
 impl Streamed {
-    /// The raster's size and georeference, as [`summarise`] takes them.
-    pub(super) fn size(&self) -> (usize, usize, Option<&fractile_proto::Georef>) {
+    /// The raster's size, georeference and lineage, as [`summarise`] takes them.
+    pub(super) fn size(&self) -> (usize, usize, Option<&fractile_proto::Georef>, Option<&str>) {
         (
             self.header.width,
             self.header.height,
             self.header.georef.as_ref(),
+            self.header.lineage.as_deref(),
         )
     }
 
@@ -314,9 +313,13 @@ impl Streamed {
 }
 
 /// The chunks one process codes when an encode is split over several (`fractile encode
-/// --part I/N`, then `fractile assemble`): chunk number k, counted level by level in table
-/// order, belongs to share k mod N. Every share thus holds chunks of every level and of every
-/// part of the raster, so N processes finish at about the same time.
+/// --part I/N`, then `fractile assemble`): share I codes the I-th of N bands of the source's
+/// rows of chunks (as even as whole rows allow), and hands the first coded overview level's
+/// rows of its band to `assemble`, which codes the overviews (`encode::band`). Each share so
+/// reads its own rows of the inputs, and the inputs are read once over all the shares (a
+/// chunk row's overlap and a COG tile row at each band's edges aside); the overviews are a
+/// fiftieth of a height field's cells (its first two levels are views) and a third of an
+/// image's, coded by `assemble` on its cores.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Serialize, Deserialize)]
 pub struct Share {
     /// Which share, from 0.
@@ -343,17 +346,25 @@ impl Share {
         Ok(Share { index, count })
     }
 
-    fn holds(&self, k: u64) -> bool {
-        k % u64::from(self.count) == u64::from(self.index)
+    /// The rows of chunks of the source level (of `ny`) this share codes; an error where the
+    /// shares outnumber them.
+    pub fn rows(&self, ny: u32) -> Result<std::ops::Range<u32>, Error> {
+        if self.count > ny {
+            return Err(Error::settings(format!(
+                "--part {}/{}: this raster has {ny} rows of chunks, so at most {ny} parts",
+                self.index, self.count
+            )));
+        }
+        let at = |i: u32| (u64::from(i) * u64::from(ny) / u64::from(self.count)) as u32;
+        Ok(at(self.index)..at(self.index + 1))
     }
 }
 
-/// Every chunk of every level of the raster `rows` reads that `share` holds, coded by
-/// `encode_one` on all cores as soon as the rows it covers are read (see [`Pyramid`]), its
-/// file pushed to `spill`.
+/// Every chunk of every level of the raster `rows` reads, coded by `encode_one` on all cores
+/// as soon as the rows it covers are read (see [`Pyramid`]), its file pushed to `spill`.
 pub(super) fn code_streamed(
     rows: &mut dyn Rows,
-    (chunk, share): (u32, Share),
+    chunk: u32,
     work: (&EncodeLevel<'_>, &Progress<'_>),
     spill: &mut Spill,
 ) -> Result<Streamed, Error> {
@@ -368,9 +379,12 @@ pub(super) fn code_streamed(
     };
     let table = new_table(chunk, views);
     let mut pyramid = Pyramid::new(&header, &sizes, &table);
-    let mut tally = Tally::new((&blank(&table, &sizes), views), share, work, spill);
+    let every = |_: usize, _: u32| true;
+    let mut tally = Tally::new((&blank(&table, &sizes), views), &every, work, spill);
     let mut code = |l, i, part| tally.push(l, i, part);
-    read_levels(rows, &header, &mut pyramid, &mut code)?;
+    read_levels(rows, &header, 0..header.height, &mut |band| {
+        pyramid.push(0, band, &mut code)
+    })?;
     tally.flush()?;
     Ok(Streamed {
         header,
@@ -381,29 +395,28 @@ pub(super) fn code_streamed(
     })
 }
 
-/// Every row of `rows`, a band at a time, through the pyramid of levels (which hands each
-/// chunk to `code` as soon as its rows are held).
-fn read_levels(
+/// Rows `span` of `rows`, a band at a time, each checked and handed to `band`.
+pub(super) fn read_levels(
     rows: &mut dyn Rows,
     header: &Header,
-    pyramid: &mut Pyramid,
-    code: &mut dyn FnMut(usize, u32, Raster) -> Result<(), Error>,
+    span: std::ops::Range<usize>,
+    band: &mut dyn FnMut(&Raster) -> Result<(), Error>,
 ) -> Result<(), Error> {
-    let mut y = 0;
-    while y < header.height {
-        let y1 = (y + READ_ROWS).min(header.height);
-        let band = rows.read(y, y1)?;
-        band.check_magnitudes()?;
-        if band.width != header.width || band.height != y1 - y {
+    let mut y = span.start;
+    while y < span.end {
+        let y1 = (y + READ_ROWS).min(span.end);
+        let read = rows.read(y, y1)?;
+        read.check_magnitudes()?;
+        if read.width != header.width || read.height != y1 - y {
             return Err(Error::input(format!(
                 "rows {y}..{y1} read as {}x{}, not {}x{}",
-                band.width,
-                band.height,
+                read.width,
+                read.height,
                 header.width,
                 y1 - y
             )));
         }
-        pyramid.push(0, &band, code)?;
+        band(&read)?;
         y = y1;
     }
     Ok(())
@@ -447,7 +460,9 @@ pub(super) fn sample_chunks(rows: &mut dyn Rows, chunk: u32) -> Result<rate::Sam
         }
         Ok(())
     };
-    read_levels(rows, &header, &mut pyramid, &mut keep)?;
+    read_levels(rows, &header, 0..header.height, &mut |band| {
+        pyramid.push(0, band, &mut keep)
+    })?;
     let scale = all
         .iter()
         .zip(&taken)
@@ -463,7 +478,7 @@ pub(super) fn sample_chunks(rows: &mut dyn Rows, chunk: u32) -> Result<rate::Sam
 }
 
 /// `rows`' header, checked for a chunked encode in chunks of `chunk`.
-fn checked_header(rows: &mut dyn Rows, chunk: u32) -> Result<Header, Error> {
+pub(super) fn checked_header(rows: &mut dyn Rows, chunk: u32) -> Result<Header, Error> {
     let (lo, hi) = chunked::CHUNK_SIDES;
     if !chunk.is_power_of_two() || !(lo..=hi).contains(&chunk) {
         return Err(Error::settings(format!(
@@ -483,116 +498,6 @@ fn checked_header(rows: &mut dyn Rows, chunk: u32) -> Result<Header, Error> {
         )));
     }
     Ok(header)
-}
-
-/// Chunks waiting to be coded (a batch of a chunk a core), and the records of those coded.
-struct Tally<'w, 's> {
-    records: Vec<Vec<Option<(ChunkRecord, u64)>>>,
-    /// The number of each level's first chunk, counted over all levels.
-    first: Vec<u64>,
-    share: Share,
-    queue: Vec<(usize, u32, Raster)>,
-    work: (&'w EncodeLevel<'w>, &'w Progress<'w>),
-    spill: &'s mut Spill,
-    done: AtomicU64,
-    total: u64,
-    /// Overview levels 1 to `views` are views of the source chunks, not coded.
-    views: usize,
-}
-
-impl<'w, 's> Tally<'w, 's> {
-    fn new(
-        (entries, views): (&[Vec<ChunkEntry>], usize),
-        share: Share,
-        work: (&'w EncodeLevel<'w>, &'w Progress<'w>),
-        spill: &'s mut Spill,
-    ) -> Self {
-        let first: Vec<u64> = entries
-            .iter()
-            .scan(0u64, |n, l| {
-                let at = *n;
-                *n += l.len() as u64;
-                Some(at)
-            })
-            .collect();
-        let view = |l: usize| l >= 1 && l <= views;
-        let total = (0..entries.len())
-            .filter(|&l| !view(l))
-            .flat_map(|l| {
-                let at = first[l];
-                (0..entries[l].len() as u64).map(move |i| at + i)
-            })
-            .filter(|&k| share.holds(k))
-            .count() as u64;
-        (work.1)(0, total);
-        Tally {
-            records: entries.iter().map(|l| vec![None; l.len()]).collect(),
-            first,
-            share,
-            queue: Vec::new(),
-            work,
-            spill,
-            done: AtomicU64::new(0),
-            total,
-            views,
-        }
-    }
-
-    /// Queues chunk `i` of level `l` if it is of this share; codes the queue once it holds a
-    /// chunk a core.
-    fn push(&mut self, l: usize, i: u32, part: Raster) -> Result<(), Error> {
-        if !self.share.holds(self.first[l] + u64::from(i)) || (l >= 1 && l <= self.views) {
-            return Ok(());
-        }
-        self.queue.push((l, i, part));
-        if self.queue.len() >= rayon::current_num_threads().max(1) {
-            self.flush()?;
-        }
-        Ok(())
-    }
-
-    /// Codes every queued chunk on all cores and spills each.
-    fn flush(&mut self) -> Result<(), Error> {
-        let jobs = std::mem::take(&mut self.queue);
-        let (encode_one, progress) = self.work;
-        let (done, total, views) = (&self.done, self.total, self.views);
-        // One chunk a task: a core waiting inside a chunk's own parallel work would otherwise
-        // steal further chunks, and hold more of them in memory than there are cores.
-        let coded: Vec<_> = jobs
-            .into_par_iter()
-            .with_max_len(1)
-            .map(|(l, i, part)| {
-                let any_valid = part.valid.as_ref().is_none_or(|v| v.contains(&true));
-                let enc = if any_valid {
-                    let enc = encode_one(l, &part).map_err(|e| match e {
-                        Error::Input { .. } => e.within(format_args!("chunk {i} of level {l}")),
-                        e => e,
-                    })?;
-                    let maps = if l == 0 && views > 0 {
-                        view_maps(&enc, &part, views)
-                            .map_err(|e| Error::input(format!("the views of chunk {i}: {e}")))?
-                    } else {
-                        Vec::new()
-                    };
-                    Some(Coded::of(enc, l, i, maps))
-                } else {
-                    None
-                };
-                progress(done.fetch_add(1, Ordering::Relaxed) + 1, total);
-                Ok((l, i, enc))
-            })
-            .collect::<Result<_, Error>>()?;
-        for (l, i, c) in coded {
-            if let Some(c) = c {
-                let at = self
-                    .spill
-                    .push(&c.bytes)
-                    .map_err(|e| Error::output(format!("spilling a chunk: {e}")))?;
-                self.records[l][i as usize] = Some((c.record, at));
-            }
-        }
-        Ok(())
-    }
 }
 
 #[cfg(test)]

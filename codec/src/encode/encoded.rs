@@ -30,6 +30,16 @@ pub struct Encoded {
 }
 
 impl Encoded {
+    /// The asset with `lineage` (what was done to its inputs, [`crate::rows::Header`]'s) said
+    /// after its encoder line, as a chunked file says it.
+    pub fn with_lineage(mut self, lineage: Option<&str>) -> Encoded {
+        if let Some(l) = lineage {
+            self.asset.meta.encoder = format!("{}; {l}", self.asset.meta.encoder);
+            self.bytes = self.asset.to_bytes();
+        }
+        self
+    }
+
     /// Bits per source pixel of the whole file.
     pub fn bpp(&self) -> f64 {
         bpp(&self.asset.meta, self.bytes.len() as u64)

@@ -6,6 +6,8 @@
 //! (`chunked`, `rate`, `parts`), the source error map (`fidelity`) and the encoders of meshes
 //! (`volume`) and curves (`curve`).
 
+pub mod assembly;
+mod band;
 pub mod chunked;
 pub mod curve;
 mod encoded;
@@ -16,6 +18,7 @@ mod pyramid;
 pub mod rate;
 mod spill;
 mod summary;
+mod tally;
 mod views;
 pub mod volume;
 

@@ -9,11 +9,11 @@
 use std::path::Path;
 
 use super::chunked::{
-    DEFAULT_CHUNK, Progress, Share, chunk_bpp, encode_chunked_file, encode_chunked_file_at,
-    wants_chunks,
+    DEFAULT_CHUNK, EncodeLevel, Progress, Share, chunk_bpp, encode_chunked_file,
+    encode_chunked_file_at, wants_chunks,
 };
-use super::parts::{PartWritten, encode_chunked_part, encode_chunked_part_at};
-use super::rate::{self, Target, encode_at};
+use super::parts::{PartWritten, Recipe, encode_chunked_part, encode_chunked_part_at, recipe_of};
+use super::rate::{self, Quality, Target, encode_at};
 use super::{CodecSettings, Options, Written, encode};
 use crate::Error;
 use crate::io::raster::Raster;
@@ -32,6 +32,9 @@ pub struct Plan {
     file: Option<Target>,
     /// In chunks without one: each chunk's settings, at its share of the file's rate.
     per_chunk: CodecSettings,
+    /// The codec's name and options, as given: a split encode's parts keep them, for
+    /// `fractile assemble` to code the overviews alike.
+    recipe: Recipe,
 }
 
 impl Plan {
@@ -73,6 +76,11 @@ impl Plan {
             chunk,
             file,
             per_chunk,
+            recipe: Recipe {
+                codec: codec.to_string(),
+                options: options.clone(),
+                quality: None,
+            },
         })
     }
 
@@ -122,7 +130,7 @@ impl Plan {
     ) -> Result<PartWritten, Error> {
         let c = self.chunked()?;
         let fingerprint = self.fingerprint();
-        let how = (c, share, fingerprint.as_str());
+        let how = (c, share, fingerprint.as_str(), Some(&self.recipe));
         match self.file {
             Some(target) => {
                 encode_chunked_part_at(rows, how, (target, &encode_at), progress, output)
@@ -134,10 +142,57 @@ impl Plan {
         }
     }
 
+    /// How a chunk of level `l` is coded: at `quality` (the parts' own, found on their sample
+    /// or given) where the file has one, else by the chunks' settings.
+    fn level_encoder(&self, quality: Option<Quality>) -> Result<Box<EncodeLevel<'static>>, Error> {
+        Ok(match self.file {
+            Some(_) => {
+                let q = quality.ok_or_else(|| {
+                    Error::input("the parts do not say the quality their chunks were coded at")
+                })?;
+                Box::new(move |l, r: &Raster| encode_at(r, q.at_level(l), false))
+            }
+            None => {
+                let settings = self.per_chunk.clone();
+                Box::new(move |_, r: &Raster| encode(r, &settings, &|_, _| {}))
+            }
+        })
+    }
+
     /// The chunks' side, or the error of a plan of the raster whole.
     fn chunked(&self) -> Result<u32, Error> {
         self.chunk.ok_or_else(|| {
             Error::settings("a split encode codes chunks, and this one is whole: give a chunk size")
         })
     }
+}
+
+/// `fractile assemble`: the part files `parts` of a split encode joined into the asset
+/// `output` ([`super::assembly::assemble`]), its overviews coded as the parts' plan codes them
+/// (the codec and options each part keeps); `progress(done, total)` counts the overview chunks.
+pub fn assemble(
+    parts: &[std::path::PathBuf],
+    output: &Path,
+    progress: &Progress<'_>,
+) -> Result<Written, Error> {
+    let Some(first) = parts.first() else {
+        return Err(Error::input("assemble: no part files given"));
+    };
+    let (recipe, settings, chunk, header) = recipe_of(first)?;
+    let Some(recipe) = recipe else {
+        return Err(Error::input(format!(
+            "{}: a part coded by a caller's own function (assemble it with encode::assembly::assemble and that function)",
+            first.display()
+        )));
+    };
+    let plan = Plan::new(&recipe.codec, &recipe.options, Some(chunk), &header)?;
+    if !settings.starts_with(&plan.fingerprint()) {
+        return Err(Error::input(format!(
+            "{}: its settings ({settings}) are not those its codec and options make here ({}): made by another version of fractile?",
+            first.display(),
+            plan.fingerprint()
+        )));
+    }
+    let encode_level = plan.level_encoder(recipe.quality)?;
+    super::assembly::assemble(parts, output, &*encode_level, progress)
 }

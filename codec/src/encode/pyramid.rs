@@ -18,7 +18,7 @@ pub(crate) struct Pyramid {
 }
 
 /// One level's rows `top..` (every channel, and whether each cell holds data).
-struct Level {
+pub(super) struct Level {
     header: Header,
     top: usize,
     channels: Vec<Vec<f32>>,
@@ -30,11 +30,25 @@ struct Level {
 }
 
 impl Level {
-    fn bottom(&self) -> usize {
+    /// A level of `header`'s cells holding no rows yet, the first to come being `top`.
+    pub(super) fn new(header: Header, top: usize) -> Level {
+        Level {
+            channels: vec![Vec::new(); header.channels],
+            header,
+            top,
+            valid: Vec::new(),
+            halved: 0,
+            next_row: 0,
+        }
+    }
+
+    /// The row after the last held.
+    pub(super) fn bottom(&self) -> usize {
         self.top + self.valid.len() / self.header.width
     }
 
-    fn append(&mut self, band: &Raster) {
+    /// Rows that follow those held.
+    pub(super) fn append(&mut self, band: &Raster) {
         for (c, b) in self.channels.iter_mut().zip(&band.channels) {
             c.extend_from_slice(b);
         }
@@ -48,7 +62,7 @@ impl Level {
 
     /// Cells `[x0, y0, x1, y1)` as a raster of their own (`valid` only where some cell lacks
     /// data, as a raster read whole has it).
-    fn crop(&self, [x0, y0, x1, y1]: [u32; 4]) -> Raster {
+    pub(super) fn crop(&self, [x0, y0, x1, y1]: [u32; 4]) -> Raster {
         let (x0, x1) = (x0 as usize, x1 as usize);
         let w = self.header.width;
         let span = (y0 as usize - self.top)..(y1 as usize - self.top);
@@ -68,7 +82,7 @@ impl Level {
     }
 
     /// Drops the rows above `row`.
-    fn release(&mut self, row: usize) {
+    pub(super) fn release(&mut self, row: usize) {
         if row > self.top {
             let n = (row - self.top) * self.header.width;
             for c in &mut self.channels {
@@ -88,22 +102,16 @@ impl Pyramid {
             .enumerate()
             .map(|(l, &(w, h))| {
                 let scale = f64::from(1u32 << l);
-                Level {
-                    header: Header {
-                        width: w as usize,
-                        height: h as usize,
-                        georef: header.georef.as_ref().map(|g| fractile_proto::Georef {
-                            pixel_size: [g.pixel_size[0] * scale, g.pixel_size[1] * scale],
-                            ..g.clone()
-                        }),
-                        ..header.clone()
-                    },
-                    top: 0,
-                    channels: vec![Vec::new(); header.channels],
-                    valid: Vec::new(),
-                    halved: 0,
-                    next_row: 0,
-                }
+                let header = Header {
+                    width: w as usize,
+                    height: h as usize,
+                    georef: header.georef.as_ref().map(|g| fractile_proto::Georef {
+                        pixel_size: [g.pixel_size[0] * scale, g.pixel_size[1] * scale],
+                        ..g.clone()
+                    }),
+                    ..header.clone()
+                };
+                Level::new(header, 0)
             })
             .collect();
         Pyramid {

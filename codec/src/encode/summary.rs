@@ -75,7 +75,7 @@ impl Coded {
 /// of every chunk of `header`'s raster, taken in table order so that the same chunks give the
 /// same file however they were coded.
 pub(super) fn summarise<'r>(
-    (width, height, georef): (usize, usize, Option<&fractile_proto::Georef>),
+    (width, height, georef, lineage): (usize, usize, Option<&fractile_proto::Georef>, Option<&str>),
     chunk: u32,
     sizes: &[(u32, u32)],
     records: impl Iterator<Item = &'r ChunkRecord>,
@@ -166,7 +166,10 @@ pub(super) fn summarise<'r>(
     } else {
         f64::INFINITY
     };
-    meta.encoder = format!("chunked {chunk}: {}", meta.encoder);
+    meta.encoder = match lineage {
+        Some(l) => format!("chunked {chunk}: {}; {l}", meta.encoder),
+        None => format!("chunked {chunk}: {}", meta.encoder),
+    };
     // No encode time (see `Coded::of`): the command line reports it.
     meta.stats = fractile_proto::EncodeStats {
         transforms,

@@ -9,7 +9,7 @@ use crate::io::raster::Raster;
 use crate::io::rows::Header;
 
 /// Codes one chunk of a level (0: the source's cells, l: an overview of 2^l cells a side).
-pub(super) type EncodeLevel<'a> = dyn Fn(usize, &Raster) -> Result<Encoded, Error> + Sync + 'a;
+pub type EncodeLevel<'a> = dyn Fn(usize, &Raster) -> Result<Encoded, Error> + Sync + 'a;
 
 /// The entries of view level `l`: level 0's, with the cells of their views.
 pub(super) fn level_zero_views(zero: &[ChunkEntry], l: usize) -> Vec<ChunkEntry> {

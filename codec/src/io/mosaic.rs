@@ -154,7 +154,17 @@ impl Mosaic {
             .zip(&boxed)
             .map(|(f, p)| (f.as_path(), p.header()))
             .collect();
-        let (header, at) = place(&headers)?;
+        let (mut header, at) = place(&headers)?;
+        if resampled > 0 {
+            // Said in the asset (its encoder line, shown by `fractile info` and the server):
+            // what a reader may hold the cells to.
+            header.lineage = Some(format!(
+                "{resampled} of {} inputs resampled onto this grid (bilinear, or the area \
+                 average where a cell is coarser; reprojected where of another CRS): each such \
+                 cell a weighted mean of input cells, between the least and the greatest of them",
+                names.len()
+            ));
+        }
         Ok(Mosaic {
             header,
             parts: at.into_iter().zip(boxed).collect(),
@@ -392,6 +402,7 @@ fn place(parts: &[(&Path, &Header)]) -> Result<(Header, Vec<[usize; 2]>), Error>
             ],
             pixel_size: g0.pixel_size,
         }),
+        lineage: None,
     };
     let at = placed
         .iter()

@@ -24,7 +24,7 @@ pub const MAX_WIDTH: usize = 1 << 15;
 pub const MAX_HEIGHT: usize = 1 << 20;
 
 /// What a raster is without its cells: everything its file's header says.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct Header {
     /// Width in samples.
     pub width: usize,
@@ -42,6 +42,10 @@ pub struct Header {
     pub nodata: Option<f64>,
     /// Georeference of the raster's top-left corner.
     pub georef: Option<Georef>,
+    /// What was done to the inputs to make these cells, for the asset's provenance (a mosaic
+    /// of resampled inputs says so); `None` for cells as read.
+    #[serde(default)]
+    pub lineage: Option<String>,
 }
 
 impl Header {
@@ -56,6 +60,7 @@ impl Header {
             units: r.units.clone(),
             nodata: r.nodata,
             georef: r.georef.clone(),
+            lineage: None,
         }
     }
 
@@ -262,6 +267,7 @@ impl GeoTiff {
                 units: georef.as_ref().map(|_| "m".to_string()),
                 nodata,
                 georef,
+                lineage: None,
             },
             chunk_rows,
             last: None,

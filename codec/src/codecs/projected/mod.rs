@@ -287,7 +287,7 @@ pub struct ProjectedSettings {
 
 /// A step (source units) and the multiresolution that codes at it: a lifted kernel
 /// ([`pyramid::Order::Lifted`], [`pyramid::Order::Lifted97`]) or `None`, the pyramid (its order chosen).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct AtStep {
     /// The quantiser's step, source units.
     pub step: f64,
@@ -297,7 +297,7 @@ pub struct AtStep {
 
 /// The quality every chunk of a file is coded at (`encode::rate`: a file's rate is the
 /// file's).
-#[derive(Clone, Copy, Debug, PartialEq)]
+#[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub enum Quality {
     /// Rate mode: a step and a multiresolution.
     Step(AtStep),
