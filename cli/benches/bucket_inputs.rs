@@ -11,8 +11,9 @@
 //! tiles; each set encoded (`--chunk 256 --max-error 2`) from its folder and from its `s3://`
 //! prefix, alternately, `runs` times; the best time of each. Then split in 4 parts from the
 //! bucket (`--chunk 128`: the small sets have 4 rows of chunks). Prints a table: seconds,
-//! cells a second, the ratio, and the bytes fetched, whole and by the 4 parts together,
-//! against the files' bytes.
+//! cells a second, the ratio, the bytes fetched, whole and by the 4 parts together, against
+//! the files' bytes, and the 4 parts' seconds (summed) and `assemble`'s, which codes the
+//! overviews.
 
 #[path = "../tests/harness/mod.rs"]
 mod harness;
@@ -34,9 +35,9 @@ fn main() {
     let work = tempfile::tempdir().unwrap();
     let weed = Weed::start(&work.path().join("weed"), "dem").expect("weed starts");
     println!(
-        "| COGs | cells a side | local s | bucket s | local cells/s | bucket cells/s | bucket / local | fetched / files' bytes | 4 parts fetched / files' bytes |"
+        "| COGs | cells a side | local s | bucket s | local cells/s | bucket cells/s | bucket / local | fetched / files' bytes | 4 parts fetched / files' bytes | 4 parts s (sum) | assemble s |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|");
     for (side, scale, tile) in [
         (1080, 8, Some(256)),
         (135, 1, None),
@@ -75,16 +76,31 @@ fn main() {
             bucket = bucket.min(s);
             fetched = v["fetched_bytes"].as_u64().unwrap_or(0);
         }
-        let parts: u64 = (0..4)
-            .map(|i| {
-                let share = format!("{i}/4");
-                let (_, v) = encode_with(&prefix, &["--chunk", "128", "--part", &share]);
-                v["fetched_bytes"].as_u64().unwrap_or(0)
-            })
-            .sum();
+        let (mut parts, mut part_seconds) = (0, 0.0);
+        let mut files_of_parts = Vec::new();
+        for i in 0..4 {
+            let share = format!("{i}/4");
+            let (s, v) = encode_with(&prefix, &["--chunk", "128", "--part", &share]);
+            parts += v["fetched_bytes"].as_u64().unwrap_or(0);
+            part_seconds += s;
+            let part = work.path().join(format!("part{i}"));
+            std::fs::rename(&out, &part).unwrap();
+            files_of_parts.push(part);
+        }
+        let t = Instant::now();
+        let o = Command::new(binary())
+            .arg("assemble")
+            .args(&files_of_parts)
+            .arg("-o")
+            .arg(&out)
+            .arg("--json")
+            .output()
+            .unwrap();
+        assert!(o.status.success(), "{}", String::from_utf8_lossy(&o.stderr));
+        let assemble = t.elapsed().as_secs_f64();
         let cells = 1080.0 * 540.0 * (scale * scale) as f64;
         println!(
-            "| {n} | {side} | {local:.2} | {bucket:.2} | {:.0} | {:.0} | {:.2} | {:.2} | {:.2} |",
+            "| {n} | {side} | {local:.2} | {bucket:.2} | {:.0} | {:.0} | {:.2} | {:.2} | {:.2} | {part_seconds:.2} | {assemble:.2} |",
             cells / local,
             cells / bucket,
             local / bucket,

@@ -44,8 +44,9 @@ enum Command {
     /// on two cores, an image under a second; an encode over a second shows its progress and
     /// an estimate of the time left on stderr (--quiet: none).
     Encode(EncodeArgs),
-    /// Join the part files of an encode split with `encode --part I/N` into the asset (the
-    /// same bytes as the encode in one process).
+    /// Join the part files of an encode split with `encode --part I/N` into the asset, the
+    /// overviews coded from the rows the parts hand on (the same bytes as the encode in one
+    /// process).
     Assemble {
         /// Every part file, in any order (files, or `s3://bucket/key` objects).
         #[arg(required = true, num_args = 1..)]

@@ -163,9 +163,10 @@ pub(crate) struct EncodeArgs {
     /// 1024 for rasters over 2048 cells on a side, one operator for smaller ones.
     #[arg(long)]
     pub(crate) chunk: Option<u32>,
-    /// Rasters in chunks: code only share I of N of the chunks (chunk k, counted level by
-    /// level, when k mod N = I) into the part file -o names; `fractile assemble` joins the N
-    /// parts into the asset, the same bytes as one encode. Runs N processes or machines.
+    /// Rasters in chunks: read and code only the I-th of N bands of the rows of chunks (N at
+    /// most the rows of chunks) into the part file -o names, with the band's overview rows;
+    /// `fractile assemble` codes the overviews and joins the N parts into the asset, the same
+    /// bytes as one encode. Runs N processes or machines.
     #[arg(long, value_name = "I/N")]
     pub(crate) part: Option<String>,
     /// The grid GeoTIFF inputs are mosaicked on: that of this GeoTIFF (its CRS, cell size and
