@@ -7,7 +7,10 @@ tiles of TILE cells (default: SIDE rounded up to 16, one tile a piece), the geor
 its window. SCALE > 1 first resamples SOURCE SCALE times finer (GDAL's bilinear), for pieces
 of the size real DEM tiles have (a test DEM is small). Every NODATA_EVERY-th piece
 (0: none) declares nodata -32768 and holds it in its top-left quarter, as real DEM tiles hold
-voids. Prints one JSON line: the pieces written and their total bytes.
+voids. Beside OUT_DIR, OUT_DIR.items.json: a STAC ItemCollection of the pieces (hrefs their
+file names) with what the projection, raster and file extensions say of each (`proj:epsg`,
+`proj:shape`, `proj:transform`, `raster:bands` data type and nodata, `file:size`), as public
+DEM catalogs publish them. Prints one JSON line: the pieces written and their total bytes.
 """
 
 import json
@@ -26,7 +29,7 @@ def main():
     scale = int(sys.argv[5]) if len(sys.argv) > 5 else 1
     os.makedirs(out, exist_ok=True)
     block = int(sys.argv[6]) if len(sys.argv) > 6 else max(16, -(-side // 16) * 16)
-    written, total = 0, 0
+    written, total, items = 0, 0, []
     with rasterio.open(source) as src:
         height, width = src.height * scale, src.width * scale
         whole = src.read(1, out_shape=(height, width), resampling=Resampling.bilinear)
@@ -53,7 +56,26 @@ def main():
                 with rasterio.open(path, "w", **profile) as dst:
                     dst.write(data, 1)
                 written += 1
-                total += os.path.getsize(path)
+                size = os.path.getsize(path)
+                total += size
+                band = {"data_type": data.dtype.name}
+                if "nodata" in profile:
+                    band["nodata"] = profile["nodata"]
+                items.append({
+                    "type": "Feature", "stac_version": "1.0.0", "id": os.path.basename(path),
+                    "properties": {
+                        "proj:epsg": src.crs.to_epsg(),
+                        "proj:shape": [int(w.height), int(w.width)],
+                        "proj:transform": list(profile["transform"])[:6],
+                    },
+                    "assets": {"data": {
+                        "href": os.path.basename(path), "roles": ["data"],
+                        "type": "image/tiff; application=geotiff; profile=cloud-optimized",
+                        "file:size": size, "raster:bands": [band],
+                    }},
+                })
+    with open(out.rstrip("/") + ".items.json", "w") as f:
+        json.dump({"type": "FeatureCollection", "features": items}, f)
     print(json.dumps({"pieces": written, "bytes": total}))
 
 

@@ -11,9 +11,9 @@
 //! tiles; each set encoded (`--chunk 256 --max-error 2`) from its folder and from its `s3://`
 //! prefix, alternately, `runs` times; the best time of each. Then split in 4 parts from the
 //! bucket (`--chunk 128`: the small sets have 4 rows of chunks). Prints a table: seconds,
-//! cells a second, the ratio, the bytes fetched, whole and by the 4 parts together, against
-//! the files' bytes, and the 4 parts' seconds (summed) and `assemble`'s, which codes the
-//! overviews.
+//! cells a second, the ratio, the bytes fetched, whole and by the 4 parts together (from the
+//! prefix, and from the pieces' STAC items, which say their grids), against the files'
+//! bytes, and the 4 parts' seconds (summed) and `assemble`'s, which codes the overviews.
 
 #[path = "../tests/harness/mod.rs"]
 mod harness;
@@ -21,7 +21,7 @@ mod harness;
 use std::process::Command;
 use std::time::Instant;
 
-use harness::{Weed, binary, cogs_scaled, rasterio_python, upload};
+use harness::{Weed, binary, cogs_scaled, put_object, rasterio_python, upload};
 
 fn main() {
     let runs: usize = std::env::args()
@@ -35,9 +35,9 @@ fn main() {
     let work = tempfile::tempdir().unwrap();
     let weed = Weed::start(&work.path().join("weed"), "dem").expect("weed starts");
     println!(
-        "| COGs | cells a side | local s | bucket s | local cells/s | bucket cells/s | bucket / local | fetched / files' bytes | 4 parts fetched / files' bytes | 4 parts s (sum) | assemble s |"
+        "| COGs | cells a side | local s | bucket s | local cells/s | bucket cells/s | bucket / local | fetched / files' bytes | 4 parts fetched / files' bytes | from STAC items | 4 parts s (sum) | assemble s |"
     );
-    println!("|---|---|---|---|---|---|---|---|---|---|---|");
+    println!("|---|---|---|---|---|---|---|---|---|---|---|---|");
     for (side, scale, tile) in [
         (1080, 8, Some(256)),
         (135, 1, None),
@@ -87,6 +87,27 @@ fn main() {
             std::fs::rename(&out, &part).unwrap();
             files_of_parts.push(part);
         }
+        // The same split from the pieces' STAC items (their grids said, hrefs relative to the
+        // list): a part opens only the inputs its band crosses.
+        let items = std::fs::read_to_string(format!("{}.items.json", dir.display())).unwrap();
+        let mut items: serde_json::Value = serde_json::from_str(&items).unwrap();
+        for f in items["features"].as_array_mut().unwrap() {
+            let name = f["assets"]["data"]["href"].as_str().unwrap().to_string();
+            f["assets"]["data"]["href"] = format!("c{side}/{name}").into();
+        }
+        put_object(
+            &weed,
+            &format!("dem/c{side}.items.json"),
+            items.to_string().as_bytes(),
+        );
+        let listed = format!("s3://dem/c{side}.items.json");
+        let stac: u64 = (0..4)
+            .map(|i| {
+                let share = format!("{i}/4");
+                let (_, v) = encode_with(&listed, &["--chunk", "128", "--part", &share]);
+                v["fetched_bytes"].as_u64().unwrap_or(0)
+            })
+            .sum();
         let t = Instant::now();
         let o = Command::new(binary())
             .arg("assemble")
@@ -100,12 +121,13 @@ fn main() {
         let assemble = t.elapsed().as_secs_f64();
         let cells = 1080.0 * 540.0 * (scale * scale) as f64;
         println!(
-            "| {n} | {side} | {local:.2} | {bucket:.2} | {:.0} | {:.0} | {:.2} | {:.2} | {:.2} | {part_seconds:.2} | {assemble:.2} |",
+            "| {n} | {side} | {local:.2} | {bucket:.2} | {:.0} | {:.0} | {:.2} | {:.2} | {:.2} | {:.2} | {part_seconds:.2} | {assemble:.2} |",
             cells / local,
             cells / bucket,
             local / bucket,
             fetched as f64 / files as f64,
-            parts as f64 / files as f64
+            parts as f64 / files as f64,
+            stac as f64 / files as f64
         );
     }
 }

@@ -5,7 +5,8 @@
 //! the same bytes as the encode of local copies of the same files, the assembled asset served
 //! alike by two replicas on the bucket. What crosses the network is counted (at most 1.3 times
 //! the inputs' compressed cells; the parts of a split encode read their bands of rows, each
-//! reading every input's header besides), and a part's peak memory
+//! reading every input's header besides, or only the inputs its band crosses where STAC items
+//! say their grids), and a part's peak memory
 //! stays under 1 GB with 200 inputs and with 2,000. And inputs on other grids of one CRS are
 //! resampled as GDAL resamples them (rasterio's `reproject`, `tools/resample_reference.py`).
 //!
@@ -132,16 +133,36 @@ fn an_encode_from_a_bucket_is_the_encode_of_its_local_copies() {
 
     // By a text list in the bucket and by a STAC ItemCollection: the same asset.
     put_object(&weed, "dem/lists/etopo.txt", urls.join("\n").as_bytes());
+    // The COGs' STAC items as make_cogs.py writes them (each says its grid: placed without
+    // reading its header) and the UTM file's with its data asset alone (its header read), in
+    // the bucket's order.
+    let made = std::fs::read_to_string(format!("{}.items.json", local.display())).unwrap();
+    let made: serde_json::Value = serde_json::from_str(&made).unwrap();
     let items: Vec<serde_json::Value> = urls
         .iter()
-        .enumerate()
-        .map(|(i, u)| {
-            serde_json::json!({"type": "Feature", "stac_version": "1.0.0", "id": format!("piece-{i}"),
-                "assets": {"thumbnail": {"href": "thumb.png", "roles": ["thumbnail"]},
-                           "data": {"href": u, "roles": ["data"],
-                                    "type": "image/tiff; application=geotiff; profile=cloud-optimized"}}})
+        .map(|u| {
+            let name = u.rsplit('/').next().unwrap();
+            let said = made["features"].as_array().unwrap().iter().find(|f| f["id"] == name);
+            match said {
+                Some(f) => {
+                    let mut f = f.clone();
+                    f["assets"]["data"]["href"] = serde_json::Value::from(u.as_str());
+                    f
+                }
+                None => serde_json::json!({"type": "Feature", "stac_version": "1.0.0", "id": name,
+                    "assets": {"thumbnail": {"href": "thumb.png", "roles": ["thumbnail"]},
+                               "data": {"href": u, "roles": ["data"],
+                                        "type": "image/tiff; application=geotiff; profile=cloud-optimized"}}}),
+            }
         })
         .collect();
+    assert_eq!(
+        items
+            .iter()
+            .filter(|i| i["properties"]["proj:shape"].is_array())
+            .count(),
+        pieces - 1
+    );
     let stac = work.path().join("items.json");
     let collection = serde_json::json!({"type": "FeatureCollection", "features": items});
     std::fs::write(&stac, collection.to_string()).unwrap();
@@ -195,6 +216,69 @@ fn an_encode_from_a_bucket_is_the_encode_of_its_local_copies() {
         get_object(&weed, "dem/assets/etopo.fra") == expected,
         "the assembled asset differs"
     );
+    // Split in 4 parts from the STAC ItemCollection, whose items say their grids: a part opens
+    // only the inputs its band crosses (the UTM file's header aside), so the 4 parts read the
+    // inputs once between them; the same asset.
+    let stac_parts: Vec<String> = (0..4).map(|i| out(&format!("stac.{i}.part"))).collect();
+    let mut stac_fetched = 0;
+    for (i, part) in stac_parts.iter().enumerate() {
+        let share = format!("{i}/4");
+        let mut args = vec![
+            "encode",
+            stac.to_str().unwrap(),
+            "-o",
+            part,
+            "--part",
+            &share,
+        ];
+        args.extend(chunked);
+        stac_fetched += fractile(&weed, &args)["fetched_bytes"].as_u64().unwrap();
+    }
+    // The row of COGs across each of the 3 band edges is read from both sides (a band's
+    // chunks code 4 rows beyond it): 48 of the 540 rows each, at these bands of 135 rows.
+    let edges = 3.0 * 48.0 / 540.0 * cells as f64;
+    println!(
+        "the 4 parts from the STAC items fetched {stac_fetched} bytes in all ({:.2}x the compressed cells, {:.2}x with the rows at the edges)",
+        stac_fetched as f64 / cells as f64,
+        stac_fetched as f64 / (cells as f64 + edges)
+    );
+    assert!(
+        stac_fetched as f64 <= 1.3 * (cells as f64 + edges),
+        "the 4 parts from the STAC items fetched {stac_fetched} bytes for {cells} of cells"
+    );
+    let joined = out("stac.fra");
+    let mut args = vec!["assemble"];
+    args.extend(stac_parts.iter().map(String::as_str));
+    args.extend(["-o", &joined]);
+    fractile(&weed, &args);
+    assert!(
+        std::fs::read(&joined).unwrap() == expected,
+        "the parts from the STAC items differ"
+    );
+    // An item that says another grid than its file holds: the encode fails, naming both.
+    let mut wrong: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(&stac).unwrap()).unwrap();
+    wrong["features"][1]["properties"]["proj:shape"] = serde_json::json!([48, 47]);
+    let wrong_path = work.path().join("wrong.json");
+    std::fs::write(&wrong_path, wrong.to_string()).unwrap();
+    let failed = Command::new(binary())
+        .args([
+            "encode",
+            wrong_path.to_str().unwrap(),
+            "-o",
+            &out("wrong.fra"),
+        ])
+        .args(chunked)
+        .envs(weed.env())
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&failed.stderr);
+    assert!(!failed.status.success(), "a wrong catalog encoded");
+    assert!(
+        err.contains("its catalog says 47x48") && err.contains("the file holds 48x48"),
+        "{err}"
+    );
+
     // Two replicas on the bucket serve the assembled asset, the same bytes from each.
     let env: Vec<(&str, String)> = weed.env();
     let env: Vec<(&str, &str)> = env.iter().map(|(k, v)| (*k, v.as_str())).collect();

@@ -130,3 +130,34 @@ fn a_chunked_encode_streamed_from_a_file_writes_what_the_encode_in_memory_does()
     assert_eq!(left, vec![std::ffi::OsString::from("streamed.fra")]);
     std::fs::remove_dir_all(&dir).unwrap();
 }
+
+/// A GeoTIFF placed by what its catalog says (`GeoTiff::declared`, a STAC item's grid) reads
+/// what the file holds once its header agrees; a catalog that says another grid is an error
+/// naming both, at the first read.
+#[test]
+fn a_declared_geotiff_is_checked_against_its_header_when_read() {
+    use fractile_codec::rows::TiffSource;
+    let path = testdata("jacksboro-tiled.tif");
+    let mut opened = GeoTiff::open(&path).unwrap();
+    let header = opened.header().clone();
+    let source = TiffSource::File(path.clone());
+    let mut declared = GeoTiff::declared(source.clone(), header.clone());
+    let whole = opened.read(0, header.height).unwrap();
+    same_cells(&by_bands(&mut declared, 37), &whole, "declared");
+    let wrong = |edit: &dyn Fn(&mut fractile_codec::rows::Header)| {
+        let mut h = header.clone();
+        edit(&mut h);
+        let mut d = GeoTiff::declared(source.clone(), h);
+        d.read(0, 8).expect_err("a wrong catalog read").to_string()
+    };
+    let err = wrong(&|h| h.width -= 1);
+    let (said, held) = (
+        format!("its catalog says {}x", header.width - 1),
+        format!("the file holds {}x", header.width),
+    );
+    assert!(err.contains(&said) && err.contains(&held), "{err}");
+    let err = wrong(&|h| h.georef.as_mut().unwrap().origin[0] += 1e-3);
+    assert!(err.contains("its catalog says"), "{err}");
+    let err = wrong(&|h| h.nodata = Some(-9999.0));
+    assert!(err.contains("nodata Some(-9999.0)"), "{err}");
+}

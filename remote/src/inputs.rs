@@ -29,6 +29,28 @@ pub struct Opener {
     stores: Mutex<HashMap<String, Arc<dyn ObjectStore>>>,
     /// The lengths of the objects a listing named (no request to ask them again).
     sizes: Mutex<HashMap<String, u64>>,
+    /// What a STAC item says of its GeoTIFF's grid, by location: placed without reading its
+    /// header ([`Opener::declared`]).
+    declared: Mutex<HashMap<String, Declared>>,
+}
+
+/// What a STAC item says of its GeoTIFF (the projection and raster extensions): enough to
+/// place it on a mosaic without reading its header, so that a part of a split encode opens
+/// only the inputs its band of rows crosses. The reader checks it against the file's header
+/// when it first reads cells.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Declared {
+    /// `proj:shape`: rows, then columns.
+    pub shape: [usize; 2],
+    /// `proj:transform`: the affine `[a, b, c, d, e, f]` (x = a col + b row + c, y = d col +
+    /// e row + f), north up (b = d = 0).
+    pub transform: [f64; 6],
+    /// `proj:epsg` (or `proj:code` `EPSG:n`).
+    pub epsg: Option<u32>,
+    /// `raster:bands[0].data_type` (`int16`, `uint16`, `float32`, ...).
+    pub data_type: String,
+    /// `raster:bands[0].nodata`.
+    pub nodata: Option<f64>,
 }
 
 impl Opener {
@@ -39,7 +61,14 @@ impl Opener {
             http: http_client(READ_TIMEOUT)?,
             stores: Mutex::new(HashMap::new()),
             sizes: Mutex::new(HashMap::new()),
+            declared: Mutex::new(HashMap::new()),
         })
+    }
+
+    /// What the STAC item that listed `location` says of its grid, if it says all of it.
+    pub fn declared(&self, location: &str) -> Option<Declared> {
+        let declared = self.declared.lock().unwrap_or_else(|e| e.into_inner());
+        declared.get(location).cloned()
     }
 
     /// The object store of `url`'s bucket (made on first use: building one costs about as
@@ -92,7 +121,20 @@ impl Opener {
         }
         if lower.ends_with(".json") || lower.ends_with(".geojson") {
             let text = self.read_list(location)?;
-            return stac_items(&text, location);
+            let items = stac_items(&text, location)?;
+            let mut sizes = self.sizes.lock().unwrap_or_else(|e| e.into_inner());
+            let mut declared = self.declared.lock().unwrap_or_else(|e| e.into_inner());
+            let mut out = Vec::with_capacity(items.len());
+            for item in items {
+                if let Some(size) = item.size {
+                    sizes.insert(item.location.clone(), size);
+                }
+                if let Some(d) = item.declared {
+                    declared.insert(item.location.clone(), d);
+                }
+                out.push(item.location);
+            }
+            return Ok(out);
         }
         if location.starts_with("s3://") && !tiff {
             return self.list_prefix(location);
@@ -172,12 +214,61 @@ fn text_list(text: &str, base: &str) -> Vec<String> {
         .collect()
 }
 
+/// A STAC item's data asset: its location, and what the item says of it.
+#[derive(Debug)]
+struct Item {
+    location: String,
+    /// `file:size`.
+    size: Option<u64>,
+    declared: Option<Declared>,
+}
+
+/// What `item` (or its `asset`, which overrides it) says of the asset's grid, where it says
+/// all of it (shape, a north-up transform, a data type).
+fn declared_of(item: &serde_json::Value, asset: &serde_json::Value) -> Option<Declared> {
+    let field = |name: &str| {
+        let a = &asset[name];
+        if a.is_null() {
+            &item["properties"][name]
+        } else {
+            a
+        }
+    };
+    let shape = field("proj:shape").as_array()?;
+    let shape: Vec<usize> = shape
+        .iter()
+        .map(|v| v.as_u64().map(|v| v as usize))
+        .collect::<Option<_>>()?;
+    let transform = field("proj:transform").as_array()?;
+    let transform: Vec<f64> = transform
+        .iter()
+        .map(serde_json::Value::as_f64)
+        .collect::<Option<_>>()?;
+    if shape.len() != 2 || transform.len() < 6 || transform[1] != 0.0 || transform[3] != 0.0 {
+        return None;
+    }
+    let epsg = field("proj:epsg").as_u64().map(|e| e as u32).or_else(|| {
+        field("proj:code")
+            .as_str()
+            .and_then(|c| c.strip_prefix("EPSG:"))
+            .and_then(|c| c.parse().ok())
+    });
+    let band = &field("raster:bands")[0];
+    Some(Declared {
+        shape: [shape[0], shape[1]],
+        transform: transform[..6].try_into().ok()?,
+        epsg,
+        data_type: band["data_type"].as_str()?.to_string(),
+        nodata: band["nodata"].as_f64(),
+    })
+}
+
 /// The data assets of a STAC ItemCollection, one an item, in the items' order: the asset
 /// whose roles include `data` and whose type or href says GeoTIFF, else the assets named
 /// `data`, `elevation` or `dem`, else the first whose href ends in `.tif` / `.tiff`. An item
 /// with none is an error that names it (a catalog of other products, not a silent skip).
 /// Paging (`links` with `rel: next`) is not followed: a search's pages are fetched first.
-fn stac_items(text: &str, base: &str) -> std::io::Result<Vec<String>> {
+fn stac_items(text: &str, base: &str) -> std::io::Result<Vec<Item>> {
     let bad = |why: String| {
         std::io::Error::new(std::io::ErrorKind::InvalidData, format!("{base}: {why}"))
     };
@@ -221,7 +312,11 @@ fn stac_items(text: &str, base: &str) -> std::io::Result<Vec<String>> {
             return Err(bad(format!("{id} has no GeoTIFF asset")));
         };
         let href = asset["href"].as_str().unwrap_or_default();
-        out.push(resolve(href, base));
+        out.push(Item {
+            location: resolve(href, base),
+            size: asset["file:size"].as_u64(),
+            declared: declared_of(item, asset),
+        });
     }
     if out.is_empty() {
         return Err(bad("an ItemCollection with no items".into()));
@@ -238,13 +333,33 @@ mod tests {
     #[test]
     fn stac_items_name_their_data_assets() {
         let text = r#"{"type": "FeatureCollection", "features": [
-          {"id": "a", "assets": {
+          {"id": "a", "properties": {"proj:epsg": 4326, "proj:shape": [3600, 1800],
+                                     "proj:transform": [0.001, 0, 6.0, 0, -0.001, 46.0, 0, 0, 1]},
+           "assets": {
             "thumbnail": {"href": "a.png", "type": "image/png", "roles": ["thumbnail"]},
-            "data": {"href": "s3://dem/a.tif", "type": "image/tiff; application=geotiff; profile=cloud-optimized", "roles": ["data"]}}},
-          {"id": "b", "assets": {"elevation": {"href": "./tiles/b.tif"}}},
+            "data": {"href": "s3://dem/a.tif", "type": "image/tiff; application=geotiff; profile=cloud-optimized", "roles": ["data"],
+                     "file:size": 1234, "raster:bands": [{"data_type": "int16", "nodata": -32768}]}}},
+          {"id": "b", "properties": {"proj:code": "EPSG:32616", "proj:shape": [10, 10],
+                                     "proj:transform": [90, 5, 0, 0, -90, 0]},
+           "assets": {"elevation": {"href": "./tiles/b.tif", "raster:bands": [{"data_type": "float32"}]}}},
           {"id": "c", "assets": {"metadata": {"href": "c.xml", "roles": ["metadata"]},
                                  "x": {"href": "https://h/c.TIFF"}}}]}"#;
-        let got = stac_items(text, "https://catalog.example/dem/items.json").unwrap();
+        let items = stac_items(text, "https://catalog.example/dem/items.json").unwrap();
+        let got: Vec<&str> = items.iter().map(|i| i.location.as_str()).collect();
+        // a says its whole grid (the item's projection, its asset's band and size); b's grid
+        // is rotated (placed from its header), c says nothing.
+        assert_eq!(
+            items[0].declared,
+            Some(Declared {
+                shape: [3600, 1800],
+                transform: [0.001, 0.0, 6.0, 0.0, -0.001, 46.0],
+                epsg: Some(4326),
+                data_type: "int16".into(),
+                nodata: Some(-32768.0),
+            })
+        );
+        assert_eq!(items[0].size, Some(1234));
+        assert!(items[1].declared.is_none() && items[2].declared.is_none());
         assert_eq!(
             got,
             [

@@ -10,8 +10,8 @@ use std::sync::Arc;
 
 use anyhow::{Context, Result, bail};
 use fractile_codec::mosaic::Mosaic;
-use fractile_codec::rows::{GeoTiff, KeptBudget, RangedFile, Rows, TiffSource};
-use fractile_remote::inputs::Opener;
+use fractile_codec::rows::{GeoTiff, Header, KeptBudget, RangedFile, Rows, TiffSource};
+use fractile_remote::inputs::{Declared, Opener};
 
 /// An encode's inputs: their names (for the report) and their rows.
 pub(super) struct Inputs {
@@ -192,6 +192,38 @@ pub(super) fn open(inputs: &[PathBuf], grid: Option<&str>) -> Result<Inputs> {
 /// part's memory stays bounded whatever its inputs.
 const KEPT_BYTES: u64 = 256 << 20;
 
+/// The header a STAC item's grid makes ([`GeoTiff::declared`]), as a GeoTIFF's header says it
+/// (`None` for a data type the reader does not take: the file's header is read then).
+fn header_of(d: &Declared) -> Option<Header> {
+    use fractile_proto::SampleFormat as S;
+    // As the reader converts them: integers of up to 16 bits keep their type (a signed byte
+    // widens to 16 bits), the rest are read as f32.
+    let sample = match d.data_type.as_str() {
+        "uint8" => S::U8,
+        "uint16" => S::U16,
+        "int8" | "int16" => S::I16,
+        "int32" | "uint32" | "int64" | "uint64" | "float16" | "float32" | "float64" => S::F32,
+        _ => return None,
+    };
+    let t = d.transform;
+    Some(Header {
+        width: d.shape[1],
+        height: d.shape[0],
+        channels: 1,
+        kind: fractile_proto::AssetKind::HeightField,
+        sample,
+        // As a GeoTIFF read says it: metres where georeferenced.
+        units: Some("m".into()),
+        nodata: d.nodata,
+        georef: Some(fractile_proto::Georef {
+            epsg: d.epsg,
+            origin: [t[2], t[5]],
+            pixel_size: [t[0], t[4]],
+        }),
+        lineage: None,
+    })
+}
+
 /// An input with its header read, and its ranged file if read by range.
 type Opened = (GeoTiff, Option<Arc<RangedFile>>);
 
@@ -208,7 +240,11 @@ fn open_headers(opener: &Opener, names: &[String]) -> Result<(Vec<GeoTiff>, Vec<
             .open(name)
             .with_context(|| format!("opening {name}"))?;
         let file = Arc::new(RangedFile::with_budget(source, budget.clone()));
-        let tiff = GeoTiff::open_source(TiffSource::Ranged(file.clone()))?;
+        let tiff = match opener.declared(name).as_ref().and_then(header_of) {
+            // Placed by its STAC item: its header is read when its cells are.
+            Some(header) => GeoTiff::declared(TiffSource::Ranged(file.clone()), header),
+            None => GeoTiff::open_source(TiffSource::Ranged(file.clone()))?,
+        };
         Ok((tiff, Some(file)))
     };
     // Requests in flight: latency-bound, not CPU-bound.

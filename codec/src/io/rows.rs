@@ -190,7 +190,7 @@ impl TiffSource {
 pub struct GeoTiff {
     source: TiffSource,
     header: Header,
-    /// Rows of one strip or one row of tiles.
+    /// Rows of one strip or one row of tiles (0: a declared file whose header is not read).
     chunk_rows: usize,
     /// The last row of chunks decoded: its index and its values (full width).
     last: Option<(usize, Vec<f32>)>,
@@ -272,6 +272,59 @@ impl GeoTiff {
             chunk_rows,
             last: None,
         })
+    }
+
+    /// The GeoTIFF `source` holds, placed by what its catalog says of it (`header`, a STAC
+    /// item's grid) without reading its header, which is read and checked against `header`
+    /// when its cells are first read: a part of a split encode so opens only the inputs its
+    /// band of rows crosses.
+    pub fn declared(source: TiffSource, header: Header) -> GeoTiff {
+        GeoTiff {
+            source,
+            header,
+            chunk_rows: 0,
+            last: None,
+            spans: None,
+        }
+    }
+
+    /// A declared file's header, read once and checked against what was declared: a catalog
+    /// that says another grid than its file holds is an error that names both.
+    fn checked(&mut self) -> Result<(), Error> {
+        if self.chunk_rows > 0 {
+            return Ok(());
+        }
+        let real = GeoTiff::open_source(self.source.clone())?;
+        let (said, held) = (&self.header, &real.header);
+        let georef = match (&said.georef, &held.georef) {
+            (Some(a), Some(b)) => {
+                let px = a.pixel_size[0].abs().min(a.pixel_size[1].abs());
+                a.epsg == b.epsg
+                    && (0..2).all(|i| {
+                        (a.origin[i] - b.origin[i]).abs() <= 1e-6 * px
+                            && (a.pixel_size[i] - b.pixel_size[i]).abs() <= 1e-9 * px
+                    })
+            }
+            (a, b) => a.is_none() && b.is_none(),
+        };
+        let same = (said.width, said.height, said.sample) == (held.width, held.height, held.sample)
+            && said.nodata == held.nodata;
+        if !(same && georef) {
+            let grid = |h: &Header| {
+                format!(
+                    "{}x{} {:?} cells, nodata {:?}, {:?}",
+                    h.width, h.height, h.sample, h.nodata, h.georef
+                )
+            };
+            return Err(Error::input(format!(
+                "{}: its catalog says {}; the file holds {}",
+                self.source.name(),
+                grid(said),
+                grid(held)
+            )));
+        }
+        self.chunk_rows = real.chunk_rows;
+        Ok(())
     }
 
     /// Where the file's bytes are.
@@ -359,6 +412,7 @@ impl Rows for GeoTiff {
     }
 
     fn read(&mut self, y0: usize, y1: usize) -> Result<Raster, Error> {
+        self.checked()?;
         let (w, h) = (self.header.width, self.header.height);
         let y1 = y1.min(h);
         let mut values = Vec::with_capacity(w * (y1.saturating_sub(y0)));
