@@ -6,12 +6,12 @@ use std::io::Write;
 use std::path::{Path, PathBuf};
 
 use super::band::{first_coded, read_rows, row_bytes};
-use super::chunked::Progress;
+use super::chunked::{Levels, Progress};
 use super::encoded::Written;
 use super::parts::{Part, check_shares, open_part};
 use super::pyramid::Pyramid;
 use super::spill::Spill;
-use super::summary::{ChunkRecord, blank, new_table, summarise};
+use super::summary::{ChunkRecord, blank, summarise};
 use super::tally::Tally;
 use super::views::EncodeLevel;
 use crate::Error;
@@ -53,13 +53,12 @@ pub fn assemble(
     parts.sort_by_key(|p| p.share().index);
     let (chunk, viewed, source) = parts[0].layout();
     let source = source.clone();
-    let sizes = ChunkTable::level_sizes(source.width as u32, source.height as u32, chunk, viewed);
-    let views = if viewed {
-        ChunkTable::view_levels(sizes.len())
-    } else {
-        0
-    };
-    let table = new_table(chunk, views);
+    let Levels {
+        sizes,
+        views,
+        table,
+        ..
+    } = Levels::of(&source, chunk, viewed);
     let entries = blank(&table, &sizes);
     let mut placed: Vec<Vec<Option<(From, ChunkRecord)>>> =
         entries.iter().map(|l| vec![None; l.len()]).collect();

@@ -13,14 +13,13 @@
 
 use std::time::Instant;
 
-use super::chunked::{Progress, Share, Streamed, checked_header, read_levels};
+use super::chunked::{Levels, Progress, Share, Streamed, checked_header, read_levels};
 use super::pyramid::{Level, halve};
 use super::spill::Spill;
-use super::summary::{blank, new_table};
+use super::summary::blank;
 use super::tally::Tally;
 use super::views::{EncodeLevel, viewed};
 use crate::Error;
-use crate::io::chunked::ChunkTable;
 use crate::io::raster::Raster;
 use crate::io::rows::Rows;
 
@@ -100,14 +99,12 @@ pub(super) fn code_band(
 ) -> Result<(Streamed, Option<Handoff>), Error> {
     let start = Instant::now();
     let header = checked_header(rows, chunk)?;
-    let viewed = viewed(&header, work.0);
-    let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk, viewed);
-    let views = if viewed {
-        ChunkTable::view_levels(sizes.len())
-    } else {
-        0
-    };
-    let table = new_table(chunk, views);
+    let Levels {
+        viewed,
+        sizes,
+        views,
+        table,
+    } = Levels::of(&header, chunk, viewed(&header, work.0));
     let (w, h) = sizes[0];
     let (nx, ny) = table.grid(w, h);
     let band = share.rows(ny)?;

@@ -370,14 +370,12 @@ pub(super) fn code_streamed(
 ) -> Result<Streamed, Error> {
     let start = Instant::now();
     let header = checked_header(rows, chunk)?;
-    let viewed = viewed(&header, work.0);
-    let sizes = ChunkTable::level_sizes(header.width as u32, header.height as u32, chunk, viewed);
-    let views = if viewed {
-        ChunkTable::view_levels(sizes.len())
-    } else {
-        0
-    };
-    let table = new_table(chunk, views);
+    let Levels {
+        viewed,
+        sizes,
+        views,
+        table,
+    } = Levels::of(&header, chunk, viewed(&header, work.0));
     let mut pyramid = Pyramid::new(&header, &sizes, &table);
     let every = |_: usize, _: u32| true;
     let mut tally = Tally::new((&blank(&table, &sizes), views), &every, work, spill);
@@ -393,6 +391,34 @@ pub(super) fn code_streamed(
         records: tally.records,
         start,
     })
+}
+
+/// The levels of a chunked file: whether its first overviews are views, every level's size,
+/// how many are views, and the table that cuts them into chunks.
+pub(super) struct Levels {
+    pub(super) viewed: bool,
+    pub(super) sizes: Vec<(u32, u32)>,
+    pub(super) views: usize,
+    pub(super) table: ChunkTable,
+}
+
+impl Levels {
+    /// The levels of a raster of `header` in chunks of `chunk`, views or not.
+    pub(super) fn of(header: &Header, chunk: u32, viewed: bool) -> Levels {
+        let (w, h) = (header.width as u32, header.height as u32);
+        let sizes = ChunkTable::level_sizes(w, h, chunk, viewed);
+        let views = if viewed {
+            ChunkTable::view_levels(sizes.len())
+        } else {
+            0
+        };
+        Levels {
+            viewed,
+            sizes,
+            views,
+            table: new_table(chunk, views),
+        }
+    }
 }
 
 /// Rows `span` of `rows`, a band at a time, each checked and handed to `band`.
