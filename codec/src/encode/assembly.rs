@@ -22,9 +22,9 @@ use crate::io::rows::Header;
 
 /// Where a chunk's file is: in part `k` at an offset, or coded here, in the spill.
 #[derive(Clone, Copy)]
-enum From {
-    Part(usize, u64),
-    Here(u64),
+enum Stored {
+    InPart(usize, u64),
+    Coded(u64),
 }
 
 /// Overview rows read from a part at a time.
@@ -60,7 +60,7 @@ pub fn assemble(
         ..
     } = Levels::of(&source, chunk, viewed);
     let entries = blank(&table, &sizes);
-    let mut placed: Vec<Vec<Option<(From, ChunkRecord)>>> =
+    let mut placed: Vec<Vec<Option<(Stored, ChunkRecord)>>> =
         entries.iter().map(|l| vec![None; l.len()]).collect();
     place_parts(&parts, &table, &sizes, &mut placed)?;
     let mut spill = Spill::beside(output)?;
@@ -69,7 +69,7 @@ pub fn assemble(
         let work = (encode_level, progress);
         code_overviews(&parts, layout, level, work, &mut spill, &mut placed)?;
     }
-    let order: Vec<(From, ChunkRecord)> = placed.into_iter().flatten().flatten().collect();
+    let order: Vec<(Stored, ChunkRecord)> = placed.into_iter().flatten().flatten().collect();
     let (meta, mut table, errors, transforms) = summarise(
         (
             source.width,
@@ -99,8 +99,8 @@ pub fn assemble(
         length = head.len() as u64;
         for (from, r) in &order {
             match *from {
-                From::Here(at) => spill.copy(at, r.length, &mut f)?,
-                From::Part(k, at) => f.write_all(&checked_chunk(&parts[k], at, r)?)?,
+                Stored::Coded(at) => spill.copy(at, r.length, &mut f)?,
+                Stored::InPart(k, at) => f.write_all(&checked_chunk(&parts[k], at, r)?)?,
             }
             length += r.length;
         }
@@ -123,7 +123,7 @@ fn code_overviews(
     level: usize,
     work: (&EncodeLevel<'_>, &Progress<'_>),
     spill: &mut Spill,
-    placed: &mut [Vec<Option<(From, ChunkRecord)>>],
+    placed: &mut [Vec<Option<(Stored, ChunkRecord)>>],
 ) -> Result<(), Error> {
     let entries = blank(table, sizes);
     let mut pyramid = Pyramid::new(source, sizes, table);
@@ -170,7 +170,7 @@ fn code_overviews(
     for (l, level) in tally.records.iter().enumerate() {
         for (i, coded) in level.iter().enumerate() {
             if let Some((record, at)) = coded {
-                placed[l][i] = Some((From::Here(*at), record.clone()));
+                placed[l][i] = Some((Stored::Coded(*at), record.clone()));
             }
         }
     }
@@ -182,7 +182,7 @@ fn place_parts(
     parts: &[Part],
     table: &ChunkTable,
     sizes: &[(u32, u32)],
-    placed: &mut [Vec<Option<(From, ChunkRecord)>>],
+    placed: &mut [Vec<Option<(Stored, ChunkRecord)>>],
 ) -> Result<(), Error> {
     let (nx, ny) = table.grid(sizes[0].0, sizes[0].1);
     for (k, p) in parts.iter().enumerate() {
@@ -201,7 +201,7 @@ fn place_parts(
                         r.level
                     ))
                 })?;
-            *slot = Some((From::Part(k, at), r.clone()));
+            *slot = Some((Stored::InPart(k, at), r.clone()));
             at += r.length;
         }
     }
