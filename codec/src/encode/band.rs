@@ -1,7 +1,7 @@
 //! One part of a split encode (`fractile encode --part I/N`, [`Share`]): a band of the
 //! source's rows of chunks, read once and coded, and the band's rows of the first coded
 //! overview level handed on to `fractile assemble`, which codes the overviews
-//! (`encode::assembly`; the part file is `encode::parts`').
+//! (`encode::assembly`; the part file's format is `encode::parts`).
 //!
 //! A part reads only its band's rows (and a chunk's overlap beyond them), so the parts of a
 //! split encode read each input once between them, where parts that each coded a share of
