@@ -17,7 +17,7 @@ use fractile_proto::{Georef, SampleFormat};
 use crate::Error;
 use crate::io::raster::Raster;
 use crate::io::resample::{Reprojected, Resampled};
-use crate::io::rows::{GeoTiff, Header, InMemory, Rows, is_tiff};
+use crate::io::rows::{GeoTiff, Header, InMemory, Rows, cut_at, is_tiff};
 
 /// A part's rows of a band: its column on the mosaic, its first row, its cells.
 type PartBand = (usize, usize, Raster);
@@ -394,14 +394,7 @@ fn place(parts: &[(&Path, &Header)]) -> Result<(Header, Vec<[usize; 2]>), Error>
             None
         },
         nodata: first.nodata,
-        georef: Some(Georef {
-            epsg: g0.epsg,
-            origin: [
-                g0.origin[0] + x0 as f64 * g0.pixel_size[0],
-                g0.origin[1] + y0 as f64 * g0.pixel_size[1],
-            ],
-            pixel_size: g0.pixel_size,
-        }),
+        georef: Some(cut_at(&g0, [x0 as f64, y0 as f64])),
         lineage: None,
     };
     let at = placed

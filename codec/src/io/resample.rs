@@ -13,7 +13,7 @@ use fractile_proto::{Georef, SampleFormat};
 
 use crate::Error;
 use crate::io::raster::Raster;
-use crate::io::rows::{Header, Rows};
+use crate::io::rows::{Header, Rows, cut_at};
 
 /// The input cells one target cell is made of along one axis: the first index and a weight
 /// for it and each next one.
@@ -145,11 +145,7 @@ impl Resampled {
             sample: SampleFormat::F32,
             georef: Some(Georef {
                 epsg: g.epsg,
-                origin: [
-                    target.origin[0] + x0 as f64 * target.pixel_size[0],
-                    target.origin[1] + y0 as f64 * target.pixel_size[1],
-                ],
-                pixel_size: target.pixel_size,
+                ..cut_at(target, [x0 as f64, y0 as f64])
             }),
             ..h
         };

@@ -83,14 +83,23 @@ impl Header {
             sample: self.sample,
             units: self.units.clone(),
             nodata: self.nodata,
-            georef: self.georef.as_ref().map(|g| Georef {
-                origin: [
-                    g.origin[0] + x0 as f64 * g.pixel_size[0],
-                    g.origin[1] + y0 as f64 * g.pixel_size[1],
-                ],
-                ..g.clone()
-            }),
+            georef: self
+                .georef
+                .as_ref()
+                .map(|g| cut_at(g, [x0 as f64, y0 as f64])),
         }
+    }
+}
+
+/// The georeference of the grid `g` cut at its cell `(x, y)` (that cell's corner the origin):
+/// a band's, a window's, a mosaic's.
+pub(crate) fn cut_at(g: &Georef, [x, y]: [f64; 2]) -> Georef {
+    Georef {
+        origin: [
+            g.origin[0] + x * g.pixel_size[0],
+            g.origin[1] + y * g.pixel_size[1],
+        ],
+        ..g.clone()
     }
 }
 
