@@ -729,7 +729,7 @@ fn a_dem_coded_in_chunks_is_described_and_decoded_like_any_asset() {
             .output()
             .unwrap(),
     );
-    assert_eq!(info["format_version"], 9);
+    assert_eq!(info["format_version"], 10);
     assert_eq!(info["chunks"]["chunk"], 128);
     let levels = info["chunks"]["levels"].as_array().unwrap();
     // 403 x 344 in chunks of 128: 3 x 3 (the last of each row and column takes the

@@ -87,6 +87,7 @@ impl Grid {
             step,
             kernel: Kernel::Fitted,
             ends: Ends::Mirror,
+            code: lifting::Code::Plain,
         };
         let (stream, decoded) = lifting::encode(&plane, values, 0.1);
         (stream.len(), decoded)
@@ -117,6 +118,7 @@ fn ends(source: &Grid) {
                     step,
                     kernel,
                     ends,
+                    code: lifting::Code::Plain,
                 };
                 let mut bytes = 0;
                 let mut decoded = vec![0.0; w * h];

@@ -341,9 +341,9 @@ fn planar_offsets_improve_terrain_at_the_same_rate() {
 #[test]
 fn unknown_versions_and_codecs_are_named_in_the_error() {
     let mut bytes = small_camera_asset().to_bytes();
-    bytes[8] = 10;
+    bytes[8] = 11;
     let e = Asset::from_bytes(&bytes).unwrap_err().to_string();
-    assert!(e.contains("version 10 is not"), "{e}");
+    assert!(e.contains("version 11 is not"), "{e}");
     // Versions 6 to 8 number chunked containers only.
     bytes[8] = 7;
     let e = Asset::from_bytes(&bytes).unwrap_err().to_string();

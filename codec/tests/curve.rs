@@ -160,10 +160,10 @@ fn restamp(bytes: &mut [u8], version: u8) {
 fn older_curve_assets_are_refused_by_name() {
     // Format versions 2 and 3 changed the curve coding: an older curve file must not decode
     // to garbage, even with a valid checksum.
-    // Version 9 numbers files that are not chunked after 5, with 5's layout (its change was the
-    // projected pyramid's coding): the same bytes as version 5 are one.
+    // Version 9 numbers files that are not chunked after 5, with 5's layout (its change, and
+    // 10's, were the projected codec's coding): the same bytes as version 5 are one.
     let v9 = encode(&coast()[..1], 0.01, false).to_bytes();
-    assert_eq!(u16::from_le_bytes([v9[8], v9[9]]), 9);
+    assert_eq!(u16::from_le_bytes([v9[8], v9[9]]), 10);
     let mut v5 = v9.clone();
     restamp(&mut v5, 5);
     assert_eq!(

@@ -224,7 +224,7 @@ impl<'a> Search<'a> {
             encode_at,
             quantum: if whole { 1.0 } else { 0.0 },
             span,
-            design: Some(Order::Lifted),
+            design: Some(Order::LiftedTwoRate),
             tried: Vec::new(),
         }
     }
@@ -273,7 +273,7 @@ impl<'a> Search<'a> {
         // a bit a cell: kept, and searched again, only if it scores better.
         let (q, _) = self.quality(t);
         let ours = self.sample.code(q, self.encode_at)?;
-        self.design = Some(Order::Lifted97);
+        self.design = Some(Order::Lifted97TwoRate);
         let (q97, _) = self.quality(t);
         let theirs = self.sample.code(q97, self.encode_at)?;
         let score = |x: &Trial| {
@@ -285,7 +285,7 @@ impl<'a> Search<'a> {
             let t = self.solve(t, aim)?;
             return Ok(self.quality(t).0);
         }
-        self.design = Some(Order::Lifted);
+        self.design = Some(Order::LiftedTwoRate);
         Ok(q)
     }
 

@@ -100,6 +100,7 @@ pub(super) fn view_maps(enc: &Encoded, part: &Raster, views: usize) -> Result<Ve
             step: header.step,
             kernel,
             ends: crate::codecs::projected::kernel::Ends::Mirror,
+            code: header.order.code(),
         };
         let gain = crate::codecs::projected::kernel::dc_gain(kernel).powi(2 * read as i32);
         let mut band = lifting::analysis(&plane, &grid, read);

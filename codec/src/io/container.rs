@@ -6,7 +6,7 @@
 use fractile_proto::{AssetKind, AssetMeta};
 
 pub use super::frame::FORMAT_VERSION;
-use super::frame::{MAGIC, kind_byte};
+use super::frame::{MAGIC, SHARED_SINCE_VERSION, kind_byte};
 
 use crate::Error;
 use crate::codecs::registry::Codec;
@@ -138,10 +138,10 @@ pub(crate) fn container(bytes: &[u8]) -> Result<Container<'_>, Error> {
     }
     let version = u16::from_le_bytes([bytes[8], bytes[9]]);
     if !(OLDEST_READ_VERSION..=LAST_UNCHUNKED_VERSION).contains(&version)
-        && version != FORMAT_VERSION
+        && !(SHARED_SINCE_VERSION..=FORMAT_VERSION).contains(&version)
     {
         return Err(bad(format!(
-            "format version {version} is not supported by this build (reads versions {OLDEST_READ_VERSION} to {LAST_UNCHUNKED_VERSION} and {FORMAT_VERSION}; 6 to 8 are chunked)"
+            "format version {version} is not supported by this build (reads versions {OLDEST_READ_VERSION} to {LAST_UNCHUNKED_VERSION} and {SHARED_SINCE_VERSION} to {FORMAT_VERSION}; 6 to 8 are chunked)"
         )));
     }
     let body = bytes.len() - 4;

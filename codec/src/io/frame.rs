@@ -14,8 +14,15 @@ use fractile_proto::{AssetKind, AssetMeta};
 /// refused by name (re-encode its GeoJSON). Versions 6 to 8 are chunked containers only
 /// (`io::layout`); version 9, one number for both containers, codes the projected pyramid's
 /// details with two-rate contexts (`pyramid::Order::SeparableTwoRate`), which a reader of
-/// version 5 would take for a corrupt header: the version tells it the file is newer.
-pub const FORMAT_VERSION: u16 = 9;
+/// version 5 would take for a corrupt header: the version tells it the file is newer. Version
+/// 10 codes the projected codec's lifted coefficients with two-rate contexts and their signs in
+/// context (`pyramid::Order::Lifted97TwoRate`, `lifting::Code::Contextual`), which a reader of
+/// 9 would refuse as an unknown multiresolution; 9 is still read.
+pub const FORMAT_VERSION: u16 = 10;
+
+/// The first version that numbers both containers (the one before is 5 for files that are not
+/// chunked, 8 for chunked ones).
+pub(crate) const SHARED_SINCE_VERSION: u16 = 9;
 
 /// File magic.
 pub const MAGIC: &[u8; 8] = b"FRACTILE";

@@ -18,7 +18,8 @@ use super::frame::kind_byte;
 /// file with views has a coded level above them ([`ChunkTable::level_sizes`]); 7 is read.
 /// Version 9 (the number files that are not chunked take too): the chunks are files of
 /// version 9, whose projected details are coded with two-rate contexts; the table is 8's.
-pub const CHUNKED_VERSION: u16 = 9;
+/// Version 10: chunks of version 10 (lifted coefficients in two-rate contexts); 9 is read.
+pub const CHUNKED_VERSION: u16 = super::frame::FORMAT_VERSION;
 
 /// The first chunked version whose files with views keep a coded level above them.
 pub const CODED_TOP_VERSION: u16 = 8;
@@ -446,13 +447,14 @@ pub(crate) fn read_exact_at(
 }
 
 /// Whether `bytes` (at least the first 12 of a file) start a chunked container: versions 6
-/// to 8 are chunked, version 9 (which numbers both containers) with the chunked codec byte.
+/// to 8 are chunked, versions 9 on (which number both containers) with the chunked codec byte.
 pub fn is_chunked(bytes: &[u8]) -> bool {
+    let shared = super::frame::SHARED_SINCE_VERSION;
     bytes.len() >= 12
         && &bytes[..8] == MAGIC
         && match u16::from_le_bytes([bytes[8], bytes[9]]) {
-            v if v == CHUNKED_VERSION => bytes[11] == CHUNKED_CODEC,
-            v => (OLDEST_CHUNKED_VERSION..CHUNKED_VERSION).contains(&v),
+            v if (shared..=CHUNKED_VERSION).contains(&v) => bytes[11] == CHUNKED_CODEC,
+            v => (OLDEST_CHUNKED_VERSION..shared).contains(&v),
         }
 }
 

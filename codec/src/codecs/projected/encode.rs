@@ -198,7 +198,11 @@ fn designs(settings: &ProjectedSettings) -> Vec<Option<Order>> {
     if settings.pyramid {
         vec![None]
     } else {
-        vec![Some(Order::Lifted), Some(Order::Lifted97), None]
+        vec![
+            Some(Order::LiftedTwoRate),
+            Some(Order::Lifted97TwoRate),
+            None,
+        ]
     }
 }
 

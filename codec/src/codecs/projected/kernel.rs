@@ -423,8 +423,17 @@ impl Order {
             | Order::Quincunx
             | Order::SeparableTwoRate
             | Order::QuincunxTwoRate => None,
-            Order::Lifted => Some(Kernel::Fitted),
-            Order::Lifted97 => Some(Kernel::Cdf97),
+            Order::Lifted | Order::LiftedTwoRate => Some(Kernel::Fitted),
+            Order::Lifted97 | Order::Lifted97TwoRate => Some(Kernel::Cdf97),
+        }
+    }
+
+    /// How a lifted plane's coefficients are coded.
+    pub fn code(self) -> super::bands::Code {
+        if self.two_rate() {
+            super::bands::Code::Contextual
+        } else {
+            super::bands::Code::Plain
         }
     }
 }

@@ -35,248 +35,11 @@
 //! sibling bands at the same place and its parent (as EBCOT and SPIHT use them).
 
 use crate::core::entropy::{Decoder, Encoder};
-use crate::core::lattice::{IntCoder, med};
+use crate::core::lattice::IntCoder;
 
+pub use super::bands::Code;
+use super::bands::{Quantiser, Reader, Steps, walk};
 use super::kernel::*;
-use super::pyramid::causal_neighbours;
-
-/// Neighbour and parent buckets of a coefficient's context; three depths (finest, next, the
-/// rest) and three orientations.
-const NEIGHBOUR_BUCKETS: usize = 6;
-const PARENT_BUCKETS: usize = 4;
-const DEPTHS: usize = 3;
-const BAND_CONTEXTS: usize = 3 * DEPTHS * NEIGHBOUR_BUCKETS * PARENT_BUCKETS;
-/// Contexts of the coarsest grid (MED residuals by local relief).
-const COARSE_CONTEXTS: usize = 4;
-
-/// Which of a band's axes hold details: HL (x), LH (y), HH (both).
-const BANDS: [[bool; 2]; 3] = [[true, false], [false, true], [true, true]];
-
-/// The sides of the walk over the coefficients: the encoder quantises and codes, the decoder
-/// reads; both return the quantised index of the coefficient at `at`.
-trait Indices {
-    /// `prediction`: the coarsest grid's MED prediction of the index (its residual is coded,
-    /// the index rounded plainly); `None` for a band's detail (dead zone, rate-distortion).
-    fn index(&mut self, at: usize, step: f64, prediction: Option<i32>, coder: &mut IntCoder)
-    -> i32;
-}
-
-/// Context of the coarsest grid from the spread of its causal neighbours (quantised units).
-fn coarse_context(a: i32, b: i32, c: i32) -> usize {
-    match (a - b).unsigned_abs().max((a - c).unsigned_abs()) {
-        0..=1 => 0,
-        2..=4 => 1,
-        5..=16 => 2,
-        _ => 3,
-    }
-}
-
-/// Bucket of a coefficient's coded neighbourhood (`2 (|W| + |N|) + |NW| + |NE|`, plus half the
-/// siblings').
-fn neighbour_bucket(near: u32) -> usize {
-    match near {
-        0 => 0,
-        1..=2 => 1,
-        3..=4 => 2,
-        5..=8 => 3,
-        9..=16 => 4,
-        _ => 5,
-    }
-}
-
-/// Bucket of a coefficient's parent's |index|.
-fn parent_bucket(parent: u32) -> usize {
-    match parent {
-        0 => 0,
-        1 => 1,
-        2..=3 => 2,
-        _ => 3,
-    }
-}
-
-/// One walk over the coefficients, coarsest first, filling `g` with the dequantised
-/// coefficients: the coarse grid, then the bands of every level down to `depth + 1` (0: all of
-/// them; a reader of the coarse band at `depth` stops there, the stream's rest unread).
-fn walk(
-    (size, levels, depth): ([usize; 2], u32, u32),
-    steps: &Steps,
-    g: &mut [f64],
-    side: &mut dyn Indices,
-) {
-    let [w, h] = size;
-    let mut coarse: Vec<IntCoder> = (0..COARSE_CONTEXTS).map(|_| IntCoder::new()).collect();
-    let mut bands: Vec<IntCoder> = (0..BAND_CONTEXTS).map(|_| IntCoder::new()).collect();
-    let mut q = vec![0i32; w * h];
-    let top = 1usize << levels;
-    for y in (0..h).step_by(top) {
-        for x in (0..w).step_by(top) {
-            let i = y * w + x;
-            let (a, b, c) = causal_neighbours(&q, w, (x, y), top);
-            let coder = &mut coarse[coarse_context(a, b, c)];
-            q[i] = side.index(i, steps.coarse, Some(med(a, b, c)), coder);
-            g[i] = f64::from(q[i]) * steps.coarse;
-        }
-    }
-    for j in (depth + 1..=levels).rev() {
-        let s = 1usize << (j - 1);
-        let stride = 2 * s;
-        let depth = (j as usize - 1).min(DEPTHS - 1);
-        let magnitude = |q: &[i32], x: isize, y: isize| -> u32 {
-            if x < 0 || y < 0 || x >= w as isize || y >= h as isize {
-                0
-            } else {
-                q[y as usize * w + x as usize].unsigned_abs()
-            }
-        };
-        for (band, axes) in BANDS.iter().enumerate() {
-            let step = steps.band[j as usize - 1][band];
-            let (x0, y0) = (usize::from(axes[0]) * s, usize::from(axes[1]) * s);
-            for y in (y0..h).step_by(stride) {
-                for x in (x0..w).step_by(stride) {
-                    let i = y * w + x;
-                    let (xi, yi, st) = (x as isize, y as isize, stride as isize);
-                    // Every neighbour below lies within stride + s of (x, y) (above it, or
-                    // beside it, or a stride below): away from the edges, read unchecked.
-                    let reach = stride + s;
-                    let inside = x >= reach && y >= reach && x + reach < w && y + stride < h;
-                    let magnitude = |q: &[i32], x: isize, y: isize| -> u32 {
-                        if inside {
-                            q[y as usize * w + x as usize].unsigned_abs()
-                        } else {
-                            magnitude(q, x, y)
-                        }
-                    };
-                    let near = 2 * (magnitude(&q, xi - st, yi) + magnitude(&q, xi, yi - st))
-                        + magnitude(&q, xi - st, yi - st)
-                        + magnitude(&q, xi + st, yi - st);
-                    // The sibling bands already coded at this level, at the same place and
-                    // around it (all of a sibling band is known, ahead of this row too).
-                    let si = s as isize;
-                    let around = |cx: isize, cy: isize| {
-                        2 * magnitude(&q, cx, cy)
-                            + magnitude(&q, cx - st, cy)
-                            + magnitude(&q, cx + st, cy)
-                            + magnitude(&q, cx, cy - st)
-                            + magnitude(&q, cx, cy + st)
-                    };
-                    let sib = match band {
-                        0 => 0,
-                        1 => around(xi + si, yi - si),
-                        _ => (around(xi, yi - si) + around(xi - si, yi)) / 2,
-                    };
-                    let near = near + sib / 2;
-                    // The parent: the same band one level coarser, over the same place.
-                    let parent = if j < levels {
-                        let px = 2 * x0 + (x / stride / 2) * 2 * stride;
-                        let py = 2 * y0 + (y / stride / 2) * 2 * stride;
-                        magnitude(&q, px as isize, py as isize)
-                    } else {
-                        0
-                    };
-                    let context = ((band * DEPTHS + depth) * NEIGHBOUR_BUCKETS
-                        + neighbour_bucket(near))
-                        * PARENT_BUCKETS
-                        + parent_bucket(parent);
-                    q[i] = side.index(i, step, None, &mut bands[context]);
-                    g[i] = f64::from(q[i]) * step;
-                }
-            }
-        }
-    }
-}
-
-/// The quantiser steps of a transform: the coarsest grid's and, per level (finest first), each
-/// band's (HL, LH, HH).
-struct Steps {
-    coarse: f64,
-    band: Vec<[f64; 3]>,
-}
-
-impl Steps {
-    fn new(plane: &Plane, weights: &[i32]) -> Steps {
-        let (step, levels) = (plane.step, plane.levels);
-        if levels == 0 {
-            return Steps {
-                coarse: step,
-                band: Vec::new(),
-            };
-        }
-        let (gx, gy) = (
-            gains(plane.kernel, weights, 0, levels),
-            gains(plane.kernel, weights, 1, levels),
-        );
-        let at = |g: f64| step / g.sqrt();
-        let band = (0..levels as usize)
-            .map(|j| {
-                [
-                    at(gx[j].1 * gy[j].0),
-                    at(gx[j].0 * gy[j].1),
-                    at(gx[j].1 * gy[j].1),
-                ]
-            })
-            .collect();
-        let top = levels as usize - 1;
-        Steps {
-            coarse: at(gx[top].0 * gy[top].0),
-            band,
-        }
-    }
-}
-
-/// The encoder's side: each band index is rounded, then moved one step nearer zero where that
-/// saves more bits (at `lambda` a bit, in squared steps) than it costs in squared error, as the
-/// pyramid's quantiser does.
-struct Quantiser<'a> {
-    coefficients: &'a [f64],
-    lambda: f64,
-    encoder: &'a mut Encoder,
-}
-
-impl Indices for Quantiser<'_> {
-    fn index(
-        &mut self,
-        at: usize,
-        step: f64,
-        prediction: Option<i32>,
-        coder: &mut IntCoder,
-    ) -> i32 {
-        let r = self.coefficients[at] / step;
-        let limit = f64::from(i32::MAX / 4);
-        let q = r.round().clamp(-limit, limit) as i32;
-        if let Some(p) = prediction {
-            coder.put(self.encoder, q - p);
-            return q;
-        }
-        let mut q = q;
-        if self.lambda > 0.0 && q != 0 {
-            let nearer = q - q.signum();
-            let cost = |q: i32| (r - f64::from(q)).powi(2) + self.lambda * coder.cost(q, 0);
-            if cost(nearer) < cost(q) {
-                q = nearer;
-            }
-        }
-        coder.put(self.encoder, q);
-        q
-    }
-}
-
-/// The decoder's side.
-struct Reader<'a, 'b> {
-    decoder: &'a mut Decoder<'b>,
-}
-
-impl Indices for Reader<'_, '_> {
-    fn index(
-        &mut self,
-        _at: usize,
-        _step: f64,
-        prediction: Option<i32>,
-        coder: &mut IntCoder,
-    ) -> i32 {
-        let v = coder.get(self.decoder);
-        v.saturating_add(prediction.unwrap_or(0))
-    }
-}
 
 /// What both sides need to know of a plane.
 #[derive(Clone, Copy, Debug)]
@@ -291,6 +54,8 @@ pub struct Plane {
     pub kernel: Kernel,
     /// How lines continue past their ends (files of format 6 and before: mirrored).
     pub ends: Ends,
+    /// How the coefficients are coded.
+    pub code: Code,
 }
 
 /// The forward transform of `grid` to depth `depth` (at most `plane.levels`), in place on the
@@ -324,7 +89,7 @@ pub fn encode(plane: &Plane, source: &[f64], lambda: f64) -> (Vec<u8>, Vec<f64>)
             weight_coder.put(&mut encoder, v);
         }
     }
-    let steps = Steps::new(plane, &weights);
+    let steps = Steps::new((plane.step, plane.levels, plane.kernel), &weights);
     let mut g = vec![0.0; source.len()];
     let mut quantiser = Quantiser {
         coefficients: &coefficients,
@@ -333,6 +98,7 @@ pub fn encode(plane: &Plane, source: &[f64], lambda: f64) -> (Vec<u8>, Vec<f64>)
     };
     walk(
         (plane.size, plane.levels, 0),
+        plane.code,
         &steps,
         &mut g,
         &mut quantiser,
@@ -366,10 +132,11 @@ pub fn decode_to(plane: &Plane, decoder: &mut Decoder<'_>, depth: u32) -> Vec<f6
                 .clamp(WEIGHT_RANGE.0, WEIGHT_RANGE.1);
         }
     }
-    let steps = Steps::new(plane, &weights);
+    let steps = Steps::new((plane.step, plane.levels, plane.kernel), &weights);
     let mut g = vec![0.0; plane.size[0] * plane.size[1]];
     walk(
         (plane.size, plane.levels, depth),
+        plane.code,
         &steps,
         &mut g,
         &mut Reader { decoder },
@@ -444,6 +211,7 @@ mod tests {
                 step: 1.0,
                 kernel: Kernel::Cdf97,
                 ends,
+                code: Code::Plain,
             };
             let mut g = left.clone();
             let weights = forward(&mut g, [w, h], 3, (Kernel::Cdf97, ends));
@@ -520,6 +288,7 @@ mod tests {
                     step,
                     kernel,
                     ends: Ends::Mirror,
+                    code: Code::Plain,
                 };
                 let (stream, coded) = encode(&plane, &source, 0.1);
                 let decoded = decode(&plane, &mut Decoder::new(&stream));

@@ -23,6 +23,7 @@
 //! so on down every octave: the roughness of the source continues self-similarly. rho is
 //! fitted per asset as the ratio of the finest two octaves' detail amplitudes.
 
+mod bands;
 pub(crate) mod bound;
 #[doc(hidden)] // public as the pyramid is (its walk's two sides), not API
 pub mod details;
@@ -97,6 +98,7 @@ fn lifted_plane(layout: &pyramid::Layout, kernel: kernel::Kernel) -> lifting::Pl
         step: layout.step,
         kernel,
         ends: kernel::Ends::Mirror,
+        code: layout.order.code(),
     }
 }
 

@@ -131,6 +131,11 @@ pub enum Order {
     SeparableTwoRate,
     /// [`Order::Quincunx`], its details coded as [`Order::SeparableTwoRate`]'s.
     QuincunxTwoRate,
+    /// [`Order::Lifted`], its coefficients coded with two-rate contexts, signs in context and
+    /// dequantised to their centroids (format 10, what encoders write).
+    LiftedTwoRate,
+    /// [`Order::Lifted97`], coded as [`Order::LiftedTwoRate`] is.
+    Lifted97TwoRate,
 }
 
 impl Order {
@@ -150,7 +155,13 @@ impl Order {
     /// Whether the details are coded with [`crate::core::entropy::TwoRateBit`] contexts and
     /// signs in context.
     pub fn two_rate(self) -> bool {
-        matches!(self, Order::SeparableTwoRate | Order::QuincunxTwoRate)
+        matches!(
+            self,
+            Order::SeparableTwoRate
+                | Order::QuincunxTwoRate
+                | Order::LiftedTwoRate
+                | Order::Lifted97TwoRate
+        )
     }
 
     /// The fewest bits a coded sample takes (its zero flag's): what a reader checks a header's

@@ -327,6 +327,8 @@ fn coarse_views_are_the_coarse_samples_of_the_multiresolution() {
         for (order, kernel) in [
             (pyramid::Order::Lifted, kernel::Kernel::Fitted),
             (pyramid::Order::Lifted97, kernel::Kernel::Cdf97),
+            (pyramid::Order::LiftedTwoRate, kernel::Kernel::Fitted),
+            (pyramid::Order::Lifted97TwoRate, kernel::Kernel::Cdf97),
         ] {
             for (source, step) in [(&plane, 0.01), (&g, 0.01)] {
                 let hd = ProjectedHeader {
