@@ -156,9 +156,13 @@ mod tests {
         // Version 9 numbers files that are not chunked too: 5 is older now.
         assert!(older_format(&golden.join("v5-quadtree-jacksboro-utm.fra")));
         assert!(older_format(&golden.join("v8-chunked-views-jacksboro.fra")));
-        assert!(!older_format(&golden.join("v9-quadtree-camera.fra")));
+        // Version 10 codes lifted planes anew: 9 is older now, and re-encoded.
+        assert!(older_format(&golden.join("v9-quadtree-camera.fra")));
         assert!(!older_format(
-            &golden.join("v9-chunked-views-jacksboro.fra")
+            &golden.join("v10-projected-cdf97-camera.fra")
+        ));
+        assert!(!older_format(
+            &golden.join("v10-chunked-views-rate-jacksboro.fra")
         ));
         // Unreadable or too short: left to the store, which names the problem.
         assert!(!older_format(&golden.join("missing.fra")));

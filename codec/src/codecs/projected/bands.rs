@@ -19,7 +19,7 @@ use crate::core::entropy::{Bit, Decoder, Encoder, Model, TwoRateBit};
 use crate::core::lattice::{IntCoder, med};
 
 use super::kernel::{Kernel, gains};
-use super::pyramid::causal_neighbours;
+use super::pyramid::{Order, causal_neighbours};
 
 /// Neighbour and parent buckets of a coefficient's context; three depths (finest, next, the
 /// rest) and three orientations.
@@ -40,6 +40,18 @@ pub enum Code {
     Plain,
     /// Format 10.
     Contextual,
+}
+
+// Here rather than in `pyramid`, which this module builds on.
+impl Order {
+    /// How a lifted plane's coefficients are coded (the pyramid's orders name none).
+    pub fn code(self) -> Code {
+        if self.two_rate() {
+            Code::Contextual
+        } else {
+            Code::Plain
+        }
+    }
 }
 
 /// The sides of the walk over the coefficients: the encoder quantises and codes, the decoder
@@ -331,86 +343,6 @@ impl<M: Model + Default + Copy> Indices<M> for Reader<'_, '_> {
             -m
         } else {
             m
-        }
-    }
-}
-
-#[cfg(test)]
-mod tests {
-    use super::Code;
-    use crate::codecs::projected::kernel::{Ends, Kernel};
-    use crate::codecs::projected::lifting::{Plane, decode, encode};
-    use crate::codecs::projected::pyramid::levels_for;
-    use crate::core::entropy::Decoder;
-    use crate::io::raster::Raster;
-
-    fn testdata(name: &str) -> Vec<f64> {
-        let path = std::path::Path::new(env!("CARGO_MANIFEST_DIR"))
-            .join("../testdata")
-            .join(name);
-        let r = Raster::open(&path).unwrap();
-        r.channels[0].iter().map(|&v| f64::from(v)).collect()
-    }
-
-    /// On a photograph and a DEM at 0.1-0.4 and 0.6-2 bits a sample (format 9's streams at steps
-    /// of 1/8 and 1/64 of their range), the two-rate code at the finest step that fits format
-    /// 9's bytes has a smaller error (measured 0.22-0.72 dB at the coarse step, 0.14-0.45 at the
-    /// fine one); and every stream
-    /// decodes to the samples its encoder reconstructed.
-    #[test]
-    fn two_rate_contexts_code_real_planes_better_in_the_same_bytes() {
-        for (name, size) in [("camera.png", [512, 512]), ("jacksboro.tif", [403, 344])] {
-            let source = testdata(name);
-            let (lo, hi) = source
-                .iter()
-                .fold((f64::MAX, f64::MIN), |(a, b), &v| (a.min(v), b.max(v)));
-            for kernel in [Kernel::Cdf97, Kernel::Fitted] {
-                for fraction in [8.0, 64.0] {
-                    let code_at = |code, step| {
-                        let plane = Plane {
-                            size,
-                            levels: u32::from(levels_for(size[0], size[1])),
-                            step,
-                            kernel,
-                            ends: Ends::Mirror,
-                            code,
-                        };
-                        let (stream, samples) = encode(&plane, &source, 0.1);
-                        let decoded = decode(&plane, &mut Decoder::new(&stream));
-                        assert_eq!(samples, decoded, "{name} {kernel:?} {code:?}");
-                        let squared: f64 = samples
-                            .iter()
-                            .zip(&source)
-                            .map(|(a, b)| (a - b).powi(2))
-                            .sum();
-                        (stream.len(), squared)
-                    };
-                    let plain = code_at(Code::Plain, (hi - lo) / fraction);
-                    // Bisection on the step's logarithm for the finest that fits.
-                    let (mut fine, mut coarse) = (
-                        ((hi - lo) / fraction / 4.0).ln(),
-                        ((hi - lo) / fraction).ln(),
-                    );
-                    let mut kept = code_at(Code::Contextual, coarse.exp());
-                    for _ in 0..14 {
-                        let mid = 0.5 * (fine + coarse);
-                        let tried = code_at(Code::Contextual, mid.exp());
-                        if tried.0 <= plain.0 {
-                            (coarse, kept) = (mid, tried);
-                        } else {
-                            fine = mid;
-                        }
-                    }
-                    assert!(kept.0 <= plain.0);
-                    let gain = 10.0 * (plain.1 / kept.1).log10();
-                    let least = if fraction < 10.0 { 0.15 } else { 0.08 };
-                    assert!(
-                        gain > least,
-                        "{name} {kernel:?} 1/{fraction} ({} bytes): {gain:.3} dB",
-                        plain.0
-                    );
-                }
-            }
         }
     }
 }

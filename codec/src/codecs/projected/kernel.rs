@@ -427,15 +427,6 @@ impl Order {
             Order::Lifted97 | Order::Lifted97TwoRate => Some(Kernel::Cdf97),
         }
     }
-
-    /// How a lifted plane's coefficients are coded.
-    pub fn code(self) -> super::bands::Code {
-        if self.two_rate() {
-            super::bands::Code::Contextual
-        } else {
-            super::bands::Code::Plain
-        }
-    }
 }
 
 #[cfg(test)]
