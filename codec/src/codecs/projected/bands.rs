@@ -178,7 +178,13 @@ fn walk_with<M: Model + Default + Copy>(
                             magnitude(q, x, y)
                         }
                     };
-                    let near = 2 * (magnitude(&q, xi - st, yi) + magnitude(&q, xi, yi - st))
+                    // The west and north neighbours, signed: their signs are the sign's context.
+                    let (west, north) = if inside {
+                        (q[i - stride], q[i - stride * w])
+                    } else {
+                        (signed(&q, xi - st, yi), signed(&q, xi, yi - st))
+                    };
+                    let near = 2 * (west.unsigned_abs() + north.unsigned_abs())
                         + magnitude(&q, xi - st, yi - st)
                         + magnitude(&q, xi + st, yi - st);
                     // The sibling bands already coded at this level, at the same place and

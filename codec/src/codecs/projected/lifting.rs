@@ -32,7 +32,7 @@
 //! function on the finest grid (measured from the kernel and its weights), so that one step
 //! spreads the squared error evenly over the bands. They are range coded band by band from the
 //! coarsest, each in a context of its band's orientation and depth, its coded neighbours, its
-//! sibling bands at the same place and its parent (as EBCOT and SPIHT use them).
+//! sibling bands at the same place and its parent (as EBCOT and SPIHT use them): `bands.rs`.
 
 use crate::core::entropy::{Decoder, Encoder};
 use crate::core::lattice::IntCoder;

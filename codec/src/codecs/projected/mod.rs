@@ -288,7 +288,8 @@ pub struct ProjectedSettings {
 }
 
 /// A step (source units) and the multiresolution that codes at it: a lifted kernel
-/// ([`pyramid::Order::Lifted`], [`pyramid::Order::Lifted97`]) or `None`, the pyramid (its order chosen).
+/// ([`pyramid::Order::LiftedTwoRate`], [`pyramid::Order::Lifted97TwoRate`]; format 9's
+/// [`pyramid::Order::Lifted`], [`pyramid::Order::Lifted97`] are still read) or `None`, the pyramid (its order chosen).
 #[derive(Clone, Copy, Debug, PartialEq, serde::Serialize, serde::Deserialize)]
 pub struct AtStep {
     /// The quantiser's step, source units.
