@@ -10,10 +10,11 @@
 //! west and north neighbours' signs. Why: at 0.2-0.5 bits a pixel most coefficients are zero,
 //! and a one-rate context's zero flag costs at least 0.022 bits, a tenth of the budget at 0.2
 //! bpp; the two-rate code gained 0.25-0.9 dB at the same bytes on the repository's and held-out
-//! images (docs/benchmarks.md, issue 77's third session). Tried and left out, each within
-//! 0.05 dB: the nonzero indices dequantised to their measured centroids (an offset per band
-//! and class coded after each level), finer neighbour buckets, a fourth depth, second
-//! neighbours; and faster or slower rates than the pyramid's (4, 7) lost 0.02-0.2 dB.
+//! images (docs/benchmarks.md, issue 77's third session). Tried and left out, each between
+//! -0.07 and +0.04 dB: the nonzero indices dequantised to their measured centroids (an offset
+//! per band and class coded after each level), finer neighbour buckets, a fourth depth, the
+//! parent in the neighbours' sum; the pyramid's rates (4, 7) were the best of seven pairs or
+//! within 0.01 dB of it.
 
 use crate::core::entropy::{Bit, Decoder, Encoder, Model, TwoRateBit};
 use crate::core::lattice::{IntCoder, med};
