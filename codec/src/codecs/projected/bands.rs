@@ -220,9 +220,7 @@ fn walk_with<M: Model + Default + Copy>(
                     q[i] = match code {
                         Code::Plain => side.index(i, step, None, coder),
                         Code::Contextual => {
-                            let west = signed(&q, xi - st, yi);
-                            let sign =
-                                &mut signs[band][sign_context(west, signed(&q, xi, yi - st))];
+                            let sign = &mut signs[band][sign_context(west, north)];
                             side.detail((i, step), coder, sign)
                         }
                     };
@@ -236,7 +234,7 @@ fn walk_with<M: Model + Default + Copy>(
 /// The quantiser steps of a transform: the coarsest grid's and, per level (finest first), each
 /// band's (HL, LH, HH).
 pub(super) struct Steps {
-    pub(super) coarse: f64,
+    coarse: f64,
     band: Vec<[f64; 3]>,
 }
 
